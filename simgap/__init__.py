@@ -1,0 +1,10 @@
+"""simgap: certified sim-to-real gaps, controllers that respect them, and models that close them.
+
+Pipeline: System -> Dataset -> Certificate -> Abstraction -> Controller -> Rollouts, plus Refinement.
+"""
+
+from .errors import SimgapError
+from .systems import System, get_system, input_grid
+
+__version__ = "0.1.0"
+__all__ = ["SimgapError", "System", "get_system", "input_grid", "__version__"]

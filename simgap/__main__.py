@@ -1,0 +1,5 @@
+import sys
+
+from simgap.cli import main
+
+sys.exit(main())

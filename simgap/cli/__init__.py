@@ -1,0 +1,64 @@
+"""The ``simgap`` command: a thin dispatcher over one module per subcommand.
+
+Each module in ``SUBCOMMANDS`` defines ``add_parser(subparsers)`` (registering its parser and
+setting ``func=run`` via ``set_defaults``) and ``run(args) -> int``. Errors that name a bad
+input (SimgapError) print ``error: ...`` and exit with status 2; no traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from ..errors import SimgapError
+
+# subcommand module names under simgap.cli (and simgap_viz.cli for the app)
+SUBCOMMANDS = ["collect", "certify", "audit", "synthesize", "rollout", "refine", "data", "run"]
+VIZ_SUBCOMMANDS = ["gui", "record"]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from .. import __version__
+
+    p = argparse.ArgumentParser(
+        prog="simgap",
+        description="Certify the gap between a nominal model and a stochastic simulator, "
+                    "synthesize controllers that respect it, and refine the model.")
+    p.add_argument("--version", action="version", version=f"simgap {__version__}")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND")
+    for name in SUBCOMMANDS:
+        _register(sub, f"simgap.cli.{name}")
+    for name in VIZ_SUBCOMMANDS:
+        _register(sub, f"simgap_viz.cli_{name}")
+    return p
+
+
+def _register(sub, module: str) -> None:
+    try:
+        mod = importlib.import_module(module)
+    except ModuleNotFoundError as e:
+        if e.name and (e.name == module or module.startswith(e.name + ".")):
+            return  # subcommand not present in this installation
+        raise
+    mod.add_parser(sub)
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 0
+    try:
+        return int(args.func(args) or 0)
+    except SimgapError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,111 @@
+"""Dataset: the typed output of collection, per (x_r, u) pair statistics of N1hat simulator runs.
+
+Rows are the K = N * M pairs (cover point r, input j), cover-major. For every row:
+
+* ``x`` (K,n) the cover point x_r, ``u`` (K,m) the input;
+* ``f_nom`` (K,n) the nominal next state f(x_r, u);
+* ``mean`` (K,n) the empirical mean of the N1hat simulator next states fhat(x_r, u, w_k);
+* ``var`` (K,n) their unbiased sample variance (ddof = 1);
+* ``lo``/``hi`` (K,n) their minimum and maximum.
+
+Angle dimensions: every statistic is computed on the wrapped deviation d = wrap(fhat - f_nom)
+and shifted back (mean = wrap(f_nom + mean d), lo = f_nom + min d, hi = f_nom + max d; lo/hi
+are not wrapped), so the observed gap ``gap()`` = |wrap(mean - f_nom)| is meaningful across
+the +-pi seam.
+
+``manifest`` carries the full configuration, its hash and provenance.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .errors import SimgapError
+from .systems import System, get_system
+
+ARRAYS = ("x", "u", "f_nom", "mean", "var", "lo", "hi", "cover_index", "input_index")
+
+
+@dataclass
+class Dataset:
+    system: System
+    x: np.ndarray
+    u: np.ndarray
+    f_nom: np.ndarray
+    mean: np.ndarray
+    var: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+    cover_index: np.ndarray
+    input_index: np.ndarray
+    n_runs: int
+    epsilon: float
+    manifest: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        K, n = self.x.shape
+        for name in ("f_nom", "mean", "var", "lo", "hi"):
+            a = getattr(self, name)
+            if a.shape != (K, n):
+                raise SimgapError(f"dataset: {name} has shape {a.shape}, expected {(K, n)}")
+        if self.u.shape[0] != K:
+            raise SimgapError(f"dataset: u has {self.u.shape[0]} rows, expected {K}")
+        if n != self.system.n:
+            raise SimgapError(f"dataset: {n} state dims but system {self.system.name!r} has {self.system.n}")
+
+    @property
+    def K(self) -> int:
+        return self.x.shape[0]
+
+    @property
+    def hash(self) -> str:
+        """The configuration hash of the collection that produced this dataset."""
+        return self.manifest.get("hash", "")
+
+    def gap(self) -> np.ndarray:
+        """Observed gap |mean_k fhat(x_r,u,w_k) - f(x_r,u)| per row and dimension, (K,n), angles wrapped."""
+        return np.abs(self.system.diff(self.mean, self.f_nom))
+
+    def check_finite(self) -> None:
+        for name in ("x", "u", "f_nom", "mean", "var"):
+            a = getattr(self, name)
+            if not np.all(np.isfinite(a)):
+                bad = int((~np.isfinite(a)).reshape(a.shape[0], -1).any(axis=1).sum())
+                raise SimgapError(f"dataset: {bad} rows of {name} contain NaN or inf")
+
+    # ----- single-file form (.npz, no pickle) -----------------------------------------
+    def save_npz(self, path: str | Path) -> Path:
+        """Write the dataset as one .npz (atomically: temp file, then rename)."""
+        path = Path(path)
+        tmp = path.with_name(path.name + ".tmp.npz")
+        meta = {"n_runs": int(self.n_runs), "epsilon": float(self.epsilon), "manifest": self.manifest,
+                "system": self.system.name, "steps": int(self.system.steps)}
+        np.savez(tmp, **{k: getattr(self, k) for k in ARRAYS}, meta=np.array(json.dumps(meta)))
+        tmp.replace(path)
+        return path
+
+
+def load_dataset(path: str | Path, system: System | None = None) -> Dataset:
+    """Load a dataset from a single .npz or from a collection store directory.
+
+    ``system`` overrides the built-in system named in the file (needed for user systems).
+    """
+    path = Path(path)
+    if path.is_dir():
+        from .collect import load_store  # the chunked store of the collection stage
+        return load_store(path, system=system)
+    if not path.exists():
+        raise SimgapError(f"dataset {str(path)!r} does not exist")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in ARRAYS}
+            meta = json.loads(str(z["meta"]))
+    except (OSError, ValueError, KeyError) as e:
+        raise SimgapError(f"dataset {str(path)!r} is unreadable or not a simgap dataset: {e}") from None
+    sysobj = system or get_system(meta["system"], steps=meta.get("steps", 1))
+    return Dataset(system=sysobj, n_runs=int(meta["n_runs"]), epsilon=float(meta["epsilon"]),
+                   manifest=meta.get("manifest", {}), **arrays)

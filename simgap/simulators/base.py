@@ -1,0 +1,145 @@
+"""The stochastic simulator interface shared by every backend.
+
+A simulator is the high-fidelity, stochastic map x+ ~ fhat(x, u, w): given B states, B inputs
+and a seeded ``numpy.random.Generator`` it returns B next states after the system's sampling
+time tau with the input held constant. All randomness w is drawn from that generator by
+:meth:`Simulator.draw_noise`, and :meth:`Simulator.step_with_noise` is deterministic, so a
+batched call gives exactly the rows a one-at-a-time call gives for the same draws (PyBullet
+itself is deterministic).
+
+Simulators are built from a :class:`SimulatorConfig`, a plain JSON-able description, so worker
+processes (local pool or Ray) can rebuild the same simulator and manifests can record it.
+"""
+
+from __future__ import annotations
+
+import importlib
+from abc import ABC, abstractmethod
+from dataclasses import asdict, dataclass, field
+from typing import Dict
+
+import numpy as np
+
+from ..errors import SimgapError
+from ..systems import System, get_system
+
+
+@dataclass(frozen=True)
+class SimulatorConfig:
+    """JSON-able description of a stochastic simulator.
+
+    Attributes
+    ----------
+    kind : str
+        Backend: ``numpy``, ``pybullet_pendulum``, ``pybullet_turtlebot``.
+    system : str
+        Name of the nominal system it simulates (its X, U, base_tau, names).
+    steps : int
+        Base periods per sampling period (tau = steps * base_tau), input held.
+    noise : dict
+        Per-run noise, e.g. ``actuation_std``, ``sensor_std``, ``process_std`` (backend keys).
+    randomize : dict
+        Per-run parameter randomization, e.g. ``{"mass": 0.05}`` (relative std; backend keys).
+    effects : dict
+        Undeclared effects the nominal model lacks, e.g. ``{"joint_damping": 0.05}``.
+    options : dict
+        Anything else the backend takes (e.g. ``map`` for the TurtleBot world).
+    """
+
+    kind: str
+    system: str
+    steps: int = 1
+    noise: Dict = field(default_factory=dict)
+    randomize: Dict = field(default_factory=dict)
+    effects: Dict = field(default_factory=dict)
+    options: Dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "SimulatorConfig":
+        unknown = set(d) - {"kind", "system", "steps", "noise", "randomize", "effects", "options"}
+        if unknown:
+            raise SimgapError(f"simulator config: unknown keys {sorted(unknown)}")
+        if "kind" not in d or "system" not in d:
+            raise SimgapError("simulator config: needs 'kind' and 'system'")
+        return cls(**{k: (dict(v) if isinstance(v, dict) else v) for k, v in d.items()})
+
+
+class Simulator(ABC):
+    """Batch interface of a stochastic simulator (see module docstring)."""
+
+    #: keys each config section accepts; subclasses override
+    NOISE_KEYS: tuple = ()
+    RANDOMIZE_KEYS: tuple = ()
+    EFFECT_KEYS: tuple = ()
+    OPTION_KEYS: tuple = ()
+
+    def __init__(self, config: SimulatorConfig, system: System | None = None):
+        self.config = config
+        self.system = (system or get_system(config.system)).with_steps(config.steps)
+        for section, allowed in (("noise", self.NOISE_KEYS), ("randomize", self.RANDOMIZE_KEYS),
+                                 ("effects", self.EFFECT_KEYS), ("options", self.OPTION_KEYS)):
+            bad = set(getattr(config, section)) - set(allowed)
+            if bad:
+                raise SimgapError(
+                    f"simulator {config.kind!r}: unknown {section} keys {sorted(bad)}; allowed: {sorted(allowed)}")
+
+    @abstractmethod
+    def draw_noise(self, B: int, rng: np.random.Generator) -> Dict[str, np.ndarray]:
+        """Draw all randomness for B independent runs, each array with leading dimension B."""
+
+    @abstractmethod
+    def step_with_noise(self, x: np.ndarray, u: np.ndarray, noise: Dict[str, np.ndarray]) -> np.ndarray:
+        """Deterministic next states (B,n) for states x (B,n), inputs u (B,m) and drawn noise."""
+
+    def step(self, x: np.ndarray, u: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """B independent runs: next states (B,n) after tau from x (B,n) with u (B,m) held."""
+        x = np.atleast_2d(np.asarray(x, dtype=float))
+        u = np.atleast_2d(np.asarray(u, dtype=float))
+        if x.shape[0] != u.shape[0]:
+            raise SimgapError(f"simulator: {x.shape[0]} states but {u.shape[0]} inputs")
+        out = self.step_with_noise(x, u, self.draw_noise(x.shape[0], rng))
+        if not np.all(np.isfinite(out)):
+            bad = int((~np.isfinite(out)).any(axis=1).sum())
+            raise SimgapError(f"simulator {self.config.kind!r} returned NaN/inf for {bad} of {len(out)} runs")
+        return out
+
+    def close(self) -> None:
+        """Release backend resources (PyBullet client)."""
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+# kind -> "module:Class", imported lazily so that numpy-only users never import pybullet
+_BACKENDS = {
+    "numpy": "simgap.simulators.numpy_sim:NumpySimulator",
+    "pybullet_pendulum": "simgap.simulators.pybullet_pendulum:PendulumSimulator",
+    "pybullet_turtlebot": "simgap.simulators.pybullet_turtlebot:TurtlebotSimulator",
+}
+
+
+def make_simulator(config: SimulatorConfig | dict, system: System | None = None) -> Simulator:
+    """Build a simulator from its config (a :class:`SimulatorConfig` or its dict)."""
+    if isinstance(config, dict):
+        config = SimulatorConfig.from_dict(config)
+    try:
+        target = _BACKENDS[config.kind]
+    except KeyError:
+        raise SimgapError(f"unknown simulator kind {config.kind!r}; known: {', '.join(sorted(_BACKENDS))}") from None
+    mod, cls = target.split(":")
+    return getattr(importlib.import_module(mod), cls)(config, system)
+
+
+def as_vector(value, size: int, name: str) -> np.ndarray:
+    """A scalar or length-``size`` sequence as a non-negative float vector."""
+    v = np.broadcast_to(np.asarray(value, dtype=float), (size,)).copy() if np.ndim(value) == 0 \
+        else np.asarray(value, dtype=float)
+    if v.shape != (size,) or not np.all(np.isfinite(v)) or np.any(v < 0):
+        raise SimgapError(f"{name}: need a non-negative scalar or {size} values, got {value!r}")
+    return v

@@ -1,0 +1,1 @@
+"""Gap certification: basis, scenario program, bounds, Lipschitz/variance estimates, certificate, audit."""

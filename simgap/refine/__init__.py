@@ -1,0 +1,1 @@
+"""Model refinement: residuals, effect library, sparse selection, refined system, report."""

@@ -1,0 +1,1 @@
+"""Symbolic controller synthesis: grid, abstraction, games, controller, rollouts."""

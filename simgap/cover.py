@@ -1,0 +1,318 @@
+"""Epsilon-covers of the state set X and the cost of collecting data on them.
+
+A cover is a finite set of points x_r in X such that every x in X lies within epsilon
+(Euclidean norm, angle dimensions measured with wrapped differences) of some x_r (paper,
+Sec. III: the data set D = {(x_r, u, f(x_r,u), fhat(x_r,u,w_k))}).
+
+Grid construction (:func:`make_cover`): over the d *covered* dimensions, dimension i of
+length L_i = x_hi_i - x_lo_i is split into c_i = ceil(L_i / h_i) equal cells of width
+w_i = L_i / c_i <= h_i and the points sit at the cell centers x_lo_i + (k + 1/2) w_i. Every x
+is then within w_i/2 of a center in each dimension, so within r = 1/2 sqrt(sum_i w_i^2) of one
+point. The default spacing h_i = 2 epsilon / sqrt(d) gives r <= epsilon; a per-dimension
+spacing may be given instead (then r, the achieved radius, must not exceed epsilon).
+
+Angle dimensions spanning a full turn ([-pi, pi]) are periodic: the cells tile the circle and
+the centers never sit on the seam, so x near +pi and near -pi are both within w/2 of a center.
+
+Declared invariances: if the gap is known not to depend on some dimensions (e.g. the
+TurtleBot's position x1, x2 on a uniform floor), those dimensions are not covered; they are
+fixed at a stated representative value (default: the center of X) and the claim is recorded
+in the cover spec, the store manifest and the printed summary. Every x in X is then within
+epsilon of a cover point *after* moving it along the invariant dimensions.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Optional, Sequence
+
+import numpy as np
+
+from .errors import SimgapError
+from .systems import System
+
+TWO_PI = 2.0 * np.pi
+
+
+def _dim_index(system: System, d) -> int:
+    """A state dimension given as 0-based int, state name (``theta``) or positional name (``x3``)."""
+    if isinstance(d, (int, np.integer)) and not isinstance(d, bool):
+        i = int(d)
+    elif isinstance(d, str):
+        if d in system.state_names:
+            i = system.state_names.index(d)
+        elif d.startswith("x") and d[1:].isdigit():
+            i = int(d[1:]) - 1
+        else:
+            raise SimgapError(f"cover: unknown state dimension {d!r} for system {system.name!r}; "
+                              f"names: {', '.join(system.state_names)} (or x1..x{system.n})")
+    else:
+        raise SimgapError(f"cover: a state dimension must be an index or a name, got {d!r}")
+    if not 0 <= i < system.n:
+        raise SimgapError(f"cover: state dimension {d!r} out of range for n={system.n}")
+    return i
+
+
+@dataclass(frozen=True)
+class CoverSpec:
+    """What to cover and how finely (JSON-able via :meth:`to_dict`).
+
+    Attributes
+    ----------
+    epsilon : float
+        Cover radius epsilon > 0 (state units; Euclidean over the covered dimensions).
+    spacing : sequence of float, optional
+        Requested grid spacing h_i per covered dimension (in the order of the covered
+        dimensions) instead of the default 2 epsilon / sqrt(d).
+    invariant_dims : sequence of int or str
+        Dimensions along which the gap is declared invariant: not covered.
+    fixed : dict, optional
+        Representative value per invariant dimension (name or index -> value); default the
+        center of X in that dimension.
+    """
+
+    epsilon: float
+    spacing: Optional[tuple] = None
+    invariant_dims: tuple = ()
+    fixed: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        return {"epsilon": float(self.epsilon),
+                "spacing": None if self.spacing is None else [float(h) for h in self.spacing],
+                "invariant_dims": [d if isinstance(d, str) else int(d) for d in self.invariant_dims],
+                "fixed": {str(k): float(v) for k, v in self.fixed.items()}}
+
+
+@dataclass(frozen=True, eq=False)
+class Cover:
+    """A grid epsilon-cover of X (see module docstring).
+
+    Attributes
+    ----------
+    points : (N, n) array
+        The cover points x_r, C-order over the covered dimensions (first covered dimension
+        varies slowest).
+    epsilon : float
+        The declared radius.
+    radius : float
+        The achieved radius r = 1/2 ||w|| <= epsilon.
+    covered : tuple of int
+        Covered dimensions (0-based).
+    counts, widths : (d,) arrays
+        Cells c_i and cell widths w_i per covered dimension.
+    fixed : dict int -> float
+        Representative values of the invariant dimensions.
+    periodic : tuple of bool
+        Per covered dimension: periodic (a full-turn angle dimension).
+    spec : CoverSpec
+    """
+
+    system: System
+    points: np.ndarray
+    epsilon: float
+    radius: float
+    covered: tuple
+    counts: np.ndarray
+    widths: np.ndarray
+    fixed: dict
+    periodic: tuple
+    spec: CoverSpec
+
+    @property
+    def N(self) -> int:
+        """Number of cover points."""
+        return self.points.shape[0]
+
+    def describe(self) -> dict:
+        """JSON-ready record of the cover for manifests (spec plus what it produced)."""
+        s = self.system
+        return {
+            **self.spec.to_dict(),
+            "type": "grid",
+            "covered_dims": [s.state_names[i] for i in self.covered],
+            "invariant_dims": [s.state_names[i] for i in sorted(self.fixed)],
+            "fixed": {s.state_names[i]: v for i, v in sorted(self.fixed.items())},
+            "counts": self.counts.tolist(),
+            "widths": self.widths.tolist(),
+            "radius": float(self.radius),
+            "n_points": int(self.N),
+        }
+
+    def summary(self) -> str:
+        """One human-readable line, naming any declared invariance."""
+        s = self.system
+        dims = " x ".join(f"{s.state_names[i]}:{c}" for i, c in zip(self.covered, self.counts))
+        out = f"cover: {self.N} points (epsilon={self.epsilon:g}, achieved radius {self.radius:.4g}; grid {dims})"
+        if self.fixed:
+            fx = ", ".join(f"{s.state_names[i]}={v:g}" for i, v in sorted(self.fixed.items()))
+            out += (f"\n  declared invariance: the gap is assumed independent of "
+                    f"{', '.join(s.state_names[i] for i in sorted(self.fixed))}; those are fixed at {fx}")
+        return out
+
+    def locate(self, x: np.ndarray) -> np.ndarray:
+        """Index of the cover point whose cell contains x (B,n) -> (B,) (invariant dims ignored)."""
+        s = self.system
+        x = np.atleast_2d(np.asarray(x, dtype=float))
+        idx = np.zeros(x.shape[0], dtype=np.int64)
+        for i, c, w, per in zip(self.covered, self.counts, self.widths, self.periodic):
+            t = x[:, i] - s.x_lo[i]
+            if per:
+                t = np.mod(t, TWO_PI)
+            k = np.clip(np.floor(t / w).astype(np.int64), 0, int(c) - 1)
+            idx = idx * int(c) + k
+        return idx
+
+    def distance(self, x: np.ndarray, idx: np.ndarray | None = None) -> np.ndarray:
+        """Euclidean distance over the covered dims (angles wrapped) from x (B,n) to its cover point."""
+        x = np.atleast_2d(np.asarray(x, dtype=float))
+        idx = self.locate(x) if idx is None else idx
+        d = self.system.diff(x, self.points[idx])[:, list(self.covered)]
+        return np.sqrt((d ** 2).sum(axis=1))
+
+
+def make_cover(system: System, spec: CoverSpec | float) -> Cover:
+    """Grid epsilon-cover of X for ``system`` (see module docstring for the construction).
+
+    Parameters
+    ----------
+    system : System
+    spec : CoverSpec or float
+        A float is taken as epsilon with the default spacing and no invariance.
+
+    Raises
+    ------
+    SimgapError
+        epsilon <= 0 or not finite, a bad spacing, an achieved radius above epsilon, an unknown
+        invariant dimension, a fixed value outside X, or nothing left to cover.
+    """
+    if not isinstance(spec, CoverSpec):
+        spec = CoverSpec(epsilon=spec)
+    try:
+        eps = float(spec.epsilon)
+    except (TypeError, ValueError):
+        raise SimgapError(f"cover: epsilon must be a number, got {spec.epsilon!r}") from None
+    if not (math.isfinite(eps) and eps > 0):
+        raise SimgapError(f"cover: epsilon must be > 0, got {spec.epsilon!r}")
+
+    inv = sorted({_dim_index(system, d) for d in spec.invariant_dims})
+    covered = tuple(i for i in range(system.n) if i not in inv)
+    if not covered:
+        raise SimgapError("cover: every state dimension is declared invariant; nothing left to cover")
+    fixed = {}
+    for k, v in spec.fixed.items():
+        i = _dim_index(system, k)
+        if i not in inv:
+            raise SimgapError(f"cover: fixed value given for {k!r}, which is not an invariant dimension")
+        fixed[i] = float(v)
+    for i in inv:
+        fixed.setdefault(i, float(0.5 * (system.x_lo[i] + system.x_hi[i])))
+        v = fixed[i]
+        if not (math.isfinite(v) and system.x_lo[i] <= v <= system.x_hi[i]):
+            raise SimgapError(f"cover: fixed value {system.state_names[i]}={v!r} is outside X "
+                              f"[{system.x_lo[i]:g}, {system.x_hi[i]:g}]")
+
+    d = len(covered)
+    L = system.x_hi[list(covered)] - system.x_lo[list(covered)]
+    if spec.spacing is None:
+        h = np.full(d, 2.0 * eps / math.sqrt(d))
+    else:
+        h = np.asarray(spec.spacing, dtype=float).ravel()
+        if h.shape != (d,) or not np.all(np.isfinite(h)) or np.any(h <= 0):
+            raise SimgapError(f"cover: spacing needs {d} positive values (one per covered dimension), "
+                              f"got {spec.spacing!r}")
+    # ceil with a relative slack so that L/h = 70.0000000001 from rounding does not add a cell
+    counts = np.maximum(1, np.ceil(L / h * (1 - 1e-12))).astype(np.int64)
+    widths = L / counts
+    radius = 0.5 * float(np.sqrt((widths ** 2).sum()))
+    if radius > eps * (1 + 1e-12):
+        raise SimgapError(f"cover: spacing {h.tolist()} gives radius {radius:.6g} > epsilon {eps:g}")
+    total = int(np.prod(counts.astype(float)))
+    if total > 2e8:
+        raise SimgapError(f"cover: {total:.3g} points is too many (epsilon={eps:g} over {d} dimensions); "
+                          "use a larger epsilon or declare invariant dimensions")
+    periodic = tuple(bool(i in system.angle_dims and abs(L[k] - TWO_PI) < 1e-9) for k, i in enumerate(covered))
+
+    axes = [system.x_lo[i] + (np.arange(c) + 0.5) * w for i, c, w in zip(covered, counts, widths)]
+    mesh = np.meshgrid(*axes, indexing="ij")
+    pts = np.empty((total, system.n))
+    for k, i in enumerate(covered):
+        pts[:, i] = mesh[k].ravel()
+    for i, v in fixed.items():
+        pts[:, i] = v
+    return Cover(system=system, points=pts, epsilon=eps, radius=radius, covered=covered,
+                 counts=counts, widths=widths, fixed=fixed, periodic=periodic, spec=spec)
+
+
+# ----------------------------------------------------------------------------------------
+# Cost estimate
+# ----------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class CostEstimate:
+    """Size and expected duration of a collection.
+
+    n_points = N cover points; n_pairs = N * M; runs = n_pairs * N1hat simulator runs;
+    sim_steps = runs * k physics periods (k = system steps); seconds = runs / (rate * workers).
+    """
+
+    n_points: int
+    n_inputs: int
+    n_pairs: int
+    n_runs: int
+    runs: int
+    sim_steps: int
+    rate_per_worker: Optional[float]
+    workers: int
+    seconds: Optional[float]
+    rate_source: str = ""
+
+    def summary(self) -> str:
+        t = "unknown" if self.seconds is None else format_duration(self.seconds)
+        rate = "" if self.rate_per_worker is None else \
+            f" at {self.rate_per_worker:,.0f} runs/s per worker x {self.workers} ({self.rate_source})"
+        return (f"{self.n_points:,} cover points x {self.n_inputs} inputs = {self.n_pairs:,} (x_r,u) pairs; "
+                f"x {self.n_runs} runs = {self.sim_steps:,} simulator steps\n"
+                f"estimated time: {t}{rate}")
+
+
+def format_duration(s: float) -> str:
+    s = float(s)
+    if s < 60:
+        return f"{s:.1f} s"
+    if s < 3600:
+        return f"{int(s // 60)} min {int(s % 60):02d} s"
+    return f"{int(s // 3600)} h {int(s % 3600 // 60):02d} min"
+
+
+def calibrate_rate(simulator, n_runs: int = 4096, seed: int = 0, budget: float = 0.5) -> float:
+    """Simulator runs per second in this process: time ``simulator.step`` on random states of X.
+
+    One untimed warm-up call, then repeated batches of ``n_runs`` until ``budget`` seconds pass.
+    """
+    s = simulator.system
+    rng = np.random.default_rng(seed)
+    x = s.x_lo + rng.random((n_runs, s.n)) * (s.x_hi - s.x_lo)
+    u = s.inputs[rng.integers(0, s.inputs.shape[0], n_runs)]
+    simulator.step(x[:64], u[:64], rng)
+    done, t0 = 0, time.perf_counter()
+    while True:
+        simulator.step(x, u, rng)
+        done += n_runs
+        dt = time.perf_counter() - t0
+        if dt >= budget:
+            return done / dt
+
+
+def estimate_cost(cover: Cover, n_runs: int, rate_per_worker: Optional[float] = None,
+                  workers: int = 1, rate_source: str = "") -> CostEstimate:
+    """Cost of collecting N1hat = ``n_runs`` simulator runs for every (x_r, u) pair of ``cover``."""
+    M = int(cover.system.inputs.shape[0])
+    pairs = cover.N * M
+    runs = pairs * int(n_runs)
+    steps = runs * int(cover.system.steps)
+    secs = None if not rate_per_worker else runs / (rate_per_worker * max(1, workers))
+    return CostEstimate(n_points=cover.N, n_inputs=M, n_pairs=pairs, n_runs=int(n_runs), runs=runs,
+                        sim_steps=steps, rate_per_worker=rate_per_worker, workers=int(workers),
+                        seconds=secs, rate_source=rate_source)

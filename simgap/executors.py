@@ -1,0 +1,214 @@
+"""Executors: where the chunks of a collection run, behind one small interface.
+
+``executor.map_chunks(fn, job, chunk_ids, on_result, should_stop)`` calls ``fn(job, c)`` for
+every chunk id c (in any order, possibly in other processes) and ``on_result(c, result)`` in the
+calling thread as each one finishes. ``fn`` must be a module-level function and ``job`` a
+picklable, small description of the work (workers rebuild and cache heavy objects such as
+simulators themselves). Between chunks ``should_stop()`` is polled; when it returns True no new
+chunk is started, chunks in flight are finished and delivered, and ``map_chunks`` returns False.
+
+Results never depend on the executor: each chunk draws its randomness from its own generator
+keyed by the chunk id (see :mod:`simgap.collect`).
+
+Backends:
+
+* ``serial``: in this process, one chunk after the other (debugging, tests, the GUI's small jobs);
+* ``local``: ``concurrent.futures.ProcessPoolExecutor`` with ``workers`` processes (default
+  ``os.cpu_count()``). Workers are forked when the caller has a single thread (scripts need no
+  ``if __name__ == "__main__"`` guard) and started by ``forkserver`` when it has more (the GUI),
+  since forking a threaded process is unsafe;
+* ``ray``: Ray tasks on a cluster (``address``) or on a local instance started here with
+  ``num_cpus=workers``; needs the optional extra ``pip install simgap[ray]``.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import threading
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
+from typing import Any, Callable, Iterable, Optional
+
+from .errors import SimgapError
+
+EXECUTORS = ("serial", "local", "ray")
+
+
+class Executor:
+    """Base class: run ``fn(job, chunk_id)`` for every chunk id (see module docstring)."""
+
+    name = "base"
+    workers = 1
+
+    def map_chunks(self, fn: Callable[[Any, int], Any], job: Any, chunk_ids: Iterable[int],
+                   on_result: Callable[[int, Any], None],
+                   should_stop: Callable[[], bool] = lambda: False) -> bool:
+        raise NotImplementedError
+
+
+class SerialExecutor(Executor):
+    name = "serial"
+
+    def map_chunks(self, fn, job, chunk_ids, on_result, should_stop=lambda: False):
+        for c in chunk_ids:
+            if should_stop():
+                return False
+            on_result(c, fn(job, c))
+        return True
+
+
+class LocalExecutor(Executor):
+    """A pool of ``workers`` processes on this machine (at most 2 * workers chunks in flight)."""
+
+    name = "local"
+
+    def __init__(self, workers: Optional[int] = None, start_method: Optional[str] = None):
+        self.workers = _check_workers(workers)
+        self.start_method = start_method
+
+    def _context(self):
+        method = self.start_method
+        if method is None:
+            methods = multiprocessing.get_all_start_methods()
+            if threading.active_count() == 1 and "fork" in methods:
+                method = "fork"
+            elif "forkserver" in methods:
+                method = "forkserver"
+        return multiprocessing.get_context(method) if method else None
+
+    def map_chunks(self, fn, job, chunk_ids, on_result, should_stop=lambda: False):
+        todo = list(chunk_ids)
+        if not todo:
+            return True
+        pool = ProcessPoolExecutor(max_workers=min(self.workers, len(todo)), mp_context=self._context(),
+                                   initializer=_fresh_worker)
+        pending = {}
+        ok = False
+        try:
+            it = iter(todo)
+            stopped = False
+            while True:
+                # keep the pool busy but bounded, so cancellation is quick and memory stays small
+                while not stopped and len(pending) < 2 * self.workers:
+                    if should_stop():
+                        stopped = True
+                        break
+                    c = next(it, None)
+                    if c is None:
+                        break
+                    pending[pool.submit(fn, job, c)] = c
+                if not pending:
+                    break
+                done, _ = wait(pending, return_when=FIRST_COMPLETED)
+                for fut in done:
+                    c = pending.pop(fut)
+                    try:
+                        res = fut.result()
+                    except BrokenProcessPool as e:
+                        raise SimgapError(
+                            f"a worker process died while computing chunk {c} ({e}). If you call this from a "
+                            "script in a threaded program, guard it with `if __name__ == '__main__':`; "
+                            "finished chunks are kept, run again to resume") from None
+                    on_result(c, res)
+            ok = not stopped
+        finally:
+            for fut in pending:
+                fut.cancel()
+            pool.shutdown(wait=True, cancel_futures=True)
+        return ok
+
+
+class RayExecutor(Executor):
+    """Ray tasks; a local Ray instance with ``num_cpus=workers`` unless ``address`` is given."""
+
+    name = "ray"
+
+    def __init__(self, workers: Optional[int] = None, address: Optional[str] = None):
+        try:
+            import ray  # noqa: F401  (optional extra)
+        except ImportError:
+            raise SimgapError("executor 'ray' needs Ray: pip install 'simgap[ray]' (or pip install ray)") from None
+        self.workers = _check_workers(workers)
+        self.address = address
+
+    def map_chunks(self, fn, job, chunk_ids, on_result, should_stop=lambda: False):
+        import ray
+
+        todo = list(chunk_ids)
+        if not todo:
+            return True
+        started_here = False
+        if not ray.is_initialized():
+            kw = dict(include_dashboard=False, log_to_driver=False, configure_logging=False)
+            if self.address:
+                ray.init(address=self.address, **kw)
+            else:
+                ray.init(num_cpus=self.workers, **kw)
+            started_here = True
+        try:
+            task = ray.remote(num_cpus=1, max_retries=0)(_call)
+            job_ref = ray.put(job)
+            pending = {}
+            it = iter(todo)
+            stopped = False
+            limit = 2 * max(self.workers, int(ray.cluster_resources().get("CPU", 1)))
+            while True:
+                while not stopped and len(pending) < limit:
+                    if should_stop():
+                        stopped = True
+                        break
+                    c = next(it, None)
+                    if c is None:
+                        break
+                    pending[task.remote(fn, job_ref, c)] = c
+                if not pending:
+                    break
+                ready, _ = ray.wait(list(pending), num_returns=1)
+                for ref in ready:
+                    c = pending.pop(ref)
+                    try:
+                        res = ray.get(ref)
+                    except ray.exceptions.RayTaskError as e:
+                        cause = getattr(e, "cause", None)
+                        if isinstance(cause, SimgapError):
+                            raise SimgapError(str(cause)) from None
+                        raise
+                    on_result(c, res)
+            return not stopped
+        finally:
+            if started_here:
+                ray.shutdown()
+
+
+def _fresh_worker():
+    # a forked worker must not reuse simulators the parent cached (e.g. after a serial run)
+    from . import collect
+    collect._WORKER_CACHE.clear()
+
+
+def _call(fn, job, c):
+    return fn(job, c)
+
+
+def _check_workers(workers) -> int:
+    if workers is None or workers == 0:
+        return os.cpu_count() or 1
+    try:
+        w = int(workers)
+    except (TypeError, ValueError):
+        raise SimgapError(f"workers must be a positive integer, got {workers!r}") from None
+    if w < 1 or w != workers:
+        raise SimgapError(f"workers must be a positive integer (0 or None = all cores), got {workers!r}")
+    return w
+
+
+def make_executor(name: str = "local", workers: Optional[int] = None, address: Optional[str] = None) -> Executor:
+    """An executor by name: ``serial``, ``local`` (default) or ``ray``."""
+    if name == "serial":
+        return SerialExecutor()
+    if name == "local":
+        return LocalExecutor(workers)
+    if name == "ray":
+        return RayExecutor(workers, address)
+    raise SimgapError(f"unknown executor {name!r}; choose one of {', '.join(EXECUTORS)}")

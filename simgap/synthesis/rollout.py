@@ -1,0 +1,534 @@
+"""Closed-loop rollouts: a synthesized controller driving the stochastic simulator, R runs at once.
+
+Semantics
+---------
+Time is counted in *simulator steps* t = 0..T of length ``tau`` = simulator.system.tau [s]
+(``steps_s`` in seconds = t * tau). The controller is queried every ``hold`` simulator steps
+at the current state (its abstract step) and its input is held in between:
+
+* ``hold`` defaults to (controller base periods per abstract step) / (simulator base periods per
+  step) = controller.system.steps * controller.hold / simulator.system.steps, which must be an
+  integer: a controller synthesized on a system with steps = k (or with ``hold=k``) applies each
+  input for k base periods, whether the simulator runs them as one step of k*tau0 or k steps of tau0.
+* The specification is checked on every simulator state x(t), t >= 1 (also between two controller
+  queries, so a collision in mid-hold counts). Reach-avoid: the rollout **succeeds** when it
+  reaches the target at some t <= T before any violation (leaving X or entering a -- grown --
+  obstacle); a state that is both in the target and violating counts as a violation.
+  Invariance: it succeeds when no state x(0..T) leaves the safe set or X.
+* A rollout stops at its first violation or (reach-avoid) when it reaches the target. Its
+  trajectory row keeps the last state after it stopped (no NaN padding, so the mean trajectory
+  and drawing need no masks); ``lengths[i]`` is the index of that last real state.
+* Leaving the winning domain: when the controller returns -1 at a query time, the time is
+  recorded in ``left_domain_time``. With ``on_exit="hold"`` (default) the rollout keeps applying
+  its previous input (the fallback) and is judged by the specification alone; with
+  ``on_exit="stop"`` it stops there with outcome ``left_domain`` (counted as a failure).
+  The initial state must be in the winning domain (SimgapError otherwise).
+
+Randomness: one ``numpy.random.Generator`` (from ``seed``); at every simulator step the noise for
+all R rollouts is drawn with ``simulator.draw_noise(R, rng)`` and the still-active rows are
+passed to ``simulator.step_with_noise``. Rollout i's noise therefore does not depend on which
+other rollouts are still running, and the one-at-a-time mode (``batched=False``, for the
+benchmark) reproduces the batched results exactly.
+
+The nominal model f (the controller's system at the simulator's step length) is run from the
+same x0 with the same controller and rules, as one deterministic trajectory.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+import time
+from dataclasses import dataclass, field
+from typing import Dict, Optional
+
+import numpy as np
+
+from ..errors import SimgapError
+from .spec import Spec
+
+#: outcome codes (index = code stored in ``RolloutResult.outcome``)
+OUTCOMES = ("success", "violation", "timeout", "left_domain")
+SUCCESS, VIOLATION, TIMEOUT, LEFT_DOMAIN = range(4)
+#: violation kinds (index = code stored in ``RolloutResult.violation_kind``)
+VIOLATION_KINDS = ("none", "obstacle", "outside_X", "unsafe")
+
+DEFAULT_HORIZON = 1000
+
+
+class _NominalModel:
+    """The nominal model f as a noise-free 'simulator' (same interface as Simulator)."""
+
+    def __init__(self, system):
+        self.system = system
+
+    def draw_noise(self, B, rng):
+        return {}
+
+    def step_with_noise(self, x, u, noise):
+        return self.system.f(x, u)
+
+
+@dataclass
+class _Trace:
+    """Raw arrays of one batched run (internal)."""
+
+    traj: np.ndarray
+    lengths: np.ndarray
+    outcome: np.ndarray
+    violation_time: np.ndarray
+    violation_kind: np.ndarray
+    reach_time: np.ndarray
+    left_domain_time: np.ndarray
+    input_index: np.ndarray
+    robot_steps: int
+    sim_seconds: float
+    ctrl_seconds: float
+
+
+def _classify(spec: Spec, x: np.ndarray, x_lo: np.ndarray, x_hi: np.ndarray) -> np.ndarray:
+    """(B,) violation kind code of states x (B,n): 0 none, 1 obstacle, 2 outside X, 3 unsafe."""
+    kind = np.zeros(x.shape[0], dtype=np.int8)
+    if spec.kind == "invariance":
+        kind[~spec.safe.contains(x)] = 3
+    kind[np.any((x < x_lo) | (x > x_hi), axis=-1)] = 2
+    kind[spec.in_obstacle(x)] = 1
+    return kind
+
+
+def _run(controller, sim, spec: Spec, x0: np.ndarray, R: int, T: int, hold: int,
+         rng: np.random.Generator, on_exit: str, batched: bool) -> _Trace:
+    """Run R closed-loop rollouts for T simulator steps (see module docstring)."""
+    system = sim.system
+    n = system.n
+    U = controller.system.inputs
+    x_lo, x_hi = system.x_lo, system.x_hi
+    reach_avoid = spec.kind == "reach_avoid"
+
+    traj = np.empty((R, T + 1, n))
+    traj[:, 0] = x0
+    uidx = np.full((R, T), -1, dtype=np.int32)
+    lengths = np.zeros(R, dtype=np.int64)
+    outcome = np.full(R, SUCCESS if not reach_avoid else TIMEOUT, dtype=np.int8)
+    vtime = np.full(R, -1, dtype=np.int64)
+    vkind = np.zeros(R, dtype=np.int8)
+    rtime = np.full(R, -1, dtype=np.int64)
+    ltime = np.full(R, -1, dtype=np.int64)
+    cur = np.full(R, -1, dtype=np.int64)
+    x = np.repeat(x0[None], R, axis=0)
+    alive = np.ones(R, dtype=bool)
+    if reach_avoid and spec.reached(x0[None])[0]:
+        rtime[:] = 0
+        outcome[:] = SUCCESS
+        alive[:] = False
+
+    robot_steps = 0
+    t_sim = t_ctrl = 0.0
+    for t in range(T):
+        act = np.flatnonzero(alive)
+        if act.size == 0:
+            break
+        if t % hold == 0:
+            c0 = time.perf_counter()
+            if batched:
+                q = np.asarray(controller.input_index(x[act]), dtype=np.int64).reshape(-1)
+            else:
+                q = np.array([int(np.asarray(controller.input_index(x[i:i + 1])).reshape(-1)[0]) for i in act])
+            t_ctrl += time.perf_counter() - c0
+            out = q < 0
+            if out.any():
+                lost = act[out]
+                ltime[lost[ltime[lost] < 0]] = t
+                if on_exit == "stop":
+                    outcome[lost] = LEFT_DOMAIN
+                    alive[lost] = False
+                    act, q = act[~out], q[~out]
+                    if act.size == 0:
+                        break
+                else:  # fallback: keep the previous input (x0 is in the domain, so one exists)
+                    q[out] = cur[lost]
+            cur[act] = q
+        # noise for all R rows, so rollout i's draws do not depend on the others
+        noise = sim.draw_noise(R, rng)
+        u = U[cur[act]]
+        s0 = time.perf_counter()
+        if batched:
+            xn = sim.step_with_noise(x[act], u, {k: v[act] for k, v in noise.items()})
+        else:
+            xn = np.concatenate([sim.step_with_noise(x[i:i + 1], u[j:j + 1], {k: v[i:i + 1] for k, v in noise.items()})
+                                 for j, i in enumerate(act)])
+        t_sim += time.perf_counter() - s0
+        xn = np.asarray(xn, dtype=float)
+        if not np.all(np.isfinite(xn)):
+            raise SimgapError(f"simulator {getattr(getattr(sim, 'config', None), 'kind', 'nominal')!r} "
+                              f"returned NaN/inf at step {t + 1}")
+        robot_steps += act.size
+        x[act] = xn
+        traj[act, t + 1] = xn
+        lengths[act] = t + 1
+        uidx[act, t] = cur[act]
+        kind = _classify(spec, xn, x_lo, x_hi)
+        bad = kind > 0
+        if bad.any():
+            ib = act[bad]
+            vtime[ib] = t + 1
+            vkind[ib] = kind[bad]
+            outcome[ib] = VIOLATION
+            alive[ib] = False
+        if reach_avoid:
+            hit = spec.reached(xn) & ~bad
+            if hit.any():
+                ih = act[hit]
+                rtime[ih] = t + 1
+                outcome[ih] = SUCCESS
+                alive[ih] = False
+    # rollouts that stopped keep their last state (see module docstring)
+    idx = np.minimum(np.arange(T + 1)[None, :], lengths[:, None])
+    traj = traj[np.arange(R)[:, None], idx]
+    return _Trace(traj, lengths, outcome, vtime, vkind, rtime, ltime, uidx, robot_steps, t_sim, t_ctrl)
+
+
+def _mean_trajectory(traj: np.ndarray, angle_dims) -> np.ndarray:
+    """Mean over rollouts (T+1, n); angle dimensions use the circular mean atan2(E sin, E cos)."""
+    mean = traj.mean(axis=0)
+    for d in angle_dims:
+        mean[:, d] = np.arctan2(np.sin(traj[:, :, d]).mean(axis=0), np.cos(traj[:, :, d]).mean(axis=0))
+    return mean
+
+
+def _judge_path(spec: Spec, path: np.ndarray, x_lo, x_hi) -> dict:
+    """Spec verdict of one given path (T+1, n): first violation / first reach time, satisfied."""
+    kind = _classify(spec, path, x_lo, x_hi)
+    bad = np.flatnonzero(kind > 0)
+    tv = int(bad[0]) if bad.size else -1
+    if spec.kind == "reach_avoid":
+        hit = np.flatnonzero(spec.reached(path) & (kind == 0))
+        tr = int(hit[0]) if hit.size else -1
+        ok = tr >= 0 and (tv < 0 or tr < tv)
+    else:
+        tr, ok = -1, tv < 0
+    return {"satisfied": bool(ok), "violation_time": tv, "reach_time": tr,
+            "violation_kind": VIOLATION_KINDS[int(kind[tv])] if tv >= 0 else "none"}
+
+
+def _json_safe(v):
+    """Replace non-finite floats by strings so the summary is strict JSON (Box.from_dict reads them)."""
+    if isinstance(v, dict):
+        return {k: _json_safe(w) for k, w in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_json_safe(w) for w in v]
+    if isinstance(v, float) and not np.isfinite(v):
+        return "nan" if np.isnan(v) else ("inf" if v > 0 else "-inf")
+    return v
+
+
+def _stats(t: np.ndarray, tau: float) -> Optional[dict]:
+    if t.size == 0:
+        return None
+    return {"count": int(t.size), "min": int(t.min()), "mean": float(t.mean()), "median": float(np.median(t)),
+            "max": int(t.max()), "mean_s": float(t.mean() * tau), "max_s": float(t.max() * tau)}
+
+
+@dataclass
+class RolloutResult:
+    """R closed-loop rollouts from one x0 plus the nominal-model run (module docstring: semantics).
+
+    Arrays (R rollouts, T = horizon simulator steps, n states)
+    ----------------------------------------------------------
+    trajectories : (R, T+1, n)   states; after a rollout stopped, its last state repeats
+    lengths : (R,)               index of each rollout's last real state
+    outcome : (R,) int8          code into OUTCOMES (success, violation, timeout, left_domain)
+    success : (R,) bool          the specification held
+    violation_time : (R,)        first violating step, -1 if none
+    violation_kind : (R,) int8   code into VIOLATION_KINDS (none, obstacle, outside_X, unsafe)
+    reach_time : (R,)            step of reaching the target, -1 if never (reach-avoid)
+    left_domain_time : (R,)      first query outside the winning domain, -1 if never
+    input_index : (R, T) int32   applied input (row of system.inputs), -1 after stopping
+    mean_trajectory : (T+1, n)   mean over rollouts (circular mean for angles)
+    nominal_trajectory : (T+1, n) the nominal model's closed loop (same padding rule)
+    """
+
+    x0: np.ndarray
+    trajectories: np.ndarray
+    lengths: np.ndarray
+    outcome: np.ndarray
+    violation_time: np.ndarray
+    violation_kind: np.ndarray
+    reach_time: np.ndarray
+    left_domain_time: np.ndarray
+    input_index: np.ndarray
+    mean_trajectory: np.ndarray
+    nominal_trajectory: np.ndarray
+    nominal: dict
+    spec: Spec
+    tau: float
+    hold: int
+    horizon: int
+    seed: Optional[int]
+    on_exit: str
+    system: str
+    simulator: dict = field(default_factory=dict)
+    timing: dict = field(default_factory=dict)
+
+    @property
+    def n_rollouts(self) -> int:
+        return int(self.trajectories.shape[0])
+
+    @property
+    def success(self) -> np.ndarray:
+        return self.outcome == SUCCESS
+
+    @property
+    def n_failures(self) -> int:
+        return int(np.count_nonzero(self.outcome != SUCCESS))
+
+    @property
+    def mean_verdict(self) -> dict:
+        """The spec judged on the mean trajectory (the paper's first-moment sense)."""
+        return _judge_path(self.spec, self.mean_trajectory, *self._x_bounds())
+
+    def _x_bounds(self):
+        return np.asarray(self.nominal["x_lo"]), np.asarray(self.nominal["x_hi"])
+
+    def to_dict(self, per_rollout: bool = True) -> dict:
+        """JSON-ready summary (strict JSON: infinities written as strings)."""
+        counts = {name: int(np.count_nonzero(self.outcome == i)) for i, name in enumerate(OUTCOMES)}
+        kinds = {name: int(np.count_nonzero(self.violation_kind == i)) for i, name in enumerate(VIOLATION_KINDS) if i}
+        reached = self.reach_time[self.reach_time >= 0]
+        d = {
+            "system": self.system, "simulator": self.simulator, "spec": self.spec.to_dict(),
+            "x0": self.x0.tolist(), "n_rollouts": self.n_rollouts, "horizon": self.horizon,
+            "hold": self.hold, "tau": self.tau, "seed": self.seed, "on_exit": self.on_exit,
+            "failures": self.n_failures, "successes": counts["success"], "outcomes": counts,
+            "violation_kinds": kinds,
+            "left_domain": int(np.count_nonzero(self.left_domain_time >= 0)),
+            "reach_time_steps": _stats(reached, self.tau),
+            "violation_time_steps": _stats(self.violation_time[self.violation_time >= 0], self.tau),
+            "nominal": {k: v for k, v in self.nominal.items() if k not in ("x_lo", "x_hi")},
+            "mean_trajectory": self.mean_verdict,
+            "timing": self.timing,
+        }
+        if per_rollout:
+            d["per_rollout"] = {"outcome": [OUTCOMES[int(o)] for o in self.outcome],
+                                "violation_time": self.violation_time.tolist(),
+                                "violation_kind": [VIOLATION_KINDS[int(k)] for k in self.violation_kind],
+                                "reach_time": self.reach_time.tolist(),
+                                "left_domain_time": self.left_domain_time.tolist()}
+        return _json_safe(d)
+
+    def summary_lines(self) -> list:
+        """Human-readable summary table (the CLI prints it)."""
+        d = self.to_dict(per_rollout=False)
+        R = self.n_rollouts
+        lines = [f"{R} rollouts of {self.system} from x0 = {np.round(self.x0, 4).tolist()}, "
+                 f"horizon {self.horizon} steps x {self.tau:g} s, input held {self.hold} step(s), seed {self.seed}",
+                 f"  spec held       {d['successes']:>6d} / {R}",
+                 f"  failures        {d['failures']:>6d} / {R}   "
+                 + ", ".join(f"{k} {v}" for k, v in d["outcomes"].items() if k != "success" and v),
+                 "  violations      " + (", ".join(f"{k} {v}" for k, v in d["violation_kinds"].items() if v) or "none"),
+                 f"  left win. dom.  {d['left_domain']:>6d} / {R}   (on_exit={self.on_exit})"]
+        rt = d["reach_time_steps"]
+        if rt:
+            lines.append(f"  reach time      min {rt['min']}  mean {rt['mean']:.1f}  median {rt['median']:.0f}  "
+                         f"max {rt['max']} steps  (mean {rt['mean_s']:.3f} s)")
+        nm = d["nominal"]
+        lines.append(f"  nominal model   {nm['outcome']}" + (f", reach step {nm['reach_time']}" if nm["reach_time"] >= 0 else "")
+                     + (f", violation step {nm['violation_time']} ({nm['violation_kind']})" if nm["violation_time"] >= 0 else ""))
+        mv = d["mean_trajectory"]
+        lines.append(f"  mean trajectory {'satisfies' if mv['satisfied'] else 'violates'} the spec"
+                     + (f" (reach step {mv['reach_time']})" if mv["reach_time"] >= 0 else ""))
+        tm = self.timing
+        if tm:
+            lines.append(f"  time            {tm['wall_s']:.2f} s, {tm['robot_steps']} robot-steps, "
+                         f"{tm['robot_steps_per_s']:.0f} robot-steps/s ({'batched' if tm['batched'] else 'one at a time'})")
+        return lines
+
+    # ----- files --------------------------------------------------------------------------
+    def save_npz(self, path) -> None:
+        """Write all arrays and the JSON summary to ``path`` (temp file + rename; no pickle)."""
+        arrays = {k: getattr(self, k) for k in ("x0", "trajectories", "lengths", "outcome", "violation_time",
+                                                "violation_kind", "reach_time", "left_domain_time",
+                                                "input_index", "mean_trajectory", "nominal_trajectory")}
+        meta = self.to_dict(per_rollout=False)
+        meta["nominal_full"] = _json_safe(self.nominal)
+        arrays["meta_json"] = np.array(json.dumps(meta))
+        _atomic_npz(path, arrays)
+
+    def save_json(self, path, per_rollout: bool = True) -> None:
+        """Write :meth:`to_dict` as JSON (temp file + rename)."""
+        _atomic_write_text(path, json.dumps(self.to_dict(per_rollout=per_rollout), indent=1))
+
+
+def _atomic_write_text(path, text: str) -> None:
+    path = os.fspath(path)
+    d = os.path.dirname(os.path.abspath(path))
+    fd, tmp = tempfile.mkstemp(dir=d, prefix=".tmp-", suffix=".json")
+    try:
+        with os.fdopen(fd, "w") as fh:
+            fh.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def _atomic_npz(path, arrays: dict) -> None:
+    path = os.fspath(path)
+    if not path.endswith(".npz"):
+        path += ".npz"
+    d = os.path.dirname(os.path.abspath(path))
+    fd, tmp = tempfile.mkstemp(dir=d, prefix=".tmp-", suffix=".npz")
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            np.savez_compressed(fh, **arrays)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def load_rollout(path) -> RolloutResult:
+    """Read a file written by :meth:`RolloutResult.save_npz` (no pickle)."""
+    try:
+        with np.load(os.fspath(path), allow_pickle=False) as z:
+            a = {k: z[k] for k in z.files}
+    except (OSError, ValueError) as e:
+        raise SimgapError(f"rollout file {str(path)!r}: cannot read ({e})") from None
+    if "meta_json" not in a:
+        raise SimgapError(f"rollout file {str(path)!r}: not a simgap rollout file (no meta_json)")
+    meta = json.loads(str(a.pop("meta_json")))
+    nominal = meta["nominal_full"]
+    nominal["x_lo"] = [float(v) for v in nominal["x_lo"]]
+    nominal["x_hi"] = [float(v) for v in nominal["x_hi"]]
+    return RolloutResult(**a, nominal=nominal, spec=Spec.from_dict(meta["spec"]), tau=meta["tau"], hold=meta["hold"],
+                         horizon=meta["horizon"], seed=meta["seed"], on_exit=meta["on_exit"], system=meta["system"],
+                         simulator=meta["simulator"], timing=meta["timing"])
+
+
+def resolve_hold(controller, simulator) -> int:
+    """Simulator steps per controller query: controller base periods per abstract step
+    (controller.system.steps * controller.hold) over simulator base periods per step."""
+    cs, ss = controller.system, simulator.system
+    if not np.isclose(cs.base_tau, ss.base_tau):
+        raise SimgapError(f"controller base tau {cs.base_tau:g} s differs from the simulator's {ss.base_tau:g} s")
+    periods = int(cs.steps) * int(getattr(controller, "hold", 1) or 1)
+    if periods % int(ss.steps):
+        raise SimgapError(f"controller holds its input for {periods} base periods, not a multiple of the "
+                          f"simulator step ({ss.steps} base periods)")
+    return periods // int(ss.steps)
+
+
+def default_horizon(controller, x0: np.ndarray, hold: int) -> int:
+    """A horizon in simulator steps: 2x the controller's steps-to-go at x0 (+1 abstract step) when it
+    reports one (``steps_to_go``/``value``), else DEFAULT_HORIZON."""
+    for name in ("steps_to_go", "value"):
+        fn = getattr(controller, name, None)
+        if callable(fn):
+            try:
+                v = float(np.asarray(fn(x0[None])).reshape(-1)[0])
+            except Exception:  # an optional hint only; fall back to the fixed default
+                continue
+            if np.isfinite(v) and v >= 0:
+                return int(max(hold * (2 * v + 1), hold))
+    return DEFAULT_HORIZON
+
+
+def rollout(controller, simulator, x0=None, n_rollouts: int = 1000, horizon: Optional[int] = None,
+            seed: Optional[int] = 0, rng: Optional[np.random.Generator] = None, hold: Optional[int] = None,
+            spec: Optional[Spec] = None, on_exit: str = "hold", batched: bool = True) -> RolloutResult:
+    """Run ``n_rollouts`` closed-loop rollouts of ``controller`` on ``simulator`` from ``x0``.
+
+    Parameters
+    ----------
+    controller
+        Anything with ``input_index(x (B,n)) -> (B,) int`` (row of ``controller.system.inputs``,
+        -1 outside the winning domain), ``system`` and ``spec``; optional ``hold``.
+    simulator
+        A :class:`~simgap.simulators.base.Simulator` (``draw_noise``, ``step_with_noise``, ``system``).
+    x0 : (n,) array
+        Initial state [state units]; must be in X, not violate the spec, and be in the winning
+        domain. Default: ``controller.x0`` if the controller records one.
+    n_rollouts : int
+        R, the number of independent rollouts.
+    horizon : int, optional
+        T in simulator steps of tau [s]; default :func:`default_horizon`.
+    seed, rng
+        Randomness: ``rng`` if given, else ``numpy.random.default_rng(seed)``.
+    hold : int, optional
+        Simulator steps per controller query; default :func:`resolve_hold`.
+    spec : Spec, optional
+        Judge against this spec instead of ``controller.spec``.
+    on_exit : {"hold", "stop"}
+        What a rollout does when the controller returns -1 (module docstring).
+    batched : bool
+        One simulator call per step for all active rollouts (default) or one call per rollout
+        (same results; for benchmarks).
+
+    Returns
+    -------
+    RolloutResult
+    """
+    system = simulator.system
+    if controller.system.n != system.n or controller.system.m != system.m:
+        raise SimgapError(f"controller for {controller.system.name!r} (n={controller.system.n}, m={controller.system.m}) "
+                          f"does not match the simulator's system {system.name!r} (n={system.n}, m={system.m})")
+    spec = spec if spec is not None else controller.spec
+    if spec is None:
+        raise SimgapError("rollout: the controller records no specification; pass spec=")
+    if on_exit not in ("hold", "stop"):
+        raise SimgapError(f"rollout: on_exit must be 'hold' or 'stop', got {on_exit!r}")
+    if int(n_rollouts) != n_rollouts or n_rollouts < 1:
+        raise SimgapError(f"rollout: n_rollouts must be an integer >= 1, got {n_rollouts!r}")
+    n_rollouts = int(n_rollouts)
+    if x0 is None:
+        x0 = getattr(controller, "x0", None)
+        if x0 is None:
+            raise SimgapError("rollout: give an initial state x0")
+    x0 = system.check_states(np.asarray(x0, dtype=float).reshape(1, -1), what="rollout x0")[0]
+    x0 = system.wrap(x0[None])[0]
+    kind0 = _classify(spec, x0[None], system.x_lo, system.x_hi)[0]
+    if kind0:
+        raise SimgapError(f"rollout x0 {x0.tolist()} violates the specification ({VIOLATION_KINDS[kind0]})")
+    if int(np.asarray(controller.input_index(x0[None])).reshape(-1)[0]) < 0 and not (
+            spec.kind == "reach_avoid" and spec.reached(x0[None])[0]):
+        raise SimgapError(f"rollout x0 {x0.tolist()} is outside the controller's winning domain")
+    if hold is None:
+        hold = resolve_hold(controller, simulator)
+    if int(hold) != hold or hold < 1:
+        raise SimgapError(f"rollout: hold must be an integer >= 1, got {hold!r}")
+    hold = int(hold)
+    if horizon is None:
+        horizon = default_horizon(controller, x0, hold)
+    if int(horizon) != horizon or horizon < 1:
+        raise SimgapError(f"rollout: horizon must be an integer >= 1 simulator steps, got {horizon!r}")
+    horizon = int(horizon)
+    if rng is None:
+        rng = np.random.default_rng(seed)
+    else:
+        seed = None
+
+    w0 = time.perf_counter()
+    tr = _run(controller, simulator, spec, x0, n_rollouts, horizon, hold, rng, on_exit, batched)
+    wall = time.perf_counter() - w0
+
+    nom_sys = controller.system.with_steps(system.steps)
+    nt = _run(controller, _NominalModel(nom_sys), spec, x0, 1, horizon, hold, np.random.default_rng(0), on_exit, True)
+    nominal = {"outcome": OUTCOMES[int(nt.outcome[0])], "satisfied": bool(nt.outcome[0] == SUCCESS),
+               "reach_time": int(nt.reach_time[0]), "violation_time": int(nt.violation_time[0]),
+               "violation_kind": VIOLATION_KINDS[int(nt.violation_kind[0])],
+               "left_domain_time": int(nt.left_domain_time[0]), "length": int(nt.lengths[0]),
+               "x_lo": system.x_lo.tolist(), "x_hi": system.x_hi.tolist()}
+    cfg = getattr(simulator, "config", None)
+    timing = {"wall_s": wall, "simulator_s": tr.sim_seconds, "controller_s": tr.ctrl_seconds,
+              "robot_steps": int(tr.robot_steps), "robot_steps_per_s": tr.robot_steps / wall if wall > 0 else 0.0,
+              "batched": bool(batched)}
+    return RolloutResult(
+        x0=x0, trajectories=tr.traj, lengths=tr.lengths, outcome=tr.outcome, violation_time=tr.violation_time,
+        violation_kind=tr.violation_kind, reach_time=tr.reach_time, left_domain_time=tr.left_domain_time,
+        input_index=tr.input_index, mean_trajectory=_mean_trajectory(tr.traj, system.angle_dims),
+        nominal_trajectory=nt.traj[0], nominal=nominal, spec=spec, tau=float(system.tau), hold=hold,
+        horizon=horizon, seed=seed, on_exit=on_exit, system=system.name,
+        simulator=cfg.to_dict() if hasattr(cfg, "to_dict") else {}, timing=timing)

@@ -101,7 +101,8 @@ class CollectionPlan:
     seed : int
         Root seed of the per-chunk generators.
     chunk_size : int, optional
-        Pairs per chunk; default max(1, batch_runs // n_runs) (one step call per chunk).
+        Pairs per chunk; default max(1, min(batch_runs // n_runs, ceil(K / 64))): one step call
+        per chunk and enough chunks to keep every worker busy (it never depends on the executor).
     batch_runs : int
         Maximum simulator runs per ``step`` call (memory bound).
     keep_samples : bool
@@ -124,7 +125,8 @@ class CollectionPlan:
         self.seed = _int(self.seed, "seed", 0)
         self.batch_runs = _int(self.batch_runs, "batch_runs", 1)
         if self.chunk_size is None:
-            self.chunk_size = max(1, self.batch_runs // self.n_runs)
+            # one step call per chunk, but at least ~64 chunks so that small jobs spread over workers
+            self.chunk_size = max(1, min(self.batch_runs // self.n_runs, -(-self.n_pairs // 64)))
         self.chunk_size = _int(self.chunk_size, "chunk_size", 1)
         if self.cover.system is not self.system and describe_system(self.cover.system) != describe_system(self.system):
             raise SimgapError("collection: the cover was built for a different system")

@@ -1,0 +1,95 @@
+"""``simgap collect EXPERIMENT``: build the epsilon-cover and collect the simulator data set.
+
+Prints the cover size, (x_r, u) pairs, simulator steps and an estimated time (from a short
+calibration of the simulator in this process) before running, shows a progress bar, and prints
+where the data went. Re-running the same command resumes an interrupted collection.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from ..errors import SimgapError
+
+
+def add_parser(subparsers) -> argparse.ArgumentParser:
+    p = subparsers.add_parser(
+        "collect", help="collect simulator data on an epsilon-cover (resumable)",
+        description="Collect N1hat simulator runs for every (cover point, input) pair of an experiment. "
+                    "EXPERIMENT is a TOML file or a built-in name (pendulum, turtlebot). Running the same "
+                    "command again resumes an interrupted collection.")
+    p.add_argument("experiment", metavar="EXPERIMENT", help="experiment TOML path or built-in name")
+    p.add_argument("--profile", default="small", help="profile in the TOML (default: small; e.g. paper)")
+    p.add_argument("--out", help="store directory (default: runs/<experiment>-<profile>/data)")
+    p.add_argument("--executor", choices=["local", "ray", "serial"], help="where chunks run (default from TOML)")
+    p.add_argument("--workers", type=int, help="worker processes / Ray CPUs (default: all cores)")
+    p.add_argument("--address", help="Ray cluster address (default: a local Ray instance)")
+    p.add_argument("--seed", type=int, help="root seed")
+    p.add_argument("--epsilon", type=float, help="cover radius epsilon")
+    p.add_argument("--n-runs", type=int, dest="n_runs", help="N1hat, simulator runs per (x_r, u) pair")
+    p.add_argument("--chunk-size", type=int, dest="chunk_size", help="(x_r, u) pairs per chunk")
+    p.add_argument("--keep-samples", action="store_true", default=None, dest="keep_samples",
+                   help="also store the raw N1hat next states per pair (large)")
+    p.add_argument("--dry-run", action="store_true", help="print the cover size and cost estimate, collect nothing")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=run)
+    return p
+
+
+def run(args) -> int:
+    from ..collect import collect, store_status
+    from ..config import load_experiment
+    from ..cover import calibrate_rate, estimate_cost
+    from ..executors import make_executor
+    from ..progress import ProgressBar
+    from ..simulators.base import make_simulator
+
+    if args.workers is not None and args.workers < 1:
+        raise SimgapError(f"--workers must be >= 1, got {args.workers}")
+    over = {"collect": {"seed": args.seed, "epsilon": args.epsilon, "n_runs": args.n_runs,
+                        "chunk_size": args.chunk_size, "keep_samples": args.keep_samples,
+                        "executor": args.executor, "workers": args.workers, "address": args.address,
+                        "out": args.out}}
+    exp = load_experiment(args.experiment, args.profile, overrides=over)
+    c = exp.collect
+    print(f"experiment {exp.name} (profile {exp.profile}): system {exp.system.name}, tau={exp.system.tau:g} s; "
+          f"simulator {exp.simulator.kind}")
+    cover = exp.cover()
+    print(cover.summary())
+    plan = exp.plan(cover)
+    ex = make_executor(c.executor, c.workers, c.address)
+
+    with make_simulator(exp.simulator, exp.system) as sim:
+        rate = calibrate_rate(sim, budget=0.3)
+    est = estimate_cost(cover, plan.n_runs, rate_per_worker=rate, workers=ex.workers,
+                        rate_source=f"calibrated here, executor {ex.name}")
+    print(est.summary())
+    print(f"N1hat={plan.n_runs}, seed={plan.seed}, {plan.n_chunks} chunks of {plan.chunk_size} pairs")
+    store = exp.store_dir()
+    if args.dry_run:
+        print(f"dry run: nothing collected (store would be {store})")
+        return 0
+
+    if (store / "manifest.json").exists():
+        st = store_status(store)
+        if st["hash"] == plan.hash():
+            print(f"resuming {store}: {st['done']} of {st['n_chunks']} chunks already done")
+    bar = None if args.no_progress else ProgressBar(unit="pairs", scale=plan.n_runs * exp.system.steps,
+                                                    scale_unit="sim steps")
+    try:
+        res = collect(plan, store, executor=ex, on_progress=bar)
+    except KeyboardInterrupt:
+        if bar:
+            bar.close()
+        print(f"interrupted; finished chunks are kept in {store}: run the same command to resume", file=sys.stderr)
+        raise
+    finally:
+        if bar:
+            bar.close()
+    rate_s = res.runs * exp.system.steps / res.seconds if res.seconds > 0 and res.runs else 0.0
+    print(f"collected {res.computed} chunks ({res.runs:,} simulator runs) in {res.seconds:.1f} s"
+          + (f", {rate_s:,.0f} simulator steps/s" if rate_s else ""))
+    print(f"data: {store} ({plan.n_pairs:,} pairs, hash {res.hash[:12]})")
+    print(f"load with: simgap.dataset.load_dataset({str(store)!r})")
+    return 0

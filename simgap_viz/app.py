@@ -1,0 +1,401 @@
+"""The simgap web app: one class owns the viser server, the state, the cache and the job runner.
+
+Layout: a header (status line, progress bar, cancel button) and one tab per stage
+(System & data, Certificate, Synthesis, Rollouts, Refine, View), each filled by a module in
+:mod:`simgap_viz.panels`. Scene layers (gamma surfaces, data points, obstacle map, winning
+domain, rollouts, simulator bodies) are drawn by :mod:`simgap_viz.layers`.
+
+Threading: viser runs callbacks on a thread pool; every read/write of the app state takes
+``self.lock``. Long stages run on the :class:`~simgap_viz.jobs.JobRunner` thread, so the GUI
+stays responsive and a cancel button can stop them. Button handlers are one-line calls into
+the public methods (:meth:`collect`, :meth:`certify`, ...), which tests call directly.
+
+Caching: each stage's result is stored under ``(stage, settings.stage_key(stage))``;
+asking again for a configuration already computed is a dictionary look-up.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import Any, Callable, Optional
+
+import numpy as np
+
+from simgap.errors import SimgapError
+
+from . import engine
+from .jobs import JobContext, JobRunner
+from .settings import STAGES, Settings
+
+
+class SimgapApp:
+    """The interactive app (see module docstring).
+
+    Parameters
+    ----------
+    host, port : str, int
+        Where the viser server listens (port 0 picks a free port).
+    settings : Settings, optional
+        Initial knobs (e.g. from ``--experiment``/``--profile``).
+    dataset : Dataset, optional
+        Pre-collected data (skips the collect stage).
+    """
+
+    def __init__(self, host: str = "127.0.0.1", port: int = 8080, settings: Optional[Settings] = None,
+                 dataset=None, spec=None, arena=None):
+        import viser
+
+        self.lock = threading.RLock()
+        self.settings = (settings or Settings())
+        self.system = engine.make_system(self.settings)
+        self.spec = spec
+        self.arena = arena
+        self.cache: dict = {}
+        self.results: dict = {s: None for s in STAGES}
+        self.result_keys: dict = {s: None for s in STAGES}
+        self.notifications: list = []  # (title, body, color) in order, also for tests
+        self.timings: dict = {}  # stage -> seconds of the last run (or cache hit)
+        self.auto_certify = True
+        self.view = {"dim": 0, "a": 0, "b": 1, "fixed": None, "zscale": None}
+        self.layers_visible = {"gamma": True, "data": True, "map": True, "winning": True, "rollouts": True,
+                               "bodies": True}
+        self.jobs = JobRunner(on_progress=self._job_progress, on_finish=self._job_finished)
+        self._scene_version = 0
+
+        self.server = viser.ViserServer(host=host, port=port, verbose=False)
+        self.server.gui.configure_theme(control_width="large", dark_mode=False, show_logo=False)
+        self.server.scene.set_up_direction("+z")
+        self._build_gui()
+        if dataset is not None:
+            self.set_dataset(dataset)
+        self.refresh_system_layers()
+
+    # ----- GUI construction -----------------------------------------------------------
+    def _build_gui(self) -> None:
+        from .panels import certificate, refinement, rollouts, synthesis, system_data, view
+
+        gui = self.server.gui
+        self.status = gui.add_markdown("**simgap** ready", order=0)
+        self.progress = gui.add_progress_bar(0.0, visible=False, animated=False, order=1)
+        self.cancel_button = gui.add_button("Cancel", color="red", disabled=True, order=2)
+        self.cancel_button.on_click(lambda _: self.cancel())
+        tabs = gui.add_tab_group(order=3)
+        self.panels = {}
+        with tabs.add_tab("Data"):
+            self.panels["system"] = system_data.build(self)
+        with tabs.add_tab("Certificate"):
+            self.panels["certificate"] = certificate.build(self)
+        with tabs.add_tab("Synthesis"):
+            self.panels["synthesis"] = synthesis.build(self)
+        with tabs.add_tab("Rollouts"):
+            self.panels["rollouts"] = rollouts.build(self)
+        with tabs.add_tab("Refine"):
+            self.panels["refine"] = refinement.build(self)
+        with tabs.add_tab("View"):
+            self.panels["view"] = view.build(self)
+        self.tabs = tabs
+        self._update_buttons()
+
+    @property
+    def url(self) -> str:
+        host = self.server.get_host()
+        host = "127.0.0.1" if host in ("0.0.0.0", "", "::") else host
+        return f"http://{host}:{self.server.get_port()}"
+
+    def stop(self) -> None:
+        self.jobs.cancel()
+        try:
+            self.jobs.wait(10)
+        except TimeoutError:
+            pass
+        self.server.stop()
+
+    # ----- notifications ----------------------------------------------------------------
+    def notify(self, title: str, body: str, color: str = "red") -> None:
+        """Show a notification in every connected browser (and keep it in ``self.notifications``)."""
+        self.notifications.append((title, body, color))
+        for client in self.server.get_clients().values():
+            try:
+                client.add_notification(title, body, auto_close_seconds=8.0, color=color)
+            except Exception:  # a client that just went away
+                pass
+        self.set_status(f"**{title}**: {body}")
+
+    def set_status(self, text: str) -> None:
+        self.status.content = text
+
+    def guarded(self, fn: Callable, *args, **kwargs) -> Any:
+        """Run ``fn``; a SimgapError (bad value) becomes a visible notification, never a dead GUI."""
+        try:
+            return fn(*args, **kwargs)
+        except SimgapError as e:
+            self.notify("Invalid value", str(e))
+            return None
+
+    # ----- settings -----------------------------------------------------------------------
+    def update_settings(self, **changes) -> bool:
+        """Apply validated changes to the settings; on a bad value notify and keep the old ones.
+
+        Returns True if the settings changed. Changes of certification knobs re-certify from
+        the cached data when ``auto_certify`` is on (the cheap path).
+        """
+        with self.lock:
+            try:
+                new = self.settings.replace(**changes)
+                system = engine.make_system(new) if ("system" in changes or "steps" in changes) else self.system
+                new.validate(system.n)
+            except SimgapError as e:
+                self.notify("Invalid value", str(e))
+                return False
+            old = self.settings
+            self.settings = new
+            if system is not self.system:
+                self.system = system
+                self._on_system_changed()
+        cert_changed = old.stage_key("certify") != new.stage_key("certify")
+        if cert_changed and self.auto_certify and self.results["collect"] is not None \
+                and engine.availability()["certify"][0] \
+                and old.stage_key("collect") == new.stage_key("collect"):
+            self.certify()
+        return True
+
+    def _on_system_changed(self) -> None:
+        self.view["fixed"] = None
+        self.view["zscale"] = None
+        self.view.update(dim=0, a=0, b=1)
+        for s in STAGES:
+            self.results[s] = None
+            self.result_keys[s] = None
+        self.panels["view"].rebuild_sliders()
+        self.refresh_system_layers()
+        self.refresh_result_layers()
+
+    # ----- data -----------------------------------------------------------------------
+    def set_dataset(self, dataset) -> None:
+        """Use an already collected dataset (its system and epsilon become the current ones)."""
+        with self.lock:
+            s = self.settings.replace(system=dataset.system.name, steps=int(dataset.system.steps),
+                                      epsilon=float(dataset.epsilon), n_runs=int(dataset.n_runs),
+                                      data_source=f"dataset:{dataset.hash or id(dataset)}")
+            s = s.replace(eta=self.settings.eta if len(self.settings.eta) == dataset.system.n
+                          else engine.default_eta(dataset.system))
+            self.settings = s
+            self.system = dataset.system
+            self._on_system_changed()
+            key = s.stage_key("collect")
+            self.cache[("collect", key)] = dataset
+            self.results["collect"] = dataset
+            self.result_keys["collect"] = key
+        self.panels["system"].sync_from_settings()
+        self.panels["certificate"].sync_from_settings()
+        self.panels["synthesis"].sync_from_settings()
+        self.set_status(f"dataset: {dataset.K} pairs (x_r, u), N1hat = {dataset.n_runs}, "
+                        f"epsilon = {dataset.epsilon:g}")
+        self.refresh_result_layers()
+        self._update_buttons()
+
+    # ----- stages -------------------------------------------------------------------------
+    def _run_stage(self, stage: str, compute: Callable[[JobContext], Any], background: bool = True) -> None:
+        """Look the stage's result up in the cache, or compute it (in the background)."""
+        with self.lock:
+            key = self.settings.stage_key(stage)
+            hit = self.cache.get((stage, key))
+        if hit is not None:
+            t0 = time.perf_counter()
+            self._accept(stage, key, hit)
+            self.timings[stage] = time.perf_counter() - t0
+            self.set_status(f"{stage}: from cache ({key})")
+            return
+
+        def then(result):
+            self._accept(stage, key, result)
+
+        if background:
+            self.jobs.submit(stage, compute, then)
+        else:
+            ctx = JobContext(name=stage)
+            then(compute(ctx))
+        self._update_buttons()
+
+    def _accept(self, stage: str, key: str, result) -> None:
+        with self.lock:
+            self.cache[(stage, key)] = result
+            self.results[stage] = result
+            self.result_keys[stage] = key
+            # results downstream of this stage no longer match it
+            downstream = {"collect": ("certify", "synthesize", "rollout", "refine"),
+                          "certify": ("synthesize", "rollout", "refine"),
+                          "synthesize": ("rollout",), "rollout": (), "refine": ()}[stage]
+            for s in downstream:
+                k = self.settings.stage_key(s)
+                self.results[s] = self.cache.get((s, k))
+                self.result_keys[s] = k if self.results[s] is not None else None
+        self.panels["certificate"].show_summary()
+        self.panels["synthesis"].show_stats()
+        self.panels["rollouts"].show_stats()
+        self.panels["refine"].show_report()
+        self.refresh_result_layers()
+
+    def collect(self, background: bool = True) -> None:
+        """Collect data for the current settings (engine: ``simgap.collect``)."""
+        self.guarded(self._collect, background)
+
+    def _collect(self, background):
+        s = self.settings.validate(self.system.n)
+        engine.require("collect")
+        self._run_stage("collect", lambda ctx: engine.collect(s, self.system, ctx), background)
+
+    def certify(self, background: bool = True) -> None:
+        """Certify gamma from the cached data (engine: ``simgap.certify.certify``)."""
+        self.guarded(self._certify, background)
+
+    def _certify(self, background):
+        s = self.settings.validate(self.system.n)
+        engine.require("certify")
+        data = self.results["collect"]
+        if data is None:
+            raise SimgapError("no data yet: collect (or load) a dataset first")
+        self._run_stage("certify", lambda ctx: engine.certify(data, s, ctx), background)
+
+    def synthesize(self, background: bool = True) -> None:
+        """Synthesize a controller for f + [-gamma, gamma] (engine: ``simgap.synthesis``)."""
+        self.guarded(self._synthesize, background)
+
+    def _synthesize(self, background):
+        s = self.settings.validate(self.system.n)
+        engine.require("synthesize")
+        cert = self.results["certify"]
+        if cert is None and s.use_gap:
+            raise SimgapError("no certificate yet: certify first (or untick 'use gamma')")
+        system, spec = self.system, self.current_spec()
+        self._run_stage("synthesize", lambda ctx: engine.synthesize(system, spec, cert, s, ctx), background)
+
+    def rollout(self, background: bool = True) -> None:
+        """Roll the controller out in the simulator (engine: ``simgap.synthesis.rollout``)."""
+        self.guarded(self._rollout, background)
+
+    def _rollout(self, background):
+        s = self.settings.validate(self.system.n)
+        engine.require("rollout")
+        syn = self.results["synthesize"]
+        if syn is None:
+            raise SimgapError("no controller yet: synthesize first")
+        system, spec = self.system, self.current_spec()
+        self._run_stage("rollout", lambda ctx: engine.rollout(system, spec, syn, s, ctx), background)
+
+    def refine(self, background: bool = True) -> None:
+        """Refine the nominal model from the data's residuals (engine: ``simgap.refine``)."""
+        self.guarded(self._refine, background)
+
+    def _refine(self, background):
+        s = self.settings.validate(self.system.n)
+        engine.require("refine")
+        data = self.results["collect"]
+        if data is None:
+            raise SimgapError("no data yet: collect (or load) a dataset first")
+        self._run_stage("refine", lambda ctx: engine.refine(data, s, ctx), background)
+
+    def cancel(self) -> None:
+        if self.jobs.cancel():
+            self.set_status(f"cancelling {self.jobs.current} ...")
+
+    def current_spec(self):
+        """The specification for synthesis/rollouts: the experiment's, else the system's default."""
+        if self.spec is not None and self.spec_matches():
+            return self.spec
+        return engine.default_spec(self.system, self.arena)
+
+    def spec_matches(self) -> bool:
+        return self.spec is not None and len(getattr(self.spec, "target", None).lo if self.spec.target is not None
+                                             else self.spec.safe.lo) == self.system.n
+
+    # ----- job callbacks (worker thread) -------------------------------------------------
+    def _job_progress(self, name: str, frac: float) -> None:
+        self.progress.visible = True
+        self.progress.animated = True
+        self.progress.value = float(np.clip(100.0 * frac, 0.0, 100.0))
+        self.set_status(f"{name}: {100 * frac:.0f} %")
+        self._update_buttons()
+
+    def _job_finished(self, out) -> None:
+        self.progress.visible = False
+        self.progress.animated = False
+        self.timings[out.name] = out.seconds
+        if out.ok:
+            self.set_status(f"{out.name}: done in {out.seconds:.2f} s ({self.result_keys.get(out.name)})")
+        elif out.cancelled:
+            self.notify("Cancelled", f"{out.name} was cancelled", color="yellow")
+        else:
+            self.notify(f"{out.name} failed", out.error or "unknown error")
+        self._update_buttons()
+
+    def _update_buttons(self) -> None:
+        if not hasattr(self, "panels"):
+            return
+        busy = self.jobs.busy
+        self.cancel_button.disabled = not busy
+        avail = engine.availability()
+        have = self.results
+        state = {
+            "collect": avail["collect"][0],
+            "certify": avail["certify"][0] and have["collect"] is not None,
+            "synthesize": avail["synthesize"][0] and (have["certify"] is not None or not self.settings.use_gap),
+            "rollout": avail["rollout"][0] and have["synthesize"] is not None,
+            "refine": avail["refine"][0] and have["collect"] is not None,
+        }
+        for stage, ok in state.items():
+            for p in self.panels.values():
+                b = getattr(p, "buttons", {}).get(stage)
+                if b is not None:
+                    b.disabled = busy or not ok
+
+    # ----- scene ------------------------------------------------------------------------
+    def refresh_system_layers(self) -> None:
+        from .layers import scene
+        scene.draw_system(self)
+
+    def refresh_result_layers(self) -> None:
+        from .layers import scene
+        with self.lock:
+            self._scene_version += 1
+        scene.draw_results(self)
+
+    def set_layer_visible(self, layer: str, visible: bool) -> None:
+        """Show or hide one layer (redraws it)."""
+        self.layers_visible[layer] = bool(visible)
+        if layer in ("map", "bodies"):
+            self.refresh_system_layers()
+        else:
+            self.refresh_result_layers()
+
+    def set_view(self, dim=None, a=None, b=None, fixed_index=None, fixed_value=None) -> dict:
+        """Change the gamma-surface slice and redraw it; returns what was drawn (see layers.scene.draw_gamma)."""
+        from .layers import scene
+        with self.lock:
+            v = dict(self.view)
+            if dim is not None:
+                if not 0 <= int(dim) < self.system.n:
+                    raise SimgapError(f"gamma dimension must be in 1..{self.system.n}, got {int(dim) + 1}")
+                if int(dim) != v["dim"]:
+                    v["zscale"] = None
+                v["dim"] = int(dim)
+            if a is not None:
+                v["a"] = int(a)
+            if b is not None:
+                v["b"] = int(b)
+            if v["a"] == v["b"]:
+                raise SimgapError("the gamma surface needs two different variables")
+            if fixed_index is not None:
+                fixed = list(v["fixed"])
+                fixed[int(fixed_index)] = float(fixed_value)
+                v["fixed"] = fixed
+            self.view = v
+        view_panel = self.panels.get("view")
+        if view_panel is not None:
+            view_panel._mark_free()
+        return scene.draw_gamma(self)
+
+    def wait(self, timeout: float = 120.0):
+        """Block until the running job (if any) ends; returns its outcome (tests, scripts)."""
+        return self.jobs.wait(timeout)

@@ -1,0 +1,224 @@
+"""The app's only door into the engine: thin calls into ``simgap`` stages, and formatting of results.
+
+Nothing here computes a gap, a bound, an abstraction or a rollout: each function translates the
+app's :class:`~simgap_viz.settings.Settings` into the engine's arguments and calls it. A stage
+whose engine module is not importable is reported by :func:`availability` and its button stays
+disabled with a note (never faked).
+"""
+
+from __future__ import annotations
+
+import importlib
+import os
+import tempfile
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from simgap.errors import SimgapError
+from simgap.systems import System, get_system
+
+SYSTEMS = ["pendulum", "turtlebot"]
+SIMULATORS = ["numpy", "pybullet_pendulum", "pybullet_turtlebot"]
+
+# stage -> modules that must import for the stage to be offered
+_NEEDS = {
+    "collect": ("simgap.collect", "simgap.cover"),
+    "certify": ("simgap.certify",),
+    "synthesize": ("simgap.synthesis.abstraction", "simgap.synthesis.games", "simgap.synthesis.controller"),
+    "rollout": ("simgap.synthesis.rollout",),
+    "refine": ("simgap.refine",),
+}
+_ATTRS = {"certify": ("simgap.certify", "certify"), "synthesize": ("simgap.synthesis", "synthesize"),
+          "refine": ("simgap.refine", "refine")}
+
+
+def availability() -> dict:
+    """stage -> (available, reason)."""
+    out = {}
+    for stage, mods in _NEEDS.items():
+        ok, why = True, ""
+        for m in mods:
+            try:
+                importlib.import_module(m)
+            except ImportError as e:
+                ok, why = False, f"engine module {m} is not available ({e})"
+                break
+        if ok and stage in _ATTRS:
+            mod, attr = _ATTRS[stage]
+            if not hasattr(importlib.import_module(mod), attr):
+                ok, why = False, f"{mod}.{attr} is not available in this engine version"
+        out[stage] = (ok, why)
+    return out
+
+
+def require(stage: str) -> None:
+    ok, why = availability()[stage]
+    if not ok:
+        raise SimgapError(f"{stage} is disabled: {why}")
+
+
+def unavailable_note(stage: str) -> str:
+    ok, why = availability()[stage]
+    return "" if ok else f"*{stage} is disabled: {why}*"
+
+
+# ----- systems, specs ----------------------------------------------------------------------
+def make_system(settings) -> System:
+    return get_system(settings.system, steps=int(settings.steps))
+
+
+def default_simulator(system_name: str, current: str) -> str:
+    """Keep the simulator if it fits the system (numpy fits all), else the system's PyBullet one."""
+    if current == "numpy" or current.endswith(system_name):
+        return current
+    return "numpy"
+
+
+def default_eta(system: System) -> tuple:
+    """A grid of about 40 cells per dimension (a GUI starting point, not a recommendation)."""
+    return tuple(float(f"{w:.3g}") for w in (system.x_hi - system.x_lo) / 40.0)
+
+
+def check_terms(system: System, text: str) -> str:
+    """Validate comma-separated extra basis terms with the engine's parser; return the text."""
+    text = (text or "").strip()
+    if not text:
+        return ""
+    from simgap.certify.basis import parse_term
+    for t in _split_terms(text):
+        parse_term(t, system)
+    return text
+
+
+def _split_terms(text: str) -> list:
+    """Split on commas that are not inside parentheses."""
+    out, depth, cur = [], 0, ""
+    for ch in text:
+        if ch == "(":
+            depth += 1
+        elif ch == ")":
+            depth -= 1
+        if ch == "," and depth == 0:
+            out.append(cur.strip())
+            cur = ""
+        else:
+            cur += ch
+    if cur.strip():
+        out.append(cur.strip())
+    return [t for t in out if t]
+
+
+def default_spec(system: System, arena=None):
+    """The specification used when the experiment gives none."""
+    from simgap.maps import load_map
+    if arena is None and system.name == "turtlebot":
+        arena = load_map("arena")
+    if arena is not None:
+        return arena.spec(system)
+    raise SimgapError(f"no specification for system {system.name!r}: start the app with --experiment")
+
+
+def simulator_config(settings, system: System):
+    from simgap.simulators.base import SimulatorConfig
+    noise = {"actuation_std": float(settings.noise_std)} if settings.simulator == "numpy" else {}
+    return SimulatorConfig(kind=settings.simulator, system=system.name, steps=int(system.steps), noise=noise)
+
+
+# ----- stages ----------------------------------------------------------------------------
+_WORKDIR: Optional[Path] = None
+
+
+def workdir() -> Path:
+    global _WORKDIR
+    if _WORKDIR is None:
+        _WORKDIR = Path(os.environ.get("SIMGAP_GUI_WORKDIR") or tempfile.mkdtemp(prefix="simgap-gui-"))
+        _WORKDIR.mkdir(parents=True, exist_ok=True)
+    return _WORKDIR
+
+
+def collect(settings, system: System, ctx, executor: str = "serial"):
+    """Collect the data set: cover X with radius epsilon, N1hat runs per (x_r, u) (simgap.collect)."""
+    from simgap.collect import CollectionPlan, collect as run_collect
+    from simgap.cover import CoverSpec, make_cover
+
+    cover = make_cover(system, CoverSpec(epsilon=float(settings.epsilon)))
+    plan = CollectionPlan(system=system, simulator=simulator_config(settings, system), cover=cover,
+                          n_runs=int(settings.n_runs), seed=int(settings.seed))
+    store = workdir() / f"store-{plan.hash()}"
+    res = run_collect(plan, store, executor=executor, on_progress=ctx.progress, should_stop=ctx.cancelled)
+    if res.cancelled or not res.complete:
+        ctx.check()
+        raise SimgapError(f"collection stopped with {res.done}/{res.n_chunks} chunks")
+    return res.dataset(system)
+
+
+def certify(dataset, settings, ctx):
+    raise SimgapError("certify: engine API not wired yet")
+
+
+def synthesize(system, spec, cert, settings, ctx):
+    raise SimgapError("synthesize: engine API not wired yet")
+
+
+def rollout(system, spec, syn, settings, ctx):
+    raise SimgapError("rollout: engine API not wired yet")
+
+
+def refine(dataset, settings, ctx):
+    raise SimgapError("refine: engine API not wired yet")
+
+
+# ----- result accessors -------------------------------------------------------------------
+def gamma_function(cert):
+    """gamma(x (B,n), u (B,m)) -> (B,n) of a certificate [state units]."""
+    return cert.gamma
+
+
+def winning_cells(res):
+    """(centers (C,n), widths (n,), values (C,) in [0,1]) of the winning domain's cells."""
+    raise SimgapError("winning domain: engine API not wired yet")
+
+
+def rollout_arrays(res):
+    """(trajectories (R,T+1,n), failed (R,), mean (T+1,n), nominal (T+1,n) or None)."""
+    return (np.asarray(res.trajectories), ~np.asarray(res.success), np.asarray(res.mean_trajectory),
+            getattr(res, "nominal_trajectory", None))
+
+
+def certificate_markdown(cert) -> str:
+    return f"```\n{cert}\n```"
+
+
+def synthesis_markdown(res) -> str:
+    return f"```\n{getattr(res, 'stats', res)}\n```"
+
+
+def rollout_markdown(res) -> str:
+    return "```\n" + "\n".join(res.summary_lines()) + "\n```"
+
+
+def refine_markdown(res) -> str:
+    return f"```\n{res}\n```"
+
+
+# ----- static geometry -----------------------------------------------------------------------
+def map_meshes(app, frame) -> list:
+    """(name, trimesh) of the obstacle map and target, in display coordinates."""
+    from .layers.geometry import spec_meshes
+    try:
+        spec = app.current_spec()
+    except SimgapError:
+        return []
+    out = []
+    for name, mesh, rgb in spec_meshes(frame, spec):
+        mesh.visual.face_colors = np.array(list(rgb) + [200], np.uint8)
+        out.append((name, mesh))
+    return out
+
+
+def body_meshes(app) -> list:
+    """(name, trimesh, position) of the simulator's bodies (from their URDF geometry)."""
+    from .layers.bodies import simulator_bodies
+    return simulator_bodies(app.settings.simulator, app.system)

@@ -1,0 +1,145 @@
+"""Long work off the GUI thread: one background job at a time, with progress and cancel.
+
+A job is a function ``fn(ctx) -> result``. ``ctx.progress(done, total)`` reports progress
+(and is what engine stages receive as their ``on_progress`` callback); once the user has pressed
+cancel it raises :class:`JobCancelled`, so a stage that reports progress is interrupted at its
+next report even if it has no cancellation support of its own. ``ctx.cancelled`` is a
+``threading.Event`` for stages that take one.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+import traceback
+from dataclasses import dataclass, field
+from typing import Any, Callable, Optional
+
+from simgap.errors import SimgapError
+
+
+class JobCancelled(Exception):
+    """Raised inside a job when the user pressed cancel."""
+
+
+@dataclass
+class JobContext:
+    name: str
+    cancelled: threading.Event = field(default_factory=threading.Event)
+    on_progress: Optional[Callable[[float], None]] = None
+    done: float = 0.0
+    total: float = 1.0
+    _last: float = 0.0
+
+    def progress(self, done, total=None) -> None:
+        """Report progress (done of total); raises JobCancelled after cancel."""
+        if self.cancelled.is_set():
+            raise JobCancelled(self.name)
+        self.done = float(done)
+        if total is not None:
+            self.total = max(float(total), 1e-12)
+        now = time.monotonic()
+        # throttle GUI updates to ~20 Hz: engine stages may report per chunk
+        if self.on_progress is not None and (now - self._last > 0.05 or self.done >= self.total):
+            self._last = now
+            self.on_progress(min(1.0, self.done / self.total))
+
+    def check(self) -> None:
+        if self.cancelled.is_set():
+            raise JobCancelled(self.name)
+
+
+@dataclass
+class JobOutcome:
+    name: str
+    ok: bool
+    result: Any = None
+    error: Optional[str] = None
+    cancelled: bool = False
+    seconds: float = 0.0
+
+
+class JobRunner:
+    """Runs at most one job at a time on a daemon thread.
+
+    Parameters
+    ----------
+    on_progress : callable(name, fraction)
+        Called from the worker thread with the fraction done in [0, 1].
+    on_finish : callable(JobOutcome)
+        Called from the worker thread when a job ends (ok, failed or cancelled).
+    """
+
+    def __init__(self, on_progress=None, on_finish=None):
+        self._on_progress = on_progress
+        self._on_finish = on_finish
+        self._lock = threading.Lock()
+        self._thread: Optional[threading.Thread] = None
+        self._ctx: Optional[JobContext] = None
+        self.last: Optional[JobOutcome] = None
+
+    @property
+    def busy(self) -> bool:
+        t = self._thread
+        return t is not None and t.is_alive()
+
+    @property
+    def current(self) -> Optional[str]:
+        return self._ctx.name if self.busy and self._ctx else None
+
+    def submit(self, name: str, fn: Callable[[JobContext], Any],
+               then: Optional[Callable[[Any], None]] = None) -> None:
+        """Start ``fn`` in the background; ``then(result)`` runs on the worker after success.
+
+        Raises SimgapError if another job is still running.
+        """
+        with self._lock:
+            if self.busy:
+                raise SimgapError(f"'{self._ctx.name}' is still running; wait or press cancel")
+            ctx = JobContext(name=name, on_progress=(lambda f: self._on_progress(name, f))
+                             if self._on_progress else None)
+            self._ctx = ctx
+            self._thread = threading.Thread(target=self._run, args=(ctx, fn, then), name=f"simgap-{name}",
+                                            daemon=True)
+            self._thread.start()
+
+    def _run(self, ctx: JobContext, fn, then) -> None:
+        t0 = time.perf_counter()
+        try:
+            if ctx.on_progress:
+                ctx.on_progress(0.0)
+            result = fn(ctx)
+            if then is not None:
+                then(result)
+            out = JobOutcome(ctx.name, True, result=result)
+        except JobCancelled:
+            out = JobOutcome(ctx.name, False, error="cancelled", cancelled=True)
+        except SimgapError as e:
+            out = JobOutcome(ctx.name, False, error=str(e))
+        except Exception as e:  # a bug must not kill the GUI: report it instead
+            traceback.print_exc()
+            out = JobOutcome(ctx.name, False, error=f"{type(e).__name__}: {e}")
+        out.seconds = time.perf_counter() - t0
+        self.last = out
+        if self._on_finish:
+            try:
+                self._on_finish(out)
+            except Exception:
+                traceback.print_exc()
+
+    def cancel(self) -> bool:
+        """Ask the running job to stop; True if there was one."""
+        ctx = self._ctx
+        if ctx is not None and self.busy:
+            ctx.cancelled.set()
+            return True
+        return False
+
+    def wait(self, timeout: float = 60.0) -> Optional[JobOutcome]:
+        """Block until the current job ends (for tests and scripts); returns its outcome."""
+        t = self._thread
+        if t is not None:
+            t.join(timeout)
+            if t.is_alive():
+                raise TimeoutError(f"job {self._ctx.name!r} still running after {timeout} s")
+        return self.last

@@ -1,0 +1,245 @@
+"""Geometry of the state-space layers, in display coordinates.
+
+Display convention: the first two state dimensions x1, x2 are mapped affinely from
+X = [x_lo, x_hi] to the square [-1, 1]^2 (the plane z = 0), so the pendulum's
+[-0.2, 0.2] x [-0.5, 0.5] and the TurtleBot's [0, 4]^2 arena look alike; a third state
+dimension (TurtleBot heading) is projected away. Heights (z) show gap values scaled by
+``zscale`` (display units per state unit), stated in the app's legend.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Sequence
+
+import numpy as np
+
+from simgap.errors import SimgapError
+from simgap.systems import System
+
+# colors (RGB 0-255)
+BLUE = (60, 120, 220)
+RED = (220, 50, 50)
+GREEN = (40, 170, 80)
+YELLOW = (250, 200, 20)
+GREY = (150, 150, 150)
+DIM_COLORS = ((70, 130, 230), (230, 120, 40), (120, 180, 60), (170, 90, 200))
+
+
+class Frame:
+    """Affine map of the (first two) state dimensions to the display square [-1, 1]^2."""
+
+    def __init__(self, system: System):
+        self.system = system
+        self.lo = system.x_lo[:2].astype(float)
+        self.hi = system.x_hi[:2].astype(float)
+        if system.n == 1:  # pad a 1-D system with a flat second axis
+            self.lo = np.array([self.lo[0], -1.0])
+            self.hi = np.array([self.hi[0], 1.0])
+        self.center = 0.5 * (self.lo + self.hi)
+        self.half = 0.5 * (self.hi - self.lo)
+
+    def xy(self, x: np.ndarray) -> np.ndarray:
+        """States (..., n) -> display (..., 3) with z = 0."""
+        x = np.asarray(x, dtype=float)
+        xy = x[..., :2] if x.shape[-1] >= 2 else np.concatenate([x, np.zeros_like(x)], axis=-1)
+        out = np.zeros(x.shape[:-1] + (3,))
+        out[..., :2] = (xy - self.center) / self.half
+        return out
+
+    def scale_xy(self, widths: np.ndarray) -> np.ndarray:
+        """State-space widths (..., 2) -> display widths."""
+        return np.asarray(widths, dtype=float) / self.half
+
+
+def variable_names(system: System) -> list[str]:
+    """State then input variable names, the axes a gamma surface can be drawn over."""
+    return list(system.state_names) + list(system.input_names)
+
+
+def variable_ranges(system: System) -> np.ndarray:
+    """(n+m, 2) ranges [lo, hi] of the state box X and of the finite input set U."""
+    U = system.inputs
+    return np.vstack([np.stack([system.x_lo, system.x_hi], axis=1),
+                      np.stack([U.min(axis=0), U.max(axis=0)], axis=1)])
+
+
+def grid_faces(na: int, nb: int) -> np.ndarray:
+    """Triangle indices (2 (na-1)(nb-1), 3) of a regular na x nb vertex grid (row-major, b fastest)."""
+    i, j = np.meshgrid(np.arange(na - 1), np.arange(nb - 1), indexing="ij")
+    v00 = (i * nb + j).ravel()
+    v01, v10, v11 = v00 + 1, v00 + nb, v00 + nb + 1
+    return np.concatenate([np.stack([v00, v10, v11], 1), np.stack([v00, v11, v01], 1)]).astype(np.uint32)
+
+
+def surface_points(system: System, a: int, b: int, fixed: Sequence[float], res: int = 41) -> tuple:
+    """Query points for a gamma surface over variables ``a`` and ``b`` (indices into states+inputs).
+
+    ``fixed`` holds a value for every variable (n+m); the ones for a and b are overwritten by a
+    res x res grid over their ranges. Returns (x (res^2, n), u (res^2, m), A (res,), B (res,)).
+    """
+    nv = system.n + system.m
+    if not (0 <= a < nv and 0 <= b < nv) or a == b:
+        raise SimgapError(f"gamma surface: need two different variables among {variable_names(system)}")
+    if len(fixed) != nv:
+        raise SimgapError(f"gamma surface: need {nv} fixed values, got {len(fixed)}")
+    rng = variable_ranges(system)
+    A = np.linspace(rng[a, 0], rng[a, 1], res)
+    B = np.linspace(rng[b, 0], rng[b, 1], res)
+    P = np.tile(np.asarray(fixed, dtype=float), (res * res, 1))
+    AA, BB = np.meshgrid(A, B, indexing="ij")
+    P[:, a] = AA.ravel()
+    P[:, b] = BB.ravel()
+    return P[:, :system.n], P[:, system.n:], A, B
+
+
+def gamma_surface(system: System, gamma: Callable, dim: int, a: int, b: int, fixed: Sequence[float],
+                  res: int = 41, zscale: float = 1.0) -> dict:
+    """Mesh of gamma_dim(x, u) over variables a, b (others at ``fixed``), in display coordinates.
+
+    ``gamma(x (B,n), u (B,m)) -> (B,n)`` is the certificate's gap function [state units].
+    The (a, b) plane is mapped to [-1, 1]^2; z = zscale * gamma_dim.
+    Returns dict(vertices (res^2,3) float32, faces (2(res-1)^2,3) uint32, values (res^2,)).
+    """
+    x, u, A, B = surface_points(system, a, b, fixed, res)
+    g = np.asarray(gamma(x, u), dtype=float)
+    if g.ndim != 2 or g.shape[0] != x.shape[0] or not (0 <= dim < g.shape[1]):
+        raise SimgapError(f"gamma surface: gamma returned shape {g.shape}, expected ({x.shape[0]}, n)")
+    vals = g[:, dim]
+    rng = variable_ranges(system)
+    ua = 2 * (np.repeat(A, res) - rng[a].mean()) / max(np.ptp(rng[a]), 1e-12)
+    ub = 2 * (np.tile(B, res) - rng[b].mean()) / max(np.ptp(rng[b]), 1e-12)
+    verts = np.stack([ua, ub, zscale * vals], axis=1).astype(np.float32)
+    return {"vertices": verts, "faces": grid_faces(res, res), "values": vals}
+
+
+def data_slice(dataset, system: System, a: int, b: int, fixed: Sequence[float], max_points: int = 50000,
+               seed: int = 0) -> np.ndarray:
+    """Row indices of the dataset near the slice shown by a gamma surface.
+
+    Rows whose variables other than a, b are within the cover spacing of the fixed values
+    (state variables: |x_j - v_j| <= epsilon; input variables: the input value nearest to v_j).
+    Subsampled (seeded) to at most ``max_points``.
+    """
+    P = np.hstack([dataset.x, dataset.u])
+    keep = np.ones(P.shape[0], dtype=bool)
+    for j in range(P.shape[1]):
+        if j in (a, b):
+            continue
+        col = P[:, j]
+        if j < system.n:
+            keep &= np.abs(col - fixed[j]) <= max(dataset.epsilon, 1e-12)
+        else:
+            vals = np.unique(col)
+            nearest = vals[np.argmin(np.abs(vals - fixed[j]))]
+            keep &= col == nearest
+    idx = np.flatnonzero(keep)
+    if idx.size > max_points:
+        idx = np.sort(np.random.default_rng(seed).choice(idx, max_points, replace=False))
+    return idx
+
+
+def data_points(dataset, system: System, dim: int, a: int, b: int, fixed: Sequence[float],
+                gamma: Callable | None = None, zscale: float = 1.0, max_points: int = 50000) -> dict:
+    """Observed gaps g_dim(x_r, u) = |m - f| of the rows near the slice, as points above the (a, b) plane.
+
+    Colored green where g <= gamma_dim(x_r, u) (the certificate covers the data point), red
+    where it does not, grey without a certificate. Returns dict(points (P,3), colors (P,3) uint8,
+    gap (P,), covered (P,) bool or None, rows (P,)).
+    """
+    rows = data_slice(dataset, system, a, b, fixed, max_points)
+    P = np.hstack([dataset.x[rows], dataset.u[rows]])
+    g = dataset.gap()[rows, dim]
+    rng = variable_ranges(system)
+    pa = 2 * (P[:, a] - rng[a].mean()) / max(np.ptp(rng[a]), 1e-12)
+    pb = 2 * (P[:, b] - rng[b].mean()) / max(np.ptp(rng[b]), 1e-12)
+    pts = np.stack([pa, pb, zscale * g], axis=1).astype(np.float32)
+    covered = None
+    colors = np.tile(np.array(GREY, np.uint8), (rows.size, 1))
+    if gamma is not None and rows.size:
+        gam = np.asarray(gamma(dataset.x[rows], dataset.u[rows]), dtype=float)[:, dim]
+        covered = g <= gam + 1e-12
+        colors[covered] = GREEN
+        colors[~covered] = RED
+    return {"points": pts, "colors": colors, "gap": g, "covered": covered, "rows": rows}
+
+
+def rollout_segments(frame: Frame, traj: np.ndarray, failed: np.ndarray | None = None,
+                     max_segments: int = 200000) -> dict:
+    """All rollouts as one batch of line segments (display coordinates).
+
+    ``traj`` (R, T+1, n) states; ``failed`` (R,) bool. Time is strided so that at most
+    ``max_segments`` segments are drawn (endpoints kept). Failures red, the others blue.
+    Returns dict(points (S,2,3) float32, colors (S,2,3) uint8, stride int).
+    """
+    traj = np.asarray(traj, dtype=float)
+    if traj.ndim != 3:
+        raise SimgapError(f"rollouts: expected trajectories of shape (R, T+1, n), got {traj.shape}")
+    R, T1, _ = traj.shape
+    stride = max(1, int(np.ceil(R * max(T1 - 1, 1) / max_segments)))
+    t = np.arange(0, T1, stride)
+    if t[-1] != T1 - 1:
+        t = np.append(t, T1 - 1)
+    P = frame.xy(traj[:, t])  # (R, T', 3)
+    seg = np.stack([P[:, :-1], P[:, 1:]], axis=2).reshape(-1, 2, 3).astype(np.float32)
+    col = np.empty((R, len(t) - 1, 2, 3), np.uint8)
+    col[:] = BLUE
+    if failed is not None:
+        col[np.asarray(failed, bool)] = RED
+    return {"points": seg, "colors": col.reshape(-1, 2, 3), "stride": stride}
+
+
+def polyline_segments(frame: Frame, path: np.ndarray) -> np.ndarray:
+    """One trajectory (T+1, n) as (T, 2, 3) display segments."""
+    P = frame.xy(np.asarray(path, dtype=float))
+    return np.stack([P[:-1], P[1:]], axis=1).astype(np.float32)
+
+
+def box_cells(frame: Frame, centers: np.ndarray, widths: np.ndarray, values: np.ndarray | None = None) -> dict:
+    """Grid cells (first two dims) as batched box instances in display coordinates.
+
+    Cells that share (x1, x2) (e.g. different headings) are merged; ``values`` in [0, 1]
+    (fraction winning) colors them from red (0) to green (1). Returns dict(positions (C,3),
+    scales (C,3), colors (C,3) uint8, fraction (C,)).
+    """
+    centers = np.asarray(centers, dtype=float)
+    c2 = centers[:, :2] if centers.shape[1] >= 2 else np.hstack([centers, np.zeros_like(centers)])
+    vals = np.ones(len(c2)) if values is None else np.asarray(values, dtype=float)
+    keys, inv = np.unique(np.round(c2, 9), axis=0, return_inverse=True)
+    inv = inv.ravel()
+    frac = np.bincount(inv, weights=vals, minlength=len(keys)) / np.bincount(inv, minlength=len(keys))
+    pos = frame.xy(keys)
+    w = np.asarray(widths, dtype=float).ravel()
+    w2 = w[:2] if w.size >= 2 else np.array([w[0], 2 * frame.half[1]])
+    sc = np.empty((len(keys), 3))
+    sc[:, :2] = frame.scale_xy(w2)
+    sc[:, 2] = 0.01
+    green, red = np.array(GREEN, float), np.array(RED, float)
+    col = (red[None] + frac[:, None] * (green - red)[None]).astype(np.uint8)
+    return {"positions": pos, "scales": sc, "colors": col, "fraction": frac}
+
+
+def box_mesh(frame: Frame, lo: np.ndarray, hi: np.ndarray, height: float = 0.1):
+    """A trimesh box for a state-space box (first two dims, infinite bounds clipped to X)."""
+    import trimesh
+
+    lo = np.asarray(lo, dtype=float)[:2]
+    hi = np.asarray(hi, dtype=float)[:2]
+    lo = np.maximum(lo, frame.lo)
+    hi = np.minimum(hi, frame.hi)
+    a, b = frame.xy(lo[None])[0], frame.xy(hi[None])[0]
+    ext = np.array([max(b[0] - a[0], 1e-6), max(b[1] - a[1], 1e-6), height])
+    m = trimesh.creation.box(extents=ext)
+    m.apply_translation([(a[0] + b[0]) / 2, (a[1] + b[1]) / 2, height / 2])
+    return m
+
+
+def spec_meshes(frame: Frame, spec) -> list:
+    """(name, trimesh, rgb) for the spec's obstacles (grey), target (green) and safe set (blue)."""
+    out = []
+    for i, ob in enumerate(getattr(spec, "obstacles", ()) or ()):
+        out.append((f"obstacle_{i}", box_mesh(frame, ob.lo, ob.hi, 0.15), GREY))
+    if getattr(spec, "target", None) is not None:
+        out.append(("target", box_mesh(frame, spec.target.lo, spec.target.hi, 0.02), GREEN))
+    if getattr(spec, "safe", None) is not None:
+        out.append(("safe", box_mesh(frame, spec.safe.lo, spec.safe.hi, 0.005), BLUE))
+    return out

@@ -1,0 +1,71 @@
+"""Certificate tab: delta per dimension or a target confidence, the basis, the concentration bound;
+certify from the cached data and show the summary table (gamma per dimension, betas, confidences)."""
+
+from __future__ import annotations
+
+from .. import engine
+from ..settings import CONCENTRATIONS, parse_vector
+from .base import Panel, fmt_vec
+
+MODES = ("target confidence", "per dimension")
+
+
+class CertificatePanel(Panel):
+    def __init__(self, app):
+        super().__init__(app)
+        gui = app.server.gui
+        s = app.settings
+        self.mode = gui.add_dropdown("delta from", options=MODES,
+                                     initial_value=MODES[0] if s.delta1 is None else MODES[1])
+        self.confidence = gui.add_number("Confidence", initial_value=s.confidence or 0.9, step=0.001,
+                                         hint="target joint confidence 1 - sum_i (beta_1i + beta_2i)")
+        self.delta1 = gui.add_text("delta_1", initial_value=fmt_vec(s.delta1) or "0.05",
+                                   hint="per dimension, comma separated [state units]")
+        self.delta2 = gui.add_text("delta_2", initial_value=fmt_vec(s.delta2) or "0.05")
+        self.degree = gui.add_slider("Basis degree", min=0, max=4, step=1, initial_value=s.degree)
+        self.terms = gui.add_text("Extra terms", initial_value=s.terms, hint="e.g. sin(x1), x2*u1")
+        self.concentration = gui.add_dropdown("Concentration", options=CONCENTRATIONS,
+                                              initial_value=s.concentration)
+        self.auto = gui.add_checkbox("Re-certify on change", initial_value=app.auto_certify)
+        self.buttons["certify"] = gui.add_button("Certify")
+        self.buttons["certify"].on_click(lambda _: app.certify())
+        self.summary = gui.add_markdown("*no certificate yet*")
+        on = self.on
+        on(self.mode, lambda v: self.apply_deltas())
+        on(self.confidence, lambda v: self.apply_deltas())
+        on(self.delta1, lambda v: self.apply_deltas())
+        on(self.delta2, lambda v: self.apply_deltas())
+        on(self.degree, lambda v: app.update_settings(degree=int(v)))
+        on(self.terms, lambda v: app.update_settings(terms=engine.check_terms(app.system, v)))
+        on(self.concentration, lambda v: app.update_settings(concentration=v))
+        self.auto.on_update(lambda _: setattr(app, "auto_certify", bool(self.auto.value)))
+
+    def apply_deltas(self) -> None:
+        n = self.app.system.n
+        if self.mode.value == MODES[0]:
+            self.app.update_settings(confidence=float(self.confidence.value), delta1=None, delta2=None)
+        else:
+            d1 = parse_vector(self.delta1.value, "delta_1", n)
+            d2 = parse_vector(self.delta2.value, "delta_2", n)
+            self.app.update_settings(delta1=d1, delta2=d2, confidence=None)
+
+    def sync_from_settings(self) -> None:
+        s = self.app.settings
+        self.set_quiet(self.degree, s.degree)
+        self.set_quiet(self.terms, s.terms)
+        self.set_quiet(self.concentration, s.concentration)
+        if s.delta1 is not None:
+            self.set_quiet(self.mode, MODES[1])
+            self.set_quiet(self.delta1, fmt_vec(s.delta1))
+            self.set_quiet(self.delta2, fmt_vec(s.delta2))
+        elif s.confidence is not None:
+            self.set_quiet(self.mode, MODES[0])
+            self.set_quiet(self.confidence, s.confidence)
+
+    def show_summary(self) -> None:
+        cert = self.app.results.get("certify")
+        self.summary.content = "*no certificate yet*" if cert is None else engine.certificate_markdown(cert)
+
+
+def build(app) -> CertificatePanel:
+    return CertificatePanel(app)

@@ -1,0 +1,130 @@
+"""``simgap rollout``: run a saved controller on a stochastic simulator R times and report.
+
+    simgap rollout --controller ctrl.npz --simulator sim.json --x0 3.5 2 1.5 --n 1000 \\
+                   --horizon 800 --seed 0 --out report.json --trajectories traj.npz
+
+``--simulator`` takes a JSON SimulatorConfig (file or inline ``{...}``) or an experiment
+(name or TOML, via :func:`simgap.config.load_experiment`). ``--map`` supplies the PyBullet
+TurtleBot's physical obstacles (when the config has none) and the default x0.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import SimgapError
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("rollout", help="closed-loop rollouts of a controller on a stochastic simulator",
+                       description="Run R closed-loop rollouts of a synthesized controller on a stochastic "
+                                   "simulator (batched, seeded) plus the nominal model; write a JSON report.")
+    p.add_argument("--controller", required=True, help="controller file written by 'simgap synthesize'")
+    p.add_argument("--simulator", required=True,
+                   help="simulator: JSON SimulatorConfig file or inline JSON, or an experiment name/TOML")
+    p.add_argument("--profile", default=None, help="experiment profile (with an experiment --simulator)")
+    p.add_argument("--map", default=None, help="map name or TOML: obstacles for the PyBullet world, default x0")
+    p.add_argument("--x0", nargs="+", default=None, help="initial state, e.g. --x0 3.5 2 1.5 or --x0 3.5,2,1.5")
+    p.add_argument("--n", type=int, default=1000, help="number of rollouts R (default 1000)")
+    p.add_argument("--horizon", type=int, default=None, help="simulator steps T (default: from the controller)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the numpy generator (default 0)")
+    p.add_argument("--hold", type=int, default=None,
+                   help="simulator steps per controller query (default: what the controller records)")
+    p.add_argument("--on-exit", choices=("hold", "stop"), default="hold",
+                   help="outside the winning domain: keep the last input (hold) or stop the rollout")
+    p.add_argument("--one-at-a-time", action="store_true", help="step rollouts one by one (benchmarking)")
+    p.add_argument("--out", required=True, help="JSON report path")
+    p.add_argument("--trajectories", default=None, help="also write all arrays to this .npz")
+    p.set_defaults(func=run)
+
+
+def parse_vector(tokens, what: str) -> np.ndarray:
+    """Numbers from CLI tokens ("3.5 2 1.5" or "3.5,2,1.5")."""
+    parts = [t for tok in tokens for t in str(tok).replace(",", " ").split()]
+    try:
+        return np.array([float(t) for t in parts])
+    except ValueError:
+        raise SimgapError(f"{what}: expected numbers, got {' '.join(map(str, tokens))!r}") from None
+
+
+def load_controller(path):
+    """A controller saved by the synthesis engine (``simgap.synthesis.controller``)."""
+    if not Path(path).is_file():
+        raise SimgapError(f"controller file {str(path)!r} does not exist")
+    try:
+        from ..synthesis import controller as cmod
+    except ImportError as e:
+        raise SimgapError(f"controller support is not available in this installation ({e})") from None
+    for name in ("load_controller", "load"):
+        fn = getattr(cmod, name, None)
+        if callable(fn):
+            return fn(path)
+    return cmod.Controller.load(path)
+
+
+def simulator_config(arg: str, profile=None) -> dict:
+    """SimulatorConfig dict from a JSON file / inline JSON, or from an experiment (name or TOML)."""
+    text = None
+    if arg.lstrip().startswith("{"):
+        text = arg
+    elif arg.endswith(".json"):
+        if not Path(arg).is_file():
+            raise SimgapError(f"simulator config file {arg!r} does not exist")
+        text = Path(arg).read_text()
+    if text is not None:
+        try:
+            d = json.loads(text)
+        except json.JSONDecodeError as e:
+            raise SimgapError(f"simulator config {arg[:60]!r}: not valid JSON ({e})") from None
+        if not isinstance(d, dict):
+            raise SimgapError("simulator config: expected a JSON object")
+        d = d.get("simulator", d)  # a whole experiment/manifest JSON also works
+        from ..simulators.base import SimulatorConfig
+        return SimulatorConfig.from_dict(d).to_dict()
+    try:
+        from ..config import load_experiment
+    except ImportError:
+        raise SimgapError(f"--simulator {arg!r}: not JSON, and experiment files are not supported in this "
+                          f"installation") from None
+    exp = load_experiment(arg, profile) if profile is not None else load_experiment(arg)
+    sim = getattr(exp, "simulator", None)
+    if sim is None and isinstance(exp, dict):
+        sim = exp.get("simulator")
+    if sim is None:
+        raise SimgapError(f"experiment {arg!r} defines no simulator")
+    return sim.to_dict() if hasattr(sim, "to_dict") else dict(sim)
+
+
+def run(args) -> int:
+    from ..maps import load_map
+    from ..simulators.base import make_simulator
+    from ..synthesis.rollout import rollout
+
+    ctrl = load_controller(args.controller)
+    cfg = simulator_config(args.simulator, args.profile)
+    amap = load_map(args.map) if args.map else None
+    if amap is not None and cfg.get("kind") == "pybullet_turtlebot" and not cfg.get("options", {}).get("obstacles"):
+        cfg = dict(cfg, options={**cfg.get("options", {}), **amap.simulator_options()})
+    sim = make_simulator(cfg)
+    try:
+        if args.x0 is not None:
+            x0 = parse_vector(args.x0, "--x0")
+        elif getattr(ctrl, "x0", None) is not None:
+            x0 = np.asarray(ctrl.x0, dtype=float)
+        elif amap is not None:
+            x0 = amap.x0(sim.system)
+        else:
+            raise SimgapError("give --x0 (or --map, whose initial_state is used)")
+        res = rollout(ctrl, sim, x0, n_rollouts=args.n, horizon=args.horizon, seed=args.seed, hold=args.hold,
+                      on_exit=args.on_exit, batched=not args.one_at_a_time)
+    finally:
+        sim.close()
+    res.save_json(args.out)
+    if args.trajectories:
+        res.save_npz(args.trajectories)
+    print("\n".join(res.summary_lines()))
+    print(f"report: {args.out}" + (f", trajectories: {args.trajectories}" if args.trajectories else ""))
+    return 0

@@ -1,0 +1,387 @@
+"""The library of physically named candidate effects a nominal model may lack.
+
+Every effect is a term g(x, u) that enters ONE state's update scaled by the sampling time:
+
+    x_i+ = f_i(x, u) + tau * c * g(x, u)
+
+so the coefficient c is a rate (state unit per second per unit of g). Identifiers are stable
+and appear in reports and saved refined systems:
+
+============== =================================== ===========================================
+name           g(x, u)                             coefficient c means
+============== =================================== ===========================================
+bias           1                                   constant rate offset [state unit / s]
+viscous_frict. v (a velocity state)                c = -b/I for a viscous force -b v  [1/s]
+coulomb_frict. sign(v)                             c = -F_c/I for a Coulomb force -F_c sign v
+drag           v |v|                               c = -d/I for a quadratic drag -d v|v|
+input_gain     B_ij(x) u_j ("as u_j enters f_i")   relative gain error: the input acts (1 + c) u_j
+deadband       B_ij(x) sign(u_j)                   c = -w: a dead zone of width w [input unit]
+                                                   (exact for |u_j| >= w)
+gravity        the model's own drift of x_i,       relative error of the model's own gravity /
+               (f_i(x, 0) - x_i) / tau             parameter term (x_i's drift at u = 0)
+<user name>    any expression in the variables     user-defined
+============== =================================== ===========================================
+
+B_ij(x, u) = (d f_i / d u_j) / tau is taken from the model itself by a central difference of
+one base step, so "as the input enters the model" holds for any system (u1 cos x3 for the
+TurtleBot's x1; 3 u / (m l^2) for the pendulum's omega).
+
+Velocity states. Friction-type effects (viscous, Coulomb, drag) act on a velocity state and
+enter that state's update. Which states are velocities is found, in this order, from
+``system.params["velocity_dims"]``, from :data:`VELOCITY_DIMS` (built-ins: pendulum -> omega,
+emps -> qd, turtlebot -> none: its speeds are inputs) which :func:`declare_velocity` extends,
+or by inference: x_j is a velocity when some other state integrates it, i.e. one base step has
+d f_i / d x_j = base_tau exactly (x_i+ = x_i + tau x_j + ...). ``gravity`` is a candidate for
+velocity states (or, when a system declares none, for every state) whose drift is not zero.
+
+Units. ``UNITS`` gives state/input units for the built-ins, and ``INERTIA`` an inertia I per
+system (emps: M [kg], pendulum: m l^2 / 3 [kg m^2]) so that effects entering a velocity state
+convert to physical forces / torques: F = I c g (e.g. N, N s/m).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable, Dict, Iterable, Optional, Sequence
+
+import numpy as np
+
+from ..errors import SimgapError
+from ..systems import System
+
+LIBRARY = ("bias", "viscous_friction", "coulomb_friction", "drag", "input_gain", "deadband", "gravity")
+
+#: built-in velocity-state declarations (0-based dims); extended by :func:`declare_velocity`
+VELOCITY_DIMS: Dict[str, tuple] = {"pendulum": (1,), "emps": (1,), "turtlebot": ()}
+
+#: (state units, input units) for reports
+UNITS: Dict[str, tuple] = {
+    "pendulum": (("rad", "rad/s"), ("N m",)),
+    "turtlebot": (("m", "m", "rad"), ("m/s", "rad/s")),
+    "emps": (("m", "m/s"), ("V",)),
+}
+
+
+def _inertia(system: System) -> Optional[tuple]:
+    """(I, force unit) converting a velocity-state rate into a physical force/torque."""
+    name = _base_name(system)
+    p = system.params
+    if name == "emps" and "M" in p:
+        return float(p["M"]), "N"
+    if name == "pendulum" and "m" in p and "l" in p:
+        return float(p["m"]) * float(p["l"]) ** 2 / 3.0, "N m"
+    return None
+
+
+def _base_name(system: System) -> str:
+    return str(system.params.get("base_system", system.name))
+
+
+def declare_velocity(system_name: str, dims: Sequence[int]) -> None:
+    """Declare which 0-based state dims of a (user) system are velocities."""
+    VELOCITY_DIMS[system_name] = tuple(int(d) for d in dims)
+
+
+@dataclass(frozen=True, eq=False)
+class Effect:
+    """One candidate term g(x, u) entering state ``state``'s update as tau * c * g.
+
+    ``variable`` names the state or input the term is built from (a velocity for friction,
+    an input for input_gain/deadband), ``expr`` is a readable formula, ``smooth`` tells
+    whether g is Lipschitz in x (sign terms are not), ``params`` holds what is needed to
+    rebuild it (user expressions).
+    """
+
+    name: str
+    state: int
+    variable: Optional[str]
+    expr: str
+    term: Callable[[np.ndarray, np.ndarray], np.ndarray]
+    smooth: bool = True
+    params: dict = field(default_factory=dict)
+
+    def key(self, system: System) -> str:
+        s = f"{self.name}:{system.state_names[self.state]}"
+        return s + (f":{self.variable}" if self.variable else "")
+
+    def spec(self) -> dict:
+        """JSON-able description; :func:`effect_from_spec` rebuilds the effect from it."""
+        d = {"name": self.name, "state": int(self.state), "variable": self.variable}
+        if self.params:
+            d["params"] = dict(self.params)
+        return d
+
+    def __call__(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        return np.asarray(self.term(x, u), dtype=float).reshape(x.shape[0])
+
+
+# ---------------------------------------------------------------------------------------
+# helpers derived from the model itself
+# ---------------------------------------------------------------------------------------
+
+def _input_rate(system: System, i: int, j: int) -> Callable:
+    """B_ij(x, u) = (d step_i / d u_j) / base_tau by a central difference of one base step."""
+    dt = system.base_tau
+    span = float(np.ptp(system.inputs[:, j])) or 1.0
+    h = 1e-4 * span
+
+    def B(x, u):
+        up, um = u.copy(), u.copy()
+        up[:, j] += h
+        um[:, j] -= h
+        return (system.step(x, up, dt)[:, i] - system.step(x, um, dt)[:, i]) / (2 * h * dt)
+
+    return B
+
+
+def _drift(system: System, i: int) -> Callable:
+    """The model's own drift rate of x_i at u = 0: (step_i(x, 0) - x_i) / base_tau."""
+    dt = system.base_tau
+
+    def g(x, u):
+        return (system.step(x, np.zeros_like(u), dt)[:, i] - x[:, i]) / dt
+
+    return g
+
+
+def _sample_domain(system: System, count: int = 512, seed: int = 0) -> tuple:
+    """Random states in X and inputs from U (fixed seed: applicability checks, bounds)."""
+    rng = np.random.default_rng(seed)
+    x = system.x_lo + rng.random((count, system.n)) * (system.x_hi - system.x_lo)
+    u = system.inputs[rng.integers(0, system.inputs.shape[0], count)]
+    return x, u
+
+
+def velocity_dims(system: System) -> tuple:
+    """0-based velocity states of ``system`` (see module docstring for the rules)."""
+    if "velocity_dims" in system.params:
+        return tuple(int(d) for d in system.params["velocity_dims"])
+    name = _base_name(system)
+    if name in VELOCITY_DIMS:
+        return VELOCITY_DIMS[name]
+    x, u = _sample_domain(system, 128)
+    dt = system.base_tau
+    out = []
+    for j in range(system.n):
+        h = 1e-6 * max(1.0, float(system.x_hi[j] - system.x_lo[j]))
+        xp, xm = x.copy(), x.copy()
+        xp[:, j] += h
+        xm[:, j] -= h
+        J = (system.step(xp, u, dt) - system.step(xm, u, dt)) / (2 * h)  # (S, n): d step_i / d x_j
+        for i in range(system.n):
+            if i != j and np.allclose(J[:, i], dt, rtol=1e-4, atol=0.0):
+                out.append(j)
+                break
+    return tuple(out)
+
+
+# ---------------------------------------------------------------------------------------
+# building effects
+# ---------------------------------------------------------------------------------------
+
+_SAFE_FUNCS = {k: getattr(np, k) for k in (
+    "sin", "cos", "tan", "tanh", "exp", "log", "sqrt", "abs", "sign", "clip", "minimum",
+    "maximum", "where", "arctan", "arctan2", "sinh", "cosh")}
+_SAFE_FUNCS["pi"] = np.pi
+
+
+def user_effect(system: System, name: str, state, expr: str) -> Effect:
+    """A user-named term g = ``expr`` entering state ``state`` (index or name).
+
+    ``expr`` is a numpy expression in the state and input names (``theta``, ``omega``), the
+    positional names ``x1..xn``, ``u1..um`` and sin, cos, tanh, exp, log, sqrt, abs, sign,
+    clip, minimum, maximum, where, arctan, arctan2, pi. Example: ``"sin(2*pi*q/0.01)"``.
+    """
+    if not name or not name.replace("_", "").isalnum():
+        raise SimgapError(f"user effect name {name!r}: use letters, digits and underscores")
+    if name in LIBRARY:
+        raise SimgapError(f"user effect name {name!r} clashes with the library effect of that name")
+    i = _state_index(system, state)
+    try:
+        code = compile(expr, f"<effect {name}>", "eval")
+    except SyntaxError as e:
+        raise SimgapError(f"user effect {name!r}: cannot parse {expr!r}: {e.msg}") from None
+    allowed = set(_SAFE_FUNCS) | set(system.state_names) | set(system.input_names) \
+        | {f"x{k + 1}" for k in range(system.n)} | {f"u{k + 1}" for k in range(system.m)}
+    unknown = set(code.co_names) - allowed
+    if unknown:
+        raise SimgapError(f"user effect {name!r}: unknown names {sorted(unknown)} in {expr!r}; "
+                          f"allowed: state/input names, x1.., u1.. and {', '.join(sorted(_SAFE_FUNCS))}")
+
+    def term(x, u):
+        env = dict(_SAFE_FUNCS)
+        for k in range(system.n):
+            env[f"x{k + 1}"] = env[system.state_names[k]] = x[:, k]
+        for k in range(system.m):
+            env[f"u{k + 1}"] = env[system.input_names[k]] = u[:, k]
+        val = eval(code, {"__builtins__": {}}, env)  # names checked above; numpy only
+        return np.broadcast_to(np.asarray(val, dtype=float), (x.shape[0],))
+
+    x, u = _sample_domain(system, 8)
+    try:
+        term(x, u)
+    except Exception as e:  # report any evaluation failure as bad input
+        raise SimgapError(f"user effect {name!r}: evaluating {expr!r} failed: {e}") from None
+    smooth = not any(s in code.co_names for s in ("sign", "abs", "clip", "where", "minimum", "maximum"))
+    return Effect(name=name, state=i, variable=None, expr=expr, term=term, smooth=smooth,
+                  params={"expr": expr})
+
+
+def _state_index(system: System, state) -> int:
+    if isinstance(state, (int, np.integer)) or (isinstance(state, str) and state.isdigit()):
+        i = int(state)
+    elif state in system.state_names:
+        i = system.state_names.index(state)
+    elif isinstance(state, str) and state[:1] == "x" and state[1:].isdigit():
+        i = int(state[1:]) - 1
+    else:
+        raise SimgapError(f"unknown state {state!r}; states of {system.name!r}: {', '.join(system.state_names)}")
+    if not 0 <= i < system.n:
+        raise SimgapError(f"state index {i} out of range for n = {system.n}")
+    return i
+
+
+def effect_from_spec(system: System, spec: dict) -> Effect:
+    """Rebuild an effect from :meth:`Effect.spec` (used when loading refined systems)."""
+    try:
+        name, state = spec["name"], int(spec["state"])
+    except (KeyError, TypeError, ValueError):
+        raise SimgapError(f"effect spec {spec!r} needs 'name' and an integer 'state'") from None
+    if name not in LIBRARY:
+        expr = (spec.get("params") or {}).get("expr")
+        if expr is None:
+            raise SimgapError(f"unknown effect {name!r}: not in the library ({', '.join(LIBRARY)}) "
+                              f"and no user expression given")
+        return user_effect(system, name, state, expr)
+    for e in library_candidates(system, [name], check_applicable=False):
+        if e.state == state and e.variable == spec.get("variable"):
+            return e
+    raise SimgapError(f"effect {name!r} on state {state} with variable {spec.get('variable')!r} "
+                      f"does not apply to system {system.name!r}")
+
+
+def library_candidates(system: System, names: Optional[Iterable[str]] = None,
+                       check_applicable: bool = True) -> list:
+    """All library effects (optionally only those named) that apply to ``system``.
+
+    An effect applies when its term is not identically zero on random samples of X x U (e.g.
+    ``gravity`` does not apply to the EMPS double integrator, which has no drift term).
+    """
+    names = list(LIBRARY) if names is None else list(names)
+    unknown = [nm for nm in names if nm not in LIBRARY]
+    if unknown:
+        raise SimgapError(f"unknown effect name(s) {unknown}; the library has: {', '.join(LIBRARY)} "
+                          f"(add your own with a user term NAME:STATE:EXPR)")
+    s = system
+    vdims = velocity_dims(s)
+    out = []
+    for nm in names:
+        if nm == "bias":
+            out += [Effect("bias", i, None, "1", lambda x, u: np.ones(x.shape[0])) for i in range(s.n)]
+        elif nm in ("viscous_friction", "coulomb_friction", "drag"):
+            for v in vdims:
+                vn = s.state_names[v]
+                if nm == "viscous_friction":
+                    out.append(Effect(nm, v, vn, vn, lambda x, u, v=v: x[:, v]))
+                elif nm == "coulomb_friction":
+                    out.append(Effect(nm, v, vn, f"sign({vn})", lambda x, u, v=v: np.sign(x[:, v]),
+                                      smooth=False))
+                else:
+                    out.append(Effect(nm, v, vn, f"{vn}|{vn}|", lambda x, u, v=v: x[:, v] * np.abs(x[:, v])))
+        elif nm in ("input_gain", "deadband"):
+            for i in range(s.n):
+                for j in range(s.m):
+                    B = _input_rate(s, i, j)
+                    un = s.input_names[j]
+                    if nm == "input_gain":
+                        out.append(Effect(nm, i, un, f"B_{i + 1}{j + 1}(x) {un}",
+                                          lambda x, u, B=B, j=j: B(x, u) * u[:, j]))
+                    else:
+                        out.append(Effect(nm, i, un, f"B_{i + 1}{j + 1}(x) sign({un})",
+                                          lambda x, u, B=B, j=j: B(x, u) * np.sign(u[:, j])))
+        elif nm == "gravity":
+            dims = vdims if vdims else tuple(range(s.n))
+            out += [Effect(nm, i, None, f"drift_{i + 1}(x)", _drift(s, i)) for i in dims]
+    if check_applicable:
+        x, u = _sample_domain(s)
+        keep = []
+        for e in out:
+            g = e(x, u)
+            if np.any(np.abs(g) > 1e-12 * max(1.0, float(np.abs(g).max(initial=0.0)))) and np.any(g != 0):
+                keep.append(e)
+        out = keep
+    return out
+
+
+def parse_user_terms(system: System, items: Iterable[str]) -> list:
+    """User terms from ``NAME:STATE:EXPR`` strings (CLI ``--term``)."""
+    out = []
+    for it in items:
+        parts = it.split(":", 2)
+        if len(parts) != 3:
+            raise SimgapError(f"--term {it!r}: expected NAME:STATE:EXPR, e.g. cogging:qd:sin(2*pi*q/0.01)")
+        out.append(user_effect(system, parts[0].strip(), parts[1].strip(), parts[2].strip()))
+    return out
+
+
+def candidate_effects(system: System, names: Optional[Iterable[str]] = None,
+                      user_terms: Sequence[Effect] = ()) -> list:
+    """Library candidates (all, or the named ones) plus user terms; names are checked."""
+    cands = library_candidates(system, names)
+    keys = set()
+    for e in list(cands) + list(user_terms):
+        k = e.key(system)
+        if k in keys:
+            raise SimgapError(f"duplicate candidate effect {k}")
+        keys.add(k)
+    return list(cands) + list(user_terms)
+
+
+def coefficient_units(system: System, e: Effect) -> str:
+    """Unit of the coefficient c in model units (c g has the unit of x_i per second)."""
+    units = UNITS.get(_base_name(system))
+    if units is None:
+        return ""
+    su, iu = units
+    rate = f"{su[e.state]}/s"
+    if e.name in ("bias", "coulomb_friction"):
+        return rate
+    if e.name == "viscous_friction":
+        return "1/s"
+    if e.name == "drag":
+        vu = su[system.state_names.index(e.variable)]
+        return f"{rate} per ({vu})^2"
+    if e.name in ("input_gain", "gravity"):
+        return "1 (relative)"
+    if e.name == "deadband":
+        return iu[system.input_names.index(e.variable)]
+    return ""
+
+
+def physical(system: System, e: Effect, coef: float, stderr: float) -> Optional[dict]:
+    """The coefficient in physical units where the library knows how, else None.
+
+    Effects entering a velocity state of a system with a known inertia I become forces
+    (torques) F = I c g: bias -> N, viscous -> N s/m (F = value * v), Coulomb -> N
+    (F = value * sign v), drag -> N s^2/m^2. A deadband gives its width w = -c in input units,
+    an input gain the effective gain factor 1 + c.
+    """
+    if e.name == "deadband":
+        return {"quantity": "deadband width w", "value": -coef, "stderr": stderr,
+                "unit": coefficient_units(system, e)}
+    if e.name in ("input_gain", "gravity"):
+        return {"quantity": "effective gain factor 1 + c", "value": 1.0 + coef, "stderr": stderr, "unit": ""}
+    inert = _inertia(system)
+    if inert is None or e.state not in velocity_dims(system):
+        return None
+    I, fu = inert
+    units = UNITS.get(_base_name(system), ((), ()))[0]
+    vu = units[e.state] if units else ""
+    table = {"bias": ("constant force", fu),
+             "viscous_friction": ("viscous force per velocity (F = value * v)", f"{fu} s/{vu.split('/')[0]}"),
+             "coulomb_friction": ("Coulomb force (F = value * sign v)", fu),
+             "drag": ("drag force per v|v| (F = value * v|v|)", f"{fu} s^2/{vu.split('/')[0]}^2")}
+    if e.name not in table:
+        return None
+    q, unit = table[e.name]
+    return {"quantity": q, "value": I * coef, "stderr": I * stderr, "unit": unit}

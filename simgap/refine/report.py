@@ -1,0 +1,191 @@
+"""The refinement loop end to end: residual -> selected effects -> refined model -> report.
+
+:func:`refine` takes a system (built-in name, refined-system JSON path or System) and
+transition data, and returns a :class:`RefineResult` whose ``report`` is the JSON of
+``simgap refine`` (keys of issue 5):
+
+* ``effects``: list of {name, state (0-based), state_name, variable or input, expr,
+  coefficient, stderr (bootstrap), unit (model units), explained_fraction (of the nominal
+  held-out residual variance of that state), physical (value in N, N s/m, ... or null)};
+* ``rms_before``, ``rms_after``, ``max_before``, ``max_after``: per state, on held-out data,
+  of r = x_next - f(x,u) (before) and x_next - f'(x,u) (after), in state units per tau;
+* ``unexplained`` (bool) and per-state detail (``states``): remaining fraction of the
+  residual, held-out R^2 of the structure test, lag-1 autocorrelation for time series.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional, Sequence
+
+import numpy as np
+
+from ..systems import System
+from .data import Transitions
+from .effects import Effect, candidate_effects, coefficient_units, physical
+from .refined import build_refined, load_system
+from .residual import Residuals, match_tau, residuals
+from .selection import SelectionOptions, StateFit, select_state, split_heldout
+
+
+@dataclass
+class RefineResult:
+    """Everything the loop produced (arrays for GUIs and recordings included)."""
+
+    system: System                 # nominal, at the data's tau
+    refined: System                # f' = f + tau * sum c g
+    data: Transitions
+    heldout: np.ndarray            # (K,) bool mask
+    fits: list                     # StateFit per state
+    effects: list                  # (Effect, coefficient, stderr, explained_fraction)
+    before: Residuals              # on all data
+    after: Residuals
+    report: dict
+
+
+def refine(system, data: Transitions, effects: Optional[Sequence[str]] = None,
+           user_terms: Sequence[Effect] = (), options: Optional[SelectionOptions] = None,
+           name: Optional[str] = None) -> RefineResult:
+    """Run the refinement loop (see module docstring and :mod:`simgap.refine.selection`).
+
+    Parameters
+    ----------
+    system : str, path or System
+        Nominal model f.
+    data : Transitions
+        Samples (x, u, x_next), tau apart.
+    effects : list of str, optional
+        Library effect names to consider (default: the whole library).
+    user_terms : list of Effect
+        Extra named terms (:func:`simgap.refine.effects.user_effect`).
+    options : SelectionOptions
+    """
+    opts = options or SelectionOptions()
+    sysobj = match_tau(load_system(system), data.tau)
+    rng = np.random.default_rng(opts.seed)
+    before = residuals(sysobj, data)
+    cands = candidate_effects(sysobj, effects, user_terms)
+    held = split_heldout(data.K, data.t, opts)
+    V = np.concatenate([data.x, data.u], axis=1)
+    angle_cols = np.concatenate([sysobj.angle_mask, np.zeros(sysobj.m, dtype=bool)])
+    fits, chosen = [], []
+    for i in range(sysobj.n):
+        ci = [e for e in cands if e.state == i]
+        Theta = np.stack([e(data.x, data.u) for e in ci], axis=1) if ci else np.zeros((data.K, 0))
+        if not np.all(np.isfinite(Theta)):
+            bad = [e.key(sysobj) for e, col in zip(ci, Theta.T) if not np.all(np.isfinite(col))]
+            from ..errors import SimgapError
+            raise SimgapError(f"candidate terms {bad} are not finite on the data")
+        y = before.r[:, i] / data.tau
+        fit = select_state(y, Theta, [e.key(sysobj) for e in ci], held, V, angle_cols, i,
+                           data.is_time_series, opts, rng)
+        fits.append(fit)
+        for k, j in enumerate(fit.selected):
+            chosen.append((ci[j], float(fit.coef[k]), float(fit.stderr[k]), float(fit.explained[k])))
+    base_spec = sysobj.params.get("_refined_json", sysobj.name)
+    refined = build_refined(sysobj, base_spec, [c[0] for c in chosen], [c[1] for c in chosen],
+                            [c[2] for c in chosen], name=name)
+    after = residuals(refined, data)
+    report = _report(sysobj, refined, data, held, fits, chosen, before, after, opts)
+    return RefineResult(system=sysobj, refined=refined, data=data, heldout=held, fits=fits,
+                        effects=chosen, before=before, after=after, report=report)
+
+
+def _f(v) -> Optional[float]:
+    v = float(v)
+    return v if np.isfinite(v) else None
+
+
+def _report(s: System, refined: System, data: Transitions, held, fits: Sequence[StateFit], chosen,
+            before: Residuals, after: Residuals, opts: SelectionOptions) -> dict:
+    rb, ra = before.r[held], after.r[held]
+    eff = []
+    for e, c, se, ex in chosen:
+        d = {"name": e.name, "state": int(e.state), "state_name": s.state_names[e.state]}
+        if e.variable in s.input_names:
+            d["input"] = e.variable
+        elif e.variable is not None:
+            d["variable"] = e.variable
+        d.update({"expr": e.expr, "coefficient": c, "stderr": _f(se), "unit": coefficient_units(s, e),
+                  "explained_fraction": ex, "physical": physical(s, e, c, se)})
+        if d["physical"] is not None:
+            d["physical"] = {k: (_f(v) if isinstance(v, (float, np.floating)) else v)
+                             for k, v in d["physical"].items()}
+        eff.append(d)
+    states = []
+    for fit in fits:
+        states.append({
+            "state": fit.state, "state_name": s.state_names[fit.state],
+            "candidates": list(fit.candidate_keys),
+            "selected": [fit.candidate_keys[j] for j in fit.selected],
+            "explained_fraction": fit.explained_total,
+            "remaining_fraction": fit.remaining_fraction,
+            "structure_r2": fit.structure_r2,
+            "unexplained": fit.unexplained,
+            "lag1_autocorr": fit.lag1_autocorr,
+            "notes": list(fit.notes),
+        })
+    outside = int(np.any((data.x < s.x_lo) | (data.x > s.x_hi), axis=1).sum())
+    return {
+        "system": s.name, "refined_system": refined.name, "data": data.source,
+        "tau": data.tau, "samples": int(data.K), "train": int((~held).sum()), "heldout": int(held.sum()),
+        "holdout_kind": "contiguous time segments" if data.is_time_series else "random rows",
+        "dropped_nonfinite": int(data.n_dropped), "outside_X": outside,
+        "state_names": list(s.state_names),
+        "effects": eff,
+        "rms_before": np.sqrt(np.mean(rb ** 2, axis=0)).tolist(),
+        "rms_after": np.sqrt(np.mean(ra ** 2, axis=0)).tolist(),
+        "max_before": np.abs(rb).max(axis=0).tolist(),
+        "max_after": np.abs(ra).max(axis=0).tolist(),
+        "mean_before": rb.mean(axis=0).tolist(),
+        "mean_after": ra.mean(axis=0).tolist(),
+        "unexplained": bool(any(f.unexplained for f in fits)),
+        "states": states,
+        "options": {"holdout": opts.holdout, "n_segments": opts.n_segments,
+                    "min_explained": opts.min_explained, "n_boot": opts.n_boot,
+                    "structure_threshold": opts.structure_threshold, "seed": opts.seed},
+        "data_meta": data.meta,
+    }
+
+
+def format_table(report: dict) -> str:
+    """Readable terminal summary of a refine report."""
+    names = report["state_names"]
+    lines = [f"system {report['system']}  data {report['data']}  tau {report['tau']:g} s  "
+             f"samples {report['samples']} (train {report['train']}, held-out {report['heldout']}, "
+             f"{report['holdout_kind']})"]
+    if report["dropped_nonfinite"]:
+        lines.append(f"dropped {report['dropped_nonfinite']} rows with NaN/inf")
+    lines.append("")
+    if report["effects"]:
+        lines.append(f"{'effect':<18}{'state':<8}{'var':<8}{'coefficient':>13}{'stderr':>11}  "
+                     f"{'unit':<16}{'explained':>9}  physical")
+        for e in report["effects"]:
+            var = e.get("input", e.get("variable")) or "-"
+            ph = e["physical"]
+            phs = f"{ph['value']:.4g} {ph['unit']} ({ph['quantity']})" if ph else ""
+            se = e["stderr"]
+            lines.append(f"{e['name']:<18}{e['state_name']:<8}{var:<8}{e['coefficient']:>13.5g}"
+                         f"{(se if se is not None else float('nan')):>11.2g}  {e['unit']:<16}"
+                         f"{100 * e['explained_fraction']:>8.1f}%  {phs}")
+    else:
+        lines.append("no effect selected")
+    lines.append("")
+    lines.append(f"{'held-out residual':<20}" + "".join(f"{n:>24}" for n in names))
+    for key, label in (("rms_before", "RMS before (f)"), ("rms_after", "RMS after (f')"),
+                       ("max_before", "max before (f)"), ("max_after", "max after (f')")):
+        lines.append(f"{label:<20}" + "".join(f"{v:>24.4g}" for v in report[key]))
+    ratio = [b / a if a > 0 else float("inf") for b, a in zip(report["rms_before"], report["rms_after"])]
+    lines.append(f"{'RMS ratio':<20}" + "".join(f"{v:>24.3g}" for v in ratio))
+    lines.append("")
+    for st in report["states"]:
+        msg = (f"state {st['state_name']}: explained {100 * st['explained_fraction']:.1f}% of the residual "
+               f"variance, structure left R^2 = {st['structure_r2']:.3f}")
+        if st["lag1_autocorr"] is not None:
+            msg += f", lag-1 autocorrelation {st['lag1_autocorr']:.2f}"
+        if st["unexplained"]:
+            msg += f"  -> UNEXPLAINED: {100 * st['remaining_fraction']:.1f}% of the residual variance remains " \
+                   f"and it still depends on (x, u)"
+        lines.append(msg)
+    lines.append(f"unexplained: {'true' if report['unexplained'] else 'false'}")
+    return "\n".join(lines)

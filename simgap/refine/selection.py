@@ -1,0 +1,326 @@
+"""Sparse selection of effects: which candidate terms explain the residual of one state.
+
+For state i the regression target is the residual rate y_k = r_ki / tau and the design is
+Theta_kj = g_j(x_k, u_k) for the candidate effects g_j entering state i, so that
+y ~ Theta c means x_i+ ~ f_i + tau * sum_j c_j g_j.
+
+Procedure (all least squares through the Gram matrices G = Theta^T Theta, b = Theta^T y of
+the column-standardized design, which makes every subset fit a tiny p x p solve):
+
+1. Split the samples into train and held-out parts: random rows for independent samples,
+   contiguous time segments for a time series (neighbouring samples are correlated).
+2. Refuse a rank-deficient design (e.g. an input that never varies makes its input_gain term
+   collinear with bias) and too few samples (fewer than ``min_per_term`` train samples per
+   candidate term).
+3. Forward selection on train minimizing BIC = K ln(RSS/K) + |S| ln K, then backward
+   elimination while BIC drops.
+4. Held-out pruning: a term stays only if removing it (refitting the rest on train) raises
+   the held-out RSS by at least ``min_explained`` of the held-out residual sum of squares of the
+   nominal model. With step 3 this keeps pure-noise data free of effects.
+5. Coefficients on train; standard errors by bootstrap (rows resampled, or moving blocks for a
+   time series) with a seeded generator.
+6. Explained fraction of each effect: the drop of held-out RSS when it is added, in the forward
+   order, divided by the nominal model's held-out RSS (they sum to the total explained).
+7. Structure left: a flexible regression (polynomials up to degree 3 of the standardized
+   variables plus 10 quantile-bin indicators per variable; sin/cos of angles) fitted to the
+   remaining train residual and scored on held-out data. If it explains at least
+   ``structure_threshold`` of the remaining held-out variance, a clear residual remains that no
+   library term explains: ``unexplained = True``.
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass, field
+from typing import Optional
+
+import numpy as np
+
+from ..errors import SimgapError
+
+
+@dataclass
+class SelectionOptions:
+    """Tunables of :func:`select_state` (defaults are used by the CLI)."""
+
+    holdout: float = 0.3            # fraction of samples held out
+    n_segments: int = 5             # contiguous held-out segments for time series
+    min_explained: float = 0.005    # held-out RSS fraction a term must explain to stay
+    min_per_term: int = 10          # train samples needed per candidate term
+    n_boot: int = 100               # bootstrap resamples for standard errors
+    structure_threshold: float = 0.05
+    seed: int = 0
+
+
+@dataclass
+class StateFit:
+    """Selection result for one state dimension (coefficients in rate units)."""
+
+    state: int
+    candidate_keys: list
+    selected: list                  # indices into the candidates, in forward order
+    coef: np.ndarray
+    stderr: np.ndarray
+    explained: np.ndarray
+    rss0_heldout: float             # sum over held-out of y^2 (nominal model)
+    rss_heldout: float              # with the selected effects
+    structure_r2: float             # held-out R^2 of a flexible fit of the remaining residual
+    unexplained: bool
+    lag1_autocorr: Optional[float] = None
+    notes: list = field(default_factory=list)
+
+    @property
+    def explained_total(self) -> float:
+        return 0.0 if self.rss0_heldout <= 0 else 1.0 - self.rss_heldout / self.rss0_heldout
+
+    @property
+    def remaining_fraction(self) -> float:
+        return 0.0 if self.rss0_heldout <= 0 else self.rss_heldout / self.rss0_heldout
+
+
+def split_heldout(K: int, t: Optional[np.ndarray], opts: SelectionOptions) -> np.ndarray:
+    """Boolean mask of held-out samples.
+
+    Independent rows: a seeded random ``holdout`` fraction. Time series (``t`` given): order by
+    time, cut into ``n_segments`` equal chunks and hold out the last ``holdout`` part of each,
+    so held-out data are contiguous segments spread over the record.
+    """
+    if not 0.05 <= opts.holdout <= 0.8:
+        raise SimgapError(f"holdout fraction must be in [0.05, 0.8], got {opts.holdout}")
+    mask = np.zeros(K, dtype=bool)
+    if t is None:
+        rng = np.random.default_rng(opts.seed)
+        mask[rng.permutation(K)[: int(round(opts.holdout * K))]] = True
+        return mask
+    order = np.argsort(t, kind="stable")
+    pos = np.empty(K, dtype=int)
+    pos[order] = np.arange(K)
+    chunk = np.minimum(pos * opts.n_segments // K, opts.n_segments - 1)
+    start = (chunk * K) // opts.n_segments
+    end = ((chunk + 1) * K) // opts.n_segments
+    mask = pos >= end - np.round(opts.holdout * (end - start)).astype(int)
+    return mask
+
+
+def _solve(G: np.ndarray, b: np.ndarray, S: list) -> np.ndarray:
+    if not S:
+        return np.zeros(0)
+    Gs = G[np.ix_(S, S)]
+    try:
+        return np.linalg.solve(Gs, b[S])
+    except np.linalg.LinAlgError:
+        return np.linalg.lstsq(Gs, b[S], rcond=None)[0]
+
+
+def _rss(yy: float, G: np.ndarray, b: np.ndarray, S: list, c: np.ndarray) -> float:
+    if not S:
+        return float(yy)
+    return float(max(yy - 2.0 * c @ b[S] + c @ G[np.ix_(S, S)] @ c, 0.0))
+
+
+def check_rank(Theta: np.ndarray, keys: list, rtol: float = 1e-9) -> None:
+    """Raise SimgapError when the standardized design is rank deficient, naming the terms."""
+    K, p = Theta.shape
+    if p == 0:
+        return
+    scale = np.sqrt(np.mean(Theta ** 2, axis=0))
+    zero = np.flatnonzero(scale == 0)
+    if zero.size:
+        raise SimgapError(f"rank-deficient design: term(s) {[keys[j] for j in zero]} are zero on every "
+                          f"sample (the variable never varies or never takes values that excite it)")
+    Z = Theta / scale
+    s, V = np.linalg.svd(Z.T @ Z / K)[1:]
+    if s[-1] < rtol * s[0]:
+        v = V[-1]
+        involved = [keys[j] for j in np.flatnonzero(np.abs(v) > 0.05)]
+        raise SimgapError(f"rank-deficient design: candidate terms {involved} are collinear on this data "
+                          f"(e.g. an input that never varies, or takes only two values); drop one of them "
+                          f"with --effects or collect more varied data")
+
+
+def _structure_features(V: np.ndarray, angle_cols: np.ndarray, mu: np.ndarray, sd: np.ndarray,
+                        edges: list, degree: int) -> np.ndarray:
+    """Flexible features of the variables V (K, d): polynomials and quantile-bin indicators."""
+    Z = (V - mu) / sd
+    cols = []
+    for j in range(V.shape[1]):
+        if angle_cols[j]:
+            cols += [np.sin(V[:, j]), np.cos(V[:, j])]
+        else:
+            cols.append(Z[:, j])
+    base = np.stack(cols, axis=1)
+    feats = [np.ones((V.shape[0], 1))]
+    d = base.shape[1]
+    for deg in range(1, degree + 1):
+        for comb in itertools.combinations_with_replacement(range(d), deg):
+            feats.append(np.prod(base[:, comb], axis=1, keepdims=True))
+    for j, e in enumerate(edges):
+        if e.size:
+            idx = np.searchsorted(e, V[:, j], side="right")
+            onehot = (idx[:, None] == np.arange(1, e.size + 1)[None, :]).astype(float)
+            feats.append(onehot)
+    return np.concatenate(feats, axis=1)
+
+
+def structure_r2(V: np.ndarray, e: np.ndarray, held: np.ndarray, angle_cols: np.ndarray) -> float:
+    """Held-out R^2 of a flexible regression of the remaining residual e on the variables V.
+
+    Near 0 (or negative) when e is noise; clearly positive when e still depends on (x, u).
+    """
+    tr = ~held
+    Kt = int(tr.sum())
+    d = V.shape[1]
+    # keep the feature count well below the train size
+    degree = 3 if Kt >= 40 * 120 else (2 if Kt >= 40 * 30 else 1)
+    mu, sd = V[tr].mean(axis=0), V[tr].std(axis=0)
+    sd = np.where(sd > 0, sd, 1.0)
+    nb = 10 if Kt >= 200 * d else 0
+    edges = []
+    for j in range(d):
+        if nb:
+            q = np.unique(np.quantile(V[tr, j], np.linspace(0, 1, nb + 1)[1:-1]))
+            edges.append(q)
+        else:
+            edges.append(np.zeros(0))
+    Phi = _structure_features(V, angle_cols, mu, sd, edges, degree)
+    Pt, et = Phi[tr], e[tr]
+    lam = 1e-8 * np.trace(Pt.T @ Pt) / Pt.shape[1]
+    w = np.linalg.solve(Pt.T @ Pt + lam * np.eye(Pt.shape[1]), Pt.T @ et)
+    eh = e[held]
+    ss = float(eh @ eh)
+    if ss <= 0:
+        return 0.0
+    return 1.0 - float(np.sum((eh - Phi[held] @ w) ** 2)) / ss
+
+
+def _block_length(y: np.ndarray) -> int:
+    """Moving-block length for a time series: twice the lag where autocorrelation < 0.1."""
+    K = y.size
+    yc = y - y.mean()
+    n = 1 << int(np.ceil(np.log2(2 * K)))
+    f = np.fft.rfft(yc, n)
+    ac = np.fft.irfft(f * np.conj(f), n)[:K]
+    ac = ac / ac[0] if ac[0] > 0 else ac
+    below = np.flatnonzero(ac < 0.1)
+    lag = int(below[0]) if below.size else K // 10
+    return int(np.clip(2 * lag, max(1, int(round(K ** (1 / 3)))), max(1, K // 10)))
+
+
+def bootstrap_stderr(Z: np.ndarray, y: np.ndarray, time_series: bool, n_boot: int,
+                     rng: np.random.Generator, resid: np.ndarray) -> np.ndarray:
+    """Bootstrap standard deviation of the least-squares coefficients of y ~ Z (train rows).
+
+    Rows are resampled with replacement (independent samples) or in moving blocks of length
+    :func:`_block_length` (time series). Each resample is a weight vector w (counts), and the
+    weighted normal equations (Z^T W Z) c = Z^T W y are solved in a batch.
+    """
+    K, p = Z.shape
+    if p == 0 or n_boot < 2:
+        return np.full(p, np.nan)
+    iu = np.triu_indices(p)
+    P = np.concatenate([Z[:, iu[0]] * Z[:, iu[1]], Z * y[:, None]], axis=1)   # (K, p(p+1)/2 + p)
+    coefs = []
+    L = _block_length(resid) if time_series else 1
+    nblk = int(np.ceil(K / L))
+    for start in range(0, n_boot, 25):
+        B = min(25, n_boot - start)
+        if L == 1:
+            idx = rng.integers(0, K, (B, K))
+        else:
+            starts = rng.integers(0, K - L + 1, (B, nblk))
+            idx = (starts[:, :, None] + np.arange(L)[None, None, :]).reshape(B, -1)[:, :K]
+        W = np.stack([np.bincount(row, minlength=K) for row in idx]).astype(float)   # (B, K)
+        A = W @ P
+        G = np.zeros((B, p, p))
+        G[:, iu[0], iu[1]] = A[:, : iu[0].size]
+        G[:, iu[1], iu[0]] = A[:, : iu[0].size]
+        b = A[:, iu[0].size:]
+        coefs.append(np.linalg.solve(G + 1e-12 * np.eye(p), b[:, :, None])[:, :, 0])
+    return np.concatenate(coefs).std(axis=0, ddof=1)
+
+
+def select_state(y: np.ndarray, Theta: np.ndarray, keys: list, held: np.ndarray,
+                 V: np.ndarray, angle_cols: np.ndarray, state: int, time_series: bool,
+                 opts: SelectionOptions, rng: np.random.Generator) -> StateFit:
+    """Select effects for one state: y (K,) residual rate, Theta (K, p) candidate terms.
+
+    ``V`` (K, d) are the variables (x, u) for the structure test, ``held`` the held-out mask.
+    Returns coefficients in the units of y per unit of each term (see module docstring).
+    """
+    K, p = Theta.shape
+    tr = ~held
+    Kt, Kh = int(tr.sum()), int(held.sum())
+    yt, yh = y[tr], y[held]
+    rss0_h = float(yh @ yh)
+    scale_y = float(np.sqrt(np.mean(y ** 2)))
+    if scale_y == 0.0:
+        return StateFit(state, keys, [], np.zeros(0), np.zeros(0), np.zeros(0), 0.0, 0.0, 0.0, False,
+                        notes=["residual is exactly zero: nothing to explain"])
+    if Kt < opts.min_per_term * max(p, 1) or Kh < 10:
+        raise SimgapError(f"too few samples: {Kt} train / {Kh} held-out samples for {p} candidate terms of "
+                          f"state {state} (need at least {opts.min_per_term} train samples per term and 10 "
+                          f"held-out); collect more data or restrict --effects")
+    if p:
+        check_rank(Theta[tr], keys)
+    scale = np.sqrt(np.mean(Theta[tr] ** 2, axis=0)) if p else np.zeros(0)
+    Zt, Zh = Theta[tr] / scale, Theta[held] / scale
+    Gt, bt, yyt = Zt.T @ Zt, Zt.T @ yt, float(yt @ yt)
+    Gh, bh = Zh.T @ Zh, Zh.T @ yh
+
+    def bic(S):
+        c = _solve(Gt, bt, S)
+        rss = _rss(yyt, Gt, bt, S, c)
+        return Kt * np.log(max(rss, 1e-300) / Kt) + len(S) * np.log(Kt)
+
+    def rss_h(S):
+        return _rss(rss0_h, Gh, bh, S, _solve(Gt, bt, S))
+
+    # 3. forward selection then backward elimination by BIC on train
+    S: list = []
+    best = bic(S)
+    while len(S) < p:
+        trials = [(bic(S + [j]), j) for j in range(p) if j not in S]
+        val, j = min(trials)
+        if val >= best:
+            break
+        S, best = S + [j], val
+    changed = True
+    while changed and S:
+        changed = False
+        trials = [(bic([k for k in S if k != j]), j) for j in S]
+        val, j = min(trials)
+        if val < best:
+            S, best, changed = [k for k in S if k != j], val, True
+    # 4. held-out pruning: drop the least useful term while it explains too little
+    while S:
+        base = rss_h(S)
+        gains = [(rss_h([k for k in S if k != j]) - base, j) for j in S]
+        gain, j = min(gains)
+        if gain >= opts.min_explained * rss0_h:
+            break
+        S = [k for k in S if k != j]
+    # 5. coefficients and bootstrap standard errors (original units: divide by the column scale)
+    c = _solve(Gt, bt, S)
+    coef = c / scale[S] if S else np.zeros(0)
+    resid_t = yt - (Zt[:, S] @ c if S else 0.0)
+    se = bootstrap_stderr(Zt[:, S], yt, time_series, opts.n_boot, rng, resid_t) / scale[S] if S \
+        else np.zeros(0)
+    # 6. explained fractions in forward order on held-out data
+    expl, prev = [], rss0_h
+    for k in range(1, len(S) + 1):
+        cur = rss_h(S[:k])
+        expl.append((prev - cur) / rss0_h if rss0_h > 0 else 0.0)
+        prev = cur
+    rss_after_h = rss_h(S)
+    # 7. structure left in the remaining residual
+    e = y - ((Theta[:, S] / scale[S]) @ c if S else 0.0)
+    r2s = structure_r2(V, e, held, angle_cols)
+    lag1 = None
+    if time_series:
+        eh = e[held] - e[held].mean()
+        den = float(eh @ eh)
+        lag1 = float(eh[1:] @ eh[:-1] / den) if den > 0 else 0.0
+    return StateFit(state=state, candidate_keys=keys, selected=list(S), coef=np.asarray(coef),
+                    stderr=np.asarray(se), explained=np.asarray(expl), rss0_heldout=rss0_h,
+                    rss_heldout=rss_after_h, structure_r2=float(r2s),
+                    unexplained=bool(r2s >= opts.structure_threshold), lag1_autocorr=lag1)

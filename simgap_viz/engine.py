@@ -25,12 +25,12 @@ SIMULATORS = ["numpy", "pybullet_pendulum", "pybullet_turtlebot"]
 # stage -> modules that must import for the stage to be offered
 _NEEDS = {
     "collect": ("simgap.collect", "simgap.cover"),
-    "certify": ("simgap.certify",),
+    "certify": ("simgap.certify.pipeline", "simgap.certify.certificate"),
     "synthesize": ("simgap.synthesis.abstraction", "simgap.synthesis.games", "simgap.synthesis.controller"),
     "rollout": ("simgap.synthesis.rollout",),
     "refine": ("simgap.refine",),
 }
-_ATTRS = {"certify": ("simgap.certify", "certify"), "synthesize": ("simgap.synthesis", "synthesize"),
+_ATTRS = {"certify": ("simgap.certify.pipeline", "certify"), "synthesize": ("simgap.synthesis", "synthesize"),
           "refine": ("simgap.refine", "refine")}
 
 
@@ -154,8 +154,32 @@ def collect(settings, system: System, ctx, executor: str = "serial"):
     return res.dataset(system)
 
 
+def certify_options(settings, n: int):
+    """CertifyOptions from the app's settings.
+
+    A target joint confidence c is split evenly: beta_1i = beta_2i = (1 - c) / (2 n), and the
+    engine computes the smallest deltas that reach them; per-dimension deltas are passed as given
+    (the engine computes the betas).
+    """
+    from simgap.certify.bounds import BoundOptions
+    from simgap.certify.pipeline import CertifyOptions
+
+    terms = _split_terms(settings.terms)
+    kw = dict(degree=int(settings.degree), terms={-1: terms} if terms else {},
+              bounds=BoundOptions(concentration=settings.concentration))
+    if settings.delta1 is not None and settings.delta2 is not None:
+        kw.update(delta1=list(settings.delta1), delta2=list(settings.delta2))
+    else:
+        b = (1.0 - float(settings.confidence)) / (2.0 * n)
+        kw.update(beta1=b, beta2=b)
+    return CertifyOptions(**kw)
+
+
 def certify(dataset, settings, ctx):
-    raise SimgapError("certify: engine API not wired yet")
+    """The certificate of ``dataset`` for the settings' deltas/confidence, basis and bound (simgap.certify)."""
+    from simgap.certify.pipeline import certify as run_certify
+    ctx.check()
+    return run_certify(dataset, certify_options(settings, dataset.system.n))
 
 
 def synthesize(system, spec, cert, settings, ctx):
@@ -188,7 +212,21 @@ def rollout_arrays(res):
 
 
 def certificate_markdown(cert) -> str:
-    return f"```\n{cert}\n```"
+    """The certificate's summary as a markdown table: gamma per dimension, betas, confidences."""
+    def f(v, p=4):
+        return "-" if v is None else f"{v:.{p}g}"
+
+    rows = ["| dim | max gap | delta1 | delta2 | beta1 | beta2 | Lx*eps | gamma min | gamma max | conf |",
+            "|---|---|---|---|---|---|---|---|---|---|"]
+    for name, d in zip(cert.state_names, cert.dims):
+        lo, hi = d.scp.get("gamma_range_on_data", [None, None])
+        rows.append(f"| {name} | {f(d.gap_max)} | {f(d.delta1)} | {f(d.delta2)} | {f(d.beta1)} | {f(d.beta2)} | "
+                    f"{f(d.L_x * cert.epsilon)} | {f(lo)} | {f(hi)} | {f(d.confidence)} |")
+    jc = cert.joint_confidence
+    rows.append("")
+    rows.append(f"**joint confidence**: {'not stated (deterministic)' if jc is None else f'{jc:.4f}'}  ")
+    rows.append(f"eps = {cert.epsilon:g}, N1hat = {cert.n_runs}, K = {cert.K}, method {cert.method}")
+    return "\n".join(rows)
 
 
 def synthesis_markdown(res) -> str:

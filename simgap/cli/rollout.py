@@ -108,7 +108,7 @@ def run(args) -> int:
     amap = load_map(args.map) if args.map else None
     if amap is not None and cfg.get("kind") == "pybullet_turtlebot" and not cfg.get("options", {}).get("obstacles"):
         cfg = dict(cfg, options={**cfg.get("options", {}), **amap.simulator_options()})
-    sim = make_simulator(cfg)
+    sim = make_simulator(cfg, getattr(ctrl, "system", None))  # the controller's X and inputs
     try:
         if args.x0 is not None:
             x0 = parse_vector(args.x0, "--x0")

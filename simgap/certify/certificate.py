@@ -1,0 +1,272 @@
+"""The certificate: gamma_i(x, u) = L_x^(i) eps + q_i^T p_i(x, u) + delta_2i (+ repair_i), saved as JSON.
+
+``gamma`` is what synthesis and rollouts consume: |E_w fhat_i(x,u,w) - f_i(x,u)| <= gamma_i(x,u)
+with per-dimension confidence 1 - beta_1i - beta_2i (- beta_v,i) and joint confidence
+1 - sum_i (...) (paper, Theorems 1-2). For the deterministic baseline delta = 0 and no
+confidence is stated.
+
+JSON layout (version 1): system (name, steps, names, X, angle dims), epsilon, n_runs, K, method,
+options, per-dimension entries (basis terms, q, delta_1, delta_2, beta_1, beta_2, beta_v, Mhat,
+L_f / Lhat_fhat / L_2 with how each was obtained, L_x, repair, eta, gap_max, solver info,
+confidence), joint_confidence, provenance (dataset hash, package versions, seed, time).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import List, Optional
+
+import numpy as np
+
+from ..errors import SimgapError
+from .basis import Basis
+
+FORMAT = "simgap-certificate"
+VERSION = 1
+
+
+class _Names:
+    """The few System attributes a Basis needs, so certificates load without the System object."""
+
+    def __init__(self, n, m, state_names, input_names):
+        self.n, self.m = int(n), int(m)
+        self.state_names, self.input_names = tuple(state_names), tuple(input_names)
+
+
+@dataclass
+class DimCertificate:
+    """Everything about gamma_i for one state dimension i."""
+
+    terms: List[str]
+    q: np.ndarray
+    delta1: float
+    delta2: float
+    beta1: Optional[float]
+    beta2: Optional[float]
+    beta_v: float
+    Mhat: Optional[float]
+    L_f: float
+    L_fhat: float
+    L_2: float
+    lipschitz_how: dict
+    repair: float
+    eta: float
+    gap_max: float
+    scp: dict
+    basis: Basis = field(repr=False, default=None)
+
+    @property
+    def L_x(self) -> float:
+        return self.L_f + self.L_fhat + self.L_2
+
+    @property
+    def confidence(self) -> Optional[float]:
+        if self.beta1 is None:
+            return None
+        return 1.0 - self.beta1 - self.beta2 - self.beta_v
+
+    def to_dict(self) -> dict:
+        return {"terms": list(self.terms), "q": self.q.tolist(), "delta1": self.delta1, "delta2": self.delta2,
+                "beta1": self.beta1, "beta2": self.beta2, "beta_v": self.beta_v, "Mhat": self.Mhat,
+                "L_f": self.L_f, "L_fhat": self.L_fhat, "L_2": self.L_2, "L_x": self.L_x,
+                "lipschitz_how": self.lipschitz_how, "repair": self.repair, "eta": self.eta,
+                "gap_max": self.gap_max, "scp": self.scp, "confidence": self.confidence}
+
+
+@dataclass
+class Certificate:
+    system_name: str
+    steps: int
+    state_names: tuple
+    input_names: tuple
+    x_lo: np.ndarray
+    x_hi: np.ndarray
+    angle_dims: tuple
+    epsilon: float
+    n_runs: int
+    K: int
+    method: str
+    options: dict
+    dims: List[DimCertificate]
+    provenance: dict
+
+    # ----- shape -----------------------------------------------------------------------
+    @property
+    def n(self) -> int:
+        return len(self.state_names)
+
+    @property
+    def m(self) -> int:
+        return len(self.input_names)
+
+    @property
+    def per_dim_confidence(self) -> List[Optional[float]]:
+        return [d.confidence for d in self.dims]
+
+    @property
+    def joint_confidence(self) -> Optional[float]:
+        if any(c is None for c in self.per_dim_confidence):
+            return None
+        return 1.0 - sum(1.0 - c for c in self.per_dim_confidence)
+
+    def constant(self) -> np.ndarray:
+        """The x-independent part of gamma per dimension: L_x eps + delta_2 + repair, (n,)."""
+        return np.array([d.L_x * self.epsilon + d.delta2 + d.repair for d in self.dims])
+
+    # ----- evaluation ------------------------------------------------------------------
+    def _check_xu(self, x, u, what="x"):
+        x = np.atleast_2d(np.asarray(x, dtype=float))
+        u = np.atleast_2d(np.asarray(u, dtype=float))
+        if x.shape[1] != self.n or u.shape[1] != self.m:
+            raise SimgapError(f"certificate: need {what} (B,{self.n}) and u (B,{self.m}), got {x.shape} and {u.shape}")
+        if u.shape[0] == 1 and x.shape[0] > 1:
+            u = np.broadcast_to(u, (x.shape[0], self.m))
+        if x.shape[0] != u.shape[0]:
+            raise SimgapError(f"certificate: {x.shape[0]} states but {u.shape[0]} inputs")
+        if not (np.all(np.isfinite(x)) and np.all(np.isfinite(u))):
+            raise SimgapError("certificate: NaN or inf in x or u")
+        return x, u
+
+    def fit(self, x, u) -> np.ndarray:
+        """q_i^T p_i(x, u) per dimension, (B, n)."""
+        x, u = self._check_xu(x, u)
+        return np.stack([d.basis.design(x, u) @ d.q for d in self.dims], axis=1)
+
+    def gamma(self, x, u) -> np.ndarray:
+        """gamma_i(x, u) = L_x^(i) eps + q_i^T p_i(x, u) + delta_2i (+ repair_i); x (B,n), u (B,m) -> (B,n)."""
+        return self.fit(x, u) + self.constant()
+
+    def gamma_upper_box(self, lo, hi, u) -> np.ndarray:
+        """Sound upper bound of gamma_i over the box [lo, hi] x {u}: lo, hi (B,n), u (B,m) -> (B,n).
+
+        Interval arithmetic per basis term (monomials and the whitelisted functions), then
+        q_l * [p_l lo, p_l hi] summed with the sign of q_l. +inf where a term is unbounded.
+        """
+        lo, u = self._check_xu(lo, u, "lo")
+        hi, _ = self._check_xu(hi, u, "hi")
+        if lo.shape != hi.shape or np.any(lo > hi):
+            raise SimgapError("gamma_upper_box: need lo <= hi with equal shapes")
+        zlo = np.concatenate([lo, u], axis=1)
+        zhi = np.concatenate([hi, u], axis=1)
+        out = np.stack([d.basis.upper_box(d.q, zlo, zhi) for d in self.dims], axis=1)
+        return out + self.constant()
+
+    # ----- compatibility ---------------------------------------------------------------
+    def check_system(self, system) -> None:
+        """Raise unless the certificate was made for ``system`` (name, steps, dimensions)."""
+        if system.name != self.system_name or system.steps != self.steps or system.n != self.n \
+                or system.m != self.m:
+            raise SimgapError(f"certificate is for system {self.system_name!r} (steps={self.steps}, n={self.n}, "
+                              f"m={self.m}), not {system.name!r} (steps={system.steps}, n={system.n}, m={system.m})")
+
+    # ----- JSON ------------------------------------------------------------------------
+    def to_dict(self) -> dict:
+        return {
+            "format": FORMAT, "version": VERSION,
+            "system": {"name": self.system_name, "steps": self.steps, "state_names": list(self.state_names),
+                       "input_names": list(self.input_names), "x_lo": self.x_lo.tolist(),
+                       "x_hi": self.x_hi.tolist(), "angle_dims": list(self.angle_dims)},
+            "epsilon": self.epsilon, "n_runs": self.n_runs, "K": self.K, "method": self.method,
+            "options": self.options, "dims": [d.to_dict() for d in self.dims],
+            "per_dim_confidence": self.per_dim_confidence, "joint_confidence": self.joint_confidence,
+            "gamma_constant": self.constant().tolist(), "provenance": self.provenance,
+        }
+
+    def save(self, path) -> Path:
+        """Write JSON atomically (temp file in the same folder, then rename)."""
+        path = Path(path)
+        text = json.dumps(self.to_dict(), indent=1)
+        fd, tmp = tempfile.mkstemp(dir=path.parent if str(path.parent) else ".", prefix=path.name, suffix=".tmp")
+        try:
+            with os.fdopen(fd, "w") as fh:
+                fh.write(text)
+            os.replace(tmp, path)
+        except BaseException:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+            raise
+        return path
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Certificate":
+        if not isinstance(d, dict) or d.get("format") != FORMAT:
+            raise SimgapError("not a simgap certificate (missing format tag)")
+        if d.get("version") != VERSION:
+            raise SimgapError(f"certificate version {d.get('version')} is not supported (need {VERSION})")
+        try:
+            s = d["system"]
+            names = _Names(len(s["state_names"]), len(s["input_names"]), s["state_names"], s["input_names"])
+            dims = []
+            for e in d["dims"]:
+                basis = Basis(names, e["terms"])
+                q = np.asarray(e["q"], dtype=float)
+                if q.shape != (len(basis),) or not np.all(np.isfinite(q)):
+                    raise SimgapError("certificate: q does not match its basis or is not finite")
+                dims.append(DimCertificate(
+                    terms=list(e["terms"]), q=q, delta1=float(e["delta1"]), delta2=float(e["delta2"]),
+                    beta1=None if e["beta1"] is None else float(e["beta1"]),
+                    beta2=None if e["beta2"] is None else float(e["beta2"]), beta_v=float(e["beta_v"]),
+                    Mhat=None if e["Mhat"] is None else float(e["Mhat"]), L_f=float(e["L_f"]),
+                    L_fhat=float(e["L_fhat"]), L_2=float(e["L_2"]), lipschitz_how=e["lipschitz_how"],
+                    repair=float(e["repair"]), eta=float(e["eta"]), gap_max=float(e["gap_max"]), scp=e["scp"],
+                    basis=basis))
+            if len(dims) != names.n:
+                raise SimgapError(f"certificate: {len(dims)} dimension entries for {names.n} states")
+            return cls(system_name=s["name"], steps=int(s["steps"]), state_names=tuple(s["state_names"]),
+                       input_names=tuple(s["input_names"]), x_lo=np.asarray(s["x_lo"], float),
+                       x_hi=np.asarray(s["x_hi"], float), angle_dims=tuple(s["angle_dims"]),
+                       epsilon=float(d["epsilon"]), n_runs=int(d["n_runs"]), K=int(d["K"]), method=d["method"],
+                       options=d["options"], dims=dims, provenance=d["provenance"])
+        except (KeyError, TypeError) as e:
+            raise SimgapError(f"certificate is malformed: missing or bad field {e}") from None
+
+    # ----- text ------------------------------------------------------------------------
+    def summary(self) -> str:
+        """A readable table of the certificate."""
+        lines = [f"certificate: system {self.system_name} (steps={self.steps}), method {self.method}, "
+                 f"eps={self.epsilon:g}, N1hat={self.n_runs}, K={self.K} (x_r,u) pairs",
+                 f"data hash {self.provenance.get('dataset_hash', '?')}"]
+        beyond = self.options.get("beyond_paper") or []
+        if beyond:
+            lines.append("options beyond the paper: " + "; ".join(beyond))
+        cols = ["dim", "max gap", "delta1", "delta2", "beta1", "beta2", "Mhat", "L_f", "Lhat_fhat", "L_2",
+                "Lx*eps", "gamma min", "gamma max", "conf"]
+        w = [10] + [11] * (len(cols) - 1)
+        fmt = lambda v: "-" if v is None else (v if isinstance(v, str) else f"{v:.4g}")
+        row = lambda vals: "".join(f"{fmt(v):<{w[0]}}" if k == 0 else f"{fmt(v):>{w[k]}}" for k, v in enumerate(vals))
+        hdr = row(cols)
+        lines += [hdr, "-" * len(hdr)]
+        for name, d in zip(self.state_names, self.dims):
+            lo, hi = d.scp.get("gamma_range_on_data", [float("nan")] * 2)
+            lines.append(row([name, d.gap_max, d.delta1, d.delta2, d.beta1, d.beta2, d.Mhat, d.L_f, d.L_fhat, d.L_2,
+                              d.L_x * self.epsilon, lo, hi, d.confidence]))
+        jc = self.joint_confidence
+        lines.append("joint confidence (Theorem 2): " + ("not stated (deterministic baseline)" if jc is None
+                                                         else f"{jc:.4f} ({100 * jc:.2f} %)"))
+        for name, d in zip(self.state_names, self.dims):
+            terms = " ".join(f"{c:+.4g}*{t}" if t != "1" else f"{c:+.4g}" for c, t in zip(d.q, d.terms) if c != 0)
+            lines.append(f"gamma_{name}(x,u) = {d.L_x * self.epsilon + d.delta2 + d.repair:.4g} + [{terms}]")
+        return "\n".join(lines)
+
+
+def load(path, dataset=None) -> Certificate:
+    """Load a certificate JSON; with ``dataset``, check that its manifest hash matches."""
+    path = Path(path)
+    if not path.exists():
+        raise SimgapError(f"certificate {str(path)!r} does not exist")
+    try:
+        d = json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+        raise SimgapError(f"certificate {str(path)!r} is not readable JSON: {e}") from None
+    cert = Certificate.from_dict(d)
+    if dataset is not None:
+        want = cert.provenance.get("dataset_hash", "")
+        have = dataset.hash
+        if want != have:
+            raise SimgapError(f"certificate {str(path)!r} was made from data set {want!r}, "
+                              f"but the given data set has hash {have!r}")
+    return cert

@@ -1,0 +1,274 @@
+"""certify(dataset, options) -> Certificate: the paper's Sections III-IV end to end.
+
+Per state dimension i:
+  1. basis p_i (monomials up to ``degree`` + user terms), design matrix P_i (K, z_i);
+  2. observed gap g_i = |mean - f_nom| (wrapped for angles);
+  3. stochastic: Mhat_i (variance.py), then delta_1i, delta_2i <-> beta_1i, beta_2i (bounds.py);
+     deterministic baseline: delta = 0, no confidence;
+  4. SCP-N1hat (scp.py) -> q_i;
+  5. L_f, Lhat_fhat, L_2 (lipschitz.py);
+  6. gamma_i = (L_f + Lhat_fhat + L_2) eps + q_i^T p_i + delta_2i (+ repair_i).
+"""
+
+from __future__ import annotations
+
+import platform
+import time
+from dataclasses import asdict, dataclass, field
+from typing import Dict, List, Optional, Sequence, Union
+
+import numpy as np
+
+from ..errors import SimgapError
+from .basis import Basis
+from .bounds import BoundOptions, beta_from_delta, delta_from_beta, required_runs
+from .certificate import Certificate, DimCertificate
+from .lipschitz import l2_analytic, neighbour_pairs, slopes_of, wood_zhang
+from .scp import solve_scp
+from .variance import variance_bound
+
+PerDim = Union[None, float, Sequence[float]]
+
+
+@dataclass
+class CertifyOptions:
+    """Options of :func:`certify`. Defaults are the paper's method.
+
+    method : "stochastic" (paper) or "deterministic" (predecessor baseline: delta = 0, no beta).
+    degree : total degree of the monomial basis, an int or one per dimension.
+    terms : extra basis terms per dimension, {i (0-based): ["cos(x3)", ...]}; key -1 = all dims.
+    delta1, delta2 : margins (state units), scalar or per dimension -> betas are computed.
+    beta1, beta2 : target failure probabilities -> the smallest deltas are computed. If both a
+        delta and a beta are given, the data must have enough runs (else SimgapError).
+        Neither given: beta1 = beta2 = 0.01.
+    variance : "empirical" (paper: safety * max sample variance) or "maurer_pontil" (certified).
+    safety : the paper's safety factor on the empirical variance (default 10).
+    value_range : known range b of fhat_i (for maurer_pontil and bernstein).
+    beta_v : failure probability spent on the Maurer-Pontil bound per dimension.
+    bounds : BoundOptions (concentration, lemma2_factor, uniform).
+    lipschitz_mode : "increment" (default) or "state" (see lipschitz.py).
+    l2 : "analytic" (sound interval bound, default) or "estimated" (Wood-Zhang on the fit).
+    scp_method, solver, secondary : see scp.solve_scp.
+    seed : seeds the Lipschitz batches and the constraint-generation start set.
+    """
+
+    method: str = "stochastic"
+    degree: Union[int, Sequence[int]] = 2
+    terms: Dict[int, List[str]] = field(default_factory=dict)
+    delta1: PerDim = None
+    delta2: PerDim = None
+    beta1: PerDim = None
+    beta2: PerDim = None
+    variance: str = "empirical"
+    safety: float = 10.0
+    value_range: Optional[float] = None
+    beta_v: float = 0.001
+    bounds: BoundOptions = field(default_factory=BoundOptions)
+    lipschitz_mode: str = "increment"
+    l2: str = "analytic"
+    scp_method: str = "cg"
+    solver: str = "CLARABEL"
+    secondary: bool = True
+    seed: int = 0
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["terms"] = {str(k): list(v) for k, v in self.terms.items()}
+        for k in ("delta1", "delta2", "beta1", "beta2", "degree"):
+            if d[k] is not None and not np.isscalar(d[k]):
+                d[k] = [float(v) for v in d[k]]
+        return d
+
+
+def _per_dim(v, n, name):
+    if v is None:
+        return None
+    a = np.asarray(v, dtype=float)
+    if a.ndim == 0:
+        a = np.full(n, float(a))
+    if a.shape != (n,):
+        raise SimgapError(f"{name}: need one value or {n} values (one per state dimension), got {v!r}")
+    if not np.all(np.isfinite(a)):
+        raise SimgapError(f"{name}: NaN or inf in {v!r}")
+    return a
+
+
+def _versions() -> dict:
+    import cvxpy
+    import scipy
+
+    from .. import __version__
+    return {"simgap": __version__, "numpy": np.__version__, "scipy": scipy.__version__,
+            "cvxpy": cvxpy.__version__, "python": platform.python_version()}
+
+
+def bases_for(system, degree, terms: Dict[int, List[str]]) -> List[Basis]:
+    """One Basis per state dimension from a degree (or per-dim degrees) and extra terms."""
+    n = system.n
+    degs = [degree] * n if np.isscalar(degree) else list(degree)
+    if len(degs) != n:
+        raise SimgapError(f"degree: need one value or {n} values, got {degree!r}")
+    for k in terms:
+        if k != -1 and not (0 <= int(k) < n):
+            raise SimgapError(f"basis terms given for state dimension {int(k) + 1}, but the system has {n}")
+    out = []
+    for i in range(n):
+        extra = list(terms.get(-1, [])) + list(terms.get(i, []))
+        if degs[i] is None or degs[i] < 0:  # only the user's terms
+            out.append(Basis(system, extra))
+        else:
+            out.append(Basis.polynomial(system, degs[i], extra))
+    return out
+
+
+def check_dataset(ds) -> None:
+    """Reject data the program would silently get wrong."""
+    ds.check_finite()
+    if ds.K == 0:
+        raise SimgapError("dataset: no rows")
+    if not (np.isfinite(ds.epsilon) and ds.epsilon > 0):
+        raise SimgapError(f"dataset: epsilon must be > 0, got {ds.epsilon}")
+    if np.any(ds.var < 0):
+        raise SimgapError("dataset: negative sample variances")
+
+
+def certify(dataset, options: Optional[CertifyOptions] = None, **kw) -> Certificate:
+    """Compute the stochastic simulation-gap certificate of ``dataset`` (see module docstring).
+
+    ``options`` or keyword arguments of :class:`CertifyOptions`.
+    """
+    t0 = time.perf_counter()
+    o = options or CertifyOptions(**kw)
+    if options is not None and kw:
+        raise SimgapError("certify: give either options or keyword arguments, not both")
+    ds = dataset
+    s = ds.system
+    n = s.n
+    check_dataset(ds)
+    if o.method not in ("stochastic", "deterministic"):
+        raise SimgapError(f"unknown method {o.method!r}; choose 'stochastic' or 'deterministic'")
+    if o.lipschitz_mode not in ("increment", "state"):
+        raise SimgapError(f"lipschitz_mode must be 'increment' or 'state', got {o.lipschitz_mode!r}")
+    if o.l2 not in ("analytic", "estimated"):
+        raise SimgapError(f"l2 must be 'analytic' or 'estimated', got {o.l2!r}")
+    o.bounds.validate()
+    bases = bases_for(s, o.degree, o.terms)
+    g = ds.gap()
+    K, N = ds.K, int(ds.n_runs)
+    notes = []
+
+    # ----- margins and confidences -----------------------------------------------------
+    if o.method == "stochastic":
+        vb = variance_bound(ds.var, N, o.variance, o.safety, o.value_range, o.beta_v)
+        M = vb.M
+        d1, d2 = _per_dim(o.delta1, n, "delta1"), _per_dim(o.delta2, n, "delta2")
+        b1, b2 = _per_dim(o.beta1, n, "beta1"), _per_dim(o.beta2, n, "beta2")
+        if (d1 is None) != (d2 is None):
+            d1 = d2 if d1 is None else d1
+            d2 = d1 if d2 is None else d2
+        if (b1 is None) != (b2 is None):
+            b1 = b2 if b1 is None else b1
+            b2 = b1 if b2 is None else b2
+        if d1 is not None and (np.any(d1 <= 0) or np.any(d2 <= 0)):
+            raise SimgapError(f"delta must be > 0 (delta1={d1.tolist()}, delta2={d2.tolist()})")
+        if d1 is None and b1 is None:
+            b1 = b2 = np.full(n, 0.01)
+        if d1 is None:
+            d1, d2 = delta_from_beta(M, b1, b2, N, K, o.bounds)
+            beta1, beta2 = beta_from_delta(M, d1, d2, N, K, o.bounds)
+        else:
+            beta1, beta2 = beta_from_delta(M, d1, d2, N, K, o.bounds)
+            if b1 is not None and (np.any(beta1 > b1 * (1 + 1e-9)) or np.any(beta2 > b2 * (1 + 1e-9))):
+                need = required_runs(M, d1, d2, b1, b2, K, o.bounds)
+                raise SimgapError(f"N1hat = {N} runs per (x_r,u) is too small for beta1={b1.tolist()}, "
+                                  f"beta2={b2.tolist()} at delta1={d1.tolist()}, delta2={d2.tolist()}: "
+                                  f"these deltas give beta1={beta1.tolist()}, beta2={beta2.tolist()}; "
+                                  f"need N1hat >= {need}")
+        bv = np.full(n, vb.beta_v)
+        total = beta1 + beta2 + bv
+        if np.any(total >= 1):
+            i = int(np.argmax(total))
+            raise SimgapError(f"N1hat = {N} runs is too small for delta1={d1[i]:g}, delta2={d2[i]:g} in dimension "
+                              f"{s.state_names[i]}: beta1 + beta2 = {total[i]:.3g} >= 1 (no confidence); "
+                              f"use larger deltas or more runs")
+        if 1.0 - total.sum() <= 0:
+            notes.append("joint confidence <= 0: per-dimension statements only")
+        variance_info = vb.to_dict()
+    else:
+        M = None
+        d1 = d2 = np.zeros(n)
+        beta1 = beta2 = None
+        bv = np.zeros(n)
+        variance_info = None
+        if N > 1:
+            notes.append(f"deterministic baseline on a data set with N1hat = {N}: the gap uses the mean of "
+                         f"{N} runs (the predecessor work used one run)")
+
+    # ----- Lipschitz data (shared by all dims) ------------------------------------------
+    rng = np.random.default_rng(o.seed)
+    pairs = neighbour_pairs(ds)
+    if o.lipschitz_mode == "increment":
+        fhat_vals = s.diff(ds.mean, ds.x)  # mean fhat - x (wrapped): the increment
+        f_vals = s.diff(ds.f_nom, ds.x)
+        sl_fhat = slopes_of(fhat_vals, pairs, s)
+        sl_f = slopes_of(f_vals, pairs, s)
+        Lf_analytic = None
+    else:
+        sl_fhat = slopes_of(ds.mean, pairs, s)
+        sl_f = slopes_of(ds.f_nom, pairs, s)
+        Lf_analytic = s.lipschitz_f()
+
+    dims = []
+    for i in range(n):
+        P = bases[i].design(ds.x, ds.u)
+        res = solve_scp(P, g[:, i], float(d1[i]), method=o.scp_method, solver=o.solver, secondary=o.secondary,
+                        seed=o.seed)
+        how = {}
+        if Lf_analytic is not None:
+            L_f = float(Lf_analytic[i])
+            how["L_f"] = "analytic: System.lipschitz_f (Jacobian bound, Euclidean row norm, max over U)"
+        else:
+            wz = wood_zhang(sl_f[:, i], rng)
+            L_f = wz.estimate
+            how["L_f"] = {"how": f"Wood-Zhang estimate on slopes of f_{i + 1}" +
+                          (" - x" if o.lipschitz_mode == "increment" else "") + " over neighbouring cover points",
+                          **wz.to_dict()}
+        wz = wood_zhang(sl_fhat[:, i], rng)
+        L_fhat = wz.estimate
+        how["L_fhat"] = {"how": "Wood-Zhang estimate on slopes of the empirical mean" +
+                         (" increment (mean - x)" if o.lipschitz_mode == "increment" else "") +
+                         " over neighbouring cover points", **wz.to_dict()}
+        if o.l2 == "analytic":
+            L_2 = l2_analytic(bases[i], res.q, s)
+            how["L_2"] = "analytic: interval bound of ||grad_x q^T p||_2 over sub-boxes of X, all u in U (sound)"
+        else:
+            wz = wood_zhang(slopes_of((P @ res.q)[:, None].repeat(n, axis=1), pairs, s, angle_diff=False)[:, 0], rng)
+            L_2 = wz.estimate
+            how["L_2"] = {"how": "Wood-Zhang estimate on slopes of q^T p over neighbouring cover points",
+                          **wz.to_dict()}
+        if not np.isfinite(L_2):
+            raise SimgapError(f"L_2 of dimension {s.state_names[i]} is unbounded on X (a basis term has an "
+                              f"unbounded derivative there, e.g. sqrt or sign at 0); use l2='estimated' or change terms")
+        fit = P @ res.q
+        scp = res.to_dict()
+        const = (L_f + L_fhat + L_2) * ds.epsilon + float(d2[i]) + res.repair
+        scp["gamma_range_on_data"] = [float(fit.min() + const), float(fit.max() + const)]
+        dims.append(DimCertificate(
+            terms=bases[i].names, q=res.q, delta1=float(d1[i]), delta2=float(d2[i]),
+            beta1=None if beta1 is None else float(beta1[i]), beta2=None if beta2 is None else float(beta2[i]),
+            beta_v=float(bv[i]), Mhat=None if M is None else float(M[i]), L_f=L_f, L_fhat=L_fhat, L_2=L_2,
+            lipschitz_how=how, repair=res.repair, eta=res.eta, gap_max=float(g[:, i].max()), scp=scp,
+            basis=bases[i]))
+
+    opts = o.to_dict()
+    opts["beyond_paper"] = (o.bounds.beyond_paper() if o.method == "stochastic" else []) + \
+        (["variance=maurer_pontil"] if o.method == "stochastic" and o.variance != "empirical" else [])
+    opts["variance_bound"] = variance_info
+    opts["notes"] = notes
+    prov = {"dataset_hash": ds.hash, "versions": _versions(), "seed": o.seed,
+            "dataset_seed": ds.manifest.get("seed"), "simulator": ds.manifest.get("simulator"),
+            "created_unix": time.time(), "seconds": time.perf_counter() - t0}
+    return Certificate(system_name=s.name, steps=int(s.steps), state_names=tuple(s.state_names),
+                       input_names=tuple(s.input_names), x_lo=s.x_lo.copy(), x_hi=s.x_hi.copy(),
+                       angle_dims=tuple(s.angle_dims), epsilon=float(ds.epsilon), n_runs=N, K=K,
+                       method=o.method, options=opts, dims=dims, provenance=prov)

@@ -1,0 +1,71 @@
+"""Small helpers shared by the PyBullet simulators: clients, asset paths, per-run factors."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import SimgapError
+
+#: repository folder holding the URDF files (``assets/urdf``)
+URDF_DIR = Path(__file__).resolve().parents[2] / "assets" / "urdf"
+
+
+def urdf_path(name: str) -> Path:
+    """Absolute path of ``assets/urdf/<name>``; SimgapError if it is missing."""
+    path = URDF_DIR / name
+    if not path.is_file():
+        raise SimgapError(f"URDF file not found: {path}")
+    return path
+
+
+def bullet_client(dt: float, gravity: float = 9.81, deterministic_pairs: bool = False):
+    """A private PyBullet client in DIRECT mode with physics step ``dt`` [s] and gravity -g z.
+
+    One client per simulator object: the module-level pybullet client is not thread-safe and
+    clients must never be shared between simulators. ``deterministic_pairs`` sorts Bullet's
+    overlapping pairs (contact order independent of history; costs time, only useful with
+    contacts).
+    """
+    import pybullet
+    from pybullet_utils.bullet_client import BulletClient
+
+    client = BulletClient(connection_mode=pybullet.DIRECT)
+    client.setGravity(0.0, 0.0, -float(gravity))
+    # numSubSteps=0: one stepSimulation call advances exactly dt (no internal substepping)
+    client.setPhysicsEngineParameter(fixedTimeStep=float(dt), numSubSteps=0,
+                                     deterministicOverlappingPairs=int(deterministic_pairs))
+    return client
+
+
+def relative_factors(rng: np.random.Generator, B: int, std: float) -> np.ndarray:
+    """Per-run multiplicative factors 1 + std * z, z ~ N(0,1) clipped to [-3, 3].
+
+    Always draws B normals (even for std = 0) so that the random stream, and hence every other
+    draw, does not depend on which keys are configured.
+    """
+    z = np.clip(rng.standard_normal(B), -3.0, 3.0)
+    return 1.0 + std * z
+
+
+def check_std(value, name: str, max_value: float = np.inf) -> float:
+    """A non-negative finite scalar config value (<= max_value), else SimgapError naming it."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise SimgapError(f"{name}: need a number, got {value!r}") from None
+    if not np.isfinite(v) or v < 0 or v > max_value:
+        raise SimgapError(f"{name}: need a finite value in [0, {max_value:g}], got {value!r}")
+    return v
+
+
+def int_option(value, name: str, lo: int, hi: int) -> int:
+    """An integer config value in [lo, hi], else SimgapError naming it."""
+    try:
+        v = int(value)
+    except (TypeError, ValueError):
+        raise SimgapError(f"{name}: need an integer in [{lo}, {hi}], got {value!r}") from None
+    if isinstance(value, bool) or v != value or not lo <= v <= hi:
+        raise SimgapError(f"{name}: need an integer in [{lo}, {hi}], got {value!r}")
+    return v

@@ -43,12 +43,14 @@ class SimgapApp:
     """
 
     def __init__(self, host: str = "127.0.0.1", port: int = 8080, settings: Optional[Settings] = None,
-                 dataset=None, spec=None, arena=None):
+                 dataset=None, spec=None, arena=None, experiment=None, executor: str = "local"):
         import viser
 
         self.lock = threading.RLock()
         self.settings = (settings or Settings())
-        self.system = engine.make_system(self.settings)
+        self.experiment = experiment
+        self.executor = executor
+        self.system = engine.make_system(self.settings, experiment)
         self.spec = spec
         self.arena = arena
         self.cache: dict = {}
@@ -143,7 +145,9 @@ class SimgapApp:
         with self.lock:
             try:
                 new = self.settings.replace(**changes)
-                system = engine.make_system(new) if ("system" in changes or "steps" in changes) else self.system
+                system = self.system
+                if (new.system, int(new.steps)) != (self.system.name, int(self.system.steps)):
+                    system = engine.make_system(new, self.experiment)
                 new.validate(system.n)
             except SimgapError as e:
                 self.notify("Invalid value", str(e))
@@ -242,9 +246,13 @@ class SimgapApp:
         self.guarded(self._collect, background)
 
     def _collect(self, background):
+        if self.settings.data_source:  # collecting replaces a loaded dataset
+            self.settings = self.settings.replace(data_source="")
         s = self.settings.validate(self.system.n)
         engine.require("collect")
-        self._run_stage("collect", lambda ctx: engine.collect(s, self.system, ctx), background)
+        system, exp, ex = self.system, self.experiment, self.executor
+        self._run_stage("collect", lambda ctx: engine.collect(s, system, ctx, experiment=exp, executor=ex),
+                        background)
 
     def certify(self, background: bool = True) -> None:
         """Certify gamma from the cached data (engine: ``simgap.certify.certify``)."""
@@ -302,13 +310,11 @@ class SimgapApp:
 
     def current_spec(self):
         """The specification for synthesis/rollouts: the experiment's, else the system's default."""
-        if self.spec is not None and self.spec_matches():
-            return self.spec
-        return engine.default_spec(self.system, self.arena)
-
-    def spec_matches(self) -> bool:
-        return self.spec is not None and len(getattr(self.spec, "target", None).lo if self.spec.target is not None
-                                             else self.spec.safe.lo) == self.system.n
+        if self.spec is not None:
+            box = self.spec.target if self.spec.target is not None else self.spec.safe
+            if box.lo.size == self.system.n:
+                return self.spec
+        return engine.default_spec(self.system, self.arena if self.system.name == "turtlebot" else None)
 
     # ----- job callbacks (worker thread) -------------------------------------------------
     def _job_progress(self, name: str, frac: float) -> None:

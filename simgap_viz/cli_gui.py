@@ -28,9 +28,10 @@ def run(args) -> int:
     from .app import SimgapApp
     from .experiment import app_inputs
 
-    settings, dataset, spec, arena = app_inputs(experiment=args.experiment, profile=args.profile,
+    settings, dataset, spec, arena, exp = app_inputs(experiment=args.experiment, profile=args.profile,
                                                 dataset=args.dataset, system=args.system)
-    app = SimgapApp(host=args.host, port=args.port, settings=settings, dataset=dataset, spec=spec, arena=arena)
+    app = SimgapApp(host=args.host, port=args.port, settings=settings, dataset=dataset, spec=spec, arena=arena,
+                    experiment=exp)
     app.executor = args.executor
     print(f"simgap gui: open {app.url} in a browser (Ctrl+C to stop)", flush=True)
     t0 = time.monotonic()

@@ -28,10 +28,10 @@ _NEEDS = {
     "certify": ("simgap.certify.pipeline", "simgap.certify.certificate"),
     "synthesize": ("simgap.synthesis.abstraction", "simgap.synthesis.games", "simgap.synthesis.controller"),
     "rollout": ("simgap.synthesis.rollout",),
-    "refine": ("simgap.refine",),
+    "refine": ("simgap.refine.report", "simgap.refine.data"),
 }
 _ATTRS = {"certify": ("simgap.certify.pipeline", "certify"), "synthesize": ("simgap.synthesis", "synthesize"),
-          "refine": ("simgap.refine", "refine")}
+          "refine": ("simgap.refine.report", "refine")}
 
 
 def availability() -> dict:
@@ -65,7 +65,10 @@ def unavailable_note(stage: str) -> str:
 
 
 # ----- systems, specs ----------------------------------------------------------------------
-def make_system(settings) -> System:
+def make_system(settings, experiment=None) -> System:
+    """The nominal system of the settings; the experiment's own (e.g. its input set) if it names the same."""
+    if experiment is not None and experiment.system.name == settings.system:
+        return experiment.system.with_steps(int(settings.steps))
     return get_system(settings.system, steps=int(settings.steps))
 
 
@@ -138,13 +141,27 @@ def workdir() -> Path:
     return _WORKDIR
 
 
-def collect(settings, system: System, ctx, executor: str = "serial"):
-    """Collect the data set: cover X with radius epsilon, N1hat runs per (x_r, u) (simgap.collect)."""
+def collect(settings, system: System, ctx, experiment=None, executor: str = "local"):
+    """Collect the data set: cover X with radius epsilon, N1hat runs per (x_r, u) (simgap.collect).
+
+    With an experiment for the same system and simulator kind, its simulator configuration
+    (noise, effects) and cover options (declared invariances) are used, with the settings'
+    epsilon, N1hat and seed; otherwise a plain cover and the settings' noise std.
+    """
+    import dataclasses
+
     from simgap.collect import CollectionPlan, collect as run_collect
     from simgap.cover import CoverSpec, make_cover
 
-    cover = make_cover(system, CoverSpec(epsilon=float(settings.epsilon)))
-    plan = CollectionPlan(system=system, simulator=simulator_config(settings, system), cover=cover,
+    if experiment is not None and experiment.system.name == system.name \
+            and experiment.simulator.kind == settings.simulator:
+        cspec = dataclasses.replace(experiment.cover_spec(), epsilon=float(settings.epsilon))
+        simcfg = dataclasses.replace(experiment.simulator, steps=int(system.steps))
+    else:
+        cspec = CoverSpec(epsilon=float(settings.epsilon))
+        simcfg = simulator_config(settings, system)
+    cover = make_cover(system, cspec)
+    plan = CollectionPlan(system=system, simulator=simcfg, cover=cover,
                           n_runs=int(settings.n_runs), seed=int(settings.seed))
     store = workdir() / f"store-{plan.hash()}"
     res = run_collect(plan, store, executor=executor, on_progress=ctx.progress, should_stop=ctx.cancelled)
@@ -191,7 +208,12 @@ def rollout(system, spec, syn, settings, ctx):
 
 
 def refine(dataset, settings, ctx):
-    raise SimgapError("refine: engine API not wired yet")
+    """Refine the nominal model on the data's empirical means (simgap.refine): residuals, selected
+    effects, the refined system f' = f + tau sum_k c_k g_k."""
+    from simgap.refine.data import from_dataset
+    from simgap.refine.report import refine as run_refine
+    ctx.check()
+    return run_refine(dataset.system, from_dataset(dataset))
 
 
 # ----- result accessors -------------------------------------------------------------------
@@ -238,7 +260,8 @@ def rollout_markdown(res) -> str:
 
 
 def refine_markdown(res) -> str:
-    return f"```\n{res}\n```"
+    from simgap.refine.report import format_table
+    return "```\n" + format_table(res.report) + "\n```"
 
 
 # ----- static geometry -----------------------------------------------------------------------

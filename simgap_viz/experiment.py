@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from typing import Optional
 
+import numpy as np
+
 from simgap.errors import SimgapError
 
 from . import engine
@@ -12,11 +14,11 @@ from .settings import Settings
 
 def app_inputs(experiment: Optional[str] = None, profile: Optional[str] = None, dataset: Optional[str] = None,
                system: Optional[str] = None):
-    """(settings, dataset or None, spec or None, arena map or None) for the app."""
+    """(settings, dataset or None, spec or None, arena map or None, ExperimentConfig or None) for the app."""
     settings = Settings()
-    spec = arena = data = None
+    spec = arena = data = exp = None
     if experiment:
-        settings, spec, arena = settings_from_experiment(experiment, profile)
+        settings, spec, arena, exp = settings_from_experiment(experiment, profile)
     if system:
         settings = settings.replace(system=system, simulator=engine.default_simulator(system, settings.simulator))
     settings = settings.replace(eta=engine.default_eta(engine.make_system(settings))) \
@@ -24,7 +26,7 @@ def app_inputs(experiment: Optional[str] = None, profile: Optional[str] = None, 
     if dataset:
         from simgap.dataset import load_dataset
         data = load_dataset(dataset)
-    return settings, data, spec, arena
+    return settings, data, spec, arena, exp
 
 
 def settings_from_experiment(name: str, profile: Optional[str]):
@@ -33,9 +35,67 @@ def settings_from_experiment(name: str, profile: Optional[str]):
     except ImportError:
         raise SimgapError("--experiment needs simgap.config, which this engine version does not have") from None
     exp = load_experiment(name, profile)
-    return from_experiment(exp)
+    st, spec, arena = from_experiment(exp)
+    return st, spec, arena, exp
+
+
+def _vec(v):
+    if v is None:
+        return None
+    return tuple(float(x) for x in (v if isinstance(v, (list, tuple)) else [v]))
 
 
 def from_experiment(exp):
-    """Map an engine experiment object to (Settings, spec, arena)."""
-    raise SimgapError("experiment loading is not wired yet")
+    """Map a :class:`simgap.config.ExperimentConfig` to (Settings, spec or None, arena map or None).
+
+    Reads [system], [simulator], [collect] (typed by the engine) and, when present, the keys
+    ``degree, terms, delta1, delta2, confidence, concentration`` of [certify], ``eta, hold`` of
+    [synthesis], ``n_rollouts, horizon, x0, seed`` of [rollout], and ``map`` of [synthesis]
+    or [simulator.options].
+    """
+    s = exp.system
+    c = exp.collect
+    noise = exp.simulator.noise.get("actuation_std", 0.05)
+    noise = float(np.max(noise)) if np.ndim(noise) else float(noise)
+    st = Settings(system=s.name, steps=int(s.steps), simulator=exp.simulator.kind, noise_std=noise,
+                  epsilon=float(c.epsilon), n_runs=int(c.n_runs), seed=int(c.seed), experiment=exp.name,
+                  profile=exp.profile or "")
+    cert = exp.section("certify")
+    syn = exp.section("synthesis")
+    ro = exp.section("rollout")
+    d1, d2 = _vec(cert.get("delta1")), _vec(cert.get("delta2"))
+    if d1 is not None and len(d1) == 1:
+        d1 = d1 * s.n
+    if d2 is not None and len(d2) == 1:
+        d2 = d2 * s.n
+    terms = cert.get("terms", "")
+    if isinstance(terms, (list, tuple)):
+        terms = ", ".join(str(t) for t in terms)
+    st = st.replace(
+        degree=int(cert.get("degree", st.degree)) if np.isscalar(cert.get("degree", st.degree)) else st.degree,
+        terms=str(terms), delta1=d1 if d2 is not None else None, delta2=d2 if d1 is not None else None,
+        confidence=float(cert.get("confidence", st.confidence)),
+        concentration=str(cert.get("concentration", st.concentration)),
+        eta=_vec(syn.get("eta")) or engine.default_eta(s), hold=int(syn.get("hold", st.hold)),
+        n_rollouts=int(ro.get("n_rollouts", st.n_rollouts)), horizon=int(ro.get("horizon", st.horizon)),
+        x0=_vec(ro.get("x0")), rollout_seed=int(ro.get("seed", st.rollout_seed)))
+    if len(st.eta) == 1:
+        st = st.replace(eta=st.eta * s.n)
+    arena = None
+    map_name = syn.get("map") or exp.simulator.options.get("map")
+    if map_name:
+        from simgap.maps import load_map
+        arena = load_map(map_name)
+    spec = arena.spec(s) if arena is not None else spec_from_section(syn.get("spec"))
+    return st, spec, arena
+
+
+def spec_from_section(d):
+    """A Spec from a [synthesis.spec] table (the Spec.to_dict layout), or None."""
+    if not d:
+        return None
+    from simgap.synthesis.spec import Spec
+    try:
+        return Spec.from_dict(d)
+    except (KeyError, TypeError) as e:
+        raise SimgapError(f"experiment: bad [synthesis.spec] table ({e})") from None

@@ -317,7 +317,10 @@ def turtlebot(tau: float = 0.01, inputs: Optional[np.ndarray] = None) -> System:
 def emps(M: float = 95.1, gtau: float = 35.15, tau: float = 0.001) -> System:
     """EMPS positioning axis, nominal double integrator: q [m], q' [m/s], input vir [V].
 
-    q+ = q + tau q';  q'+ = q' + tau gtau vir / M.  Bounds cover the benchmark record.
+    q+ = q + tau q';  q'+ = q' + tau gtau vir / M.  Bounds cover the benchmark record
+    (DATA_EMPS.mat: q in [-2.2e-5, 0.2464] m, |q'| <= 0.128 m/s after filtering at 10-200 Hz,
+    vir in [-4.33, 4.14] V) with a margin: X = [-0.005, 0.255] x [-0.15, 0.15],
+    U = {-4.5, -4.0, ..., 4.5} V.
     """
     k = gtau / M
 
@@ -330,8 +333,8 @@ def emps(M: float = 95.1, gtau: float = 35.15, tau: float = 0.001) -> System:
 
     return System(
         name="emps", state_names=("q", "qd"), input_names=("vir",),
-        x_lo=(0.0, -0.25), x_hi=(0.25, 0.25),
-        inputs=input_grid([-6.0], [6.0], [25]),
+        x_lo=(-0.005, -0.15), x_hi=(0.255, 0.15),
+        inputs=input_grid([-4.5], [4.5], [19]),
         base_tau=tau, step=step, jacobian_bound=jac,
         params={"M": M, "gtau": gtau},
     )

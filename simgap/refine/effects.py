@@ -19,6 +19,11 @@ deadband       B_ij(x) sign(u_j)                   c = -w: a dead zone of width 
                                                    (exact for |u_j| >= w)
 gravity        the model's own drift of x_i,       relative error of the model's own gravity /
                (f_i(x, 0) - x_i) / tau             parameter term (x_i's drift at u = 0)
+integration    a_j(x, u) = (f'_j(x, u) - x_j) / tau  for a position x_i integrating velocity x_j:
+               the (refined) model's own velocity  the model's Euler update x_i+ = x_i + tau x_j
+               update rate, entering x_i           misses tau * c * a_j within the step;
+                                                   c [s] = tau for semi-implicit Euler (physics
+                                                   engines), tau / 2 for exact integration
 <user name>    any expression in the variables     user-defined
 ============== =================================== ===========================================
 
@@ -49,7 +54,8 @@ import numpy as np
 from ..errors import SimgapError
 from ..systems import System
 
-LIBRARY = ("bias", "viscous_friction", "coulomb_friction", "drag", "input_gain", "deadband", "gravity")
+LIBRARY = ("bias", "viscous_friction", "coulomb_friction", "drag", "input_gain", "deadband", "gravity",
+           "integration")
 
 #: built-in velocity-state declarations (0-based dims); extended by :func:`declare_velocity`
 VELOCITY_DIMS: Dict[str, tuple] = {"pendulum": (1,), "emps": (1,), "turtlebot": ()}
@@ -144,6 +150,37 @@ def _drift(system: System, i: int) -> Callable:
     return g
 
 
+def _rate(system: System, j: int) -> Callable:
+    """The model's own update rate of x_j: (step_j(x, u) - x_j) / base_tau."""
+    dt = system.base_tau
+
+    def g(x, u):
+        return (system.step(x, u, dt)[:, j] - x[:, j]) / dt
+
+    return g
+
+
+def integrator_pairs(system: System) -> list:
+    """Pairs (i, j): state x_i integrates x_j, i.e. d step_i / d x_j = base_tau on X x U."""
+    x, u = _sample_domain(system, 128)
+    dt = system.base_tau
+    out = []
+    for j in range(system.n):
+        h = 1e-6 * max(1.0, float(system.x_hi[j] - system.x_lo[j]))
+        xp, xm = x.copy(), x.copy()
+        xp[:, j] += h
+        xm[:, j] -= h
+        J = (system.step(xp, u, dt) - system.step(xm, u, dt)) / (2 * h)
+        out += [(i, j) for i in range(system.n) if i != j and np.allclose(J[:, i], dt, rtol=1e-4, atol=0.0)]
+    return out
+
+
+def integration_effect(system: System, i: int, j: int) -> Effect:
+    """The ``integration`` effect of x_i integrating x_j, built on ``system``'s own x_j update."""
+    vn = system.state_names[j]
+    return Effect("integration", i, vn, f"a_{vn}(x, u)", _rate(system, j))
+
+
 def _sample_domain(system: System, count: int = 512, seed: int = 0) -> tuple:
     """Random states in X and inputs from U (fixed seed: applicability checks, bounds)."""
     rng = np.random.default_rng(seed)
@@ -159,20 +196,7 @@ def velocity_dims(system: System) -> tuple:
     name = _base_name(system)
     if name in VELOCITY_DIMS:
         return VELOCITY_DIMS[name]
-    x, u = _sample_domain(system, 128)
-    dt = system.base_tau
-    out = []
-    for j in range(system.n):
-        h = 1e-6 * max(1.0, float(system.x_hi[j] - system.x_lo[j]))
-        xp, xm = x.copy(), x.copy()
-        xp[:, j] += h
-        xm[:, j] -= h
-        J = (system.step(xp, u, dt) - system.step(xm, u, dt)) / (2 * h)  # (S, n): d step_i / d x_j
-        for i in range(system.n):
-            if i != j and np.allclose(J[:, i], dt, rtol=1e-4, atol=0.0):
-                out.append(j)
-                break
-    return tuple(out)
+    return tuple(sorted({j for _, j in integrator_pairs(system)}))
 
 
 # ---------------------------------------------------------------------------------------
@@ -299,6 +323,8 @@ def library_candidates(system: System, names: Optional[Iterable[str]] = None,
                     else:
                         out.append(Effect(nm, i, un, f"B_{i + 1}{j + 1}(x) sign({un})",
                                           lambda x, u, B=B, j=j: B(x, u) * np.sign(u[:, j])))
+        elif nm == "integration":
+            out += [integration_effect(s, i, j) for i, j in integrator_pairs(s)]
         elif nm == "gravity":
             dims = vdims if vdims else tuple(range(s.n))
             out += [Effect(nm, i, None, f"drift_{i + 1}(x)", _drift(s, i)) for i in dims]
@@ -353,6 +379,8 @@ def coefficient_units(system: System, e: Effect) -> str:
         return f"{rate} per ({vu})^2"
     if e.name in ("input_gain", "gravity"):
         return "1 (relative)"
+    if e.name == "integration":
+        return "s"
     if e.name == "deadband":
         return iu[system.input_names.index(e.variable)]
     return ""
@@ -369,6 +397,8 @@ def physical(system: System, e: Effect, coef: float, stderr: float) -> Optional[
     if e.name == "deadband":
         return {"quantity": "deadband width w", "value": -coef, "stderr": stderr,
                 "unit": coefficient_units(system, e)}
+    if e.name == "integration":
+        return None
     if e.name in ("input_gain", "gravity"):
         return {"quantity": "effective gain factor 1 + c", "value": 1.0 + coef, "stderr": stderr, "unit": ""}
     inert = _inertia(system)

@@ -38,7 +38,7 @@ import numpy as np
 
 from ..errors import SimgapError
 from ..systems import BUILTIN, System, get_system
-from .effects import Effect, effect_from_spec
+from .effects import Effect, effect_from_spec, integration_effect
 
 FORMAT = "simgap-refined-system"
 
@@ -54,6 +54,12 @@ def refined_system(base: System, effects: Sequence[Effect], coefficients: Sequen
         raise SimgapError("refined system: coefficients must be finite")
     se = np.full(c.size, np.nan) if stderrs is None else np.asarray(stderrs, dtype=float).reshape(-1)
     base_step = base.step
+    if any(e.name == "integration" for e in effects):
+        # the integration term uses the refined velocity update (all other effects included)
+        other = [(e, ck) for e, ck in zip(effects, c) if e.name != "integration"]
+        inner = refined_system(base, [e for e, _ in other], [ck for _, ck in other])
+        effects = [integration_effect(inner, e.state, inner.state_names.index(e.variable))
+                   if e.name == "integration" else e for e in effects]
 
     def step(x, u, dt):
         out = np.array(base_step(x, u, dt), dtype=float, copy=True)

@@ -100,7 +100,7 @@ def residuals(system: System, data: Transitions) -> Residuals:
 
     ``system.tau`` must equal ``data.tau`` (use :func:`match_tau` first).
     """
-    if abs(system.tau - data.tau) > 1e-9 * data.tau:
+    if abs(system.tau - data.tau) > 1e-4 * data.tau:
         raise SimgapError(f"system {system.name!r} has tau = {system.tau:g} s but the data have "
                           f"tau = {data.tau:g} s")
     f = system.f(data.x, data.u)
@@ -108,10 +108,13 @@ def residuals(system: System, data: Transitions) -> Residuals:
 
 
 def match_tau(system: System, tau: float) -> System:
-    """The system sampled at the data's tau: steps k = tau / base_tau must be an integer."""
+    """The system sampled at the data's tau: steps k = tau / base_tau must be an integer.
+
+    A relative mismatch up to 1e-4 (clock jitter of measured records) is accepted.
+    """
     k = tau / system.base_tau
     kr = int(round(k))
-    if kr < 1 or abs(k - kr) > 1e-6 * max(1.0, k):
+    if kr < 1 or abs(k - kr) > 1e-4 * max(1.0, k):
         raise SimgapError(f"data tau = {tau:g} s is not a whole multiple of system {system.name!r}'s "
                           f"base_tau = {system.base_tau:g} s")
     return system if kr == system.steps else system.with_steps(kr)

@@ -24,8 +24,9 @@ the column-standardized design, which makes every subset fit a tiny p x p solve)
 7. Structure left: a flexible regression (polynomials up to degree 3 of the standardized
    variables plus 10 quantile-bin indicators per variable; sin/cos of angles) fitted to the
    remaining train residual and scored on held-out data. If it explains at least
-   ``structure_threshold`` of the remaining held-out variance, a clear residual remains that no
-   library term explains: ``unexplained = True``.
+   ``structure_threshold`` of the remaining held-out variance, and that structured part is at
+   least ``min_unexplained`` of the nominal model's held-out residual variance, a clear residual
+   remains that no library term explains: ``unexplained = True``.
 """
 
 from __future__ import annotations
@@ -48,7 +49,8 @@ class SelectionOptions:
     min_explained: float = 0.005    # held-out RSS fraction a term must explain to stay
     min_per_term: int = 10          # train samples needed per candidate term
     n_boot: int = 100               # bootstrap resamples for standard errors
-    structure_threshold: float = 0.05
+    structure_threshold: float = 0.05   # held-out R^2 of the structure fit of what remains
+    min_unexplained: float = 0.01       # ... and that structured part as a fraction of the nominal residual
     seed: int = 0
 
 
@@ -323,4 +325,6 @@ def select_state(y: np.ndarray, Theta: np.ndarray, keys: list, held: np.ndarray,
     return StateFit(state=state, candidate_keys=keys, selected=list(S), coef=np.asarray(coef),
                     stderr=np.asarray(se), explained=np.asarray(expl), rss0_heldout=rss0_h,
                     rss_heldout=rss_after_h, structure_r2=float(r2s),
-                    unexplained=bool(r2s >= opts.structure_threshold), lag1_autocorr=lag1)
+                    unexplained=bool(r2s >= opts.structure_threshold
+                                     and r2s * rss_after_h >= opts.min_unexplained * rss0_h),
+                    lag1_autocorr=lag1)

@@ -272,3 +272,51 @@ def certify(dataset, options: Optional[CertifyOptions] = None, **kw) -> Certific
                        input_names=tuple(s.input_names), x_lo=s.x_lo.copy(), x_hi=s.x_hi.copy(),
                        angle_dims=tuple(s.angle_dims), epsilon=float(ds.epsilon), n_runs=N, K=K,
                        method=o.method, options=opts, dims=dims, provenance=prov)
+
+
+def compare_options(dataset, base: Optional[CertifyOptions] = None) -> list:
+    """Certify ``dataset`` under the paper's bounds and each option beyond it, at the same betas.
+
+    Returns rows {option, delta1, delta2, beta1, beta2, gamma_min, gamma_max, joint} (per-dimension
+    lists). Deltas are derived from the base options' betas (default 0.01 each), so the rows show
+    what each option does to delta and to gamma at equal confidence.
+    """
+    import dataclasses
+
+    base = base or CertifyOptions()
+    if base.method != "stochastic":
+        raise SimgapError("--compare needs the stochastic method")
+    b1 = base.beta1 if base.beta1 is not None else 0.01
+    b2 = base.beta2 if base.beta2 is not None else b1
+    common = dict(delta1=None, delta2=None, beta1=b1, beta2=b2)
+    variants = [("paper (chebyshev, 2 Mhat, pointwise)", BoundOptions()),
+                ("chebyshev, 4 Mhat (general Lemma 2)", BoundOptions(lemma2_factor=4.0)),
+                ("chebyshev, uniform over K rows", BoundOptions(uniform=True)),
+                ("sub-Gaussian", BoundOptions(concentration="subgaussian")),
+                ("sub-Gaussian, uniform over K rows", BoundOptions(concentration="subgaussian", uniform=True))]
+    if base.value_range:
+        variants += [("bernstein (range b)", BoundOptions(concentration="bernstein", value_range=base.value_range)),
+                     ("bernstein (range b), uniform", BoundOptions(concentration="bernstein", uniform=True,
+                                                                   value_range=base.value_range))]
+    rows = []
+    for name, bo in variants:
+        c = certify(dataset, dataclasses.replace(base, bounds=bo, **common))
+        rows.append({"option": name, "delta1": [d.delta1 for d in c.dims], "delta2": [d.delta2 for d in c.dims],
+                     "beta1": [d.beta1 for d in c.dims], "beta2": [d.beta2 for d in c.dims],
+                     "gamma_min": [d.scp["gamma_range_on_data"][0] for d in c.dims],
+                     "gamma_max": [d.scp["gamma_range_on_data"][1] for d in c.dims],
+                     "joint": c.joint_confidence})
+    return rows
+
+
+def comparison_table(rows: list, state_names) -> str:
+    """Text table of :func:`compare_options` rows."""
+    hdr = f"{'option':<40}{'dim':<8}{'delta1':>11}{'delta2':>11}{'beta1':>9}{'beta2':>9}{'gamma min':>11}" \
+          f"{'gamma max':>11}{'joint':>8}"
+    lines = [hdr, "-" * len(hdr)]
+    for r in rows:
+        for i, nm in enumerate(state_names):
+            lines.append(f"{r['option'] if i == 0 else '':<40}{nm:<8}{r['delta1'][i]:>11.4g}{r['delta2'][i]:>11.4g}"
+                         f"{r['beta1'][i]:>9.3g}{r['beta2'][i]:>9.3g}{r['gamma_min'][i]:>11.4g}"
+                         f"{r['gamma_max'][i]:>11.4g}{(format(r['joint'], '.4f') if i == 0 else ''):>8}")
+    return "\n".join(lines)

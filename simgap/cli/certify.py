@@ -1,0 +1,124 @@
+"""``simgap certify DATA``: data set -> certificate JSON, with a summary table.
+
+Examples::
+
+    simgap certify data.npz --degree 2 --beta 0.01 --out cert.json
+    simgap certify data.npz --delta 0.05 --term 2:"sin(theta)" --out cert.json
+    simgap certify data.npz --method deterministic --out cert_det.json
+    simgap certify data.npz --compare          # what each bound option does to delta and gamma
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from ..errors import SimgapError
+
+
+def _floats(text: str, name: str):
+    try:
+        vals = [float(v) for v in str(text).split(",")]
+    except ValueError:
+        raise SimgapError(f"--{name}: expected a number or comma-separated numbers, got {text!r}") from None
+    return vals[0] if len(vals) == 1 else vals
+
+
+def parse_terms(items, system) -> dict:
+    """``i:expr`` items (i = 1-based state dimension, a state name, or 'all') -> {0-based dim: [expr]}."""
+    out = {}
+    for item in items or []:
+        if ":" not in item:
+            raise SimgapError(f"--term {item!r}: expected DIM:EXPR, e.g. 2:'cos(x1)' or all:'x1*u1'")
+        key, expr = item.split(":", 1)
+        key = key.strip()
+        if key in ("all", "*"):
+            i = -1
+        elif key in system.state_names:
+            i = system.state_names.index(key)
+        else:
+            try:
+                i = int(key) - 1
+            except ValueError:
+                raise SimgapError(f"--term {item!r}: dimension {key!r} is not 1..{system.n}, a state name "
+                                  f"({', '.join(system.state_names)}) or 'all'") from None
+            if not (0 <= i < system.n):
+                raise SimgapError(f"--term {item!r}: dimension {key} out of range 1..{system.n}")
+        out.setdefault(i, []).append(expr.strip())
+    return out
+
+
+def add_parser(subparsers) -> None:
+    p = subparsers.add_parser("certify", help="compute the stochastic simulation-gap certificate of a data set",
+                              description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("data", help="data set (.npz or collection store directory)")
+    p.add_argument("--method", choices=["stochastic", "deterministic"], default="stochastic",
+                   help="stochastic (paper) or the deterministic baseline (no delta, no confidence)")
+    p.add_argument("--degree", default="2", help="total degree of the monomial basis (or one per dimension: 1,2,2); "
+                                                 "-1 = user terms only")
+    p.add_argument("--term", action="append", metavar="DIM:EXPR",
+                   help="extra basis term for a dimension (1-based, state name or 'all'), e.g. 2:'sin(theta)'")
+    g = p.add_argument_group("margins and confidence (give delta, beta, or both to check N1hat)")
+    g.add_argument("--delta", help="delta_1 = delta_2 (state units; one value or one per dimension)")
+    g.add_argument("--delta1", help="delta_1 only")
+    g.add_argument("--delta2", help="delta_2 only")
+    g.add_argument("--beta", help="target beta_1 = beta_2 (each lemma); the smallest deltas are computed")
+    g.add_argument("--beta1", help="target beta_1 only")
+    g.add_argument("--beta2", help="target beta_2 only")
+    g.add_argument("--variance", choices=["empirical", "maurer_pontil"], default="empirical",
+                   help="Mhat: paper's safety x max sample variance, or Maurer-Pontil certified bound")
+    g.add_argument("--safety", type=float, default=10.0, help="safety factor on the empirical variance (default 10)")
+    g.add_argument("--range", type=float, dest="value_range", help="known range b of fhat_i (maurer_pontil, bernstein)")
+    g.add_argument("--beta-v", type=float, default=0.001, help="failure probability of the Maurer-Pontil bound")
+    b = p.add_argument_group("options beyond the paper (off by default)")
+    b.add_argument("--concentration", choices=["chebyshev", "bernstein", "subgaussian"], default="chebyshev")
+    b.add_argument("--uniform", action="store_true", help="union bound over all K rows in Lemma 1")
+    b.add_argument("--lemma2-factor", type=float, choices=[2.0, 4.0], default=2.0,
+                   help="Var(fhat(x)-fhat(x_r)) <= factor*Mhat: 2 (paper) or 4 (general)")
+    b.add_argument("--lipschitz", choices=["increment", "state"], default="increment",
+                   help="Lipschitz constants of the increments f-x (default) or of f itself")
+    b.add_argument("--l2", choices=["analytic", "estimated"], default="analytic")
+    s = p.add_argument_group("solver")
+    s.add_argument("--solver", choices=["CLARABEL", "HIGHS"], default="CLARABEL")
+    s.add_argument("--scp", choices=["cg", "full"], default="cg", help="constraint generation or the whole LP")
+    s.add_argument("--seed", type=int, default=0)
+    p.add_argument("--compare", action="store_true",
+                   help="certify under each bound option and print delta and gamma side by side")
+    p.add_argument("--out", help="write the certificate JSON here")
+    p.set_defaults(func=run)
+
+
+def options_from_args(args, system):
+    from ..certify import BoundOptions, CertifyOptions
+
+    deg = _floats(args.degree, "degree")
+    deg = [int(d) for d in deg] if isinstance(deg, list) else int(deg)
+    d1 = args.delta1 or args.delta
+    d2 = args.delta2 or args.delta
+    b1 = args.beta1 or args.beta
+    b2 = args.beta2 or args.beta
+    return CertifyOptions(
+        method=args.method, degree=deg, terms=parse_terms(args.term, system),
+        delta1=None if d1 is None else _floats(d1, "delta1"), delta2=None if d2 is None else _floats(d2, "delta2"),
+        beta1=None if b1 is None else _floats(b1, "beta1"), beta2=None if b2 is None else _floats(b2, "beta2"),
+        variance=args.variance, safety=args.safety, value_range=args.value_range, beta_v=args.beta_v,
+        bounds=BoundOptions(concentration=args.concentration, lemma2_factor=args.lemma2_factor,
+                            uniform=args.uniform, value_range=args.value_range),
+        lipschitz_mode=args.lipschitz, l2=args.l2, scp_method=args.scp, solver=args.solver, seed=args.seed)
+
+
+def run(args) -> int:
+    from ..certify import certify
+    from ..certify.pipeline import compare_options, comparison_table
+    from ..dataset import load_dataset
+
+    ds = load_dataset(args.data)
+    opts = options_from_args(args, ds.system)
+    if args.compare:
+        print(comparison_table(compare_options(ds, opts), ds.system.state_names))
+        return 0
+    cert = certify(ds, opts)
+    print(cert.summary())
+    if args.out:
+        cert.save(args.out)
+        print(f"wrote {args.out}")
+    return 0

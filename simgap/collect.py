@@ -33,6 +33,7 @@ import hashlib
 import json
 import os
 import time
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterable, Optional, Sequence
@@ -149,7 +150,8 @@ class CollectionPlan:
     def config(self) -> dict:
         """The hashed configuration (JSON-ready). Executor and worker count are not part of it."""
         from . import __version__
-        return json.loads(canonical_json({
+        try:
+            text = canonical_json({
             "format": STORE_FORMAT,
             "simgap_version": __version__,
             "system": describe_system(self.system),
@@ -163,7 +165,10 @@ class CollectionPlan:
             "keep_samples": bool(self.keep_samples),
             "n_pairs": self.n_pairs,
             "n_chunks": self.n_chunks,
-        }))
+            })
+        except (ValueError, TypeError) as e:
+            raise SimgapError(f"collection configuration is not JSON-able (NaN/inf or odd types): {e}") from None
+        return json.loads(text)
 
     def hash(self) -> str:
         return config_hash(self.config())
@@ -499,7 +504,7 @@ def _load_chunk(store: Path, c: int, h: str, rows: int, names: Sequence[str]) ->
             out = {k: z[k] for k in names}
     except SimgapError:
         raise
-    except (OSError, ValueError, KeyError, EOFError) as e:
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as e:
         raise SimgapError(f"store {str(store)!r}: chunk file {p.name} is unreadable ({e}); delete it and "
                           "resume the collection to recompute it") from None
     for k, a in out.items():

@@ -129,6 +129,8 @@ def load_experiment(path_or_name: str | Path, profile: Optional[str] = "small",
                     overrides: Optional[dict] = None) -> ExperimentConfig:
     """Load an experiment TOML, apply ``profile`` and ``overrides`` ({section: {key: value}}).
 
+    ``profile`` None or ``"base"`` uses the top-level configuration as is.
+
     Raises SimgapError for a missing/unparsable file, an unknown profile, unknown or badly
     typed keys in [system]/[simulator]/[collect], an unknown system, or a bad input set.
     """
@@ -142,6 +144,8 @@ def load_experiment(path_or_name: str | Path, profile: Optional[str] = "small",
     profiles = raw.pop("profiles", {})
     if not isinstance(profiles, dict):
         raise SimgapError(f"experiment {str(path)!r}: [profiles] must be a table")
+    if profile == "base":  # the top-level configuration without any profile
+        profile = None
     if profile is not None:
         if profile not in profiles:
             raise SimgapError(f"experiment {str(path)!r} has no profile {profile!r}; "

@@ -20,7 +20,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                     "EXPERIMENT is a TOML file or a built-in name (pendulum, turtlebot). Running the same "
                     "command again resumes an interrupted collection.")
     p.add_argument("experiment", metavar="EXPERIMENT", help="experiment TOML path or built-in name")
-    p.add_argument("--profile", default="small", help="profile in the TOML (default: small; e.g. paper)")
+    p.add_argument("--profile", default="small", help="profile in the TOML (default: small; e.g. paper; base = no profile)")
     p.add_argument("--out", help="store directory (default: runs/<experiment>-<profile>/data)")
     p.add_argument("--executor", choices=["local", "ray", "serial"], help="where chunks run (default from TOML)")
     p.add_argument("--workers", type=int, help="worker processes / Ray CPUs (default: all cores)")

@@ -216,7 +216,8 @@ class SimgapApp:
             self._accept(stage, key, result)
 
         if background:
-            self.jobs.submit(stage, compute, then)
+            self.start_job(stage, compute, then)
+            return
         else:
             ctx = JobContext(name=stage)
             then(compute(ctx))
@@ -240,6 +241,12 @@ class SimgapApp:
         self.panels["rollouts"].show_stats()
         self.panels["refine"].show_report()
         self.refresh_result_layers()
+
+    def start_job(self, name: str, fn: Callable[[JobContext], Any], then: Optional[Callable] = None) -> None:
+        """Run ``fn(ctx)`` on the job thread (progress bar, cancel button enabled)."""
+        self.jobs.submit(name, fn, then)
+        self.progress.visible = True
+        self._update_buttons()
 
     def collect(self, background: bool = True) -> None:
         """Collect data for the current settings (engine: ``simgap.collect``)."""
@@ -334,12 +341,12 @@ class SimgapApp:
             self.notify("Cancelled", f"{out.name} was cancelled", color="yellow")
         else:
             self.notify(f"{out.name} failed", out.error or "unknown error")
-        self._update_buttons()
+        self._update_buttons(busy=False)  # still on the (ending) worker thread
 
-    def _update_buttons(self) -> None:
+    def _update_buttons(self, busy: Optional[bool] = None) -> None:
         if not hasattr(self, "panels"):
             return
-        busy = self.jobs.busy
+        busy = self.jobs.busy if busy is None else busy
         self.cancel_button.disabled = not busy
         avail = engine.availability()
         have = self.results

@@ -1,0 +1,248 @@
+"""Engine-to-GUI wiring of the viser app, without a browser.
+
+Setting a handle's value from Python fires its on_update callbacks (viser 1.1), so these tests
+drive the app through its real controls; button clicks are one-line calls into the methods
+called here (collect, certify, ...).
+"""
+
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from simgap.errors import SimgapError
+from simgap_viz.jobs import JobCancelled, JobRunner
+from simgap_viz.settings import Settings, parse_vector
+
+PENDULUM_NUMPY = {"kind": "numpy", "system": "pendulum", "noise": {"actuation_std": 0.05},
+                  "effects": {"linear": [[0.0, 0.0], [0.0, -0.5]]}}
+
+
+@pytest.fixture(scope="module")
+def tiny_dataset():
+    from simgap.certify.synthetic import synthetic_dataset
+    return synthetic_dataset(PENDULUM_NUMPY, 0.05, 20, seed=1)
+
+
+@pytest.fixture
+def app(tiny_dataset):
+    from simgap_viz.app import SimgapApp
+    a = SimgapApp(port=0, executor="serial")
+    a.set_dataset(tiny_dataset)
+    yield a
+    a.stop()
+
+
+# ----- settings ---------------------------------------------------------------------------
+def test_stage_keys_follow_dependencies():
+    s = Settings()
+    t = s.replace(delta1=(0.01, 0.02), delta2=(0.01, 0.02))
+    assert s.stage_key("collect") == t.stage_key("collect")
+    assert s.stage_key("certify") != t.stage_key("certify")
+    assert s.stage_key("synthesize") != t.stage_key("synthesize")
+    u = s.replace(eta=(0.02, 0.04))
+    assert u.stage_key("certify") == s.stage_key("certify")
+    assert u.stage_key("synthesize") != s.stage_key("synthesize")
+    assert s.replace(epsilon=0.1).stage_key("collect") != s.stage_key("collect")
+
+
+@pytest.mark.parametrize("change, word", [
+    ({"epsilon": 0.0}, "epsilon"), ({"epsilon": float("nan")}, "epsilon"), ({"n_runs": 1}, "N1hat"),
+    ({"confidence": 1.5}, "confidence"), ({"delta1": (0.1,), "delta2": (0.1, 0.1)}, "delta1"),
+    ({"degree": 9}, "degree"), ({"eta": (0.1, -1.0)}, "eta"), ({"concentration": "hoeffding"}, "concentration"),
+])
+def test_settings_validation_names_the_value(change, word):
+    with pytest.raises(SimgapError, match=word):
+        Settings().replace(**change).validate(2)
+
+
+def test_parse_vector():
+    assert parse_vector("0.1", "d", 3) == (0.1, 0.1, 0.1)
+    assert parse_vector("0.1, 0.2", "d", 2) == (0.1, 0.2)
+    assert parse_vector("", "d", 2, allow_empty=True) is None
+    with pytest.raises(SimgapError, match="delta_1"):
+        parse_vector("0.1, abc", "delta_1", 2)
+    with pytest.raises(SimgapError, match="need 1 or 2"):
+        parse_vector("1,2,3", "d", 2)
+
+
+# ----- job runner -------------------------------------------------------------------------
+def test_job_runner_progress_cancel_and_errors():
+    seen = []
+    finished = []
+    jr = JobRunner(on_progress=lambda name, f: seen.append(f), on_finish=finished.append)
+    jr.submit("ok", lambda ctx: [ctx.progress(i, 4) for i in range(5)] and 42)
+    out = jr.wait(10)
+    assert out.ok and out.result == 42 and seen[-1] == 1.0
+
+    started = threading.Event()
+
+    def long(ctx):
+        started.set()
+        for i in range(10_000):
+            time.sleep(0.001)
+            ctx.progress(i, 10_000)
+        return "never"
+
+    jr.submit("long", long)
+    started.wait(5)
+    with pytest.raises(SimgapError, match="still running"):
+        jr.submit("second", lambda ctx: 1)
+    assert jr.cancel()
+    out = jr.wait(10)
+    assert out.cancelled and not out.ok and out.name == "long"
+
+    def bad(ctx):
+        raise SimgapError("epsilon must be > 0")
+
+    jr.submit("bad", bad)
+    out = jr.wait(10)
+    assert not out.ok and "epsilon" in out.error
+    assert [o.name for o in finished] == ["ok", "long", "bad"]
+
+
+# ----- the app ----------------------------------------------------------------------------
+def test_bad_values_notify_and_keep_settings(app):
+    panel = app.panels["system"]
+    before = app.settings
+    panel.epsilon.value = -0.5
+    assert app.notifications and "epsilon" in app.notifications[-1][1]
+    assert app.settings.epsilon == before.epsilon
+    cert = app.panels["certificate"]
+    cert.terms.value = "sin(x1"  # unparseable basis term
+    assert "basis term" in app.notifications[-1][1]
+    assert app.settings.terms == ""
+    cert.terms.value = "bogus(x1)"
+    assert "bogus" in app.notifications[-1][1]
+    # the GUI is still alive: a good value goes through
+    n = len(app.notifications)
+    cert.terms.value = "sin(x1)"
+    assert app.settings.terms == "sin(x1)" and len(app.notifications) == n
+    app.wait(60)
+
+
+def test_certify_summary_and_cheap_recertify(app):
+    app.certify()
+    out = app.wait(60)
+    assert out.ok, out.error
+    cert = app.results["certify"]
+    summary = app.panels["certificate"].summary.content
+    assert "joint confidence" in summary and "omega" in summary
+    jc = cert.joint_confidence
+    # target confidence 0.9 split over 2 dims x 2 betas; a dimension without noise spends none
+    assert 0.9 - 1e-9 <= jc < 1.0
+    drawn = app.set_view(dim=1)
+    assert drawn["vertices"].shape == (41 * 41, 3) and drawn["faces"].shape == (2 * 40 * 40, 3)
+    assert drawn["points"].shape[0] > 0
+    assert app.last_data_covered is not None and app.last_data_covered.all()  # gap <= gamma on the data
+
+    # a basis change re-certifies from the cached data (auto), the summary changes
+    key2 = app.result_keys["certify"]
+    app.panels["certificate"].degree.value = 1
+    app.wait(60)
+    assert app.result_keys["certify"] != key2
+    assert app.results["certify"].dims[1].terms == ["1", "x1", "x2", "u1"]
+    assert app.panels["certificate"].summary.content != summary
+    # per-dimension deltas through the GUI
+    cp = app.panels["certificate"]
+    cp.delta1.value = "0.01, 0.01"
+    cp.delta2.value = "0.01, 0.01"
+    cp.mode.value = "per dimension"
+    app.wait(60)
+    c = app.results["certify"]
+    assert [d.delta1 for d in c.dims] == [0.01, 0.01] and [d.delta2 for d in c.dims] == [0.01, 0.01]
+    # switching back to confidence mode and degree 2 is a cache hit: the same object, no job
+    cp.mode.value = "target confidence"
+    app.wait(60)
+    cp.degree.value = 2
+    app.wait(60)
+    assert app.result_keys["certify"] == key2
+    assert app.results["certify"] is cert  # from the cache
+    assert app.status.content.startswith("certify: from cache")
+
+
+def test_view_controls(app):
+    app.certify()
+    app.wait(60)
+    v = app.panels["view"]
+    v.b.value = v.a.value  # same variable twice: notification, no crash
+    assert "two different variables" in app.notifications[-1][1]
+    v.b.value = "torque"
+    assert app.view["b"] == 2 and v.sliders[2].disabled and not v.sliders[1].disabled
+    before = app.server.scene  # the app still draws after slider moves
+    v.sliders[1].value = 0.3
+    assert app.view["fixed"][1] == pytest.approx(0.3)
+    assert before is app.server.scene
+
+
+def test_collect_through_engine_and_cancel(tiny_dataset):
+    from simgap_viz.app import SimgapApp
+    a = SimgapApp(port=0, executor="serial", settings=Settings(epsilon=0.1, n_runs=5, noise_std=0.05))
+    try:
+        a.collect()
+        out = a.wait(120)
+        assert out.ok, out.error
+        d = a.results["collect"]
+        assert d.n_runs == 5 and d.epsilon == 0.1 and d.system.name == "pendulum"
+        # same settings again: cache hit, no job
+        a.collect()
+        assert a.status.content.startswith("collect: from cache")
+        # a long collection is cancelled from the cancel button's method
+        a.update_settings(epsilon=0.004, n_runs=400)
+        a.collect()
+        time.sleep(0.3)
+        a.cancel()
+        out = a.wait(120)
+        assert out.cancelled, out
+        assert a.notifications[-1][0] == "Cancelled"
+        assert a.results["collect"] is d or a.results["collect"] is None
+    finally:
+        a.stop()
+
+
+def test_gui_stays_responsive_while_a_job_runs(app):
+    """Another control reacts while a long job runs on the worker thread."""
+    release = threading.Event()
+
+    def slow(ctx):
+        release.wait(10)
+        return None
+
+    app.start_job("slow", slow)
+    t0 = time.perf_counter()
+    app.panels["synthesis"].eta.value = "0.02, 0.05"
+    assert time.perf_counter() - t0 < 0.5
+    assert app.settings.eta == (0.02, 0.05)
+    assert not app.cancel_button.disabled
+    release.set()
+    app.wait(10)
+    assert app.cancel_button.disabled
+
+
+def test_refine_report(app):
+    app.refine()
+    out = app.wait(60)
+    assert out.ok, out.error
+    rep = app.panels["refine"].report.content
+    assert "viscous_friction" in rep  # the damping effect of the numpy simulator is found
+
+
+def test_unavailable_stage_button_disabled(app, monkeypatch):
+    from simgap_viz import engine
+    avail = engine.availability()
+    for stage in ("synthesize", "rollout"):
+        b = [p.buttons[stage] for p in app.panels.values() if stage in p.buttons][0]
+        if not avail[stage][0]:
+            assert b.disabled
+            with pytest.raises(SimgapError, match="disabled"):
+                engine.require(stage)
+
+
+def test_cli_gui_prints_url():
+    p = subprocess.run([sys.executable, "-m", "simgap", "gui", "--port", "0", "--exit-after", "0.5"],
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    assert "open http://127.0.0.1:" in p.stdout

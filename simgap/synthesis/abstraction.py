@@ -1,0 +1,370 @@
+"""Finite abstraction of x+ in f(x, u) + [-gamma(x, u), gamma(x, u)] on a uniform grid.
+
+For every cell (center c, radius eta/2) and every input u the successor set is over-approximated
+by a box, as in SCOTS v2's ``compute_gb``:
+
+    r_0   = eta/2 + z,      z = guard * eta          (guard = 1e-10: SCOTS's rounding guard)
+    r_j+1 = growth(r_j, c_j, u) + gamma_sup_j        (gamma_sup_j = sup of gamma over [c_j - r_j, c_j + r_j])
+    c_j+1 = f(c_j, u)                                (the nominal image of the center)
+
+for j = 0 .. hold-1 (``hold`` = number of sampling periods the input is held per abstract step;
+default 1). The successor cells are the integer box
+
+    lo_d = floor((c_d - r_d - z_d - first_d + eta_d/2) / eta_d),  hi_d = same with c + r + z
+
+and the pair is *out of domain* (its only successor is the losing "outside" state) when
+``c - r - z <= first - eta/2`` or ``c + r + z >= last + eta/2`` in a non-periodic dimension.
+Periodic dimensions wrap. With ``hold > 1`` the hull of the intermediate boxes (j = 1..hold-1)
+is also kept, so games can require the state to stay in the allowed cells *between* abstract
+steps too (sound against obstacles passed through while the input is held).
+
+Transitions are stored implicitly as per-(cell, input) index boxes, as offsets relative to the
+cell's multi-index (``int8`` when they fit). When f(x, u) - x and the growth bound do not depend
+on some dimensions (translation invariance, e.g. the planar position of a vehicle), pass them as
+``invariant_dims``: the boxes are then computed and stored once per *class* of cells (cells that
+agree in the other dimensions) and shared; the gap is then bounded over the whole grid extent in
+those dimensions (sound, and exact for gaps that do not depend on them). This is checked
+numerically on a sample.
+
+Two ways to get an abstract step of k sampling periods
+------------------------------------------------------
+1. ``hold = k`` with a one-step system and a one-step gap: the per-step bounds are composed k
+   times (the gap is added k times and grown by the dynamics each time).
+2. ``hold = 1`` with ``system.with_steps(k)`` and a gap certified at the k-step sampling time
+   (the simulator run for k*tau with the input held): one gap for the whole step, tighter than
+   k composed one-step gaps whenever the gap is not additive over time (noise averages,
+   dead-band and bias do not accumulate worst-case). Both are supported; 2 is preferred when a
+   k-step certificate exists.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Optional
+
+import numpy as np
+
+from ..errors import SimgapError
+from ..systems import System
+from .grid import UniformGrid
+
+GrowthFn = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
+
+_OFF_LIMIT = 32000  # offsets are clipped to +-_OFF_LIMIT (sound: grids are smaller than that)
+
+
+# ---------------------------------------------------------------------------------------
+# gap bounds
+# ---------------------------------------------------------------------------------------
+
+class ConstantGap:
+    """A gap bound gamma(x, u) = const (per state dimension), for tests and simple designs."""
+
+    def __init__(self, gamma):
+        g = np.asarray(gamma, dtype=float).ravel()
+        if g.size == 0 or not np.all(np.isfinite(g)) or np.any(g < 0):
+            raise SimgapError(f"gap: constant gamma must be finite and >= 0, got {g.tolist()}")
+        self.gamma = g
+
+    def gamma_upper_box(self, lo: np.ndarray, hi: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """sup of gamma over the box [lo, hi] x {u}: the constant, (B, n)."""
+        return np.broadcast_to(self.gamma, np.shape(lo)).copy()
+
+    def describe(self) -> dict:
+        return {"kind": "constant", "gamma": self.gamma.tolist()}
+
+
+def as_gap(gap, system: System):
+    """Normalize ``gap`` (None, a constant vector, or an object with ``gamma_upper_box``).
+
+    Checks what can be checked against ``system``: state dimension, system name and sampling
+    steps when the gap object exposes them (``n``, ``system_name``/``system``, ``steps``), and
+    the shape, finiteness and sign of gamma on one box.
+    """
+    if gap is None:
+        return None
+    if not hasattr(gap, "gamma_upper_box"):
+        g = np.asarray(gap, dtype=float).ravel()
+        if g.size == 1:
+            g = np.full(system.n, float(g[0]))
+        if g.size != system.n:
+            raise SimgapError(f"gap: constant gamma has {g.size} components, system {system.name!r} has {system.n} states")
+        return ConstantGap(g)
+    n = getattr(gap, "n", None)
+    if n is not None and int(n) != system.n:
+        raise SimgapError(f"gap: the certificate is for {int(n)} states, system {system.name!r} has {system.n}")
+    name = getattr(gap, "system_name", None)
+    if name is None:
+        sysattr = getattr(gap, "system", None)
+        name = sysattr.get("name") if isinstance(sysattr, dict) else (sysattr if isinstance(sysattr, str) else
+                                                                      getattr(sysattr, "name", None))
+    if name is not None and name != system.name:
+        raise SimgapError(f"gap: the certificate is for system {name!r}, not {system.name!r}")
+    steps = getattr(gap, "steps", None)
+    if steps is not None and int(steps) != system.steps:
+        raise SimgapError(f"gap: the certificate was certified at steps={int(steps)}, the system uses "
+                          f"steps={system.steps}; pass --steps {int(steps)} or a matching certificate")
+    lo = system.x_lo[None, :]
+    hi = system.x_hi[None, :]
+    try:
+        g = np.asarray(gap.gamma_upper_box(lo, hi, system.inputs[:1]), dtype=float)
+    except SimgapError:
+        raise
+    except Exception as e:  # a wrong-dimension certificate typically fails inside its own algebra
+        raise SimgapError(f"gap: evaluating the certificate on system {system.name!r} failed ({e})") from e
+    if g.shape != (1, system.n):
+        raise SimgapError(f"gap: gamma_upper_box returned shape {g.shape}, expected (1, {system.n}) "
+                          f"for system {system.name!r}")
+    if not np.all(np.isfinite(g)) or np.any(g < 0):
+        raise SimgapError(f"gap: gamma must be finite and >= 0, got {g.ravel().tolist()}")
+    return gap
+
+
+def describe_gap(gap) -> Optional[dict]:
+    """Provenance of a gap object for controller metadata (JSON-ready)."""
+    if gap is None:
+        return None
+    for attr in ("describe", "provenance", "to_dict"):
+        fn = getattr(gap, attr, None)
+        if callable(fn):
+            try:
+                d = fn()
+                return {"type": type(gap).__name__, "info": _jsonable(d)}
+            except Exception:  # provenance is best effort; the controller is still valid
+                pass
+    return {"type": type(gap).__name__}
+
+
+def _jsonable(d):
+    import json
+    try:
+        json.dumps(d)
+        return d
+    except TypeError:
+        return json.loads(json.dumps(d, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
+
+
+# ---------------------------------------------------------------------------------------
+# the abstraction
+# ---------------------------------------------------------------------------------------
+
+@dataclass
+class Abstraction:
+    """Implicit transition relation: one index box per (cell class, input).
+
+    Attributes
+    ----------
+    grid : UniformGrid
+    inputs : (M, m) array
+    class_dims : tuple of int
+        Dimensions that distinguish cell classes (the complement of ``invariant_dims``).
+    off_lo, off_hi : (K, M, n) int8/int16
+        Successor box of cell c under input u: ``mi(c) + off_lo[k(c), u] .. mi(c) + off_hi[k(c), u]``
+        (inclusive, multi-index units; may leave the grid in bounded dims = out of domain).
+    ok : (K, M) bool
+        False where the image is not finite or already out of domain in a class dimension.
+    mid_lo, mid_hi : (K, M, n) or None
+        Hull of the intermediate boxes when ``hold > 1``.
+    """
+
+    grid: UniformGrid
+    inputs: np.ndarray
+    class_dims: tuple
+    off_lo: np.ndarray
+    off_hi: np.ndarray
+    ok: np.ndarray
+    mid_lo: Optional[np.ndarray] = None
+    mid_hi: Optional[np.ndarray] = None
+    hold: int = 1
+    seconds: float = 0.0
+    info: dict = field(default_factory=dict)
+
+    @property
+    def n_classes(self) -> int:
+        return self.off_lo.shape[0]
+
+    @property
+    def n_inputs(self) -> int:
+        return self.inputs.shape[0]
+
+    def cell_class(self, mi: np.ndarray) -> np.ndarray:
+        """(B, n) multi-indices -> (B,) class ids."""
+        if not self.class_dims:
+            return np.zeros(mi.shape[0], dtype=np.int64)
+        cd = list(self.class_dims)
+        shape = [self.grid.shape[d] for d in cd]
+        return np.ravel_multi_index(tuple(mi[:, d] for d in cd), shape)
+
+    def offset_range(self) -> tuple[np.ndarray, np.ndarray]:
+        """Per-dimension min of off_lo and max of off_hi over usable pairs (for frontier search)."""
+        if not self.ok.any():
+            z = np.zeros(self.grid.n, dtype=np.int64)
+            return z, z
+        lo = self.off_lo[self.ok].min(axis=0).astype(np.int64)
+        hi = self.off_hi[self.ok].max(axis=0).astype(np.int64)
+        if self.mid_lo is not None:
+            lo = np.minimum(lo, self.mid_lo[self.ok].min(axis=0))
+            hi = np.maximum(hi, self.mid_hi[self.ok].max(axis=0))
+        return lo, hi
+
+    def nbytes(self) -> int:
+        b = self.off_lo.nbytes + self.off_hi.nbytes + self.ok.nbytes
+        if self.mid_lo is not None:
+            b += self.mid_lo.nbytes + self.mid_hi.nbytes
+        return b
+
+
+def build_abstraction(system: System, grid: UniformGrid, *, growth: Optional[GrowthFn] = None,
+                      gap=None, hold: int = 1, invariant_dims=(), guard: float = 1e-10,
+                      block: int = 1 << 16, check_invariance: bool = True) -> Abstraction:
+    """Compute the successor boxes of all (cell, input) pairs (see the module docstring).
+
+    Parameters
+    ----------
+    system : System
+        Nominal model; ``system.f`` is one sampling period tau = steps * base_tau.
+    grid : UniformGrid
+        State grid (normally over system.x_lo .. x_hi).
+    growth : callable, optional
+        ``growth(r (B,n), x (B,n), u (B,m)) -> (B,n)``: radius of the image of the box
+        [x - r, x + r] under f around f(x, u) (SCOTS ``radius_post``). Default: the system's
+        Jacobian-based ``growth_bound``.
+    gap : None, constant vector, or object with ``gamma_upper_box(lo, hi, u) -> (B, n)``
+        Bound on the simulation gap gamma (state units per sampling period).
+    hold : int
+        Sampling periods per abstract step with the input held (>= 1).
+    invariant_dims : tuple of int
+        Dimensions in which f(x, u) - x and the growth bound do not depend on x.
+    guard : float
+        Relative rounding guard z = guard * eta (SCOTS: 1e-10).
+    """
+    t0 = time.perf_counter()
+    if int(hold) != hold or hold < 1:
+        raise SimgapError(f"hold must be an integer >= 1, got {hold}")
+    hold = int(hold)
+    n = grid.n
+    if n != system.n:
+        raise SimgapError(f"grid has {n} dimensions, system {system.name!r} has {system.n}")
+    if growth is None:
+        if system.jacobian_bound is None:
+            raise SimgapError(f"system {system.name!r} has no jacobian_bound; pass a growth function")
+        growth = lambda r, x, u: system.growth_bound(r, u)  # noqa: E731
+    gap = as_gap(gap, system)
+    inv = tuple(sorted(set(int(d) for d in invariant_dims)))
+    if any(d < 0 or d >= n for d in inv):
+        raise SimgapError(f"invariant_dims {inv} out of range for n={n}")
+    class_dims = tuple(d for d in range(n) if d not in inv)
+    U = system.inputs
+    M = U.shape[0]
+    eta = grid.eta
+    z = guard * eta
+    shape = np.array(grid.shape)
+    pmask = grid.periodic_mask
+
+    # class representatives: invariant dims at index 0
+    K = int(np.prod([grid.shape[d] for d in class_dims])) if class_dims else 1
+    rep_mi = np.zeros((K, n), dtype=np.int64)
+    if class_dims:
+        sub = np.unravel_index(np.arange(K), [grid.shape[d] for d in class_dims])
+        for j, d in enumerate(class_dims):
+            rep_mi[:, d] = sub[j]
+
+    if inv and check_invariance:
+        _check_invariance(system, grid, growth, U, rep_mi, inv, hold)
+
+    off_lo = np.empty((K, M, n), dtype=np.int16)
+    off_hi = np.empty((K, M, n), dtype=np.int16)
+    ok = np.empty((K, M), dtype=bool)
+    mid_lo = np.empty((K, M, n), dtype=np.int16) if hold > 1 else None
+    mid_hi = np.empty((K, M, n), dtype=np.int16) if hold > 1 else None
+    inv_mask = np.zeros(n, dtype=bool)
+    inv_mask[list(inv)] = True
+    dom_lo, dom_hi = grid.domain_lo, grid.domain_hi
+
+    total = K * M
+    for s in range(0, total, block):  # blocks of (class, input) pairs bound the memory
+        idx = np.arange(s, min(total, s + block))
+        k, j = idx // M, idx % M
+        mi = rep_mi[k]
+        x0 = grid.multi_to_points(mi)
+        u = U[j]
+        x = x0.copy()
+        r = np.broadcast_to(eta / 2 + z, x.shape).copy()
+        disp = np.zeros_like(x)
+        if hold > 1:
+            mlo = np.full(x.shape, np.inf)
+            mhi = np.full(x.shape, -np.inf)
+        with np.errstate(all="ignore"):
+            for step in range(hold):
+                if gap is not None:
+                    blo, bhi = x - r, x + r
+                    if inv:  # bound gamma over the whole extent of the shared dimensions (sound)
+                        blo[:, inv_mask] = dom_lo[inv_mask]
+                        bhi[:, inv_mask] = dom_hi[inv_mask]
+                    g = np.asarray(gap.gamma_upper_box(blo, bhi, u), dtype=float)
+                else:
+                    g = 0.0
+                r_new = np.asarray(growth(r, x, u), dtype=float) + g
+                x_new = system.f(x, u)
+                disp = disp + system.diff(x_new, x) if pmask.any() else x_new - x0
+                x, r = x_new, r_new
+                if step < hold - 1:
+                    mlo = np.minimum(mlo, disp - r)
+                    mhi = np.maximum(mhi, disp + r)
+            good = np.all(np.isfinite(x) & np.isfinite(r), axis=1)
+            # SCOTS's formula in absolute coordinates for bounded dims (bit-for-bit parity),
+            # relative displacement for periodic dims (the image may have wrapped)
+            left, right = x - r - z, x + r + z
+            vlo = np.where(pmask, (disp - r - z) / eta + 0.5, (left - grid.first + eta / 2) / eta)
+            vhi = np.where(pmask, (disp + r + z) / eta + 0.5, (right - grid.first + eta / 2) / eta)
+            base = np.where(pmask, 0, mi)
+            lo_i = np.clip(np.floor(np.nan_to_num(vlo)), -_OFF_LIMIT, _OFF_LIMIT) - base
+            hi_i = np.clip(np.floor(np.nan_to_num(vhi)), -_OFF_LIMIT, _OFF_LIMIT) - base
+            # SCOTS's out-of-domain test, exact in the class dimensions
+            cls_bounded = ~pmask & ~inv_mask
+            out = np.any(cls_bounded & ((left <= dom_lo) | (right >= dom_hi)), axis=1)
+            ok.reshape(-1)[idx] = good & ~out
+            off_lo.reshape(-1, n)[idx] = np.clip(lo_i, -_OFF_LIMIT, _OFF_LIMIT)
+            off_hi.reshape(-1, n)[idx] = np.clip(hi_i, -_OFF_LIMIT, _OFF_LIMIT)
+            if hold > 1:
+                ml = np.floor(np.nan_to_num((mlo - z) / eta + 0.5))
+                mh = np.floor(np.nan_to_num((mhi + z) / eta + 0.5))
+                mid_lo.reshape(-1, n)[idx] = np.clip(ml, -_OFF_LIMIT, _OFF_LIMIT)
+                mid_hi.reshape(-1, n)[idx] = np.clip(mh, -_OFF_LIMIT, _OFF_LIMIT)
+
+    def small(a):
+        if a is None:
+            return None
+        if a.size == 0 or (a.min() >= -128 and a.max() <= 127):
+            return a.astype(np.int8)
+        return a
+
+    ab = Abstraction(grid=grid, inputs=U, class_dims=class_dims, off_lo=small(off_lo),
+                     off_hi=small(off_hi), ok=ok, mid_lo=small(mid_lo), mid_hi=small(mid_hi),
+                     hold=hold)
+    ab.seconds = time.perf_counter() - t0
+    ab.info = {"invariant_dims": list(inv), "classes": K, "guard": guard, "hold": hold}
+    return ab
+
+
+def _check_invariance(system, grid, growth, U, rep_mi, inv, hold, samples: int = 64):
+    """Check on a seeded sample that f(x,u) - x and the growth bound ignore the invariant dims."""
+    rng = np.random.default_rng(0)
+    K, M = rep_mi.shape[0], U.shape[0]
+    k = rng.integers(0, K, samples)
+    j = rng.integers(0, M, samples)
+    mi = rep_mi[k].copy()
+    mi2 = mi.copy()
+    for d in inv:
+        mi2[:, d] = rng.integers(0, grid.shape[d], samples)
+    x1, x2 = grid.multi_to_points(mi), grid.multi_to_points(mi2)
+    u = U[j]
+    r = np.broadcast_to(grid.eta / 2, x1.shape).copy()
+    d1 = system.diff(system.f(x1, u), x1)
+    d2 = system.diff(system.f(x2, u), x2)
+    g1, g2 = growth(r, x1, u), growth(r, x2, u)
+    scale = 1e-9 * (1 + np.abs(grid.domain_hi - grid.domain_lo))
+    if np.any(np.abs(d1 - d2) > scale) or np.any(np.abs(np.asarray(g1) - np.asarray(g2)) > scale):
+        raise SimgapError(f"invariant_dims {list(inv)}: f(x,u) - x or the growth bound of system "
+                          f"{system.name!r} depends on these dimensions; do not declare them invariant")

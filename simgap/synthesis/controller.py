@@ -1,0 +1,427 @@
+"""Synthesized controllers: the result of a game, how to query it, and how to store it.
+
+Determinization (``input_index``)
+---------------------------------
+* reach-avoid: the lowest-index valid input. Every valid input recorded for a cell won at
+  level j keeps all successors in W_{j-1}, so each guarantees at most j steps to go in the worst
+  case: the lowest index is also an input minimizing the worst-case steps-to-go.
+  Target cells carry no input (the specification is met there): ``input_index`` returns -1
+  for them, ``winning`` is True and ``steps_to_go`` is 0.
+* invariance: the valid input with the largest margin (the largest k <= 3 such that the
+  successor box grown by k cells still lies in the winning domain), ties by lowest index.
+
+The input is held for ``hold`` sampling periods of ``system`` (``hold * system.steps`` base
+periods) per controller query.
+
+File format (``.npz``, no pickle): arrays ``steps`` (N,) int32, ``valid`` (N, ceil(M/8)) uint8
+(np.packbits of the valid-input mask), ``chosen`` (N,) int32, ``target`` (N,) bool, ``inputs``
+(M, m), and ``meta`` (a JSON string: system.describe(), grid, spec.to_dict(), gap provenance,
+hold, stats).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import resource
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from ..errors import SimgapError
+from ..systems import System
+from .abstraction import as_gap, build_abstraction, describe_gap
+from .games import GameResult, solve_invariance, solve_reach
+from .grid import UniformGrid
+from .spec import Spec
+
+FORMAT = "simgap-controller"
+VERSION = 1
+
+#: systems whose f(x, u) - x and Jacobian growth bound do not depend on these state dimensions
+TRANSLATION_INVARIANT = {"turtlebot": (0, 1), "scots_vehicle": (0, 1)}
+
+
+class Controller:
+    """A static symbolic controller on a uniform grid (see module docstring)."""
+
+    def __init__(self, grid: UniformGrid, inputs: np.ndarray, kind: str, steps: np.ndarray,
+                 valid_packed: np.ndarray, chosen: np.ndarray, target: np.ndarray,
+                 hold: int = 1, meta: Optional[dict] = None, system: Optional[System] = None,
+                 spec: Optional[Spec] = None):
+        self.grid = grid
+        self.inputs = np.asarray(inputs, dtype=float)
+        self.kind = kind
+        self.steps = np.asarray(steps, dtype=np.int32)
+        self.valid_packed = np.asarray(valid_packed, dtype=np.uint8)
+        self.chosen = np.asarray(chosen, dtype=np.int32)
+        self.target = np.asarray(target, dtype=bool)
+        self.hold = int(hold)
+        self.meta = dict(meta or {})
+        self.system = system
+        self.spec = spec
+        x0 = self.meta.get("x0")
+        self.x0 = None if x0 is None else np.asarray(x0, dtype=float)
+
+    # ----- sizes -----------------------------------------------------------------------
+    @property
+    def n_inputs(self) -> int:
+        return self.inputs.shape[0]
+
+    @property
+    def winning_mask(self) -> np.ndarray:
+        """(N,) bool: cells in the winning domain (reach: including the target cells)."""
+        return self.steps >= 0
+
+    @property
+    def size(self) -> int:
+        """Winning cells excluding target cells (SCOTS's count)."""
+        return int(np.count_nonzero(self.winning_mask & ~self.target))
+
+    @property
+    def size_with_target(self) -> int:
+        """Winning cells including the target cells."""
+        return int(np.count_nonzero(self.winning_mask))
+
+    # ----- queries ---------------------------------------------------------------------
+    def cells(self, x: np.ndarray) -> np.ndarray:
+        """(B, n) states -> (B,) cell ids (-1 outside the grid)."""
+        return self.grid.x_to_ids(x)
+
+    def _lookup(self, table: np.ndarray, x, fill):
+        ids = self.cells(x)
+        out = np.full(ids.shape, fill, dtype=table.dtype)
+        inside = ids >= 0
+        out[inside] = table[ids[inside]]
+        return out
+
+    def winning(self, x: np.ndarray) -> np.ndarray:
+        """(B,) bool: x lies in a winning cell (reach: target cells count as winning)."""
+        return self._lookup(self.steps, x, -1) >= 0
+
+    def in_target(self, x: np.ndarray) -> np.ndarray:
+        """(B,) bool: x lies in a target cell."""
+        return self._lookup(self.target, x, False)
+
+    def steps_to_go(self, x: np.ndarray) -> np.ndarray:
+        """(B,) int: worst-case abstract steps to the target (reach), 0 for winning cells of an
+        invariance controller, -1 outside the winning domain."""
+        return self._lookup(self.steps, x, -1)
+
+    def input_index(self, x: np.ndarray) -> np.ndarray:
+        """(B,) int: the determinized input (row of ``inputs``); -1 outside the winning domain
+        and on target cells."""
+        return self._lookup(self.chosen, x, -1)
+
+    def valid_inputs(self, x: np.ndarray) -> np.ndarray:
+        """(B, M) bool: all inputs the controller allows at x (none outside the domain)."""
+        ids = self.cells(x)
+        rows = np.zeros((ids.size, self.valid_packed.shape[1]), dtype=np.uint8)
+        inside = ids >= 0
+        rows[inside] = self.valid_packed[ids[inside]]
+        return np.unpackbits(rows, axis=1, count=self.n_inputs).astype(bool)
+
+    def check_winning(self, x: np.ndarray, what: str = "initial state") -> None:
+        """Raise SimgapError if any x (B, n) lies outside the winning domain, naming it."""
+        x = np.atleast_2d(np.asarray(x, dtype=float))
+        ok = self.winning(x)
+        if not ok.all():
+            i = int(np.flatnonzero(~ok)[0])
+            ids = self.cells(x[i:i + 1])[0]
+            where = "outside the grid" if ids < 0 else f"in cell {int(ids)} (center {self.grid.points([ids])[0].round(6).tolist()})"
+            raise SimgapError(f"{what} {x[i].tolist()} is outside the controller's winning domain ({where}); "
+                              f"{self.size_with_target} of {self.grid.size} cells are winning")
+
+    def input(self, x: np.ndarray, strict: bool = True) -> np.ndarray:
+        """(B, m) input values at x. Target cells give NaN rows (nothing left to do).
+
+        With ``strict`` a state outside the winning domain raises SimgapError; otherwise its
+        row is NaN.
+        """
+        x = np.atleast_2d(np.asarray(x, dtype=float))
+        if strict:
+            self.check_winning(x, "state")
+        idx = self.input_index(x)
+        out = np.full((idx.size, self.inputs.shape[1]), np.nan)
+        ok = idx >= 0
+        out[ok] = self.inputs[idx[ok]]
+        return out
+
+    # ----- files -----------------------------------------------------------------------
+    def save(self, path) -> Path:
+        """Write the controller as .npz (written to a temp file, then renamed)."""
+        path = Path(path)
+        meta = dict(self.meta)
+        meta.update({"format": FORMAT, "version": VERSION, "kind": self.kind, "hold": self.hold,
+                     "grid": self.grid.describe()})
+        if self.system is not None:
+            meta["system"] = self.system.describe()
+        if self.spec is not None:
+            meta["spec"] = self.spec.to_dict()
+        folder = path.parent if str(path.parent) else Path(".")
+        folder.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=folder, prefix=path.name, suffix=".tmp.npz")
+        os.close(fd)
+        try:
+            np.savez_compressed(tmp, steps=self.steps, valid=self.valid_packed, chosen=self.chosen,
+                                target=self.target, inputs=self.inputs,
+                                meta=np.array(json.dumps(meta, default=_json_default)))
+            os.replace(tmp, path)
+        except BaseException:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+            raise
+        return path
+
+    @classmethod
+    def load(cls, path, system: Optional[System] = None) -> "Controller":
+        """Load a controller saved by :meth:`save` (no pickle).
+
+        The system is rebuilt from its name (built-ins and the SCOTS vehicle) with the stored
+        input set, unless ``system`` is given.
+        """
+        path = Path(path)
+        if not path.exists():
+            raise SimgapError(f"controller file {str(path)!r} does not exist")
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                arrays = {k: z[k] for k in ("steps", "valid", "chosen", "target", "inputs", "meta")}
+        except (OSError, ValueError, KeyError) as e:
+            raise SimgapError(f"controller file {str(path)!r} is not a simgap controller ({e})") from None
+        meta = json.loads(str(arrays["meta"]))
+        if meta.get("format") != FORMAT:
+            raise SimgapError(f"controller file {str(path)!r} is not a simgap controller (format tag)")
+        if meta.get("version") != VERSION:
+            raise SimgapError(f"controller file version {meta.get('version')} is not supported (need {VERSION})")
+        grid = UniformGrid.from_dict(meta["grid"])
+        if arrays["steps"].shape != (grid.size,):
+            raise SimgapError(f"controller file {str(path)!r}: arrays do not match the grid size {grid.size}")
+        spec = Spec.from_dict(meta["spec"]) if meta.get("spec") else None
+        if system is None and meta.get("system"):
+            system = _rebuild_system(meta["system"], arrays["inputs"])
+        return cls(grid, arrays["inputs"], meta["kind"], arrays["steps"], arrays["valid"], arrays["chosen"],
+                   arrays["target"], hold=meta.get("hold", 1), meta=meta, system=system, spec=spec)
+
+    def describe(self) -> dict:
+        return {"kind": self.kind, "grid": self.grid.describe(), "n_inputs": self.n_inputs,
+                "hold": self.hold, "winning": self.size, "winning_with_target": self.size_with_target}
+
+
+def _json_default(o):
+    if hasattr(o, "tolist"):
+        return o.tolist()
+    return str(o)
+
+
+def _rebuild_system(d: dict, inputs: np.ndarray) -> Optional[System]:
+    from ..systems import BUILTIN, get_system
+    name = d.get("name")
+    if name == "scots_vehicle":
+        from .examples import vehicle_system
+        sysm = vehicle_system()
+    elif name in BUILTIN:
+        sysm = get_system(name, int(d.get("steps", 1)))
+    else:
+        return None  # a user-defined system: pass it to Controller.load(system=...)
+    if sysm.inputs.shape != inputs.shape or not np.allclose(sysm.inputs, inputs):
+        sysm = dataclasses.replace(sysm, inputs=np.asarray(inputs, dtype=float))
+    return sysm
+
+
+# ---------------------------------------------------------------------------------------
+# synthesis front end
+# ---------------------------------------------------------------------------------------
+
+@dataclass
+class SynthesisResult:
+    """``controller`` and ``stats`` (JSON-ready dict: sizes, times [s], memory [MB])."""
+
+    controller: Controller
+    stats: dict = field(default_factory=dict)
+
+    @property
+    def empty(self) -> bool:
+        return self.controller.size_with_target == 0 or (
+            self.controller.kind == "reach_avoid" and self.controller.size == 0)
+
+    def summary(self) -> str:
+        s = self.stats
+        lines = [
+            f"system        {s['system']} (tau = {s['tau']:g} s, hold = {s['hold']})",
+            f"spec          {s['spec_kind']}",
+            f"grid          {' x '.join(map(str, s['grid_shape']))} = {s['cells']:,} cells, eta = {s['eta']}",
+            f"inputs        {s['inputs']}",
+            f"boxes         {s['boxes']:,} valid (cell, input) boxes ({s['pairs']:,} pairs)",
+            f"transitions   {s['transitions']:,} (sum of box volumes)",
+            f"winning       {s['winning']:,} cells ({s['winning_with_target']:,} with the target's "
+            f"{s['target_cells']:,})" if s["spec_kind"] == "reach_avoid" else
+            f"winning       {s['winning']:,} of {s['safe_cells']:,} safe cells",
+            f"iterations    {s['iterations']}",
+            f"time          abstraction {s['seconds']['abstraction']:.3f} s, game {s['seconds']['game']:.3f} s, "
+            f"total {s['seconds']['total']:.3f} s",
+            f"peak memory   {s['peak_rss_mb']:.0f} MB (process max RSS)",
+        ]
+        if s.get("diagnosis"):
+            lines.append(f"note          {s['diagnosis']}")
+        return "\n".join(lines)
+
+
+def label_cells(grid: UniformGrid, spec: Spec, x_lo, x_hi, strict_domain: bool = True):
+    """(blocked, target_or_safe) (N,) bool masks for ``spec`` on ``grid``.
+
+    Obstacle cells: cells whose extent meets an obstacle box (SCOTS's rule, 1e-10 slack).
+    Target/safe cells: cells whose whole extent lies in the target/safe box. With
+    ``strict_domain`` cells sticking out of X in a bounded dimension are blocked too (the grid
+    covers X +- eta/2 under the SCOTS alignment).
+    """
+    N = grid.size
+    blocked = np.zeros(N, dtype=bool)
+    for b in spec.obstacles:
+        blocked |= grid.cells_intersecting(b.lo, b.hi)
+    if strict_domain:
+        lo = np.where(grid.periodic_mask, -np.inf, x_lo)
+        hi = np.where(grid.periodic_mask, np.inf, x_hi)
+        blocked |= ~grid.cells_inside(lo, hi)
+    x_lo, x_hi = np.asarray(x_lo, float), np.asarray(x_hi, float)
+    if spec.kind == "reach_avoid":
+        box, what = spec.target, "target"
+    else:
+        box, what = spec.safe, "safe set"
+    if box.lo.size != grid.n:
+        raise SimgapError(f"{what} box has {box.lo.size} components, the state has {grid.n}")
+    if np.any(box.hi < x_lo) or np.any(box.lo > x_hi):
+        raise SimgapError(f"{what} {box.to_dict()} lies outside X = {x_lo.tolist()} .. {x_hi.tolist()}")
+    for b in spec.obstacles:
+        if spec.kind == "reach_avoid" and np.all(b.lo <= box.lo) and np.all(box.hi <= b.hi):
+            raise SimgapError(f"target {box.to_dict()} lies inside obstacle {b.to_dict()}")
+    inside = grid.cells_inside(box.lo, box.hi)
+    cells = inside & ~blocked
+    if not cells.any():
+        why = ("no cell lies entirely inside it at eta = " + str(grid.eta.round(6).tolist()) +
+               " (use a smaller eta or a bigger box)") if not inside.any() else \
+            "every cell inside it is an obstacle cell or sticks out of X"
+        raise SimgapError(f"empty {what}: {why}")
+    return blocked, cells
+
+
+def synthesize(system: System, spec: Spec, eta, gap=None, hold: int = 1, *, growth=None,
+               invariant_dims=None, periodic=None, guard: float = 1e-10, strict_domain: bool = True,
+               x0=None) -> SynthesisResult:
+    """Synthesize a controller for x+ in f(x, u) + [-gamma(x, u), gamma(x, u)] enforcing ``spec``.
+
+    Parameters
+    ----------
+    system : System
+        Nominal model f (sampling time tau = system.tau).
+    spec : Spec
+        ``reach_avoid`` (target, obstacles, stay in X) or ``invariance`` (safe box).
+    eta : float or (n,)
+        Cell widths (state units).
+    gap : None, constant vector, or object with ``gamma_upper_box`` (e.g. a Certificate)
+        The certified gap gamma (state units per sampling period tau).
+    hold : int
+        Sampling periods per abstract step with the input held (abstraction module docstring).
+    growth : callable, optional
+        SCOTS-style radius_post ``growth(r, x, u)``; default: the system's Jacobian bound.
+    invariant_dims : tuple, optional
+        Dimensions f(x,u) - x does not depend on (default: known built-ins, see
+        ``TRANSLATION_INVARIANT``; checked numerically).
+    periodic : tuple, optional
+        Grid dimensions that wrap (default: ``system.angle_dims``).
+    strict_domain : bool
+        Block cells that stick out of X (default True; False reproduces SCOTS exactly).
+    x0 : optional initial state recorded in the controller (checked against the domain by users).
+
+    Returns
+    -------
+    SynthesisResult
+        An empty winning domain is a result (``result.empty``, ``stats['diagnosis']``).
+    """
+    t0 = time.perf_counter()
+    if gap is not None and hasattr(gap, "check_system"):
+        gap.check_system(system)
+    gap = as_gap(gap, system)
+    if invariant_dims is None:
+        invariant_dims = TRANSLATION_INVARIANT.get(system.name, ())
+    if periodic is None:
+        periodic = system.angle_dims
+    if growth is not None and hasattr(growth, "__call__") is False:
+        raise SimgapError("growth must be callable growth(r, x, u)")
+    grid = UniformGrid(system.x_lo, system.x_hi, eta, periodic=periodic)
+    blocked, cells = label_cells(grid, spec, system.x_lo, system.x_hi, strict_domain=strict_domain)
+    t1 = time.perf_counter()
+    ab = build_abstraction(system, grid, growth=growth, gap=gap, hold=hold,
+                           invariant_dims=invariant_dims, guard=guard)
+    t2 = time.perf_counter()
+    if spec.kind == "reach_avoid":
+        res = solve_reach(ab, cells, blocked)
+        chosen = _first_valid(res.valid_packed, ab.n_inputs)
+        chosen[res.target] = -1
+    else:
+        res = solve_invariance(ab, cells, blocked)
+        chosen = res.chosen
+    t3 = time.perf_counter()
+    stats = {
+        "system": system.name, "tau": system.tau, "hold": int(hold), "spec_kind": spec.kind,
+        "grid_shape": list(grid.shape), "cells": grid.size, "eta": grid.eta.round(9).tolist(),
+        "inputs": ab.n_inputs, "pairs": grid.size * ab.n_inputs, "classes": ab.n_classes,
+        "boxes": res.info["boxes"], "transitions": res.info["transitions"],
+        "winning": int(np.count_nonzero(res.winning & ~res.target)),
+        "winning_with_target": int(np.count_nonzero(res.winning)),
+        "target_cells": int(np.count_nonzero(res.target)),
+        "safe_cells": int(np.count_nonzero(cells)) if spec.kind == "invariance" else None,
+        "blocked_cells": int(np.count_nonzero(blocked)),
+        "iterations": res.iterations, "pairs_tested": res.info["pairs_tested"],
+        "invariant_dims": list(ab.info["invariant_dims"]),
+        "abstraction_mb": ab.nbytes() / 2 ** 20,
+        "seconds": {"labels": t1 - t0, "abstraction": t2 - t1, "game": t3 - t2, "total": t3 - t0},
+        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+    }
+    meta = {"stats": stats, "gap": describe_gap(gap), "strict_domain": strict_domain,
+            "invariant_dims": list(ab.info["invariant_dims"]), "guard": guard}
+    if x0 is not None:
+        meta["x0"] = np.asarray(x0, dtype=float).tolist()
+    ctrl = Controller(grid, ab.inputs, spec.kind, res.steps, res.valid_packed, chosen, res.target,
+                      hold=hold, meta=meta, system=system, spec=spec)
+    out = SynthesisResult(ctrl, stats)
+    if out.empty:
+        stats["diagnosis"] = diagnose_empty(ab, spec, gap, res)
+    return out
+
+
+def _first_valid(packed: np.ndarray, M: int) -> np.ndarray:
+    """(N,) lowest valid input index per cell, -1 where none."""
+    N = packed.shape[0]
+    out = np.full(N, -1, dtype=np.int32)
+    B = max(1, (1 << 22) // max(1, M))
+    for s in range(0, N, B):  # blocks bound the unpacked memory
+        rows = np.unpackbits(packed[s:s + B], axis=1, count=M).view(bool)
+        has = rows.any(axis=1)
+        out[s:s + B] = np.where(has, rows.argmax(axis=1), -1)
+    return out
+
+
+def diagnose_empty(ab, spec: Spec, gap, res: GameResult) -> str:
+    """A one-line guess at why the winning domain is empty."""
+    usable = ab.ok
+    if res.info.get("boxes", 0) == 0 or not usable.any():
+        return ("no (cell, input) box stays inside the grid: the growth bound plus the gap exceed the state "
+                "set; use a smaller eta or a smaller gap")
+    lo = ab.off_lo[usable].astype(np.int64)
+    hi = ab.off_hi[usable].astype(np.int64)
+    selfish = np.all((lo <= 0) & (hi >= 0), axis=1)
+    g = "" if gap is None else " plus the gap"
+    if spec.kind == "reach_avoid" and selfish.all():
+        return ("empty winning domain: every successor box contains its own cell, i.e. the motion in one "
+                f"abstract step is smaller than the growth bound{g} (the one-step control authority is too "
+                "small); hold the input for more periods (--hold k), certify the gap at a longer step "
+                "(--steps k), or use a smaller eta")
+    width = (hi - lo + 1).mean(axis=0)
+    return (f"empty winning domain: successor boxes are {np.round(width, 1).tolist()} cells wide on average; "
+            f"the growth bound{g} is too large for the {'target' if spec.kind == 'reach_avoid' else 'safe set'} "
+            "and obstacles at this eta; try a smaller gap, a longer step (--steps/--hold) or a different eta")

@@ -69,6 +69,7 @@ class PendulumSimulator(Simulator):
     NOISE_KEYS = ("actuation_std", "sensor_std")
     RANDOMIZE_KEYS = ("mass", "length")
     EFFECT_KEYS = ("joint_damping", "coulomb_friction", "actuator_gain")
+    _client = None  # set by _build; class default so close() works after a failed __init__
     OPTION_KEYS = ("branches", "substeps", "urdf")
 
     def __init__(self, config, system=None):

@@ -96,6 +96,7 @@ class TurtlebotSimulator(Simulator):
     NOISE_KEYS = ("actuation_std", "sensor_std")
     RANDOMIZE_KEYS = ("wheel_radius", "mass", "friction")
     EFFECT_KEYS = ("actuator_gain", "wheel_radius_error")
+    _client = None  # set by _build; class default so close() works after a failed __init__
     OPTION_KEYS = ("substeps", "robots", "obstacles", "motor_force", "friction", "solver_iterations", "urdf")
 
     def __init__(self, config, system=None):

@@ -1,0 +1,170 @@
+"""Collection throughput and memory (run by hand; prints a report).
+
+    python bench/bench_collect.py                  # ~2-3 minutes on 2 cores
+    python bench/bench_collect.py --fraction 0.1   # a larger share of the case study
+    python bench/bench_collect.py --full           # the whole pendulum case study (2.64e8 steps)
+
+1. Plain loop (one pendulum body, resetJointState / TORQUE_CONTROL / stepSimulation /
+   getJointState per sample): one-step samples per second on one core.
+2. The collector on the pendulum case study (assets/experiments/pendulum.toml, profile paper:
+   epsilon 0.004, N1hat 1000, 21 inputs = 263,907 pairs, 2.64e8 simulator steps): every k-th
+   chunk (a uniform ``--fraction`` of the work) with the local process pool, wall-clock time
+   including pool start-up and one simulator build per worker, extrapolated to the full set;
+   samples/s per core and the ratio to (1) measured in the same run.
+3. TurtleBot: the same for the TurtleBot case study (185 headings x 441 inputs x 1000 runs),
+   a small fraction, robot-steps per second.
+4. Peak memory of a pendulum-scale collection: the full 263,907-pair, N1hat = 1000 store
+   collected with the numpy simulator (same chunking and statistics; PyBullet would add only
+   its per-worker client), then loaded as one Dataset. Peak RSS of the collecting process and
+   of the largest worker (getrusage) and the tracemalloc peak of the collect + load calls.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+
+def plain_loop(n: int = 20000, repeat: int = 3) -> float:
+    """Samples/s of a per-sample loop over one URDF pendulum (best of ``repeat``)."""
+    import pybullet as pb
+    from pybullet_utils.bullet_client import BulletClient
+
+    from simgap.simulators._bullet import urdf_path
+    from simgap.systems import get_system
+
+    s = get_system("pendulum")
+    rng = np.random.default_rng(0)
+    x = rng.uniform(s.x_lo, s.x_hi, (n, 2))
+    u = s.inputs[rng.integers(0, len(s.inputs), n)]
+    c = BulletClient(connection_mode=pb.DIRECT)
+    c.setGravity(0, 0, -9.81)
+    c.setPhysicsEngineParameter(fixedTimeStep=0.005, numSubSteps=0)
+    body = c.loadURDF(str(urdf_path("pendulum.urdf")), useFixedBase=True, flags=pb.URDF_USE_INERTIA_FROM_FILE)
+    c.changeDynamics(body, -1, linearDamping=0, angularDamping=0)
+    c.changeDynamics(body, 0, linearDamping=0, angularDamping=0)
+    c.setJointMotorControl2(body, 0, pb.VELOCITY_CONTROL, force=0)
+    cid = c._client
+    q, qd, tq = x[:, 0].tolist(), x[:, 1].tolist(), u[:, 0].tolist()
+    best = np.inf
+    for _ in range(repeat):
+        out = np.empty((n, 2))
+        t0 = time.perf_counter()
+        for i in range(n):
+            pb.resetJointState(body, 0, q[i], qd[i], physicsClientId=cid)
+            pb.setJointMotorControl2(body, 0, pb.TORQUE_CONTROL, force=tq[i], physicsClientId=cid)
+            pb.stepSimulation(physicsClientId=cid)
+            out[i] = pb.getJointState(body, 0, physicsClientId=cid)[:2]
+        best = min(best, time.perf_counter() - t0)
+    c.disconnect()
+    return n / best
+
+
+def collector_fraction(experiment: str, fraction: float, workers: int):
+    """Collect every k-th chunk of the paper profile; return (plan, chunks run, seconds, runs)."""
+    from simgap.collect import collect
+    from simgap.config import load_experiment
+
+    exp = load_experiment(experiment, "paper")
+    plan = exp.plan()
+    k = max(1, int(round(1 / fraction)))
+    ids = list(range(0, plan.n_chunks, k))
+    with tempfile.TemporaryDirectory() as d:
+        t0 = time.perf_counter()
+        res = collect(plan, os.path.join(d, "s"), executor="local", workers=workers, chunk_ids=ids)
+        wall = time.perf_counter() - t0
+    return plan, len(ids), wall, res.runs
+
+
+def memory_child(workers: int) -> None:
+    """(4), run in a fresh process so that its getrusage numbers are its own."""
+    import tracemalloc
+
+    from simgap.collect import collect, load_store
+    from simgap.config import load_experiment
+    from simgap.simulators.base import SimulatorConfig
+
+    exp = load_experiment("pendulum", "paper")
+    exp.simulator = SimulatorConfig("numpy", "pendulum", noise={"actuation_std": 0.05, "sensor_std": 1e-4})
+    plan = exp.plan()
+    tracemalloc.start()
+    with tempfile.TemporaryDirectory() as d:
+        t0 = time.perf_counter()
+        collect(plan, os.path.join(d, "s"), executor="local", workers=workers)
+        t_collect = time.perf_counter() - t0
+        _, peak_collect = tracemalloc.get_traced_memory()
+        tracemalloc.reset_peak()
+        ds = load_store(os.path.join(d, "s"))
+        _, peak_load = tracemalloc.get_traced_memory()
+        store_mb = sum(os.path.getsize(os.path.join(r, f)) for r, _, fs in os.walk(d) for f in fs) / 1e6
+    tracemalloc.stop()
+    data_mb = sum(getattr(ds, k).nbytes for k in ("x", "u", "f_nom", "mean", "var", "lo", "hi",
+                                                  "cover_index", "input_index")) / 1e6
+    print(json.dumps({
+        "pairs": ds.K, "runs": ds.K * ds.n_runs, "chunks": plan.n_chunks, "collect_s": t_collect,
+        "self_maxrss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+        "worker_maxrss_mb": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024,
+        "tracemalloc_collect_mb": peak_collect / 1e6, "tracemalloc_load_mb": peak_load / 1e6,
+        "dataset_mb": data_mb, "store_mb": store_mb}))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--fraction", type=float, default=0.05, help="share of the pendulum case study to run")
+    ap.add_argument("--tb-fraction", type=float, default=0.004, help="share of the TurtleBot case study to run")
+    ap.add_argument("--workers", type=int, default=os.cpu_count())
+    ap.add_argument("--full", action="store_true", help="run the whole pendulum case study")
+    ap.add_argument("--skip-memory", action="store_true")
+    ap.add_argument("--skip-turtlebot", action="store_true")
+    ap.add_argument("--memory-child", action="store_true", help=argparse.SUPPRESS)
+    a = ap.parse_args()
+    if a.memory_child:
+        memory_child(a.workers)
+        return
+    W = a.workers
+    print(f"machine: {os.cpu_count()} cores, load average {os.getloadavg()[0]:.2f} at start; workers = {W}")
+
+    plain = plain_loop()
+    print(f"(1) plain loop, one pendulum body: {plain:,.0f} samples/s on one core")
+
+    frac = 1.0 if a.full else a.fraction
+    plan, n, wall, runs = collector_fraction("pendulum", frac, W)
+    rate = runs / wall
+    full = wall * plan.n_chunks / n
+    print(f"(2) collector, pendulum case study: {n} of {plan.n_chunks} chunks ({runs:,} runs) in {wall:.1f} s "
+          f"with {W} workers")
+    print(f"    {rate:,.0f} samples/s total, {rate / W:,.0f} per core = {rate / W / plain:.1f}x the plain loop")
+    print(f"    full case study ({plan.n_pairs * plan.n_runs:,} steps): "
+          f"{'measured' if a.full else 'extrapolated'} {full / 60:.1f} min on {W} workers")
+
+    if not a.skip_turtlebot:
+        plan, n, wall, runs = collector_fraction("turtlebot", a.tb_fraction, W)
+        rate = runs / wall
+        print(f"(3) collector, TurtleBot case study: {n} of {plan.n_chunks} chunks ({runs:,} runs) in {wall:.1f} s; "
+              f"{rate:,.0f} robot-steps/s total, {rate / W:,.0f} per core; full set "
+              f"({plan.n_pairs * plan.n_runs:,} runs) extrapolated {wall * plan.n_chunks / n / 3600:.2f} h")
+
+    if not a.skip_memory:
+        out = subprocess.run([sys.executable, __file__, "--memory-child", "--workers", str(W)],
+                             capture_output=True, text=True, check=True)
+        m = json.loads(out.stdout.strip().splitlines()[-1])
+        print(f"(4) memory, pendulum-scale store ({m['pairs']:,} pairs, {m['runs']:,} runs, {m['chunks']} chunks, "
+              f"numpy simulator, {m['collect_s']:.0f} s):")
+        print(f"    peak RSS: collecting process {m['self_maxrss_mb']:.0f} MB (incl. the loaded dataset), "
+              f"largest worker {m['worker_maxrss_mb']:.0f} MB")
+        print(f"    tracemalloc peak: collect {m['tracemalloc_collect_mb']:.1f} MB, load_store "
+              f"{m['tracemalloc_load_mb']:.1f} MB; dataset arrays {m['dataset_mb']:.1f} MB; store on disk "
+              f"{m['store_mb']:.1f} MB")
+    print(f"load average at end: {os.getloadavg()[0]:.2f}")
+
+
+if __name__ == "__main__":
+    main()

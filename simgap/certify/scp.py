@@ -97,7 +97,8 @@ def _stage2_rows(Ps, G, W, cap, cobj):
 def solve_scp(P: np.ndarray, g: np.ndarray, delta1: float = 0.0, *, method: str = "cg",
               solver: str = "HIGHS", secondary: bool = True, tol: float = 1e-6,
               tol_eta: float = 1e-6, initial_rows: int = 300, add_per_round: int = 100,
-              max_rounds: int = 200, seed: int = 0) -> ScpResult:
+              max_rounds: int = 200, seed: int = 0, closed_form: bool = True,
+              top_gap_rows: int = 100) -> ScpResult:
     """Solve SCP-N1hat for one state dimension.
 
     Parameters
@@ -108,6 +109,8 @@ def solve_scp(P: np.ndarray, g: np.ndarray, delta1: float = 0.0, *, method: str 
     method : "cg" (constraint generation, default) or "full".
     solver : "HIGHS" or "CLARABEL" (through cvxpy).
     secondary : run the second stage (min mean q^T p with eta <= eta* + tol_eta).
+    closed_form : with a constant basis term, stage 1's optimum is eta* = max_r (g_r + delta1) exactly
+        (see the code); False solves stage 1 as an LP anyway (for checking).
     tol, tol_eta : relative to max(g + delta1): the violation accepted by constraint generation
         (keep >= 1e-7, the solvers' feasibility tolerance) and the slack on eta* in stage 2.
 
@@ -151,6 +154,8 @@ def solve_scp(P: np.ndarray, g: np.ndarray, delta1: float = 0.0, *, method: str 
     else:
         init = [int(np.argmax(G))] + [int(i) for i in np.argmax(Ps, axis=0)] + [int(i) for i in np.argmin(Ps, axis=0)]
         init += rng.choice(K, size=min(K, initial_rows), replace=False).tolist()
+        # the largest gaps are the likely active lower constraints
+        init += np.argpartition(-G, min(K - 1, top_gap_rows))[:top_gap_rows].tolist() if top_gap_rows else []
         W = np.unique(init)
 
     def run(build, check):
@@ -174,9 +179,19 @@ def solve_scp(P: np.ndarray, g: np.ndarray, delta1: float = 0.0, *, method: str 
         return np.maximum(G - s, s - v[-1])
 
     ta = time.perf_counter()
-    v1, st1, r1 = run(lambda W: _stage1_rows(Ps, G, W), viol1)
-    eta_star = float(v1[-1])
-    qs, status, rounds = v1[:-1], st1, r1
+    const_cols = np.flatnonzero(np.all(Ps == Ps[:1], axis=0))
+    if len(const_cols) and closed_form:
+        # a constant basis term: eta >= q^T p_r >= G_r for every r gives eta* >= max G, and
+        # q = (max G) * e_const attains it, so stage 1 has this closed-form optimum
+        c0 = int(const_cols[0])
+        eta_star = float(G.max())
+        qs = np.zeros(z)
+        qs[c0] = eta_star / Ps[0, c0]
+        st1, r1 = "optimal (closed form: constant basis term)", 0
+    else:
+        v1, st1, r1 = run(lambda W: _stage1_rows(Ps, G, W), viol1)
+        eta_star, qs = float(v1[-1]), v1[:-1]
+    status, rounds = st1, r1
     stages = {"stage1": {"rounds": r1, "status": st1, "seconds": time.perf_counter() - ta}}
     if secondary:
         cap = eta_star + tol_eta * max(1.0, abs(eta_star))
@@ -189,7 +204,7 @@ def solve_scp(P: np.ndarray, g: np.ndarray, delta1: float = 0.0, *, method: str 
 
         qs, st2, r2 = run(lambda W: _stage2_rows(Ps, G, W, cap, cobj), viol2)
         stages["stage2"] = {"rounds": r2, "status": st2, "seconds": time.perf_counter() - tb}
-        status = st2 if st2 != "optimal" else st1
+        status = st2
         rounds += r2
     q = qs / cs * gs
     fit = P @ q

@@ -14,7 +14,7 @@ import numpy as np
 
 from ..dataset import Dataset
 from ..errors import SimgapError
-from ..simulators.base import SimulatorConfig, make_simulator
+from ..simulators.base import Simulator, SimulatorConfig, make_simulator
 
 
 def grid_cover(x_lo, x_hi, epsilon: float) -> np.ndarray:
@@ -26,17 +26,21 @@ def grid_cover(x_lo, x_hi, epsilon: float) -> np.ndarray:
     return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, n)
 
 
-def synthetic_dataset(config: dict | SimulatorConfig, epsilon: float, n_runs: int, seed: int = 0,
+def synthetic_dataset(config: dict | SimulatorConfig | Simulator, epsilon: float, n_runs: int, seed: int = 0,
                       inputs: np.ndarray | None = None, chunk_samples: int = 2_000_000) -> Dataset:
     """Collect a Dataset on a grid cover of X with the (numpy or any) simulator ``config``.
 
     Rows are cover-major (cover point r, input j). ``inputs`` defaults to the system's U.
+    ``config`` may also be a built :class:`Simulator` (needed for user-defined systems).
     Randomness: one numpy Generator seeded with ``seed``; chunks of rows in order.
     """
-    cfg = config if isinstance(config, SimulatorConfig) else SimulatorConfig.from_dict(config)
+    if isinstance(config, Simulator):  # e.g. a simulator of a user-defined system
+        sim, cfg = config, config.config
+    else:
+        cfg = config if isinstance(config, SimulatorConfig) else SimulatorConfig.from_dict(config)
+        sim = make_simulator(cfg)
     if int(n_runs) < 1:
         raise SimgapError(f"n_runs must be >= 1, got {n_runs}")
-    sim = make_simulator(cfg)
     s = sim.system
     U = s.inputs if inputs is None else np.atleast_2d(np.asarray(inputs, float))
     C = grid_cover(s.x_lo, s.x_hi, epsilon)

@@ -74,8 +74,8 @@ class PendulumSimulator(Simulator):
     NOISE_KEYS = ("actuation_std", "sensor_std")
     RANDOMIZE_KEYS = ("mass", "length")
     EFFECT_KEYS = ("joint_damping", "coulomb_friction", "actuator_gain")
-    _client = None  # set by _build; class default so close() works after a failed __init__
     OPTION_KEYS = ("branches", "substeps", "urdf")
+    _client = None  # set by _build; a class default so close() works after a failed __init__
 
     def __init__(self, config, system=None):
         super().__init__(config, system)
@@ -96,7 +96,6 @@ class PendulumSimulator(Simulator):
         self.n_physics = s.steps * self.substeps  # stepSimulation calls per sampling period
         self.dt = s.base_tau / self.substeps
         self.g = float(s.params.get("g", 9.81))
-        self._client = None
         self._build(op.get("urdf", "pendulum.urdf"))
 
     # ----- construction ------------------------------------------------------------------

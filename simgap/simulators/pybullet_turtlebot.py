@@ -96,8 +96,8 @@ class TurtlebotSimulator(Simulator):
     NOISE_KEYS = ("actuation_std", "sensor_std")
     RANDOMIZE_KEYS = ("wheel_radius", "mass", "friction")
     EFFECT_KEYS = ("actuator_gain", "wheel_radius_error")
-    _client = None  # set by _build; class default so close() works after a failed __init__
     OPTION_KEYS = ("substeps", "robots", "obstacles", "motor_force", "friction", "solver_iterations", "urdf")
+    _client = None  # set by _build; a class default so close() works after a failed __init__
 
     def __init__(self, config, system=None):
         super().__init__(config, system)
@@ -129,7 +129,6 @@ class TurtlebotSimulator(Simulator):
         self.n_physics = s.steps * self.substeps
         self.dt = s.base_tau / self.substeps
         self._randomized = self.mass_std > 0 or self.friction_std > 0
-        self._client = None
         self._build(op.get("urdf", "diffbot.urdf"))
 
     # ----- construction ------------------------------------------------------------------

@@ -68,6 +68,8 @@ class SimgapApp:
         self.server = viser.ViserServer(host=host, port=port, verbose=False)
         self.server.gui.configure_theme(control_width="large", dark_mode=False, show_logo=False)
         self.server.scene.set_up_direction("+z")
+        self.server.initial_camera.position = (1.4, -3.4, 1.8)
+        self.server.initial_camera.look_at = (0.5, 0.0, 0.3)
         self._build_gui()
         if dataset is not None:
             self.set_dataset(dataset)
@@ -153,6 +155,9 @@ class SimgapApp:
                 self.notify("Invalid value", str(e))
                 return False
             old = self.settings
+            if new.data_source and any(k != "data_source" and v != old.stage_fields("collect")[k]
+                                       for k, v in new.stage_fields("collect").items()):
+                new = new.replace(data_source="")  # no longer the loaded dataset's settings
             self.settings = new
             if system is not self.system:
                 self.system = system
@@ -200,10 +205,12 @@ class SimgapApp:
         self._update_buttons()
 
     # ----- stages -------------------------------------------------------------------------
-    def _run_stage(self, stage: str, compute: Callable[[JobContext], Any], background: bool = True) -> None:
-        """Look the stage's result up in the cache, or compute it (in the background)."""
+    def _run_stage(self, stage: str, background: bool = True) -> None:
+        """Show the stage's cached result for the current settings, or compute it (and any
+        missing upstream stage) on the job thread."""
         with self.lock:
-            key = self.settings.stage_key(stage)
+            s = self.settings.validate(self.system.n)
+            key = s.stage_key(stage)
             hit = self.cache.get((stage, key))
         if hit is not None:
             t0 = time.perf_counter()
@@ -211,17 +218,41 @@ class SimgapApp:
             self.timings[stage] = time.perf_counter() - t0
             self.set_status(f"{stage}: from cache ({key})")
             return
-
-        def then(result):
-            self._accept(stage, key, result)
-
+        engine.require(stage)
+        compute = lambda ctx: self._result_for(stage, s, ctx)  # noqa: E731
         if background:
-            self.start_job(stage, compute, then)
-            return
+            self.start_job(stage, compute)
         else:
-            ctx = JobContext(name=stage)
-            then(compute(ctx))
-        self._update_buttons()
+            compute(JobContext(name=stage))
+
+    def _result_for(self, stage: str, s: Settings, ctx: JobContext):
+        """The result of ``stage`` for settings ``s``: from the cache, else computed by the engine
+        after its upstream stages (runs on the job thread)."""
+        key = s.stage_key(stage)
+        with self.lock:
+            hit = self.cache.get((stage, key))
+            system, exp, spec = self.system, self.experiment, None
+        if hit is not None:
+            return hit
+        engine.require(stage)
+        ctx.check()
+        if stage == "collect":
+            res = engine.collect(s, system, ctx, experiment=exp, executor=self.executor)
+        elif stage == "certify":
+            res = engine.certify(self._result_for("collect", s, ctx), s, ctx)
+        elif stage == "synthesize":
+            cert = self._result_for("certify", s, ctx) if s.use_gap else None
+            res = engine.synthesize(system, self.current_spec(), cert, s, ctx)
+        elif stage == "rollout":
+            syn = self._result_for("synthesize", s, ctx)
+            res = engine.rollout(system, self.current_spec(), syn, s, ctx, experiment=exp)
+        elif stage == "refine":
+            res = engine.refine(self._result_for("collect", s, ctx), s, ctx)
+        else:
+            raise SimgapError(f"unknown stage {stage!r}")
+        ctx.check()
+        self._accept(stage, key, res)
+        return res
 
     def _accept(self, stage: str, key: str, result) -> None:
         with self.lock:
@@ -232,15 +263,18 @@ class SimgapApp:
             downstream = {"collect": ("certify", "synthesize", "rollout", "refine"),
                           "certify": ("synthesize", "rollout", "refine"),
                           "synthesize": ("rollout",), "rollout": (), "refine": ()}[stage]
-            for s in downstream:
-                k = self.settings.stage_key(s)
-                self.results[s] = self.cache.get((s, k))
-                self.result_keys[s] = k if self.results[s] is not None else None
+            for st in downstream:
+                k = self.settings.stage_key(st)
+                self.results[st] = self.cache.get((st, k))
+                self.result_keys[st] = k if self.results[st] is not None else None
+        if stage == "collect":
+            self.panels["system"].sync_from_settings()
         self.panels["certificate"].show_summary()
         self.panels["synthesis"].show_stats()
         self.panels["rollouts"].show_stats()
         self.panels["refine"].show_report()
         self.refresh_result_layers()
+        self._update_buttons()
 
     def start_job(self, name: str, fn: Callable[[JobContext], Any], then: Optional[Callable] = None) -> None:
         """Run ``fn(ctx)`` on the job thread (progress bar, cancel button enabled)."""
@@ -250,66 +284,26 @@ class SimgapApp:
 
     def collect(self, background: bool = True) -> None:
         """Collect data for the current settings (engine: ``simgap.collect``)."""
-        self.guarded(self._collect, background)
-
-    def _collect(self, background):
         if self.settings.data_source:  # collecting replaces a loaded dataset
             self.settings = self.settings.replace(data_source="")
-        s = self.settings.validate(self.system.n)
-        engine.require("collect")
-        system, exp, ex = self.system, self.experiment, self.executor
-        self._run_stage("collect", lambda ctx: engine.collect(s, system, ctx, experiment=exp, executor=ex),
-                        background)
+        self.guarded(self._run_stage, "collect", background)
 
     def certify(self, background: bool = True) -> None:
-        """Certify gamma from the cached data (engine: ``simgap.certify.certify``)."""
-        self.guarded(self._certify, background)
-
-    def _certify(self, background):
-        s = self.settings.validate(self.system.n)
-        engine.require("certify")
-        data = self.results["collect"]
-        if data is None:
-            raise SimgapError("no data yet: collect (or load) a dataset first")
-        self._run_stage("certify", lambda ctx: engine.certify(data, s, ctx), background)
+        """Certify gamma for the current settings (engine: ``simgap.certify``); collects first if
+        the data for these settings are not cached."""
+        self.guarded(self._run_stage, "certify", background)
 
     def synthesize(self, background: bool = True) -> None:
         """Synthesize a controller for f + [-gamma, gamma] (engine: ``simgap.synthesis``)."""
-        self.guarded(self._synthesize, background)
-
-    def _synthesize(self, background):
-        s = self.settings.validate(self.system.n)
-        engine.require("synthesize")
-        cert = self.results["certify"]
-        if cert is None and s.use_gap:
-            raise SimgapError("no certificate yet: certify first (or untick 'use gamma')")
-        system, spec = self.system, self.current_spec()
-        self._run_stage("synthesize", lambda ctx: engine.synthesize(system, spec, cert, s, ctx), background)
+        self.guarded(self._run_stage, "synthesize", background)
 
     def rollout(self, background: bool = True) -> None:
         """Roll the controller out in the simulator (engine: ``simgap.synthesis.rollout``)."""
-        self.guarded(self._rollout, background)
-
-    def _rollout(self, background):
-        s = self.settings.validate(self.system.n)
-        engine.require("rollout")
-        syn = self.results["synthesize"]
-        if syn is None:
-            raise SimgapError("no controller yet: synthesize first")
-        system, spec = self.system, self.current_spec()
-        self._run_stage("rollout", lambda ctx: engine.rollout(system, spec, syn, s, ctx), background)
+        self.guarded(self._run_stage, "rollout", background)
 
     def refine(self, background: bool = True) -> None:
         """Refine the nominal model from the data's residuals (engine: ``simgap.refine``)."""
-        self.guarded(self._refine, background)
-
-    def _refine(self, background):
-        s = self.settings.validate(self.system.n)
-        engine.require("refine")
-        data = self.results["collect"]
-        if data is None:
-            raise SimgapError("no data yet: collect (or load) a dataset first")
-        self._run_stage("refine", lambda ctx: engine.refine(data, s, ctx), background)
+        self.guarded(self._run_stage, "refine", background)
 
     def cancel(self) -> None:
         if self.jobs.cancel():
@@ -348,15 +342,12 @@ class SimgapApp:
             return
         busy = self.jobs.busy if busy is None else busy
         self.cancel_button.disabled = not busy
-        avail = engine.availability()
-        have = self.results
-        state = {
-            "collect": avail["collect"][0],
-            "certify": avail["certify"][0] and have["collect"] is not None,
-            "synthesize": avail["synthesize"][0] and (have["certify"] is not None or not self.settings.use_gap),
-            "rollout": avail["rollout"][0] and have["synthesize"] is not None,
-            "refine": avail["refine"][0] and have["collect"] is not None,
-        }
+        avail = {k: v[0] for k, v in engine.availability().items()}
+        cached = {k: v is not None for k, v in self.results.items()}
+        # a stage can run if the engine offers it and every upstream stage is cached or offered
+        up = {"collect": (), "certify": ("collect",), "synthesize": ("collect", "certify"),
+              "rollout": ("collect", "certify", "synthesize"), "refine": ("collect",)}
+        state = {st: avail[st] and all(cached[u] or avail[u] for u in up[st]) for st in up}
         for stage, ok in state.items():
             for p in self.panels.values():
                 b = getattr(p, "buttons", {}).get(stage)

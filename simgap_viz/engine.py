@@ -235,18 +235,21 @@ def rollout_arrays(res):
 
 def certificate_markdown(cert) -> str:
     """The certificate's summary as a markdown table: gamma per dimension, betas, confidences."""
-    def f(v, p=4):
+    def f(v, p=3):
         return "-" if v is None else f"{v:.{p}g}"
 
-    rows = ["| dim | max gap | delta1 | delta2 | beta1 | beta2 | Lx*eps | gamma min | gamma max | conf |",
-            "|---|---|---|---|---|---|---|---|---|---|"]
+    rows = ["| dim | max gap | delta1 | delta2 | beta1 | beta2 | gamma on data | conf |",
+            "|---|---|---|---|---|---|---|---|"]
     for name, d in zip(cert.state_names, cert.dims):
         lo, hi = d.scp.get("gamma_range_on_data", [None, None])
         rows.append(f"| {name} | {f(d.gap_max)} | {f(d.delta1)} | {f(d.delta2)} | {f(d.beta1)} | {f(d.beta2)} | "
-                    f"{f(d.L_x * cert.epsilon)} | {f(lo)} | {f(hi)} | {f(d.confidence)} |")
+                    f"{f(lo)} - {f(hi)} | {f(d.confidence, 4)} |")
     jc = cert.joint_confidence
     rows.append("")
     rows.append(f"**joint confidence**: {'not stated (deterministic)' if jc is None else f'{jc:.4f}'}  ")
+    rows.append("gamma_i = (L_f + Lhat + L_2) eps + q_i^T p_i + delta_2i: "
+                + ", ".join(f"{n} {d.L_x * cert.epsilon:.3g} + fit + {d.delta2:.3g}"
+                            for n, d in zip(cert.state_names, cert.dims)) + "  ")
     rows.append(f"eps = {cert.epsilon:g}, N1hat = {cert.n_runs}, K = {cert.K}, method {cert.method}")
     return "\n".join(rows)
 

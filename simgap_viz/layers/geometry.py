@@ -63,6 +63,15 @@ def variable_ranges(system: System) -> np.ndarray:
                       np.stack([U.min(axis=0), U.max(axis=0)], axis=1)])
 
 
+def colormap(t: np.ndarray) -> np.ndarray:
+    """Values t in [0, 1] -> (.., 3) uint8 colors, blue (low) -> teal -> yellow (high)."""
+    stops = np.array([[40, 60, 160], [30, 150, 170], [120, 200, 90], [250, 220, 40]], float)
+    t = np.clip(np.nan_to_num(np.asarray(t, float)), 0.0, 1.0) * (len(stops) - 1)
+    i = np.minimum(t.astype(int), len(stops) - 2)
+    f = (t - i)[..., None]
+    return ((1 - f) * stops[i] + f * stops[i + 1]).astype(np.uint8)
+
+
 def grid_faces(na: int, nb: int) -> np.ndarray:
     """Triangle indices (2 (na-1)(nb-1), 3) of a regular na x nb vertex grid (row-major, b fastest)."""
     i, j = np.meshgrid(np.arange(na - 1), np.arange(nb - 1), indexing="ij")

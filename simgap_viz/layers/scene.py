@@ -33,11 +33,20 @@ def draw_system(app) -> None:
     sc.add_label("/grid/label_y", text=names[1], position=(-1.1, 1.05, 0.0))
     _remove(app, "/map")
     for name, mesh in engine.map_meshes(app, frame):
-        sc.add_mesh_trimesh(f"/map/{name}", mesh, visible=app.layers_visible["map"])
+        _add_mesh(sc, f"/map/{name}", mesh, visible=app.layers_visible["map"])
     _remove(app, "/bodies")
     for name, mesh, pos in engine.body_meshes(app):
-        sc.add_mesh_trimesh(f"/bodies/{name}", mesh, position=tuple(np.add(pos, BODIES_OFFSET)),
-                            visible=app.layers_visible["bodies"])
+        _add_mesh(sc, f"/bodies/{name}", mesh, position=tuple(np.add(pos, BODIES_OFFSET)),
+                  visible=app.layers_visible["bodies"])
+
+
+def _add_mesh(sc, name, mesh, position=(0.0, 0.0, 0.0), visible=True):
+    """A trimesh as a viser simple mesh in its (first) face color, opacity from its alpha."""
+    fc = np.asarray(mesh.visual.face_colors)
+    rgba = fc[0] if fc.size else np.array([150, 150, 150, 255])
+    opacity = None if rgba[3] >= 255 else float(rgba[3]) / 255.0
+    sc.add_mesh_simple(name, np.asarray(mesh.vertices), np.asarray(mesh.faces), color=tuple(int(c) for c in rgba[:3]),
+                       opacity=opacity, position=position, visible=visible)
 
 
 def variable_names_md(app) -> list:
@@ -77,10 +86,12 @@ def draw_gamma(app) -> dict:
     if surf is not None:
         verts = surf["vertices"].copy()
         verts[:, 2] *= z
-        color = G.DIM_COLORS[v["dim"] % len(G.DIM_COLORS)]
-        sc.add_mesh_simple("/gamma/surface", verts, surf["faces"], color=color, opacity=0.75, side="double",
-                           visible=app.layers_visible["gamma"])
+        vals = surf["values"]
+        # viser's own mesh material (non-metallic); GLB meshes without a material render washed out
+        sc.add_mesh_simple("/gamma/surface", verts, surf["faces"], color=G.DIM_COLORS[v["dim"] % len(G.DIM_COLORS)],
+                           side="double", visible=app.layers_visible["gamma"])
         out["vertices"], out["faces"] = verts, surf["faces"]
+        out["range"] = (float(vals.min()), float(vals.max()))
     else:
         _remove(app, "/gamma/surface")
     if pts is not None and pts["points"].shape[0]:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import threading
+
 
 class Panel:
     """A tab's handles. ``buttons`` maps stage name -> button handle (enabled by the app)."""
@@ -10,18 +12,33 @@ class Panel:
         self.app = app
         self.buttons = {}
 
-    def on(self, handle, fn) -> None:
+    def on(self, handle, fn, debounce: float | None = None) -> None:
         """Call ``fn(value)`` when ``handle`` changes, unless the app is syncing its handles.
 
         ``fn`` runs through ``app.guarded``: a bad value gives a notification, never an exception
-        in viser's callback thread.
+        in viser's callback thread. With ``debounce`` > 0, changes coming from a browser (typing
+        in a text field) are applied only once the value has been stable for that many seconds,
+        so half-typed terms do not raise notifications; changes made from Python apply at once.
         """
         app = self.app
+        timer = {"t": None}
+        if debounce is None:  # typed values (numbers, text) pass through invalid prefixes like "0."
+            debounce = 0.5 if type(handle).__name__ in ("GuiNumberHandle", "GuiTextHandle") else 0.0
 
-        def cb(_event):
+        def apply():
+            app.guarded(fn, handle.value)
+
+        def cb(event):
             if getattr(app, "_syncing", False):
                 return
-            app.guarded(fn, handle.value)
+            if debounce > 0 and getattr(event, "client", None) is not None:
+                if timer["t"] is not None:
+                    timer["t"].cancel()
+                timer["t"] = threading.Timer(debounce, apply)
+                timer["t"].daemon = True
+                timer["t"].start()
+                return
+            apply()
 
         handle.on_update(cb)
 

@@ -33,10 +33,10 @@ class CertificatePanel(Panel):
         on = self.on
         on(self.mode, lambda v: self.apply_deltas())
         on(self.confidence, lambda v: self.apply_deltas())
-        on(self.delta1, lambda v: self.apply_deltas())
-        on(self.delta2, lambda v: self.apply_deltas())
+        on(self.delta1, lambda v: self.apply_deltas(), debounce=0.6)
+        on(self.delta2, lambda v: self.apply_deltas(), debounce=0.6)
         on(self.degree, lambda v: app.update_settings(degree=int(v)))
-        on(self.terms, lambda v: app.update_settings(terms=engine.check_terms(app.system, v)))
+        on(self.terms, lambda v: app.update_settings(terms=engine.check_terms(app.system, v)), debounce=0.6)
         on(self.concentration, lambda v: app.update_settings(concentration=v))
         self.auto.on_update(lambda _: setattr(app, "auto_certify", bool(self.auto.value)))
 

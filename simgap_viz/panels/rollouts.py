@@ -25,7 +25,7 @@ class RolloutsPanel(Panel):
         self.on(self.count, lambda v: app.update_settings(n_rollouts=int(v) if float(v) == int(v) else float(v)))
         self.on(self.horizon, lambda v: app.update_settings(horizon=int(v) if float(v) == int(v) else float(v)))
         self.on(self.x0, lambda v: app.update_settings(
-            x0=parse_vector(v, "initial state", app.system.n, allow_empty=True)))
+            x0=parse_vector(v, "initial state", app.system.n, allow_empty=True)), debounce=0.6)
         self.on(self.seed, lambda v: app.update_settings(rollout_seed=int(v)))
 
     def sync_from_settings(self) -> None:

@@ -22,7 +22,7 @@ class SynthesisPanel(Panel):
         self.buttons["synthesize"].on_click(lambda _: app.synthesize())
         self.note = gui.add_markdown(engine.unavailable_note("synthesize"))
         self.stats = gui.add_markdown("")
-        self.on(self.eta, lambda v: app.update_settings(eta=parse_vector(v, "grid eta", app.system.n)))
+        self.on(self.eta, lambda v: app.update_settings(eta=parse_vector(v, "grid eta", app.system.n)), debounce=0.6)
         self.on(self.hold, lambda v: app.update_settings(hold=int(v) if float(v) == int(v) else float(v)))
         self.on(self.use_gap, lambda v: app.update_settings(use_gap=bool(v)))
 

@@ -10,10 +10,11 @@ step for all active rollouts) and for one rollout at a time (one call per rollou
 the same process, and their ratio. Both modes use the same noise draws, so they also give the same
 outcomes (checked).
 
-Without ``--controller`` the TurtleBot runs a stand-in waypoint-following feedback on the arena
-(heading P-control snapped to the 441-input grid; not a synthesized controller), and the pendulum
-a saturated linear state feedback snapped to the 21 torques; the simulator cost, which dominates,
-does not depend on which controller picks the inputs.
+Without ``--controller`` the controllers are synthesized first (not timed): the TurtleBot
+reach-avoid controller on the arena map (441 inputs, input held 30 x 0.01 s, eta = 0.1, 0.1,
+0.2, no gap) and the pendulum invariance controller for [0, 0.2] x [-0.5, 0.5] (eta = 0.005,
+0.01, no gap). The simulators step with their base period (0.01 s, 0.005 s), so the
+specification is checked every base period.
 """
 
 from __future__ import annotations
@@ -31,47 +32,27 @@ from simgap.maps import load_map
 from simgap.simulators.base import make_simulator
 from simgap.synthesis.rollout import rollout
 from simgap.synthesis.spec import Box, Spec
-from simgap.systems import pendulum, turtlebot, wrap_angle
+from simgap.synthesis.controller import synthesize
+from simgap.systems import pendulum, turtlebot
 
 
-class ArenaWaypoints:
-    """Stand-in controller for the arena: steer to the next waypoint of a fixed route (a function of x)."""
-
-    def __init__(self, system, amap, hold=1):
-        self.system, self.spec, self.hold = system, amap.spec(system), hold
-        self.x0 = amap.x0(system)
-
-    def input_index(self, x):
-        x = np.atleast_2d(x)
-        px, py, th = x[:, 0], x[:, 1], x[:, 2]
-        # route: north along x = 3.4, west along y = 3.05, south along x = 1.25, west to the target
-        right = (py < 2.95) & (px > 2.45)
-        top = (py >= 2.95) & (px > 1.3)
-        left = ~right & ~top & (py >= 0.75)
-        gx = np.select([right, top, left], [3.4, 1.2, 1.25], 0.55)
-        gy = np.select([right, top, left], [3.1, 3.05, 0.55], 0.55)
-        e = wrap_angle(np.arctan2(gy - py, gx - px) - th)
-        v = np.clip(1.0 - 1.5 * np.abs(e), 0.0, 1.0)
-        w = np.clip(3.0 * e, -1.0, 1.0)
-        U = self.system.inputs
-        iv = np.rint((v + 1) / 0.1).astype(int)
-        iw = np.rint((w + 1) / 0.1).astype(int)
-        idx = iv * 21 + iw  # input_grid: last dimension fastest
-        assert np.allclose(U[idx], np.stack([np.rint(v * 10) / 10, np.rint(w * 10) / 10], 1), atol=1e-9)
-        return idx
+def arena_controller(k=30, eta=(0.1, 0.1, 0.2), gap=None):
+    """The arena reach-avoid controller: TurtleBot with 441 inputs at tau = k * 0.01 s."""
+    amap = load_map("arena")
+    system = turtlebot().with_steps(k)
+    t = time.perf_counter()
+    res = synthesize(system, amap.spec(system), list(eta), gap=gap, x0=amap.x0(system))
+    print(f"synthesized the arena controller in {time.perf_counter() - t:.1f} s: "
+          f"{res.stats['winning']:,} winning cells, hold {k} x 0.01 s")
+    return res.controller
 
 
-class PendulumFeedback:
-    """Stand-in controller: u = sat(-K (x - x_ref)) snapped to the 21 torques, invariance in [0, 0.2] x [-0.5, 0.5]."""
-
-    def __init__(self, system, K=(30.0, 8.0), x_ref=(0.1, 0.0)):
-        self.system, self.K, self.x_ref = system, np.asarray(K), np.asarray(x_ref)
-        self.spec = Spec("invariance", safe=Box([0.0, -0.5], [0.2, 0.5]))
-        self.hold = 1
-
-    def input_index(self, x):
-        u = np.clip(-((np.atleast_2d(x) - self.x_ref) @ self.K), -1, 1)
-        return np.abs(self.system.inputs[:, 0][None] - u[:, None]).argmin(1)
+def pendulum_controller(eta=(0.005, 0.01)):
+    """Invariance in [0, 0.2] x [-0.5, 0.5] for the pendulum (tau = 0.005 s), no gap."""
+    spec = Spec("invariance", safe=Box([0.0, -0.5], [0.2, 0.5]))
+    res = synthesize(pendulum(), spec, list(eta))
+    print(f"synthesized the pendulum controller: {res.stats['winning']:,} of {res.stats['safe_cells']:,} safe cells")
+    return res.controller
 
 
 def load_controller(path):
@@ -91,7 +72,8 @@ def bench(name, ctrl, cfg, x0, n, n_seq, horizon, seed):
         rows["batched" if batched else "one_at_a_time"] = {
             "rollouts": R, "robot_steps": t["robot_steps"], "wall_s": round(t["wall_s"], 3),
             "simulator_s": round(t["simulator_s"], 3), "controller_s": round(t["controller_s"], 3),
-            "robot_steps_per_s": round(t["robot_steps_per_s"]), "failures": res.n_failures,
+            "robot_steps_per_s": round(t["robot_steps_per_s"]), "cpu_s": round(t["cpu_s"], 3),
+            "robot_steps_per_cpu_s": round(t["robot_steps_per_cpu_s"]), "failures": res.n_failures,
             "outcomes": res.to_dict(per_rollout=False)["outcomes"], "_res": res}
     b, s = rows["batched"], rows["one_at_a_time"]
     m = min(b["rollouts"], s["rollouts"])
@@ -105,10 +87,13 @@ def bench(name, ctrl, cfg, x0, n, n_seq, horizon, seed):
            "batched": {k: v for k, v in b.items() if k != "_res"},
            "one_at_a_time": {k: v for k, v in s.items() if k != "_res"},
            "speedup": round(b["robot_steps_per_s"] / max(s["robot_steps_per_s"], 1e-9), 2),
+           "speedup_cpu": round(b["robot_steps_per_cpu_s"] / max(s["robot_steps_per_cpu_s"], 1e-9), 2),
            "same_results": same}
     print(f"{name}: batched {b['robot_steps_per_s']:,} robot-steps/s ({b['rollouts']} rollouts, {b['wall_s']} s, "
           f"{b['failures']} failures); one at a time {s['robot_steps_per_s']:,} robot-steps/s "
-          f"({s['rollouts']} rollouts, {s['wall_s']} s); ratio {out['speedup']}x; identical results: {same}")
+          f"({s['rollouts']} rollouts, {s['wall_s']} s); ratio {out['speedup']}x (per CPU second: batched "
+          f"{b['robot_steps_per_cpu_s']:,}, one at a time {s['robot_steps_per_cpu_s']:,}, ratio {out['speedup_cpu']}x); "
+          f"identical results: {same}", flush=True)
     return out
 
 
@@ -117,7 +102,7 @@ def main(argv=None):
     ap.add_argument("--system", choices=("turtlebot", "pendulum", "both"), default="both")
     ap.add_argument("--n", type=int, default=1000, help="rollouts, batched")
     ap.add_argument("--n-seq", type=int, default=None, help="rollouts one at a time (default: --n)")
-    ap.add_argument("--horizon", type=int, default=None, help="simulator steps (default 1200 TurtleBot, 400 pendulum)")
+    ap.add_argument("--horizon", type=int, default=None, help="simulator steps (default: TurtleBot from the controller's steps-to-go, pendulum 1000)")
     ap.add_argument("--controller", default=None, help="synthesized controller file (default: a stand-in feedback)")
     ap.add_argument("--simulator", default=None, help="JSON SimulatorConfig overriding the default")
     ap.add_argument("--seed", type=int, default=0)
@@ -131,15 +116,16 @@ def main(argv=None):
                "noise": {"actuation_std": [0.05, 0.1]}, "options": amap.simulator_options()}
         if a.simulator:
             cfg = json.loads(open(a.simulator).read()) if a.simulator.endswith(".json") else json.loads(a.simulator)
-        ctrl = load_controller(a.controller) if a.controller and a.system == "turtlebot" else ArenaWaypoints(turtlebot(), amap)
-        results.append(bench("turtlebot", ctrl, cfg, amap.x0(turtlebot()), a.n, n_seq, a.horizon or 1200, a.seed))
+        ctrl = load_controller(a.controller) if a.controller and a.system == "turtlebot" else arena_controller()
+        results.append(bench("turtlebot", ctrl, cfg, amap.x0(turtlebot()), a.n, n_seq, a.horizon, a.seed))
     if a.system in ("pendulum", "both"):
         cfg = {"kind": "pybullet_pendulum", "system": "pendulum", "steps": 1, "noise": {"actuation_std": 0.05}}
         if a.simulator and a.system == "pendulum":
             cfg = json.loads(open(a.simulator).read()) if a.simulator.endswith(".json") else json.loads(a.simulator)
-        ctrl = load_controller(a.controller) if a.controller and a.system == "pendulum" else PendulumFeedback(pendulum())
-        results.append(bench("pendulum", ctrl, cfg, [0.1, 0.0], a.n, n_seq, a.horizon or 400, a.seed))
+        ctrl = load_controller(a.controller) if a.controller and a.system == "pendulum" else pendulum_controller()
+        results.append(bench("pendulum", ctrl, cfg, [0.1, 0.0], a.n, n_seq, a.horizon or 1000, a.seed))
     meta = {"python": sys.version.split()[0], "machine": platform.machine(), "cpus": os.cpu_count(),
+            "load_average_at_end": os.getloadavg(),
             "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}
     if a.json:
         with open(a.json, "w") as fh:

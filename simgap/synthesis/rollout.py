@@ -340,7 +340,7 @@ class RolloutResult:
                      + (f" (reach step {mv['reach_time']})" if mv["reach_time"] >= 0 else ""))
         tm = self.timing
         if tm:
-            lines.append(f"  time            {tm['wall_s']:.2f} s, {tm['robot_steps']} robot-steps, "
+            lines.append(f"  time            {tm['wall_s']:.2f} s ({tm.get('cpu_s', 0):.2f} s CPU), {tm['robot_steps']} robot-steps, "
                          f"{tm['robot_steps_per_s']:.0f} robot-steps/s ({'batched' if tm['batched'] else 'one at a time'})")
         return lines
 
@@ -510,9 +510,9 @@ def rollout(controller, simulator, x0=None, n_rollouts: int = 1000, horizon: Opt
     else:
         seed = None
 
-    w0 = time.perf_counter()
+    w0, c0 = time.perf_counter(), time.process_time()
     tr = _run(controller, simulator, spec, x0, n_rollouts, horizon, hold, rng, on_exit, batched)
-    wall = time.perf_counter() - w0
+    wall, cpu = time.perf_counter() - w0, time.process_time() - c0
 
     nom_sys = controller.system.with_steps(system.steps)
     nt = _run(controller, _NominalModel(nom_sys), spec, x0, 1, horizon, hold, np.random.default_rng(0), on_exit, True)
@@ -523,7 +523,9 @@ def rollout(controller, simulator, x0=None, n_rollouts: int = 1000, horizon: Opt
                "x_lo": system.x_lo.tolist(), "x_hi": system.x_hi.tolist()}
     cfg = getattr(simulator, "config", None)
     timing = {"wall_s": wall, "simulator_s": tr.sim_seconds, "controller_s": tr.ctrl_seconds,
-              "robot_steps": int(tr.robot_steps), "robot_steps_per_s": tr.robot_steps / wall if wall > 0 else 0.0,
+              "cpu_s": cpu, "robot_steps": int(tr.robot_steps),
+              "robot_steps_per_s": tr.robot_steps / wall if wall > 0 else 0.0,
+              "robot_steps_per_cpu_s": tr.robot_steps / cpu if cpu > 0 else 0.0,
               "batched": bool(batched)}
     return RolloutResult(
         x0=x0, trajectories=tr.traj, lengths=tr.lengths, outcome=tr.outcome, violation_time=tr.violation_time,

@@ -16,7 +16,9 @@ the column-standardized design, which makes every subset fit a tiny p x p solve)
    elimination while BIC drops.
 4. Held-out pruning: a term stays only if removing it (refitting the rest on train) raises
    the held-out RSS by at least ``min_explained`` of the held-out residual sum of squares of the
-   nominal model. With step 3 this keeps pure-noise data free of effects.
+   nominal model, and significantly: the paired statistic mean(d)/se(d) of the per-sample loss
+   differences d_k = e_without,k^2 - e_with,k^2 must reach ``min_z`` (block means for a time
+   series). With step 3 this keeps pure-noise data free of effects.
 5. Coefficients on train; standard errors by bootstrap (rows resampled, or moving blocks for a
    time series) with a seeded generator.
 6. Explained fraction of each effect: the drop of held-out RSS when it is added, in the forward
@@ -47,6 +49,7 @@ class SelectionOptions:
     holdout: float = 0.3            # fraction of samples held out
     n_segments: int = 5             # contiguous held-out segments for time series
     min_explained: float = 0.005    # held-out RSS fraction a term must explain to stay
+    min_z: float = 3.0              # significance of a term's held-out improvement (paired z)
     min_per_term: int = 10          # train samples needed per candidate term
     n_boot: int = 100               # bootstrap resamples for standard errors
     structure_threshold: float = 0.05   # held-out R^2 of the structure fit of what remains
@@ -293,12 +296,24 @@ def select_state(y: np.ndarray, Theta: np.ndarray, keys: list, held: np.ndarray,
         val, j = min(trials)
         if val < best:
             S, best, changed = [k for k in S if k != j], val, True
-    # 4. held-out pruning: drop the least useful term while it explains too little
+    # 4. held-out pruning: drop the weakest term while it explains too little or not significantly
+    #    (paired test on the per-sample held-out loss differences, block means for a time series)
+    blk = _block_length(yh) if time_series else 1
+
+    def heldout_test(S_with, S_without):
+        ew = yh - (Zh[:, S_with] @ _solve(Gt, bt, S_with) if S_with else 0.0)
+        eo = yh - (Zh[:, S_without] @ _solve(Gt, bt, S_without) if S_without else 0.0)
+        dl = eo ** 2 - ew ** 2
+        nb = dl.size // blk
+        means = dl[: nb * blk].reshape(nb, blk).mean(axis=1) if nb >= 2 else dl
+        sd = float(means.std(ddof=1)) if means.size > 1 else 0.0
+        stat = float(means.mean() / (sd / np.sqrt(means.size))) if sd > 0 else np.inf * np.sign(means.mean())
+        return float(dl.sum()), stat
+
     while S:
-        base = rss_h(S)
-        gains = [(rss_h([k for k in S if k != j]) - base, j) for j in S]
-        gain, j = min(gains)
-        if gain >= opts.min_explained * rss0_h:
+        tests = [(heldout_test(S, [k for k in S if k != j]), j) for j in S]
+        (gain, stat), j = min(tests, key=lambda t: (t[0][1] >= opts.min_z, t[0][0]))
+        if gain >= opts.min_explained * rss0_h and stat >= opts.min_z:
             break
         S = [k for k in S if k != j]
     # 5. coefficients and bootstrap standard errors (original units: divide by the column scale)

@@ -3,6 +3,7 @@
     python bench/bench_rollouts.py                       # TurtleBot (arena) and pendulum, 1000 rollouts
     python bench/bench_rollouts.py --system turtlebot --n 1000 --n-seq 1000
     python bench/bench_rollouts.py --controller ctrl.npz --system turtlebot
+    python bench/bench_rollouts.py --gap-demo            # gap vs no gap under a drift (numpy simulator)
 
 Reports robot-steps per second (one robot-step = one rollout advanced by one simulator step of
 tau, controller queries included) for the batched rollout (one ``step_with_noise`` call per time
@@ -53,6 +54,25 @@ def pendulum_controller(eta=(0.005, 0.01)):
     res = synthesize(pendulum(), spec, list(eta))
     print(f"synthesized the pendulum controller: {res.stats['winning']:,} of {res.stats['safe_cells']:,} safe cells")
     return res.controller
+
+
+def gap_demo(n=1000, seed=0):
+    """Controllers with and without a gap against an unmodeled drift (numpy simulator, 25 inputs)."""
+    from simgap.systems import input_grid
+    amap = load_map("arena")
+    system = turtlebot(inputs=input_grid([-1, -1], [1, 1], [5, 5])).with_steps(30)
+    sim_cfg = {"kind": "numpy", "system": "turtlebot", "noise": {"actuation_std": [0.2, 0.3]},
+               "effects": {"bias": [-0.1, 0.1, 0.0]}}  # 0.1 m/s per axis: 0.03 m per 0.3 s step
+    out = []
+    for gap in (None, [0.01, 0.01, 0.0], [0.02, 0.02, 0.0]):
+        ctrl = synthesize(system, amap.spec(system), [0.1, 0.1, 0.2], gap=gap).controller
+        res = rollout(ctrl, make_simulator(sim_cfg, system), amap.x0(system), n_rollouts=n, seed=seed)
+        d = res.to_dict(per_rollout=False)
+        print(f"gap {gap}: winning {ctrl.size:,} cells, failures {d['failures']}/{n} "
+              f"(obstacle {d['violation_kinds']['obstacle']}), left domain {d['left_domain']}, "
+              f"nominal {d['nominal']['outcome']}", flush=True)
+        out.append({"gap": gap, "winning": ctrl.size, "failures": d["failures"], "left_domain": d["left_domain"]})
+    return out
 
 
 def load_controller(path):
@@ -107,7 +127,12 @@ def main(argv=None):
     ap.add_argument("--simulator", default=None, help="JSON SimulatorConfig overriding the default")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json", default=None, help="write the results here")
+    ap.add_argument("--gap-demo", action="store_true",
+                    help="instead: failures of controllers with and without a gap under an unmodeled drift")
     a = ap.parse_args(argv)
+    if a.gap_demo:
+        gap_demo(a.n, a.seed)
+        return 0
     n_seq = a.n_seq or a.n
     results = []
     amap = load_map("arena")

@@ -108,6 +108,11 @@ def run(args) -> int:
     amap = load_map(args.map) if args.map else None
     if amap is not None and cfg.get("kind") == "pybullet_turtlebot" and not cfg.get("options", {}).get("obstacles"):
         cfg = dict(cfg, options={**cfg.get("options", {}), **amap.simulator_options()})
+    spec = getattr(ctrl, "spec", None)
+    if (cfg.get("kind") == "pybullet_turtlebot" and spec is not None and spec.obstacles
+            and not cfg.get("options", {}).get("obstacles")):
+        print("note: the PyBullet world has no obstacle bodies; collisions are judged from the controller's "
+              "spec only (pass --map to build them)")
     sim = make_simulator(cfg, getattr(ctrl, "system", None))  # the controller's X and inputs
     try:
         if args.x0 is not None:

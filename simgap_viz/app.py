@@ -243,9 +243,12 @@ class SimgapApp:
         elif stage == "synthesize":
             cert = self._result_for("certify", s, ctx) if s.use_gap else None
             res = engine.synthesize(system, self.current_spec(), cert, s, ctx)
+            if res.empty:  # a result, but the user must see it at once
+                self.notify("Empty winning domain", res.stats.get("diagnosis") or "no winning cell")
         elif stage == "rollout":
             syn = self._result_for("synthesize", s, ctx)
-            res = engine.rollout(system, self.current_spec(), syn, s, ctx, experiment=exp)
+            res = engine.rollout(system, self.current_spec(), syn, s, ctx, experiment=exp,
+                                 arena=self.arena if system.name == "turtlebot" else None)
         elif stage == "refine":
             res = engine.refine(self._result_for("collect", s, ctx), s, ctx)
         else:

@@ -26,11 +26,12 @@ SIMULATORS = ["numpy", "pybullet_pendulum", "pybullet_turtlebot"]
 _NEEDS = {
     "collect": ("simgap.collect", "simgap.cover"),
     "certify": ("simgap.certify.pipeline", "simgap.certify.certificate"),
-    "synthesize": ("simgap.synthesis.abstraction", "simgap.synthesis.games", "simgap.synthesis.controller"),
+    "synthesize": ("simgap.synthesis.controller",),
     "rollout": ("simgap.synthesis.rollout",),
     "refine": ("simgap.refine.report", "simgap.refine.data"),
 }
-_ATTRS = {"certify": ("simgap.certify.pipeline", "certify"), "synthesize": ("simgap.synthesis", "synthesize"),
+_ATTRS = {"certify": ("simgap.certify.pipeline", "certify"),
+          "synthesize": ("simgap.synthesis.controller", "synthesize"),
           "refine": ("simgap.refine.report", "refine")}
 
 
@@ -114,12 +115,19 @@ def _split_terms(text: str) -> list:
 
 
 def default_spec(system: System, arena=None):
-    """The specification used when the experiment gives none."""
-    from simgap.maps import load_map
+    """The specification used when the experiment gives none: the paper's.
+
+    Pendulum: invariance of the safe set [0, 0.2] x [-0.5, 0.5] (paper, Sec. V). TurtleBot:
+    reach-avoid in the ``arena`` map (target, obstacles grown by the robot radius).
+    """
+    from simgap.synthesis.spec import Box, Spec
     if arena is None and system.name == "turtlebot":
+        from simgap.maps import load_map
         arena = load_map("arena")
     if arena is not None:
         return arena.spec(system)
+    if system.name == "pendulum":
+        return Spec("invariance", safe=Box([0.0, -0.5], [0.2, 0.5]))
     raise SimgapError(f"no specification for system {system.name!r}: start the app with --experiment")
 
 
@@ -200,11 +208,56 @@ def certify(dataset, settings, ctx):
 
 
 def synthesize(system, spec, cert, settings, ctx):
-    raise SimgapError("synthesize: engine API not wired yet")
+    """A symbolic controller for x+ in f(x,u) + [-gamma, gamma] (or f alone without a certificate),
+    grid eta, input held ``hold`` sampling periods (simgap.synthesis.controller.synthesize)."""
+    from simgap.synthesis.controller import synthesize as run_synthesize
+    ctx.check()
+    gap = cert if settings.use_gap else None
+    return run_synthesize(system, spec, eta=list(settings.eta), gap=gap, hold=int(settings.hold),
+                          x0=None if settings.x0 is None else list(settings.x0))
 
 
-def rollout(system, spec, syn, settings, ctx):
-    raise SimgapError("rollout: engine API not wired yet")
+def rollout_simulator(settings, system, experiment=None):
+    """The simulator of the rollouts: the collection's (the experiment's config if it matches)."""
+    import dataclasses
+
+    from simgap.simulators.base import make_simulator
+    if experiment is not None and experiment.system.name == system.name \
+            and experiment.simulator.kind == settings.simulator:
+        cfg = dataclasses.replace(experiment.simulator, steps=int(system.steps))
+    else:
+        cfg = simulator_config(settings, system)
+    return make_simulator(cfg, system=system)
+
+
+def initial_state(settings, system, syn, spec, arena=None) -> np.ndarray:
+    """x0 of the rollouts: the settings', else the map's, else the winning cell nearest the
+    centre of the target (reach-avoid) or safe set (invariance)."""
+    if settings.x0 is not None:
+        return np.asarray(settings.x0, dtype=float)
+    if arena is not None:
+        return arena.x0(system)
+    ctrl = syn.controller
+    ids = np.flatnonzero(ctrl.winning_mask & ~ctrl.target)
+    if ids.size == 0:
+        raise SimgapError("empty winning domain: no initial state to roll out from (change eta, hold or the gap)")
+    pts = ctrl.grid.points(ids)
+    box = spec.target if spec.kind == "reach_avoid" else spec.safe
+    c = np.where(np.isfinite(box.lo) & np.isfinite(box.hi), 0.5 * (box.lo + box.hi), 0.5 * (system.x_lo + system.x_hi))
+    return pts[np.argmin(np.linalg.norm((pts - c) / (system.x_hi - system.x_lo), axis=1))]
+
+
+def rollout(system, spec, syn, settings, ctx, experiment=None, arena=None):
+    """R closed-loop rollouts of the controller in the stochastic simulator (simgap.synthesis.rollout)."""
+    from simgap.synthesis.rollout import rollout as run_rollout
+    ctx.check()
+    sim = rollout_simulator(settings, system, experiment)
+    try:
+        x0 = initial_state(settings, system, syn, spec, arena)
+        return run_rollout(syn.controller, sim, x0=x0, n_rollouts=int(settings.n_rollouts),
+                           horizon=int(settings.horizon), seed=int(settings.rollout_seed), spec=spec)
+    finally:
+        sim.close()
 
 
 def refine(dataset, settings, ctx):
@@ -223,8 +276,30 @@ def gamma_function(cert):
 
 
 def winning_cells(res):
-    """(centers (C,n), widths (n,), values (C,) in [0,1]) of the winning domain's cells."""
-    raise SimgapError("winning domain: engine API not wired yet")
+    """Winning domain projected on (x1, x2): (centers (C,2), widths (2,), fraction (C,) in (0,1]).
+
+    Cells of higher dimensions (e.g. headings) with the same (x1, x2) are merged; ``fraction``
+    is the share of them that is winning. Only columns with a winning cell are returned.
+    """
+    ctrl = res.controller
+    g = ctrl.grid
+    win = np.asarray(ctrl.winning_mask).reshape(g.shape)
+    if win.ndim > 2:
+        frac = win.reshape(g.shape[0], g.shape[1], -1).mean(axis=2)
+    elif win.ndim == 2:
+        frac = win.astype(float)
+    else:
+        frac = win.astype(float)[:, None]
+    i, j = np.nonzero(frac > 0)
+    if win.ndim >= 2:
+        mi = np.zeros((i.size, g.n), np.int64)
+        mi[:, 0], mi[:, 1] = i, j
+        centers = g.multi_to_points(mi)[:, :2]
+        widths = np.asarray(g.eta[:2], float)
+    else:
+        centers = g.multi_to_points(i[:, None])
+        widths = np.asarray(g.eta, float)
+    return centers, widths, frac[i, j]
 
 
 def rollout_arrays(res):
@@ -255,7 +330,7 @@ def certificate_markdown(cert) -> str:
 
 
 def synthesis_markdown(res) -> str:
-    return f"```\n{getattr(res, 'stats', res)}\n```"
+    return "```\n" + res.summary() + "\n```"
 
 
 def rollout_markdown(res) -> str:

@@ -246,3 +246,43 @@ def test_cli_gui_prints_url():
                        capture_output=True, text=True, timeout=120)
     assert p.returncode == 0, p.stderr
     assert "open http://127.0.0.1:" in p.stdout
+
+
+def test_synthesize_and_rollout_layers(app):
+    """Synthesis and rollouts through the engine; the layers hold all rollouts in one node."""
+    from simgap_viz import engine
+    from simgap_viz.layers import geometry as G
+    from simgap_viz.layers import scene
+    if not (engine.availability()["synthesize"][0] and engine.availability()["rollout"][0]):
+        pytest.skip("synthesis engine not available")
+    # the nominal model alone (no gap) has a winning domain at this grid
+    app.update_settings(use_gap=False, eta=(0.005, 0.01), hold=1, n_rollouts=200, horizon=150)
+    app.synthesize()
+    out = app.wait(120)
+    assert out.ok, out.error
+    syn = app.results["synthesize"]
+    assert syn.stats["winning"] > 0 and "winning" in app.panels["synthesis"].stats.content
+    centers, widths, frac = engine.winning_cells(syn)
+    assert centers.shape[0] == syn.stats["winning"] and np.all(frac == 1.0)  # 2-D: one cell per column
+    assert scene.draw_winning(app) == syn.stats["winning"]
+    app.rollout()
+    out = app.wait(120)
+    assert out.ok, out.error
+    ro = app.results["rollout"]
+    assert ro.trajectories.shape == (200, 151, 2)
+    seg = G.rollout_segments(G.Frame(app.system), ro.trajectories, ~ro.success)
+    assert seg["points"].shape == (200 * 150, 2, 3)  # one batched node, every step
+    red = np.all(seg["colors"][:, 0] == G.RED, axis=1).reshape(200, 150)
+    assert np.array_equal(red.all(axis=1), ~ro.success)
+    assert scene.draw_rollouts(app) == 200 * 150
+    assert "rollouts of pendulum" in app.panels["rollouts"].stats.content
+
+    # with the certified gap at this coarse data the domain is empty: a visible notification
+    app.update_settings(use_gap=True)
+    app.synthesize()
+    app.wait(120)
+    if app.results["synthesize"].empty:
+        assert app.notifications[-1][0] == "Empty winning domain"
+        app.rollout()
+        app.wait(60)
+        assert "empty winning domain" in app.notifications[-1][1]

@@ -1,0 +1,109 @@
+"""The refinement loop on measured data: the EMPS benchmark record (real ball-screw axis).
+
+The record is read from ../shared/data/emps/DATA_EMPS.mat (next to the repository). When it is
+absent the EMPS tests skip with a message saying where to get it.
+"""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from simgap.cli import main
+from simgap.errors import SimgapError
+from simgap.refine.report import refine
+from simgap.refine.trajectory import from_trajectory_file, trajectory_to_transitions
+
+EMPS_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "emps"
+EMPS = EMPS_DIR / "DATA_EMPS.mat"
+needs_record = pytest.mark.skipif(
+    not EMPS.exists(),
+    reason=f"EMPS record not found at {EMPS}: get DATA_EMPS.mat from the EMPS benchmark "
+           f"(nonlinearbenchmark.org; `pip install nonlinear-benchmarks` downloads it) and put it there")
+
+
+@pytest.fixture(scope="module")
+def emps_reports():
+    out = {}
+    for cutoff in (20.0, 50.0):
+        data = from_trajectory_file(EMPS, preset="emps", cutoff_hz=cutoff)
+        out[cutoff] = refine("emps", data).report
+    return out
+
+
+def _physical(rep, name):
+    e = [e for e in rep["effects"] if e["name"] == name and e["state_name"] == "qd"]
+    return e[0]["physical"]["value"] if e else None
+
+
+@needs_record
+def test_emps_effects_are_friction_and_stable_under_cutoff(emps_reports):
+    for cutoff, rep in emps_reports.items():
+        names = {(e["name"], e["state_name"]) for e in rep["effects"]}
+        # a ball screw: viscous and Coulomb friction on the velocity update
+        assert {("viscous_friction", "qd"), ("coulomb_friction", "qd")} <= names, (cutoff, names)
+        assert rep["holdout_kind"] == "contiguous time segments"
+        fv, fc = _physical(rep, "viscous_friction"), _physical(rep, "coulomb_friction")
+        # friction opposes motion: negative forces per velocity / sign of velocity, physically sized
+        assert -1000 < fv < -20, fv          # N s/m
+        assert -100 < fc < -2, fc            # N
+        # held-out velocity-update RMS error falls at least 5x
+        assert rep["rms_before"][1] / rep["rms_after"][1] >= 5, (cutoff, rep["rms_before"], rep["rms_after"])
+    # two cutoffs, same physics (within 5 %)
+    a, b = emps_reports[20.0], emps_reports[50.0]
+    for name in ("viscous_friction", "coulomb_friction"):
+        assert _physical(a, name) == pytest.approx(_physical(b, name), rel=0.05), name
+
+
+@needs_record
+def test_emps_cli_from_trajectory_and_refine(tmp_path, capsys):
+    npz, rep = tmp_path / "emps.npz", tmp_path / "rep.json"
+    assert main(["data", "from-trajectory", str(EMPS), "--preset", "emps", "--cutoff", "20",
+                 "--out", str(npz)]) == 0
+    with np.load(npz) as z:
+        assert {"x", "u", "x_next", "tau", "t"} <= set(z.files)
+        assert float(z["tau"]) == pytest.approx(0.001, rel=1e-6)
+        assert z["x"].shape[1] == 2
+    assert main(["refine", "--system", "emps", "--data", str(npz), "--out", str(rep),
+                 "--bootstrap", "20"]) == 0
+    r = json.loads(rep.read_text())
+    units = {e["name"]: e["physical"]["unit"] for e in r["effects"] if e["physical"]}
+    assert units["viscous_friction"] == "N s/m" and units["coulomb_friction"] == "N"
+    assert "coulomb_friction" in capsys.readouterr().out
+
+
+@needs_record
+def test_emps_bad_records(tmp_path):
+    import scipy.io
+    raw = scipy.io.loadmat(str(EMPS))
+    t, q, u = raw["t"].ravel(), raw["qm"].ravel(), raw["vir"].ravel()
+    # wrong variable names
+    wrong = tmp_path / "wrong.mat"
+    scipy.io.savemat(str(wrong), {"time": t, "pos": q, "vir": u})
+    with pytest.raises(SimgapError, match=r"missing variable\(s\) \['t', 'qm'\]"):
+        from_trajectory_file(wrong, preset="emps")
+    # too short
+    with pytest.raises(SimgapError, match="record too short"):
+        trajectory_to_transitions(t[:150], q[:150], u[:150], 20.0)
+    # cutoff above Nyquist
+    with pytest.raises(SimgapError, match="Nyquist = 500 Hz"):
+        trajectory_to_transitions(t, q, u, 600.0)
+    # non-uniform time stamps
+    t2 = t.copy()
+    t2[5000:] += 0.0004
+    with pytest.raises(SimgapError, match="non-uniform time stamps"):
+        trajectory_to_transitions(t2, q, u, 20.0)
+    assert main(["data", "from-trajectory", str(wrong), "--preset", "emps", "--out",
+                 str(tmp_path / "o.npz")]) == 2
+
+
+def test_trajectory_conversion_on_a_synthetic_record():
+    """Known motion q = A sin(w t): estimated velocity matches A w cos(w t) away from the edges."""
+    fs, A, w = 1000.0, 0.1, 2 * np.pi * 0.5
+    t = np.arange(0, 10, 1 / fs)
+    q = A * np.sin(w * t)
+    tr = trajectory_to_transitions(t, q, np.zeros_like(t), 20.0)
+    np.testing.assert_allclose(tr.x[:, 1], A * w * np.cos(w * tr.t), atol=1e-4)
+    np.testing.assert_allclose(tr.x_next[:-1], tr.x[1:])
+    assert tr.meta["trim"] == 100 and tr.is_time_series

@@ -14,6 +14,7 @@ Compares constraint generation vs the whole LP, and HiGHS vs Clarabel (both thro
 from __future__ import annotations
 
 import argparse
+import os
 import time
 
 import numpy as np
@@ -31,8 +32,10 @@ def main():
     ap.add_argument("--runs", type=int, default=20)
     ap.add_argument("--delta", type=float, default=0.001)
     ap.add_argument("--skip-full", action="store_true")
+    ap.add_argument("--no-certify", action="store_true", help="skip timing the whole certify()")
     ap.add_argument("--repeat", type=int, default=3, help="constraint-generation repeats (best and median)")
     a = ap.parse_args()
+    print(f"load average before: {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores")
 
     t = time.perf_counter()
     if a.data:
@@ -49,24 +52,33 @@ def main():
     g = ds.gap()
     print(f"data: K = {ds.K} (x_r,u) pairs, {len(basis)} basis terms, synthesized/loaded in {t_data:.1f} s; "
           f"design matrix {t_design * 1e3:.0f} ms")
-    print(f"{'dim':<8}{'method':<8}{'solver':<10}{'seconds':>9}{'(median)':>10}{'rounds':>8}{'rows used':>11}"
+    print(f"{'dim':<8}{'method':<8}{'solver':<10}{'seconds':>9}{'(median)':>10}{'cpu s':>8}{'rounds':>8}{'rows used':>11}"
           f"{'eta*':>13}{'mean fit':>13}")
     for i, name in enumerate(ds.system.state_names):
         ref = None
         for method in (["cg"] if a.skip_full else ["cg", "full"]):
             for solver in ("CLARABEL", "HIGHS"):
                 reps = a.repeat if method == "cg" else 1
-                times, r = [], None
+                times, cpus, r = [], [], None
                 for _ in range(reps):
+                    c0 = time.process_time()
                     r = solve_scp(P, g[:, i], a.delta, method=method, solver=solver)
+                    cpus.append(time.process_time() - c0)
                     times.append(r.seconds)
                 fit = float((P @ r.q).mean())
-                print(f"{name:<8}{method:<8}{solver:<10}{min(times):>9.3f}{np.median(times):>10.3f}{r.rounds:>8}"
+                print(f"{name:<8}{method:<8}{solver:<10}{min(times):>9.3f}{np.median(times):>10.3f}{min(cpus):>8.3f}{r.rounds:>8}"
                       f"{r.n_rows_used:>11}{r.eta_star:>13.7g}{fit:>13.7g}")
                 if ref is None:
                     ref = (r.eta_star, fit)
                 elif abs(r.eta_star - ref[0]) > 1e-6 * abs(ref[0]) or abs(fit - ref[1]) > 1e-5 * abs(ref[1]):
                     print(f"   WARNING: differs from the first solve (eta* {ref[0]:.9g}, mean fit {ref[1]:.9g})")
+    if not a.no_certify:
+        from simgap.certify import certify
+        t, c0 = time.perf_counter(), time.process_time()
+        cert = certify(ds) if ds.n_runs >= 2 else certify(ds, method="deterministic")
+        print(f"whole certify() (both dimensions: variance, LPs, Lipschitz estimates, L_2 bound): "
+              f"{time.perf_counter() - t:.2f} s wall, {time.process_time() - c0:.2f} s cpu")
+        print(cert.summary())
 
 
 if __name__ == "__main__":

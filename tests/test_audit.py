@@ -111,3 +111,18 @@ def test_cli_certify_and_audit(tmp_path, capsys):
     other = synthetic_dataset(PEND_CFG, epsilon=0.05, n_runs=5, seed=4).save_npz(tmp_path / "o.npz")
     assert main(["audit", str(cert), "--data", str(other)]) == 2
     assert "hash" in capsys.readouterr().err
+
+
+def test_cli_audit_against_another_simulator(tmp_path, capsys):
+    # the predecessor's setting: certify on a noise-free simulator (one run suffices), audit on the noisy one
+    quiet = dict(PEND_CFG, noise={})
+    d_det = synthetic_dataset(quiet, epsilon=0.03, n_runs=1, seed=2).save_npz(tmp_path / "det.npz")
+    d_noisy = synthetic_dataset(PEND_CFG, epsilon=0.03, n_runs=20, seed=2).save_npz(tmp_path / "noisy.npz")
+    cert = tmp_path / "det.json"
+    assert main(["certify", str(d_det), "--method", "deterministic", "--out", str(cert)]) == 0
+    rep = tmp_path / "a.json"
+    rc = main(["audit", str(cert), "--data", str(d_det), "--against", str(d_noisy), "--points", "20",
+               "--runs", "100", "--out", str(rep)])
+    r = json.loads(rep.read_text())
+    assert r["simulator"]["noise"] == PEND_CFG["noise"] and r["simulator_source"] == str(d_noisy)
+    assert rc == (0 if r["passed"] else 1)

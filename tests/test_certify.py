@@ -184,6 +184,11 @@ def test_constraint_generation_equals_full_lp(pend_ds, solver):
     assert a.eta_star == pytest.approx(b.eta_star, rel=1e-6)
     assert (P @ a.q).mean() == pytest.approx((P @ b.q).mean(), rel=1e-5)
     assert np.allclose(a.q, b.q, atol=1e-6 * np.abs(b.q).max())
+    # stage 1 solved as an LP gives the closed-form optimum max(g + delta1)
+    c = solve_scp(P, g, 0.001, solver=solver, closed_form=False)
+    assert c.stages["stage1"]["rounds"] >= 1
+    assert c.eta_star == pytest.approx(a.eta_star, rel=1e-6) == pytest.approx(g.max() + 0.001, rel=1e-9)
+    assert (P @ c.q).mean() == pytest.approx((P @ a.q).mean(), rel=1e-5)
 
 
 def test_scp_infeasible_basis_is_an_error(pend_ds):

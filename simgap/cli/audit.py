@@ -1,7 +1,7 @@
 """``simgap audit CERT --data DATA``: check a certificate against fresh simulator ground truth.
 
-The simulator is rebuilt from the data set's manifest (its "simulator" config) and the
-certificate's data hash must match the data set. Exit status 0 when the audit passes, 1 when
+The simulator is rebuilt from the data set's manifest (its "simulator" config), or from the
+manifest of ``--against DATA2``, and the certificate's data hash must match ``--data``. Exit status 0 when the audit passes, 1 when
 gamma is violated beyond the audit's own Monte-Carlo error, 2 on bad input.
 """
 
@@ -17,6 +17,9 @@ def add_parser(subparsers) -> None:
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("cert", help="certificate JSON from `simgap certify`")
     p.add_argument("--data", required=True, help="the data set the certificate was computed from")
+    p.add_argument("--against", metavar="DATA2",
+                   help="audit against the simulator of another data set (e.g. a deterministic-baseline "
+                        "certificate made with a noise-free simulator, against the noisy one)")
     p.add_argument("--points", type=int, default=200, help="fresh (x,u) points (default 200)")
     p.add_argument("--runs", type=int, default=2000, help="simulator runs per point (default 2000)")
     p.add_argument("--seed", type=int, default=12345)
@@ -31,12 +34,15 @@ def run(args) -> int:
 
     ds = load_dataset(args.data)
     cert = load(args.cert, dataset=ds)
-    sim_cfg = ds.manifest.get("simulator")
+    src = load_dataset(args.against) if args.against else ds
+    sim_cfg = src.manifest.get("simulator")
     if not sim_cfg:
-        raise SimgapError(f"data set {args.data!r} has no simulator config in its manifest; cannot audit")
+        raise SimgapError(f"data set {args.against or args.data!r} has no simulator config in its manifest; "
+                          f"cannot audit")
     from ..simulators.base import make_simulator
     with make_simulator(sim_cfg, system=ds.system) as sim:
         rep = audit(cert, sim, points=args.points, runs=args.runs, seed=args.seed, dataset=ds)
+    rep["simulator_source"] = str(args.against or args.data)
     print(report_table(rep))
     if args.out:
         save_report(rep, args.out)

@@ -152,6 +152,24 @@ def test_invariance_failure_and_success():
     assert r.nominal["satisfied"] and r.mean_verdict["satisfied"]
 
 
+def test_progress_callback_and_cancel():
+    sys_ = turtlebot()
+    seen = []
+    rollout(Const(sys_, north_spec(), [1.0, 0.0]), tb_sim(), X0, n_rollouts=5, horizon=300, seed=0,
+            progress=lambda t, T: seen.append((t, T)))
+    assert seen[0] == (1, 300) and seen[-1][0] >= 95 and all(T == 300 for _, T in seen)
+
+    class Cancelled(Exception):
+        pass
+
+    def cancel(t, T):
+        if t == 10:
+            raise Cancelled
+
+    with pytest.raises(Cancelled):
+        rollout(Const(sys_, north_spec(), [1.0, 0.0]), tb_sim(), X0, n_rollouts=5, horizon=300, progress=cancel)
+
+
 def test_hold_and_steps():
     sys_ = turtlebot()
     c = Const(sys_, north_spec(), [1.0, 0.0], hold=5)

@@ -98,7 +98,7 @@ def _classify(spec: Spec, x: np.ndarray, x_lo: np.ndarray, x_hi: np.ndarray) -> 
 
 
 def _run(controller, sim, spec: Spec, x0: np.ndarray, R: int, T: int, hold: int,
-         rng: np.random.Generator, on_exit: str, batched: bool) -> _Trace:
+         rng: np.random.Generator, on_exit: str, batched: bool, progress=None) -> _Trace:
     """Run R closed-loop rollouts for T simulator steps (see module docstring)."""
     system = sim.system
     n = system.n
@@ -183,6 +183,8 @@ def _run(controller, sim, spec: Spec, x0: np.ndarray, R: int, T: int, hold: int,
                 rtime[ih] = t + 1
                 outcome[ih] = SUCCESS
                 alive[ih] = False
+        if progress is not None:
+            progress(t + 1, T)
     # rollouts that stopped keep their last state (see module docstring)
     idx = np.minimum(np.arange(T + 1)[None, :], lengths[:, None])
     traj = traj[np.arange(R)[:, None], idx]
@@ -438,7 +440,8 @@ def default_horizon(controller, x0: np.ndarray, hold: int) -> int:
 
 def rollout(controller, simulator, x0=None, n_rollouts: int = 1000, horizon: Optional[int] = None,
             seed: Optional[int] = 0, rng: Optional[np.random.Generator] = None, hold: Optional[int] = None,
-            spec: Optional[Spec] = None, on_exit: str = "hold", batched: bool = True) -> RolloutResult:
+            spec: Optional[Spec] = None, on_exit: str = "hold", batched: bool = True,
+            progress=None) -> RolloutResult:
     """Run ``n_rollouts`` closed-loop rollouts of ``controller`` on ``simulator`` from ``x0``.
 
     Parameters
@@ -466,6 +469,8 @@ def rollout(controller, simulator, x0=None, n_rollouts: int = 1000, horizon: Opt
     batched : bool
         One simulator call per step for all active rollouts (default) or one call per rollout
         (same results; for benchmarks).
+    progress : callable, optional
+        ``progress(t, T)`` after every simulator step (GUI progress bars; raise to cancel).
 
     Returns
     -------
@@ -511,7 +516,7 @@ def rollout(controller, simulator, x0=None, n_rollouts: int = 1000, horizon: Opt
         seed = None
 
     w0, c0 = time.perf_counter(), time.process_time()
-    tr = _run(controller, simulator, spec, x0, n_rollouts, horizon, hold, rng, on_exit, batched)
+    tr = _run(controller, simulator, spec, x0, n_rollouts, horizon, hold, rng, on_exit, batched, progress)
     wall, cpu = time.perf_counter() - w0, time.process_time() - c0
 
     nom_sys = controller.system.with_steps(system.steps)

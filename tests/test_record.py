@@ -1,0 +1,114 @@
+"""Rerun recordings, read back with rerun.chunk.RrdReader (rerun-sdk 0.41)."""
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from simgap.errors import SimgapError
+
+PENDULUM_NUMPY = {"kind": "numpy", "system": "pendulum", "noise": {"actuation_std": 0.05},
+                  "effects": {"linear": [[0.0, 0.0], [0.0, -0.5]]}}
+
+
+@pytest.fixture(scope="module")
+def run_results():
+    """A tiny but real run: data, certificate, a controller for the nominal model, 60 rollouts."""
+    from simgap.certify.synthetic import synthetic_dataset
+    from simgap_viz import engine
+    from simgap_viz.jobs import JobContext
+    from simgap_viz.settings import Settings
+
+    ds = synthetic_dataset(PENDULUM_NUMPY, 0.05, 20, seed=1)
+    s = Settings(epsilon=0.05, n_runs=20, use_gap=False, eta=(0.005, 0.01), n_rollouts=60, horizon=80)
+    ctx = JobContext(name="test")
+    cert = engine.certify(ds, s, ctx)
+    spec = engine.default_spec(ds.system)
+    syn = engine.synthesize(ds.system, spec, None, s, ctx)
+    ro = engine.rollout(ds.system, spec, syn, s, ctx)
+    return ds, cert, spec, syn, ro
+
+
+def _positions_per_row(rb, col):
+    return [len(v) for v in rb.column(col).to_pylist()]
+
+
+def test_record_read_back(tmp_path, run_results):
+    from simgap_viz.record import read_back, record_run
+
+    ds, cert, spec, syn, ro = run_results
+    out = tmp_path / "run.rrd"
+    info = record_run(out, ds.system, dataset=ds, certificate=cert, spec=spec, synthesis=syn, rollouts=ro, res=31)
+    assert out.exists() and info["bytes"] == out.stat().st_size
+    assert not list(tmp_path.glob(".*tmp*")), "temporary file left behind"
+    rb = read_back(out)
+    want = {"/world/X", "/world/safe", "/world/winning", "/world/rollouts/paths", "/world/rollouts/mean",
+            "/world/rollouts/nominal", "/world/rollouts/state", "/gamma/theta/surface", "/gamma/omega/surface",
+            "/gamma/theta/data", "/gamma/omega/data", "/summary"}
+    assert want <= set(rb), want - set(rb)
+
+    # rollouts: R strips; the animated state has T+1 time rows of R points each, on two timelines
+    R, T1 = ro.trajectories.shape[:2]
+    assert (R, T1) == (60, 81) and info["n_rollouts"] == R and info["n_steps"] == T1
+    paths = rb["/world/rollouts/paths"]["chunks"][0]
+    assert len(paths.column("LineStrips3D:strips").to_pylist()[0]) == R
+    assert len(paths.column("LineStrips3D:strips").to_pylist()[0][0]) == T1
+    st = rb["/world/rollouts/state"]
+    assert st["rows"] == T1 and {"step", "time"} <= st["columns"] and not st["static"]
+    counts = sum((_positions_per_row(c, "Points3D:positions") for c in st["chunks"]), [])
+    assert counts == [R] * T1
+    steps = np.concatenate([np.asarray(c.column("step").to_pylist()) for c in st["chunks"]])
+    assert np.array_equal(np.sort(steps), np.arange(T1))
+    # first time row = x0 for every rollout (x1, x2, 0)
+    first = np.asarray(st["chunks"][0].column("Points3D:positions").to_pylist()[0])
+    assert np.allclose(first[:, :2], ro.x0[None, :2], atol=1e-6) and np.allclose(first[:, 2], 0)
+
+    # gamma meshes: res^2 vertices and 2 (res-1)^2 triangles per dimension
+    for name in ("theta", "omega"):
+        mesh = rb[f"/gamma/{name}/surface"]["chunks"][0]
+        assert len(mesh.column("Mesh3D:vertex_positions").to_pylist()[0]) == 31 * 31
+        assert len(mesh.column("Mesh3D:triangle_indices").to_pylist()[0]) == 2 * 30 * 30
+    assert info["gamma_vertices"] == 31 * 31 and info["gamma_triangles"] == 2 * 30 * 30
+
+    # winning domain: one box per winning cell of the 2-D grid
+    boxes = rb["/world/winning"]["chunks"][0]
+    assert len(boxes.column("Boxes3D:centers").to_pylist()[0]) == syn.stats["winning"] == info["winning_cells"]
+    text = rb["/summary"]["chunks"][0].column("TextDocument:text").to_pylist()[0]
+    text = "".join(text) if isinstance(text, list) else text
+    assert "joint confidence" in text and "rollouts of pendulum" in text
+
+    # a default blueprint is in the file
+    from rerun.chunk import RrdReader
+    assert len(RrdReader(str(out)).blueprints()) == 1
+
+
+def test_record_partial_and_bad_paths(tmp_path, run_results):
+    from simgap_viz.record import read_back, record_run
+
+    ds, cert, spec, syn, ro = run_results
+    out = tmp_path / "cert_only.rrd"
+    info = record_run(out, ds.system, certificate=cert)
+    rb = read_back(out)
+    assert "/gamma/omega/surface" in rb and "/world/rollouts/state" not in rb and info["n_rollouts"] == 0
+    with pytest.raises(SimgapError, match=".rrd"):
+        record_run(tmp_path / "x.txt", ds.system)
+    with pytest.raises(SimgapError, match="does not exist"):
+        record_run(tmp_path / "missing" / "x.rrd", ds.system)
+
+
+def test_cli_record(tmp_path):
+    out = tmp_path / "cli.rrd"
+    p = subprocess.run([sys.executable, "-m", "simgap", "record", "--out", str(out), "--experiment", "pendulum",
+                        "--profile", "small", "--epsilon", "0.1", "--n-runs", "5", "--no-gap", "--eta", "0.005,0.01",
+                        "--n-rollouts", "20", "--horizon", "30", "--executor", "serial"],
+                       capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert p.returncode == 0, p.stderr
+    assert "rerun " + str(out) in p.stdout
+    from simgap_viz.record import read_back
+    rb = read_back(out)
+    assert rb["/world/rollouts/state"]["rows"] == 31
+    bad = subprocess.run([sys.executable, "-m", "simgap", "record", "--out", str(tmp_path / "b.rrd"),
+                          "--experiment", "pendulum", "--profile", "small", "--epsilon", "-1"],
+                         capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert bad.returncode == 2 and "epsilon" in bad.stderr

@@ -321,3 +321,19 @@ def test_grid_cover_is_an_epsilon_cover():
     rng = np.random.default_rng(0)
     x = np.array([-0.2, -0.5]) + rng.random((20000, 2)) * np.array([0.4, 1.0])
     assert cKDTree(C).query(x)[0].max() <= 0.004 + 1e-12
+
+
+def test_lhat_from_simulator_with_common_random_numbers(pend_ds):
+    # increments: theta: tau * omega -> 0.005; omega: tau * (-(3g/2l) cos(theta) , -0.5) -> ~0.0736
+    c_data = certify(pend_ds, l2="estimated")
+    c_sim = certify(pend_ds, lhat="simulator", lhat_pairs=500, lhat_runs=50)
+    exact = [0.005, np.hypot(0.005 * 1.5 * 9.81, 0.005 * 0.5)]
+    for i in range(2):
+        assert exact[i] * 0.95 <= c_sim.dims[i].L_fhat <= exact[i] * 1.1
+        assert c_data.dims[i].L_fhat >= c_sim.dims[i].L_fhat  # independent draws only add slope noise
+        assert "common random numbers" in c_sim.dims[i].lipschitz_how["L_fhat"]["how"]
+    # L_f of the increment, estimated from f on the cover, matches the analytic values
+    assert c_data.dims[0].L_f == pytest.approx(0.005, rel=0.02)
+    assert c_data.dims[1].L_f == pytest.approx(0.005 * 1.5 * 9.81, rel=0.05)
+    with pytest.raises(SimgapError, match="lhat"):
+        certify(pend_ds, lhat="oracle")

@@ -127,3 +127,32 @@ def l2_analytic(basis, q: np.ndarray, system, splits: int | None = None, inputs=
         g = basis.grad_x_bound(q, zlo[a:a + step], zhi[a:a + step])
         best = max(best, float(np.sqrt((g ** 2).sum(axis=1)).max()))
     return best
+
+
+def fhat_slopes_crn(sim, rng: np.random.Generator, h: float, n_pairs: int = 2000, runs: int = 100,
+                    increment: bool = True) -> np.ndarray:
+    """Slopes of the empirical mean of fhat with COMMON random numbers, (n_pairs, n).
+
+    The quantity in the paper's proof of Theorem 1 is the Lipschitz constant of
+    x -> (1/N) sum_k fhat(x, u, w_k) with the SAME draws w_k at x and x_r. Slopes between the
+    data set's means (independent draws per row) add noise of order sqrt(2) sigma/(sqrt(N) h);
+    here each pair (x, x + h d) (d a random unit direction, u uniform from U) is simulated with
+    the same ``runs`` noise draws at both ends, so that noise cancels.
+    """
+    s = sim.system
+    lo, hi = s.x_lo + h, s.x_hi - h
+    if np.any(lo >= hi):
+        raise SimgapError(f"Lipschitz (simulator): pair distance h={h:g} too large for X")
+    x = lo + rng.random((n_pairs, s.n)) * (hi - lo)
+    d = rng.standard_normal((n_pairs, s.n))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    x2 = x + h * d
+    u = s.inputs[rng.integers(0, len(s.inputs), n_pairs)]
+    X = np.repeat(np.concatenate([x, x2]), runs, axis=0)
+    U = np.repeat(np.concatenate([u, u]), runs, axis=0)
+    noise = sim.draw_noise(n_pairs * runs, rng)
+    noise = {k: np.concatenate([v, v]) for k, v in noise.items()}  # the same draws at both ends
+    nxt = sim.step_with_noise(X, U, noise)
+    base = s.diff(nxt, X) if increment else nxt
+    m = base.reshape(2, n_pairs, runs, s.n).mean(axis=2)
+    return np.abs(s.diff(m[0], m[1])) / h

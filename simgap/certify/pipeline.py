@@ -23,7 +23,7 @@ from ..errors import SimgapError
 from .basis import Basis
 from .bounds import BoundOptions, beta_from_delta, delta_from_beta, required_runs
 from .certificate import Certificate, DimCertificate
-from .lipschitz import l2_analytic, neighbour_pairs, slopes_of, wood_zhang
+from .lipschitz import fhat_slopes_crn, l2_analytic, neighbour_pairs, slopes_of, wood_zhang
 from .scp import solve_scp
 from .variance import variance_bound
 
@@ -48,6 +48,10 @@ class CertifyOptions:
     bounds : BoundOptions (concentration, lemma2_factor, uniform).
     lipschitz_mode : "increment" (default) or "state" (see lipschitz.py).
     l2 : "analytic" (sound interval bound, default) or "estimated" (Wood-Zhang on the fit).
+    lhat : "data" (default: slopes between the data set's empirical means over neighbouring
+        cover points) or "simulator" (common random numbers, see lipschitz.fhat_slopes_crn;
+        rebuilds the simulator from the manifest unless ``simulator`` is passed to certify).
+    lhat_pairs, lhat_runs : pairs and runs per pair of the "simulator" estimate.
     scp_method, solver, secondary : see scp.solve_scp.
     seed : seeds the Lipschitz batches and the constraint-generation start set.
     """
@@ -66,6 +70,9 @@ class CertifyOptions:
     bounds: BoundOptions = field(default_factory=BoundOptions)
     lipschitz_mode: str = "increment"
     l2: str = "analytic"
+    lhat: str = "data"
+    lhat_pairs: int = 2000
+    lhat_runs: int = 100
     scp_method: str = "cg"
     solver: str = "CLARABEL"
     secondary: bool = True
@@ -132,10 +139,11 @@ def check_dataset(ds) -> None:
         raise SimgapError("dataset: negative sample variances")
 
 
-def certify(dataset, options: Optional[CertifyOptions] = None, **kw) -> Certificate:
+def certify(dataset, options: Optional[CertifyOptions] = None, simulator=None, **kw) -> Certificate:
     """Compute the stochastic simulation-gap certificate of ``dataset`` (see module docstring).
 
-    ``options`` or keyword arguments of :class:`CertifyOptions`.
+    ``options`` or keyword arguments of :class:`CertifyOptions`. ``simulator`` (a Simulator)
+    is only used by ``lhat="simulator"``; by default it is rebuilt from the data manifest.
     """
     t0 = time.perf_counter()
     o = options or CertifyOptions(**kw)
@@ -151,6 +159,8 @@ def certify(dataset, options: Optional[CertifyOptions] = None, **kw) -> Certific
         raise SimgapError(f"lipschitz_mode must be 'increment' or 'state', got {o.lipschitz_mode!r}")
     if o.l2 not in ("analytic", "estimated"):
         raise SimgapError(f"l2 must be 'analytic' or 'estimated', got {o.l2!r}")
+    if o.lhat not in ("data", "simulator"):
+        raise SimgapError(f"lhat must be 'data' or 'simulator', got {o.lhat!r}")
     o.bounds.validate()
     bases = bases_for(s, o.degree, o.terms)
     g = ds.gap()
@@ -217,6 +227,20 @@ def certify(dataset, options: Optional[CertifyOptions] = None, **kw) -> Certific
         sl_fhat = slopes_of(ds.mean, pairs, s)
         sl_f = slopes_of(ds.f_nom, pairs, s)
         Lf_analytic = s.lipschitz_f()
+    if o.lhat == "simulator":
+        from ..simulators.base import make_simulator
+        if simulator is None:
+            cfg = ds.manifest.get("simulator")
+            if not cfg:
+                raise SimgapError("lhat='simulator' needs the data manifest's simulator config or a simulator")
+            with make_simulator(cfg, system=s) as sim:
+                sl_fhat = fhat_slopes_crn(sim, np.random.default_rng([o.seed, 1]), h=ds.epsilon,
+                                          n_pairs=o.lhat_pairs, runs=o.lhat_runs,
+                                          increment=o.lipschitz_mode == "increment")
+        else:
+            sl_fhat = fhat_slopes_crn(simulator, np.random.default_rng([o.seed, 1]), h=ds.epsilon,
+                                      n_pairs=o.lhat_pairs, runs=o.lhat_runs,
+                                      increment=o.lipschitz_mode == "increment")
 
     dims = []
     for i in range(n):
@@ -235,9 +259,11 @@ def certify(dataset, options: Optional[CertifyOptions] = None, **kw) -> Certific
                           **wz.to_dict()}
         wz = wood_zhang(sl_fhat[:, i], rng)
         L_fhat = wz.estimate
+        src = (" over neighbouring cover points (independent draws per row)" if o.lhat == "data" else
+               f" at {o.lhat_pairs} random pairs ||x - x'|| = eps, {o.lhat_runs} runs each with common random "
+               f"numbers (simulator)")
         how["L_fhat"] = {"how": "Wood-Zhang estimate on slopes of the empirical mean" +
-                         (" increment (mean - x)" if o.lipschitz_mode == "increment" else "") +
-                         " over neighbouring cover points", **wz.to_dict()}
+                         (" increment (mean - x)" if o.lipschitz_mode == "increment" else "") + src, **wz.to_dict()}
         if o.l2 == "analytic":
             L_2 = l2_analytic(bases[i], res.q, s)
             how["L_2"] = "analytic: interval bound of ||grad_x q^T p||_2 over sub-boxes of X, all u in U (sound)"

@@ -77,6 +77,8 @@ def add_parser(subparsers) -> None:
     b.add_argument("--lipschitz", choices=["increment", "state"], default="increment",
                    help="Lipschitz constants of the increments f-x (default) or of f itself")
     b.add_argument("--l2", choices=["analytic", "estimated"], default="analytic")
+    b.add_argument("--lhat", choices=["data", "simulator"], default="data",
+                   help="Lhat_fhat from the data's means (default) or from the simulator with common random numbers")
     s = p.add_argument_group("solver")
     s.add_argument("--solver", choices=["CLARABEL", "HIGHS"], default="CLARABEL")
     s.add_argument("--scp", choices=["cg", "full"], default="cg", help="constraint generation or the whole LP")
@@ -103,7 +105,7 @@ def options_from_args(args, system):
         variance=args.variance, safety=args.safety, value_range=args.value_range, beta_v=args.beta_v,
         bounds=BoundOptions(concentration=args.concentration, lemma2_factor=args.lemma2_factor,
                             uniform=args.uniform, value_range=args.value_range),
-        lipschitz_mode=args.lipschitz, l2=args.l2, scp_method=args.scp, solver=args.solver, seed=args.seed)
+        lipschitz_mode=args.lipschitz, l2=args.l2, lhat=args.lhat, scp_method=args.scp, solver=args.solver, seed=args.seed)
 
 
 def run(args) -> int:

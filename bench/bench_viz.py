@@ -1,0 +1,135 @@
+"""Benchmark of the app and the recorder (run by hand; numbers go to docs/app.md).
+
+    python bench/bench_viz.py                        # pendulum case-study data (collected once into runs/)
+    python bench/bench_viz.py --dataset PATH         # any dataset (.npz or store)
+    python bench/bench_viz.py --profile small        # quick check on the small profile
+
+1. Cheap changes: the time from a delta or basis change in the GUI (a handle's value set from
+   Python, which fires the same callback as the browser) to the updated gamma surface in the
+   scene: re-certification from the cached data on the job thread + redrawing the surface and
+   the data points. Several distinct values (no cache hits), median and max reported; then the
+   time of a cache hit (switching back to a value seen before).
+2. Recording: 1000 closed-loop rollouts x 1000 steps of the pendulum (no-gap controller,
+   numpy simulator) logged to an .rrd (column-wise), time and file size; the rollouts
+   themselves are computed first and not timed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def load_or_collect(args):
+    from simgap.collect import collect
+    from simgap.config import load_experiment
+    from simgap.dataset import load_dataset
+    if args.dataset:
+        return load_dataset(args.dataset)
+    exp = load_experiment("pendulum", args.profile)
+    plan = exp.plan()
+    store = REPO / "runs" / f"bench-viz-pendulum-{args.profile}"
+    t = time.perf_counter()
+    res = collect(plan, store, executor="local")
+    print(f"data: {plan.n_pairs:,} pairs x {plan.n_runs} runs in store {store} "
+          f"({'computed' if res.computed else 'reused'}, {time.perf_counter() - t:.1f} s)", flush=True)
+    return res.dataset(exp.system)
+
+
+def bench_cheap_changes(ds, repeats: int):
+    from simgap_viz.app import SimgapApp
+    app = SimgapApp(port=0, executor="serial")
+    try:
+        app.set_dataset(ds)
+        cp = app.panels["certificate"]
+        t = time.perf_counter()
+        app.certify()
+        app.wait(600)
+        first = time.perf_counter() - t
+        cp.delta1.value = "0.01, 0.02"
+        cp.delta2.value = "0.01, 0.02"
+        cp.mode.value = "per dimension"
+        app.wait(600)
+
+        def timed(change):
+            t0 = time.perf_counter()
+            change()
+            app.wait(600)  # the job's finish redraws the surface (refresh_result_layers in _accept)
+            return time.perf_counter() - t0
+
+        rows = {"delta": [], "degree": [], "terms": []}
+        for k in range(repeats):
+            d = f"{0.010 + 0.001 * (k + 1):.3f}, {0.020 + 0.002 * (k + 1):.3f}"
+            rows["delta"].append(timed(lambda: setattr(cp.delta1, "value", d)))
+        for deg in (1, 3, 2)[:max(1, min(3, repeats))]:
+            rows["degree"].append(timed(lambda: setattr(cp.degree, "value", deg)))
+        for terms in ("sin(x1)", "x2*u1", "cos(x1), x2^3")[:max(1, min(3, repeats))]:
+            rows["terms"].append(timed(lambda: setattr(cp.terms, "value", terms)))
+        hit = timed(lambda: setattr(cp.terms, "value", "sin(x1)"))
+        assert app.status.content.startswith("certify: from cache"), app.status.content
+        errs = [n for n in app.notifications if n[2] == "red"]
+        if errs:
+            print("notifications:", errs, file=sys.stderr)
+        return {"first_certify_s": first, "cache_hit_s": hit,
+                **{k: {"n": len(v), "median_s": statistics.median(v), "max_s": max(v)} for k, v in rows.items()}}
+    finally:
+        app.stop()
+
+
+def bench_recording(R: int, T: int):
+    from simgap_viz import engine
+    from simgap_viz.jobs import JobContext
+    from simgap_viz.record import record_run
+    from simgap_viz.settings import Settings
+    from simgap.config import load_experiment
+
+    exp = load_experiment("pendulum", "small")
+    s = Settings(use_gap=False, eta=(0.005, 0.01), n_rollouts=R, horizon=T)
+    ctx = JobContext(name="bench")
+    system = exp.system
+    spec = engine.default_spec(system)
+    t = time.perf_counter()
+    syn = engine.synthesize(system, spec, None, s, ctx)
+    ro = engine.rollout(system, spec, syn, s, ctx, experiment=exp)
+    print(f"rollouts computed in {time.perf_counter() - t:.1f} s (not part of the logging time)", flush=True)
+    with tempfile.TemporaryDirectory() as d:
+        out = Path(d) / "rollouts.rrd"
+        info = record_run(out, system, rollouts=ro)
+        full = Path(d) / "full.rrd"
+        info_full = record_run(full, system, spec=spec, synthesis=syn, rollouts=ro)
+    return {"rollouts": R, "steps": T + 1, "log_s": info["seconds"], "bytes": info["bytes"],
+            "with_winning_domain_log_s": info_full["seconds"], "with_winning_domain_bytes": info_full["bytes"]}
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--dataset", default=None)
+    p.add_argument("--profile", default="paper", help="pendulum experiment profile when collecting (default paper)")
+    p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--rollouts", type=int, default=1000)
+    p.add_argument("--steps", type=int, default=1000)
+    p.add_argument("--skip-certify", action="store_true")
+    args = p.parse_args(argv)
+    out = {"machine": {"cores": os.cpu_count(), "python": platform.python_version()}}
+    if not args.skip_certify:
+        ds = load_or_collect(args)
+        out["data"] = {"pairs": ds.K, "n_runs": ds.n_runs, "epsilon": ds.epsilon}
+        out["cheap_changes"] = bench_cheap_changes(ds, args.repeats)
+        print(json.dumps(out["cheap_changes"], indent=1), flush=True)
+    out["recording"] = bench_recording(args.rollouts, args.steps)
+    print(json.dumps(out, indent=1))
+
+
+if __name__ == "__main__":
+    main()

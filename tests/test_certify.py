@@ -39,6 +39,9 @@ def test_chebyshev_formulas_hand_computed():
     assert b2 == pytest.approx([0.0056, 2 * 0.0101 / 2.5], rel=1e-12)
     # the paper's printed beta_1,1 = 0.0028 follows from delta = 0.05, not the printed 0.01
     assert beta_from_delta([0.007], 0.01, 0.01, 1000)[0][0] == pytest.approx(0.07)
+    # ... and the printed beta_1,3 = 0.0079 follows from Mhat_3 = 0.0101 at none of the printed deltas
+    for d in (0.01, 0.05):
+        assert beta_from_delta([0.0101], d, d, 1000)[0][0] != pytest.approx(0.0079, rel=0.05)
     # general Lemma 2 (4 Mhat)
     assert beta_from_delta([0.007], 0.05, 0.05, 1000, opts=BoundOptions(lemma2_factor=4.0))[1][0] \
         == pytest.approx(0.0112)

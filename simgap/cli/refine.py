@@ -45,6 +45,13 @@ def add_parser(subparsers) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--name", help="name of the refined system")
     p.add_argument("--quiet", action="store_true", help="no table on the terminal")
+    g = p.add_argument_group("gap comparison (collected simulator data sets only)")
+    g.add_argument("--compare-gap", action="store_true",
+                   help="certify the data against f and f' (paper's method) and report gamma max/mean")
+    g.add_argument("--spec", metavar="FILE", help="specification JSON (simgap Spec.to_dict) for synthesizing with "
+                                                  "both gaps; reports the winning-domain sizes (needs --eta)")
+    g.add_argument("--eta", help="cell widths for the synthesis, comma-separated (one per state)")
+    g.add_argument("--hold", type=int, default=1, help="sampling periods per abstract step (synthesis)")
     p.set_defaults(func=run)
 
 
@@ -52,7 +59,7 @@ def run(args) -> int:
     from ..refine.data import load_transitions
     from ..refine.effects import parse_user_terms
     from ..refine.refined import load_system, save_refined
-    from ..refine.report import format_table, refine
+    from ..refine.report import format_gap_comparison, format_table, refine
     from ..refine.selection import SelectionOptions
 
     system = load_system(args.system)
@@ -71,8 +78,12 @@ def run(args) -> int:
     opts = SelectionOptions(holdout=args.holdout, n_segments=args.segments, min_explained=args.min_explained,
                             n_boot=args.bootstrap, seed=args.seed)
     res = refine(system, data, effects=names, user_terms=users, options=opts, name=args.name)
+    if args.compare_gap or args.spec:
+        res.report["gap_comparison"] = _compare(args, res)
     if not args.quiet:
         print(format_table(res.report))
+        if "gap_comparison" in res.report:
+            print(format_gap_comparison(res.report["gap_comparison"], res.system.state_names))
     if args.out:
         out = Path(args.out)
         tmp = out.with_name(out.name + ".tmp")
@@ -85,3 +96,37 @@ def run(args) -> int:
         if not args.quiet:
             print(f"refined system written to {args.save_system}")
     return 0
+
+
+def _compare(args, res) -> dict:
+    from ..dataset import load_dataset
+    from ..refine.compare import gap_comparison
+
+    path = Path(args.data)
+    if not (path.is_dir() or (path.suffix == ".npz" and _is_dataset(path))):
+        raise SimgapError("--compare-gap/--spec need a collected data set (simgap collect output): the certificate "
+                          "needs the per-(x_r, u) statistics of N1hat runs, not plain transitions")
+    ds = load_dataset(path, system=res.system)
+    spec = eta = None
+    if args.spec:
+        from ..synthesis.spec import Spec
+        if not args.eta:
+            raise SimgapError("--spec needs --eta (cell widths)")
+        try:
+            spec = Spec.from_dict(json.loads(Path(args.spec).read_text()))
+        except (OSError, json.JSONDecodeError, KeyError, TypeError) as e:
+            raise SimgapError(f"--spec {args.spec!r}: not a readable specification JSON ({e})") from None
+        try:
+            eta = [float(v) for v in args.eta.split(",")]
+        except ValueError:
+            raise SimgapError(f"--eta {args.eta!r}: expected comma-separated numbers") from None
+    return gap_comparison(ds, res.refined, spec=spec, eta=eta, hold=args.hold)
+
+
+def _is_dataset(path: Path) -> bool:
+    import numpy as np
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return {"mean", "f_nom", "meta"} <= set(z.files)
+    except (OSError, ValueError):
+        return False

@@ -10,7 +10,9 @@ transition data, and returns a :class:`RefineResult` whose ``report`` is the JSO
 * ``rms_before``, ``rms_after``, ``max_before``, ``max_after``: per state, on held-out data,
   of r = x_next - f(x,u) (before) and x_next - f'(x,u) (after), in state units per tau;
 * ``unexplained`` (bool) and per-state detail (``states``): remaining fraction of the
-  residual, held-out R^2 of the structure test, lag-1 autocorrelation for time series.
+  residual, held-out R^2 of the structure test, lag-1 autocorrelation for time series;
+* ``multistep`` (time series only): RMS error of 10- and 100-step open-loop predictions with
+  the measured inputs from held-out states, for f and f'.
 """
 
 from __future__ import annotations
@@ -101,6 +103,38 @@ def refine(system, data: Transitions, effects: Optional[Sequence[str]] = None,
                         effects=chosen, before=before, after=after, report=report)
 
 
+def multistep_rms(system: System, data: Transitions, held: np.ndarray, k: int) -> Optional[np.ndarray]:
+    """RMS error (n,) of k-step open-loop predictions with the measured inputs (time series only).
+
+    From every held-out sample s whose next k transitions are all held-out and consecutive
+    (x_next[s+j] = x[s+j+1]), iterate x <- f(x, u[s+j]) for j < k and compare with x_next[s+k-1].
+    None when no such start exists.
+    """
+    if data.t is None:
+        return None
+    K = data.K
+    order = np.argsort(data.t, kind="stable")
+    x, u, xn, h = data.x[order], data.u[order], data.x_next[order], held[order]
+    # a step j -> j+1 continues the trajectory when x_next[j] is x[j+1]
+    cont = np.zeros(K, dtype=bool)
+    cont[:-1] = np.all(np.isclose(xn[:-1], x[1:], rtol=0, atol=1e-12 * (1 + np.abs(x[1:]))), axis=1)
+    # good[s] = h[s..s+k-1] all True and cont[s..s+k-2] all True (cumulative sums)
+    bad = (~h).astype(int)
+    brk = (~cont).astype(int)
+    cb = np.concatenate([[0], np.cumsum(bad)])
+    cc = np.concatenate([[0], np.cumsum(brk)])
+    s = np.arange(K - k + 1)
+    good = (cb[s + k] - cb[s] == 0) & ((cc[s + k - 1] - cc[s]) == 0 if k > 1 else True)
+    starts = s[good]
+    if starts.size == 0:
+        return None
+    z = x[starts]
+    for j in range(k):
+        z = system.f(z, u[starts + j])
+    e = system.diff(z, xn[starts + k - 1])
+    return np.sqrt(np.mean(e ** 2, axis=0))
+
+
 def _f(v) -> Optional[float]:
     v = float(v)
     return v if np.isfinite(v) else None
@@ -137,6 +171,13 @@ def _report(s: System, refined: System, data: Transitions, held, fits: Sequence[
             "notes": list(fit.notes),
         })
     outside = int(np.any((data.x < s.x_lo) | (data.x > s.x_hi), axis=1).sum())
+    multistep = {}
+    if data.is_time_series:
+        for k in (10, 100):
+            b, a = multistep_rms(s, data, held, k), multistep_rms(refined, data, held, k)
+            if b is not None:
+                multistep[str(k)] = {"rms_before": b.tolist(), "rms_after": a.tolist(),
+                                     "seconds": k * data.tau}
     return {
         "system": s.name, "refined_system": refined.name, "data": data.source,
         "tau": data.tau, "samples": int(data.K), "train": int((~held).sum()), "heldout": int(held.sum()),
@@ -152,6 +193,7 @@ def _report(s: System, refined: System, data: Transitions, held, fits: Sequence[
         "mean_after": ra.mean(axis=0).tolist(),
         "unexplained": bool(any(f.unexplained for f in fits)),
         "states": states,
+        "multistep": multistep,
         "options": {"holdout": opts.holdout, "n_segments": opts.n_segments,
                     "min_explained": opts.min_explained, "n_boot": opts.n_boot,
                     "structure_threshold": opts.structure_threshold,
@@ -189,6 +231,9 @@ def format_table(report: dict) -> str:
         lines.append(f"{label:<20}" + "".join(f"{v:>24.4g}" for v in report[key]))
     ratio = [b / a if a > 0 else float("inf") for b, a in zip(report["rms_before"], report["rms_after"])]
     lines.append(f"{'RMS ratio':<20}" + "".join(f"{v:>24.3g}" for v in ratio))
+    for k, ms in report.get("multistep", {}).items():
+        lines.append(f"{'RMS ' + k + '-step f':<20}" + "".join(f"{v:>24.4g}" for v in ms["rms_before"]))
+        lines.append(f"{'RMS ' + k + '-step f' + chr(39):<20}" + "".join(f"{v:>24.4g}" for v in ms["rms_after"]))
     lines.append("")
     for st in report["states"]:
         msg = (f"state {st['state_name']}: explained {100 * st['explained_fraction']:.1f}% of the residual "
@@ -200,4 +245,16 @@ def format_table(report: dict) -> str:
                     f"{100 * st['unexplained_fraction']:.1f}% of it structured in (x, u)")
         lines.append(msg)
     lines.append(f"unexplained: {'true' if report['unexplained'] else 'false'}")
+    return "\n".join(lines)
+
+
+def format_gap_comparison(c: dict, names) -> str:
+    """Table of :func:`simgap.refine.compare.gap_comparison` (certified gap and winning domain)."""
+    lines = ["", f"{'certified gap gamma':<22}" + "".join(f"{n:>16}" for n in names)]
+    for key, label in (("gamma_max_before", "max over data, f"), ("gamma_max_after", "max over data, f'"),
+                       ("gamma_mean_before", "mean over data, f"), ("gamma_mean_after", "mean over data, f'")):
+        lines.append(f"{label:<22}" + "".join(f"{v:>16.4g}" for v in c[key]))
+    if "winning_before" in c:
+        lines.append(f"winning domain: {c['winning_before']} cells with f, {c['winning_after']} cells with f' "
+                     f"(of {c['domain_cells']}; eta = {c['eta']}, hold = {c['hold']})")
     return "\n".join(lines)

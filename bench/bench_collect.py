@@ -12,7 +12,11 @@
    including pool start-up and one simulator build per worker, extrapolated to the full set;
    samples/s per core and the ratio to (1) measured in the same run.
 3. TurtleBot: the same for the TurtleBot case study (185 headings x 441 inputs x 1000 runs),
-   a small fraction, robot-steps per second.
+   ``--tb-chunks`` chunks of 262 pairs x 1000 runs, robot-steps per second.
+
+The machine may be shared: besides wall-clock rates the report gives rates per CPU-second
+(the workers' user + system time from getrusage, the plain loop's process_time), which do not
+depend on how many other processes compete for the cores; the idle-machine estimates use them.
 4. Peak memory of a pendulum-scale collection: the full 263,907-pair, N1hat = 1000 store
    collected with the numpy simulator (same chunking and statistics; PyBullet would add only
    its per-worker client), then loaded as one Dataset. Peak RSS of the collecting process and
@@ -54,18 +58,19 @@ def plain_loop(n: int = 20000, repeat: int = 3) -> float:
     c.setJointMotorControl2(body, 0, pb.VELOCITY_CONTROL, force=0)
     cid = c._client
     q, qd, tq = x[:, 0].tolist(), x[:, 1].tolist(), u[:, 0].tolist()
-    best = np.inf
+    best, cpu = np.inf, np.inf
     for _ in range(repeat):
         out = np.empty((n, 2))
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         for i in range(n):
             pb.resetJointState(body, 0, q[i], qd[i], physicsClientId=cid)
             pb.setJointMotorControl2(body, 0, pb.TORQUE_CONTROL, force=tq[i], physicsClientId=cid)
             pb.stepSimulation(physicsClientId=cid)
             out[i] = pb.getJointState(body, 0, physicsClientId=cid)[:2]
         best = min(best, time.perf_counter() - t0)
+        cpu = min(cpu, time.process_time() - c0)
     c.disconnect()
-    return n / best
+    return n / best, n / cpu
 
 
 def collector_fraction(experiment: str, fraction: float, workers: int):
@@ -77,11 +82,14 @@ def collector_fraction(experiment: str, fraction: float, workers: int):
     plan = exp.plan()
     k = max(1, int(round(1 / fraction)))
     ids = list(range(0, plan.n_chunks, k))
+    r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     with tempfile.TemporaryDirectory() as d:
         t0 = time.perf_counter()
         res = collect(plan, os.path.join(d, "s"), executor="local", workers=workers, chunk_ids=ids)
         wall = time.perf_counter() - t0
-    return plan, len(ids), wall, res.runs
+    r1 = resource.getrusage(resource.RUSAGE_CHILDREN)  # the pool's workers, joined by collect()
+    cpu = (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
+    return plan, len(ids), wall, cpu, res.runs
 
 
 def memory_child(workers: int) -> None:
@@ -119,7 +127,7 @@ def memory_child(workers: int) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--fraction", type=float, default=0.05, help="share of the pendulum case study to run")
-    ap.add_argument("--tb-fraction", type=float, default=0.004, help="share of the TurtleBot case study to run")
+    ap.add_argument("--tb-chunks", type=int, default=2, help="TurtleBot case-study chunks to run (of 312)")
     ap.add_argument("--workers", type=int, default=os.cpu_count())
     ap.add_argument("--full", action="store_true", help="run the whole pendulum case study")
     ap.add_argument("--skip-memory", action="store_true")
@@ -132,25 +140,29 @@ def main() -> None:
     W = a.workers
     print(f"machine: {os.cpu_count()} cores, load average {os.getloadavg()[0]:.2f} at start; workers = {W}")
 
-    plain = plain_loop()
-    print(f"(1) plain loop, one pendulum body: {plain:,.0f} samples/s on one core")
+    plain, plain_cpu = plain_loop()
+    print(f"(1) plain loop, one pendulum body: {plain:,.0f} samples/s wall-clock (best of 3), "
+          f"{plain_cpu:,.0f} samples per CPU-second")
 
     frac = 1.0 if a.full else a.fraction
-    plan, n, wall, runs = collector_fraction("pendulum", frac, W)
+    plan, n, wall, cpu, runs = collector_fraction("pendulum", frac, W)
     rate = runs / wall
-    full = wall * plan.n_chunks / n
+    total = plan.n_pairs * plan.n_runs
     print(f"(2) collector, pendulum case study: {n} of {plan.n_chunks} chunks ({runs:,} runs) in {wall:.1f} s "
-          f"with {W} workers")
-    print(f"    {rate:,.0f} samples/s total, {rate / W:,.0f} per core = {rate / W / plain:.1f}x the plain loop")
-    print(f"    full case study ({plan.n_pairs * plan.n_runs:,} steps): "
-          f"{'measured' if a.full else 'extrapolated'} {full / 60:.1f} min on {W} workers")
+          f"wall-clock, {cpu:.1f} CPU-s in {W} workers")
+    print(f"    wall-clock: {rate:,.0f} samples/s total, {rate / W:,.0f} per core = {rate / W / plain:.1f}x "
+          f"the plain loop; full case study {'measured' if a.full else 'extrapolated'} "
+          f"{wall * plan.n_chunks / n / 60:.1f} min")
+    print(f"    CPU time: {runs / cpu:,.0f} samples per CPU-second = {runs / cpu / plain_cpu:.1f}x the plain loop; "
+          f"full case study ({total:,} steps) on {W} otherwise idle cores: {total / (runs / cpu) / W / 60:.1f} min")
 
     if not a.skip_turtlebot:
-        plan, n, wall, runs = collector_fraction("turtlebot", a.tb_fraction, W)
-        rate = runs / wall
-        print(f"(3) collector, TurtleBot case study: {n} of {plan.n_chunks} chunks ({runs:,} runs) in {wall:.1f} s; "
-              f"{rate:,.0f} robot-steps/s total, {rate / W:,.0f} per core; full set "
-              f"({plan.n_pairs * plan.n_runs:,} runs) extrapolated {wall * plan.n_chunks / n / 3600:.2f} h")
+        tb_frac = a.tb_chunks / 312
+        plan, n, wall, cpu, runs = collector_fraction("turtlebot", tb_frac, W)
+        total = plan.n_pairs * plan.n_runs
+        print(f"(3) collector, TurtleBot case study: {n} of {plan.n_chunks} chunks ({runs:,} runs) in {wall:.1f} s "
+              f"wall-clock, {cpu:.1f} CPU-s; {runs / wall:,.0f} robot-steps/s total, {runs / cpu:,.0f} per CPU-second; "
+              f"full set ({total:,} runs) on {W} idle cores: {total / (runs / cpu) / W / 3600:.2f} h")
 
     if not a.skip_memory:
         out = subprocess.run([sys.executable, __file__, "--memory-child", "--workers", str(W)],

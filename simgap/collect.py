@@ -138,6 +138,10 @@ class CollectionPlan:
             raise SimgapError(f"collection: simulator steps={self.simulator.steps} but system steps="
                               f"{self.system.steps}; they must agree (tau = steps * base_tau)")
         self.system.check_states(self.cover.points, "cover points")
+        # workers rebuild the cover from its spec: the points must be exactly what the spec gives
+        if not np.array_equal(make_cover(self.system, self.cover.spec).points, self.cover.points):
+            raise SimgapError("collection: the cover's points differ from what its spec produces; "
+                              "build covers with simgap.cover.make_cover")
 
     @property
     def n_pairs(self) -> int:

@@ -210,6 +210,16 @@ def test_plan_consistency_checks():
         make_simulator(SimulatorConfig("bogus", "pendulum"))
 
 
+def test_cover_points_outside_x_or_tampered():
+    import dataclasses
+    s = get_system("pendulum")
+    cover = make_cover(s, 0.1)
+    with pytest.raises(SimgapError, match="outside X"):
+        CollectionPlan(s, PEND_SIM, dataclasses.replace(cover, points=cover.points + 0.3), n_runs=5)
+    with pytest.raises(SimgapError, match="differ from what its spec produces"):
+        CollectionPlan(s, PEND_SIM, dataclasses.replace(cover, points=cover.points * 0.5), n_runs=5)
+
+
 def test_unreadable_or_mismatched_store(tmp_path):
     with pytest.raises(SimgapError, match="does not exist"):
         load_store(tmp_path / "nope")

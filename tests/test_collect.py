@@ -310,3 +310,37 @@ def test_pybullet_pendulum_collection(tmp_path):
     g = a.system.diff(a.mean, a.f_nom)[:, 1]
     fast = np.abs(a.x[:, 1]) > 0.35
     assert np.all(np.sign(g[fast]) == -np.sign(a.x[fast, 1]))
+
+
+def test_ray_missing_is_a_clear_error(monkeypatch):
+    import sys
+
+    from simgap.executors import make_executor
+    monkeypatch.setitem(sys.modules, "ray", None)  # import ray -> ImportError
+    with pytest.raises(SimgapError, match="pip install"):
+        make_executor("ray")
+    with pytest.raises(SimgapError, match="unknown executor"):
+        make_executor("dask")
+    with pytest.raises(SimgapError, match="workers"):
+        make_executor("local", workers=-2)
+
+
+def test_progress_bar_and_stop_checks():
+    import io
+
+    from simgap.progress import ProgressBar, as_stop_check
+    buf = io.StringIO()
+    bar = ProgressBar(unit="pairs", stream=buf, scale=100.0, scale_unit="sim steps")
+    for done in range(0, 1001, 50):
+        bar(done, 1000)
+    lines = buf.getvalue().splitlines()
+    assert 10 <= len(lines) <= 12  # not a tty: about one line per 10 %
+    assert "100.0%" in lines[-1] and "1,000/1,000 pairs" in lines[-1] and "sim steps/s" in lines[-1]
+    ev = threading.Event()
+    check = as_stop_check(ev)
+    assert not check()
+    ev.set()
+    assert check()
+    assert as_stop_check(lambda: 1)() is True and as_stop_check(None)() is False
+    with pytest.raises(TypeError):
+        as_stop_check(3)

@@ -30,6 +30,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--n-runs", type=int, default=None, help="N1hat runs per (x_r, u)")
     p.add_argument("--confidence", type=float, default=None, help="target joint confidence")
     p.add_argument("--degree", type=int, default=None, help="basis degree")
+    p.add_argument("--terms", default=None, help="extra basis terms, comma separated (e.g. 'x3, u1, u2')")
     p.add_argument("--eta", default=None, help="grid cell widths, comma separated")
     p.add_argument("--hold", type=int, default=None, help="sampling periods an input is held")
     p.add_argument("--no-gap", action="store_true", help="synthesize on the nominal model alone")
@@ -58,6 +59,8 @@ def settings_from_args(args):
     if dataset is not None:
         ch.update(system=dataset.system.name, steps=int(dataset.system.steps), epsilon=float(dataset.epsilon),
                   n_runs=int(dataset.n_runs))
+    if args.terms is not None:
+        ch["terms"] = args.terms
     if args.no_gap:
         ch["use_gap"] = False
     settings = settings.replace(**ch)

@@ -243,7 +243,7 @@ def initial_state(settings, system, syn, spec, arena=None) -> np.ndarray:
         raise SimgapError("empty winning domain: no initial state to roll out from (change eta, hold or the gap)")
     pts = ctrl.grid.points(ids)
     box = spec.target if spec.kind == "reach_avoid" else spec.safe
-    c = np.where(np.isfinite(box.lo) & np.isfinite(box.hi), 0.5 * (box.lo + box.hi), 0.5 * (system.x_lo + system.x_hi))
+    c = 0.5 * (np.clip(box.lo, system.x_lo, system.x_hi) + np.clip(box.hi, system.x_lo, system.x_hi))
     return pts[np.argmin(np.linalg.norm((pts - c) / (system.x_hi - system.x_lo), axis=1))]
 
 

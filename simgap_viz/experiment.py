@@ -21,6 +21,9 @@ def app_inputs(experiment: Optional[str] = None, profile: Optional[str] = None, 
         settings, spec, arena, exp = settings_from_experiment(experiment, profile)
     if system:
         settings = settings.replace(system=system, simulator=engine.default_simulator(system, settings.simulator))
+        if system == "turtlebot" and arena is None:
+            from simgap.maps import load_map
+            arena = load_map("arena")
     settings = settings.replace(eta=engine.default_eta(engine.make_system(settings))) \
         if len(settings.eta) != engine.make_system(settings).n else settings
     if dataset:
@@ -82,7 +85,7 @@ def from_experiment(exp):
     if len(st.eta) == 1:
         st = st.replace(eta=st.eta * s.n)
     arena = None
-    map_name = syn.get("map") or exp.simulator.options.get("map")
+    map_name = syn.get("map") or exp.simulator.options.get("map") or ("arena" if s.name == "turtlebot" else None)
     if map_name:
         from simgap.maps import load_map
         arena = load_map(map_name)

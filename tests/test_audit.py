@@ -126,3 +126,25 @@ def test_cli_audit_against_another_simulator(tmp_path, capsys):
     r = json.loads(rep.read_text())
     assert r["simulator"]["noise"] == PEND_CFG["noise"] and r["simulator_source"] == str(d_noisy)
     assert rc == (0 if r["passed"] else 1)
+
+
+def test_declared_invariance_turtlebot():
+    # heading-only cover (x, y declared invariant, as the TurtleBot experiment does); a heading bias
+    # and a speed-dependent drift that do not depend on the position
+    cfg = {"kind": "numpy", "system": "turtlebot", "noise": {"process_std": 0.001},
+           "effects": {"bias": [0.01, -0.02, 0.05]}}
+    U = np.array([[v, w] for v in (-1.0, 0.0, 1.0) for w in (-1.0, 0.0, 1.0)])
+    ds = synthetic_dataset(cfg, epsilon=0.1, n_runs=30, seed=1, inputs=U, fixed={0: 2.0, 1: 2.0})
+    assert np.all(ds.x[:, :2] == 2.0)
+    c = certify(ds, degree=2)
+    assert c.inputs.shape == (9, 2)   # certified for the inputs the data covered; the audit draws from them
+    assert not any("x1" in t or "x2" in t for d in c.dims for t in d.terms)
+    assert "declared invariant" in " ".join(c.options["notes"])
+    with pytest.raises(SimgapError, match="declared invariant"):
+        certify(ds, terms={0: ["x1*u1"]})
+    # audit over the whole X (positions anywhere) with the same inputs
+    from simgap.simulators.base import make_simulator
+    sim = make_simulator(cfg)
+    rep = audit(c, sim, points=100, runs=200, seed=3, dataset=ds)
+    assert rep["passed"] and rep["distance_to_cover"]["dims"] == ["theta"]
+    assert rep["distance_to_cover"]["max"] <= 0.1 + 1e-9

@@ -274,6 +274,7 @@ def test_certificate_json_roundtrip_and_hash(tmp_path, pend_ds, pend_cert):
     u = np.array([[0.5], [-1.0]])
     assert c2.gamma(x, u) == pytest.approx(pend_cert.gamma(x, u), rel=1e-14)
     assert c2.system_name == "pendulum" and c2.n == 2 and c2.steps == 1
+    assert np.array_equal(c2.inputs, pend_cert.inputs) and c2.inputs.shape == (21, 1)
     c2.check_system(pendulum())
     with pytest.raises(SimgapError, match="not 'pendulum'"):
         c2.check_system(pendulum().with_steps(2))

@@ -7,6 +7,8 @@ claim |E fhat_i - f_i| <= gamma_i(x, u) is checked per dimension and jointly.
 Monte-Carlo error of the audit itself: the estimated gap has standard error
 SE_i = s_i / sqrt(R) (s_i the sample std of the R runs). A point counts as
 
+Inputs are drawn from the certificate's input set (the inputs its data covered).
+
 * ``holds``       if gamma_i - |mean_i - f_i| >= 0,
 * ``violated``    if |mean_i - f_i| - gamma_i > 3 SE_i (a violation beyond audit noise),
 * ``inconclusive`` otherwise (within 3 SE of the boundary).
@@ -31,18 +33,24 @@ from ..simulators.base import Simulator, make_simulator
 QUANTILES = (0.0, 0.01, 0.05, 0.5, 0.95, 1.0)
 
 
-def draw_points(system, B: int, rng: np.random.Generator, cover=None):
-    """B fresh states uniform in X (not on the cover points) and inputs uniform from U."""
+def draw_points(system, B: int, rng: np.random.Generator, cover=None, cov_dims=None, inputs=None):
+    """B fresh states uniform in X (not on the cover points) and inputs uniform from ``inputs`` (default U).
+
+    ``cover`` holds the cover points' coordinates in the covered dimensions ``cov_dims``.
+    """
     x = system.x_lo + rng.random((B, system.n)) * (system.x_hi - system.x_lo)
+    cov_dims = list(range(system.n)) if cov_dims is None else list(cov_dims)
     if cover is not None and len(cover):
         from scipy.spatial import cKDTree
-        d, _ = cKDTree(cover).query(x)
+        tree = cKDTree(cover)
+        d, _ = tree.query(x[:, cov_dims])
         hit = d < 1e-9
         while hit.any():  # measure-zero event, redraw those (seeded)
             x[hit] = system.x_lo + rng.random((int(hit.sum()), system.n)) * (system.x_hi - system.x_lo)
-            d, _ = cKDTree(cover).query(x)
+            d, _ = tree.query(x[:, cov_dims])
             hit = d < 1e-9
-    u = system.inputs[rng.integers(0, len(system.inputs), size=B)]
+    U = system.inputs if inputs is None else inputs
+    u = U[rng.integers(0, len(U), size=B)]
     return x, u
 
 
@@ -55,10 +63,13 @@ def audit(cert, simulator, points: int = 200, runs: int = 2000, seed: int = 0, d
     s = sim.system
     cert.check_system(s)
     rng = np.random.default_rng(seed)
-    cover = None
+    cover, cov_dims = None, list(range(s.n))
     if dataset is not None:
-        cover = np.unique(dataset.x, axis=0)
-    x, u = draw_points(s, int(points), rng, cover)
+        from .pipeline import invariant_dims
+        inv = invariant_dims(dataset)  # declared-invariant dims are not covered: distances over the others
+        cov_dims = [j for j in range(s.n) if j not in inv]
+        cover = np.unique(dataset.x[:, cov_dims], axis=0)
+    x, u = draw_points(s, int(points), rng, cover, cov_dims, cert.inputs)
     B, R, n = len(x), int(runs), s.n
     fx = s.f(x, u)
     mean_dev = np.empty((B, n))
@@ -111,8 +122,8 @@ def audit(cert, simulator, points: int = 200, runs: int = 2000, seed: int = 0, d
                         "worst_violation": {nm: float(max(0.0, -em[:, i].min())) for i, nm in enumerate(names)}}
     if cover is not None:
         from scipy.spatial import cKDTree
-        d, _ = cKDTree(cover).query(x)
-        rep["distance_to_cover"] = {"min": float(d.min()), "median": float(np.median(d)), "max": float(d.max()),
+        d, _ = cKDTree(cover).query(x[:, cov_dims])
+        rep["distance_to_cover"] = {"dims": [s.state_names[j] for j in cov_dims], "min": float(d.min()), "median": float(np.median(d)), "max": float(d.max()),
                                     "epsilon": float(dataset.epsilon)}
     rep["passed"] = bool(not violated.any())
     return rep

@@ -354,11 +354,15 @@ def _col(a):
 # Bases
 # ---------------------------------------------------------------------------------------
 
-def monomial_names(system: System, degree: int) -> List[str]:
-    """All monomials in z = [x1..xn, u1..um] of total degree 0..``degree`` ("1", "x1", "x1*u1", "x2^2", ...)."""
+def monomial_names(system: System, degree: int, exclude_dims: Sequence[int] = ()) -> List[str]:
+    """All monomials in z = [x1..xn, u1..um] of total degree 0..``degree`` ("1", "x1", "x1*u1", "x2^2", ...).
+
+    ``exclude_dims``: 0-based state dimensions left out (declared invariant: gamma must not depend on them).
+    """
     if int(degree) != degree or degree < 0:
         raise SimgapError(f"basis degree must be an integer >= 0, got {degree!r}")
-    vars_ = [f"x{i + 1}" for i in range(system.n)] + [f"u{j + 1}" for j in range(system.m)]
+    vars_ = [f"x{i + 1}" for i in range(system.n) if i not in set(exclude_dims)] + \
+        [f"u{j + 1}" for j in range(system.m)]
     out = ["1"]
     for d in range(1, int(degree) + 1):
         for combo in itertools.combinations_with_replacement(range(len(vars_)), d):
@@ -384,9 +388,24 @@ class Basis:
             seen.add(t.text)
 
     @classmethod
-    def polynomial(cls, system: System, degree: int, extra: Sequence[str] = ()) -> "Basis":
-        """Monomials up to total ``degree`` in (x, u) plus user terms ``extra``."""
-        return cls(system, monomial_names(system, degree) + list(extra))
+    def polynomial(cls, system: System, degree: int, extra: Sequence[str] = (),
+                   exclude_dims: Sequence[int] = ()) -> "Basis":
+        """Monomials up to total ``degree`` in (x, u) (without ``exclude_dims``) plus user terms ``extra``."""
+        return cls(system, monomial_names(system, degree, exclude_dims) + list(extra))
+
+    def uses(self) -> set:
+        """Columns of z = [x, u] that some term depends on."""
+        out = set()
+
+        def walk(t):
+            if t[0] == "var":
+                out.add(t[1])
+            for c in t[1:]:
+                if isinstance(c, tuple):
+                    walk(c)
+        for term in self.terms:
+            walk(term.tree)
+        return out
 
     @property
     def names(self) -> List[str]:

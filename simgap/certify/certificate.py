@@ -93,6 +93,7 @@ class Certificate:
     options: dict
     dims: List[DimCertificate]
     provenance: dict
+    inputs: Optional[np.ndarray] = None   # (M, m) the inputs the data covered: gamma is certified for these
 
     # ----- shape -----------------------------------------------------------------------
     @property
@@ -169,7 +170,8 @@ class Certificate:
             "format": FORMAT, "version": VERSION,
             "system": {"name": self.system_name, "steps": self.steps, "state_names": list(self.state_names),
                        "input_names": list(self.input_names), "x_lo": self.x_lo.tolist(),
-                       "x_hi": self.x_hi.tolist(), "angle_dims": list(self.angle_dims)},
+                       "x_hi": self.x_hi.tolist(), "angle_dims": list(self.angle_dims),
+                       "inputs": None if self.inputs is None else self.inputs.tolist()},
             "epsilon": self.epsilon, "n_runs": self.n_runs, "K": self.K, "method": self.method,
             "options": self.options, "dims": [d.to_dict() for d in self.dims],
             "per_dim_confidence": self.per_dim_confidence, "joint_confidence": self.joint_confidence,
@@ -220,7 +222,8 @@ class Certificate:
                        input_names=tuple(s["input_names"]), x_lo=np.asarray(s["x_lo"], float),
                        x_hi=np.asarray(s["x_hi"], float), angle_dims=tuple(s["angle_dims"]),
                        epsilon=float(d["epsilon"]), n_runs=int(d["n_runs"]), K=int(d["K"]), method=d["method"],
-                       options=d["options"], dims=dims, provenance=d["provenance"])
+                       options=d["options"], dims=dims, provenance=d["provenance"],
+                       inputs=None if s.get("inputs") is None else np.asarray(s["inputs"], float).reshape(-1, names.m))
         except (KeyError, TypeError) as e:
             raise SimgapError(f"certificate is malformed: missing or bad field {e}") from None
 

@@ -109,8 +109,26 @@ def _versions() -> dict:
             "cvxpy": cvxpy.__version__, "python": platform.python_version()}
 
 
-def bases_for(system, degree, terms: Dict[int, List[str]]) -> List[Basis]:
-    """One Basis per state dimension from a degree (or per-dim degrees) and extra terms."""
+def invariant_dims(dataset) -> List[int]:
+    """0-based state dimensions the collection declared invariant (not covered; manifest "cover")."""
+    names = (dataset.manifest.get("cover") or {}).get("invariant_dims") or []
+    out = []
+    for d in names:
+        if isinstance(d, int):
+            out.append(d)
+        elif d in dataset.system.state_names:
+            out.append(dataset.system.state_names.index(d))
+        else:
+            raise SimgapError(f"dataset manifest: unknown invariant dimension {d!r}")
+    return sorted(set(out))
+
+
+def bases_for(system, degree, terms: Dict[int, List[str]], exclude_dims: Sequence[int] = ()) -> List[Basis]:
+    """One Basis per state dimension from a degree (or per-dim degrees) and extra terms.
+
+    ``exclude_dims``: declared-invariant state dimensions; no term may depend on them (the data
+    do not vary along them, and the declared invariance says gamma does not either).
+    """
     n = system.n
     degs = [degree] * n if np.isscalar(degree) else list(degree)
     if len(degs) != n:
@@ -124,7 +142,12 @@ def bases_for(system, degree, terms: Dict[int, List[str]]) -> List[Basis]:
         if degs[i] is None or degs[i] < 0:  # only the user's terms
             out.append(Basis(system, extra))
         else:
-            out.append(Basis.polynomial(system, degs[i], extra))
+            out.append(Basis.polynomial(system, degs[i], extra, exclude_dims))
+        bad = out[-1].uses() & set(exclude_dims)
+        if bad:
+            names = ", ".join(system.state_names[j] for j in sorted(bad))
+            raise SimgapError(f"basis terms of dimension {system.state_names[i]} use {names}, declared invariant "
+                              f"by the collection (the data do not vary along it)")
     return out
 
 
@@ -162,10 +185,15 @@ def certify(dataset, options: Optional[CertifyOptions] = None, simulator=None, *
     if o.lhat not in ("data", "simulator"):
         raise SimgapError(f"lhat must be 'data' or 'simulator', got {o.lhat!r}")
     o.bounds.validate()
-    bases = bases_for(s, o.degree, o.terms)
+    inv = invariant_dims(ds)
+    bases = bases_for(s, o.degree, o.terms, inv)
     g = ds.gap()
     K, N = ds.K, int(ds.n_runs)
+    U_data = np.unique(ds.u, axis=0)  # the inputs the data cover: gamma is certified for these
     notes = []
+    if inv:
+        notes.append("declared invariant (not covered, not in the basis): "
+                     + ", ".join(s.state_names[j] for j in inv))
 
     # ----- margins and confidences -----------------------------------------------------
     if o.method == "stochastic":
@@ -265,7 +293,7 @@ def certify(dataset, options: Optional[CertifyOptions] = None, simulator=None, *
         how["L_fhat"] = {"how": "Wood-Zhang estimate on slopes of the empirical mean" +
                          (" increment (mean - x)" if o.lipschitz_mode == "increment" else "") + src, **wz.to_dict()}
         if o.l2 == "analytic":
-            L_2 = l2_analytic(bases[i], res.q, s)
+            L_2 = l2_analytic(bases[i], res.q, s, inputs=U_data)
             how["L_2"] = "analytic: interval bound of ||grad_x q^T p||_2 over sub-boxes of X, all u in U (sound)"
         else:
             wz = wood_zhang(slopes_of((P @ res.q)[:, None].repeat(n, axis=1), pairs, s, angle_diff=False)[:, 0], rng)
@@ -297,7 +325,7 @@ def certify(dataset, options: Optional[CertifyOptions] = None, simulator=None, *
     return Certificate(system_name=s.name, steps=int(s.steps), state_names=tuple(s.state_names),
                        input_names=tuple(s.input_names), x_lo=s.x_lo.copy(), x_hi=s.x_hi.copy(),
                        angle_dims=tuple(s.angle_dims), epsilon=float(ds.epsilon), n_runs=N, K=K,
-                       method=o.method, options=opts, dims=dims, provenance=prov)
+                       method=o.method, options=opts, dims=dims, provenance=prov, inputs=U_data)
 
 
 def compare_options(dataset, base: Optional[CertifyOptions] = None) -> list:

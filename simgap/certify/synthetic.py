@@ -27,10 +27,13 @@ def grid_cover(x_lo, x_hi, epsilon: float) -> np.ndarray:
 
 
 def synthetic_dataset(config: dict | SimulatorConfig | Simulator, epsilon: float, n_runs: int, seed: int = 0,
-                      inputs: np.ndarray | None = None, chunk_samples: int = 2_000_000) -> Dataset:
+                      inputs: np.ndarray | None = None, chunk_samples: int = 2_000_000,
+                      fixed: dict | None = None) -> Dataset:
     """Collect a Dataset on a grid cover of X with the (numpy or any) simulator ``config``.
 
     Rows are cover-major (cover point r, input j). ``inputs`` defaults to the system's U.
+    ``fixed`` {dim: value}: declared-invariant dimensions, not covered but held at ``value``
+    (recorded in the manifest's "cover" as the collection stage does).
     ``config`` may also be a built :class:`Simulator` (needed for user-defined systems).
     Randomness: one numpy Generator seeded with ``seed``; chunks of rows in order.
     """
@@ -43,7 +46,13 @@ def synthetic_dataset(config: dict | SimulatorConfig | Simulator, epsilon: float
         raise SimgapError(f"n_runs must be >= 1, got {n_runs}")
     s = sim.system
     U = s.inputs if inputs is None else np.atleast_2d(np.asarray(inputs, float))
-    C = grid_cover(s.x_lo, s.x_hi, epsilon)
+    fixed = {int(k): float(v) for k, v in (fixed or {}).items()}
+    cov = [j for j in range(s.n) if j not in fixed]
+    Cc = grid_cover(s.x_lo[cov], s.x_hi[cov], epsilon)
+    C = np.empty((len(Cc), s.n))
+    C[:, cov] = Cc
+    for j, v in fixed.items():
+        C[:, j] = v
     N, M = len(C), len(U)
     ci = np.repeat(np.arange(N), M)
     ii = np.tile(np.arange(M), N)
@@ -68,7 +77,7 @@ def synthetic_dataset(config: dict | SimulatorConfig | Simulator, epsilon: float
         lo[a:b] = fnom[a:b] + d.min(axis=1)
         hi[a:b] = fnom[a:b] + d.max(axis=1)
     manifest = {"simulator": cfg.to_dict(), "system": s.describe(), "cover": {"kind": "grid", "epsilon": epsilon,
-                "points": int(N)}, "seed": int(seed), "n_runs": int(n_runs), "source": "simgap.certify.synthetic"}
+                "points": int(N), "invariant_dims": [s.state_names[j] for j in sorted(fixed)]}, "seed": int(seed), "n_runs": int(n_runs), "source": "simgap.certify.synthetic"}
     manifest["hash"] = hashlib.sha256(json.dumps(manifest, sort_keys=True).encode()).hexdigest()[:16]
     return Dataset(system=s, x=X, u=Uu, f_nom=fnom, mean=mean, var=var, lo=lo, hi=hi, cover_index=ci,
                    input_index=ii, n_runs=int(n_runs), epsilon=float(epsilon), manifest=manifest)

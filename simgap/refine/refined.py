@@ -73,14 +73,11 @@ def refined_system(base: System, effects: Sequence[Effect], coefficients: Sequen
         xs = base.x_lo + rng.random((256, base.n)) * (base.x_hi - base.x_lo)
         dt0 = base.base_tau
 
-        def jac(u):
-            u = np.atleast_2d(np.asarray(u, dtype=float))
-            J = np.array(base.jacobian_bound(u), dtype=float, copy=True)
-            if not effects:
-                return J
-            B, S, n = u.shape[0], xs.shape[0], base.n
+        def effect_bound(uu):
+            """max over the sample states of |d/dx sum_k c_k g_k(x, u)|, (B, n, n) for unique inputs."""
+            B, S, n = uu.shape[0], xs.shape[0], base.n
             X = np.repeat(xs[None], B, axis=0).reshape(B * S, n)
-            U = np.repeat(u, S, axis=0)
+            U = np.repeat(uu, S, axis=0)
             D = np.zeros((B, n, n))
             for j in range(n):
                 h = 1e-6 * max(1.0, float(base.x_hi[j] - base.x_lo[j]))
@@ -91,7 +88,17 @@ def refined_system(base: System, effects: Sequence[Effect], coefficients: Sequen
                 for e, ck in zip(effects, c):
                     dsum[:, e.state] += ck * (e(Xp, U) - e(Xm, U)) / (2 * h)
                 D[:, :, j] = np.abs(dsum).reshape(B, S, n).max(axis=1)
-            return J + 1.05 * dt0 * D
+            return D
+
+        def jac(u):
+            u = np.atleast_2d(np.asarray(u, dtype=float))
+            J = np.array(base.jacobian_bound(u), dtype=float, copy=True)
+            if not effects:
+                return J
+            # the bound depends on u only: evaluate once per distinct input (synthesis asks for
+            # millions of rows drawn from the finite input set)
+            uniq, inv = np.unique(u, axis=0, return_inverse=True)
+            return J + 1.05 * dt0 * effect_bound(uniq)[inv.reshape(-1)]
 
     refinement = [dict(e.spec(), coefficient=float(ck), stderr=float(sk))
                   for e, ck, sk in zip(effects, c, se)]

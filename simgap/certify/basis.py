@@ -122,7 +122,8 @@ def parse_term(text: str, system: System) -> "Term":
 def _imul(al, ah, bl, bh):
     with np.errstate(invalid="ignore", over="ignore"):
         c = [al * bl, al * bh, ah * bl, ah * bh]
-    c = [np.where(np.isnan(v), 0.0, v) for v in c]  # 0 * inf endpoint products count as 0
+    if any(np.isnan(v).any() for v in c):
+        c = [np.where(np.isnan(v), 0.0, v) for v in c]  # 0 * inf endpoint products count as 0
     return np.minimum(np.minimum(c[0], c[1]), np.minimum(c[2], c[3])), \
         np.maximum(np.maximum(c[0], c[1]), np.maximum(c[2], c[3]))
 
@@ -227,27 +228,38 @@ class Term:
         return {"add": np.add, "sub": np.subtract, "mul": np.multiply, "div": np.divide}[k](a, b)
 
     # ----- boxes -----------------------------------------------------------------------
-    def interval(self, zlo: np.ndarray, zhi: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
-        """Sound bounds (lo, hi), each (B,), of p over the boxes [zlo, zhi] (B, n+m)."""
-        lo, hi = self._iv(self.tree, zlo, zhi)
+    def interval(self, zlo: np.ndarray, zhi: np.ndarray, cache: dict | None = None) -> Tuple[np.ndarray, np.ndarray]:
+        """Sound bounds (lo, hi), each (B,), of p over the boxes [zlo, zhi] (B, n+m).
+
+        ``cache``: a dict shared by the terms of one basis evaluated on the same boxes (common
+        sub-expressions such as x1 or x1^2 are bounded once).
+        """
+        lo, hi = self._iv(self.tree, zlo, zhi, {} if cache is None else cache)
         B = zlo.shape[0]
         return np.broadcast_to(lo, (B,)).astype(float), np.broadcast_to(hi, (B,)).astype(float)
 
-    def _iv(self, t, zl, zh):
+    def _iv(self, t, zl, zh, cache):
+        if t in cache:
+            return cache[t]
+        out = self._iv1(t, zl, zh, cache)
+        cache[t] = out
+        return out
+
+    def _iv1(self, t, zl, zh, cache):
         k = t[0]
         if k == "const":
             return np.float64(t[1]), np.float64(t[1])
         if k == "var":
             return zl[:, t[1]], zh[:, t[1]]
         if k == "neg":
-            l, h = self._iv(t[1], zl, zh)
+            l, h = self._iv(t[1], zl, zh, cache)
             return -h, -l
         if k == "pow":
-            return _ipow(*self._iv(t[1], zl, zh), t[2])
+            return _ipow(*self._iv(t[1], zl, zh, cache), t[2])
         if k == "fn":
-            return _ifn(t[1], *self._iv(t[2], zl, zh))
-        al, ah = self._iv(t[1], zl, zh)
-        bl, bh = self._iv(t[2], zl, zh)
+            return _ifn(t[1], *self._iv(t[2], zl, zh, cache))
+        al, ah = self._iv(t[1], zl, zh, cache)
+        bl, bh = self._iv(t[2], zl, zh, cache)
         if k == "add":
             return al + bl, ah + bh
         if k == "sub":
@@ -437,8 +449,9 @@ class Basis:
         """Interval bounds of every term over boxes: (lo, hi), each (B, z)."""
         lo = np.empty((zlo.shape[0], len(self.terms)))
         hi = np.empty_like(lo)
+        cache = {}
         for l, t in enumerate(self.terms):
-            lo[:, l], hi[:, l] = t.interval(zlo, zhi)
+            lo[:, l], hi[:, l] = t.interval(zlo, zhi, cache)
         return lo, hi
 
     def upper_box(self, q: np.ndarray, zlo: np.ndarray, zhi: np.ndarray) -> np.ndarray:

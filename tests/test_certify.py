@@ -300,6 +300,8 @@ def test_certify_bad_inputs(pend_ds):
         certify(pend_ds, beta1=1.5)
     with pytest.raises(SimgapError, match="unknown variable"):
         certify(pend_ds, terms={0: ["x7"]})
+    with pytest.raises(SimgapError, match="deterministic baseline has no delta"):
+        certify(pend_ds, method="deterministic", delta1=0.01)
     with pytest.raises(SimgapError, match="state dimension 3"):
         certify(pend_ds, terms={2: ["x1"]})
     with pytest.raises(SimgapError, match="bernstein"):

@@ -233,6 +233,10 @@ def certify(dataset, options: Optional[CertifyOptions] = None, simulator=None, *
             notes.append("joint confidence <= 0: per-dimension statements only")
         variance_info = vb.to_dict()
     else:
+        given = [k for k in ("delta1", "delta2", "beta1", "beta2") if getattr(o, k) is not None]
+        if given:
+            raise SimgapError(f"the deterministic baseline has no delta or beta terms; remove {', '.join(given)} "
+                              f"(or use --method stochastic)")
         M = None
         d1 = d2 = np.zeros(n)
         beta1 = beta2 = None

@@ -236,6 +236,8 @@ class Certificate:
         beyond = self.options.get("beyond_paper") or []
         if beyond:
             lines.append("options beyond the paper: " + "; ".join(beyond))
+        for note in self.options.get("notes") or []:
+            lines.append("note: " + note)
         cols = ["dim", "max gap", "delta1", "delta2", "beta1", "beta2", "Mhat", "L_f", "Lhat_fhat", "L_2",
                 "Lx*eps", "gamma min", "gamma max", "conf"]
         w = [10] + [11] * (len(cols) - 1)

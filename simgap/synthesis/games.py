@@ -43,27 +43,35 @@ from .abstraction import Abstraction
 class BoxCounter:
     """Counts the cells of a boolean grid mask inside many index boxes at once."""
 
-    def __init__(self, shape, periodic_mask, max_volume: Optional[int] = None):
+    def __init__(self, shape, periodic_mask, max_volume: Optional[int] = None, pad=None):
         self.shape = np.array(shape, dtype=np.int64)
-        # counts are exact modulo 2^16 when every queried box has fewer than 2^16 cells:
-        # inclusion-exclusion in wrapping uint16 arithmetic then returns the true count
-        self.dtype = np.uint16 if (max_volume is not None and max_volume < 65536) else np.int32
+        self.dtype = np.int32  # counts < 2^31 (grids are limited to 2^31 cells)
         self.pmask = np.asarray(periodic_mask, dtype=bool)
         self.n = len(shape)
-        self.tshape = tuple(int(s * (2 if p else 1) + 1) for s, p in zip(self.shape, self.pmask))
+        # periodic dims are tiled 3 times: a box with lo in [0, 2 n_d) and extent <= n_d is one
+        # contiguous range (no per-query wrapping). ``pad`` zero cells around bounded dims let
+        # boxes that stick out of the grid be counted (the outside counts as empty).
+        self.pad = np.zeros(self.n, dtype=np.int64) if pad is None else \
+            np.where(self.pmask, 0, np.asarray(pad, dtype=np.int64))
+        self.tshape = tuple(int(s * (3 if p else 1) + 2 * q + 1)
+                            for s, p, q in zip(self.shape, self.pmask, self.pad))
         self.tstrides = np.array([int(np.prod(self.tshape[d + 1:])) for d in range(self.n)], dtype=np.int64)
         self.table = None
 
     def set(self, mask_flat: np.ndarray) -> "BoxCounter":
-        """Build the SAT of ``mask_flat`` (N,) bool; cumulative sums per axis, int32."""
+        """Build the SAT of ``mask_flat`` (N,) bool (cumulative sums per axis, in place)."""
         Z = mask_flat.reshape(tuple(self.shape))
         for d in np.flatnonzero(self.pmask):
-            Z = np.concatenate([Z, Z], axis=int(d))
-        T = np.zeros(self.tshape, dtype=self.dtype)
-        T[tuple(slice(1, None) for _ in range(self.n))] = Z
+            Z = np.concatenate([Z, Z, Z], axis=int(d))
+        if self.table is None:
+            self._T = np.zeros(self.tshape, dtype=self.dtype)  # the zero border stays zero
+            self.table = self._T.ravel()
+        T = self._T
+        if self.pad.any():
+            T[...] = 0  # the padding held prefix sums from the last build
+        T[tuple(slice(1 + int(q), 1 + int(q) + Z.shape[d]) for d, q in enumerate(self.pad))] = Z
         for d in range(self.n):
             np.cumsum(T, axis=d, out=T, dtype=self.dtype)
-        self.table = T.ravel()
         return self
 
     def normalize(self, lo: np.ndarray, hi: np.ndarray):
@@ -103,7 +111,7 @@ class BoxCounter:
                 out += v
             else:
                 out -= v
-        return out.astype(np.int32) if self.dtype != np.int32 else out
+        return out
 
     def volume(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
         """Number of cells in normalized boxes."""
@@ -114,65 +122,171 @@ class BoxCounter:
 # pair evaluation
 # ---------------------------------------------------------------------------------------
 
+class BoxFamily:
+    """Per-(class, input) boxes relative to their cell, compiled for SAT lookups.
+
+    The SAT flat index of corner ``c`` of box(cell, u) is ``base(cell) + corner[k(cell), u, c]``
+    with ``base = mi . strides``. Periodic offsets are stored modulo n_d and extents capped at
+    n_d, so with the SAT tiled 3 times along periodic dims no query needs wrapping: a box test
+    is 2^n gathers and adds.
+    """
+
+    _PRECOMPUTE_BYTES = 256 << 20
+
+    def __init__(self, ab: Abstraction, off_lo: np.ndarray, off_hi: np.ndarray, counter: BoxCounter,
+                 clamp: bool = True):
+        g = ab.grid
+        n = g.n
+        self.ab, self.n, self.counter = ab, n, counter
+        shape = np.array(g.shape, dtype=np.int64)
+        pm = g.periodic_mask
+        ext = np.maximum(off_hi.astype(np.int64) - off_lo + 1, 0)
+        ext = np.where(pm, np.minimum(ext, shape), ext)
+        lo = np.where(pm, np.mod(off_lo, shape), off_lo)
+        self.lo = lo.astype(np.int32)
+        self.ext = ext.astype(np.int32)
+        self.vol = np.prod(np.maximum(ext, 0), axis=-1).astype(np.int32)
+        self.tstr = counter.tstrides.astype(np.int64)
+        self.shape = shape
+        # in-domain test per bounded dimension: mi_d in [-off_lo_d, n_d - off_lo_d - ext_d]
+        self.bounded = np.flatnonzero(~pm)
+        self.rlo = (-self.lo).astype(np.int32)
+        self.rhi = (shape.astype(np.int32) - self.lo - self.ext).astype(np.int32)
+        if not clamp:
+            self.rlo = self.rhi = None
+        self.signs = np.array([(-1) ** bin(c).count("1") for c in range(1 << n)], dtype=np.int32)
+        K, M = off_lo.shape[:2]
+        self.M = M
+        self.corner = None
+        if K * M * (1 << n) * 4 <= self._PRECOMPUTE_BYTES:
+            self.corner = self._corners(self.lo.reshape(-1, n), self.ext.reshape(-1, n))
+        self.vol_flat = self.vol.ravel()
+
+    def _corners(self, lo: np.ndarray, ext: np.ndarray) -> np.ndarray:
+        """(P, n) relative lo and extents -> (P, 2^n) relative flat corner offsets (int32)."""
+        out = np.zeros((lo.shape[0], 1 << self.n), dtype=np.int64)
+        for c in range(1 << self.n):  # bit d set: the lo side (index lo), else hi + 1
+            for d in range(self.n):
+                out[:, c] += (lo[:, d] if c >> d & 1 else lo[:, d] + ext[:, d]) * self.tstr[d]
+        return out.astype(np.int32)
+
+    def corners(self, q: np.ndarray) -> np.ndarray:
+        """(P,) flat (class, input) indices -> (P, 2^n) corner offsets."""
+        if self.corner is not None:
+            return self.corner[q]
+        n = self.n
+        return self._corners(self.lo.reshape(-1, n)[q], self.ext.reshape(-1, n)[q])
+
+    def in_domain(self, mi: np.ndarray, k: np.ndarray) -> np.ndarray:
+        """(B, M) bool: boxes of the rows (mi (B,n), class k (B,)) stay in the grid (bounded dims)."""
+        ok = np.ones((mi.shape[0], self.M), dtype=bool)
+        for d in self.bounded:
+            ok &= (mi[:, d, None] >= self.rlo[k, :, d]) & (mi[:, d, None] <= self.rhi[k, :, d])
+        return ok
+
+    def count(self, table: np.ndarray, base: np.ndarray, q: np.ndarray) -> np.ndarray:
+        """Cells of the SAT's mask in the boxes with cell bases ``base`` and pair indices ``q``
+        (same shape; ``base`` broadcastable)."""
+        qs = q.shape
+        fl = self.corners(q.ravel()).reshape(qs + (1 << self.n,))
+        fl += np.broadcast_to(base, qs)[..., None]
+        v = table.take(fl, mode="clip")
+        out = v[..., 0].copy()
+        for c in range(1, fl.shape[-1]):
+            if self.signs[c] > 0:
+                out += v[..., c]
+            else:
+                out -= v[..., c]
+        return out
+
+
 class PairEvaluator:
-    """Successor boxes and validity for all inputs of a batch of cells."""
+    """Successor-box tests for the pairs of a set of cells (all inputs, or listed pairs)."""
 
     def __init__(self, ab: Abstraction, blocked: np.ndarray, allowed: Optional[np.ndarray]):
         self.ab = ab
         g = ab.grid
+        self.M = ab.n_inputs
         self.counter = BoxCounter(g.shape, g.periodic_mask)
         self.blocked = blocked
-        self.allowed_counter = None
+        self.fam = BoxFamily(ab, ab.off_lo, ab.off_hi, self.counter)
+        self.vol = self.fam.vol
+        self.mid = None
         if ab.mid_lo is not None and allowed is not None:
             self.allowed_counter = BoxCounter(g.shape, g.periodic_mask).set(allowed)
-        # box volumes depend on the class and input only (periodic extents capped at n_d)
-        ext = ab.off_hi.astype(np.int64) - ab.off_lo + 1
-        ext = np.where(g.periodic_mask, np.minimum(ext, np.array(g.shape)), ext)
-        self.vol = np.prod(np.maximum(ext, 0), axis=-1).astype(np.int32)
-        self.vol_flat = self.vol.ravel()
-        # per-cell multi-index and class, and per-(class, input) offsets as one row of 2n
+            self.mid = BoxFamily(ab, ab.mid_lo, ab.mid_hi, self.allowed_counter)
         self.mi_all = g.ids_to_multi(np.arange(g.size)).astype(np.int32)
-        self.cls_all = ab.cell_class(self.mi_all).astype(np.int64) * ab.n_inputs
-        self.off_flat = np.concatenate([ab.off_lo, ab.off_hi], axis=-1).reshape(-1, 2 * g.n)
+        self.cls_all = ab.cell_class(self.mi_all).astype(np.int64)
+        self.q0_all = self.cls_all * self.M  # flat (class, input 0) index per cell
+        self.base_all = (self.mi_all.astype(np.int64) @ self.counter.tstrides).astype(np.int32)
+        self.hull = None
 
-    def boxes(self, ids: np.ndarray):
-        """(B,) cell ids -> lo, hi (B, M, n) normalized int32, valid (B, M) bool, volume (B, M)."""
+    def build_hulls(self, group: int = 8) -> BoxCounter:
+        """Hull boxes of groups of ``group`` consecutive inputs (the bytes of the packed rows).
+
+        Returns the (padded) counter to use with :meth:`groups_meeting`: a group whose hull
+        misses the changed cells cannot change, so its pairs are not re-tested.
+        """
         ab = self.ab
-        mi = ab.grid.ids_to_multi(ids).astype(np.int32)
-        k = ab.cell_class(mi)
-        c = self.counter
-        lo, hi, ing = c.normalize(mi[:, None, :] + ab.off_lo[k], mi[:, None, :] + ab.off_hi[k])
-        valid = ab.ok[k] & ing
-        valid &= ~self.blocked[ids][:, None]
-        if self.allowed_counter is not None:
-            mlo, mhi, ming = c.normalize(mi[:, None, :] + ab.mid_lo[k], mi[:, None, :] + ab.mid_hi[k])
-            valid &= ming
-            valid &= self.allowed_counter.count(mlo, mhi) == c.volume(mlo, mhi)
-        return lo, hi, valid, self.vol[k]
+        g = ab.grid
+        K, M, n = ab.off_lo.shape
+        G = (M + group - 1) // group
+        lo = np.full((K, G * group, n), np.iinfo(np.int16).max, dtype=np.int64)
+        hi = np.full((K, G * group, n), np.iinfo(np.int16).min, dtype=np.int64)
+        okm = ab.ok[..., None]
+        lo[:, :M] = np.where(okm, ab.off_lo, lo[:, :M])
+        hi[:, :M] = np.where(okm, ab.off_hi, hi[:, :M])
+        lo = lo.reshape(K, G, group, n).min(axis=2)
+        hi = hi.reshape(K, G, group, n).max(axis=2)
+        empty = lo > hi
+        lo = np.where(empty, 0, lo)
+        hi = np.where(empty, -1, hi)  # empty hull: extent 0 (never meets anything)
+        pad = np.maximum(np.abs(lo).max(axis=(0, 1)), np.abs(hi).max(axis=(0, 1))) + 1
+        hc = BoxCounter(g.shape, g.periodic_mask, pad=pad)
+        self.hull = BoxFamily(ab, lo, hi, hc, clamp=False)
+        self.hull_base = ((self.mi_all.astype(np.int64) + hc.pad) @ hc.tstrides).astype(np.int32)
+        self.hull_G = G
+        self.group = group
+        return hc
 
-    def inside(self, ids: np.ndarray, counter: BoxCounter):
-        """(B, M) bool: valid and the successor box lies in the counter's mask; plus lo, hi."""
-        lo, hi, valid, vol = self.boxes(ids)
-        return valid & (counter.count(lo, hi) == vol), lo, hi
+    def groups_meeting(self, ids: np.ndarray, hc: BoxCounter) -> np.ndarray:
+        """(B, G) bool: the hull of input group g of cell ids[b] meets the counter's mask."""
+        q = self.cls_all[ids][:, None] * self.hull_G + np.arange(self.hull_G)
+        return self.hull.count(hc.table, self.hull_base[ids][:, None], q) > 0
+
+    def valid_rows(self, ids: np.ndarray):
+        """(B,) cell ids -> valid (B, M) bool (in grid, finite, cell not blocked, intermediate
+        hull allowed), and the flat pair indices q (B, M)."""
+        ab = self.ab
+        mi = self.mi_all[ids]
+        k = self.cls_all[ids]
+        q = self.q0_all[ids][:, None] + np.arange(self.M)
+        valid = ab.ok[k] & self.fam.in_domain(mi, k)
+        valid &= ~self.blocked[ids][:, None]
+        if self.mid is not None:
+            valid &= self.mid.in_domain(mi, k)
+            valid &= self.mid.count(self.allowed_counter.table, self.base_all[ids][:, None], q) == \
+                self.mid.vol_flat[q]
+        return valid, q
+
+    def test_rows(self, ids: np.ndarray, q: np.ndarray, counter: BoxCounter) -> np.ndarray:
+        """(B, M) bool: box(ids, u) lies in the counter's mask (meaningful for valid pairs)."""
+        return self.fam.count(counter.table, self.base_all[ids][:, None], q) == self.fam.vol_flat[q]
+
+    def test_pairs(self, ids: np.ndarray, ci: np.ndarray, uj: np.ndarray, counter: BoxCounter) -> np.ndarray:
+        """(P,) bool: box(ids[ci], uj) lies in the counter's mask (pairs assumed valid)."""
+        cells = ids[ci]
+        q = self.q0_all[cells] + uj
+        return self.fam.count(counter.table, self.base_all[cells], q) == self.fam.vol_flat[q]
 
     def pair_boxes(self, ids: np.ndarray, ci: np.ndarray, uj: np.ndarray):
-        """Normalized boxes of the pairs (ids[ci], uj) (1-D lists), and their volumes."""
-        n = self.ab.grid.n
+        """Explicit normalized boxes (lo, hi (P, n) int32) of the pairs (ids[ci], uj)."""
+        ab = self.ab
         cells = ids[ci]
-        p = self.cls_all[cells] + uj  # flat (class, input) index
+        k = self.cls_all[cells]
         mi = self.mi_all[cells]
-        off = self.off_flat[p]
-        lo = mi + off[:, :n]
-        hi = mi + off[:, n:]
-        c = self.counter
-        for d in np.flatnonzero(c.pmask):  # wrap periodic dims; full circle clamped
-            sz = int(c.shape[d])
-            ext = hi[:, d] - lo[:, d] + 1
-            full = ext >= sz
-            l = np.where(full, 0, lo[:, d] % sz)
-            lo[:, d] = l
-            hi[:, d] = np.where(full, sz - 1, l + ext - 1)
-        return lo, hi, self.vol_flat[p]
+        lo, hi, _ = self.counter.normalize(mi + ab.off_lo[k, uj], mi + ab.off_hi[k, uj])
+        return lo, hi, self.vol[k, uj]
 
 
 def live_pairs(ab: Abstraction, blocked: np.ndarray, keep: np.ndarray, allowed=None):
@@ -189,15 +303,15 @@ def live_pairs(ab: Abstraction, blocked: np.ndarray, keep: np.ndarray, allowed=N
     ev = PairEvaluator(ab, blocked, allowed)
     kc = BoxCounter(g.shape, g.periodic_mask).set(keep)
     packed = np.zeros((N, (M + 7) // 8), dtype=np.uint8)
-    B = _block_size(ab) * 2
+    B = _block_size(ab)
     boxes = 0
     trans = 0
     for s in range(0, N, B):
         ids = np.arange(s, min(N, s + B))
-        lo, hi, valid, vol = ev.boxes(ids)
+        valid, q = ev.valid_rows(ids)
         boxes += int(valid.sum())
-        trans += int(vol[valid].sum(dtype=np.int64))
-        packed[ids] = np.packbits(valid & (kc.count(lo, hi) == vol), axis=1)
+        trans += int(ev.fam.vol_flat[q][valid].sum(dtype=np.int64))
+        packed[ids] = np.packbits(valid & ev.test_rows(ids, q, kc), axis=1)
     return packed, boxes, trans
 
 
@@ -251,8 +365,8 @@ class GameResult:
 
 
 def _block_size(ab: Abstraction) -> int:
-    # about 2^21 (cell, input) pairs per block keeps the temporaries near 100 MB at n = 3
-    return max(1, (1 << 19) // max(1, ab.n_inputs))
+    # about 2^18 (cell, input) pairs per block keeps the temporaries small (cache friendly)
+    return max(1, (1 << 18) // max(1, ab.n_inputs))
 
 
 def solve_reach(ab: Abstraction, target: np.ndarray, blocked: np.ndarray,
@@ -279,7 +393,8 @@ def solve_reach(ab: Abstraction, target: np.ndarray, blocked: np.ndarray,
     open_ = ~W & ~blocked & live.any(axis=1)
     packed = np.zeros((N, (M + 7) // 8), dtype=np.uint8)
     dlo, dhi = ab.offset_range()
-    Wc = BoxCounter(g.shape, g.periodic_mask, max_volume=int(ev.vol.max(initial=0)))
+    Wc = BoxCounter(g.shape, g.periodic_mask)
+    hc = ev.build_hulls()
     changed = target.copy()
     it = 0
     B = _block_size(ab) * 4
@@ -290,14 +405,16 @@ def solve_reach(ab: Abstraction, target: np.ndarray, blocked: np.ndarray,
         if cand.size == 0:
             break
         Wc.set(W)
+        hc.set(changed)
         new_ids, new_rows = [], []
         for s in range(0, cand.size, B):
             ids = cand[s:s + B]
-            rows = np.unpackbits(live[ids], axis=1, count=M).view(bool)
+            # only input groups whose hull meets the new cells (and that have live pairs)
+            lv = live[ids] & np.where(ev.groups_meeting(ids, hc), 0xFF, 0).astype(np.uint8)
+            rows = np.unpackbits(lv, axis=1, count=M).view(bool)
             ci, uj = np.nonzero(rows)
-            lo, hi, vol = ev.pair_boxes(ids, ci, uj)
             tested += ci.size
-            rows[ci, uj] = Wc.count(lo, hi) == vol
+            rows[ci, uj] = ev.test_pairs(ids, ci, uj, Wc)
             win = rows.any(axis=1)
             if win.any():
                 new_ids.append(ids[win])
@@ -356,9 +473,8 @@ def solve_invariance(ab: Abstraction, safe: np.ndarray, blocked: Optional[np.nda
             ids = cand[s:s + B]
             rows = np.unpackbits(live[ids], axis=1, count=M).view(bool)
             ci, uj = np.nonzero(rows)
-            lo, hi, vol = ev.pair_boxes(ids, ci, uj)
             tested += ci.size
-            rows[ci, uj] = Wc.count(lo, hi) == vol
+            rows[ci, uj] = ev.test_pairs(ids, ci, uj, Wc)
             bad = ~rows.any(axis=1)
             if bad.any():
                 lose.append(ids[bad])
@@ -398,22 +514,3 @@ def solve_invariance(ab: Abstraction, safe: np.ndarray, blocked: Optional[np.nda
                       seconds=time.perf_counter() - t0,
                       info={"pairs_tested": int(tested), "boxes": n_boxes, "transitions": n_trans,
                             "seconds_live": t_live})
-
-
-def count_transitions(ab: Abstraction, blocked: np.ndarray) -> tuple[int, int]:
-    """(number of valid (cell, input) boxes, sum of their volumes) over unblocked cells.
-
-    Pairs that leave the grid (out of domain) are not counted, as in SCOTS.
-    """
-    g = ab.grid
-    N, M = g.size, ab.n_inputs
-    ev = PairEvaluator(ab, blocked, None)
-    B = _block_size(ab) * 4
-    boxes = 0
-    trans = 0
-    for s in range(0, N, B):
-        ids = np.arange(s, min(N, s + B))
-        lo, hi, valid, vol = ev.boxes(ids)
-        boxes += int(valid.sum())
-        trans += int(vol[valid].sum(dtype=np.int64))
-    return boxes, trans

@@ -20,7 +20,7 @@ depend on how many other processes compete for the cores; the idle-machine estim
 4. Peak memory of a pendulum-scale collection: the full 263,907-pair, N1hat = 1000 store
    collected with the numpy simulator (same chunking and statistics; PyBullet would add only
    its per-worker client), then loaded as one Dataset. Peak RSS of the collecting process and
-   of the largest worker (getrusage) and the tracemalloc peak of the collect + load calls.
+   of the largest worker (getrusage) and the tracemalloc peak of loading the store.
 """
 
 from __future__ import annotations
@@ -89,6 +89,7 @@ def collector_fraction(experiment: str, fraction: float, workers: int):
         wall = time.perf_counter() - t0
     r1 = resource.getrusage(resource.RUSAGE_CHILDREN)  # the pool's workers, joined by collect()
     cpu = (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
+    collector_fraction.worker_rss_mb = r1.ru_maxrss / 1024  # largest child so far
     return plan, len(ids), wall, cpu, res.runs
 
 
@@ -103,13 +104,13 @@ def memory_child(workers: int) -> None:
     exp = load_experiment("pendulum", "paper")
     exp.simulator = SimulatorConfig("numpy", "pendulum", noise={"actuation_std": 0.05, "sensor_std": 1e-4})
     plan = exp.plan()
-    tracemalloc.start()
     with tempfile.TemporaryDirectory() as d:
         t0 = time.perf_counter()
         collect(plan, os.path.join(d, "s"), executor="local", workers=workers)
         t_collect = time.perf_counter() - t0
-        _, peak_collect = tracemalloc.get_traced_memory()
-        tracemalloc.reset_peak()
+        rss_collect = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+        # traced after the pool is gone (forked workers would inherit the tracing)
+        tracemalloc.start()
         ds = load_store(os.path.join(d, "s"))
         _, peak_load = tracemalloc.get_traced_memory()
         store_mb = sum(os.path.getsize(os.path.join(r, f)) for r, _, fs in os.walk(d) for f in fs) / 1e6
@@ -120,7 +121,7 @@ def memory_child(workers: int) -> None:
         "pairs": ds.K, "runs": ds.K * ds.n_runs, "chunks": plan.n_chunks, "collect_s": t_collect,
         "self_maxrss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
         "worker_maxrss_mb": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024,
-        "tracemalloc_collect_mb": peak_collect / 1e6, "tracemalloc_load_mb": peak_load / 1e6,
+        "self_maxrss_collect_mb": rss_collect, "tracemalloc_load_mb": peak_load / 1e6,
         "dataset_mb": data_mb, "store_mb": store_mb}))
 
 
@@ -155,6 +156,8 @@ def main() -> None:
           f"{wall * plan.n_chunks / n / 60:.1f} min")
     print(f"    CPU time: {runs / cpu:,.0f} samples per CPU-second = {runs / cpu / plain_cpu:.1f}x the plain loop; "
           f"full case study ({total:,} steps) on {W} otherwise idle cores: {total / (runs / cpu) / W / 60:.1f} min")
+    print(f"    peak RSS of the largest PyBullet worker: {collector_fraction.worker_rss_mb:.0f} MB; "
+          f"collecting process {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB")
 
     if not a.skip_turtlebot:
         tb_frac = a.tb_chunks / 312
@@ -170,11 +173,10 @@ def main() -> None:
         m = json.loads(out.stdout.strip().splitlines()[-1])
         print(f"(4) memory, pendulum-scale store ({m['pairs']:,} pairs, {m['runs']:,} runs, {m['chunks']} chunks, "
               f"numpy simulator, {m['collect_s']:.0f} s):")
-        print(f"    peak RSS: collecting process {m['self_maxrss_mb']:.0f} MB (incl. the loaded dataset), "
-              f"largest worker {m['worker_maxrss_mb']:.0f} MB")
-        print(f"    tracemalloc peak: collect {m['tracemalloc_collect_mb']:.1f} MB, load_store "
-              f"{m['tracemalloc_load_mb']:.1f} MB; dataset arrays {m['dataset_mb']:.1f} MB; store on disk "
-              f"{m['store_mb']:.1f} MB")
+        print(f"    peak RSS: collecting process {m['self_maxrss_collect_mb']:.0f} MB during collection, "
+              f"{m['self_maxrss_mb']:.0f} MB after loading the dataset; largest worker {m['worker_maxrss_mb']:.0f} MB")
+        print(f"    load_store tracemalloc peak {m['tracemalloc_load_mb']:.1f} MB; dataset arrays "
+              f"{m['dataset_mb']:.1f} MB; store on disk {m['store_mb']:.1f} MB")
     print(f"load average at end: {os.getloadavg()[0]:.2f}")
 
 

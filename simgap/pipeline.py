@@ -1,0 +1,236 @@
+"""The case-study pipeline: deterministic gap versus stochastic gap, end to end.
+
+``run_experiment`` runs every stage of the paper's comparison for one experiment profile:
+
+1. collect the stochastic data set (resumable store) with the experiment's simulator;
+2. collect the deterministic baseline's data set: the same simulator with its noise and parameter
+   randomization switched off (the predecessor work assumes a deterministic simulator, so one
+   run per pair is all it has; the store keeps two identical runs because it needs N1hat >= 2);
+   the undeclared effects stay, since they are part of the simulator, not of its noise;
+3. certify both: the paper's stochastic method on (1), the deterministic method on (2);
+4. audit both certificates against the *stochastic* simulator at fresh points;
+5. synthesize a controller with each gap (same grid, hold, specification);
+6. roll each controller out R times (default 1000) in the stochastic simulator from x0;
+7. write ``summary.json`` (configuration, provenance, every number of the comparison table).
+
+The experiment TOML's sections ``[certify]``, ``[audit]``, ``[synthesis]`` and ``[rollout]``
+hold the stage options (see ``assets/experiments/pendulum.toml``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import time
+from pathlib import Path
+from typing import Callable, Optional
+
+import numpy as np
+
+from .collect import collect, load_store
+from .config import ExperimentConfig
+from .errors import SimgapError
+from .simulators import make_simulator
+from .synthesis.spec import Box, Spec
+
+METHODS = ("deterministic", "stochastic")
+
+CERTIFY_KEYS = {"degree", "terms", "delta1", "delta2", "beta1", "beta2", "variance", "safety", "value_range",
+                "concentration", "uniform", "lemma2_factor", "lipschitz_mode", "l2", "solver", "seed"}
+SYNTH_KEYS = {"spec", "eta", "hold", "safe_lo", "safe_hi", "map"}
+ROLLOUT_KEYS = {"n", "horizon", "x0", "seed", "on_exit"}
+AUDIT_KEYS = {"points", "runs", "seed"}
+
+
+def _check_keys(d: dict, allowed: set, section: str) -> dict:
+    bad = set(d) - allowed
+    if bad:
+        raise SimgapError(f"experiment section [{section}]: unknown keys {sorted(bad)}; allowed: {sorted(allowed)}")
+    return d
+
+
+def baseline_experiment(exp: ExperimentConfig) -> ExperimentConfig:
+    """The deterministic baseline's collection: noise and randomization off, N1hat = 2 identical runs."""
+    sim = dataclasses.replace(exp.simulator, noise={}, randomize={})
+    col = dataclasses.replace(exp.collect, n_runs=2, out=None)
+    return dataclasses.replace(exp, simulator=sim, collect=col)
+
+
+def certify_options(section: dict, method: str):
+    """CertifyOptions from an experiment's ``[certify]`` section."""
+    from .certify.bounds import BoundOptions
+    from .certify.pipeline import CertifyOptions
+
+    s = dict(_check_keys(section, CERTIFY_KEYS, "certify"))
+    bkw = {k: s.pop(k) for k in ("concentration", "uniform", "lemma2_factor") if k in s}
+    if "terms" in s:
+        s["terms"] = {int(k): list(v) for k, v in s["terms"].items()}
+    if method == "deterministic":
+        for k in ("delta1", "delta2", "beta1", "beta2", "variance", "safety", "value_range"):
+            s.pop(k, None)
+    return CertifyOptions(method=method, bounds=BoundOptions(**bkw), **s)
+
+
+def experiment_spec(exp: ExperimentConfig) -> tuple[Spec, Optional[np.ndarray], object]:
+    """(spec, x0 from the map or None, arena map or None) from ``[synthesis]``."""
+    syn = exp.section("synthesis")
+    system = exp.system
+    kind = syn.get("spec", "invariance")
+    if kind == "invariance":
+        lo = np.asarray(syn.get("safe_lo", system.x_lo), dtype=float)
+        hi = np.asarray(syn.get("safe_hi", system.x_hi), dtype=float)
+        return Spec("invariance", safe=Box(lo, hi)), None, None
+    if kind == "reach_avoid":
+        from .maps import load_map
+        arena = load_map(syn.get("map", "arena"))
+        return arena.spec(system), arena.x0(system), arena
+    raise SimgapError(f"[synthesis] spec must be 'invariance' or 'reach_avoid', got {kind!r}")
+
+
+def _gamma_stats(cert, ds) -> dict:
+    g = cert.gamma(ds.x, ds.u)
+    return {"max": g.max(axis=0).tolist(), "mean": g.mean(axis=0).tolist()}
+
+
+def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional[str] = None,
+                   workers: Optional[int] = None, n_rollouts: Optional[int] = None,
+                   log: Callable[[str], None] = print, progress: Optional[Callable] = None) -> dict:
+    """Run the deterministic-vs-stochastic comparison of ``exp`` into ``out``; return the summary.
+
+    Writes ``out/data`` and ``out/data_deterministic`` (resumable stores), ``cert_<method>.json``,
+    ``audit_<method>.json``, ``controller_<method>.npz``, ``rollouts_<method>.npz`` and
+    ``summary.json`` (written last, atomically). ``progress(stage_name)``, if given, returns an
+    ``on_progress(done, total)`` callback for that collection.
+    """
+    from .certify.audit import audit
+    from .certify.pipeline import certify
+    from .synthesis.controller import synthesize
+    from .synthesis.rollout import rollout
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    syn = _check_keys(exp.section("synthesis"), SYNTH_KEYS, "synthesis")
+    ro = _check_keys(exp.section("rollout"), ROLLOUT_KEYS, "rollout")
+    au = _check_keys(exp.section("audit"), AUDIT_KEYS, "audit")
+    cert_section = exp.section("certify")
+    spec, map_x0, arena = experiment_spec(exp)
+    x0 = np.asarray(ro["x0"], dtype=float) if "x0" in ro else map_x0
+    if x0 is None:
+        raise SimgapError("[rollout] x0 is required (no map gives an initial state)")
+    exp.system.check_states(x0[None, :], "rollout x0")
+    if "eta" not in syn:
+        raise SimgapError("[synthesis] eta (grid cell widths) is required")
+    hold = int(syn.get("hold", 1))
+    R = int(n_rollouts or ro.get("n", 1000))
+    ex = executor or exp.collect.executor
+    wk = workers if workers is not None else exp.collect.workers
+    times: dict = {}
+    summary: dict = {"experiment": exp.name, "profile": exp.profile, "description": exp.description,
+                     "config_file": str(exp.path), "sections": {k: exp.section(k) for k in
+                                                                ("certify", "audit", "synthesis", "rollout")},
+                     "simulator": exp.simulator.to_dict(), "system": exp.system.describe(),
+                     "x0": x0.tolist(), "methods": {}}
+
+    def stage(name, fn):
+        log(f"[{name}] ...")
+        t0 = time.perf_counter()
+        r = fn()
+        times[name] = round(time.perf_counter() - t0, 3)
+        log(f"[{name}] done in {times[name]:.1f} s")
+        return r
+
+    data = {}
+    for method, e, sub in (("stochastic", exp, "data"), ("deterministic", baseline_experiment(exp),
+                                                          "data_deterministic")):
+        plan = e.plan()
+        res = stage(f"collect/{method}", lambda: collect(plan, out / sub, executor=ex, workers=wk or None,
+                                                         on_progress=progress and progress(method)))
+        if not res.complete:
+            raise SimgapError(f"collection of {out / sub} did not finish (cancelled); run again to resume")
+        data[method] = load_store(out / sub, system=e.system)
+
+    sim_cfg = exp.simulator.to_dict()
+    for method in METHODS:
+        ds = data[method]
+        opts = certify_options(cert_section, method)
+        cert = stage(f"certify/{method}", lambda: certify(ds, opts))
+        cert.save(out / f"cert_{method}.json")
+        rep = stage(f"audit/{method}", lambda: audit(cert, sim_cfg, points=int(au.get("points", 200)),
+                                                     runs=int(au.get("runs", 2000)), seed=int(au.get("seed", 7)),
+                                                     dataset=data["stochastic"]))
+        (out / f"audit_{method}.json").write_text(json.dumps(rep, indent=1))
+        sres = stage(f"synthesize/{method}", lambda: synthesize(exp.system, spec, syn["eta"], gap=cert, hold=hold,
+                                                                x0=x0))
+        sres.controller.save(out / f"controller_{method}.npz")
+        entry = {
+            "gamma": _gamma_stats(cert, data["stochastic"]),
+            "confidence_per_dim": cert.per_dim_confidence, "confidence_joint": cert.joint_confidence,
+            "audit_pass_rate_per_dim": {k: v["fraction_holds"] for k, v in rep["per_dim"].items()},
+            "audit_pass_rate_joint": rep["joint"]["fraction_holds"],
+            "audit_violated_joint": rep["joint"]["fraction_violated"],
+            "winning_cells": int(sres.stats["winning"]), "synthesis": sres.stats,
+            "dataset_hash": ds.hash,
+        }
+        if sres.empty or not bool(sres.controller.winning(x0[None, :])[0]):
+            why = "empty winning domain" if sres.empty else "x0 is outside the winning domain"
+            entry["rollouts"] = {"skipped": why}
+            log(f"[rollout/{method}] skipped: {why}")
+        else:
+            with make_simulator(sim_cfg) as sim:
+                rr = stage(f"rollout/{method}", lambda: rollout(sres.controller, sim, x0, n_rollouts=R,
+                                                                horizon=ro.get("horizon"), seed=int(ro.get("seed", 11)),
+                                                                on_exit=ro.get("on_exit", "hold")))
+            rr.save_npz(out / f"rollouts_{method}.npz")
+            entry["rollouts"] = rr.to_dict(per_rollout=False)
+            entry["failures"] = int(rr.n_failures)
+            entry["n_rollouts"] = int(rr.n_rollouts)
+            entry["mean_trajectory_satisfies"] = rr.mean_verdict["satisfied"]
+        summary["methods"][method] = entry
+    summary["seconds"] = times
+    tmp = out / ".summary.json.tmp"
+    tmp.write_text(json.dumps(summary, indent=1, default=_json_default))
+    os.replace(tmp, out / "summary.json")
+    return summary
+
+
+def _json_default(o):
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON-serializable: {type(o).__name__}")
+
+
+def comparison_table(summary: dict) -> str:
+    """The readable comparison table of a summary (deterministic vs stochastic)."""
+    names = summary["system"]["state_names"]
+    rows = [("", "deterministic", "stochastic")]
+
+    def fmt(v, f="{:.4g}"):
+        return "-" if v is None else f.format(v)
+
+    def both(fn):
+        return [fn(summary["methods"][m]) for m in METHODS]
+
+    for i, nm in enumerate(names):
+        rows.append((f"gamma max [{nm}]", *both(lambda e: fmt(e["gamma"]["max"][i]))))
+    for i, nm in enumerate(names):
+        rows.append((f"confidence [{nm}]", *both(lambda e: fmt(e["confidence_per_dim"][i]))))
+    rows.append(("joint confidence", *both(lambda e: fmt(e["confidence_joint"]))))
+    rows.append(("audit pass rate (joint)", *both(lambda e: fmt(e["audit_pass_rate_joint"], "{:.3f}"))))
+    rows.append(("audit violated (joint)", *both(lambda e: fmt(e["audit_violated_joint"], "{:.3f}"))))
+    rows.append(("winning cells", *both(lambda e: f"{e['winning_cells']:,}")))
+    rows.append(("failures", *both(lambda e: f"{e['failures']} / {e['n_rollouts']}" if "failures" in e
+                                   else e["rollouts"].get("skipped", "-"))))
+    rows.append(("mean trajectory satisfies", *both(lambda e: str(e.get("mean_trajectory_satisfies", "-")))))
+    w = [max(len(str(r[c])) for r in rows) for c in range(3)]
+    lines = ["  ".join(str(r[c]).ljust(w[c]) if c == 0 else str(r[c]).rjust(w[c]) for c in range(3)) for r in rows]
+    lines.insert(1, "-" * len(lines[0]))
+    secs = summary.get("seconds", {})
+    if secs:
+        lines.append("")
+        lines.append("wall time per stage: " + ", ".join(f"{k} {v:.1f} s" for k, v in secs.items()))
+    return "\n".join(lines)

@@ -1,0 +1,66 @@
+"""Integration: the small pendulum profile end to end (collect, certify x2, audit x2, synthesize x2, roll out)."""
+
+import json
+
+import numpy as np
+import pytest
+
+from simgap.cli import main
+from simgap.errors import SimgapError
+
+
+@pytest.fixture(scope="module")
+def small_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("pendulum-small")
+    rc = main(["run", "pendulum", "--profile", "small", "--out", str(out), "--workers", "2"])
+    assert rc == 0
+    return out, json.loads((out / "summary.json").read_text())
+
+
+def test_summary_structure_and_sanity(small_run):
+    out, s = small_run
+    assert s["experiment"] == "pendulum" and s["profile"] == "small"
+    det, sto = s["methods"]["deterministic"], s["methods"]["stochastic"]
+    n = len(s["system"]["state_names"])
+    # confidences: stochastic in (0, 1) per dimension and jointly; the deterministic baseline states none
+    assert all(0.0 < c < 1.0 for c in sto["confidence_per_dim"]) and 0.0 < sto["confidence_joint"] < 1.0
+    assert det["confidence_joint"] is None
+    # the stochastic gap pays for noise: at least the deterministic one in every dimension
+    assert all(gs >= gd for gs, gd in zip(sto["gamma"]["max"], det["gamma"]["max"]))
+    for e in (det, sto):
+        assert len(e["gamma"]["max"]) == n
+        assert 0.0 <= e["audit_pass_rate_joint"] <= 1.0
+        assert e["winning_cells"] > 0
+    # a larger gap cannot give a larger winning domain on the same grid
+    assert sto["winning_cells"] <= det["winning_cells"]
+    # the stochastic controller: R rollouts, none failing, audit at or above the claimed confidence
+    assert sto["n_rollouts"] == 1000
+    assert sto["failures"] == 0
+    assert sto["audit_pass_rate_joint"] >= sto["confidence_joint"]
+    assert sto["mean_trajectory_satisfies"] is True
+    for name in ("cert_stochastic.json", "cert_deterministic.json", "controller_stochastic.npz",
+                 "rollouts_stochastic.npz", "audit_stochastic.json", "run.rrd"):
+        assert (out / name).stat().st_size > 0, name
+
+
+def test_rerun_resumes_and_reproduces(small_run, tmp_path):
+    out, s = small_run
+    rc = main(["run", "pendulum", "--profile", "small", "--out", str(out), "--no-record", "--workers", "2"])
+    assert rc == 0
+    s2 = json.loads((out / "summary.json").read_text())
+    # the collection is reused (resumed, nothing recomputed) and every number is reproduced
+    assert s2["seconds"]["collect/stochastic"] < s["seconds"]["collect/stochastic"] or s["seconds"]["collect/stochastic"] < 1
+    for m in ("deterministic", "stochastic"):
+        np.testing.assert_array_equal(s2["methods"][m]["gamma"]["max"], s["methods"][m]["gamma"]["max"])
+        assert s2["methods"][m]["winning_cells"] == s["methods"][m]["winning_cells"]
+        assert s2["methods"][m].get("failures") == s["methods"][m].get("failures")
+
+
+def test_bad_experiment_is_a_clear_error(tmp_path, capsys):
+    assert main(["run", "no-such-experiment"]) == 2
+    assert "error:" in capsys.readouterr().err
+    bad = tmp_path / "bad.toml"
+    src = (__import__("simgap.config", fromlist=["EXPERIMENTS_DIR"]).EXPERIMENTS_DIR / "pendulum.toml").read_text()
+    bad.write_text(src.replace('spec = "invariance"', 'spec = "invariance"\nbogus = 1'))
+    assert main(["run", str(bad), "--out", str(tmp_path / "o")]) == 2
+    assert "bogus" in capsys.readouterr().err

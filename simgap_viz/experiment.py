@@ -48,6 +48,15 @@ def _vec(v):
     return tuple(float(x) for x in (v if isinstance(v, (list, tuple)) else [v]))
 
 
+def _confidence_from_betas(cert: dict, n: int, default):
+    """Joint confidence 1 - sum_i (beta_1i + beta_2i) of [certify] beta1/beta2 (scalars or per dim)."""
+    if "beta1" not in cert and "beta2" not in cert:
+        return default
+    b1 = np.broadcast_to(np.asarray(cert.get("beta1", cert.get("beta2")), float), (n,))
+    b2 = np.broadcast_to(np.asarray(cert.get("beta2", cert.get("beta1")), float), (n,))
+    return float(1.0 - b1.sum() - b2.sum())
+
+
 def from_experiment(exp):
     """Map a :class:`simgap.config.ExperimentConfig` to (Settings, spec or None, arena map or None).
 
@@ -77,10 +86,10 @@ def from_experiment(exp):
     st = st.replace(
         degree=int(cert.get("degree", st.degree)) if np.isscalar(cert.get("degree", st.degree)) else st.degree,
         terms=str(terms), delta1=d1 if d2 is not None else None, delta2=d2 if d1 is not None else None,
-        confidence=float(cert.get("confidence", st.confidence)),
+        confidence=float(cert.get("confidence", _confidence_from_betas(cert, s.n, st.confidence))),
         concentration=str(cert.get("concentration", st.concentration)),
         eta=_vec(syn.get("eta")) or engine.default_eta(s), hold=int(syn.get("hold", st.hold)),
-        n_rollouts=int(ro.get("n_rollouts", st.n_rollouts)), horizon=int(ro.get("horizon", st.horizon)),
+        n_rollouts=int(ro.get("n_rollouts", ro.get("n", st.n_rollouts))), horizon=int(ro.get("horizon", st.horizon)),
         x0=_vec(ro.get("x0")), rollout_seed=int(ro.get("seed", st.rollout_seed)))
     if len(st.eta) == 1:
         st = st.replace(eta=st.eta * s.n)
@@ -89,16 +98,33 @@ def from_experiment(exp):
     if map_name:
         from simgap.maps import load_map
         arena = load_map(map_name)
-    spec = arena.spec(s) if arena is not None else spec_from_section(syn.get("spec"))
+    spec = arena.spec(s) if arena is not None else spec_from_section(syn, s)
     return st, spec, arena
 
 
-def spec_from_section(d):
-    """A Spec from a [synthesis.spec] table (the Spec.to_dict layout), or None."""
+def spec_from_section(syn: dict, system):
+    """The specification of an experiment's [synthesis] section, or None.
+
+    ``spec`` may be a table in the :meth:`Spec.to_dict` layout, or the word ``invariance``
+    (safe box ``safe = [lo..., hi...]`` as two lists, default all of X) or ``reach_avoid``
+    (``target`` and ``obstacles`` as [lo, hi] pairs of lists).
+    """
+    from simgap.synthesis.spec import Box, Spec
+
+    d = syn.get("spec")
     if not d:
         return None
-    from simgap.synthesis.spec import Spec
     try:
-        return Spec.from_dict(d)
-    except (KeyError, TypeError) as e:
-        raise SimgapError(f"experiment: bad [synthesis.spec] table ({e})") from None
+        if isinstance(d, dict):
+            return Spec.from_dict(d)
+        if d == "invariance":
+            safe = syn.get("safe")
+            box = Box(system.x_lo, system.x_hi) if safe is None else Box(safe[0], safe[1])
+            return Spec("invariance", safe=box)
+        if d == "reach_avoid" and syn.get("target") is not None:
+            t = syn["target"]
+            return Spec("reach_avoid", target=Box(t[0], t[1]),
+                        obstacles=tuple(Box(o[0], o[1]) for o in syn.get("obstacles", [])))
+    except (KeyError, TypeError, IndexError, ValueError) as e:
+        raise SimgapError(f"experiment: bad [synthesis] spec ({e})") from None
+    return None

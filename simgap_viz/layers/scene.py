@@ -89,7 +89,7 @@ def draw_gamma(app) -> dict:
         vals = surf["values"]
         # viser's own mesh material (non-metallic); GLB meshes without a material render washed out
         sc.add_mesh_simple("/gamma/surface", verts, surf["faces"], color=G.DIM_COLORS[v["dim"] % len(G.DIM_COLORS)],
-                           side="double", visible=app.layers_visible["gamma"])
+                           side="double", opacity=0.7, visible=app.layers_visible["gamma"])
         out["vertices"], out["faces"] = verts, surf["faces"]
         out["range"] = (float(vals.min()), float(vals.max()))
     else:

@@ -95,6 +95,14 @@ def test_cli_certify_and_audit(tmp_path, capsys):
     assert main(["audit", str(cert), "--data", str(data), "--points", "30", "--runs", "200", "--out", str(rep)]) == 0
     assert json.loads(rep.read_text())["passed"] is True
     assert "PASSED" in capsys.readouterr().out
+    # per-dimension degrees, the certified variance bound and an option beyond the paper
+    c3 = tmp_path / "c3.json"
+    assert main(["certify", str(data), "--degree", "1,2", "--variance", "maurer_pontil", "--range", "0.05",
+                 "--concentration", "bernstein", "--out", str(c3)]) == 0
+    d3 = json.loads(c3.read_text())
+    assert len(d3["dims"][0]["terms"]) == 4 and len(d3["dims"][1]["terms"]) == 10
+    assert d3["dims"][0]["beta_v"] == 0.001 and "concentration=bernstein" in d3["options"]["beyond_paper"]
+    assert "options beyond the paper" in capsys.readouterr().out
     # comparison table
     assert main(["certify", str(data), "--compare"]) == 0
     out = capsys.readouterr().out

@@ -93,6 +93,24 @@ def test_turtlebot_actuator_gain_found():
     assert min(rb / ra for rb, ra in zip(rep["rms_before"], rep["rms_after"])) > 5
 
 
+def test_turtlebot_pybullet_actuator_gain_found():
+    k = 0.85  # the robot drives 15 % slower than commanded; the unicycle model does not know
+    cfg = {"kind": "pybullet_turtlebot", "system": "turtlebot", "noise": {"sensor_std": 1e-4},
+           "effects": {"actuator_gain": [k, 1.0]}}
+    rep = refine("turtlebot", sample("turtlebot", 3000, 3, cfg)).report
+    gains = {e["state_name"]: e for e in rep["effects"] if e["name"] == "input_gain"}
+    for st in ("x", "y"):
+        assert gains[st]["input"] == "v"
+        assert gains[st]["physical"]["value"] == pytest.approx(k, abs=0.01)
+        i = ("x", "y").index(st)
+        assert rep["rms_before"][i] / rep["rms_after"][i] > 5
+        assert rep["rms_after"][i] < 1.2e-4          # sensor noise 1e-4 is the floor
+    # nothing planted on the heading: whatever is found there is small (Bullet's own turn-rate response)
+    for e in rep["effects"]:
+        if e["state_name"] == "theta":
+            assert abs(e["coefficient"]) < 0.05
+
+
 def test_user_term_outside_library_is_found_when_named():
     extra = lambda x, u: np.stack([0.3 * np.sin(3 * x[:, 1]), 0 * x[:, 1], 0 * x[:, 1]], axis=1)
     data = sample("turtlebot", 15000, 5, extra=extra)
@@ -304,3 +322,43 @@ def test_too_few_samples_and_rank_deficient_design():
     assert refine("pendulum", data, effects=["bias", "viscous_friction"]).report["effects"] == []
     with pytest.raises(SimgapError, match="not a whole multiple"):
         refine("pendulum", make_transitions(x, u, x, 0.0033, system=s))
+
+
+def test_parquet_loading(tmp_path):
+    pa = pytest.importorskip("pyarrow")
+    import pyarrow.parquet as pq
+    data = sample("pendulum", 300, 13)
+    cols = {"x1": data.x[:, 0], "x2": data.x[:, 1], "u1": data.u[:, 0], "x1_next": data.x_next[:, 0],
+            "x2_next": data.x_next[:, 1], "tau": np.full(300, 0.005), "t": np.arange(300) * 0.005}
+    pq.write_table(pa.table(cols), tmp_path / "d.parquet")
+    tr = load_transitions(tmp_path / "d.parquet", system=get_system("pendulum"))
+    np.testing.assert_allclose(tr.x_next, data.x_next)
+    assert tr.is_time_series
+
+
+def test_time_series_holdout_is_contiguous_segments():
+    from simgap.refine.selection import split_heldout
+    t = np.arange(1000) * 0.001
+    held = split_heldout(1000, t, SelectionOptions(holdout=0.3, n_segments=5))
+    assert held.sum() == 300
+    edges = np.flatnonzero(np.diff(held.astype(int)) != 0)
+    assert len(edges) == 9           # 5 held-out blocks: 5 starts + 4 ends (the last block runs to the end)
+    assert held[140:200].all() and not held[:140].any()
+
+
+def test_refined_with_integration_and_coulomb_round_trips(tmp_path):
+    s = get_system("emps")
+    effs = candidate_effects(s, ["coulomb_friction", "viscous_friction", "integration"])
+    keys = [e.key(s) for e in effs]
+    assert keys == ["coulomb_friction:qd:qd", "viscous_friction:qd:qd", "integration:q:qd"]
+    from simgap.refine.refined import build_refined
+    ref = build_refined(s, "emps", effs, [-0.2, -2.2, 0.0005], [0.01, 0.1, 1e-6])
+    x = np.array([[0.1, 0.05], [0.1, -0.05]])
+    u = np.array([[1.0], [1.0]])
+    # integration uses the refined acceleration: q+ = q + tau v + tau * 0.0005 * a'
+    a = 35.15 / 95.1 * 1.0 - 0.2 * np.sign(x[:, 1]) - 2.2 * x[:, 1]
+    np.testing.assert_allclose(ref.f(x, u)[:, 0], x[:, 0] + 0.001 * x[:, 1] + 0.001 * 0.0005 * a, rtol=1e-9)
+    np.testing.assert_allclose(ref.f(x, u)[:, 1], x[:, 1] + 0.001 * a, rtol=1e-12)
+    loaded = load_system(str(save_refined(ref, tmp_path / "e.json")))
+    np.testing.assert_allclose(loaded.f(x, u), ref.f(x, u), rtol=0, atol=1e-15)
+    assert loaded.jacobian_bound is None      # Coulomb friction is discontinuous

@@ -273,6 +273,12 @@ def test_collected_dataset_is_accepted(tmp_path):
     rep = refine("pendulum", tr).report
     assert effect_keys(rep) == [("viscous_friction", "omega")]
     assert rep["effects"][0]["coefficient"] == pytest.approx(-0.5, abs=0.02)
+    # a data set collected at steps = 2 keeps its own tau even when the plain system is named
+    import dataclasses
+    s2 = s.with_steps(2)
+    ds2 = dataclasses.replace(ds, system=s2, f_nom=s2.f(X, U))
+    tr2 = load_transitions(ds2.save_npz(tmp_path / "ds2.npz"), system=s)
+    assert tr2.tau == pytest.approx(0.01)
 
 
 def test_csv_and_npz_loading_and_bad_files(tmp_path):

@@ -174,6 +174,18 @@ def _columns_lookup(cols: dict, system: Optional[System], path: str):
     return x, u, xn, float(finite[0]), t
 
 
+def _load_collected(path: Path, system: Optional[System]):
+    """A collected data set as transitions; its own system (and steps) unless it is a user system."""
+    from ..dataset import load_dataset
+    try:
+        ds = load_dataset(path)
+    except SimgapError:
+        if system is None:
+            raise
+        ds = load_dataset(path, system=system)
+    return from_dataset(ds)
+
+
 def load_transitions(path: str | Path, system: Optional[System] = None,
                      drop_nonfinite: bool = False) -> Transitions:
     """Load transition data from .npz / .csv / .parquet or a collected data set (see module doc)."""
@@ -181,8 +193,7 @@ def load_transitions(path: str | Path, system: Optional[System] = None,
     if not path.exists():
         raise SimgapError(f"data file {str(path)!r} does not exist")
     if path.is_dir():
-        from ..dataset import load_dataset
-        return from_dataset(load_dataset(path, system=system))
+        return _load_collected(path, system)
     suffix = path.suffix.lower()
     if suffix == ".npz":
         try:
@@ -205,8 +216,7 @@ def load_transitions(path: str | Path, system: Optional[System] = None,
                 raise
             raise SimgapError(f"{path}: unreadable .npz: {e}") from None
         if is_dataset:
-            from ..dataset import load_dataset
-            return from_dataset(load_dataset(path, system=system))
+            return _load_collected(path, system)
         return make_transitions(arr["x"], arr["u"], arr["x_next"], arr["tau"], t, system=system,
                                 drop_nonfinite=drop_nonfinite, source=str(path), meta=meta)
     if suffix == ".csv":

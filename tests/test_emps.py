@@ -107,3 +107,31 @@ def test_trajectory_conversion_on_a_synthetic_record():
     np.testing.assert_allclose(tr.x[:, 1], A * w * np.cos(w * tr.t), atol=1e-4)
     np.testing.assert_allclose(tr.x_next[:-1], tr.x[1:])
     assert tr.meta["trim"] == 100 and tr.is_time_series
+
+
+def test_from_trajectory_cli_csv_with_named_columns(tmp_path, capsys):
+    """A user's own log: mass-spring-free cart with viscous friction, position-only CSV."""
+    fs, M, b = 500.0, 2.0, 3.0
+    t = np.arange(0, 20, 1 / fs)
+    u = np.sign(np.sin(2 * np.pi * 0.4 * t)) * 4.0        # bang-bang force [N]
+    v = np.zeros_like(t)
+    q = np.zeros_like(t)
+    for k in range(t.size - 1):                            # exact-enough simulation at 500 Hz
+        v[k + 1] = v[k] + (u[k] - b * v[k]) / M / fs
+        q[k + 1] = q[k] + v[k] / fs
+    path = tmp_path / "log.csv"
+    np.savetxt(path, np.column_stack([t, q, u]), delimiter=",", header="time,pos,force", comments="")
+    out = tmp_path / "log.npz"
+    assert main(["data", "from-trajectory", str(path), "--time", "time", "--position", "pos",
+                 "--input", "force", "--cutoff", "40", "--out", str(out)]) == 0
+    assert "low-pass 40 Hz" in capsys.readouterr().out
+    with np.load(out) as z:
+        assert z["x"].shape[1] == 2 and float(z["tau"]) == pytest.approx(1 / fs)
+        # the estimated velocity follows the true one
+        i = np.searchsorted(t, z["t"])
+        assert np.max(np.abs(z["x"][:, 1] - v[i])) < 0.02 * np.max(np.abs(v))
+    assert main(["data", "from-trajectory", str(path), "--time", "time", "--position", "pos",
+                 "--input", "force", "--cutoff", "300", "--out", str(out)]) == 2
+    assert "Nyquist = 250 Hz" in capsys.readouterr().err
+    assert main(["data", "from-trajectory", str(path), "--time", "time", "--position", "pos",
+                 "--cutoff", "40", "--out", str(out)]) == 2

@@ -183,7 +183,9 @@ def _load_collected(path: Path, system: Optional[System]):
         if system is None:
             raise
         ds = load_dataset(path, system=system)
-    return from_dataset(ds)
+    tr = from_dataset(ds)
+    tr.source = str(path)
+    return tr
 
 
 def load_transitions(path: str | Path, system: Optional[System] = None,

@@ -415,7 +415,18 @@ def diagnose_empty(ab, spec: Spec, gap, res: GameResult) -> str:
     lo = ab.off_lo[usable].astype(np.int64)
     hi = ab.off_hi[usable].astype(np.int64)
     selfish = np.all((lo <= 0) & (hi >= 0), axis=1)
-    g = "" if gap is None else " plus the gap"
+    g = ""
+    if gap is not None:
+        g = " plus the gap"
+        try:  # the gap's size against the cell width, over X and all inputs
+            grid = ab.grid
+            U = ab.inputs
+            gs = np.asarray(gap.gamma_upper_box(np.broadcast_to(grid.lo, (len(U), grid.n)),
+                                                np.broadcast_to(grid.hi, (len(U), grid.n)), U)).max(axis=0)
+            g = (f" plus the gap (gamma up to {np.round(gs, 6).tolist()} per period, cell width "
+                 f"{np.round(grid.eta, 6).tolist()})")
+        except Exception:  # the diagnosis is a hint; never fail on it
+            pass
     if spec.kind == "reach_avoid" and selfish.all():
         return ("empty winning domain: every successor box contains its own cell, i.e. the motion in one "
                 f"abstract step is smaller than the growth bound{g} (the one-step control authority is too "

@@ -1,0 +1,147 @@
+"""``simgap synthesize``: certificate + specification -> symbolic controller file and a summary.
+
+    simgap synthesize --system turtlebot --hold 10 --cert cert.json --spec arena --eta 0.08 \\
+        --out turtlebot.npz
+    simgap synthesize --system pendulum --no-gap --safe 0,0.2,-0.5,0.5 --eta 0.002,0.005 \\
+        --out pendulum.npz
+
+``--spec`` is a map (a name under assets/maps or a .toml map file: reach-avoid with the map's
+target and obstacles grown by the robot radius) or a JSON file holding ``Spec.to_dict()``;
+``--safe`` gives an invariance spec directly. Exactly one of ``--cert``, ``--gamma`` and
+``--no-gap`` says how the simulation gap enters. Exit status: 0 with a controller written,
+1 when the winning domain is empty (nothing written; the summary says why), 2 on bad input.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import SimgapError
+
+
+def add_parser(subparsers) -> None:
+    p = subparsers.add_parser(
+        "synthesize", help="synthesize a symbolic controller that treats the certified gap as a disturbance",
+        description="Abstraction on a uniform grid (SCOTS conventions) and a reach-avoid or invariance game; "
+                    "writes the controller (.npz) and prints grid size, boxes/transitions, winning domain and times.")
+    p.add_argument("--system", required=True, help="built-in system name (pendulum, turtlebot, emps)")
+    p.add_argument("--steps", type=int, default=None,
+                   help="base periods per sampling period (default: the certificate's, else 1)")
+    p.add_argument("--hold", type=int, default=1, help="sampling periods per abstract step, input held (default 1)")
+    g = p.add_mutually_exclusive_group(required=True)
+    g.add_argument("--cert", help="certificate JSON written by 'simgap certify'")
+    g.add_argument("--gamma", help="a constant gap per state dimension, comma separated (or one value)")
+    g.add_argument("--no-gap", action="store_true", help="synthesize on the nominal model alone")
+    s = p.add_mutually_exclusive_group(required=True)
+    s.add_argument("--spec", help="map name or .toml map (reach-avoid), or a JSON spec file")
+    s.add_argument("--safe", help="invariance: safe box lo1,hi1,lo2,hi2,... (one pair per state)")
+    p.add_argument("--eta", required=True, help="cell width, one value or one per state dimension (comma separated)")
+    p.add_argument("--out", required=True, help="controller file to write (.npz)")
+    p.add_argument("--x0", default=None, help="initial state to record and check (default: the map's)")
+    p.add_argument("--json", default=None, help="also write the statistics as JSON here")
+    p.add_argument("--no-strict-domain", action="store_true",
+                   help="let cells stick out of X by eta/2 (SCOTS's convention) instead of blocking them")
+    p.set_defaults(func=run)
+
+
+def _floats(text: str, what: str) -> np.ndarray:
+    try:
+        v = np.array([float(t) for t in str(text).replace(" ", ",").split(",") if t != ""])
+    except ValueError:
+        raise SimgapError(f"{what}: expected comma-separated numbers, got {text!r}") from None
+    if v.size == 0 or not np.all(np.isfinite(v)):
+        raise SimgapError(f"{what}: expected finite numbers, got {text!r}")
+    return v
+
+
+def load_spec(text: str, system):
+    """A Spec from a map name/.toml file or a JSON spec file; also returns the map's x0 or None."""
+    from ..synthesis.spec import Spec
+    path = Path(text)
+    if path.suffix == ".json":
+        if not path.exists():
+            raise SimgapError(f"spec file {text!r} does not exist")
+        try:
+            d = json.loads(path.read_text())
+        except ValueError as e:
+            raise SimgapError(f"spec file {text!r} is not valid JSON: {e}") from None
+        try:
+            return Spec.from_dict(d), None
+        except (KeyError, TypeError) as e:
+            raise SimgapError(f"spec file {text!r} is not a spec ({e})") from None
+    from ..maps import load_map
+    amap = load_map(text)
+    return amap.spec(system), amap.x0(system)
+
+
+def run(args) -> int:
+    from ..systems import get_system
+    from ..synthesis.controller import synthesize
+    from ..synthesis.spec import Box, Spec
+
+    cert = None
+    if args.cert:
+        from ..certify.certificate import load as load_cert
+        cert = load_cert(args.cert)
+    steps = args.steps if args.steps is not None else (getattr(cert, "steps", 1) if cert is not None else 1)
+    system = get_system(args.system, steps)
+    if cert is not None:
+        cert.check_system(system)
+        gap = cert
+    elif args.gamma:
+        gap = _floats(args.gamma, "--gamma")
+    else:
+        gap = None
+    x0 = None
+    if args.safe:
+        v = _floats(args.safe, "--safe")
+        if v.size != 2 * system.n:
+            raise SimgapError(f"--safe: need {2 * system.n} numbers (lo, hi per state), got {v.size}")
+        spec = Spec(kind="invariance", safe=Box(v[0::2], v[1::2]))
+    else:
+        spec, x0 = load_spec(args.spec, system)
+    if args.x0 is not None:
+        x0 = _floats(args.x0, "--x0")
+        system.check_states(x0[None], what="--x0")
+    eta = _floats(args.eta, "--eta")
+    if eta.size not in (1, system.n):
+        raise SimgapError(f"--eta: need 1 or {system.n} values, got {eta.size}")
+
+    res = synthesize(system, spec, eta, gap=gap, hold=args.hold, strict_domain=not args.no_strict_domain,
+                     x0=x0)
+    print(res.summary())
+    if args.json:
+        _write_json(args.json, res.stats)
+    if res.empty:
+        print("result: EMPTY winning domain, no controller written")
+        return 1
+    ctrl = res.controller
+    ctrl.save(args.out)
+    print(f"wrote         {args.out}")
+    if x0 is not None:
+        if ctrl.winning(x0[None])[0]:
+            print(f"x0            {np.asarray(x0).tolist()}: winning, {int(ctrl.steps_to_go(x0[None])[0])} "
+                  f"abstract steps to go (worst case)" if spec.kind == "reach_avoid" else
+                  f"x0            {np.asarray(x0).tolist()}: winning")
+        else:
+            print(f"warning: x0 {np.asarray(x0).tolist()} is outside the winning domain; rollouts from it "
+                  "will be refused")
+    return 0
+
+
+def _write_json(path, obj) -> None:
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(dir=path.parent if str(path.parent) else ".", prefix=path.name, suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as fh:
+            json.dump(obj, fh, indent=1)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise

@@ -306,8 +306,9 @@ def live_pairs(ab: Abstraction, blocked: np.ndarray, keep: np.ndarray, allowed=N
     B = _block_size(ab)
     boxes = 0
     trans = 0
-    for s in range(0, N, B):
-        ids = np.arange(s, min(N, s + B))
+    free = np.flatnonzero(~blocked)  # blocked cells have no valid pairs
+    for s in range(0, free.size, B):
+        ids = free[s:s + B]
         valid, q = ev.valid_rows(ids)
         boxes += int(valid.sum())
         trans += int(ev.fam.vol_flat[q][valid].sum(dtype=np.int64))

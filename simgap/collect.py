@@ -552,8 +552,17 @@ def load_store(path: str | Path, system: System | None = None) -> Dataset:
     _check_store_complete(store, cfg)
     names = ["x", "u", "f_nom", "mean", "var", "lo", "hi", "cover_index", "input_index"]
     K, S = int(cfg["n_pairs"]), int(cfg["chunk_size"])
-    parts = [_load_chunk(store, c, h, min((c + 1) * S, K) - c * S, names) for c in range(int(cfg["n_chunks"]))]
-    arrays = {k: np.concatenate([p[k] for p in parts]) for k in names}
+    arrays = {}
+    for c in range(int(cfg["n_chunks"])):  # fill preallocated arrays: peak memory = data set + one chunk
+        a, b = c * S, min((c + 1) * S, K)
+        part = _load_chunk(store, c, h, b - a, names)
+        if not arrays:
+            arrays = {k: np.empty((K,) + v.shape[1:], dtype=v.dtype) for k, v in part.items()}
+        for k, v in part.items():
+            if v.shape[1:] != arrays[k].shape[1:]:
+                raise SimgapError(f"store {str(store)!r}: chunk {c} has {k} of shape {v.shape}, "
+                                  f"expected (.., {arrays[k].shape[1:]})")
+            arrays[k][a:b] = v
     manifest = dict(cfg)
     manifest.update({"hash": h, "store": str(store.resolve()), "created": man.get("created")})
     return Dataset(system=system, n_runs=int(cfg["n_runs"]), epsilon=float(cfg["epsilon"]),

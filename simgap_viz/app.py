@@ -248,7 +248,7 @@ class SimgapApp:
         elif stage == "rollout":
             syn = self._result_for("synthesize", s, ctx)
             res = engine.rollout(system, self.current_spec(), syn, s, ctx, experiment=exp,
-                                 arena=self.arena if system.name == "turtlebot" else None)
+                                 arena=self.arena if engine.base_system(system).name == "turtlebot" else None)
         elif stage == "refine":
             res = engine.refine(self._result_for("collect", s, ctx), s, ctx)
         else:
@@ -308,6 +308,36 @@ class SimgapApp:
         """Refine the nominal model from the data's residuals (engine: ``simgap.refine``)."""
         self.guarded(self._run_stage, "refine", background)
 
+    def use_refined(self) -> None:
+        """Switch the nominal model to the refined f' of the last refinement; the data are kept
+        (the same empirical means, the gap now measured to f') and the simulator stays the same."""
+        res = self.results.get("refine")
+        data = self.results.get("collect")
+        if res is None or data is None:
+            raise SimgapError("refine first")
+        base = engine.base_system(data.system)
+        name = engine.register_refined(res.refined.with_steps(base.steps), base)
+        ds = engine.rebase(data, engine.REFINED[name][0])
+        self.panels["system"].system.options = list(engine.SYSTEMS)
+        self.set_dataset(ds)
+        self.set_status(f"nominal model: {name} (refined); data re-based, certify to see the new gap")
+
+    def compare_refined(self) -> None:
+        """Certify (and synthesize) with f and f' on the same data, on the job thread."""
+        res, data = self.results.get("refine"), self.results.get("collect")
+        if res is None or data is None:
+            self.notify("Nothing to compare", "refine first")
+            return
+        s = self.settings
+        spec = self.guarded(self.current_spec)
+
+        def job(ctx):
+            d = engine.compare_refined(data, res, s, spec)
+            self.panels["refine"].comparison.content = engine.comparison_markdown(d)
+            return d
+
+        self.guarded(self.start_job, "compare", job)
+
     def cancel(self) -> None:
         if self.jobs.cancel():
             self.set_status(f"cancelling {self.jobs.current} ...")
@@ -318,7 +348,7 @@ class SimgapApp:
             box = self.spec.target if self.spec.target is not None else self.spec.safe
             if box.lo.size == self.system.n:
                 return self.spec
-        return engine.default_spec(self.system, self.arena if self.system.name == "turtlebot" else None)
+        return engine.default_spec(self.system, self.arena if engine.base_system(self.system).name == "turtlebot" else None)
 
     # ----- job callbacks (worker thread) -------------------------------------------------
     def _job_progress(self, name: str, frac: float) -> None:

@@ -66,8 +66,36 @@ def unavailable_note(stage: str) -> str:
 
 
 # ----- systems, specs ----------------------------------------------------------------------
+# refined models the user switched to: name -> (refined System, the base System the simulator runs)
+REFINED: dict = {}
+
+
+def register_refined(refined: System, base: System) -> str:
+    """Make a refined model selectable by name (its simulator stays the base system's)."""
+    REFINED[refined.name] = (refined, base)
+    if refined.name not in SYSTEMS:
+        SYSTEMS.append(refined.name)
+    return refined.name
+
+
+def base_system(system: System) -> System:
+    """The system the simulator simulates: the base of a refined model, else the system itself."""
+    return REFINED[system.name][1] if system.name in REFINED else system
+
+
+def rebase(dataset, system: System):
+    """The same data with f_nom = f'(x_r, u) of another nominal model (as simgap.refine.compare does):
+    the empirical means are unchanged, the observed gap becomes |mean - f'|."""
+    import dataclasses
+    system = system.with_steps(dataset.system.steps)
+    return dataclasses.replace(dataset, system=system, f_nom=system.f(dataset.x, dataset.u),
+                               manifest={**dataset.manifest, "hash": f"{dataset.hash}-{system.name}"})
+
+
 def make_system(settings, experiment=None) -> System:
     """The nominal system of the settings; the experiment's own (e.g. its input set) if it names the same."""
+    if settings.system in REFINED:
+        return REFINED[settings.system][0].with_steps(int(settings.steps))
     if experiment is not None and experiment.system.name == settings.system:
         return experiment.system.with_steps(int(settings.steps))
     return get_system(settings.system, steps=int(settings.steps))
@@ -121,12 +149,13 @@ def default_spec(system: System, arena=None):
     reach-avoid in the ``arena`` map (target, obstacles grown by the robot radius).
     """
     from simgap.synthesis.spec import Box, Spec
-    if arena is None and system.name == "turtlebot":
+    name = base_system(system).name
+    if arena is None and name == "turtlebot":
         from simgap.maps import load_map
         arena = load_map("arena")
     if arena is not None:
         return arena.spec(system)
-    if system.name == "pendulum":
+    if name == "pendulum":
         return Spec("invariance", safe=Box([0.0, -0.5], [0.2, 0.5]))
     raise SimgapError(f"no specification for system {system.name!r}: start the app with --experiment")
 
@@ -160,6 +189,9 @@ def collect(settings, system: System, ctx, experiment=None, executor: str = "loc
 
     from simgap.collect import CollectionPlan, collect as run_collect
     from simgap.cover import CoverSpec, make_cover
+
+    if system.name in REFINED:  # collect on the simulated base system, then measure the gap to f'
+        return rebase(collect(settings, base_system(system), ctx, experiment, executor), system)
 
     if experiment is not None and experiment.system.name == system.name \
             and experiment.simulator.kind == settings.simulator:
@@ -222,6 +254,7 @@ def rollout_simulator(settings, system, experiment=None):
     import dataclasses
 
     from simgap.simulators.base import make_simulator
+    system = base_system(system)
     if experiment is not None and experiment.system.name == system.name \
             and experiment.simulator.kind == settings.simulator:
         cfg = dataclasses.replace(experiment.simulator, steps=int(system.steps))
@@ -337,6 +370,26 @@ def rollout_markdown(res) -> str:
     return "```\n" + "\n".join(res.summary_lines()) + "\n```"
 
 
+def compare_refined(dataset, res, settings, spec=None):
+    """Certified gap and winning domain for f and f' on the same data (simgap.refine.compare)."""
+    from simgap.refine.compare import gap_comparison
+    return gap_comparison(dataset, res.refined, certify_options(settings, dataset.system.n), spec=spec,
+                          eta=list(settings.eta) if spec is not None else None, hold=int(settings.hold))
+
+
+def comparison_markdown(d: dict) -> str:
+    names = None
+    rows = ["| | f | f' |", "|---|---|---|"]
+    for key, label in (("observed_gap_max", "max observed gap"), ("gamma_max", "max gamma"),
+                       ("gamma_mean", "mean gamma")):
+        b, a = d.get(f"{key}_before"), d.get(f"{key}_after")
+        if b is not None:
+            rows.append(f"| {label} | {', '.join(f'{v:.3g}' for v in b)} | {', '.join(f'{v:.3g}' for v in a)} |")
+    if "winning_before" in d:
+        rows.append(f"| winning cells | {d['winning_before']} | {d['winning_after']} |")
+    return "\n".join(rows)
+
+
 def refine_markdown(res) -> str:
     from simgap.refine.report import format_table
     return "```\n" + format_table(res.report) + "\n```"
@@ -360,4 +413,4 @@ def map_meshes(app, frame) -> list:
 def body_meshes(app) -> list:
     """(name, trimesh, position) of the simulator's bodies (from their URDF geometry)."""
     from .layers.bodies import simulator_bodies
-    return simulator_bodies(app.settings.simulator, app.system)
+    return simulator_bodies(app.settings.simulator, base_system(app.system))

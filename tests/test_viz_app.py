@@ -228,6 +228,26 @@ def test_refine_report(app):
     assert out.ok, out.error
     rep = app.panels["refine"].report.content
     assert "viscous_friction" in rep  # the damping effect of the numpy simulator is found
+    gap_f = app.results["collect"].gap().max(axis=0)
+    app.compare_refined()
+    out = app.wait(120)
+    assert out.ok, out.error
+    assert "max observed gap" in app.panels["refine"].comparison.content
+    # switch the nominal model to f': same empirical means, smaller observed gap, same simulator
+    app.use_refined()
+    assert app.system.name == "pendulum_refined" and app.settings.system == "pendulum_refined"
+    assert "pendulum_refined" in app.panels["system"].system.options
+    gap_r = app.results["collect"].gap().max(axis=0)
+    assert gap_r[1] < 0.5 * gap_f[1]
+    app.certify()
+    out = app.wait(120)
+    assert out.ok, out.error
+    assert app.results["certify"].system_name == "pendulum_refined"
+    app.update_settings(use_gap=False, eta=(0.005, 0.01), n_rollouts=20, horizon=30)
+    app.rollout()  # synthesizes first, then rolls out in the base system's simulator
+    out = app.wait(120)
+    assert out.ok, out.error
+    assert app.results["rollout"].trajectories.shape == (20, 31, 2)
 
 
 def test_unavailable_stage_button_disabled(app, monkeypatch):

@@ -229,6 +229,9 @@ def test_refine_report(app):
     rep = app.panels["refine"].report.content
     assert "viscous_friction" in rep  # the damping effect of the numpy simulator is found
     gap_f = app.results["collect"].gap().max(axis=0)
+    rp = app.panels["refine"]
+    rp.res_var.value = "torque"  # residual of omega against the input: one point per data row
+    assert app.view["res_var"] == "torque" and rp.show_residuals() == app.results["collect"].K
     app.compare_refined()
     out = app.wait(120)
     assert out.ok, out.error

@@ -152,10 +152,52 @@ def draw_rollouts(app) -> int:
     return seg["points"].shape[0]
 
 
+RESIDUAL_PLANE_Y = -1.5
+
+
+def draw_residuals(app, state: int = None, var: str = None, max_points: int = 20000) -> int:
+    """Refinement residuals r_i = x+ - f_i (red) and x+ - f'_i (green) against one variable, as two
+    point clouds in the vertical plane y = RESIDUAL_PLANE_Y (x: the variable over its range mapped to
+    [-1, 1]; z: r scaled so that max |r| before = 0.8), with the binned means as lines."""
+    res = app.results.get("refine")
+    if res is None:
+        _remove(app, "/refine")
+        return 0
+    s = res.system
+    v = app.view
+    state = v.get("res_state", s.n - 1) if state is None else state
+    var = v.get("res_var") or s.state_names[-1] if var is None else var
+    x, r0 = res.before.against(var)
+    _, r1 = res.after.against(var)
+    K = x.size
+    idx = np.arange(K) if K <= max_points else np.sort(np.random.default_rng(0).choice(K, max_points, replace=False))
+    lo, hi = float(x.min()), float(x.max())
+    px = 2 * (x[idx] - lo) / max(hi - lo, 1e-12) - 1
+    scale = 0.8 / max(float(np.abs(r0[:, state]).max()), 1e-15)
+    sc = app.server.scene
+    for name, r, col in (("before", r0, G.RED), ("after", r1, G.GREEN)):
+        P = np.stack([px, np.full(idx.size, RESIDUAL_PLANE_Y), 0.5 + scale * r[idx, state]], axis=1)
+        sc.add_point_cloud(f"/refine/{name}", points=P.astype(np.float32), colors=col, point_size=0.012,
+                           point_shape="circle")
+    for name, rr, col in (("before_mean", res.before, (120, 0, 0)), ("after_mean", res.after, (0, 100, 0))):
+        b = rr.binned(var, bins=30)
+        ok = np.isfinite(b["mean"][:, state])
+        c = b["centers"][ok]
+        P = np.stack([2 * (c - lo) / max(hi - lo, 1e-12) - 1, np.full(c.size, RESIDUAL_PLANE_Y - 0.01),
+                      0.5 + scale * b["mean"][ok, state]], axis=1)
+        if P.shape[0] >= 2:
+            sc.add_line_segments(f"/refine/{name}", points=np.stack([P[:-1], P[1:]], axis=1).astype(np.float32),
+                                 colors=col, thickness=3.0, thickness_units="screen")
+    sc.add_label("/refine/label", text=f"residual of {s.state_names[state]} vs {var} (red: f, green: f')",
+                 position=(-1.0, RESIDUAL_PLANE_Y, 1.45))
+    return int(idx.size)
+
+
 def draw_results(app) -> None:
     draw_gamma(app)
     draw_winning(app)
     draw_rollouts(app)
+    draw_residuals(app)
 
 
 LAYER_NODES = {"gamma": ("/gamma/surface",), "data": ("/gamma/data",), "map": ("/map",),

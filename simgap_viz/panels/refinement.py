@@ -19,8 +19,27 @@ class RefinementPanel(Panel):
         self.use_button = gui.add_button("Use refined model", disabled=True,
                                          hint="make f' the nominal model: certify, synthesize and roll out with it")
         self.use_button.on_click(lambda _: app.guarded(app.use_refined))
+        names = list(app.system.state_names)
+        self.res_state = gui.add_dropdown("Residual of", options=names, initial_value=names[-1])
+        self.res_var = gui.add_dropdown("against", options=names + list(app.system.input_names),
+                                        initial_value=names[-1])
+        self.res_state.on_update(lambda _: app.guarded(self.show_residuals))
+        self.res_var.on_update(lambda _: app.guarded(self.show_residuals))
         self.comparison = gui.add_markdown("")
         self.report = gui.add_markdown("")
+
+    def show_residuals(self) -> int:
+        """Redraw the residual layer for the chosen state and variable."""
+        from ..layers import scene
+        s = self.app.system
+        names = list(s.state_names)
+        if self.res_state.value not in names:  # the system changed: new options
+            self.res_state.options = names
+            self.res_var.options = names + list(s.input_names)
+            self.res_state.value, self.res_var.value = names[-1], names[-1]
+        self.app.view["res_state"] = names.index(self.res_state.value)
+        self.app.view["res_var"] = self.res_var.value
+        return scene.draw_residuals(self.app)
 
     def show_report(self) -> None:
         res = self.app.results.get("refine")

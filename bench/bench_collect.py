@@ -163,8 +163,10 @@ def main() -> None:
         tb_frac = a.tb_chunks / 312
         plan, n, wall, cpu, runs = collector_fraction("turtlebot", tb_frac, W)
         total = plan.n_pairs * plan.n_runs
-        print(f"(3) collector, TurtleBot case study: {n} of {plan.n_chunks} chunks ({runs:,} runs) in {wall:.1f} s "
-              f"wall-clock, {cpu:.1f} CPU-s; {runs / wall:,.0f} robot-steps/s total, {runs / cpu:,.0f} per CPU-second; "
+        k = plan.system.steps  # robot-steps (periods of base tau) per run
+        print(f"(3) collector, TurtleBot case study (k = {k} periods of {plan.system.base_tau:g} s per run): {n} of "
+              f"{plan.n_chunks} chunks ({runs:,} runs) in {wall:.1f} s wall-clock, {cpu:.1f} CPU-s; "
+              f"{runs * k / wall:,.0f} robot-steps/s total, {runs * k / cpu:,.0f} per CPU-second; "
               f"full set ({total:,} runs) on {W} idle cores: {total / (runs / cpu) / W / 3600:.2f} h")
 
     if not a.skip_memory:

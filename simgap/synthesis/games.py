@@ -164,11 +164,12 @@ class BoxFamily:
 
     def _corners(self, lo: np.ndarray, ext: np.ndarray) -> np.ndarray:
         """(P, n) relative lo and extents -> (P, 2^n) relative flat corner offsets (int32)."""
-        out = np.zeros((lo.shape[0], 1 << self.n), dtype=np.int64)
+        out = np.zeros((lo.shape[0], 1 << self.n), dtype=np.int32)
         for c in range(1 << self.n):  # bit d set: the lo side (index lo), else hi + 1
             for d in range(self.n):
-                out[:, c] += (lo[:, d] if c >> d & 1 else lo[:, d] + ext[:, d]) * self.tstr[d]
-        return out.astype(np.int32)
+                st = np.int32(self.tstr[d])
+                out[:, c] += (lo[:, d] if c >> d & 1 else lo[:, d] + ext[:, d]) * st
+        return out
 
     def corners(self, q: np.ndarray) -> np.ndarray:
         """(P,) flat (class, input) indices -> (P, 2^n) corner offsets."""
@@ -289,7 +290,8 @@ class PairEvaluator:
         return lo, hi, self.vol[k, uj]
 
 
-def live_pairs(ab: Abstraction, blocked: np.ndarray, keep: np.ndarray, allowed=None):
+def live_pairs(ab: Abstraction, blocked: np.ndarray, keep: np.ndarray, allowed=None,
+               ev: Optional["PairEvaluator"] = None):
     """One pass over all pairs: which can ever be used, and the SCOTS transition count.
 
     A pair (c, u) is *live* when it is valid (see module docstring) and its box lies in
@@ -300,7 +302,8 @@ def live_pairs(ab: Abstraction, blocked: np.ndarray, keep: np.ndarray, allowed=N
     """
     g = ab.grid
     N, M = g.size, ab.n_inputs
-    ev = PairEvaluator(ab, blocked, allowed)
+    if ev is None:
+        ev = PairEvaluator(ab, blocked, allowed)
     kc = BoxCounter(g.shape, g.periodic_mask).set(keep)
     packed = np.zeros((N, (M + 7) // 8), dtype=np.uint8)
     B = _block_size(ab)
@@ -386,7 +389,7 @@ def solve_reach(ab: Abstraction, target: np.ndarray, blocked: np.ndarray,
     if allowed is None:
         allowed = ~blocked
     ev = PairEvaluator(ab, blocked, allowed)
-    live, n_boxes, n_trans = live_pairs(ab, blocked, ~blocked, allowed)
+    live, n_boxes, n_trans = live_pairs(ab, blocked, ~blocked, allowed, ev=ev)
     t_live = time.perf_counter() - t0
     W = target.copy()
     steps = np.full(N, -1, dtype=np.int32)
@@ -452,7 +455,7 @@ def solve_invariance(ab: Abstraction, safe: np.ndarray, blocked: Optional[np.nda
         blocked = np.zeros(N, dtype=bool)
     S = safe & ~blocked
     ev = PairEvaluator(ab, ~S, S)
-    live, n_boxes, n_trans = live_pairs(ab, ~S, S, S)
+    live, n_boxes, n_trans = live_pairs(ab, ~S, S, S, ev=ev)
     t_live = time.perf_counter() - t0
     W = S & live.any(axis=1)
     dlo, dhi = ab.offset_range()

@@ -102,7 +102,7 @@ def bench(name, ctrl, cfg, x0, n, n_seq, horizon, seed):
     if b["rollouts"] == s["rollouts"]:
         same = bool(np.array_equal(b["_res"].outcome[:m], s["_res"].outcome[:m])
                     and np.allclose(b["_res"].trajectories[:m], s["_res"].trajectories[:m], atol=1e-9))
-    out = {"case": name, "simulator": cfg, "horizon": horizon, "hold": b["_res"].hold, "tau": b["_res"].tau,
+    out = {"case": name, "simulator": cfg, "horizon": b["_res"].horizon, "hold": b["_res"].hold, "tau": b["_res"].tau,
            "nominal": b["_res"].nominal["outcome"],
            "batched": {k: v for k, v in b.items() if k != "_res"},
            "one_at_a_time": {k: v for k, v in s.items() if k != "_res"},

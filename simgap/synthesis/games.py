@@ -185,11 +185,15 @@ class BoxFamily:
             ok &= (mi[:, d, None] >= self.rlo[k, :, d]) & (mi[:, d, None] <= self.rhi[k, :, d])
         return ok
 
-    def count(self, table: np.ndarray, base: np.ndarray, q: np.ndarray) -> np.ndarray:
+    def count(self, table: np.ndarray, base: np.ndarray, q: np.ndarray, k=None) -> np.ndarray:
         """Cells of the SAT's mask in the boxes with cell bases ``base`` and pair indices ``q``
-        (same shape; ``base`` broadcastable)."""
+        (same shape; ``base`` broadcastable). With ``k`` (B,) classes, q is all inputs of the
+        rows and the corner rows are taken per class (contiguous)."""
         qs = q.shape
-        fl = self.corners(q.ravel()).reshape(qs + (1 << self.n,))
+        if k is not None and self.corner is not None:
+            fl = self.corner.reshape(-1, self.M, 1 << self.n)[k]
+        else:
+            fl = self.corners(q.ravel()).reshape(qs + (1 << self.n,))
         fl += np.broadcast_to(base, qs)[..., None]
         v = table.take(fl, mode="clip")
         out = v[..., 0].copy()
@@ -252,8 +256,9 @@ class PairEvaluator:
 
     def groups_meeting(self, ids: np.ndarray, hc: BoxCounter) -> np.ndarray:
         """(B, G) bool: the hull of input group g of cell ids[b] meets the counter's mask."""
-        q = self.cls_all[ids][:, None] * self.hull_G + np.arange(self.hull_G)
-        return self.hull.count(hc.table, self.hull_base[ids][:, None], q) > 0
+        k = self.cls_all[ids]
+        q = k[:, None] * self.hull_G + np.arange(self.hull_G)
+        return self.hull.count(hc.table, self.hull_base[ids][:, None], q, k=k) > 0
 
     def valid_rows(self, ids: np.ndarray):
         """(B,) cell ids -> valid (B, M) bool (in grid, finite, cell not blocked, intermediate
@@ -266,13 +271,14 @@ class PairEvaluator:
         valid &= ~self.blocked[ids][:, None]
         if self.mid is not None:
             valid &= self.mid.in_domain(mi, k)
-            valid &= self.mid.count(self.allowed_counter.table, self.base_all[ids][:, None], q) == \
-                self.mid.vol_flat[q]
+            valid &= self.mid.count(self.allowed_counter.table, self.base_all[ids][:, None], q, k=k) == \
+                self.mid.vol[k]
         return valid, q
 
     def test_rows(self, ids: np.ndarray, q: np.ndarray, counter: BoxCounter) -> np.ndarray:
         """(B, M) bool: box(ids, u) lies in the counter's mask (meaningful for valid pairs)."""
-        return self.fam.count(counter.table, self.base_all[ids][:, None], q) == self.fam.vol_flat[q]
+        k = self.cls_all[ids]
+        return self.fam.count(counter.table, self.base_all[ids][:, None], q, k=k) == self.fam.vol[k]
 
     def test_pairs(self, ids: np.ndarray, ci: np.ndarray, uj: np.ndarray, counter: BoxCounter) -> np.ndarray:
         """(P,) bool: box(ids[ci], uj) lies in the counter's mask (pairs assumed valid)."""

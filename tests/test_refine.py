@@ -368,3 +368,16 @@ def test_refined_with_integration_and_coulomb_round_trips(tmp_path):
     loaded = load_system(str(save_refined(ref, tmp_path / "e.json")))
     np.testing.assert_allclose(loaded.f(x, u), ref.f(x, u), rtol=0, atol=1e-15)
     assert loaded.jacobian_bound is None      # Coulomb friction is discontinuous
+
+
+@pytest.mark.parametrize("name,extra,coef", [
+    ("drag", lambda x, u: np.stack([0 * x[:, 0], -3 * x[:, 1] * np.abs(x[:, 1])], 1), -3.0),
+    ("coulomb_friction", lambda x, u: np.stack([0 * x[:, 0], -0.5 * np.sign(x[:, 1])], 1), -0.5),
+    ("gravity", lambda x, u: np.stack([0 * x[:, 0], -0.05 * 14.715 * np.sin(x[:, 0])], 1), 0.05),
+    ("bias", lambda x, u: np.stack([0 * x[:, 0], 0.2 + 0 * x[:, 0]], 1), 0.2),
+])
+def test_each_velocity_effect_is_named(name, extra, coef):
+    rep = refine("pendulum", sample("pendulum", 8000, 40, extra=extra)).report
+    assert [(e["name"], e["state_name"]) for e in rep["effects"]] == [(name, "omega")]
+    assert rep["effects"][0]["coefficient"] == pytest.approx(coef, rel=0.03)
+    assert rep["rms_after"][1] < 1.05e-4

@@ -287,8 +287,12 @@ def rollout(system, spec, syn, settings, ctx, experiment=None, arena=None):
     sim = rollout_simulator(settings, system, experiment)
     try:
         x0 = initial_state(settings, system, syn, spec, arena)
+        kw = {}
+        import inspect
+        if "progress" in inspect.signature(run_rollout).parameters:
+            kw["progress"] = ctx.progress  # per simulator step; raises JobCancelled after cancel
         return run_rollout(syn.controller, sim, x0=x0, n_rollouts=int(settings.n_rollouts),
-                           horizon=int(settings.horizon), seed=int(settings.rollout_seed), spec=spec)
+                           horizon=int(settings.horizon), seed=int(settings.rollout_seed), spec=spec, **kw)
     finally:
         sim.close()
 

@@ -309,3 +309,19 @@ def test_synthesize_and_rollout_layers(app):
         app.rollout()
         app.wait(60)
         assert "empty winning domain" in app.notifications[-1][1]
+
+
+def test_rollout_cancel(app):
+    """A long rollout job stops at the next simulator step after cancel."""
+    from simgap_viz import engine
+    if not engine.availability()["rollout"][0]:
+        pytest.skip("rollout engine not available")
+    app.update_settings(use_gap=False, eta=(0.005, 0.01), n_rollouts=1000, horizon=5000)
+    app.synthesize()
+    assert app.wait(120).ok
+    app.rollout()
+    time.sleep(1.0)
+    app.cancel()
+    out = app.wait(60)
+    assert out.cancelled and out.seconds < 15
+    assert app.results["rollout"] is None

@@ -380,7 +380,7 @@ def _block_size(ab: Abstraction) -> int:
 
 
 def solve_reach(ab: Abstraction, target: np.ndarray, blocked: np.ndarray,
-                allowed: Optional[np.ndarray] = None) -> GameResult:
+                allowed: Optional[np.ndarray] = None, group_filter: Optional[bool] = None) -> GameResult:
     """Reach-avoid game: least fixed point W = T u Cpre(W) (module docstring).
 
     ``target`` and ``blocked`` (obstacles) are (N,) bool masks; ``allowed`` (N,) marks the cells
@@ -404,7 +404,8 @@ def solve_reach(ab: Abstraction, target: np.ndarray, blocked: np.ndarray,
     packed = np.zeros((N, (M + 7) // 8), dtype=np.uint8)
     dlo, dhi = ab.offset_range()
     Wc = BoxCounter(g.shape, g.periodic_mask)
-    hc = ev.build_hulls()
+    # the input-group filter pays off with many inputs (its SAT costs one more build per level)
+    hc = ev.build_hulls() if (group_filter if group_filter is not None else M >= 100) else None
     changed = target.copy()
     it = 0
     B = _block_size(ab) * 4
@@ -415,12 +416,15 @@ def solve_reach(ab: Abstraction, target: np.ndarray, blocked: np.ndarray,
         if cand.size == 0:
             break
         Wc.set(W)
-        hc.set(changed)
+        if hc is not None:
+            hc.set(changed)
         new_ids, new_rows = [], []
         for s in range(0, cand.size, B):
             ids = cand[s:s + B]
             # only input groups whose hull meets the new cells (and that have live pairs)
-            lv = live[ids] & np.where(ev.groups_meeting(ids, hc), 0xFF, 0).astype(np.uint8)
+            lv = live[ids]
+            if hc is not None:
+                lv = lv & np.where(ev.groups_meeting(ids, hc), 0xFF, 0).astype(np.uint8)
             rows = np.unpackbits(lv, axis=1, count=M).view(bool)
             ci, uj = np.nonzero(rows)
             tested += ci.size

@@ -325,3 +325,16 @@ def test_rollout_cancel(app):
     out = app.wait(60)
     assert out.cancelled and out.seconds < 15
     assert app.results["rollout"] is None
+
+
+def test_simulator_bodies_from_urdf():
+    """The PyBullet bodies come from the URDF visual geometry, in metres."""
+    from simgap.systems import get_system
+    from simgap_viz.layers.bodies import simulator_bodies
+    pend = simulator_bodies("pybullet_pendulum", get_system("pendulum"))
+    assert len(pend) == 1
+    ext = np.sort(pend[0][1].bounding_box_oriented.extents)  # drawn at theta = 0.1 rad
+    assert ext[2] == pytest.approx(1.0, abs=1e-3) and ext[0] == pytest.approx(0.02, abs=1e-3)  # rod l = 1, r = 0.01
+    tb = simulator_bodies("pybullet_turtlebot", get_system("turtlebot"))
+    names = [n for n, _, _ in tb]
+    assert any(n.startswith("robot_") for n in names) and sum(n.startswith("obstacle_") for n in names) >= 1

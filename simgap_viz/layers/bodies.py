@@ -88,7 +88,7 @@ def simulator_bodies(kind: str, system: System) -> list:
     """(name, trimesh, position) of the bodies the PyBullet simulator of ``kind`` builds.
 
     Pendulum: ``assets/urdf/pendulum.urdf`` with its pivot raised to 1.2 m. TurtleBot: the robot
-    URDF (``assets/urdf/turtlebot*.urdf`` when present) and the arena's obstacle boxes.
+    (``assets/urdf/diffbot.urdf``) at its map's initial position and the arena's obstacle boxes.
     Empty for the numpy simulator's systems that have no geometry.
     """
     from simgap.simulators._bullet import URDF_DIR
@@ -99,11 +99,14 @@ def simulator_bodies(kind: str, system: System) -> list:
         if p.is_file():
             out += [(f"pendulum_{n}", m, (0.0, 0.0, 1.2)) for n, m in urdf_meshes(p, joint_positions=[0.1])]
     elif system.name == "turtlebot":
-        for p in sorted(URDF_DIR.glob("turtlebot*.urdf"))[:1]:
-            out += [(f"robot_{n}", m, (0.5, 0.5, 0.0)) for n, m in urdf_meshes(p, fixed_base=False)]
         try:
             from simgap.maps import load_map
-            meshes = load_map("arena").meshes()
+            arena = load_map("arena")
+            p = URDF_DIR / "diffbot.urdf"  # the PyBullet TurtleBot simulator's robot
+            if p.is_file():
+                pos = (float(arena.initial_state[0]) - 2.0, float(arena.initial_state[1]) - 2.0, 0.0)
+                out += [(f"robot_{n}", m, pos) for n, m in urdf_meshes(p, fixed_base=True)]
+            meshes = arena.meshes()
             out += [(f"obstacle_{i}", m, (-2.0, -2.0, 0.0)) for i, m in enumerate(meshes["obstacles"])]
             out.append(("target", meshes["target"], (-2.0, -2.0, 0.0)))
         except Exception:  # no arena map in this installation

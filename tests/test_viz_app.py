@@ -333,8 +333,12 @@ def test_simulator_bodies_from_urdf():
     from simgap_viz.layers.bodies import simulator_bodies
     pend = simulator_bodies("pybullet_pendulum", get_system("pendulum"))
     assert len(pend) == 1
-    ext = np.sort(pend[0][1].bounding_box_oriented.extents)  # drawn at theta = 0.1 rad
-    assert ext[2] == pytest.approx(1.0, abs=1e-3) and ext[0] == pytest.approx(0.02, abs=1e-3)  # rod l = 1, r = 0.01
+    from simgap.simulators._bullet import URDF_DIR
+    from simgap_viz.layers.bodies import urdf_meshes
+    (_, rod), = urdf_meshes(URDF_DIR / "pendulum.urdf", joint_positions=[0.0])
+    ext = rod.bounds[1] - rod.bounds[0]  # hanging straight down from the pivot at the origin
+    assert ext[2] == pytest.approx(1.0, abs=1e-9) and ext[0] == pytest.approx(0.02, abs=1e-3)  # l = 1, r = 0.01
+    assert rod.bounds[1][2] == pytest.approx(0.0, abs=1e-9)
     tb = simulator_bodies("pybullet_turtlebot", get_system("turtlebot"))
     names = [n for n, _, _ in tb]
     assert any(n.startswith("robot_") for n in names) and sum(n.startswith("obstacle_") for n in names) >= 1

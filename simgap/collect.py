@@ -329,6 +329,19 @@ def _write_chunk(store: Path, c: int, h: str, arrays: dict) -> None:
     os.replace(tmp, path)
 
 
+def _pid_alive(pid: str) -> bool:
+    try:
+        pid_i = int(pid)
+        if pid_i == os.getpid():
+            return False
+        os.kill(pid_i, 0)
+    except (ValueError, ProcessLookupError):
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
 def _read_manifest(store: Path) -> dict:
     mpath = store / MANIFEST
     if not store.is_dir():
@@ -460,8 +473,9 @@ def collect(plan: CollectionPlan, store: str | Path, executor: str | Executor = 
         man = {"hash": h, "config": cfg, "created": datetime.now(timezone.utc).isoformat(timespec="seconds")}
         _atomic_write_bytes(store / MANIFEST, (json.dumps(man, indent=1, sort_keys=True) + "\n").encode())
     (store / CHUNK_DIR).mkdir(exist_ok=True)
-    for p in (store / CHUNK_DIR).glob(".*.tmp"):  # leftovers of a killed writer
-        p.unlink(missing_ok=True)
+    for p in (store / CHUNK_DIR).glob(".*.tmp"):  # leftovers of a killed writer (not of a live one)
+        if not _pid_alive(p.name.rsplit(".", 2)[-2]):
+            p.unlink(missing_ok=True)
 
     n_chunks = plan.n_chunks
     done = _done_chunks(store, n_chunks)

@@ -131,10 +131,13 @@ def test_cancel_and_resume_equals_uninterrupted(tmp_path):
     with pytest.raises(SimgapError, match=r"incomplete: \d+ of \d+ chunks missing.*resume"):
         load_store(tmp_path / "s")
     assert store_status(tmp_path / "s")["done"] == 3
+    stale = tmp_path / "s" / "chunks" / ".c000007.npz.999999999.tmp"  # a killed writer's half-written file
+    stale.write_bytes(b"half")
     seen.clear()
     r2 = collect(plan, tmp_path / "s", executor="local", workers=2, on_progress=lambda d, t: seen.append(d))
     assert r2.complete and r2.resumed_from == 3 and r2.computed == plan.n_chunks - 3
     assert seen[0] == 3 * 37 and seen[-1] == plan.n_pairs
+    assert not stale.exists()
     collect(plan, tmp_path / "ref", executor="serial")
     assert_same(load_store(tmp_path / "s"), load_store(tmp_path / "ref"))
 

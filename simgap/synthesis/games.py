@@ -424,7 +424,11 @@ def solve_reach(ab: Abstraction, target: np.ndarray, blocked: np.ndarray,
             # only input groups whose hull meets the new cells (and that have live pairs)
             lv = live[ids]
             if hc is not None:
-                lv = lv & np.where(ev.groups_meeting(ids, hc), 0xFF, 0).astype(np.uint8)
+                gm = ev.groups_meeting(ids, hc)
+                if ev.group == 8:  # one group per byte of the packed rows
+                    lv = lv & np.where(gm, 0xFF, 0).astype(np.uint8)
+                else:
+                    lv = lv & np.packbits(np.repeat(gm, ev.group, axis=1)[:, :M], axis=1)
             rows = np.unpackbits(lv, axis=1, count=M).view(bool)
             ci, uj = np.nonzero(rows)
             tested += ci.size

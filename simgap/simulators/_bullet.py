@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
+import os
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +23,24 @@ def urdf_path(name: str) -> Path:
     return path
 
 
+@contextlib.contextmanager
+def _quiet_stdout():
+    """Silence file descriptor 1 (C-level prints) for the duration of the block."""
+    try:
+        sys.stdout.flush()
+        saved = os.dup(1)
+    except (OSError, ValueError):  # no real stdout (e.g. captured): nothing to silence
+        yield
+        return
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 1)
+            yield
+    finally:
+        os.dup2(saved, 1)
+        os.close(saved)
+
+
 def bullet_client(dt: float, gravity: float = 9.81, deterministic_pairs: bool = False):
     """A private PyBullet client in DIRECT mode with physics step ``dt`` [s] and gravity -g z.
 
@@ -28,10 +49,11 @@ def bullet_client(dt: float, gravity: float = 9.81, deterministic_pairs: bool = 
     overlapping pairs (contact order independent of history; costs time, only useful with
     contacts).
     """
-    import pybullet
-    from pybullet_utils.bullet_client import BulletClient
+    with _quiet_stdout():  # the C library prints its build banner on import and "argv[0]=" on connect
+        import pybullet
+        from pybullet_utils.bullet_client import BulletClient
 
-    client = BulletClient(connection_mode=pybullet.DIRECT)
+        client = BulletClient(connection_mode=pybullet.DIRECT)
     client.setGravity(0.0, 0.0, -float(gravity))
     # numSubSteps=0: one stepSimulation call advances exactly dt (no internal substepping)
     client.setPhysicsEngineParameter(fixedTimeStep=float(dt), numSubSteps=0,

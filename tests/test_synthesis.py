@@ -339,3 +339,14 @@ def test_cli_synthesize(tmp_path, capsys):
     rc = main(["synthesize", "--system", "pendulum", "--no-gap", "--safe", "0,0.2", "--eta", "0.01",
                "--out", str(tmp_path / "x.npz")])
     assert rc == 2 and "--safe" in capsys.readouterr().err
+
+
+def test_cli_synthesize_from_experiment(tmp_path, capsys):
+    out = tmp_path / "tb.npz"
+    rc = main(["synthesize", "--spec", "turtlebot", "--no-gap", "--out", str(out)])
+    text = capsys.readouterr().out
+    assert rc == 0 and "reach_avoid" in text and "x0            [3.5, 2.0, 1.5]: winning" in text
+    ctrl = Controller.load(out)
+    assert ctrl.system.name == "turtlebot" and ctrl.system.steps == 30 and ctrl.n_inputs == 25
+    rc = main(["synthesize", "--spec", "turtlebot", "--system", "pendulum", "--no-gap", "--out", str(out)])
+    assert rc == 2 and "does not match" in capsys.readouterr().err

@@ -6,8 +6,10 @@
         --out pendulum.npz
 
 ``--spec`` is a map (a name under assets/maps or a .toml map file: reach-avoid with the map's
-target and obstacles grown by the robot radius) or a JSON file holding ``Spec.to_dict()``;
-``--safe`` gives an invariance spec directly. Exactly one of ``--cert``, ``--gamma`` and
+target and obstacles grown by the robot radius), an experiment (a name under
+assets/experiments or an experiment .toml: its system, ``[synthesis]`` spec, eta and hold are
+the defaults), or a JSON file holding ``Spec.to_dict()``; ``--safe`` gives an invariance spec
+directly. Exactly one of ``--cert``, ``--gamma`` and
 ``--no-gap`` says how the simulation gap enters. Exit status: 0 with a controller written,
 1 when the winning domain is empty (nothing written; the summary says why), 2 on bad input.
 """
@@ -29,18 +31,23 @@ def add_parser(subparsers) -> None:
         "synthesize", help="synthesize a symbolic controller that treats the certified gap as a disturbance",
         description="Abstraction on a uniform grid (SCOTS conventions) and a reach-avoid or invariance game; "
                     "writes the controller (.npz) and prints grid size, boxes/transitions, winning domain and times.")
-    p.add_argument("--system", required=True, help="built-in system name (pendulum, turtlebot, emps)")
+    p.add_argument("--system", default=None,
+                   help="built-in system name (pendulum, turtlebot, emps); default: the experiment's")
     p.add_argument("--steps", type=int, default=None,
                    help="base periods per sampling period (default: the certificate's, else 1)")
-    p.add_argument("--hold", type=int, default=1, help="sampling periods per abstract step, input held (default 1)")
+    p.add_argument("--hold", type=int, default=None,
+                   help="sampling periods per abstract step, input held (default: the experiment's, else 1)")
     g = p.add_mutually_exclusive_group(required=True)
     g.add_argument("--cert", help="certificate JSON written by 'simgap certify'")
     g.add_argument("--gamma", help="a constant gap per state dimension, comma separated (or one value)")
     g.add_argument("--no-gap", action="store_true", help="synthesize on the nominal model alone")
     s = p.add_mutually_exclusive_group(required=True)
-    s.add_argument("--spec", help="map name or .toml map (reach-avoid), or a JSON spec file")
+    s.add_argument("--spec", help="map (name or .toml), experiment (name or .toml) or a JSON spec file")
     s.add_argument("--safe", help="invariance: safe box lo1,hi1,lo2,hi2,... (one pair per state)")
-    p.add_argument("--eta", required=True, help="cell width, one value or one per state dimension (comma separated)")
+    p.add_argument("--eta", default=None,
+                   help="cell width, one value or one per state dimension (comma separated); "
+                        "default: the experiment's [synthesis] eta")
+    p.add_argument("--profile", default="small", help="experiment profile (with an experiment --spec)")
     p.add_argument("--out", required=True, help="controller file to write (.npz)")
     p.add_argument("--x0", default=None, help="initial state to record and check (default: the map's)")
     p.add_argument("--json", default=None, help="also write the statistics as JSON here")
@@ -79,6 +86,25 @@ def load_spec(text: str, system):
     return amap.spec(system), amap.x0(system)
 
 
+def _experiment_path(text: str):
+    """The experiment file ``text`` names, or None when it is a map / spec file."""
+    from ..maps import MAPS_DIR
+    path = Path(text)
+    if path.suffix == ".json":
+        return None
+    if path.suffix == ".toml" and path.is_file():
+        import tomllib
+        try:
+            raw = tomllib.loads(path.read_text())
+        except (OSError, tomllib.TOMLDecodeError):
+            return None  # the map loader reports the problem
+        return path if "system" in raw and "obstacles" not in raw else None
+    if (MAPS_DIR / f"{text}.toml").is_file():
+        return None
+    from ..config import EXPERIMENTS_DIR
+    return EXPERIMENTS_DIR / f"{text}.toml" if (EXPERIMENTS_DIR / f"{text}.toml").is_file() else None
+
+
 def run(args) -> int:
     from ..systems import get_system
     from ..synthesis.controller import synthesize
@@ -88,8 +114,25 @@ def run(args) -> int:
     if args.cert:
         from ..certify.certificate import load as load_cert
         cert = load_cert(args.cert)
-    steps = args.steps if args.steps is not None else (getattr(cert, "steps", 1) if cert is not None else 1)
-    system = get_system(args.system, steps)
+    exp = _experiment_path(args.spec) if args.spec else None
+    syn = {}
+    x0 = None
+    if exp is not None:
+        from ..config import load_experiment
+        from ..pipeline import experiment_spec
+        e = load_experiment(exp, args.profile)
+        syn = e.section("synthesis")
+        system = e.system
+        if args.system is not None and args.system != system.name:
+            raise SimgapError(f"--system {args.system!r} does not match the experiment's system {system.name!r}")
+        if args.steps is not None and args.steps != system.steps:
+            system = system.with_steps(args.steps)
+        spec, x0, _ = experiment_spec(e)
+    else:
+        if args.system is None:
+            raise SimgapError("give --system (or an experiment as --spec)")
+        steps = args.steps if args.steps is not None else (getattr(cert, "steps", 1) if cert is not None else 1)
+        system = get_system(args.system, steps)
     if cert is not None:
         cert.check_system(system)
         gap = cert
@@ -97,22 +140,27 @@ def run(args) -> int:
         gap = _floats(args.gamma, "--gamma")
     else:
         gap = None
-    x0 = None
     if args.safe:
         v = _floats(args.safe, "--safe")
         if v.size != 2 * system.n:
             raise SimgapError(f"--safe: need {2 * system.n} numbers (lo, hi per state), got {v.size}")
         spec = Spec(kind="invariance", safe=Box(v[0::2], v[1::2]))
-    else:
+    elif exp is None:
         spec, x0 = load_spec(args.spec, system)
     if args.x0 is not None:
         x0 = _floats(args.x0, "--x0")
         system.check_states(x0[None], what="--x0")
-    eta = _floats(args.eta, "--eta")
+    if args.eta is not None:
+        eta = _floats(args.eta, "--eta")
+    elif "eta" in syn:
+        eta = np.asarray(syn["eta"], dtype=float).ravel()
+    else:
+        raise SimgapError("give --eta (cell width)")
     if eta.size not in (1, system.n):
         raise SimgapError(f"--eta: need 1 or {system.n} values, got {eta.size}")
+    hold = args.hold if args.hold is not None else int(syn.get("hold", 1))
 
-    res = synthesize(system, spec, eta, gap=gap, hold=args.hold, strict_domain=not args.no_strict_domain,
+    res = synthesize(system, spec, eta, gap=gap, hold=hold, strict_domain=not args.no_strict_domain,
                      x0=x0)
     print(res.summary())
     if args.json:

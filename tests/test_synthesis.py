@@ -350,3 +350,15 @@ def test_cli_synthesize_from_experiment(tmp_path, capsys):
     assert ctrl.system.name == "turtlebot" and ctrl.system.steps == 30 and ctrl.n_inputs == 25
     rc = main(["synthesize", "--spec", "turtlebot", "--system", "pendulum", "--no-gap", "--out", str(out)])
     assert rc == 2 and "does not match" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_turtlebot_case_study_resolution():
+    """Paper-scale: 51 x 51 x 79 cells, 441 inputs, input held 10 x 0.01 s (about 30 s CPU)."""
+    from simgap.maps import load_map
+    tb = get_system("turtlebot")
+    arena = load_map("arena")
+    res = synthesize(tb, arena.spec(tb), 0.08, hold=10, x0=arena.x0(tb))
+    assert res.stats["cells"] == 205_479 and res.stats["inputs"] == 441
+    assert res.controller.winning(arena.x0(tb)[None])[0]
+    assert res.stats["winning"] > 100_000

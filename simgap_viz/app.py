@@ -165,9 +165,33 @@ class SimgapApp:
         cert_changed = old.stage_key("certify") != new.stage_key("certify")
         if cert_changed and self.auto_certify and self.results["collect"] is not None \
                 and engine.availability()["certify"][0] \
-                and old.stage_key("collect") == new.stage_key("collect"):
-            self.certify()
+                and self.result_keys["collect"] == new.stage_key("collect"):
+            if self.jobs.busy:  # re-certify once the running job is done, without a notification
+                self._schedule_after_job(self.certify)
+                self.set_status(f"{self.jobs.current} running; will re-certify when it is done")
+            else:
+                self.certify()
         return True
+
+    def _schedule_after_job(self, fn) -> None:
+        """Run ``fn`` once the current job has ended (one pending call at most)."""
+        with self.lock:
+            if getattr(self, "_pending", None) is not None:
+                self._pending = fn
+                return
+            self._pending = fn
+
+        def waiter():
+            try:
+                self.jobs.wait(24 * 3600)
+            except TimeoutError:
+                return
+            with self.lock:
+                f, self._pending = self._pending, None
+            if f is not None:
+                f()
+
+        threading.Thread(target=waiter, name="simgap-pending", daemon=True).start()
 
     def _on_system_changed(self) -> None:
         self.view["fixed"] = None

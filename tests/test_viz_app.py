@@ -342,3 +342,22 @@ def test_simulator_bodies_from_urdf():
     tb = simulator_bodies("pybullet_turtlebot", get_system("turtlebot"))
     names = [n for n, _, _ in tb]
     assert any(n.startswith("robot_") for n in names) and sum(n.startswith("obstacle_") for n in names) >= 1
+
+
+def test_change_during_a_job_recertifies_afterwards(app):
+    """A basis change while a job runs is applied after it, without an error notification."""
+    release = threading.Event()
+    app.certify()
+    app.wait(60)
+    n = len(app.notifications)
+    app.start_job("slow", lambda ctx: release.wait(10))
+    app.panels["certificate"].degree.value = 1
+    assert "will re-certify" in app.status.content
+    release.set()
+    deadline = time.time() + 60
+    while time.time() < deadline and (app.results["certify"] is None
+                                      or app.results["certify"].dims[0].terms != ["1", "x1", "x2", "u1"]):
+        time.sleep(0.1)
+    app.wait(60)
+    assert app.results["certify"].dims[0].terms == ["1", "x1", "x2", "u1"]
+    assert len(app.notifications) == n

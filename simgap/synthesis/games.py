@@ -195,14 +195,8 @@ class BoxFamily:
         else:
             fl = self.corners(q.ravel()).reshape(qs + (1 << self.n,))
         fl += np.broadcast_to(base, qs)[..., None]
-        v = table.take(fl, mode="clip")
-        out = v[..., 0].copy()
-        for c in range(1, fl.shape[-1]):
-            if self.signs[c] > 0:
-                out += v[..., c]
-            else:
-                out -= v[..., c]
-        return out
+        # inclusion-exclusion as one small matrix product (faster than 2^n strided passes)
+        return table.take(fl, mode="clip") @ self.signs
 
 
 class PairEvaluator:

@@ -255,7 +255,7 @@ class SimgapApp:
         key = s.stage_key(stage)
         with self.lock:
             hit = self.cache.get((stage, key))
-            system, exp, spec = self.system, self.experiment, None
+            system, exp = self.system, self.experiment
         if hit is not None:
             return hit
         engine.require(stage)

@@ -382,7 +382,6 @@ def compare_refined(dataset, res, settings, spec=None):
 
 
 def comparison_markdown(d: dict) -> str:
-    names = None
     rows = ["| | f | f' |", "|---|---|---|"]
     for key, label in (("observed_gap_max", "max observed gap"), ("gamma_max", "max gamma"),
                        ("gamma_mean", "mean gamma")):

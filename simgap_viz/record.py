@@ -195,8 +195,7 @@ def record_run(out: str | Path, system, *, dataset=None, certificate=None, spec=
 
     log("summary", rr.TextDocument("\n".join(md), media_type=rr.MediaType.MARKDOWN))
     rec.flush()
-    rec.disconnect()
-    del rec
+    rec.disconnect()  # closes the file sink before the rename
     tmp.replace(out)
     info["seconds"] = time.perf_counter() - t0
     info["bytes"] = out.stat().st_size

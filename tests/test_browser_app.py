@@ -24,7 +24,7 @@ pytestmark = pytest.mark.browser
 def _need_browser():
     have = os.path.exists(CHROMIUM) or shutil.which("chromium")
     try:
-        import playwright.sync_api  # noqa: F401
+        from playwright.sync_api import sync_playwright  # noqa: F401
     except ImportError:
         have = False
     if not have:

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from simgap.errors import SimgapError
-from simgap_viz.jobs import JobCancelled, JobRunner
+from simgap_viz.jobs import JobRunner
 from simgap_viz.settings import Settings, parse_vector
 
 PENDULUM_NUMPY = {"kind": "numpy", "system": "pendulum", "noise": {"actuation_std": 0.05},

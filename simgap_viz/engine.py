@@ -223,7 +223,8 @@ def certify_options(settings, n: int):
 
     terms = _split_terms(settings.terms)
     kw = dict(degree=int(settings.degree), terms={-1: terms} if terms else {},
-              bounds=BoundOptions(concentration=settings.concentration))
+              bounds=BoundOptions(concentration=settings.concentration, value_range=settings.value_range),
+              value_range=settings.value_range)
     if settings.delta1 is not None and settings.delta2 is not None:
         kw.update(delta1=list(settings.delta1), delta2=list(settings.delta2))
     else:

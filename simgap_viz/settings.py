@@ -23,7 +23,7 @@ STAGES = ("collect", "certify", "synthesize", "rollout", "refine")
 _STAGE_FIELDS = {
     "collect": ("system", "steps", "simulator", "noise_std", "epsilon", "n_runs", "seed", "experiment",
                 "profile", "data_source"),
-    "certify": ("delta1", "delta2", "confidence", "degree", "terms", "concentration"),
+    "certify": ("delta1", "delta2", "confidence", "degree", "terms", "concentration", "value_range"),
     "synthesize": ("eta", "hold", "use_gap"),
     "rollout": ("n_rollouts", "x0", "horizon", "rollout_seed"),
     "refine": (),
@@ -63,6 +63,8 @@ class Settings:
         Extra basis terms, comma separated (e.g. ``sin(x1), x2*u1``), parsed by the engine.
     concentration : str
         Tail bound for beta: ``chebyshev`` (the paper's), ``bernstein``, ``subgaussian``.
+    value_range : float or None
+        Known range b of the simulator's next state per run (state units), needed by ``bernstein``.
     eta : tuple of float
         Grid cell widths of the abstraction (state units).
     hold : int
@@ -93,6 +95,7 @@ class Settings:
     degree: int = 2
     terms: str = ""
     concentration: str = "chebyshev"
+    value_range: Optional[float] = None
     eta: Tuple[float, ...] = (0.01, 0.02)
     hold: int = 1
     use_gap: bool = True
@@ -142,6 +145,8 @@ class Settings:
             raise SimgapError(f"target confidence must be in (0, 1), got {self.confidence!r}")
         if int(self.degree) != self.degree or not (0 <= self.degree <= 6):
             raise SimgapError(f"basis degree must be an integer in 0..6, got {self.degree!r}")
+        if self.value_range is not None and not (math.isfinite(self.value_range) and self.value_range > 0):
+            raise SimgapError(f"range b must be > 0 (or empty for unknown), got {self.value_range!r}")
         if self.concentration not in CONCENTRATIONS:
             raise SimgapError(f"concentration must be one of {', '.join(CONCENTRATIONS)}, got {self.concentration!r}")
         if n is not None and len(self.eta) != n:

@@ -117,6 +117,8 @@ def test_bad_values_notify_and_keep_settings(app):
     assert app.settings.terms == ""
     cert.terms.value = "bogus(x1)"
     assert "bogus" in app.notifications[-1][1]
+    cert.value_range.value = -1.0
+    assert "range b" in app.notifications[-1][1] and app.settings.value_range is None
     # the GUI is still alive: a good value goes through
     n = len(app.notifications)
     cert.terms.value = "sin(x1)"

@@ -26,6 +26,8 @@ class CertificatePanel(Panel):
         self.terms = gui.add_text("Extra terms", initial_value=s.terms, hint="e.g. sin(x1), x2*u1")
         self.concentration = gui.add_dropdown("Concentration", options=CONCENTRATIONS,
                                               initial_value=s.concentration)
+        self.value_range = gui.add_number("Range b", initial_value=s.value_range or 0.0, step=0.001,
+                                          hint="known range of a simulator next state (bernstein); 0 = unknown")
         self.auto = gui.add_checkbox("Re-certify on change", initial_value=app.auto_certify)
         self.buttons["certify"] = gui.add_button("Certify")
         self.buttons["certify"].on_click(lambda _: app.certify())
@@ -38,6 +40,7 @@ class CertificatePanel(Panel):
         on(self.degree, lambda v: app.update_settings(degree=int(v)))
         on(self.terms, lambda v: app.update_settings(terms=engine.check_terms(app.system, v)), debounce=0.6)
         on(self.concentration, lambda v: app.update_settings(concentration=v))
+        on(self.value_range, lambda v: app.update_settings(value_range=float(v) if float(v) != 0.0 else None))
         self.auto.on_update(lambda _: setattr(app, "auto_certify", bool(self.auto.value)))
 
     def apply_deltas(self) -> None:

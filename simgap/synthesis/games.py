@@ -131,7 +131,7 @@ class BoxFamily:
     is 2^n gathers and adds.
     """
 
-    _PRECOMPUTE_BYTES = 256 << 20
+    _PRECOMPUTE_BYTES = 64 << 20  # above this, corner offsets are computed per query
 
     def __init__(self, ab: Abstraction, off_lo: np.ndarray, off_hi: np.ndarray, counter: BoxCounter,
                  clamp: bool = True):
@@ -140,18 +140,26 @@ class BoxFamily:
         self.ab, self.n, self.counter = ab, n, counter
         shape = np.array(g.shape, dtype=np.int64)
         pm = g.periodic_mask
-        ext = np.maximum(off_hi.astype(np.int64) - off_lo + 1, 0)
-        ext = np.where(pm, np.minimum(ext, shape), ext)
-        lo = np.where(pm, np.mod(off_lo, shape), off_lo)
-        self.lo = lo.astype(np.int32)
-        self.ext = ext.astype(np.int32)
-        self.vol = np.prod(np.maximum(ext, 0), axis=-1).astype(np.int32)
+        shape32 = shape.astype(np.int32)  # int32 temporaries: the generic path has K = N classes
+        ext = off_hi.astype(np.int32) - off_lo + 1
+        np.maximum(ext, 0, out=ext)
+        lo = off_lo.astype(np.int32)
+        if pm.any():
+            ext = np.where(pm, np.minimum(ext, shape32), ext)
+            lo = np.where(pm, np.mod(lo, shape32), lo)
+        # int16 per (class, input, dim) when it fits: the generic path has one class per cell
+        small = max(int(np.abs(lo).max(initial=0)), int(ext.max(initial=0)), int(shape.max())) < 16000
+        it = np.int16 if small else np.int32
+        self.lo = lo.astype(it)
+        self.ext = ext.astype(it)
+        self.vol = np.prod(ext, axis=-1, dtype=np.int32)
         self.tstr = counter.tstrides.astype(np.int64)
         self.shape = shape
         # in-domain test per bounded dimension: mi_d in [-off_lo_d, n_d - off_lo_d - ext_d]
         self.bounded = np.flatnonzero(~pm)
-        self.rlo = (-self.lo).astype(np.int32)
-        self.rhi = (shape.astype(np.int32) - self.lo - self.ext).astype(np.int32)
+        self.rlo = (-lo).astype(it)
+        self.rhi = (shape32 - lo - ext).astype(it)
+        del lo, ext
         if not clamp:
             self.rlo = self.rhi = None
         self.signs = np.array([(-1) ** bin(c).count("1") for c in range(1 << n)], dtype=np.int32)
@@ -168,7 +176,8 @@ class BoxFamily:
         for c in range(1 << self.n):  # bit d set: the lo side (index lo), else hi + 1
             for d in range(self.n):
                 st = np.int32(self.tstr[d])
-                out[:, c] += (lo[:, d] if c >> d & 1 else lo[:, d] + ext[:, d]) * st
+                l = lo[:, d].astype(np.int32)
+                out[:, c] += (l if c >> d & 1 else l + ext[:, d]) * st
         return out
 
     def corners(self, q: np.ndarray) -> np.ndarray:

@@ -8,7 +8,7 @@ import pytest
 
 from simgap.cli import main
 from simgap.errors import SimgapError
-from simgap.synthesis.abstraction import ConstantGap, build_abstraction
+from simgap.synthesis.abstraction import ConstantGap
 from simgap.synthesis.controller import Controller, synthesize
 from simgap.synthesis.games import BoxCounter
 from simgap.synthesis.grid import UniformGrid

@@ -259,7 +259,6 @@ def build_abstraction(system: System, grid: UniformGrid, *, growth: Optional[Gro
     M = U.shape[0]
     eta = grid.eta
     z = guard * eta
-    shape = np.array(grid.shape)
     pmask = grid.periodic_mask
 
     # class representatives: invariant dims at index 0

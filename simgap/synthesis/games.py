@@ -2,8 +2,8 @@
 
 Every successor set is an index box, so "all successors of (c, u) lie in Z" is the O(1) test
 ``count_Z(box) == volume(box)`` on a summed-area table of Z (2^n lookups). Periodic dimensions
-are handled by a SAT of Z tiled twice along them, so a wrapped interval [lo, lo + len) with
-0 <= lo < n_d is one contiguous range.
+are handled by a SAT of Z tiled three times along them, so a wrapped interval [lo, lo + len)
+with 0 <= lo < 2 n_d and len <= n_d is one contiguous range.
 
 Reach-avoid (least fixed point, level-synchronous so that the level is the steps-to-go)::
 
@@ -21,7 +21,9 @@ several periods, the hull of the intermediate boxes lies in the allowed cells.
 
 Work per iteration is limited to a frontier: only cells within the offset range of the cells
 that changed in the last iteration can change their status, so only their pairs are re-tested
-(a worklist at cell granularity; SCOTS's worklist is per transition).
+(a worklist at cell granularity; SCOTS's worklist is per transition). With many inputs, groups
+of inputs whose hull box misses the changed cells are skipped as well. Pairs that can never be
+used are removed once, up front (:func:`live_pairs`).
 """
 
 from __future__ import annotations
@@ -32,7 +34,6 @@ from typing import Optional
 
 import numpy as np
 
-from ..errors import SimgapError
 from .abstraction import Abstraction
 
 
@@ -43,7 +44,7 @@ from .abstraction import Abstraction
 class BoxCounter:
     """Counts the cells of a boolean grid mask inside many index boxes at once."""
 
-    def __init__(self, shape, periodic_mask, max_volume: Optional[int] = None, pad=None):
+    def __init__(self, shape, periodic_mask, pad=None):
         self.shape = np.array(shape, dtype=np.int64)
         self.dtype = np.int32  # counts < 2^31 (grids are limited to 2^31 cells)
         self.pmask = np.asarray(periodic_mask, dtype=bool)
@@ -476,7 +477,7 @@ def solve_invariance(ab: Abstraction, safe: np.ndarray, blocked: Optional[np.nda
     t_live = time.perf_counter() - t0
     W = S & live.any(axis=1)
     dlo, dhi = ab.offset_range()
-    Wc = BoxCounter(g.shape, g.periodic_mask, max_volume=int(ev.vol.max(initial=0)))
+    Wc = BoxCounter(g.shape, g.periodic_mask)
     B = _block_size(ab) * 4
     changed = ~W
     it = 0

@@ -37,7 +37,8 @@ from .synthesis.spec import Box, Spec
 METHODS = ("deterministic", "stochastic")
 
 CERTIFY_KEYS = {"degree", "terms", "delta1", "delta2", "beta1", "beta2", "variance", "safety", "value_range",
-                "concentration", "uniform", "lemma2_factor", "lipschitz_mode", "l2", "lhat", "solver", "seed"}
+                "concentration", "uniform", "lemma2_factor", "lipschitz_mode", "l2", "lhat", "lhat_pairs",
+                "lhat_runs", "solver", "seed"}
 SYNTH_KEYS = {"spec", "eta", "hold", "safe_lo", "safe_hi", "map"}
 ROLLOUT_KEYS = {"n", "horizon", "x0", "seed", "on_exit"}
 AUDIT_KEYS = {"points", "runs", "seed"}

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import fileio
 from .errors import SimgapError
 from .systems import System, get_system
 
@@ -80,13 +81,9 @@ class Dataset:
     # ----- single-file form (.npz, no pickle) -----------------------------------------
     def save_npz(self, path: str | Path) -> Path:
         """Write the dataset as one .npz (atomically: temp file, then rename)."""
-        path = Path(path)
-        tmp = path.with_name(path.name + ".tmp.npz")
         meta = {"n_runs": int(self.n_runs), "epsilon": float(self.epsilon), "manifest": self.manifest,
                 "system": self.system.name, "steps": int(self.system.steps)}
-        np.savez(tmp, **{k: getattr(self, k) for k in ARRAYS}, meta=np.array(json.dumps(meta)))
-        tmp.replace(path)
-        return path
+        return fileio.savez(path, **{k: getattr(self, k) for k in ARRAYS}, meta=np.array(json.dumps(meta)))
 
 
 def load_dataset(path: str | Path, system: System | None = None) -> Dataset:

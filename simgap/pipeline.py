@@ -20,14 +20,13 @@ hold the stage options (see ``assets/experiments/pendulum.toml``).
 from __future__ import annotations
 
 import dataclasses
-import json
-import os
 import time
 from pathlib import Path
 from typing import Callable, Optional
 
 import numpy as np
 
+from . import fileio
 from .collect import collect, load_store
 from .config import ExperimentConfig
 from .errors import SimgapError
@@ -160,7 +159,7 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
         rep = stage(f"audit/{method}", lambda: audit(cert, sim_cfg, points=int(au.get("points", 200)),
                                                      runs=int(au.get("runs", 2000)), seed=int(au.get("seed", 7)),
                                                      dataset=data["stochastic"]))
-        (out / f"audit_{method}.json").write_text(json.dumps(rep, indent=1))
+        fileio.write_json(out / f"audit_{method}.json", rep)
         sres = stage(f"synthesize/{method}", lambda: synthesize(exp.system, spec, syn["eta"], gap=cert, hold=hold,
                                                                 x0=x0))
         sres.controller.save(out / f"controller_{method}.npz")
@@ -189,9 +188,7 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
             entry["mean_trajectory_satisfies"] = rr.mean_verdict["satisfied"]
         summary["methods"][method] = entry
     summary["seconds"] = times
-    tmp = out / ".summary.json.tmp"
-    tmp.write_text(json.dumps(summary, indent=1, default=_json_default))
-    os.replace(tmp, out / "summary.json")
+    fileio.write_json(out / "summary.json", summary, default=_json_default)
     return summary
 
 

@@ -20,13 +20,11 @@ gap is checked as well.
 
 from __future__ import annotations
 
-import json
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from .. import fileio
 from ..errors import SimgapError
 from ..simulators.base import Simulator, make_simulator
 
@@ -131,17 +129,7 @@ def audit(cert, simulator, points: int = 200, runs: int = 2000, seed: int = 0, d
 
 def save_report(rep: dict, path) -> Path:
     """Write the audit report JSON atomically."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent if str(path.parent) else ".", prefix=path.name, suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as fh:
-            json.dump(rep, fh, indent=1)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    return path
+    return fileio.write_json(path, rep)
 
 
 def report_table(rep: dict) -> str:

@@ -14,14 +14,13 @@ confidence), joint_confidence, provenance (dataset hash, package versions, seed,
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import List, Optional
 
 import numpy as np
 
+from .. import fileio
 from ..errors import SimgapError
 from .basis import Basis
 
@@ -180,18 +179,7 @@ class Certificate:
 
     def save(self, path) -> Path:
         """Write JSON atomically (temp file in the same folder, then rename)."""
-        path = Path(path)
-        text = json.dumps(self.to_dict(), indent=1)
-        fd, tmp = tempfile.mkstemp(dir=path.parent if str(path.parent) else ".", prefix=path.name, suffix=".tmp")
-        try:
-            with os.fdopen(fd, "w") as fh:
-                fh.write(text)
-            os.replace(tmp, path)
-        except BaseException:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
-            raise
-        return path
+        return fileio.write_json(path, self.to_dict())
 
     @classmethod
     def from_dict(cls, d: dict) -> "Certificate":

@@ -17,12 +17,11 @@ directly. Exactly one of ``--cert``, ``--gamma`` and
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from .. import fileio
 from ..errors import SimgapError
 
 
@@ -183,13 +182,4 @@ def run(args) -> int:
 
 
 def _write_json(path, obj) -> None:
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent if str(path.parent) else ".", prefix=path.name, suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as fh:
-            json.dump(obj, fh, indent=1)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    fileio.write_json(path, obj)

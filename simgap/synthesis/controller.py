@@ -23,9 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
 import resource
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -33,6 +31,7 @@ from typing import Optional
 
 import numpy as np
 
+from .. import fileio
 from ..errors import SimgapError
 from ..systems import System
 from .abstraction import as_gap, build_abstraction, describe_gap
@@ -165,18 +164,9 @@ class Controller:
             meta["spec"] = self.spec.to_dict()
         folder = path.parent if str(path.parent) else Path(".")
         folder.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=folder, prefix=path.name, suffix=".tmp.npz")
-        os.close(fd)
-        try:
-            np.savez_compressed(tmp, steps=self.steps, valid=self.valid_packed, chosen=self.chosen,
-                                target=self.target, inputs=self.inputs,
-                                meta=np.array(json.dumps(meta, default=_json_default)))
-            os.replace(tmp, path)
-        except BaseException:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
-            raise
-        return path
+        return fileio.savez(path, compressed=True, steps=self.steps, valid=self.valid_packed, chosen=self.chosen,
+                            target=self.target, inputs=self.inputs,
+                            meta=np.array(json.dumps(meta, default=_json_default)))
 
     @classmethod
     def load(cls, path, system: Optional[System] = None) -> "Controller":

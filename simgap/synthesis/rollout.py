@@ -38,13 +38,13 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 import time
 from dataclasses import dataclass, field
 from typing import Optional
 
 import numpy as np
 
+from .. import fileio
 from ..errors import SimgapError
 from .spec import Spec
 
@@ -355,41 +355,12 @@ class RolloutResult:
         meta = self.to_dict(per_rollout=False)
         meta["nominal_full"] = _json_safe(self.nominal)
         arrays["meta_json"] = np.array(json.dumps(meta))
-        _atomic_npz(path, arrays)
+        path = os.fspath(path)
+        fileio.savez(path if path.endswith(".npz") else path + ".npz", compressed=True, **arrays)
 
     def save_json(self, path, per_rollout: bool = True) -> None:
         """Write :meth:`to_dict` as JSON (temp file + rename)."""
-        _atomic_write_text(path, json.dumps(self.to_dict(per_rollout=per_rollout), indent=1))
-
-
-def _atomic_write_text(path, text: str) -> None:
-    path = os.fspath(path)
-    d = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(dir=d, prefix=".tmp-", suffix=".json")
-    try:
-        with os.fdopen(fd, "w") as fh:
-            fh.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
-def _atomic_npz(path, arrays: dict) -> None:
-    path = os.fspath(path)
-    if not path.endswith(".npz"):
-        path += ".npz"
-    d = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(dir=d, prefix=".tmp-", suffix=".npz")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            np.savez_compressed(fh, **arrays)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+        fileio.write_json(path, self.to_dict(per_rollout=per_rollout))
 
 
 def load_rollout(path) -> RolloutResult:

@@ -1,0 +1,51 @@
+"""Atomic file writes: every result file is written to a temporary name in the same folder and
+renamed into place, so a crash never leaves a half-written file under the final name."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+
+@contextlib.contextmanager
+def atomic_file(path: str | os.PathLike, mode: str = "w", fsync: bool = False) -> Iterator:
+    """Open a temporary file beside ``path``; on success rename it to ``path``, else delete it."""
+    path = Path(path)
+    folder = path.parent if str(path.parent) else Path(".")
+    fd, tmp = tempfile.mkstemp(dir=folder, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, mode) as fh:
+            yield fh
+            if fsync:
+                fh.flush()
+                os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
+
+
+def write_text(path, text: str) -> Path:
+    with atomic_file(path) as fh:
+        fh.write(text)
+    return Path(path)
+
+
+def write_json(path, obj, **kw) -> Path:
+    """JSON with ``indent=1`` unless given; extra keywords go to :func:`json.dumps`."""
+    kw.setdefault("indent", 1)
+    return write_text(path, json.dumps(obj, **kw))
+
+
+def savez(path, compressed: bool = False, **arrays) -> Path:
+    """``np.savez`` (or ``savez_compressed``) atomically; the name is used as given."""
+    with atomic_file(path, "wb") as fh:
+        (np.savez_compressed if compressed else np.savez)(fh, **arrays)
+    return Path(path)

@@ -65,8 +65,12 @@ def test_emps_cli_from_trajectory_and_refine(tmp_path, capsys):
         assert {"x", "u", "x_next", "tau", "t"} <= set(z.files)
         assert float(z["tau"]) == pytest.approx(0.001, rel=1e-6)
         assert z["x"].shape[1] == 2
+    rrd = tmp_path / "emps.rrd"
     assert main(["refine", "--system", "emps", "--data", str(npz), "--out", str(rep),
-                 "--bootstrap", "20"]) == 0
+                 "--bootstrap", "20", "--record", str(rrd)]) == 0
+    from simgap_viz.record import read_back
+    got = read_back(rrd)  # the residual against the velocity qd, before and after
+    assert {"/refine/qd/before", "/refine/qd/after", "/refine/qd/before_mean", "/refine/report"} <= set(got)
     r = json.loads(rep.read_text())
     units = {e["name"]: e["physical"]["unit"] for e in r["effects"] if e["physical"]}
     assert units["viscous_friction"] == "N s/m" and units["coulomb_friction"] == "N"

@@ -45,6 +45,9 @@ def add_parser(subparsers) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--name", help="name of the refined system")
     p.add_argument("--quiet", action="store_true", help="no table on the terminal")
+    p.add_argument("--record", metavar="FILE.rrd", help="write a Rerun recording of the residual against a "
+                                                        "variable, before and after (open with: rerun FILE.rrd)")
+    p.add_argument("--against", help="variable for --record (default: the first velocity state)")
     g = p.add_argument_group("gap comparison (collected simulator data sets only)")
     g.add_argument("--compare-gap", action="store_true",
                    help="certify the data against f and f' (paper's method) and report gamma max/mean")
@@ -95,6 +98,14 @@ def run(args) -> int:
         save_refined(res.refined, args.save_system)
         if not args.quiet:
             print(f"refined system written to {args.save_system}")
+    if args.record:
+        try:
+            from simgap_viz.record import record_refinement
+        except ImportError:
+            raise SimgapError("--record needs simgap_viz (pip install -e .)") from None
+        info = record_refinement(args.record, res, against=args.against)
+        if not args.quiet:
+            print(f"recording written to {args.record} (residual vs {info['against']}; open with: rerun {args.record})")
     return 0
 
 

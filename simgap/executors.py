@@ -84,39 +84,24 @@ class LocalExecutor(Executor):
         pool = ProcessPoolExecutor(max_workers=min(self.workers, len(todo)), mp_context=self._context(),
                                    initializer=_fresh_worker)
         pending = {}
-        ok = False
+
+        def result(fut, c):
+            try:
+                return fut.result()
+            except BrokenProcessPool as e:
+                raise SimgapError(
+                    f"a worker process died while computing chunk {c} ({e}). If you call this from a "
+                    "script in a threaded program, guard it with `if __name__ == '__main__':`; "
+                    "finished chunks are kept, run again to resume") from None
+
         try:
-            it = iter(todo)
-            stopped = False
-            while True:
-                # keep the pool busy but bounded, so cancellation is quick and memory stays small
-                while not stopped and len(pending) < 2 * self.workers:
-                    if should_stop():
-                        stopped = True
-                        break
-                    c = next(it, None)
-                    if c is None:
-                        break
-                    pending[pool.submit(fn, job, c)] = c
-                if not pending:
-                    break
-                done, _ = wait(pending, return_when=FIRST_COMPLETED)
-                for fut in done:
-                    c = pending.pop(fut)
-                    try:
-                        res = fut.result()
-                    except BrokenProcessPool as e:
-                        raise SimgapError(
-                            f"a worker process died while computing chunk {c} ({e}). If you call this from a "
-                            "script in a threaded program, guard it with `if __name__ == '__main__':`; "
-                            "finished chunks are kept, run again to resume") from None
-                    on_result(c, res)
-            ok = not stopped
+            return _bounded_map(lambda c: pool.submit(fn, job, c),
+                                lambda p: wait(p, return_when=FIRST_COMPLETED)[0],
+                                result, todo, 2 * self.workers, pending, on_result, should_stop)
         finally:
             for fut in pending:
                 fut.cancel()
             pool.shutdown(wait=True, cancel_futures=True)
-        return ok
 
 
 class RayExecutor(Executor):
@@ -149,37 +134,50 @@ class RayExecutor(Executor):
         try:
             task = ray.remote(num_cpus=1, max_retries=0)(_call)
             job_ref = ray.put(job)
-            pending = {}
-            it = iter(todo)
-            stopped = False
             limit = 2 * max(self.workers, int(ray.cluster_resources().get("CPU", 1)))
-            while True:
-                while not stopped and len(pending) < limit:
-                    if should_stop():
-                        stopped = True
-                        break
-                    c = next(it, None)
-                    if c is None:
-                        break
-                    pending[task.remote(fn, job_ref, c)] = c
-                if not pending:
-                    break
-                ready, _ = ray.wait(list(pending), num_returns=1)
-                for ref in ready:
-                    c = pending.pop(ref)
-                    try:
-                        res = ray.get(ref)
-                    except ray.exceptions.RayTaskError as e:
-                        cause = getattr(e, "cause", None)
-                        if isinstance(cause, SimgapError):
-                            raise SimgapError(str(cause)) from None
-                        raise
-                    on_result(c, res)
-            return not stopped
+
+            def result(ref, c):
+                try:
+                    return ray.get(ref)
+                except ray.exceptions.RayTaskError as e:
+                    cause = getattr(e, "cause", None)
+                    if isinstance(cause, SimgapError):
+                        raise SimgapError(str(cause)) from None
+                    raise
+
+            return _bounded_map(lambda c: task.remote(fn, job_ref, c),
+                                lambda p: ray.wait(list(p), num_returns=1)[0],
+                                result, todo, limit, {}, on_result, should_stop)
         finally:
             if started_here:
                 ray.shutdown()
 
+
+
+def _bounded_map(submit, wait_some, result, todo, limit, pending, on_result, should_stop) -> bool:
+    """Run ``todo`` with at most ``limit`` chunks in flight (so cancellation is quick and memory
+    stays small); ``on_result(c, result)`` in this thread as chunks finish, in completion order.
+
+    ``submit(c) -> handle``, ``wait_some(pending) -> finished handles``, ``result(handle, c)``.
+    ``pending`` (handle -> chunk) is the caller's, so it can cancel what is left on error.
+    Returns False when ``should_stop`` stopped the submission of new chunks.
+    """
+    it = iter(todo)
+    stopped = False
+    while True:
+        while not stopped and len(pending) < limit:
+            if should_stop():
+                stopped = True
+                break
+            c = next(it, None)
+            if c is None:
+                break
+            pending[submit(c)] = c
+        if not pending:
+            return not stopped
+        for h in wait_some(pending):
+            c = pending.pop(h)
+            on_result(c, result(h, c))
 
 def _fresh_worker():
     # a forked worker must not reuse simulators the parent cached (e.g. after a serial run)

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import SimgapError
+from .base import Simulator
 
 #: repository folder holding the URDF files (``assets/urdf``)
 URDF_DIR = Path(__file__).resolve().parents[2] / "assets" / "urdf"
@@ -91,3 +92,20 @@ def int_option(value, name: str, lo: int, hi: int) -> int:
     if isinstance(value, bool) or v != value or not lo <= v <= hi:
         raise SimgapError(f"{name}: need an integer in [{lo}, {hi}], got {value!r}")
     return v
+
+
+class BulletSimulator(Simulator):
+    """A simulator that owns one private PyBullet client (``self._client``), released by close()."""
+
+    _client = None  # set by the subclass's build; a class default so close() works after a failed __init__
+
+    def close(self) -> None:
+        if self._client is not None:
+            try:
+                self._client.disconnect()
+            except Exception:  # already gone (e.g. interpreter shutdown)
+                pass
+            self._client = None
+
+    def __del__(self):
+        self.close()

@@ -56,8 +56,8 @@ from typing import Dict
 import numpy as np
 
 from ..errors import SimgapError
-from ._bullet import bullet_client, check_std, int_option, relative_factors, urdf_path
-from .base import Simulator, as_vector
+from ._bullet import BulletSimulator, bullet_client, check_std, int_option, relative_factors, urdf_path
+from .base import as_vector
 
 MAX_BRANCHES = 120  # Bullet multibodies take at most ~128 links
 # Pivots are spaced along x (BRANCH_SPACING * l apart): Bullet keeps a (shapeless) collision
@@ -68,14 +68,13 @@ CHUNK_ROUNDS = 40  # rounds per chunk of argument lists
 _POS_VEL = operator.itemgetter(0, 1)  # (position, velocity) of a getJointStates entry
 
 
-class PendulumSimulator(Simulator):
+class PendulumSimulator(BulletSimulator):
     """Batched stochastic PyBullet pendulum (see module docstring for the model and keys)."""
 
     NOISE_KEYS = ("actuation_std", "sensor_std")
     RANDOMIZE_KEYS = ("mass", "length")
     EFFECT_KEYS = ("joint_damping", "coulomb_friction", "actuator_gain")
     OPTION_KEYS = ("branches", "substeps", "urdf")
-    _client = None  # set by _build; a class default so close() works after a failed __init__
 
     def __init__(self, config, system=None):
         super().__init__(config, system)
@@ -233,14 +232,4 @@ class PendulumSimulator(Simulator):
             flat.extend(chain.from_iterable(map(_POS_VEL, read(body, J, physicsClientId=cid))))
         return np.array(flat[:2 * b], dtype=float).reshape(b, 2)
 
-    def close(self) -> None:
-        if self._client is not None:
-            try:
-                self._client.disconnect()
-            except Exception:  # already gone (e.g. interpreter shutdown)
-                pass
-            self._client = None
-
-    def __del__(self):
-        self.close()
 

@@ -59,8 +59,8 @@ import numpy as np
 
 from ..errors import SimgapError
 from ..systems import wrap_angle
-from ._bullet import bullet_client, check_std, int_option, relative_factors, urdf_path
-from .base import Simulator, as_vector
+from ._bullet import BulletSimulator, bullet_client, check_std, int_option, relative_factors, urdf_path
+from .base import as_vector
 
 # collision filter groups: the world (plane, obstacles) and the robots; robots only hit the world
 _WORLD, _ROBOT = 1, 2
@@ -90,14 +90,13 @@ def quat_yaw(q: np.ndarray) -> np.ndarray:
     return np.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
 
 
-class TurtlebotSimulator(Simulator):
+class TurtlebotSimulator(BulletSimulator):
     """Stochastic PyBullet differential-drive robot (see module docstring)."""
 
     NOISE_KEYS = ("actuation_std", "sensor_std")
     RANDOMIZE_KEYS = ("wheel_radius", "mass", "friction")
     EFFECT_KEYS = ("actuator_gain", "wheel_radius_error")
     OPTION_KEYS = ("substeps", "robots", "obstacles", "motor_force", "friction", "solver_iterations", "urdf")
-    _client = None  # set by _build; a class default so close() works after a failed __init__
 
     def __init__(self, config, system=None):
         super().__init__(config, system)
@@ -292,16 +291,6 @@ class TurtlebotSimulator(Simulator):
         out[:, 2] = wrap_angle(out[:, 2])
         return out
 
-    def close(self) -> None:
-        if self._client is not None:
-            try:
-                self._client.disconnect()
-            except Exception:  # already gone (e.g. interpreter shutdown)
-                pass
-            self._client = None
-
-    def __del__(self):
-        self.close()
 
 
 def _parse_obstacles(obstacles) -> list:

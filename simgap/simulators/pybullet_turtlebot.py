@@ -319,13 +319,18 @@ def _robot_urdf(path: Path, radius_error: np.ndarray):
     radii = []
     for name, e in zip(("wheel_left", "wheel_right"), radius_error):
         link = root.find(f"./link[@name='{name}']")
-        cyl = None if link is None else link.find("./collision/geometry/cylinder")
-        if cyl is None:
-            raise SimgapError(f"robot URDF {path}: link {name!r} needs a cylinder collision geometry")
-        r = float(cyl.get("radius"))
+        geom = None
+        if link is not None:  # (an Element without children is falsy: test against None)
+            geom = link.find("./collision/geometry/cylinder")
+            if geom is None:
+                geom = link.find("./collision/geometry/sphere")
+        if geom is None:
+            raise SimgapError(f"robot URDF {path}: link {name!r} needs a cylinder or sphere collision geometry")
+        r = float(geom.get("radius"))
         radii.append(r)
-        for geom in link.iter("cylinder"):
-            geom.set("radius", repr(r * (1.0 + float(e))))
+        for tag in ("cylinder", "sphere"):
+            for g in link.iter(tag):
+                g.set("radius", repr(r * (1.0 + float(e))))
     if not np.isclose(radii[0], radii[1]):
         raise SimgapError(f"robot URDF {path}: the two wheels have different radii {radii}")
     r0 = radii[0]

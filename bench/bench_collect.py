@@ -34,43 +34,9 @@ import sys
 import tempfile
 import time
 
-import numpy as np
 
-
-def plain_loop(n: int = 20000, repeat: int = 3) -> float:
-    """Samples/s of a per-sample loop over one URDF pendulum (best of ``repeat``)."""
-    import pybullet as pb
-    from pybullet_utils.bullet_client import BulletClient
-
-    from simgap.simulators._bullet import urdf_path
-    from simgap.systems import get_system
-
-    s = get_system("pendulum")
-    rng = np.random.default_rng(0)
-    x = rng.uniform(s.x_lo, s.x_hi, (n, 2))
-    u = s.inputs[rng.integers(0, len(s.inputs), n)]
-    c = BulletClient(connection_mode=pb.DIRECT)
-    c.setGravity(0, 0, -9.81)
-    c.setPhysicsEngineParameter(fixedTimeStep=0.005, numSubSteps=0)
-    body = c.loadURDF(str(urdf_path("pendulum.urdf")), useFixedBase=True, flags=pb.URDF_USE_INERTIA_FROM_FILE)
-    c.changeDynamics(body, -1, linearDamping=0, angularDamping=0)
-    c.changeDynamics(body, 0, linearDamping=0, angularDamping=0)
-    c.setJointMotorControl2(body, 0, pb.VELOCITY_CONTROL, force=0)
-    cid = c._client
-    q, qd, tq = x[:, 0].tolist(), x[:, 1].tolist(), u[:, 0].tolist()
-    best, cpu = np.inf, np.inf
-    for _ in range(repeat):
-        out = np.empty((n, 2))
-        t0, c0 = time.perf_counter(), time.process_time()
-        for i in range(n):
-            pb.resetJointState(body, 0, q[i], qd[i], physicsClientId=cid)
-            pb.setJointMotorControl2(body, 0, pb.TORQUE_CONTROL, force=tq[i], physicsClientId=cid)
-            pb.stepSimulation(physicsClientId=cid)
-            out[i] = pb.getJointState(body, 0, physicsClientId=cid)[:2]
-        best = min(best, time.perf_counter() - t0)
-        cpu = min(cpu, time.process_time() - c0)
-    c.disconnect()
-    return n / best, n / cpu
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from bench_simulators import plain_loop  # noqa: E402  (the same baseline loop as the simulator bench)
 
 
 def collector_fraction(experiment: str, fraction: float, workers: int):
@@ -141,7 +107,7 @@ def main() -> None:
     W = a.workers
     print(f"machine: {os.cpu_count()} cores, load average {os.getloadavg()[0]:.2f} at start; workers = {W}")
 
-    plain, plain_cpu = plain_loop()
+    plain_cpu, plain = plain_loop(20000, 3, wall=True)
     print(f"(1) plain loop, one pendulum body: {plain:,.0f} samples/s wall-clock (best of 3), "
           f"{plain_cpu:,.0f} samples per CPU-second")
 

@@ -31,17 +31,23 @@ from simgap.systems import get_system
 PAPER_PENDULUM_STEPS = 2.65e8
 
 
+def best_times(fn, repeat: int) -> tuple:
+    """Smallest (CPU time of this process, wall-clock time) [s] over ``repeat`` runs."""
+    cpu, wall = [], []
+    for _ in range(repeat):
+        t0, c0 = time.perf_counter(), time.process_time()
+        fn()
+        cpu.append(time.process_time() - c0)
+        wall.append(time.perf_counter() - t0)
+    return min(cpu), min(wall)
+
+
 def best_time(fn, repeat: int) -> float:
     """Smallest CPU time of this process [s] over ``repeat`` runs.
 
     CPU seconds, not wall-clock seconds: rates are per core, and CPU time is not inflated when
     other processes share the cores (wall-clock rates are, by the load factor)."""
-    times = []
-    for _ in range(repeat):
-        t0 = time.process_time()
-        fn()
-        times.append(time.process_time() - t0)
-    return min(times)
+    return best_times(fn, repeat)[0]
 
 
 def pendulum_samples(n: int, seed: int = 0):
@@ -50,8 +56,9 @@ def pendulum_samples(n: int, seed: int = 0):
     return rng.uniform(s.x_lo, s.x_hi, (n, 2)), s.inputs[rng.integers(0, len(s.inputs), n)]
 
 
-def plain_loop(n: int, repeat: int, bullet_client_methods: bool = False) -> float:
-    """(a): samples/s of a per-sample loop over one URDF pendulum.
+def plain_loop(n: int, repeat: int, bullet_client_methods: bool = False, wall: bool = False):
+    """(a): samples per CPU second of a per-sample loop over one URDF pendulum (with ``wall``:
+    also samples per wall-clock second, as a pair (cpu_rate, wall_rate)).
 
     Raw ``pybullet.f(..., physicsClientId=cid)`` calls (the fastest call style, the one
     simgap uses), or with ``bullet_client_methods`` the common ``client.f(...)`` idiom of
@@ -89,9 +96,9 @@ def plain_loop(n: int, repeat: int, bullet_client_methods: bool = False) -> floa
             out[i] = pb.getJointState(body, 0, physicsClientId=cid)[:2]
         return out
 
-    t = best_time(run_methods if bullet_client_methods else run, repeat)
+    t_cpu, t_wall = best_times(run_methods if bullet_client_methods else run, repeat)
     c.disconnect()
-    return n / t
+    return (n / t_cpu, n / t_wall) if wall else n / t_cpu
 
 
 def batched(n: int, repeat: int, branches: int, randomize: bool = False) -> float:

@@ -14,7 +14,10 @@ default 1). The successor cells are the integer box
 
 and the pair is *out of domain* (its only successor is the losing "outside" state) when
 ``c - r - z <= first - eta/2`` or ``c + r + z >= last + eta/2`` in a non-periodic dimension.
-Periodic dimensions wrap. With ``hold > 1`` the hull of the intermediate boxes (j = 1..hold-1)
+Periodic dimensions wrap. gamma_sup is taken over the *wrapped pieces* of the box in periodic
+dimensions (:func:`gamma_upper_wrapped`): cells are centred at lo + i*eta, so the seam cell
+holds theta in [pi - eta/2, pi) and [-pi, -pi + eta/2), and gamma, a polynomial in theta, is not
+periodic: bounding it over the raw interval [-pi - eta/2, -pi + eta/2] was unsound. With ``hold > 1`` the hull of the intermediate boxes (j = 1..hold-1)
 is also kept, so games can require the state to stay in the allowed cells *between* abstract
 steps too (sound against obstacles passed through while the input is held).
 
@@ -121,6 +124,51 @@ def as_gap(gap, system: System):
     return gap
 
 
+def wrapped_pieces(lo: np.ndarray, hi: np.ndarray, grid: UniformGrid):
+    """Split boxes [lo, hi] (B, n) into boxes inside the canonical range of the periodic dims.
+
+    gamma is a function of the canonical angle in [grid.lo_d, grid.hi_d) (the certificate's data
+    lie there; a polynomial in theta is not periodic), so a box that sticks out of that range,
+    e.g. the seam cell [-pi - eta/2, -pi + eta/2], must be bounded over its wrapped pieces
+    [pi - eta/2, pi] and [-pi, -pi + eta/2], not over the raw interval. Returns
+    ``(plo, phi, owner)``: the pieces (P, n) and the row of [lo, hi] each belongs to (the first B
+    pieces are the rows themselves, shifted into range; boxes wider than a period become the
+    whole range).
+    """
+    plo, phi = np.array(lo, dtype=float), np.array(hi, dtype=float)
+    owner = np.arange(plo.shape[0])
+    for d in grid.periodic:
+        base, P = grid.lo[d], grid.hi[d] - grid.lo[d]
+        width = phi[:, d] - plo[:, d]
+        full = ~(width < P)  # also NaN widths: the whole range
+        a = base + np.mod(plo[:, d] - base, P)
+        b = a + width
+        wraps = ~full & (b > base + P)
+        lo2, hi2 = plo[wraps].copy(), phi[wraps].copy()
+        lo2[:, d], hi2[:, d] = base, b[wraps] - P
+        plo[:, d] = np.where(full, base, a)
+        phi[:, d] = np.where(full, base + P, np.minimum(b, base + P))
+        plo, phi = np.concatenate([plo, lo2]), np.concatenate([phi, hi2])
+        owner = np.concatenate([owner, owner[wraps]])
+    return plo, phi, owner
+
+
+def gamma_upper_wrapped(gap, lo: np.ndarray, hi: np.ndarray, u: np.ndarray, grid: UniformGrid) -> np.ndarray:
+    """Sound sup of gamma over the boxes [lo, hi] x {u} (B, n) on a grid with periodic dims.
+
+    The sup over the union of the wrapped pieces (:func:`wrapped_pieces`) of each box: one
+    ``gap.gamma_upper_box`` call over all pieces.
+    """
+    if not grid.periodic:
+        return np.asarray(gap.gamma_upper_box(lo, hi, u), dtype=float)
+    plo, phi, owner = wrapped_pieces(lo, hi, grid)
+    g = np.asarray(gap.gamma_upper_box(plo, phi, np.asarray(u)[owner]), dtype=float)
+    B = lo.shape[0]
+    out = g[:B].copy()
+    np.maximum.at(out, owner[B:], g[B:])
+    return out
+
+
 def describe_gap(gap) -> Optional[dict]:
     """Provenance of a gap object for controller metadata (JSON-ready)."""
     if gap is None:
@@ -207,6 +255,31 @@ class Abstraction:
             lo = np.minimum(lo, self.mid_lo[self.ok].min(axis=0))
             hi = np.maximum(hi, self.mid_hi[self.ok].max(axis=0))
         return lo, hi
+
+    def successor_box(self, x: np.ndarray, j: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Successor index box of the cells of states x (B, n) under inputs j (B,).
+
+        Returns ``(lo, hi, ok)``: inclusive multi-index bounds (periodic dims not reduced modulo
+        the grid size) and the usable-pair mask.
+        """
+        mi, _ = self.grid.x_to_multi(x)
+        k = self.cell_class(mi)
+        j = np.asarray(j, dtype=np.int64)
+        return mi + self.off_lo[k, j], mi + self.off_hi[k, j], self.ok[k, j]
+
+    def contains(self, x: np.ndarray, j: np.ndarray, x_next: np.ndarray) -> np.ndarray:
+        """(B,) bool: x_next lies in a cell of the successor box of (cell of x, input j).
+
+        The abstraction is sound for a successor x_next when this holds for every usable pair.
+        """
+        lo, hi, _ = self.successor_box(x, j)
+        v = np.floor((np.asarray(x_next, dtype=float) - self.grid.first) / self.grid.eta + 0.5)
+        shape = np.array(self.grid.shape)
+        pm = self.grid.periodic_mask
+        inside = (v >= lo) & (v <= hi)
+        # periodic dims: compare modulo the number of cells (a box of >= n_d cells is the circle)
+        wrapped = (np.mod(v - lo, shape) <= hi - lo) | (hi - lo + 1 >= shape)
+        return np.all(np.where(pm, wrapped, inside), axis=1)
 
     def nbytes(self) -> int:
         b = self.off_lo.nbytes + self.off_hi.nbytes + self.ok.nbytes
@@ -301,7 +374,7 @@ def build_abstraction(system: System, grid: UniformGrid, *, growth: Optional[Gro
                     if inv:  # bound gamma over the whole extent of the shared dimensions (sound)
                         blo[:, inv_mask] = dom_lo[inv_mask]
                         bhi[:, inv_mask] = dom_hi[inv_mask]
-                    g = np.asarray(gap.gamma_upper_box(blo, bhi, u), dtype=float)
+                    g = gamma_upper_wrapped(gap, blo, bhi, u, grid)
                 else:
                     g = 0.0
                 r_new = np.asarray(growth(r, x, u), dtype=float) + g

@@ -1,0 +1,131 @@
+"""Soundness at tight margins: tests that a wrong abstraction or certificate would fail.
+
+Each test here is aimed at one wrong implementation (``bench/mutations.py`` applies them and
+checks that these tests catch every one): gamma bounded at cell centres or halved, the angle
+seam ignored, synthesis over inputs the certificate did not certify, and gamma's constant
+terms (delta_2, L_x * epsilon) dropped.
+"""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+
+from simgap.certify.basis import Basis
+from simgap.certify.certificate import Certificate, DimCertificate
+from simgap.errors import SimgapError
+from simgap.synthesis.abstraction import build_abstraction, gamma_upper_wrapped
+from simgap.synthesis.grid import UniformGrid
+from simgap.systems import System, get_system, input_grid
+
+
+def poly_certificate(system: System, terms, q, *, epsilon=0.0, L=(0.0, 0.0, 0.0), delta2=0.0, inputs=None):
+    """A certificate with gamma_i = (L_f + Lhat + L_2) eps + q_i^T p_i(x, u) + delta_2 (hand-made)."""
+    dims = []
+    for t, c in zip(terms, q):
+        basis = Basis(system, list(t))
+        dims.append(DimCertificate(
+            terms=list(t), q=np.asarray(c, float), delta1=0.0, delta2=float(delta2), beta1=0.01, beta2=0.01,
+            beta_v=0.0, Mhat=1.0, L_f=float(L[0]), L_fhat=float(L[1]), L_2=float(L[2]), lipschitz_how={},
+            repair=0.0, eta=0.0, gap_max=0.0, scp={}, basis=basis))
+    return Certificate(system_name=system.name, steps=system.steps, state_names=system.state_names,
+                       input_names=system.input_names, x_lo=system.x_lo, x_hi=system.x_hi,
+                       angle_dims=system.angle_dims, epsilon=float(epsilon), n_runs=100, K=1, method="stochastic",
+                       options={}, dims=dims, provenance={},
+                       inputs=system.inputs if inputs is None else np.asarray(inputs, float))
+
+
+def corners(n):
+    return np.array(list(itertools.product((-1.0, 1.0), repeat=n)))
+
+
+def assert_abstraction_sound(system, ab, gamma, x, js):
+    """Every extreme successor f(x,u) + s * gamma(x,u), s in {-1,1}^n, of every usable pair
+    (cell of x, input j) lies in the pair's successor box. Returns the number of pairs checked."""
+    X = np.repeat(x, len(js), axis=0)
+    J = np.tile(js, len(x))
+    U = system.inputs[J]
+    _, _, ok = ab.successor_box(X, J)
+    X, J, U = X[ok], J[ok], U[ok]
+    fx, g = system.f(X, U), gamma(X, U)
+    bad = 0
+    for s in corners(system.n):
+        nxt = system.wrap(fx + s * g)
+        inside = ab.contains(X, J, nxt)
+        bad += int(np.count_nonzero(~inside))
+    assert bad == 0, f"{bad} extreme successors outside their successor boxes"
+    return int(ok.sum())
+
+
+# ---------------------------------------------------------------------------------------
+# 1. the angle seam
+# ---------------------------------------------------------------------------------------
+
+def _seam_setup():
+    tb = get_system("turtlebot")
+    sysm = System(**{**tb.__dict__, "inputs": input_grid([-1, -1], [1, 1], [5, 5])})
+    cert = poly_certificate(sysm, [["1"], ["1"], ["1", "theta"]], [[0.01], [0.01], [0.16, 0.05]])
+    grid = UniformGrid(sysm.x_lo, sysm.x_hi, (0.2, 0.2, 2 * np.pi / 32), periodic=(2,))
+    ab = build_abstraction(sysm, grid, gap=cert, invariant_dims=(0, 1))
+    return sysm, cert, grid, ab
+
+
+def test_seam_counterexample_from_the_review():
+    """TurtleBot, 32 heading cells, gamma_theta = 0.16 + 0.05 theta, x = (1, 1, pi - 0.01), u = 0."""
+    sysm, cert, grid, ab = _seam_setup()
+    x = np.array([[1.0, 1.0, np.pi - 0.01]])
+    j = np.array([int(np.flatnonzero(np.all(sysm.inputs == 0, axis=1))[0])])
+    g = cert.gamma(x, sysm.inputs[j])[0]
+    assert g[2] == pytest.approx(0.16 + 0.05 * (np.pi - 0.01))  # 0.317
+    # the cell's gamma bound covers gamma at every point of the cell, both sides of the seam
+    c = grid.x_to_multi(x)[0]
+    centre = grid.multi_to_points(c)
+    lo, hi = centre - grid.eta / 2, centre + grid.eta / 2
+    assert gamma_upper_wrapped(cert, lo, hi, sysm.inputs[j], grid)[0, 2] >= g[2]
+    # and the certified extreme successor lies in the successor box
+    nxt = sysm.wrap(sysm.f(x, sysm.inputs[j]) + np.array([0.0, 0.0, 1.0]) * g)
+    assert ab.contains(x, j, nxt)[0]
+    assert_abstraction_sound(sysm, ab, cert.gamma, x, j)
+
+
+def test_seam_states_sampled_near_pi(rng):
+    """States on both sides of the seam (theta near +-pi), every input, every extreme successor."""
+    sysm, cert, grid, ab = _seam_setup()
+    B = 300
+    x = np.column_stack([rng.uniform(0.5, 3.5, B), rng.uniform(0.5, 3.5, B),
+                         np.where(rng.random(B) < 0.5, np.pi - rng.uniform(0, grid.eta[2] / 2, B),
+                                  -np.pi + rng.uniform(0, grid.eta[2] / 2, B))])
+    n = assert_abstraction_sound(sysm, ab, cert.gamma, x, np.arange(len(sysm.inputs)))
+    assert n > 1000
+
+
+# ---------------------------------------------------------------------------------------
+# gamma that varies inside a cell (centre evaluation, halving)
+# ---------------------------------------------------------------------------------------
+
+def integrator(tau=0.07):
+    def step(x, u, dt):
+        return x + dt * u
+
+    def jac(u):
+        return np.broadcast_to(np.eye(2), (u.shape[0], 2, 2))
+
+    return System(name="integrator2", state_names=("p", "q"), input_names=("a", "b"),
+                  x_lo=(0, 0), x_hi=(2, 2), inputs=input_grid([-1, -1], [1, 1], [5, 5]),
+                  base_tau=tau, step=step, jacobian_bound=jac)
+
+
+def test_state_dependent_gamma_bounded_over_the_whole_cell(rng):
+    """gamma_p = 0.003 + 0.3 p varies by 0.3 eta inside a cell (far more than the 1e-10 guard):
+    states at the cells' corners and inside, every extreme successor in its box."""
+    sysm = integrator()
+    cert = poly_certificate(sysm, [["1", "p"], ["1", "q"]], [[0.003, 0.3], [0.002, 0.2]])
+    grid = UniformGrid(sysm.x_lo, sysm.x_hi, 0.05)
+    ab = build_abstraction(sysm, grid, gap=cert)
+    ids = rng.choice(grid.size, 400)
+    c = grid.points(ids)
+    x = np.concatenate([c + 0.49999 * grid.eta, c + (rng.random(c.shape) - 0.5) * grid.eta * 0.999])
+    n = assert_abstraction_sound(sysm, ab, cert.gamma, x, np.arange(len(sysm.inputs)))
+    assert n > 3000

@@ -173,7 +173,7 @@ def test_unknown_effect_and_bad_user_terms():
     s = get_system("pendulum")
     with pytest.raises(SimgapError, match="unknown effect name"):
         candidate_effects(s, ["bias", "stiction"])
-    with pytest.raises(SimgapError, match="unknown names"):
+    with pytest.raises(SimgapError, match="not allowed"):
         user_effect(s, "t1", "omega", "__import__('os')")
     with pytest.raises(SimgapError, match="unknown state"):
         user_effect(s, "t1", "phi", "sin(theta)")

@@ -1,7 +1,8 @@
 """Basis functions p_i(x, u) of the simulation-gap function gamma_i = L_x eps + q_i^T p_i(x,u) + delta_2i.
 
 A basis is a list of :class:`Term` s. A term is a small expression over the state and input
-variables, parsed SAFELY with Python's ``ast`` and a whitelist (nothing is ever ``eval``-ed):
+variables, parsed SAFELY by the shared allow-list parser :mod:`simgap.expr` (nothing is ever
+``eval``-ed):
 
 * numbers, variables ``x1..xn``, ``u1..um`` (1-based) and the system's own state/input names
   (e.g. ``theta``, ``omega``, ``torque`` for the pendulum);
@@ -22,7 +23,6 @@ Every term can be evaluated three ways, all vectorized over a batch:
 
 from __future__ import annotations
 
-import ast
 import itertools
 from dataclasses import dataclass
 from typing import List, Sequence, Tuple
@@ -30,6 +30,7 @@ from typing import List, Sequence, Tuple
 import numpy as np
 
 from ..errors import SimgapError
+from ..expr import VarSpace, parse
 from ..systems import System
 
 FUNCS = ("sin", "cos", "tan", "exp", "abs", "sqrt", "tanh", "sign")
@@ -37,82 +38,22 @@ TWO_PI = 2.0 * np.pi
 
 
 # ---------------------------------------------------------------------------------------
-# Parsing: ast -> nested tuples
+# Parsing: the shared allow-list parser (simgap.expr) with the functions that have interval
+# extensions below; no constants, integer powers only, no comparisons or lags.
 #   ("const", v) | ("var", j) | ("neg", a) | ("add"|"sub"|"mul"|"div", a, b) | ("pow", a, k)
 #   | ("fn", name, a);  j indexes z = [x_1..x_n, u_1..u_m]
 # ---------------------------------------------------------------------------------------
 
 def variable_names(system: System) -> dict:
     """Map every accepted variable name to its column in z = [x, u]."""
-    n, m = system.n, system.m
-    names = {f"x{i + 1}": i for i in range(n)}
-    names.update({f"u{j + 1}": n + j for j in range(m)})
-    for i, s in enumerate(system.state_names):
-        names.setdefault(s, i)
-    for j, s in enumerate(system.input_names):
-        names.setdefault(s, n + j)
-    return names
-
-
-def _convert(node, names: dict, term: str):
-    def bad(why):
-        raise SimgapError(f"basis term {term!r}: {why}")
-
-    if isinstance(node, ast.Expression):
-        return _convert(node.body, names, term)
-    if isinstance(node, ast.Constant):
-        if isinstance(node.value, bool) or not isinstance(node.value, (int, float)):
-            bad(f"constant {node.value!r} is not a number")
-        if not np.isfinite(node.value):
-            bad("constant is not finite")
-        return ("const", float(node.value))
-    if isinstance(node, ast.Name):
-        if node.id not in names:
-            bad(f"unknown variable {node.id!r}; known: {', '.join(sorted(names))}")
-        return ("var", names[node.id])
-    if isinstance(node, ast.UnaryOp):
-        a = _convert(node.operand, names, term)
-        if isinstance(node.op, ast.USub):
-            return ("neg", a)
-        if isinstance(node.op, ast.UAdd):
-            return a
-        bad(f"operator {type(node.op).__name__} is not allowed")
-    if isinstance(node, ast.BinOp):
-        a = _convert(node.left, names, term)
-        b = _convert(node.right, names, term)
-        op = type(node.op)
-        if op is ast.Pow:
-            if b[0] == "neg" and b[1][0] == "const":
-                b = ("const", -b[1][1])
-            if b[0] != "const" or float(b[1]) != int(b[1]):
-                bad("exponents must be integer numbers (use sqrt for square roots)")
-            return ("pow", a, int(b[1]))
-        table = {ast.Add: "add", ast.Sub: "sub", ast.Mult: "mul", ast.Div: "div"}
-        if op not in table:
-            bad(f"operator {op.__name__} is not allowed")
-        return (table[op], a, b)
-    if isinstance(node, ast.Call):
-        if not isinstance(node.func, ast.Name) or node.func.id not in FUNCS:
-            what = node.func.id if isinstance(node.func, ast.Name) else ast.dump(node.func)[:40]
-            bad(f"function {what!r} is not allowed; allowed: {', '.join(FUNCS)}")
-        if len(node.args) != 1 or node.keywords:
-            bad(f"{node.func.id} takes exactly one argument")
-        return ("fn", node.func.id, _convert(node.args[0], names, term))
-    bad(f"{type(node).__name__} is not allowed in a basis term")
+    return dict(VarSpace.of_system(system).columns)
 
 
 def parse_term(text: str, system: System) -> "Term":
     """Parse one basis term (see module docstring) into a :class:`Term`."""
-    if not isinstance(text, str) or not text.strip():
-        raise SimgapError(f"basis term {text!r}: empty")
-    if len(text) > 500:
-        raise SimgapError(f"basis term {text[:40]!r}...: longer than 500 characters")
-    try:
-        # '^' means power (Python's xor binds looser than '*', so rewrite it textually)
-        tree = ast.parse(text.strip().replace("^", "**"), mode="eval")
-    except SyntaxError as e:
-        raise SimgapError(f"basis term {text!r} does not parse: {e.msg}") from None
-    return Term(text.strip(), _convert(tree, variable_names(system), text))
+    e = parse(text, VarSpace.of_system(system), what="basis term", functions=FUNCS, constants=False,
+              integer_powers=True)
+    return Term(e.text, e.tree)
 
 
 # ---------------------------------------------------------------------------------------

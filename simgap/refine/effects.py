@@ -52,6 +52,7 @@ from typing import Callable, Dict, Iterable, Optional, Sequence
 import numpy as np
 
 from ..errors import SimgapError
+from ..expr import VarSpace, parse
 from ..systems import System
 
 LIBRARY = ("bias", "viscous_friction", "coulomb_friction", "drag", "input_gain", "deadband", "gravity",
@@ -102,9 +103,10 @@ class Effect:
     state: int
     variable: Optional[str]
     expr: str
-    term: Callable[[np.ndarray, np.ndarray], np.ndarray]
+    term: Callable[..., np.ndarray]
     smooth: bool = True
     params: dict = field(default_factory=dict)
+    lag: int = 0                    # periods of history the term reads (0: a function of (x_k, u_k))
 
     def key(self, system: System) -> str:
         s = f"{self.name}:{system.state_names[self.state]}"
@@ -117,8 +119,10 @@ class Effect:
             d["params"] = dict(self.params)
         return d
 
-    def __call__(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
-        return np.asarray(self.term(x, u), dtype=float).reshape(x.shape[0])
+    def __call__(self, x: np.ndarray, u: np.ndarray, hist: Optional[np.ndarray] = None) -> np.ndarray:
+        """g on rows (x_k, u_k); ``hist`` (K, lag (n + m)) = [x_{k-1}, u_{k-1}, x_{k-2}, ...] for lag > 0."""
+        val = self.term(x, u, hist) if self.lag else self.term(x, u)
+        return np.asarray(val, dtype=float).reshape(x.shape[0])
 
 
 # ---------------------------------------------------------------------------------------
@@ -203,52 +207,40 @@ def velocity_dims(system: System) -> tuple:
 # building effects
 # ---------------------------------------------------------------------------------------
 
-_SAFE_FUNCS = {k: getattr(np, k) for k in (
-    "sin", "cos", "tan", "tanh", "exp", "log", "sqrt", "abs", "sign", "clip", "minimum",
-    "maximum", "where", "arctan", "arctan2", "sinh", "cosh")}
-_SAFE_FUNCS["pi"] = np.pi
-
-
-def user_effect(system: System, name: str, state, expr: str) -> Effect:
+def user_effect(system: System, name: str, state, expr: str, max_lag: int = 0) -> Effect:
     """A user-named term g = ``expr`` entering state ``state`` (index or name).
 
-    ``expr`` is a numpy expression in the state and input names (``theta``, ``omega``), the
-    positional names ``x1..xn``, ``u1..um`` and sin, cos, tanh, exp, log, sqrt, abs, sign,
-    clip, minimum, maximum, where, arctan, arctan2, pi. Example: ``"sin(2*pi*q/0.01)"``.
+    ``expr`` is parsed by the shared allow-list parser :mod:`simgap.expr` (never evaluated as
+    Python): numbers, the state and input names (``theta``, ``omega``), the positional names
+    ``x1..xn``, ``u1..um``, ``pi``, ``+ - * / **``, comparisons for ``where`` and the functions of
+    :data:`simgap.expr.FUNCTIONS` (sin, cos, tanh, exp, log, sqrt, abs, sign, clip, minimum,
+    maximum, where, arctan, arctan2, ...). Example: ``"sin(2*pi*q/0.01)"``. With ``max_lag`` L > 0
+    (time-ordered data) ``torque[k-1]`` .. ``torque[k-L]`` are the values 1..L periods earlier.
     """
-    if not name or not name.replace("_", "").isalnum():
+    if not isinstance(name, str) or not name or not name.replace("_", "").isalnum() or not name.isascii():
         raise SimgapError(f"user effect name {name!r}: use letters, digits and underscores")
     if name in LIBRARY:
         raise SimgapError(f"user effect name {name!r} clashes with the library effect of that name")
     i = _state_index(system, state)
-    try:
-        code = compile(expr, f"<effect {name}>", "eval")
-    except SyntaxError as e:
-        raise SimgapError(f"user effect {name!r}: cannot parse {expr!r}: {e.msg}") from None
-    allowed = set(_SAFE_FUNCS) | set(system.state_names) | set(system.input_names) \
-        | {f"x{k + 1}" for k in range(system.n)} | {f"u{k + 1}" for k in range(system.m)}
-    unknown = set(code.co_names) - allowed
-    if unknown:
-        raise SimgapError(f"user effect {name!r}: unknown names {sorted(unknown)} in {expr!r}; "
-                          f"allowed: state/input names, x1.., u1.. and {', '.join(sorted(_SAFE_FUNCS))}")
+    parsed = parse(expr, VarSpace.of_system(system, max_lag), what=f"user effect {name!r}:",
+                   comparisons=True)
+    lag = max((c // (system.n + system.m) for c in parsed.columns), default=0)
 
-    def term(x, u):
-        env = dict(_SAFE_FUNCS)
-        for k in range(system.n):
-            env[f"x{k + 1}"] = env[system.state_names[k]] = x[:, k]
-        for k in range(system.m):
-            env[f"u{k + 1}"] = env[system.input_names[k]] = u[:, k]
-        val = eval(code, {"__builtins__": {}}, env)  # names checked above; numpy only
-        return np.broadcast_to(np.asarray(val, dtype=float), (x.shape[0],))
+    def term(x, u, hist=None):
+        z = np.concatenate([x, u], axis=1)
+        if lag:
+            if hist is None:
+                raise SimgapError(f"user effect {name!r} reads values {lag} period(s) back: needs history")
+            z = np.concatenate([z, hist[:, : lag * z.shape[1]]], axis=1)
+        return parsed.eval(z)
 
     x, u = _sample_domain(system, 8)
     try:
-        term(x, u)
+        term(x, u, np.zeros((8, lag * (system.n + system.m))))
     except Exception as e:  # report any evaluation failure as bad input
         raise SimgapError(f"user effect {name!r}: evaluating {expr!r} failed: {e}") from None
-    smooth = not any(s in code.co_names for s in ("sign", "abs", "clip", "where", "minimum", "maximum"))
-    return Effect(name=name, state=i, variable=None, expr=expr, term=term, smooth=smooth,
-                  params={"expr": expr})
+    return Effect(name=name, state=i, variable=None, expr=parsed.text, term=term, smooth=parsed.smooth,
+                  params={"expr": parsed.text}, lag=lag)
 
 
 def _state_index(system: System, state) -> int:

@@ -3,8 +3,10 @@
 For every cover point x_r (:mod:`simgap.cover`) and every input u in U the nominal model gives
 f(x_r, u) once and the simulator gives N1hat independent next states fhat(x_r, u, w_k),
 k = 1..N1hat. Per pair only the statistics the certificate needs are kept (empirical mean,
-unbiased variance (ddof=1), min and max; angle convention as in :mod:`simgap.dataset`), not
-the raw samples unless ``keep_samples`` is set.
+unbiased variance (ddof=1), min and max; angle convention as in :mod:`simgap.dataset`) and the
+largest ``min(N1hat, TOP_ORDER_STATS)`` absolute deviations |wrap(fhat_i - f_i)| per dimension
+(order statistics for the per-run gap, :mod:`simgap.perrun.realization`), not the raw samples
+unless ``keep_samples`` is set.
 
 Work split. The K = N*M pairs (cover-major: row = r*M + j) are cut into chunks of
 ``chunk_size`` consecutive pairs. Chunk c draws all its randomness from its own generator
@@ -52,6 +54,7 @@ STORE_FORMAT = "simgap-store/1"
 MANIFEST = "manifest.json"
 CHUNK_DIR = "chunks"
 DEFAULT_BATCH_RUNS = 1 << 18  # simulator runs per step call: ~50 MB of float64 work arrays
+TOP_ORDER_STATS = 32  # largest |fhat_i - f_i| kept per pair and dimension (per-run quantile bounds)
 
 
 # ----------------------------------------------------------------------------------------
@@ -211,6 +214,21 @@ def pair_statistics(Y: np.ndarray, f_nom: np.ndarray, angle_dims: Sequence[int] 
     return mean, var, lo, hi
 
 
+def top_abs_deviations(Y: np.ndarray, f_nom: np.ndarray, angle_dims: Sequence[int] = (),
+                       T: int = TOP_ORDER_STATS) -> np.ndarray:
+    """The T = min(R, ``T``) largest |wrap(Y - f_nom)| per pair and dimension, descending: (P, T, n).
+
+    Column j is the (R - j)-th order statistic of the R absolute deviations (j = 0: the maximum).
+    """
+    d = np.abs(Y - f_nom[:, None, :])
+    if len(angle_dims):
+        a = list(angle_dims)
+        d[:, :, a] = np.abs(wrap_angle(Y[:, :, a] - f_nom[:, None, a]))
+    T = min(d.shape[1], int(T))
+    top = np.partition(d, d.shape[1] - T, axis=1)[:, d.shape[1] - T:, :]
+    return -np.sort(-top, axis=1)
+
+
 def chunk_rng(seed: int, chunk: int) -> np.random.Generator:
     """The generator of chunk ``chunk``: SeedSequence(seed).spawn(...)[chunk]."""
     return np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(int(chunk),)))
@@ -275,6 +293,7 @@ def run_chunk(job: dict, c: int) -> dict:
     rng = chunk_rng(cfg["seed"], c)
     P = b - a
     mean, var, lo, hi = (np.empty((P, n)) for _ in range(4))
+    top = np.empty((P, min(R, TOP_ORDER_STATS), n))
     samples = np.empty((P, R, n)) if cfg["keep_samples"] else None
     per = max(1, cfg["batch_runs"] // R)
     for s in range(0, P, per):
@@ -293,10 +312,11 @@ def run_chunk(job: dict, c: int) -> dict:
                               f"for {bad} of {len(Y)} runs")
         Y = Y.reshape(e - s, R, n)
         mean[s:e], var[s:e], lo[s:e], hi[s:e] = pair_statistics(Y, f_nom[s:e], system.angle_dims)
+        top[s:e] = top_abs_deviations(Y, f_nom[s:e], system.angle_dims)
         if samples is not None:
             samples[s:e] = Y
     out = {"x": x, "u": u, "f_nom": f_nom, "mean": mean, "var": var, "lo": lo, "hi": hi,
-           "cover_index": ci, "input_index": ui}
+           "cover_index": ci, "input_index": ui, "absdev_top": top}
     if samples is not None:
         out["samples"] = samples
     return out
@@ -513,13 +533,14 @@ def collect(plan: CollectionPlan, store: str | Path, executor: str | Executor = 
                          runs=state["runs"])
 
 
-def _load_chunk(store: Path, c: int, h: str, rows: int, names: Sequence[str]) -> dict:
+def _load_chunk(store: Path, c: int, h: str, rows: int, names: Sequence[str], optional: Sequence[str] = ()) -> dict:
     p = _chunk_path(store, c)
     try:
         with np.load(p, allow_pickle=False) as z:
             if str(z["hash"]) != h or int(z["chunk"]) != c:
                 raise SimgapError(f"store {str(store)!r}: chunk file {p.name} belongs to another collection")
             out = {k: z[k] for k in names}
+            out.update({k: z[k] for k in optional if k in z.files})
     except SimgapError:
         raise
     except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as e:
@@ -569,9 +590,13 @@ def load_store(path: str | Path, system: System | None = None) -> Dataset:
     arrays = {}
     for c in range(int(cfg["n_chunks"])):  # fill preallocated arrays: peak memory = data set + one chunk
         a, b = c * S, min((c + 1) * S, K)
-        part = _load_chunk(store, c, h, b - a, names)
+        # order statistics for the per-run gap: stores written before they existed lack them
+        part = _load_chunk(store, c, h, b - a, names, optional=("absdev_top",))
         if not arrays:
             arrays = {k: np.empty((K,) + v.shape[1:], dtype=v.dtype) for k, v in part.items()}
+        elif set(part) != set(arrays):
+            arrays.pop("absdev_top", None)
+            part.pop("absdev_top", None)
         for k, v in part.items():
             if v.shape[1:] != arrays[k].shape[1:]:
                 raise SimgapError(f"store {str(store)!r}: chunk {c} has {k} of shape {v.shape}, "

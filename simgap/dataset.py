@@ -6,7 +6,10 @@ Rows are the K = N * M pairs (cover point r, input j), cover-major. For every ro
 * ``f_nom`` (K,n) the nominal next state f(x_r, u);
 * ``mean`` (K,n) the empirical mean of the N1hat simulator next states fhat(x_r, u, w_k);
 * ``var`` (K,n) their unbiased sample variance (ddof = 1);
-* ``lo``/``hi`` (K,n) their minimum and maximum.
+* ``lo``/``hi`` (K,n) their minimum and maximum;
+* ``absdev_top`` (K,T,n), optional: the T = min(N1hat, 32) largest absolute deviations
+  |wrap(fhat_i - f_i)| per row and dimension, descending (order statistics for the per-run gap;
+  None for data collected before they were kept).
 
 Angle dimensions: every statistic is computed on the wrapped deviation d = wrap(fhat - f_nom)
 and shifted back (mean = wrap(f_nom + mean d), lo = f_nom + min d, hi = f_nom + max d; lo/hi
@@ -21,6 +24,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 
@@ -46,9 +50,13 @@ class Dataset:
     n_runs: int
     epsilon: float
     manifest: dict = field(default_factory=dict)
+    absdev_top: Optional[np.ndarray] = None
 
     def __post_init__(self):
         K, n = self.x.shape
+        if self.absdev_top is not None and (self.absdev_top.ndim != 3 or self.absdev_top.shape[0] != K
+                                            or self.absdev_top.shape[2] != n):
+            raise SimgapError(f"dataset: absdev_top has shape {self.absdev_top.shape}, expected ({K}, T, {n})")
         for name in ("f_nom", "mean", "var", "lo", "hi"):
             a = getattr(self, name)
             if a.shape != (K, n):
@@ -83,7 +91,8 @@ class Dataset:
         """Write the dataset as one .npz (atomically: temp file, then rename)."""
         meta = {"n_runs": int(self.n_runs), "epsilon": float(self.epsilon), "manifest": self.manifest,
                 "system": self.system.name, "steps": int(self.system.steps)}
-        return fileio.savez(path, **{k: getattr(self, k) for k in ARRAYS}, meta=np.array(json.dumps(meta)))
+        extra = {} if self.absdev_top is None else {"absdev_top": self.absdev_top}
+        return fileio.savez(path, **{k: getattr(self, k) for k in ARRAYS}, **extra, meta=np.array(json.dumps(meta)))
 
 
 def load_dataset(path: str | Path, system: System | None = None) -> Dataset:
@@ -100,6 +109,8 @@ def load_dataset(path: str | Path, system: System | None = None) -> Dataset:
     try:
         with np.load(path, allow_pickle=False) as z:
             arrays = {k: z[k] for k in ARRAYS}
+            if "absdev_top" in z.files:
+                arrays["absdev_top"] = z["absdev_top"]
             meta = json.loads(str(z["meta"]))
     except (OSError, ValueError, KeyError) as e:
         raise SimgapError(f"dataset {str(path)!r} is unreadable or not a simgap dataset: {e}") from None

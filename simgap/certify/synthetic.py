@@ -12,6 +12,7 @@ import json
 
 import numpy as np
 
+from ..collect import TOP_ORDER_STATS, top_abs_deviations
 from ..dataset import Dataset
 from ..errors import SimgapError
 from ..simulators.base import Simulator, SimulatorConfig, make_simulator
@@ -63,6 +64,7 @@ def synthetic_dataset(config: dict | SimulatorConfig | Simulator, epsilon: float
     var = np.zeros((K, s.n))
     lo = np.empty((K, s.n))
     hi = np.empty((K, s.n))
+    top = np.empty((K, min(int(n_runs), TOP_ORDER_STATS), s.n))
     rng = np.random.default_rng(seed)
     rows = max(1, chunk_samples // int(n_runs))
     for a in range(0, K, rows):  # chunks of rows; each chunk fully vectorized over rows x runs
@@ -76,8 +78,9 @@ def synthetic_dataset(config: dict | SimulatorConfig | Simulator, epsilon: float
             var[a:b] = d.var(axis=1, ddof=1)
         lo[a:b] = fnom[a:b] + d.min(axis=1)
         hi[a:b] = fnom[a:b] + d.max(axis=1)
+        top[a:b] = top_abs_deviations(nxt, fnom[a:b], s.angle_dims)
     manifest = {"simulator": cfg.to_dict(), "system": s.describe(), "cover": {"kind": "grid", "epsilon": epsilon,
                 "points": int(N), "invariant_dims": [s.state_names[j] for j in sorted(fixed)]}, "seed": int(seed), "n_runs": int(n_runs), "source": "simgap.certify.synthetic"}
     manifest["hash"] = hashlib.sha256(json.dumps(manifest, sort_keys=True).encode()).hexdigest()[:16]
     return Dataset(system=s, x=X, u=Uu, f_nom=fnom, mean=mean, var=var, lo=lo, hi=hi, cover_index=ci,
-                   input_index=ii, n_runs=int(n_runs), epsilon=float(epsilon), manifest=manifest)
+                   input_index=ii, n_runs=int(n_runs), epsilon=float(epsilon), manifest=manifest, absdev_top=top)

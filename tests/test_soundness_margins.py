@@ -129,3 +129,46 @@ def test_state_dependent_gamma_bounded_over_the_whole_cell(rng):
     x = np.concatenate([c + 0.49999 * grid.eta, c + (rng.random(c.shape) - 0.5) * grid.eta * 0.999])
     n = assert_abstraction_sound(sysm, ab, cert.gamma, x, np.arange(len(sysm.inputs)))
     assert n > 3000
+
+
+# ---------------------------------------------------------------------------------------
+# 2. synthesis uses only the inputs the certificate certified
+# ---------------------------------------------------------------------------------------
+
+def test_synthesis_restricted_to_certified_inputs():
+    from simgap.synthesis.controller import synthesize
+    from simgap.synthesis.spec import Box, Spec
+    pend = get_system("pendulum")                      # 21 inputs in [-1, 1]
+    cert = poly_certificate(pend, [["1"], ["1"]], [[1e-4], [1e-3]], inputs=[[-1.0], [0.0], [1.0]])
+    spec = Spec(kind="invariance", safe=Box([0.0, -0.5], [0.2, 0.5]))
+    res = synthesize(pend, spec, (0.004, 0.01), gap=cert)
+    ctrl = res.controller
+    assert ctrl.n_inputs == 3 and np.array_equal(ctrl.inputs, [[-1.0], [0.0], [1.0]])
+    assert ctrl.system.inputs.shape == (3, 1) and "restricted to the 3 inputs" in res.summary()
+    assert res.stats["winning"] > 0
+    used = ctrl.inputs[ctrl.input_index(ctrl.grid.points(np.flatnonzero(ctrl.winning_mask)))]
+    assert np.all(np.isin(used, [-1.0, 0.0, 1.0]))
+    # the abstraction itself refuses uncertified inputs, naming them
+    grid = UniformGrid(pend.x_lo, pend.x_hi, (0.004, 0.01))
+    with pytest.raises(SimgapError, match=r"18 of the 21 inputs .* not certified .*torque = \[-0.9\]"):
+        build_abstraction(pend, grid, gap=cert)
+    # no certified input at all: refused
+    other = poly_certificate(pend, [["1"], ["1"]], [[1e-4], [1e-3]], inputs=[[0.05]])
+    with pytest.raises(SimgapError, match="none is left"):
+        synthesize(pend, spec, (0.004, 0.01), gap=other)
+
+
+def test_cli_synthesize_turtlebot_with_a_small_certificate(tmp_path, capsys):
+    """`simgap synthesize --system turtlebot --cert <25-input certificate>`: 25 inputs, not 441."""
+    from simgap.cli import main
+    from simgap.synthesis.controller import Controller
+    tb = get_system("turtlebot", 30)
+    small = input_grid([-1, -1], [1, 1], [5, 5])
+    cert = poly_certificate(tb, [["1"], ["1"], ["1"]], [[0.005], [0.005], [0.01]], inputs=small)
+    p = cert.save(tmp_path / "cert.json")
+    out = tmp_path / "c.npz"
+    rc = main(["synthesize", "--system", "turtlebot", "--cert", str(p), "--spec", "arena",
+               "--eta", "0.2,0.2,0.4", "--out", str(out)])
+    text = capsys.readouterr().out
+    assert "inputs        25 (restricted to the 25 inputs the certificate covers (the system has 441" in text
+    assert rc == 0 and Controller.load(out).n_inputs == 25

@@ -124,6 +124,45 @@ def as_gap(gap, system: System):
     return gap
 
 
+def certified_input_mask(system: System, gap) -> np.ndarray:
+    """(M,) bool: which rows of ``system.inputs`` the gap is certified for.
+
+    A certificate bounds gamma only at the inputs its data covered (``gap.inputs``, (M', m));
+    gamma at any other input is not certified (the Lipschitz terms cover x, not u). A gap
+    without an input set (a constant or user-given bound) covers every input. A certificate
+    (an object with ``check_system``) that records no input set is refused.
+    """
+    M = system.inputs.shape[0]
+    if gap is None:
+        return np.ones(M, dtype=bool)
+    U_cert = getattr(gap, "inputs", None)
+    if U_cert is None:
+        if hasattr(gap, "check_system"):
+            raise SimgapError("the certificate records no input set, so the inputs its gamma holds for are "
+                              "unknown; re-certify the data set with this version")
+        return np.ones(M, dtype=bool)
+    U_cert = np.atleast_2d(np.asarray(U_cert, dtype=float))
+    if U_cert.shape[1] != system.m:
+        raise SimgapError(f"the certificate's inputs have {U_cert.shape[1]} components, system "
+                          f"{system.name!r} has {system.m}")
+    U = system.inputs
+    keep = np.empty(M, dtype=bool)
+    B = max(1, (1 << 20) // max(1, U_cert.size))
+    for s in range(0, M, B):  # blocks of inputs bound the (B, M', m) comparison
+        u = U[s:s + B, None, :]
+        keep[s:s + B] = np.any(np.all(np.abs(u - U_cert[None]) <= 1e-9 * (1.0 + np.abs(u)), axis=2), axis=1)
+    return keep
+
+
+def uncertified_inputs_message(system: System, keep: np.ndarray, limit: int = 5) -> str:
+    """Names the inputs of ``system`` outside the certified set (at most ``limit`` of them)."""
+    bad = system.inputs[~keep]
+    shown = ", ".join(str(np.round(u, 6).tolist()) for u in bad[:limit])
+    more = f" and {len(bad) - limit} more" if len(bad) > limit else ""
+    return (f"{len(bad)} of the {len(keep)} inputs of system {system.name!r} are not certified by the gap "
+            f"({', '.join(system.input_names)} = {shown}{more}); gamma holds only at the inputs its data covered")
+
+
 def wrapped_pieces(lo: np.ndarray, hi: np.ndarray, grid: UniformGrid):
     """Split boxes [lo, hi] (B, n) into boxes inside the canonical range of the periodic dims.
 
@@ -324,6 +363,10 @@ def build_abstraction(system: System, grid: UniformGrid, *, growth: Optional[Gro
             raise SimgapError(f"system {system.name!r} has no jacobian_bound; pass a growth function")
         growth = lambda r, x, u: system.growth_bound(r, u)  # noqa: E731
     gap = as_gap(gap, system)
+    keep = certified_input_mask(system, gap)
+    if not keep.all():
+        raise SimgapError(uncertified_inputs_message(system, keep) + "; restrict system.inputs (synthesize "
+                          "does) or certify these inputs")
     inv = tuple(sorted(set(int(d) for d in invariant_dims)))
     if any(d < 0 or d >= n for d in inv):
         raise SimgapError(f"invariant_dims {inv} out of range for n={n}")

@@ -34,7 +34,8 @@ import numpy as np
 from .. import fileio
 from ..errors import SimgapError
 from ..systems import System
-from .abstraction import as_gap, build_abstraction, describe_gap
+from .abstraction import (as_gap, build_abstraction, certified_input_mask, describe_gap,
+                          uncertified_inputs_message)
 from .games import GameResult, solve_invariance, solve_reach
 from .grid import UniformGrid
 from .spec import Spec
@@ -245,7 +246,7 @@ class SynthesisResult:
             f"system        {s['system']} (tau = {s['tau']:g} s, hold = {s['hold']})",
             f"spec          {s['spec_kind']}",
             f"grid          {' x '.join(map(str, s['grid_shape']))} = {s['cells']:,} cells, eta = {s['eta']}",
-            f"inputs        {s['inputs']}",
+            f"inputs        {s['inputs']}" + (f" ({s['inputs_note']})" if s.get("inputs_note") else ""),
             f"boxes         {s['boxes']:,} valid (cell, input) boxes ({s['pairs']:,} pairs)",
             f"transitions   {s['transitions']:,} (sum of box volumes)",
             f"winning       {s['winning']:,} cells ({s['winning_with_target']:,} with the target's "
@@ -313,7 +314,9 @@ def synthesize(system: System, spec: Spec, eta, gap=None, hold: int = 1, *, grow
     eta : float or (n,)
         Cell widths (state units).
     gap : None, constant vector, or object with ``gamma_upper_box`` (e.g. a Certificate)
-        The certified gap gamma (state units per sampling period tau).
+        The certified gap gamma (state units per sampling period tau). A certificate bounds
+        gamma only at the inputs its data covered (``gap.inputs``): U is restricted to those
+        (``stats['inputs_note']`` says so; none certified is an error).
     hold : int
         Sampling periods per abstract step with the input held (abstraction module docstring).
     growth : callable, optional
@@ -336,6 +339,14 @@ def synthesize(system: System, spec: Spec, eta, gap=None, hold: int = 1, *, grow
     if gap is not None and hasattr(gap, "check_system"):
         gap.check_system(system)
     gap = as_gap(gap, system)
+    keep = certified_input_mask(system, gap)
+    inputs_note = None
+    if not keep.any():
+        raise SimgapError(uncertified_inputs_message(system, keep) + "; none is left to synthesize with")
+    if not keep.all():  # restrict U to the certified inputs, and say so (stats, summary, controller file)
+        inputs_note = (f"restricted to the {int(keep.sum())} inputs the certificate covers "
+                       f"(the system has {keep.size}; gamma is not certified for the other {int((~keep).sum())})")
+        system = dataclasses.replace(system, inputs=system.inputs[keep])
     if invariant_dims is None:
         invariant_dims = TRANSLATION_INVARIANT.get(system.name, ())
     if periodic is None:
@@ -359,7 +370,7 @@ def synthesize(system: System, spec: Spec, eta, gap=None, hold: int = 1, *, grow
     stats = {
         "system": system.name, "tau": system.tau, "hold": int(hold), "spec_kind": spec.kind,
         "grid_shape": list(grid.shape), "cells": grid.size, "eta": grid.eta.round(9).tolist(),
-        "inputs": ab.n_inputs, "pairs": grid.size * ab.n_inputs, "classes": ab.n_classes,
+        "inputs": ab.n_inputs, "inputs_note": inputs_note, "pairs": grid.size * ab.n_inputs, "classes": ab.n_classes,
         "boxes": res.info["boxes"], "transitions": res.info["transitions"],
         "winning": int(np.count_nonzero(res.winning & ~res.target)),
         "winning_with_target": int(np.count_nonzero(res.winning)),

@@ -9,9 +9,10 @@ the column-standardized design, which makes every subset fit a tiny p x p solve)
 
 1. Split the samples into train and held-out parts: random rows for independent samples,
    contiguous time segments for a time series (neighbouring samples are correlated).
-2. Refuse a rank-deficient design (e.g. an input that never varies makes its input_gain term
-   collinear with bias) and too few samples (fewer than ``min_per_term`` train samples per
-   candidate term).
+2. Drop candidates that are zero or collinear with others on these data, with a note (e.g. an
+   input that never varies makes its input_gain term collinear with bias; ``gravity`` of a refined
+   model without drift is the friction it already holds); refuse too few samples (fewer than
+   ``min_per_term`` train samples per candidate term).
 3. Forward selection on train minimizing BIC = K ln(RSS/K) + |S| ln K, then backward
    elimination while BIC drops.
 4. Held-out pruning: a term stays only if removing it (refitting the rest on train) raises
@@ -123,24 +124,48 @@ def _rss(yy: float, G: np.ndarray, b: np.ndarray, S: list, c: np.ndarray) -> flo
     return float(max(yy - 2.0 * c @ b[S] + c @ G[np.ix_(S, S)] @ c, 0.0))
 
 
-def check_rank(Theta: np.ndarray, keys: list, rtol: float = 1e-9) -> None:
-    """Raise SimgapError when the standardized design is rank deficient, naming the terms."""
+#: which of several collinear candidates is kept: the simplest physical reading first
+PRIORITY = ("bias", "viscous_friction", "coulomb_friction", "drag", "input_gain", "deadband", None,
+            "integration", "input_delay", "gravity")
+
+
+def _priority(key: str) -> int:
+    name = key.split(":")[0]
+    return PRIORITY.index(name) if name in PRIORITY else PRIORITY.index(None)
+
+
+def independent_columns(Theta: np.ndarray, keys: list, tol: float = 1e-6) -> tuple:
+    """Candidates that are linearly independent on these data, and a note for each one dropped.
+
+    Columns are taken in :data:`PRIORITY` order (then as given) and kept when the part of the
+    standardized column orthogonal to the kept ones holds at least ``tol`` of its squared norm
+    (Gram-Schmidt), i.e. when it is not explained to 1 - tol by the terms already kept. A term that
+    is zero on every sample, or collinear with kept ones (an input that never varies next to
+    ``bias``; ``gravity`` of a refined model without drift next to the friction it already holds),
+    is dropped with a note naming the terms it duplicates.
+    """
     K, p = Theta.shape
+    notes, keep = [], []
     if p == 0:
-        return
+        return keep, notes
     scale = np.sqrt(np.mean(Theta ** 2, axis=0))
-    zero = np.flatnonzero(scale == 0)
-    if zero.size:
-        raise SimgapError(f"rank-deficient design: term(s) {[keys[j] for j in zero]} are zero on every "
-                          f"sample (the variable never varies or never takes values that excite it)")
-    Z = Theta / scale
-    s, V = np.linalg.svd(Z.T @ Z / K)[1:]
-    if s[-1] < rtol * s[0]:
-        v = V[-1]
-        involved = [keys[j] for j in np.flatnonzero(np.abs(v) > 0.05)]
-        raise SimgapError(f"rank-deficient design: candidate terms {involved} are collinear on this data "
-                          f"(e.g. an input that never varies, or takes only two values); drop one of them "
-                          f"with --effects or collect more varied data")
+    Q = np.zeros((K, 0))
+    for j in sorted(range(p), key=lambda j: (_priority(keys[j]), j)):
+        if scale[j] == 0:
+            notes.append(f"dropped {keys[j]}: zero on every sample (the variable never excites it)")
+            continue
+        v = Theta[:, j] / (scale[j] * np.sqrt(K))
+        r = v - Q @ (Q.T @ v)
+        r = r - Q @ (Q.T @ r)            # second pass: Gram-Schmidt in floating point
+        if float(r @ r) < tol:
+            Z = Theta[:, keep] / scale[keep]
+            w = np.linalg.lstsq(Z, Theta[:, j] / scale[j], rcond=None)[0]
+            with_ = [keys[keep[i]] for i in np.flatnonzero(np.abs(w) > 0.05 * np.abs(w).max())]
+            notes.append(f"dropped {keys[j]}: collinear with {', '.join(with_)} on these data")
+            continue
+        keep.append(j)
+        Q = np.concatenate([Q, (r / np.sqrt(r @ r))[:, None]], axis=1)
+    return sorted(keep), notes
 
 
 def _structure_features(V: np.ndarray, angle_cols: np.ndarray, mu: np.ndarray, sd: np.ndarray,
@@ -265,8 +290,15 @@ def select_state(y: np.ndarray, Theta: np.ndarray, keys: list, held: np.ndarray,
         raise SimgapError(f"too few samples: {Kt} train / {Kh} held-out samples for {p} candidate terms of "
                           f"state {state} (need at least {opts.min_per_term} train samples per term and 10 "
                           f"held-out); collect more data or restrict --effects")
-    if p:
-        check_rank(Theta[tr], keys)
+    cols, dropped = independent_columns(Theta[tr], keys)
+    if len(cols) < p:
+        all_keys = keys
+        fit = select_state(y, Theta[:, cols], [keys[j] for j in cols], held, V, angle_cols, state, time_series,
+                           opts, rng)
+        fit.selected = [cols[j] for j in fit.selected]
+        fit.candidate_keys = all_keys
+        fit.notes = dropped + fit.notes
+        return fit
     scale = np.sqrt(np.mean(Theta[tr] ** 2, axis=0)) if p else np.zeros(0)
     Zt, Zh = Theta[tr] / scale, Theta[held] / scale
     Gt, bt, yyt = Zt.T @ Zt, Zt.T @ yt, float(yt @ yt)

@@ -43,7 +43,8 @@ else:
     amap = load_map("arena")
     spec, x0 = amap.spec(system), amap.x0(system)
 c0 = time.process_time()
-res = synthesize(system, spec, a["eta"], gap=gap, hold=a.get("hold", 1), x0=x0)
+res = synthesize(system, spec, a["eta"], gap=gap, hold=a.get("hold", 1), x0=x0,
+                 compose_hold=a.get("hold", 1) > 1)  # --hold k on a one-step gap: labelled composed
 cpu = time.process_time() - c0
 s = res.stats
 out = {"cpu": cpu, "stats": s, "x0_winning": None if x0 is None else bool(res.controller.winning(x0[None])[0]),

@@ -172,3 +172,64 @@ def test_cli_synthesize_turtlebot_with_a_small_certificate(tmp_path, capsys):
     text = capsys.readouterr().out
     assert "inputs        25 (restricted to the 25 inputs the certificate covers (the system has 441" in text
     assert rc == 0 and Controller.load(out).n_inputs == 25
+
+
+# ---------------------------------------------------------------------------------------
+# 3. holding an input k periods does not silently compose a one-period certificate
+# ---------------------------------------------------------------------------------------
+
+def cos_system(tau=0.1):
+    """f = (x1 + tau cos x2, x2): the review's counterexample, fhat adds w ~ N(0, s^2) to x2."""
+    def step(x, u, dt):
+        return np.stack([x[:, 0] + dt * np.cos(x[:, 1]), x[:, 1] + 0.0 * u[:, 0]], axis=1)
+
+    def jac(u):
+        J = np.zeros((u.shape[0], 2, 2))
+        J[:, 0, 0] = J[:, 1, 1] = 1.0
+        J[:, 0, 1] = tau
+        return J
+
+    return System(name="cosine", state_names=("p", "h"), input_names=("u",), x_lo=(0, -1.5), x_hi=(3, 1.5),
+                  inputs=np.array([[0.0]]), base_tau=tau, step=step, jacobian_bound=jac)
+
+
+def test_two_step_mean_is_not_the_composed_one_step_mean():
+    """The one-step gap of fhat = (x1 + tau cos x2, x2 + w) is exactly 0, but the two-step mean
+    differs from f(f(x)) by tau cos(x2) (exp(-s^2/2) - 1) (Monte Carlo, 6 standard errors)."""
+    sysm, s, R = cos_system(), 0.5, 200_000
+    rng = np.random.default_rng(5)
+    x0 = np.array([1.0, 0.3])
+    u = np.zeros((R, 1))
+    X = np.repeat(x0[None], R, axis=0)
+    one = sysm.f(X, u) + np.column_stack([np.zeros(R), s * rng.standard_normal(R)])
+    assert np.abs(one.mean(axis=0) - sysm.f(x0[None], u[:1])[0]).max() < 6 * s / np.sqrt(R)  # gap 0
+    two = sysm.f(one, u) + np.column_stack([np.zeros(R), s * rng.standard_normal(R)])
+    ff = sysm.f(sysm.f(x0[None], u[:1]), u[:1])[0]
+    want = sysm.base_tau * np.cos(x0[1]) * (np.exp(-s ** 2 / 2) - 1)     # -0.0112
+    se = two[:, 0].std() / np.sqrt(R)
+    assert abs(two[:, 0].mean() - ff[0] - want) < 6 * se and abs(want) > 20 * se
+
+
+def test_hold_with_a_gap_needs_an_explicit_labelled_composition(tmp_path, capsys):
+    from simgap.cli import main
+    from simgap.synthesis.controller import Controller, synthesize
+    from simgap.synthesis.spec import Box, Spec
+    sysm = integrator()
+    spec = Spec(kind="reach_avoid", target=Box([1.4, 1.4], [1.8, 1.8]))
+    cert = poly_certificate(sysm, [["1"], ["1"]], [[0.002], [0.002]])
+    with pytest.raises(SimgapError, match="compose a one-period gap 3 times"):
+        synthesize(sysm, spec, 0.05, gap=cert, hold=3)
+    with pytest.raises(SimgapError, match="compose_hold"):
+        build_abstraction(sysm, UniformGrid(sysm.x_lo, sysm.x_hi, 0.05), gap=[0.002, 0.002], hold=3)
+    res = synthesize(sysm, spec, 0.05, gap=cert, hold=3, compose_hold=True)
+    assert res.stats["hold_mode"].startswith("composed") and "composed" in res.summary()
+    assert synthesize(sysm, spec, 0.05, gap=cert).stats["hold_mode"].startswith("certified at the abstraction step")
+    assert synthesize(sysm, spec, 0.05, hold=3).stats["hold_mode"].startswith("none")  # nominal: exact
+    res.controller.save(tmp_path / "c.npz")
+    assert Controller.load(tmp_path / "c.npz").meta["stats"]["hold_mode"].startswith("composed")
+    # the CLI: refused with a message, accepted and labelled with --compose-hold
+    args = ["synthesize", "--system", "pendulum", "--gamma", "1e-5,1e-4", "--safe", "0,0.2,-0.5,0.5",
+            "--eta", "0.004,0.01", "--hold", "2", "--out", str(tmp_path / "p.npz")]
+    assert main(args) == 2 and "--compose-hold" in capsys.readouterr().err
+    assert main(args + ["--compose-hold"]) == 0
+    assert "gap per step  composed" in capsys.readouterr().out

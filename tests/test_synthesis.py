@@ -141,13 +141,13 @@ def test_reach_avoid_sound_with_state_dependent_gap(rng):
     spec = Spec(kind="reach_avoid", target=Box([0.7, 0.7], [0.9, 0.9]),
                 obstacles=(Box([0.4, 0.0], [0.6, 0.6]),))
     gap = LinearGap(0.006, 0.01)
-    res = synthesize(sysm, spec, 0.03, gap=gap, hold=2)
+    res = synthesize(sysm, spec, 0.03, gap=gap, hold=2, compose_hold=True)
     ctrl = res.controller
     assert not res.empty and res.stats["winning"] > 100
     # the gap enters the successor boxes; a much larger gap leaves nothing
     nominal = synthesize(sysm, spec, 0.03, hold=2)
     assert res.stats["transitions"] > nominal.stats["transitions"]
-    assert synthesize(sysm, spec, 0.03, gap=LinearGap(0.02, 0.05), hold=2).empty
+    assert synthesize(sysm, spec, 0.03, gap=LinearGap(0.02, 0.05), hold=2, compose_hold=True).empty
     _check_reach(sysm, spec, ctrl, gap.gamma, 2, rng)
 
 
@@ -159,7 +159,8 @@ def test_reach_avoid_sound_periodic_heading_with_hold(rng):
     spec = Spec(kind="reach_avoid", target=Box([0.2, 0.2, -np.inf], [0.7, 0.7, np.inf]),
                 obstacles=(Box([0.9, 0.0, -np.inf], [1.1, 1.2, np.inf]),))
     g = np.array([0.0005, 0.0005, 0.001])
-    res = synthesize(sysm, spec, (0.05, 0.05, 2 * np.pi / 32), gap=g, hold=10, invariant_dims=(0, 1))
+    res = synthesize(sysm, spec, (0.05, 0.05, 2 * np.pi / 32), gap=g, hold=10, invariant_dims=(0, 1),
+                     compose_hold=True)
     ctrl = res.controller
     assert ctrl.grid.periodic == (2,) and res.stats["winning"] > 1000
     _check_reach(sysm, spec, ctrl, lambda x: np.broadcast_to(g, x.shape), 10, rng, n_samples=800)

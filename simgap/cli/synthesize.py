@@ -1,6 +1,6 @@
 """``simgap synthesize``: certificate + specification -> symbolic controller file and a summary.
 
-    simgap synthesize --system turtlebot --hold 10 --cert cert.json --spec arena --eta 0.08 \\
+    simgap synthesize --system turtlebot --steps 10 --cert cert.json --spec arena --eta 0.08 \\
         --out turtlebot.npz
     simgap synthesize --system pendulum --no-gap --safe 0,0.2,-0.5,0.5 --eta 0.002,0.005 \\
         --out pendulum.npz
@@ -10,7 +10,9 @@ target and obstacles grown by the robot radius), an experiment (a name under
 assets/experiments or an experiment .toml: its system, ``[synthesis]`` spec, eta and hold are
 the defaults), or a JSON file holding ``Spec.to_dict()``; ``--safe`` gives an invariance spec
 directly. Exactly one of ``--cert``, ``--gamma`` and
-``--no-gap`` says how the simulation gap enters. Exit status: 0 with a controller written,
+``--no-gap`` says how the simulation gap enters. U is restricted to the inputs the certificate
+covers (the summary says so). With a gap, ``--hold k > 1`` is refused unless ``--compose-hold``
+is given: the default abstract step is the certificate's own step (``--steps``). Exit status: 0 with a controller written,
 1 when the winning domain is empty (nothing written; the summary says why), 2 on bad input.
 """
 
@@ -35,7 +37,12 @@ def add_parser(subparsers) -> None:
     p.add_argument("--steps", type=int, default=None,
                    help="base periods per sampling period (default: the certificate's, else 1)")
     p.add_argument("--hold", type=int, default=None,
-                   help="sampling periods per abstract step, input held (default: the experiment's, else 1)")
+                   help="sampling periods per abstract step, input held (default: the experiment's, else 1); "
+                        "with a gap only together with --compose-hold")
+    p.add_argument("--compose-hold", action="store_true",
+                   help="accept a one-period gap composed over --hold periods (not covered by the certificate "
+                        "for a nonlinear model; labelled in the controller). Default: certify at the abstraction "
+                        "step and use --steps")
     g = p.add_mutually_exclusive_group(required=True)
     g.add_argument("--cert", help="certificate JSON written by 'simgap certify'")
     g.add_argument("--gamma", help="a constant gap per state dimension, comma separated (or one value)")
@@ -160,7 +167,7 @@ def run(args) -> int:
     hold = args.hold if args.hold is not None else int(syn.get("hold", 1))
 
     res = synthesize(system, spec, eta, gap=gap, hold=hold, strict_domain=not args.no_strict_domain,
-                     x0=x0)
+                     x0=x0, compose_hold=args.compose_hold)
     print(res.summary())
     if args.json:
         _write_json(args.json, res.stats)

@@ -31,14 +31,20 @@ numerically on a sample.
 
 Two ways to get an abstract step of k sampling periods
 ------------------------------------------------------
-1. ``hold = k`` with a one-step system and a one-step gap: the per-step bounds are composed k
-   times (the gap is added k times and grown by the dynamics each time).
-2. ``hold = 1`` with ``system.with_steps(k)`` and a gap certified at the k-step sampling time
-   (the simulator run for k*tau with the input held): one gap for the whole step, tighter than
-   k composed one-step gaps whenever the gap is not additive over time (noise averages,
-   dead-band and bias do not accumulate worst-case). Both are supported; 2 is preferred when a
-   k-step certificate exists.
+1. The default, and the only one the certificate covers: ``hold = 1`` with
+   ``system.with_steps(k)`` and a gap certified at the k-step sampling time (data collected with
+   the simulator run for k*tau, the input held). Theorem 1 then bounds |E fhat_k(x,u) - f_k(x,u)|
+   for the whole abstract step.
+2. ``hold = k`` with a one-step system and a one-step gap, only with ``compose_hold=True``: the
+   per-step bounds are composed k times (the gap is added k times and grown by the dynamics each
+   time). This is sound for a worst-case disturbance x+ in f(x,u) + [-gamma, gamma], but *not*
+   for the certificate's first-moment statement: Theorem 1 bounds E fhat(x,u) for one
+   deterministic x, and E fhat(fhat(x,u),u) is not fhat applied to a mean when f is nonlinear
+   (fhat = (x1 + tau cos x3, x3 + w), w ~ N(0, s^2): the one-step gap is 0, the two-step mean
+   differs from f(f(x)) by tau cos(x3)(exp(-s^2/2) - 1)). The controller records the choice
+   (``hold_mode``). Without a gap, ``hold = k`` composes the nominal model and is exact.
 """
+
 
 from __future__ import annotations
 
@@ -53,6 +59,10 @@ from ..systems import System
 from .grid import UniformGrid
 
 GrowthFn = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
+
+#: label of a composed hold (controller files, summaries): what it is and what it is not
+COMPOSED_HOLD_LABEL = ("composed: a one-period gap composed over the held periods (worst-case disturbance "
+                       "reading; not covered by the certificate's first-moment guarantee for a nonlinear f)")
 
 _OFF_LIMIT = 32000  # offsets are clipped to +-_OFF_LIMIT (sound: grids are smaller than that)
 
@@ -122,6 +132,17 @@ def as_gap(gap, system: System):
     if not np.all(np.isfinite(g)) or np.any(g < 0):
         raise SimgapError(f"gap: gamma must be finite and >= 0, got {g.ravel().tolist()}")
     return gap
+
+
+def check_hold(hold: int, gap, compose_hold: bool) -> None:
+    """Refuse composing a one-period gap over ``hold > 1`` periods unless asked to explicitly."""
+    if gap is not None and hold > 1 and not compose_hold:
+        raise SimgapError(
+            f"holding the input for {hold} periods would compose a one-period gap {hold} times, which the "
+            f"certificate does not cover (Theorem 1 bounds the mean of one step from a known state); certify "
+            f"at the abstraction step instead (collect with steps={hold} x the current steps and synthesize "
+            f"with --steps and --hold 1), or pass compose_hold=True / --compose-hold to accept the composed "
+            f"bound as a worst-case disturbance (labelled in the controller)")
 
 
 def certified_input_mask(system: System, gap) -> np.ndarray:
@@ -329,7 +350,8 @@ class Abstraction:
 
 def build_abstraction(system: System, grid: UniformGrid, *, growth: Optional[GrowthFn] = None,
                       gap=None, hold: int = 1, invariant_dims=(), guard: float = 1e-10,
-                      block: int = 1 << 16, check_invariance: bool = True) -> Abstraction:
+                      block: int = 1 << 16, check_invariance: bool = True,
+                      compose_hold: bool = False) -> Abstraction:
     """Compute the successor boxes of all (cell, input) pairs (see the module docstring).
 
     Parameters
@@ -350,6 +372,8 @@ def build_abstraction(system: System, grid: UniformGrid, *, growth: Optional[Gro
         Dimensions in which f(x, u) - x and the growth bound do not depend on x.
     guard : float
         Relative rounding guard z = guard * eta (SCOTS: 1e-10).
+    compose_hold : bool
+        Allow ``hold > 1`` with a gap (composes a one-period gap; module docstring, way 2).
     """
     t0 = time.perf_counter()
     if int(hold) != hold or hold < 1:
@@ -363,6 +387,7 @@ def build_abstraction(system: System, grid: UniformGrid, *, growth: Optional[Gro
             raise SimgapError(f"system {system.name!r} has no jacobian_bound; pass a growth function")
         growth = lambda r, x, u: system.growth_bound(r, u)  # noqa: E731
     gap = as_gap(gap, system)
+    check_hold(hold, gap, compose_hold)
     keep = certified_input_mask(system, gap)
     if not keep.all():
         raise SimgapError(uncertified_inputs_message(system, keep) + "; restrict system.inputs (synthesize "

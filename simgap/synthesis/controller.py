@@ -34,8 +34,8 @@ import numpy as np
 from .. import fileio
 from ..errors import SimgapError
 from ..systems import System
-from .abstraction import (as_gap, build_abstraction, certified_input_mask, describe_gap,
-                          uncertified_inputs_message)
+from .abstraction import (COMPOSED_HOLD_LABEL, as_gap, build_abstraction, certified_input_mask, check_hold,
+                          describe_gap, uncertified_inputs_message)
 from .games import GameResult, solve_invariance, solve_reach
 from .grid import UniformGrid
 from .spec import Spec
@@ -244,6 +244,7 @@ class SynthesisResult:
         s = self.stats
         lines = [
             f"system        {s['system']} (tau = {s['tau']:g} s, hold = {s['hold']})",
+            f"gap per step  {s['hold_mode']}",
             f"spec          {s['spec_kind']}",
             f"grid          {' x '.join(map(str, s['grid_shape']))} = {s['cells']:,} cells, eta = {s['eta']}",
             f"inputs        {s['inputs']}" + (f" ({s['inputs_note']})" if s.get("inputs_note") else ""),
@@ -302,7 +303,7 @@ def label_cells(grid: UniformGrid, spec: Spec, x_lo, x_hi, strict_domain: bool =
 
 def synthesize(system: System, spec: Spec, eta, gap=None, hold: int = 1, *, growth=None,
                invariant_dims=None, periodic=None, guard: float = 1e-10, strict_domain: bool = True,
-               x0=None) -> SynthesisResult:
+               x0=None, compose_hold: bool = False) -> SynthesisResult:
     """Synthesize a controller for x+ in f(x, u) + [-gamma(x, u), gamma(x, u)] enforcing ``spec``.
 
     Parameters
@@ -319,6 +320,11 @@ def synthesize(system: System, spec: Spec, eta, gap=None, hold: int = 1, *, grow
         (``stats['inputs_note']`` says so; none certified is an error).
     hold : int
         Sampling periods per abstract step with the input held (abstraction module docstring).
+        With a gap, ``hold > 1`` needs ``compose_hold=True``; the default way to a k-period
+        step is ``system.with_steps(k)`` with a gap certified at that step.
+    compose_hold : bool
+        Accept a one-period gap composed over ``hold`` periods (labelled ``hold_mode`` in the
+        stats and the controller file).
     growth : callable, optional
         SCOTS-style radius_post ``growth(r, x, u)``; default: the system's Jacobian bound.
     invariant_dims : tuple, optional
@@ -339,6 +345,7 @@ def synthesize(system: System, spec: Spec, eta, gap=None, hold: int = 1, *, grow
     if gap is not None and hasattr(gap, "check_system"):
         gap.check_system(system)
     gap = as_gap(gap, system)
+    check_hold(hold, gap, compose_hold)
     keep = certified_input_mask(system, gap)
     inputs_note = None
     if not keep.any():
@@ -357,7 +364,7 @@ def synthesize(system: System, spec: Spec, eta, gap=None, hold: int = 1, *, grow
     blocked, cells = label_cells(grid, spec, system.x_lo, system.x_hi, strict_domain=strict_domain)
     t1 = time.perf_counter()
     ab = build_abstraction(system, grid, growth=growth, gap=gap, hold=hold,
-                           invariant_dims=invariant_dims, guard=guard)
+                           invariant_dims=invariant_dims, guard=guard, compose_hold=compose_hold)
     t2 = time.perf_counter()
     if spec.kind == "reach_avoid":
         res = solve_reach(ab, cells, blocked)
@@ -368,7 +375,8 @@ def synthesize(system: System, spec: Spec, eta, gap=None, hold: int = 1, *, grow
         chosen = res.chosen
     t3 = time.perf_counter()
     stats = {
-        "system": system.name, "tau": system.tau, "hold": int(hold), "spec_kind": spec.kind,
+        "system": system.name, "tau": system.tau, "hold": int(hold), "hold_mode": _hold_mode(hold, gap),
+        "spec_kind": spec.kind,
         "grid_shape": list(grid.shape), "cells": grid.size, "eta": grid.eta.round(9).tolist(),
         "inputs": ab.n_inputs, "inputs_note": inputs_note, "pairs": grid.size * ab.n_inputs, "classes": ab.n_classes,
         "boxes": res.info["boxes"], "transitions": res.info["transitions"],
@@ -393,6 +401,17 @@ def synthesize(system: System, spec: Spec, eta, gap=None, hold: int = 1, *, grow
     if out.empty:
         stats["diagnosis"] = diagnose_empty(ab, spec, gap, res)
     return out
+
+
+def _hold_mode(hold: int, gap) -> str:
+    """How the gap enters one abstract step (recorded in stats and the controller file)."""
+    if gap is None:
+        return "none (nominal model)"
+    if hold > 1:
+        return COMPOSED_HOLD_LABEL
+    if hasattr(gap, "check_system"):
+        return "certified at the abstraction step (one gap per abstract step)"
+    return "a given bound per abstract step (not a certificate)"
 
 
 def _first_valid(packed: np.ndarray, M: int) -> np.ndarray:
@@ -431,8 +450,9 @@ def diagnose_empty(ab, spec: Spec, gap, res: GameResult) -> str:
     if spec.kind == "reach_avoid" and selfish.all():
         return ("empty winning domain: every successor box contains its own cell, i.e. the motion in one "
                 f"abstract step is smaller than the growth bound{g} (the one-step control authority is too "
-                "small); hold the input for more periods (--hold k), certify the gap at a longer step "
-                "(--steps k), or use a smaller eta")
+                "small); certify the gap at a longer step (data collected at steps=k, then --steps k), "
+                "hold the input for more periods (--hold k; with a gap only with --compose-hold), "
+                "or use a smaller eta")
     width = (hi - lo + 1).mean(axis=0)
     return (f"empty winning domain: successor boxes are {np.round(width, 1).tolist()} cells wide on average; "
             f"the growth bound{g} is too large for the {'target' if spec.kind == 'reach_avoid' else 'safe set'} "

@@ -30,6 +30,7 @@ from .effects import (Effect, candidate_effects, coefficient_units, integration_
 from .refined import build_refined, load_system, refined_system
 from .residual import Residuals, match_tau, residuals
 from .selection import SelectionOptions, StateFit, select_state, split_heldout
+from .structure import Probe
 
 
 @dataclass
@@ -72,6 +73,7 @@ def refine(system, data: Transitions, effects: Optional[Sequence[str]] = None,
     held = split_heldout(data.K, data.t, opts)
     V = np.concatenate([data.x, data.u], axis=1)
     angle_cols = np.concatenate([sysobj.angle_mask, np.zeros(sysobj.m, dtype=bool)])
+    probe = Probe(V, angle_cols, held, data.t, rng)
     # velocity states first: the integration term of a position uses the refined velocity update
     vd = velocity_dims(sysobj)
     order = list(vd) + [i for i in range(sysobj.n) if i not in vd]
@@ -87,7 +89,7 @@ def refine(system, data: Transitions, effects: Optional[Sequence[str]] = None,
             bad = [e.key(sysobj) for e, col in zip(ci, Theta.T) if not np.all(np.isfinite(col))]
             raise SimgapError(f"candidate terms {bad} are not finite on the data")
         y = before.r[:, i] / data.tau
-        fit = select_state(y, Theta, [e.key(sysobj) for e in ci], held, V, angle_cols, i,
+        fit = select_state(y, Theta, [e.key(sysobj) for e in ci], held, probe, i,
                            data.is_time_series, opts, rng)
         fits[i] = fit
         for k, j in enumerate(fit.selected):
@@ -165,7 +167,8 @@ def _report(s: System, refined: System, data: Transitions, held, fits: Sequence[
             "explained_fraction": fit.explained_total,
             "remaining_fraction": fit.remaining_fraction,
             "structure_r2": fit.structure_r2,
-            "unexplained_fraction": max(fit.structure_r2, 0.0) * fit.remaining_fraction,
+            "noise_floor_fraction": fit.noise_floor_fraction,
+            "unexplained_fraction": fit.unexplained_fraction,
             "unexplained": fit.unexplained,
             "lag1_autocorr": fit.lag1_autocorr,
             "notes": list(fit.notes),
@@ -237,12 +240,13 @@ def format_table(report: dict) -> str:
     lines.append("")
     for st in report["states"]:
         msg = (f"state {st['state_name']}: explained {100 * st['explained_fraction']:.1f}% of the residual "
-               f"variance, structure left R^2 = {st['structure_r2']:.3f}")
+               f"variance, noise floor {100 * st['noise_floor_fraction']:.1f}%, "
+               f"structure left R^2 = {st['structure_r2']:.3f}")
         if st["lag1_autocorr"] is not None:
             msg += f", lag-1 autocorrelation {st['lag1_autocorr']:.2f}"
         if st["unexplained"]:
             msg += (f"  -> UNEXPLAINED: {100 * st['remaining_fraction']:.1f}% of the residual variance remains, "
-                    f"{100 * st['unexplained_fraction']:.1f}% of it structured in (x, u)")
+                    f"{100 * st['unexplained_fraction']:.1f}% above the noise floor")
         lines.append(msg)
     lines.append(f"unexplained: {'true' if report['unexplained'] else 'false'}")
     return "\n".join(lines)

@@ -24,23 +24,23 @@ the column-standardized design, which makes every subset fit a tiny p x p solve)
    time series) with a seeded generator.
 6. Explained fraction of each effect: the drop of held-out RSS when it is added, in the forward
    order, divided by the nominal model's held-out RSS (they sum to the total explained).
-7. Structure left: a flexible regression (polynomials up to degree 3 of the standardized
-   variables plus 10 quantile-bin indicators per variable; sin/cos of angles) fitted to the
-   remaining train residual and scored on held-out data. If it explains at least
-   ``structure_threshold`` of the remaining held-out variance, and that structured part is at
-   least ``min_unexplained`` of the nominal model's held-out residual variance, a clear residual
-   remains that no library term explains: ``unexplained = True``.
+7. Structure left (:mod:`simgap.refine.structure`): a model-free noise floor of the remaining
+   residual (nearest-neighbour differences in the variables) and the held-out R^2 of a
+   cross-validated kNN regression (and a degree-2 polynomial) of it. If that R^2 reaches
+   ``structure_threshold`` and the remaining variance above the floor is at least
+   ``min_unexplained`` of the nominal model's held-out residual variance, a residual remains that
+   no library term explains: ``unexplained = True``.
 """
 
 from __future__ import annotations
 
-import itertools
 from dataclasses import dataclass, field
 from typing import Optional
 
 import numpy as np
 
 from ..errors import SimgapError
+from .structure import Probe
 
 
 @dataclass
@@ -72,6 +72,8 @@ class StateFit:
     rss_heldout: float              # with the selected effects
     structure_r2: float             # held-out R^2 of a flexible fit of the remaining residual
     unexplained: bool
+    noise_floor_fraction: float = 0.0   # model-free noise floor / nominal held-out residual variance
+    unexplained_fraction: float = 0.0   # remaining variance above the floor / nominal
     lag1_autocorr: Optional[float] = None
     notes: list = field(default_factory=list)
 
@@ -149,78 +151,20 @@ def independent_columns(Theta: np.ndarray, keys: list, tol: float = 1e-6) -> tup
     if p == 0:
         return keep, notes
     scale = np.sqrt(np.mean(Theta ** 2, axis=0))
-    Q = np.zeros((K, 0))
+    Z = Theta / np.where(scale > 0, scale, 1.0)
+    G = Z.T @ Z / K                       # unit diagonal for non-zero columns
     for j in sorted(range(p), key=lambda j: (_priority(keys[j]), j)):
         if scale[j] == 0:
             notes.append(f"dropped {keys[j]}: zero on every sample (the variable never excites it)")
             continue
-        v = Theta[:, j] / (scale[j] * np.sqrt(K))
-        r = v - Q @ (Q.T @ v)
-        r = r - Q @ (Q.T @ r)            # second pass: Gram-Schmidt in floating point
-        if float(r @ r) < tol:
-            Z = Theta[:, keep] / scale[keep]
-            w = np.linalg.lstsq(Z, Theta[:, j] / scale[j], rcond=None)[0]
+        # squared norm of the part of column j orthogonal to the kept columns
+        w = np.linalg.lstsq(G[np.ix_(keep, keep)], G[keep, j], rcond=None)[0] if keep else np.zeros(0)
+        if float(G[j, j] - G[keep, j] @ w) < tol:
             with_ = [keys[keep[i]] for i in np.flatnonzero(np.abs(w) > 0.05 * np.abs(w).max())]
             notes.append(f"dropped {keys[j]}: collinear with {', '.join(with_)} on these data")
             continue
         keep.append(j)
-        Q = np.concatenate([Q, (r / np.sqrt(r @ r))[:, None]], axis=1)
     return sorted(keep), notes
-
-
-def _structure_features(V: np.ndarray, angle_cols: np.ndarray, mu: np.ndarray, sd: np.ndarray,
-                        edges: list, degree: int) -> np.ndarray:
-    """Flexible features of the variables V (K, d): polynomials and quantile-bin indicators."""
-    Z = (V - mu) / sd
-    cols = []
-    for j in range(V.shape[1]):
-        if angle_cols[j]:
-            cols += [np.sin(V[:, j]), np.cos(V[:, j])]
-        else:
-            cols.append(Z[:, j])
-    base = np.stack(cols, axis=1)
-    feats = [np.ones((V.shape[0], 1))]
-    d = base.shape[1]
-    for deg in range(1, degree + 1):
-        for comb in itertools.combinations_with_replacement(range(d), deg):
-            feats.append(np.prod(base[:, comb], axis=1, keepdims=True))
-    for j, e in enumerate(edges):
-        if e.size:
-            idx = np.searchsorted(e, V[:, j], side="right")
-            onehot = (idx[:, None] == np.arange(1, e.size + 1)[None, :]).astype(float)
-            feats.append(onehot)
-    return np.concatenate(feats, axis=1)
-
-
-def structure_r2(V: np.ndarray, e: np.ndarray, held: np.ndarray, angle_cols: np.ndarray) -> float:
-    """Held-out R^2 of a flexible regression of the remaining residual e on the variables V.
-
-    Near 0 (or negative) when e is noise; clearly positive when e still depends on (x, u).
-    """
-    tr = ~held
-    Kt = int(tr.sum())
-    d = V.shape[1]
-    # keep the feature count well below the train size
-    degree = 3 if Kt >= 40 * 120 else (2 if Kt >= 40 * 30 else 1)
-    mu, sd = V[tr].mean(axis=0), V[tr].std(axis=0)
-    sd = np.where(sd > 0, sd, 1.0)
-    nb = 10 if Kt >= 200 * d else 0
-    edges = []
-    for j in range(d):
-        if nb:
-            q = np.unique(np.quantile(V[tr, j], np.linspace(0, 1, nb + 1)[1:-1]))
-            edges.append(q)
-        else:
-            edges.append(np.zeros(0))
-    Phi = _structure_features(V, angle_cols, mu, sd, edges, degree)
-    Pt, et = Phi[tr], e[tr]
-    lam = 1e-8 * np.trace(Pt.T @ Pt) / Pt.shape[1]
-    w = np.linalg.solve(Pt.T @ Pt + lam * np.eye(Pt.shape[1]), Pt.T @ et)
-    eh = e[held]
-    ss = float(eh @ eh)
-    if ss <= 0:
-        return 0.0
-    return 1.0 - float(np.sum((eh - Phi[held] @ w) ** 2)) / ss
 
 
 def _block_length(y: np.ndarray) -> int:
@@ -270,11 +214,12 @@ def bootstrap_stderr(Z: np.ndarray, y: np.ndarray, time_series: bool, n_boot: in
 
 
 def select_state(y: np.ndarray, Theta: np.ndarray, keys: list, held: np.ndarray,
-                 V: np.ndarray, angle_cols: np.ndarray, state: int, time_series: bool,
-                 opts: SelectionOptions, rng: np.random.Generator) -> StateFit:
+                 probe: Probe, state: int, time_series: bool, opts: SelectionOptions,
+                 rng: np.random.Generator) -> StateFit:
     """Select effects for one state: y (K,) residual rate, Theta (K, p) candidate terms.
 
-    ``V`` (K, d) are the variables (x, u) for the structure test, ``held`` the held-out mask.
+    ``probe`` holds the variables' neighbour structure for the structure test (built on the same
+    ``held`` mask).
     Returns coefficients in the units of y per unit of each term (see module docstring).
     """
     K, p = Theta.shape
@@ -293,7 +238,7 @@ def select_state(y: np.ndarray, Theta: np.ndarray, keys: list, held: np.ndarray,
     cols, dropped = independent_columns(Theta[tr], keys)
     if len(cols) < p:
         all_keys = keys
-        fit = select_state(y, Theta[:, cols], [keys[j] for j in cols], held, V, angle_cols, state, time_series,
+        fit = select_state(y, Theta[:, cols], [keys[j] for j in cols], held, probe, state, time_series,
                            opts, rng)
         fit.selected = [cols[j] for j in fit.selected]
         fit.candidate_keys = all_keys
@@ -361,9 +306,12 @@ def select_state(y: np.ndarray, Theta: np.ndarray, keys: list, held: np.ndarray,
         expl.append((prev - cur) / rss0_h if rss0_h > 0 else 0.0)
         prev = cur
     rss_after_h = rss_h(S)
-    # 7. structure left in the remaining residual
+    # 7. structure left in the remaining residual, against a model-free noise floor
     e = y - ((Theta[:, S] / scale[S]) @ c if S else 0.0)
-    r2s = structure_r2(V, e, held, angle_cols)
+    r2s = max(probe.knn_r2(e)[0], probe.poly2_r2(e))
+    floor = probe.noise_floor(e, _block_length(e) // 2 if time_series else 1)
+    floor_frac = floor * Kh / rss0_h if rss0_h > 0 else 0.0
+    above = max(0.0, rss_after_h / rss0_h - floor_frac) if rss0_h > 0 else 0.0
     lag1 = None
     if time_series:
         eh = e[held] - e[held].mean()
@@ -371,7 +319,7 @@ def select_state(y: np.ndarray, Theta: np.ndarray, keys: list, held: np.ndarray,
         lag1 = float(eh[1:] @ eh[:-1] / den) if den > 0 else 0.0
     return StateFit(state=state, candidate_keys=keys, selected=list(S), coef=np.asarray(coef),
                     stderr=np.asarray(se), explained=np.asarray(expl), rss0_heldout=rss0_h,
-                    rss_heldout=rss_after_h, structure_r2=float(r2s),
-                    unexplained=bool(r2s >= opts.structure_threshold
-                                     and r2s * rss_after_h >= opts.min_unexplained * rss0_h),
+                    rss_heldout=rss_after_h, structure_r2=float(r2s), noise_floor_fraction=floor_frac,
+                    unexplained_fraction=above,
+                    unexplained=bool(r2s >= opts.structure_threshold and above >= opts.min_unexplained),
                     lag1_autocorr=lag1)

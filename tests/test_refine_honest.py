@@ -52,6 +52,43 @@ def test_in_library_effects_are_named(name):
     assert ok, desc
 
 
+@pytest.mark.parametrize("name,periods", [("delay1", 1), ("delay2", 2)])
+def test_input_delay_is_named_as_a_delay_with_its_length(name, periods):
+    c, rep = _run(name)
+    ok, desc = verdict(c, rep)
+    assert ok, desc
+    (d,) = [e for e in rep["effects"] if e["name"] == "input_delay"]
+    assert d["periods"] == periods and d["input"] == "torque"
+    assert d["coefficient"] == pytest.approx(1.0, abs=0.05)      # the whole input arrives late
+    assert d["physical"]["value"] == pytest.approx(periods * 0.005)   # seconds
+    assert not any(e["name"] == "input_gain" for e in rep["effects"])
+
+
+def test_multistep_gate_withdraws_a_fix_that_predicts_worse():
+    """Without history candidates the delay looks like an input gain; its 10-step error is worse."""
+    c, rep = _run("delay1", effects=["bias", "viscous_friction", "input_gain", "gravity"])
+    assert not any(e["name"] == "input_gain" for e in rep["effects"]), rep["effects"]
+    (w,) = [e for e in rep["withdrawn"] if e["name"] == "input_gain" and e["state_name"] == "omega"]
+    assert "10-step" in w["reason"]
+    ms = rep["multistep"]["10"]
+    assert np.all(np.asarray(ms["rms_after"]) <= np.asarray(ms["rms_before"]) * 1.0001)
+    assert rep["unexplained"] is True         # what remains is not explained, and the report says so
+
+
+def test_dead_zone_error_bar_includes_misfit():
+    c, rep = _run("dead_zone")
+    (d,) = [e for e in rep["effects"] if e["name"] == "deadband"]
+    width, se = -d["coefficient"], d["stderr"]
+    # a wrong-shaped term must not look precise: the interval covers the true width 0.2
+    assert abs(width - 0.2) <= 2 * se, (width, se)
+    assert d["stderr_misfit"] > d["stderr_statistical"]
+    # an exact-shaped term keeps a tight error bar
+    _, rep2 = _run("viscous", K=12000)
+    (v,) = rep2["effects"]
+    assert v["stderr_misfit"] < 3 * v["stderr_statistical"] + 1e-12
+    assert abs(v["coefficient"] + 0.5) < 0.01
+
+
 def test_refining_a_refined_model_drops_collinear_candidates_with_a_note():
     """EMPS has no drift: on a refined EMPS (bias + friction), 'gravity' is the refined drift itself."""
     s = get_system("emps")

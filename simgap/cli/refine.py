@@ -77,7 +77,8 @@ def run(args) -> int:
     if args.segments < 1:
         raise SimgapError("--segments must be >= 1")
     from ..refine.residual import match_tau
-    users = parse_user_terms(match_tau(system, data.tau), args.term)
+    from ..refine.effects import MAX_DELAY
+    users = parse_user_terms(match_tau(system, data.tau), args.term, MAX_DELAY if data.is_time_series else 0)
     opts = SelectionOptions(holdout=args.holdout, n_segments=args.segments, min_explained=args.min_explained,
                             n_boot=args.bootstrap, seed=args.seed)
     res = refine(system, data, effects=names, user_terms=users, options=opts, name=args.name)

@@ -79,6 +79,43 @@ class Transitions:
         return path
 
 
+def history(data: Transitions, lags: int) -> tuple:
+    """Lagged values of a time series: (hist (K, lags (n + m)), valid (K,) bool).
+
+    Row k's history is [x_{k-1}, u_{k-1}, x_{k-2}, u_{k-2}, ...]: the rows before it in time order,
+    as long as they continue one trajectory (x_next of the earlier row is the later row's x, and
+    the time step is tau). ``valid`` is False where fewer than ``lags`` such rows exist (the
+    start of each record segment); those rows hold NaN. Independent rows have no history.
+    """
+    K, w = data.K, data.x.shape[1] + data.u.shape[1]
+    hist = np.full((K, lags * w), np.nan)
+    valid = np.zeros(K, dtype=bool)
+    if data.t is None or lags < 1:
+        return hist, valid if lags >= 1 else np.ones(K, dtype=bool)
+    order = np.argsort(data.t, kind="stable")
+    x, u, xn, t = data.x[order], data.u[order], data.x_next[order], data.t[order]
+    cont = np.zeros(K, dtype=bool)            # row j continues from row j - 1
+    cont[1:] = np.all(np.isclose(xn[:-1], x[1:], rtol=0, atol=1e-9 * (1 + np.abs(x[1:]))), axis=1) \
+        & np.isclose(np.diff(t), data.tau, rtol=1e-3, atol=0)
+    z = np.concatenate([x, u], axis=1)
+    idx = np.arange(K)
+    run = idx - np.maximum.accumulate(np.where(cont, 0, idx))     # continuing rows before j
+    H = np.full((K, lags * w), np.nan)
+    for lag in range(1, lags + 1):
+        H[lag:, (lag - 1) * w: lag * w] = z[:-lag]
+    ok = run >= lags
+    H[~ok] = np.nan
+    hist[order], valid[order] = H, ok
+    return hist, valid
+
+
+def subset(data: Transitions, rows: np.ndarray) -> Transitions:
+    """The transitions of ``rows`` (a boolean mask or indices), provenance kept."""
+    return Transitions(x=data.x[rows], u=data.u[rows], x_next=data.x_next[rows], tau=data.tau,
+                       t=None if data.t is None else data.t[rows], source=data.source,
+                       n_dropped=data.n_dropped, meta=dict(data.meta))
+
+
 def make_transitions(x, u, x_next, tau, t=None, *, system: Optional[System] = None,
                      drop_nonfinite: bool = False, source: str = "", meta: Optional[dict] = None
                      ) -> Transitions:

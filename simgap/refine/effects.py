@@ -24,7 +24,11 @@ integration    a_j(x, u) = (f'_j(x, u) - x_j) / tau  for a position x_i integrat
                update rate, entering x_i           misses tau * c * a_j within the step;
                                                    c [s] = tau for semi-implicit Euler (physics
                                                    engines), tau / 2 for exact integration
-<user name>    any expression in the variables     user-defined
+input_delay    B_ij(x) (u_j[k-d] - u_j[k]),        c = 1: input j acts d periods late (time-ordered
+               d = 1 .. MAX_DELAY periods          data only; a model with memory, reported with its
+                                                   length, not put into the memoryless f')
+<user name>    any expression in the variables     user-defined (lagged values name[k-1] on
+                                                   time-ordered data)
 ============== =================================== ===========================================
 
 B_ij(x, u) = (d f_i / d u_j) / tau is taken from the model itself by a central difference of
@@ -56,7 +60,9 @@ from ..expr import VarSpace, parse
 from ..systems import System
 
 LIBRARY = ("bias", "viscous_friction", "coulomb_friction", "drag", "input_gain", "deadband", "gravity",
-           "integration")
+           "integration", "input_delay")
+#: deepest history the library's delay candidates look at (periods), for time-ordered data
+MAX_DELAY = 3
 
 #: built-in velocity-state declarations (0-based dims); extended by :func:`declare_velocity`
 VELOCITY_DIMS: Dict[str, tuple] = {"pendulum": (1,), "emps": (1,), "turtlebot": ()}
@@ -110,7 +116,8 @@ class Effect:
 
     def key(self, system: System) -> str:
         s = f"{self.name}:{system.state_names[self.state]}"
-        return s + (f":{self.variable}" if self.variable else "")
+        s += f":{self.variable}" if self.variable else ""
+        return s + (f":{self.params['periods']}" if "periods" in self.params else "")
 
     def spec(self) -> dict:
         """JSON-able description; :func:`effect_from_spec` rebuilds the effect from it."""
@@ -269,19 +276,22 @@ def effect_from_spec(system: System, spec: dict) -> Effect:
             raise SimgapError(f"unknown effect {name!r}: not in the library ({', '.join(LIBRARY)}) "
                               f"and no user expression given")
         return user_effect(system, name, state, expr)
-    for e in library_candidates(system, [name], check_applicable=False):
-        if e.state == state and e.variable == spec.get("variable"):
+    periods = (spec.get("params") or {}).get("periods")
+    for e in library_candidates(system, [name], check_applicable=False, max_lag=MAX_DELAY):
+        if e.state == state and e.variable == spec.get("variable") and e.params.get("periods") == periods:
             return e
     raise SimgapError(f"effect {name!r} on state {state} with variable {spec.get('variable')!r} "
                       f"does not apply to system {system.name!r}")
 
 
 def library_candidates(system: System, names: Optional[Iterable[str]] = None,
-                       check_applicable: bool = True) -> list:
+                       check_applicable: bool = True, max_lag: int = 0) -> list:
     """All library effects (optionally only those named) that apply to ``system``.
 
     An effect applies when its term is not identically zero on random samples of X x U (e.g.
     ``gravity`` does not apply to the EMPS double integrator, which has no drift term).
+    ``input_delay`` candidates (d = 1 .. ``max_lag`` periods) need time-ordered data: none when
+    ``max_lag`` is 0.
     """
     names = list(LIBRARY) if names is None else list(names)
     unknown = [nm for nm in names if nm not in LIBRARY]
@@ -315,6 +325,19 @@ def library_candidates(system: System, names: Optional[Iterable[str]] = None,
                     else:
                         out.append(Effect(nm, i, un, f"B_{i + 1}{j + 1}(x) sign({un})",
                                           lambda x, u, B=B, j=j: B(x, u) * np.sign(u[:, j])))
+        elif nm == "input_delay":
+            # the input acting d periods late: f(x, u[k-d]) - f(x, u[k]) = tau B (u[k-d] - u[k]) for
+            # an input entering affinely; c = 1 is the whole input delayed by d periods
+            w = s.n + s.m
+            for i in range(s.n):
+                for j in range(s.m):
+                    B = _input_rate(s, i, j)
+                    un = s.input_names[j]
+                    for d in range(1, max_lag + 1):
+                        col = (d - 1) * w + s.n + j
+                        out.append(Effect(nm, i, un, f"B_{i + 1}{j + 1}(x) ({un}[k-{d}] - {un})",
+                                          lambda x, u, h, B=B, j=j, col=col: B(x, u) * (h[:, col] - u[:, j]),
+                                          lag=d, params={"periods": d}))
         elif nm == "integration":
             out += [integration_effect(s, i, j) for i, j in integrator_pairs(s)]
         elif nm == "gravity":
@@ -322,30 +345,32 @@ def library_candidates(system: System, names: Optional[Iterable[str]] = None,
             out += [Effect(nm, i, None, f"drift_{i + 1}(x)", _drift(s, i)) for i in dims]
     if check_applicable:
         x, u = _sample_domain(s)
+        xh, uh = _sample_domain(s, seed=1)
+        hist = np.tile(np.concatenate([xh, uh], axis=1), (1, max(max_lag, 1)))
         keep = []
         for e in out:
-            g = e(x, u)
+            g = e(x, u, hist)
             if np.any(np.abs(g) > 1e-12 * max(1.0, float(np.abs(g).max(initial=0.0)))) and np.any(g != 0):
                 keep.append(e)
         out = keep
     return out
 
 
-def parse_user_terms(system: System, items: Iterable[str]) -> list:
-    """User terms from ``NAME:STATE:EXPR`` strings (CLI ``--term``)."""
+def parse_user_terms(system: System, items: Iterable[str], max_lag: int = 0) -> list:
+    """User terms from ``NAME:STATE:EXPR`` strings (CLI ``--term``); lags up to ``max_lag``."""
     out = []
     for it in items:
         parts = it.split(":", 2)
         if len(parts) != 3:
             raise SimgapError(f"--term {it!r}: expected NAME:STATE:EXPR, e.g. cogging:qd:sin(2*pi*q/0.01)")
-        out.append(user_effect(system, parts[0].strip(), parts[1].strip(), parts[2].strip()))
+        out.append(user_effect(system, parts[0].strip(), parts[1].strip(), parts[2].strip(), max_lag))
     return out
 
 
 def candidate_effects(system: System, names: Optional[Iterable[str]] = None,
-                      user_terms: Sequence[Effect] = ()) -> list:
+                      user_terms: Sequence[Effect] = (), max_lag: int = 0) -> list:
     """Library candidates (all, or the named ones) plus user terms; names are checked."""
-    cands = library_candidates(system, names)
+    cands = library_candidates(system, names, max_lag=max_lag)
     keys = set()
     for e in list(cands) + list(user_terms):
         k = e.key(system)
@@ -373,6 +398,8 @@ def coefficient_units(system: System, e: Effect) -> str:
         return "1 (relative)"
     if e.name == "integration":
         return "s"
+    if e.name == "input_delay":
+        return "1 (fraction delayed)"
     if e.name == "deadband":
         return iu[system.input_names.index(e.variable)]
     return ""
@@ -391,6 +418,10 @@ def physical(system: System, e: Effect, coef: float, stderr: float) -> Optional[
                 "unit": coefficient_units(system, e)}
     if e.name == "integration":
         return None
+    if e.name == "input_delay":
+        d = int(e.params["periods"])
+        return {"quantity": f"input delay ({d} period{'s' if d > 1 else ''})", "value": d * system.tau,
+                "stderr": None, "unit": "s"}
     if e.name in ("input_gain", "gravity"):
         return {"quantity": "effective gain factor 1 + c", "value": 1.0 + coef, "stderr": stderr, "unit": ""}
     inert = _inertia(system)

@@ -23,7 +23,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from ..systems import System
-from .data import Transitions
+from .data import Transitions, history, subset
 from ..errors import SimgapError
 from .effects import (Effect, candidate_effects, coefficient_units, integration_effect, physical,
                       velocity_dims)
@@ -42,7 +42,7 @@ class RefineResult:
     data: Transitions
     heldout: np.ndarray            # (K,) bool mask
     fits: list                     # StateFit per state
-    effects: list                  # (Effect, coefficient, stderr, explained_fraction)
+    effects: list                  # (Effect, coefficient, stderr, explained_fraction, stderr_stat., stderr_misfit)
     before: Residuals              # on all data
     after: Residuals
     report: dict
@@ -68,11 +68,20 @@ def refine(system, data: Transitions, effects: Optional[Sequence[str]] = None,
     opts = options or SelectionOptions()
     sysobj = match_tau(load_system(system), data.tau)
     rng = np.random.default_rng(opts.seed)
+    data, hist, lags, hist_info = _with_history(data, opts.max_lag)
+    deep = [e.name for e in user_terms if e.lag > lags]
+    if deep:
+        raise SimgapError(f"user term(s) {deep} read lagged values, but "
+                          + (f"only {lags} period(s) of history are used" if lags else
+                             "the data carry no time order (transitions with time stamps t)"))
     before = residuals(sysobj, data)
-    cands = candidate_effects(sysobj, effects, user_terms)
+    cands = candidate_effects(sysobj, effects, user_terms, max_lag=lags)
     held = split_heldout(data.K, data.t, opts)
-    V = np.concatenate([data.x, data.u], axis=1)
-    angle_cols = np.concatenate([sysobj.angle_mask, np.zeros(sysobj.m, dtype=bool)])
+    # the structure test also sees the lagged inputs, so an unnamed delay still shows as structure
+    w = sysobj.n + sysobj.m
+    lagged_u = [hist[:, d * w + sysobj.n: (d + 1) * w] for d in range(lags)]
+    V = np.concatenate([data.x, data.u] + lagged_u, axis=1)
+    angle_cols = np.concatenate([sysobj.angle_mask, np.zeros(V.shape[1] - sysobj.n, dtype=bool)])
     probe = Probe(V, angle_cols, held, data.t, rng)
     # velocity states first: the integration term of a position uses the refined velocity update
     vd = velocity_dims(sysobj)
@@ -81,10 +90,11 @@ def refine(system, data: Transitions, effects: Optional[Sequence[str]] = None,
     for i in order:
         ci = [e for e in cands if e.state == i]
         if any(e.name == "integration" for e in ci) and chosen:
-            interim = refined_system(sysobj, [c[0] for c in chosen], [c[1] for c in chosen])
+            interim = refined_system(sysobj, [c[0] for c in chosen if c[0].lag == 0],
+                                     [c[1] for c in chosen if c[0].lag == 0])
             ci = [integration_effect(interim, i, sysobj.state_names.index(e.variable))
                   if e.name == "integration" else e for e in ci]
-        Theta = np.stack([e(data.x, data.u) for e in ci], axis=1) if ci else np.zeros((data.K, 0))
+        Theta = np.stack([e(data.x, data.u, hist) for e in ci], axis=1) if ci else np.zeros((data.K, 0))
         if not np.all(np.isfinite(Theta)):
             bad = [e.key(sysobj) for e, col in zip(ci, Theta.T) if not np.all(np.isfinite(col))]
             raise SimgapError(f"candidate terms {bad} are not finite on the data")
@@ -93,24 +103,108 @@ def refine(system, data: Transitions, effects: Optional[Sequence[str]] = None,
                            data.is_time_series, opts, rng)
         fits[i] = fit
         for k, j in enumerate(fit.selected):
-            chosen.append((ci[j], float(fit.coef[k]), float(fit.stderr[k]), float(fit.explained[k])))
+            chosen.append((ci[j], float(fit.coef[k]), float(fit.stderr[k]), float(fit.explained[k]),
+                           float(fit.stderr_statistical[k]), float(fit.stderr_misfit[k])))
     fits = [fits[i] for i in range(sysobj.n)]
     chosen.sort(key=lambda c: c[0].state)
+    chosen, withdrawn = _multistep_gate(sysobj, data, held, hist, chosen, fits, opts)
     base_spec = sysobj.params.get("_refined_json", sysobj.name)
-    refined = build_refined(sysobj, base_spec, [c[0] for c in chosen], [c[1] for c in chosen],
-                            [c[2] for c in chosen], name=name)
-    after = residuals(refined, data)
-    report = _report(sysobj, refined, data, held, fits, chosen, before, after, opts)
+    now = [c for c in chosen if c[0].lag == 0]
+    refined = build_refined(sysobj, base_spec, [c[0] for c in now], [c[1] for c in now],
+                            [c[2] for c in now], name=name)
+    after = _after(refined, data, hist, chosen)
+    for fit in fits:
+        fit.rss_heldout = float(np.sum((after.r[held, fit.state] / data.tau) ** 2))
+    report = _report(sysobj, refined, data, held, fits, chosen, before, after, opts, hist, withdrawn, hist_info)
     return RefineResult(system=sysobj, refined=refined, data=data, heldout=held, fits=fits,
                         effects=chosen, before=before, after=after, report=report)
 
 
-def multistep_rms(system: System, data: Transitions, held: np.ndarray, k: int) -> Optional[np.ndarray]:
+def _with_history(data: Transitions, max_lag: int) -> tuple:
+    """(data restricted to rows with ``max_lag`` periods of history, history, lags used, info)."""
+    if not data.is_time_series or max_lag < 1:
+        return data, np.zeros((data.K, 0)), 0, {"lags": 0, "reason": "no time order" if max_lag else "disabled"}
+    hist, valid = history(data, max_lag)
+    if valid.mean() < 0.5:
+        return data, np.zeros((data.K, 0)), 0, {
+            "lags": 0, "reason": "fewer than half of the rows continue a trajectory (x_next = next x)"}
+    info = {"lags": int(max_lag), "rows_without_history": int((~valid).sum())}
+    if not valid.all():
+        data, hist = subset(data, valid), hist[valid]
+    return data, hist, int(max_lag), info
+
+
+def _extra_rate(data: Transitions, hist: np.ndarray, chosen, x=None, rows=None) -> np.ndarray:
+    """sum_k c_k g_k of the history effects (lag > 0) on rows (x default: the data's)."""
+    rows = slice(None) if rows is None else rows
+    x = data.x[rows] if x is None else x
+    out = np.zeros_like(x)
+    for e, c, *_ in chosen:
+        if e.lag:
+            out[:, e.state] += c * e(x, data.u[rows], hist[rows])
+    return out
+
+
+def _after(refined: System, data: Transitions, hist, chosen) -> Residuals:
+    """Residuals of f' including the history effects (which the memoryless f' cannot hold)."""
+    r = residuals(refined, data)
+    if any(e.lag for e, *_ in chosen):
+        r = Residuals(refined, data, r.r - data.tau * _extra_rate(data, hist, chosen))
+    return r
+
+
+def _multistep_gate(s: System, data: Transitions, held, hist, chosen, fits, opts) -> tuple:
+    """Withdraw effects while f' predicts ``opts.gate_steps`` steps ahead worse than f (held-out).
+
+    Worse means mean_i (rms'_i / rms_i)^2 > 1 + ``opts.gate_tolerance`` over the states. The effect
+    whose removal helps most goes first; each withdrawn effect is reported with the numbers, and
+    its state is flagged unexplained (the residual it seemed to fix is still there).
+    """
+    k = opts.gate_steps
+    if not data.is_time_series or not chosen or k < 2:
+        return chosen, []
+
+    def score(ch):
+        f1 = refined_system(s, [c[0] for c in ch if c[0].lag == 0], [c[1] for c in ch if c[0].lag == 0])
+        return multistep_rms(f1, data, held, k, hist, ch)
+
+    base = multistep_rms(s, data, held, k)
+    if base is None:
+        return chosen, []
+    b = np.where(base > 0, base, 1.0)
+
+    def worse(rms):
+        return float(np.mean((rms / b) ** 2)) > 1.0 + opts.gate_tolerance
+
+    withdrawn = []
+    cur = score(chosen)
+    while chosen and worse(cur):
+        trials = [(float(np.mean((score(chosen[:j] + chosen[j + 1:]) / b) ** 2)), j) for j in range(len(chosen))]
+        _, j = min(trials)
+        e, c = chosen[j][0], chosen[j][1]
+        before_rms = cur
+        chosen = chosen[:j] + chosen[j + 1:]
+        cur = score(chosen)
+        reason = (f"{k}-step held-out RMS with it {np.array2string(before_rms, precision=3)} is worse than the "
+                  f"nominal model's {np.array2string(base, precision=3)}; without it "
+                  f"{np.array2string(cur, precision=3)}")
+        withdrawn.append({"name": e.name, "state": int(e.state), "state_name": s.state_names[e.state],
+                          "key": e.key(s), "coefficient": c, "reason": reason})
+        fit = fits[e.state]
+        fit.selected = [i for i in fit.selected if fit.candidate_keys[i] != e.key(s)]
+        fit.unexplained = True
+        fit.notes.append(f"withdrew {e.key(s)} (coefficient {c:.4g}): {reason}")
+    return chosen, withdrawn
+
+
+def multistep_rms(system: System, data: Transitions, held: np.ndarray, k: int,
+                  hist: Optional[np.ndarray] = None, chosen=()) -> Optional[np.ndarray]:
     """RMS error (n,) of k-step open-loop predictions with the measured inputs (time series only).
 
     From every held-out sample s whose next k transitions are all held-out and consecutive
     (x_next[s+j] = x[s+j+1]), iterate x <- f(x, u[s+j]) for j < k and compare with x_next[s+k-1].
-    None when no such start exists.
+    History effects among ``chosen`` (lag > 0) add tau c g(x, u, hist) with the recorded lagged
+    values ``hist``. None when no such start exists.
     """
     if data.t is None:
         return None
@@ -131,8 +225,13 @@ def multistep_rms(system: System, data: Transitions, held: np.ndarray, k: int) -
     if starts.size == 0:
         return None
     z = x[starts]
+    extra = [c for c in chosen if c[0].lag]
+    hs = hist[order] if extra else None
     for j in range(k):
-        z = system.f(z, u[starts + j])
+        zn = system.f(z, u[starts + j])
+        for e, c, *_ in extra:
+            zn[:, e.state] += data.tau * c * e(z, u[starts + j], hs[starts + j])
+        z = zn
     e = system.diff(z, xn[starts + k - 1])
     return np.sqrt(np.mean(e ** 2, axis=0))
 
@@ -143,16 +242,20 @@ def _f(v) -> Optional[float]:
 
 
 def _report(s: System, refined: System, data: Transitions, held, fits: Sequence[StateFit], chosen,
-            before: Residuals, after: Residuals, opts: SelectionOptions) -> dict:
+            before: Residuals, after: Residuals, opts: SelectionOptions, hist, withdrawn, hist_info) -> dict:
     rb, ra = before.r[held], after.r[held]
     eff = []
-    for e, c, se, ex in chosen:
+    for e, c, se, ex, se_stat, se_mis in chosen:
         d = {"name": e.name, "state": int(e.state), "state_name": s.state_names[e.state]}
         if e.variable in s.input_names:
             d["input"] = e.variable
         elif e.variable is not None:
             d["variable"] = e.variable
-        d.update({"expr": e.expr, "coefficient": c, "stderr": _f(se), "unit": coefficient_units(s, e),
+        if "periods" in e.params:
+            d["periods"] = int(e.params["periods"])
+        d["in_refined_system"] = e.lag == 0
+        d.update({"expr": e.expr, "coefficient": c, "stderr": _f(se), "stderr_statistical": _f(se_stat),
+                  "stderr_misfit": _f(se_mis), "unit": coefficient_units(s, e),
                   "explained_fraction": ex, "physical": physical(s, e, c, se)})
         if d["physical"] is not None:
             d["physical"] = {k: (_f(v) if isinstance(v, (float, np.floating)) else v)
@@ -177,7 +280,7 @@ def _report(s: System, refined: System, data: Transitions, held, fits: Sequence[
     multistep = {}
     if data.is_time_series:
         for k in (10, 100):
-            b, a = multistep_rms(s, data, held, k), multistep_rms(refined, data, held, k)
+            b, a = multistep_rms(s, data, held, k), multistep_rms(refined, data, held, k, hist, chosen)
             if b is not None:
                 multistep[str(k)] = {"rms_before": b.tolist(), "rms_after": a.tolist(),
                                      "seconds": k * data.tau}
@@ -197,10 +300,13 @@ def _report(s: System, refined: System, data: Transitions, held, fits: Sequence[
         "unexplained": bool(any(f.unexplained for f in fits)),
         "states": states,
         "multistep": multistep,
+        "withdrawn": withdrawn,
+        "history": hist_info,
         "options": {"holdout": opts.holdout, "n_segments": opts.n_segments,
                     "min_explained": opts.min_explained, "n_boot": opts.n_boot,
                     "structure_threshold": opts.structure_threshold,
-                    "min_unexplained": opts.min_unexplained, "seed": opts.seed},
+                    "min_unexplained": opts.min_unexplained, "seed": opts.seed, "max_lag": opts.max_lag,
+                    "gate_steps": opts.gate_steps, "gate_tolerance": opts.gate_tolerance},
         "data_meta": data.meta,
     }
 

@@ -56,6 +56,9 @@ class SelectionOptions:
     structure_threshold: float = 0.05   # held-out R^2 of the structure fit of what remains
     min_unexplained: float = 0.01       # ... and that structured part as a fraction of the nominal residual
     seed: int = 0
+    max_lag: int = 3                # periods of history (time series): input delays, lagged user terms
+    gate_steps: int = 10            # multi-step gate horizon on held-out data (time series; 0: off)
+    gate_tolerance: float = 0.01    # allowed mean squared ratio of k-step RMS f' / f above 1
 
 
 @dataclass
@@ -72,6 +75,8 @@ class StateFit:
     rss_heldout: float              # with the selected effects
     structure_r2: float             # held-out R^2 of a flexible fit of the remaining residual
     unexplained: bool
+    stderr_statistical: Optional[np.ndarray] = None   # bootstrap part of stderr
+    stderr_misfit: Optional[np.ndarray] = None        # between-region spread part of stderr
     noise_floor_fraction: float = 0.0   # model-free noise floor / nominal held-out residual variance
     unexplained_fraction: float = 0.0   # remaining variance above the floor / nominal
     lag1_autocorr: Optional[float] = None
@@ -213,6 +218,52 @@ def bootstrap_stderr(Z: np.ndarray, y: np.ndarray, time_series: bool, n_boot: in
     return np.concatenate(coefs).std(axis=0, ddof=1)
 
 
+def misfit_stderr(Z: np.ndarray, y: np.ndarray, F: np.ndarray, se_stat: np.ndarray, groups: int = 4) -> np.ndarray:
+    """Standard deviation of the coefficients of y ~ Z between regions of the data (the misfit).
+
+    For each variable (column of F) the rows are cut into ``groups`` quantile groups and the
+    coefficients are refitted in each. A term of the right shape gives the same coefficient in
+    every region up to sampling error; a wrong-shaped one (a sign term for a dead zone) does not.
+    The between-group variance beyond sampling error is the random-effects estimate
+    tau^2 = max(0, (Q - (G - 1)) / (sum w - sum w^2 / sum w)), Q = sum_g w_g (c_g - c_w)^2,
+    w_g = 1 / se_g^2 (DerSimonian-Laird), with se_g the least-squares standard error in group g
+    scaled by the ratio of the bootstrap to the least-squares standard error on all rows (so
+    correlated noise does not pass for misfit). Returns max over variables of tau, per term.
+    """
+    K, p = Z.shape
+    G0 = Z.T @ Z
+
+    def ols(rows):
+        Zg, yg = Z[rows], y[rows]
+        Gg = Zg.T @ Zg
+        if rows.sum() < 10 * p or np.linalg.cond(Gg) > 1e8:
+            return None
+        cg = np.linalg.solve(Gg, Zg.T @ yg)
+        s2 = float(np.sum((yg - Zg @ cg) ** 2)) / max(rows.sum() - p, 1)
+        return cg, np.sqrt(s2 * np.diag(np.linalg.inv(Gg)))
+
+    full = ols(np.ones(K, dtype=bool))
+    if full is None:
+        return np.zeros(p)
+    infl = np.maximum(1.0, se_stat / np.where(full[1] > 0, full[1], np.inf))
+    out = np.zeros(p)
+    for j in range(F.shape[1]):
+        edges = np.quantile(F[:, j], np.linspace(0, 1, groups + 1)[1:-1])
+        g = np.searchsorted(edges, F[:, j], side="right")
+        fits = [ols(g == a) for a in range(groups)]
+        fits = [f for f in fits if f is not None]
+        if len(fits) < 2:
+            continue
+        C = np.stack([f[0] for f in fits])
+        W = 1.0 / (np.stack([f[1] for f in fits]) * infl) ** 2
+        cw = (W * C).sum(axis=0) / W.sum(axis=0)
+        Q = (W * (C - cw) ** 2).sum(axis=0)
+        den = W.sum(axis=0) - (W ** 2).sum(axis=0) / W.sum(axis=0)
+        tau2 = np.maximum(0.0, (Q - (len(fits) - 1)) / np.where(den > 0, den, np.inf))
+        out = np.maximum(out, np.sqrt(tau2))
+    return out
+
+
 def select_state(y: np.ndarray, Theta: np.ndarray, keys: list, held: np.ndarray,
                  probe: Probe, state: int, time_series: bool, opts: SelectionOptions,
                  rng: np.random.Generator) -> StateFit:
@@ -297,8 +348,10 @@ def select_state(y: np.ndarray, Theta: np.ndarray, keys: list, held: np.ndarray,
     c = _solve(Gt, bt, S)
     coef = c / scale[S] if S else np.zeros(0)
     resid_t = yt - (Zt[:, S] @ c if S else 0.0)
-    se = bootstrap_stderr(Zt[:, S], yt, time_series, opts.n_boot, rng, resid_t) / scale[S] if S \
+    se_stat = bootstrap_stderr(Zt[:, S], yt, time_series, opts.n_boot, rng, resid_t) / scale[S] if S \
         else np.zeros(0)
+    misfit = misfit_stderr(Zt[:, S], yt, probe.F[tr], se_stat * scale[S]) / scale[S] if S else np.zeros(0)
+    se = np.sqrt(se_stat ** 2 + misfit ** 2)
     # 6. explained fractions in forward order on held-out data
     expl, prev = [], rss0_h
     for k in range(1, len(S) + 1):
@@ -318,7 +371,7 @@ def select_state(y: np.ndarray, Theta: np.ndarray, keys: list, held: np.ndarray,
         den = float(eh @ eh)
         lag1 = float(eh[1:] @ eh[:-1] / den) if den > 0 else 0.0
     return StateFit(state=state, candidate_keys=keys, selected=list(S), coef=np.asarray(coef),
-                    stderr=np.asarray(se), explained=np.asarray(expl), rss0_heldout=rss0_h,
+                    stderr=np.asarray(se), stderr_statistical=np.asarray(se_stat), stderr_misfit=misfit, explained=np.asarray(expl), rss0_heldout=rss0_h,
                     rss_heldout=rss_after_h, structure_r2=float(r2s), noise_floor_fraction=floor_frac,
                     unexplained_fraction=above,
                     unexplained=bool(r2s >= opts.structure_threshold and above >= opts.min_unexplained),

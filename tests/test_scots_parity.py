@@ -37,7 +37,7 @@ def test_shared_boxes_equal_scots_formula_per_cell(rng):
     u = sysm.inputs[j]
     eta = g.eta
     z = eta / 1e10
-    r = vehicle_growth(np.broadcast_to(eta / 2 + z, x.shape), x, u)
+    r = vehicle_growth(np.broadcast_to(eta / 2 + z, x.shape), x, u, 0.3)
     xn = sysm.f(x, u)
     left, right = xn - r - z, xn + r + z
     out = np.any((left <= g.first - eta / 2) | (right >= g.last + eta / 2), axis=1)

@@ -48,6 +48,7 @@ Two ways to get an abstract step of k sampling periods
 
 from __future__ import annotations
 
+import inspect
 import time
 from dataclasses import dataclass, field
 from typing import Callable, Optional
@@ -58,7 +59,7 @@ from ..errors import SimgapError
 from ..systems import System
 from .grid import UniformGrid
 
-GrowthFn = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
+GrowthFn = Callable[[np.ndarray, np.ndarray, np.ndarray, float], np.ndarray]
 
 #: label of a composed hold (controller files, summaries): what it is and what it is not
 COMPOSED_HOLD_LABEL = ("composed: a one-period gap composed over the held periods (worst-case disturbance "
@@ -348,6 +349,25 @@ class Abstraction:
         return b
 
 
+def growth_function(system: System, growth: Optional[GrowthFn]) -> GrowthFn:
+    """The growth bound to use: ``growth`` checked to take (r, x, u, tau), else the system's."""
+    if growth is None:
+        if system.jacobian_bound is None:
+            raise SimgapError(f"system {system.name!r} has no jacobian_bound; pass a growth function")
+        return lambda r, x, u, tau: system.growth_bound(r, u)  # growth_bound uses system.tau
+    if not callable(growth):
+        raise SimgapError("growth must be a callable growth(r, x, u, tau)")
+    try:
+        inspect.signature(growth).bind(0, 0, 0, 0)
+    except TypeError:
+        raise SimgapError("growth must accept (r, x, u, tau): it is called with the sampling period "
+                          f"tau = system.tau ({system.tau:g} s for {system.name!r}), which changes with "
+                          "with_steps(k)") from None
+    except ValueError:  # builtins without a signature: trust the call
+        pass
+    return growth
+
+
 def build_abstraction(system: System, grid: UniformGrid, *, growth: Optional[GrowthFn] = None,
                       gap=None, hold: int = 1, invariant_dims=(), guard: float = 1e-10,
                       block: int = 1 << 16, check_invariance: bool = True,
@@ -361,9 +381,10 @@ def build_abstraction(system: System, grid: UniformGrid, *, growth: Optional[Gro
     grid : UniformGrid
         State grid (normally over system.x_lo .. x_hi).
     growth : callable, optional
-        ``growth(r (B,n), x (B,n), u (B,m)) -> (B,n)``: radius of the image of the box
-        [x - r, x + r] under f around f(x, u) (SCOTS ``radius_post``). Default: the system's
-        Jacobian-based ``growth_bound``.
+        ``growth(r (B,n), x (B,n), u (B,m), tau) -> (B,n)``: radius of the image of the box
+        [x - r, x + r] under f around f(x, u) after the sampling period tau = system.tau [s]
+        (SCOTS ``radius_post``; see :func:`~simgap.synthesis.runge_kutta.rk4_growth`).
+        Default: the system's Jacobian-based ``growth_bound``.
     gap : None, constant vector, or object with ``gamma_upper_box(lo, hi, u) -> (B, n)``
         Bound on the simulation gap gamma (state units per sampling period).
     hold : int
@@ -382,10 +403,7 @@ def build_abstraction(system: System, grid: UniformGrid, *, growth: Optional[Gro
     n = grid.n
     if n != system.n:
         raise SimgapError(f"grid has {n} dimensions, system {system.name!r} has {system.n}")
-    if growth is None:
-        if system.jacobian_bound is None:
-            raise SimgapError(f"system {system.name!r} has no jacobian_bound; pass a growth function")
-        growth = lambda r, x, u: system.growth_bound(r, u)  # noqa: E731
+    growth = growth_function(system, growth)
     gap = as_gap(gap, system)
     check_hold(hold, gap, compose_hold)
     keep = certified_input_mask(system, gap)
@@ -445,7 +463,7 @@ def build_abstraction(system: System, grid: UniformGrid, *, growth: Optional[Gro
                     g = gamma_upper_wrapped(gap, blo, bhi, u, grid)
                 else:
                     g = 0.0
-                r_new = np.asarray(growth(r, x, u), dtype=float) + g
+                r_new = np.asarray(growth(r, x, u, system.tau), dtype=float) + g
                 x_new = system.f(x, u)
                 disp = disp + system.diff(x_new, x) if pmask.any() else x_new - x0
                 x, r = x_new, r_new
@@ -503,7 +521,7 @@ def _check_invariance(system, grid, growth, U, rep_mi, inv, hold, samples: int =
     r = np.broadcast_to(grid.eta / 2, x1.shape).copy()
     d1 = system.diff(system.f(x1, u), x1)
     d2 = system.diff(system.f(x2, u), x2)
-    g1, g2 = growth(r, x1, u), growth(r, x2, u)
+    g1, g2 = growth(r, x1, u, system.tau), growth(r, x2, u, system.tau)
     scale = 1e-9 * (1 + np.abs(grid.domain_hi - grid.domain_lo))
     if np.any(np.abs(d1 - d2) > scale) or np.any(np.abs(np.asarray(g1) - np.asarray(g2)) > scale):
         raise SimgapError(f"invariant_dims {list(inv)}: f(x,u) - x or the growth bound of system "

@@ -35,8 +35,8 @@ from .. import fileio
 from ..errors import SimgapError
 from ..systems import System
 from .abstraction import (COMPOSED_HOLD_LABEL, as_gap, build_abstraction, certified_input_mask, check_hold,
-                          describe_gap, uncertified_inputs_message)
-from .games import GameResult, solve_invariance, solve_reach
+                          describe_gap, growth_function, uncertified_inputs_message)
+from .games import METHODS, GameResult, solve_invariance, solve_reach
 from .grid import UniformGrid
 from .spec import Spec
 
@@ -303,7 +303,7 @@ def label_cells(grid: UniformGrid, spec: Spec, x_lo, x_hi, strict_domain: bool =
 
 def synthesize(system: System, spec: Spec, eta, gap=None, hold: int = 1, *, growth=None,
                invariant_dims=None, periodic=None, guard: float = 1e-10, strict_domain: bool = True,
-               x0=None, compose_hold: bool = False) -> SynthesisResult:
+               x0=None, compose_hold: bool = False, method: str = "auto") -> SynthesisResult:
     """Synthesize a controller for x+ in f(x, u) + [-gamma(x, u), gamma(x, u)] enforcing ``spec``.
 
     Parameters
@@ -326,7 +326,8 @@ def synthesize(system: System, spec: Spec, eta, gap=None, hold: int = 1, *, grow
         Accept a one-period gap composed over ``hold`` periods (labelled ``hold_mode`` in the
         stats and the controller file).
     growth : callable, optional
-        SCOTS-style radius_post ``growth(r, x, u)``; default: the system's Jacobian bound.
+        SCOTS-style radius_post ``growth(r, x, u, tau)`` over the sampling period tau = system.tau;
+        default: the system's Jacobian bound.
     invariant_dims : tuple, optional
         Dimensions f(x,u) - x does not depend on (default: known built-ins, see
         ``TRANSLATION_INVARIANT``; checked numerically).
@@ -335,6 +336,10 @@ def synthesize(system: System, spec: Spec, eta, gap=None, hold: int = 1, *, grow
     strict_domain : bool
         Block cells that stick out of X (default True; False reproduces SCOTS exactly).
     x0 : optional initial state recorded in the controller (checked against the domain by users).
+    method : str
+        Game algorithm: ``worklist`` (SCOTS-style predecessor counters, cost ~ transitions),
+        ``sat`` (level-wise summed-area tables, cost ~ 2^n per pair: for large boxes) or
+        ``auto`` (by the mean box volume); the results are identical.
 
     Returns
     -------
@@ -358,8 +363,9 @@ def synthesize(system: System, spec: Spec, eta, gap=None, hold: int = 1, *, grow
         invariant_dims = TRANSLATION_INVARIANT.get(system.name, ())
     if periodic is None:
         periodic = system.angle_dims
-    if growth is not None and hasattr(growth, "__call__") is False:
-        raise SimgapError("growth must be callable growth(r, x, u)")
+    growth = growth_function(system, growth)
+    if method not in METHODS:
+        raise SimgapError(f"game method must be one of {', '.join(METHODS)}, got {method!r}")
     grid = UniformGrid(system.x_lo, system.x_hi, eta, periodic=periodic)
     blocked, cells = label_cells(grid, spec, system.x_lo, system.x_hi, strict_domain=strict_domain)
     t1 = time.perf_counter()
@@ -367,11 +373,11 @@ def synthesize(system: System, spec: Spec, eta, gap=None, hold: int = 1, *, grow
                            invariant_dims=invariant_dims, guard=guard, compose_hold=compose_hold)
     t2 = time.perf_counter()
     if spec.kind == "reach_avoid":
-        res = solve_reach(ab, cells, blocked)
+        res = solve_reach(ab, cells, blocked, method=method)
         chosen = _first_valid(res.valid_packed, ab.n_inputs)
         chosen[res.target] = -1
     else:
-        res = solve_invariance(ab, cells, blocked)
+        res = solve_invariance(ab, cells, blocked, method=method)
         chosen = res.chosen
     t3 = time.perf_counter()
     stats = {
@@ -386,6 +392,7 @@ def synthesize(system: System, spec: Spec, eta, gap=None, hold: int = 1, *, grow
         "safe_cells": int(np.count_nonzero(cells)) if spec.kind == "invariance" else None,
         "blocked_cells": int(np.count_nonzero(blocked)),
         "iterations": res.iterations, "pairs_tested": res.info["pairs_tested"],
+        "game_method": res.info["method"],
         "invariant_dims": list(ab.info["invariant_dims"]),
         "abstraction_mb": ab.nbytes() / 2 ** 20,
         "seconds": {"labels": t1 - t0, "abstraction": t2 - t1, "game": t3 - t2, "total": t3 - t0},

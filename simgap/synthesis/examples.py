@@ -1,4 +1,5 @@
-"""Reference problems for parity checks: the SCOTS v2 vehicle example (reach-avoid).
+"""Reference problems: the SCOTS v2 vehicle example (reach-avoid, parity checks), and two systems
+without translation invariance for the generic path (``bench/bench_synthesis_generic.py``).
 
 Everything follows SCOTS v2 ``examples/vehicle/vehicle.cc`` (Reissig, Weber & Rungger, 2017)
 operation by operation, so the abstraction agrees with SCOTS bit for bit where it matters:
@@ -19,6 +20,7 @@ import numpy as np
 
 from ..systems import System
 from .grid import UniformGrid
+from .runge_kutta import rk4_growth, rk4_integrate, rk4_step
 from .spec import Box, Spec
 
 VEHICLE_TAU = 0.3
@@ -47,23 +49,15 @@ def _vehicle_rhs(x, u):
 
 def vehicle_step(x: np.ndarray, u: np.ndarray, tau: float) -> np.ndarray:
     """SCOTS ``runge_kutta_fixed4`` with 10 intermediate steps over tau, vectorized over rows."""
-    h = tau / VEHICLE_NINT
-    x = np.array(x, dtype=float, copy=True)
-    for _ in range(VEHICLE_NINT):
-        k0 = _vehicle_rhs(x, u)
-        k1 = _vehicle_rhs(x + h / 2 * k0, u)
-        k2 = _vehicle_rhs(x + h / 2 * k1, u)
-        k3 = _vehicle_rhs(x + h * k2, u)
-        x = x + (h / 6) * (k0 + 2 * k1 + 2 * k2 + k3)
-    return x
+    return rk4_integrate(_vehicle_rhs, x, u, tau, VEHICLE_NINT)
 
 
-def vehicle_growth(r: np.ndarray, x: np.ndarray, u: np.ndarray) -> np.ndarray:
-    """SCOTS vehicle ``radius_post``: r (B,3) -> r+ over one sampling period tau = 0.3."""
+def vehicle_growth(r: np.ndarray, x: np.ndarray, u: np.ndarray, tau: float = VEHICLE_TAU) -> np.ndarray:
+    """SCOTS vehicle ``radius_post``: r (B,3) -> r+ over the sampling period tau (0.3 in SCOTS)."""
     c = np.abs(u[:, 0]) * np.sqrt(np.tan(u[:, 1]) * np.tan(u[:, 1]) / 4.0 + 1)
     r = np.array(r, dtype=float, copy=True)
-    r[:, 0] = r[:, 0] + c * r[:, 2] * VEHICLE_TAU
-    r[:, 1] = r[:, 1] + c * r[:, 2] * VEHICLE_TAU
+    r[:, 0] = r[:, 0] + c * r[:, 2] * tau
+    r[:, 1] = r[:, 1] + c * r[:, 2] * tau
     return r
 
 
@@ -86,3 +80,86 @@ def vehicle_spec() -> Spec:
     obs = tuple(Box([a, c, -inf], [b, d, inf]) for a, b, c, d in VEHICLE_OBSTACLES)
     a, b, c, d = VEHICLE_TARGET
     return Spec(kind="reach_avoid", target=Box([a, c, -inf], [b, d, inf]), obstacles=obs)
+
+
+# ---------------------------------------------------------------------------------------
+# systems without translation invariance (every cell has its own boxes)
+# ---------------------------------------------------------------------------------------
+
+#: boost DC-DC converter (SCOTS v2 ``examples/dcdc``): x = (i_l, v_c), two switch modes
+DCDC_TAU = 0.5
+DCDC_ETA = (2 / 4e3, 2 / 4e3)
+_XC, _XL, _RC, _RL, _RO, _VS = 70.0, 3.0, 0.005, 0.05, 1.0, 1.0
+_DCDC_A = np.array([
+    [[-_RL / _XL, 0.0], [0.0, -1 / _XC / (_RO + _RC)]],
+    [[-(_RL + _RO * _RC / (_RO + _RC)) / _XL, -_RO / (_RO + _RC) / _XL / 5],
+     [5 * _RO / (_RO + _RC) / _XC, -1 / _XC / (_RO + _RC)]],
+])
+_DCDC_B = np.array([_VS / _XL, 0.0])
+
+
+def _dcdc_mode(u: np.ndarray) -> np.ndarray:
+    return (np.rint(u[:, 0]) == 2).astype(np.int64)
+
+
+def _dcdc_rhs(x, u):
+    A = _DCDC_A[_dcdc_mode(u)]
+    return np.einsum("bij,bj->bi", A, x) + _DCDC_B
+
+
+def dcdc_system(x_lo=(1.15, 5.45), x_hi=(1.55, 5.85)) -> System:
+    """Switched linear system x' = A_u x + b (u in {1, 2}), RK4 with 5 substeps over tau = 0.5.
+
+    On [1.15, 1.55] x [5.45, 5.85] with eta = 2/4000 the grid has 801 x 801 = 641,601 cells.
+    """
+    return System(name="dcdc", state_names=("il", "vc"), input_names=("mode",), x_lo=x_lo, x_hi=x_hi,
+                  inputs=np.array([[1.0], [2.0]]), base_tau=DCDC_TAU, step=rk4_step(_dcdc_rhs, nint=5))
+
+
+def dcdc_growth():
+    """growth(r, x, u, tau): r' = L_u r with L_u = A_u, off-diagonals in absolute value."""
+    L = np.abs(_DCDC_A) * (1 - np.eye(2)) + _DCDC_A * np.eye(2)
+    return rk4_growth(lambda u: L[_dcdc_mode(u)], nint=5)
+
+
+def dcdc_spec() -> Spec:
+    """Stay in [1.15, 1.55] x [5.45, 5.85] forever."""
+    return Spec(kind="invariance", safe=Box([1.15, 5.45], [1.55, 5.85]))
+
+
+#: unicycle in a rotating current w(p) = a (-(y - 5), x - 5) around the arena's center
+VORTEX_A = 0.1
+VORTEX_TAU = 0.4
+
+
+def _vortex_rhs(x, u):
+    v, w = u[:, 0], u[:, 1]
+    return np.stack([v * np.cos(x[:, 2]) - VORTEX_A * (x[:, 1] - 5.0),
+                     v * np.sin(x[:, 2]) + VORTEX_A * (x[:, 0] - 5.0), w], axis=1)
+
+
+def vortex_system() -> System:
+    """3-D nonlinear unicycle (x, y, heading) drifting in a vortex on [0, 10]^2: f(x, u) - x
+    depends on the position, so no dimension is translation invariant. RK4, 5 substeps, tau 0.4."""
+    inputs = np.array([[v, w] for v in (-0.5, 0.5, 1.0) for w in (-1.0, -0.5, 0.0, 0.5, 1.0)])
+    return System(name="vortex", state_names=("x", "y", "theta"), input_names=("v", "omega"),
+                  x_lo=(0.0, 0.0, -np.pi), x_hi=(10.0, 10.0, np.pi), inputs=inputs,
+                  base_tau=VORTEX_TAU, step=rk4_step(_vortex_rhs, nint=5), angle_dims=(2,))
+
+
+def vortex_growth():
+    """growth(r, x, u, tau): |dF/dx| <= [[0, a, |v|], [a, 0, |v|], [0, 0, 0]]."""
+    def L(u):
+        B = u.shape[0]
+        out = np.zeros((B, 3, 3))
+        out[:, 0, 1] = out[:, 1, 0] = VORTEX_A
+        out[:, 0, 2] = out[:, 1, 2] = np.abs(u[:, 0])
+        return out
+    return rk4_growth(L, nint=5)
+
+
+def vortex_spec() -> Spec:
+    """Reach [8, 9.5] x [8, 9.5] (any heading) avoiding two walls."""
+    inf = np.inf
+    return Spec(kind="reach_avoid", target=Box([8.0, 8.0, -inf], [9.5, 9.5, inf]),
+                obstacles=(Box([3.0, 0.0, -inf], [3.6, 6.5, inf]), Box([6.4, 3.5, -inf], [7.0, 10.0, inf])))

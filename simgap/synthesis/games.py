@@ -34,6 +34,7 @@ from typing import Optional
 
 import numpy as np
 
+from ..errors import SimgapError
 from .abstraction import Abstraction
 
 
@@ -301,12 +302,14 @@ class PairEvaluator:
 
 
 def live_pairs(ab: Abstraction, blocked: np.ndarray, keep: np.ndarray, allowed=None,
-               ev: Optional["PairEvaluator"] = None):
+               ev: Optional["PairEvaluator"] = None, test_keep: bool = True):
     """One pass over all pairs: which can ever be used, and the SCOTS transition count.
 
     A pair (c, u) is *live* when it is valid (see module docstring) and its box lies in
     ``keep`` (reach: the unblocked cells; invariance: the safe cells); pairs that are not live
-    can never be in the controller, so the games never test them again.
+    can never be in the controller, so the games never test them again. With ``test_keep``
+    False the pairs are only tested for validity (the reach worklist needs no more: a box that
+    meets a blocked cell never gets all its cells won).
 
     Returns (live (N, ceil(M/8)) packed bits, number of valid boxes, sum of their volumes).
     """
@@ -317,26 +320,186 @@ def live_pairs(ab: Abstraction, blocked: np.ndarray, keep: np.ndarray, allowed=N
     kc = BoxCounter(g.shape, g.periodic_mask).set(keep)
     packed = np.zeros((N, (M + 7) // 8), dtype=np.uint8)
     B = _block_size(ab)
-    boxes = 0
-    trans = 0
+    boxes = trans = 0
     free = np.flatnonzero(~blocked)  # blocked cells have no valid pairs
     for s in range(0, free.size, B):
         ids = free[s:s + B]
         valid, q = ev.valid_rows(ids)
+        vol = ev.fam.vol_flat[q]
         boxes += int(valid.sum())
-        trans += int(ev.fam.vol_flat[q][valid].sum(dtype=np.int64))
-        packed[ids] = np.packbits(valid & ev.test_rows(ids, q, kc), axis=1)
+        trans += int(vol[valid].sum(dtype=np.int64))
+        packed[ids] = np.packbits(valid & ev.test_rows(ids, q, kc) if test_keep else valid, axis=1)
     return packed, boxes, trans
 
 
-def _frontier(ab: Abstraction, changed: np.ndarray, candidates_mask: np.ndarray, dlo, dhi) -> np.ndarray:
-    """Ids of cells c in ``candidates_mask`` with c + delta in ``changed`` for some delta in [dlo, dhi].
+def _expand(counts: np.ndarray):
+    """Rows with ``counts`` items each -> (row of every item, rank of the item in its row)."""
+    rows = np.repeat(np.arange(counts.size, dtype=np.int64), counts)
+    starts = np.cumsum(counts, dtype=np.int64) - counts
+    return rows, np.arange(rows.size, dtype=np.int64) - starts[rows]
 
-    Every box of c lies in c + [dlo, dhi], so only these cells can change status. Computed as
-    a separable binary dilation of ``changed`` (one pass of shifted ORs per dimension).
+
+class Predecessors:
+    """The inverse of the box relation: the (cell, input) pairs whose successor box holds a cell.
+
+    Stored at class granularity (see :class:`~simgap.synthesis.abstraction.Abstraction`): for
+    every index r_C of the class dimensions, the CSR list of the (class, input) pairs q whose
+    box covers r_C there. The predecessors of cell r are the cells of class k(q) whose index in
+    the invariant dimensions lies in ``r_I - [off_hi_I(q), off_lo_I(q)]``. With one class per
+    cell (no invariant dimensions) the list is SCOTS's predecessor list: one int32 per
+    transition. ``usable`` (K*M,) bool selects the pairs to index.
+    """
+
+    def __init__(self, ab: Abstraction, usable: np.ndarray, chunk: int = 1 << 20):
+        g = ab.grid
+        self.ab, self.M, self.n = ab, ab.n_inputs, g.n
+        self.shape = np.array(g.shape, dtype=np.int64)
+        self.pmask = g.periodic_mask
+        self.cd = list(ab.class_dims)
+        self.inv = [d for d in range(g.n) if d not in self.cd]
+        self.strides = g.strides
+        cshape = self.shape[self.cd]
+        K = int(np.prod(cshape)) if self.cd else 1
+        # partial cell id of each class (its class-dimension coordinates)
+        kmi = np.stack(np.unravel_index(np.arange(K), tuple(cshape)), axis=1) if self.cd else \
+            np.zeros((1, 0), dtype=np.int64)
+        self.class_base = (kmi.astype(np.int64) @ self.strides[self.cd]) if self.cd else np.zeros(1, np.int64)
+        self.cstrides = np.array([int(np.prod(cshape[j + 1:])) for j in range(len(self.cd))], dtype=np.int64)
+        qs = np.flatnonzero(usable)
+        counts = np.zeros(K, dtype=np.int64)
+        for s in range(0, qs.size, chunk):  # pass 1: list lengths
+            counts += np.bincount(self._class_keys(qs[s:s + chunk], kmi)[0], minlength=K)
+        self.indptr = np.zeros(K + 1, dtype=np.int64)
+        np.cumsum(counts, out=self.indptr[1:])
+        it = np.int32 if usable.size < 2 ** 31 else np.int64
+        self.q = np.empty(int(self.indptr[-1]), dtype=it)
+        fill = self.indptr[:-1].copy()
+        for s in range(0, qs.size, chunk):  # pass 2: counting sort, chunk by chunk
+            keys, q = self._class_keys(qs[s:s + chunk], kmi)
+            o = np.argsort(keys, kind="stable")
+            keys, q = keys[o], q[o]
+            first = np.r_[0, np.flatnonzero(np.diff(keys)) + 1]
+            rank = np.arange(keys.size) - np.repeat(first, np.diff(np.r_[first, keys.size]))
+            self.q[fill[keys] + rank] = q
+            fill += np.bincount(keys, minlength=K)
+        self.size = self.q.size
+
+    def _class_keys(self, q: np.ndarray, kmi: np.ndarray):
+        """(class index r_C, q) for every class-dimension cell r_C covered by the boxes of q."""
+        M = self.M
+        k = q // M
+        if not self.cd:
+            return np.zeros(q.size, dtype=np.int64), q
+        lo_all = self.ab.off_lo.reshape(-1, self.n)
+        hi_all = self.ab.off_hi.reshape(-1, self.n)
+        lo = kmi[k].astype(np.int64) + lo_all[q][:, self.cd]
+        ext = hi_all[q][:, self.cd].astype(np.int64) - lo_all[q][:, self.cd] + 1
+        for j, d in enumerate(self.cd):  # normalize: periodic mod n (extent capped), bounded clipped
+            nd = self.shape[d]
+            if self.pmask[d]:
+                ext[:, j] = np.minimum(ext[:, j], nd)
+                lo[:, j] %= nd
+            else:
+                hi = np.minimum(lo[:, j] + ext[:, j] - 1, nd - 1)
+                lo[:, j] = np.maximum(lo[:, j], 0)
+                ext[:, j] = np.maximum(hi - lo[:, j] + 1, 0)
+        rows, t = _expand(np.prod(ext, axis=1))
+        key = np.zeros(rows.size, dtype=np.int64)
+        for j in range(len(self.cd) - 1, -1, -1):  # mixed-radix decode of the rank
+            e = ext[rows, j]
+            c = lo[rows, j] + t % e
+            t //= e
+            d = self.cd[j]
+            if self.pmask[d]:
+                c %= self.shape[d]
+            key += c * self.cstrides[j]
+        return key, q[rows]
+
+    def _prepare_cells(self):
+        """Per (class, input) arrays for the expansion over the invariant dimensions (int32)."""
+        ab, M, n = self.ab, self.M, self.n
+        it = np.int32 if ab.grid.size * M < 2 ** 31 else np.int64
+        self.it = it
+        KM = ab.off_lo.shape[0] * M
+        q = np.arange(KM, dtype=np.int64)
+        # pair id of the predecessor with index 0 in every invariant dimension
+        self.qbase = (self.class_base[q // M] * M + q % M).astype(it)
+        self.qlo = [ab.off_lo.reshape(KM, n)[:, d].astype(np.int32) for d in self.inv]
+        self.qhi = [ab.off_hi.reshape(KM, n)[:, d].astype(np.int32) for d in self.inv]
+        self.pstride = [it(self.strides[d] * M) for d in self.inv]
+
+    def pairs(self, cells: np.ndarray) -> np.ndarray:
+        """Flat pair ids c * M + u of all transitions (c, u) -> r, r in ``cells`` (one per transition)."""
+        mi = [c.astype(np.int32) for c in np.unravel_index(cells, tuple(self.shape))]
+        kr = np.zeros(cells.size, dtype=np.int64)
+        for j, d in enumerate(self.cd):
+            kr += mi[d] * self.cstrides[j]
+        start = self.indptr[kr]
+        rows, t = _expand(self.indptr[kr + 1] - start)
+        q = self.q[start[rows] + t]
+        if not self.inv:
+            return q  # one class per cell: q is the pair id
+        if not hasattr(self, "qbase"):
+            self._prepare_cells()
+        base = self.qbase[q]
+        first, ext = [], []
+        for j, d in enumerate(self.inv):  # predecessor indices c_d in r_d - [hi_d, lo_d]
+            r = mi[d][rows]
+            lo, hi = self.qlo[j][q], self.qhi[j][q]
+            nd = np.int32(self.shape[d])
+            if self.pmask[d]:
+                e = np.minimum(hi - lo + 1, nd)
+                a = r - lo - e + 1
+            else:
+                a = np.maximum(r - hi, 0)
+                e = np.maximum(np.minimum(r - lo, nd - 1) - a + 1, 0)
+            if not self.pmask[d]:
+                base += a.astype(self.it) * self.pstride[j]
+            first.append(a)
+            ext.append(e)
+        tot = ext[0].astype(np.int64)
+        for e in ext[1:]:
+            tot *= e
+        rows2, t = _expand(tot)
+        p = base[rows2]
+        for j in range(len(self.inv) - 1, -1, -1):  # mixed-radix decode of the rank
+            e = ext[j][rows2] if len(self.inv) > 1 else None
+            o = (t % e if j else t).astype(self.it) if e is not None else t.astype(self.it)
+            if j:
+                t //= e
+            d = self.inv[j]
+            if self.pmask[d]:  # wrap: add the first index, modulo n_d
+                o = (o + first[j][rows2]) % self.it(self.shape[d])
+            p += o * self.pstride[j]
+        return p
+
+
+def _frontier(ab: Abstraction, changed: np.ndarray, candidates_mask: np.ndarray, dlo, dhi,
+              buf: np.ndarray) -> np.ndarray:
+    """Ids of cells c in ``candidates_mask`` with c + delta in ``changed`` (ids) for some delta in
+    [dlo, dhi]: every box of c lies in c + [dlo, dhi], so only these cells can change status.
+
+    Few changed cells: the offsets are enumerated per changed cell (cost ~ changed cells times
+    the offset range). Many: a separable binary dilation of the mask of the changed cells
+    (``buf``, (N,) bool, reused) with one pass of shifted ORs per offset and dimension.
     """
     g = ab.grid
-    D = changed.reshape(g.shape)
+    span = (np.asarray(dhi, dtype=np.int64) - dlo + 1)
+    if changed.size * int(np.prod(span)) <= g.size * int(span.sum()) // 4:
+        offs = np.stack(np.meshgrid(*[np.arange(int(l), int(h) + 1) for l, h in zip(dlo, dhi)],
+                                    indexing="ij"), axis=-1).reshape(-1, g.n)
+        c = g.ids_to_multi(changed)[:, None, :] - offs[None]
+        ok = np.ones(c.shape[:2], dtype=bool)
+        for d in range(g.n):
+            if g.periodic_mask[d]:
+                c[..., d] %= g.shape[d]
+            else:
+                ok &= (c[..., d] >= 0) & (c[..., d] < g.shape[d])
+        ids = np.unique(c[ok] @ g.strides)
+        return ids[candidates_mask[ids]]
+    buf[:] = False
+    buf[changed] = True
+    D = buf.reshape(g.shape)
     for d in range(g.n):
         src = D
         D = np.zeros_like(src)
@@ -383,24 +546,114 @@ def _block_size(ab: Abstraction) -> int:
     return max(1, (1 << 18) // max(1, ab.n_inputs))
 
 
+METHODS = ("auto", "worklist", "sat")
+_WORKLIST_MAX_PAIRS = 1 << 26  # (cell, input) pairs: the worklist keeps 2 bytes or so per pair
+
+
+def choose_method(method: str, ab: Abstraction, ev: "PairEvaluator") -> str:
+    """``worklist`` or ``sat`` for ``auto``: the worklist touches every transition into the
+    changed cells once (SCOTS's algorithm, cost ~ live transitions), the SAT game tests 2^n table
+    entries per candidate pair and rebuilds a table of all cells per level; the worklist wins
+    unless the boxes are large (many cells per box, as with long held inputs) or the pairs too
+    many for its per-pair counters."""
+    if method not in METHODS:
+        raise SimgapError(f"game method must be one of {', '.join(METHODS)}, got {method!r}")
+    if method != "auto":
+        return method
+    if ab.grid.size * ab.n_inputs > _WORKLIST_MAX_PAIRS:
+        return "sat"
+    vol = ev.fam.vol[ab.ok]
+    return "worklist" if vol.size == 0 or vol.mean() <= 4 * (1 << ab.grid.n) else "sat"
+
+
+def _unpack(packed: np.ndarray, M: int) -> np.ndarray:
+    """(N, ceil(M/8)) packed bits -> (N*M,) bool, pair id c * M + u."""
+    return np.unpackbits(packed, axis=1, count=M).view(bool).reshape(-1)
+
+
+def _predecessors(ab: Abstraction, live: np.ndarray) -> Predecessors:
+    one_class_per_cell = len(ab.class_dims) == ab.grid.n
+    return Predecessors(ab, live if one_class_per_cell else ab.ok.reshape(-1))
+
+
+def _counter_dtype(vmax: int):
+    for dt in (np.uint8, np.uint16, np.uint32):
+        if vmax <= np.iinfo(dt).max:
+            return dt
+    return np.uint64
+
+
 def solve_reach(ab: Abstraction, target: np.ndarray, blocked: np.ndarray,
-                allowed: Optional[np.ndarray] = None, group_filter: Optional[bool] = None) -> GameResult:
+                allowed: Optional[np.ndarray] = None, group_filter: Optional[bool] = None,
+                method: str = "auto") -> GameResult:
     """Reach-avoid game: least fixed point W = T u Cpre(W) (module docstring).
 
     ``target`` and ``blocked`` (obstacles) are (N,) bool masks; ``allowed`` (N,) marks the cells
     where intermediate states may be when the input is held (default: not blocked).
     The valid inputs recorded for a cell won at level j are those whose box lies in W_{j-1};
-    each of them guarantees at most j steps to go in the worst case.
+    each of them guarantees at most j steps to go in the worst case. ``method``: ``worklist``
+    (per-pair counters of box cells not yet won, decremented through the predecessors of the
+    cells won in the last level, as SCOTS), ``sat`` (level-wise summed-area tables) or ``auto``
+    (:func:`choose_method`); both give identical results.
     """
     t0 = time.perf_counter()
-    g = ab.grid
-    N, M = g.size, ab.n_inputs
+    N, M = ab.grid.size, ab.n_inputs
     target = target & ~blocked
     if allowed is None:
         allowed = ~blocked
     ev = PairEvaluator(ab, blocked, allowed)
-    live, n_boxes, n_trans = live_pairs(ab, blocked, ~blocked, allowed, ev=ev)
+    method = choose_method(method, ab, ev)
+    live, n_boxes, n_trans = live_pairs(ab, blocked, ~blocked, allowed, ev=ev, test_keep=method == "sat")
     t_live = time.perf_counter() - t0
+    if method == "worklist":
+        steps, packed, it, tested = _reach_worklist(ab, ev, target, _unpack(live, M))
+    else:
+        steps, packed, it, tested = _reach_sat(ab, ev, target, blocked, live, group_filter)
+    return GameResult(kind="reach_avoid", winning=steps >= 0, steps=steps, valid_packed=packed,
+                      n_inputs=M, target=target, iterations=it,
+                      seconds=time.perf_counter() - t0,
+                      info={"pairs_tested": int(tested), "boxes": n_boxes, "transitions": n_trans,
+                            "method": method, "seconds_live": t_live})
+
+
+def _reach_worklist(ab: Abstraction, ev: PairEvaluator, target: np.ndarray, live: np.ndarray):
+    """SCOTS's reach game, level-synchronous: cnt[c, u] = cells of box(c, u) not yet won."""
+    N, M = ab.grid.size, ab.n_inputs
+    pre = _predecessors(ab, live)
+    vol = ev.fam.vol
+    cnt = vol.astype(_counter_dtype(int(vol.max(initial=0))))[ev.cls_all].reshape(-1)
+    one = cnt.dtype.type(1)
+    steps = np.full(N, -1, dtype=np.int32)
+    steps[target] = 0
+    packed = np.zeros((N, (M + 7) // 8), dtype=np.uint8)
+    R = np.flatnonzero(target)
+    open_ = live  # pairs of cells not yet won (the caller's array, updated in place)
+    open_.reshape(N, M)[R] = False
+    it = tested = 0
+    while R.size:
+        p = pre.pairs(R)
+        p = p[open_[p]]
+        if p.size == 0:
+            break
+        it += 1
+        tested += p.size
+        np.subtract.at(cnt, p, one)  # one decrement per transition into a newly won cell
+        done = np.unique(p[cnt[p] == 0])
+        if done.size == 0:
+            break
+        R, row = np.unique(done // M, return_inverse=True)
+        rows = np.zeros((R.size, M), dtype=bool)
+        rows[row, done % M] = True
+        packed[R] = np.packbits(rows, axis=1)
+        open_.reshape(N, M)[R] = False
+        steps[R] = it
+    return steps, packed, it, tested
+
+
+def _reach_sat(ab: Abstraction, ev: PairEvaluator, target, blocked, live, group_filter):
+    """The level-wise game on summed-area tables of W (for large boxes)."""
+    g = ab.grid
+    N, M = g.size, ab.n_inputs
     W = target.copy()
     steps = np.full(N, -1, dtype=np.int32)
     steps[target] = 0
@@ -410,18 +663,21 @@ def solve_reach(ab: Abstraction, target: np.ndarray, blocked: np.ndarray,
     Wc = BoxCounter(g.shape, g.periodic_mask)
     # the input-group filter pays off with many inputs (its SAT costs one more build per level)
     hc = ev.build_hulls() if (group_filter if group_filter is not None else M >= 100) else None
-    changed = target.copy()
+    changed = np.flatnonzero(target)
+    buf = np.zeros(N, dtype=bool)
     it = 0
     B = _block_size(ab) * 4
     tested = 0
     while True:
         # a cell can gain only when one of its boxes meets the cells won last round
-        cand = _frontier(ab, changed, open_, dlo, dhi)
+        cand = _frontier(ab, changed, open_, dlo, dhi, buf)
         if cand.size == 0:
             break
         Wc.set(W)
         if hc is not None:
-            hc.set(changed)
+            buf[:] = False
+            buf[changed] = True
+            hc.set(buf)
         new_ids, new_rows = [], []
         for s in range(0, cand.size, B):
             ids = cand[s:s + B]
@@ -449,22 +705,18 @@ def solve_reach(ab: Abstraction, target: np.ndarray, blocked: np.ndarray,
         W[new] = True
         open_[new] = False
         steps[new] = it
-        changed = np.zeros(N, dtype=bool)
-        changed[new] = True
-    return GameResult(kind="reach_avoid", winning=W, steps=steps, valid_packed=packed,
-                      n_inputs=M, target=target, iterations=it,
-                      seconds=time.perf_counter() - t0,
-                      info={"pairs_tested": int(tested), "boxes": n_boxes, "transitions": n_trans,
-                            "seconds_live": t_live})
+        changed = new
+    return steps, packed, it, tested
 
 
 def solve_invariance(ab: Abstraction, safe: np.ndarray, blocked: Optional[np.ndarray] = None,
-                     max_margin: int = 3) -> GameResult:
+                     max_margin: int = 3, method: str = "auto") -> GameResult:
     """Safety game: greatest fixed point W = S n Cpre(W) (module docstring).
 
     The valid inputs of a winning cell are all u with box(c, u) inside W. ``chosen`` (N,) is
     the valid input with the largest margin k <= max_margin (the box grown by k cells in every
-    dimension still lies in W), ties by lowest index; -1 outside W.
+    dimension still lies in W), ties by lowest index; -1 outside W. ``method`` as in
+    :func:`solve_reach` (the worklist drops the pairs whose box meets a lost cell).
     """
     t0 = time.perf_counter()
     g = ab.grid
@@ -473,19 +725,66 @@ def solve_invariance(ab: Abstraction, safe: np.ndarray, blocked: Optional[np.nda
         blocked = np.zeros(N, dtype=bool)
     S = safe & ~blocked
     ev = PairEvaluator(ab, ~S, S)
+    method = choose_method(method, ab, ev)
     live, n_boxes, n_trans = live_pairs(ab, ~S, S, S, ev=ev)
     t_live = time.perf_counter() - t0
+    if method == "worklist":
+        W, it, tested = _invariance_worklist(ab, S, _unpack(live, M))
+    else:
+        W, it, tested = _invariance_sat(ab, ev, S, live)
+    packed, chosen = _safety_controller(ab, ev, W, live, max_margin)
+    steps = np.where(W, 0, -1).astype(np.int32)
+    return GameResult(kind="invariance", winning=W, steps=steps, valid_packed=packed,
+                      n_inputs=M, target=np.zeros(N, dtype=bool), chosen=chosen, iterations=it,
+                      seconds=time.perf_counter() - t0,
+                      info={"pairs_tested": int(tested), "boxes": n_boxes, "transitions": n_trans,
+                            "method": method, "seconds_live": t_live})
+
+
+def _invariance_worklist(ab: Abstraction, S: np.ndarray, live: np.ndarray):
+    """Drop every pair whose box meets a lost cell; a cell with no pair left is lost next.
+    Lost cells' pairs are all dropped, so ``alive`` alone filters the predecessors."""
+    N, M = ab.grid.size, ab.n_inputs
+    pre = _predecessors(ab, live)
+    alive = live.copy()
+    n_alive = alive.reshape(N, M).sum(axis=1, dtype=np.int32)
+    W = S & (n_alive > 0)
+    R = np.flatnonzero(S & ~W)
+    it = tested = 0
+    while True:
+        it += 1
+        p = pre.pairs(R)
+        p = p[alive[p]]
+        if p.size == 0:
+            break
+        p = np.unique(p)
+        tested += p.size
+        alive[p] = False
+        c = p // M
+        np.subtract.at(n_alive, c, np.int32(1))
+        R = np.unique(c[n_alive[c] == 0])
+        if R.size == 0:
+            break
+        W[R] = False
+    return W, it, tested
+
+
+def _invariance_sat(ab: Abstraction, ev: PairEvaluator, S: np.ndarray, live: np.ndarray):
+    """The level-wise game on summed-area tables of W (for large boxes)."""
+    g = ab.grid
+    N, M = g.size, ab.n_inputs
     W = S & live.any(axis=1)
     dlo, dhi = ab.offset_range()
     Wc = BoxCounter(g.shape, g.periodic_mask)
     B = _block_size(ab) * 4
-    changed = ~W
+    buf = np.zeros(N, dtype=bool)
+    changed = None
     it = 0
     tested = 0
     first = True
     while True:
         # a cell can lose only when one of its boxes meets the cells lost last round
-        cand = np.flatnonzero(W) if first else _frontier(ab, changed, W, dlo, dhi)
+        cand = np.flatnonzero(W) if first else _frontier(ab, changed, W, dlo, dhi, buf)
         first = False
         if cand.size == 0:
             break
@@ -503,11 +802,16 @@ def solve_invariance(ab: Abstraction, safe: np.ndarray, blocked: Optional[np.nda
         it += 1
         if not lose:
             break
-        lose = np.concatenate(lose)
-        W[lose] = False
-        changed = np.zeros(N, dtype=bool)
-        changed[lose] = True
-    # controller on the fixed point: valid inputs, and margins (grown boxes still in W)
+        changed = np.concatenate(lose)
+        W[changed] = False
+    return W, it, tested
+
+
+def _safety_controller(ab: Abstraction, ev: PairEvaluator, W: np.ndarray, live: np.ndarray, max_margin: int):
+    """Valid inputs on the fixed point, and the input of largest margin (grown boxes still in W)."""
+    g = ab.grid
+    N, M = g.size, ab.n_inputs
+    B = _block_size(ab) * 4
     Wc = BoxCounter(g.shape, g.periodic_mask)
     Wc.set(W)
     packed = np.zeros((N, (M + 7) // 8), dtype=np.uint8)
@@ -530,9 +834,4 @@ def solve_invariance(ab: Abstraction, safe: np.ndarray, blocked: Optional[np.nda
         grid_mg[ci, uj] = mg
         # largest margin first, ties by lowest index (argmax returns the first maximum)
         chosen[ids] = np.where(grid_mg.max(axis=1) >= 0, grid_mg.argmax(axis=1), -1)
-    steps = np.where(W, 0, -1).astype(np.int32)
-    return GameResult(kind="invariance", winning=W, steps=steps, valid_packed=packed,
-                      n_inputs=M, target=np.zeros(N, dtype=bool), chosen=chosen, iterations=it,
-                      seconds=time.perf_counter() - t0,
-                      info={"pairs_tested": int(tested), "boxes": n_boxes, "transitions": n_trans,
-                            "seconds_live": t_live})
+    return packed, chosen

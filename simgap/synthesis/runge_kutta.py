@@ -1,0 +1,104 @@
+"""Fixed-step Runge-Kutta for user systems and their growth bounds (SCOTS ``runge_kutta_fixed4``).
+
+A continuous-time model x' = F(x, u) becomes a :class:`~simgap.systems.System` step with
+:func:`rk4_step`, and its SCOTS-style growth bound (the radius of the image of the cell
+[x - r, x + r] after tau) with :func:`rk4_growth`, which integrates the comparison system
+
+    r' = L(u) r,     L_ii >= sup dF_i/dx_i,   L_ij >= sup |dF_i/dx_j| (i != j)
+
+over tau (sup over the state set; Reissig, Weber & Rungger 2017, Thm. 1). Both use ``nint``
+classical RK4 substeps of h = tau / nint, evaluated in SCOTS's operation order, and both take
+tau as an argument, so they stay right for ``system.with_steps(k)`` (tau = k * base_tau)::
+
+    import numpy as np
+    from simgap.synthesis import rk4_growth, rk4_step
+    from simgap.systems import System, input_grid
+
+    def rhs(x, u):                      # damped pendulum, (B, 2) -> (B, 2)
+        return np.stack([x[:, 1], -np.sin(x[:, 0]) - 0.5 * x[:, 1] + u[:, 0]], axis=1)
+
+    L = np.array([[0.0, 1.0], [1.0, -0.5]])          # |cos| <= 1
+    pend = System(name="pend", state_names=("a", "w"), input_names=("T",), x_lo=(-1, -2),
+                  x_hi=(1, 2), inputs=input_grid([-1], [1], [5]), base_tau=0.1,
+                  step=rk4_step(rhs, nint=5))
+    growth = rk4_growth(L, nint=5)                   # growth(r, x, u, tau)
+
+RK4 is not a rigorous enclosure: like SCOTS, the results are as accurate as the integration
+(error O(h^4) per unit time); pick ``nint`` so that this is far below the cell width.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Union
+
+import numpy as np
+
+from ..errors import SimgapError
+
+RhsFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
+
+
+def _check_nint(nint) -> int:
+    if int(nint) != nint or nint < 1:
+        raise SimgapError(f"runge-kutta: nint must be an integer >= 1, got {nint}")
+    return int(nint)
+
+
+def rk4_integrate(rhs: RhsFn, x: np.ndarray, u: np.ndarray, tau: float, nint: int = 10) -> np.ndarray:
+    """x(tau) of x' = rhs(x, u), u held, with ``nint`` RK4 substeps. x (B, n), u (B, m)."""
+    nint = _check_nint(nint)
+    h = tau / nint
+    x = np.array(x, dtype=float, copy=True)
+    for _ in range(nint):  # substeps, vectorized over the batch
+        k0 = rhs(x, u)
+        k1 = rhs(x + h / 2 * k0, u)
+        k2 = rhs(x + h / 2 * k1, u)
+        k3 = rhs(x + h * k2, u)
+        x = x + (h / 6) * (k0 + 2 * k1 + 2 * k2 + k3)
+    return x
+
+
+def rk4_step(rhs: RhsFn, nint: int = 10) -> Callable[[np.ndarray, np.ndarray, float], np.ndarray]:
+    """A :class:`~simgap.systems.System` ``step(x, u, tau)`` integrating x' = rhs(x, u) over tau."""
+    nint = _check_nint(nint)
+
+    def step(x, u, tau):
+        return rk4_integrate(rhs, x, u, tau, nint)
+    return step
+
+
+def rk4_growth(L: Union[np.ndarray, Callable[[np.ndarray], np.ndarray]], nint: int = 10):
+    """A growth bound ``growth(r, x, u, tau)``: r(tau) of r' = L(u) r (module docstring).
+
+    ``L`` is a constant (n, n) matrix or a callable ``L(u (B, m)) -> (B, n, n)``. Its
+    off-diagonal entries must be >= 0 (a bound on |dF_i/dx_j|); this is checked.
+    """
+    nint = _check_nint(nint)
+    const = None if callable(L) else np.asarray(L, dtype=float)
+    if const is not None:
+        if const.ndim != 2 or const.shape[0] != const.shape[1]:
+            raise SimgapError(f"growth: L must be a square (n, n) matrix, got shape {const.shape}")
+        _check_metzler(const)
+
+    def growth(r, x, u, tau):
+        r = np.atleast_2d(np.asarray(r, dtype=float))
+        if const is not None:
+            A = const
+            if A.shape[0] != r.shape[1]:
+                raise SimgapError(f"growth: L is {A.shape[0]} x {A.shape[0]}, the state has {r.shape[1]} dimensions")
+            mul = lambda v: v @ A.T  # noqa: E731
+        else:
+            A = np.asarray(L(np.atleast_2d(u)), dtype=float)
+            if A.shape != (r.shape[0], r.shape[1], r.shape[1]):
+                raise SimgapError(f"growth: L(u) returned shape {A.shape}, expected {(r.shape[0],) + (r.shape[1],) * 2}")
+            _check_metzler(A)
+            mul = lambda v: np.einsum("bij,bj->bi", A, v)  # noqa: E731
+        return rk4_integrate(lambda v, _u: mul(v), r, None, tau, nint)
+    return growth
+
+
+def _check_metzler(A: np.ndarray) -> None:
+    n = A.shape[-1]
+    off = ~np.eye(n, dtype=bool)
+    if np.any(A[..., off] < 0) or not np.all(np.isfinite(A)):
+        raise SimgapError("growth: L must be finite with off-diagonal entries >= 0 (bounds on |dF_i/dx_j|)")

@@ -51,7 +51,8 @@ def _cases():
 def _abstraction(sysm, spec, eta, growth, inv, hold):
     grid = UniformGrid(sysm.x_lo, sysm.x_hi, eta, periodic=sysm.angle_dims)
     blocked, cells = label_cells(grid, spec, sysm.x_lo, sysm.x_hi)
-    ab = build_abstraction(sysm, grid, growth=growth, hold=hold, invariant_dims=inv, gap=[0.0002] * sysm.n)
+    ab = build_abstraction(sysm, grid, growth=growth, hold=hold, invariant_dims=inv, gap=[0.0002] * sysm.n,
+                           compose_hold=True)
     return ab, blocked, cells
 
 

@@ -64,6 +64,9 @@ class SimgapApp:
                                "bodies": True}
         self.jobs = JobRunner(on_progress=self._job_progress, on_finish=self._job_finished)
         self._scene_version = 0
+        self.run = None  # a loaded `simgap run` folder (results.RunResults) and the method shown
+        self.run_method = None
+        self.audit = None  # the shown certificate's audit report (from a run folder)
 
         self.server = viser.ViserServer(host=host, port=port, verbose=False)
         self.server.gui.configure_theme(control_width="large", dark_mode=False, show_logo=False)
@@ -228,6 +231,57 @@ class SimgapApp:
         self.refresh_result_layers()
         self._update_buttons()
 
+    def load_run(self, run, method: str = "stochastic") -> None:
+        """Show a finished ``simgap run`` (:class:`~simgap_viz.results.RunResults`): its data,
+        certificate, audit, controller and rollouts of ``method``, with the run's settings.
+
+        The loaded results are cached under the settings' stage keys, so every knob works from
+        here (a changed delta re-certifies from the run's data).
+        """
+        from simgap.pipeline import experiment_spec
+
+        from .experiment import from_experiment
+        if method not in run.methods:
+            raise SimgapError(f"the run has no {method!r} results; it has {', '.join(run.methods)}")
+        m = run.methods[method]
+        exp = run.experiment
+        st, _, _ = from_experiment(exp)
+        spec, x0, arena = experiment_spec(exp)
+        ro = run.summary.get("sections", {}).get("rollout", {})
+        x0 = run.summary.get("x0", x0)
+        with self.lock:
+            self.experiment, self.spec, self.arena = exp, spec, arena
+            self.run, self.run_method, self.audit = run, method, m.audit
+            self.settings = st.replace(use_gap=True, x0=None if x0 is None else tuple(float(v) for v in x0),
+                                       n_rollouts=int(ro.get("n", st.n_rollouts)),
+                                       horizon=int(m.rollouts.horizon) if m.rollouts is not None else st.horizon,
+                                       rollout_seed=int(ro.get("seed", 11)), hold=int(m.synthesis.controller.hold),
+                                       eta=tuple(float(e) for e in m.synthesis.controller.grid.eta))
+        self.set_dataset(m.dataset)
+        with self.lock:
+            for stage, res in (("certify", m.certificate), ("synthesize", m.synthesis), ("rollout", m.rollouts)):
+                if res is None:
+                    continue
+                key = self.settings.stage_key(stage)
+                self.cache[(stage, key)] = res
+                self.results[stage] = res
+                self.result_keys[stage] = key
+        for p in self.panels.values():
+            p.sync_from_settings()
+        self._show_results()
+        self.set_status(f"run **{run.path.name}** ({method}): data K = {m.dataset.K}, "
+                        f"{m.synthesis.controller.size_with_target} winning cells"
+                        + (f", {m.rollouts.n_rollouts} rollouts" if m.rollouts is not None else ""))
+
+    def _show_results(self) -> None:
+        """Refresh every panel's summary and the result layers."""
+        self.panels["certificate"].show_summary()
+        self.panels["synthesis"].show_stats()
+        self.panels["rollouts"].show_stats()
+        self.panels["refine"].show_report()
+        self.refresh_result_layers()
+        self._update_buttons()
+
     # ----- stages -------------------------------------------------------------------------
     def _run_stage(self, stage: str, background: bool = True) -> None:
         """Show the stage's cached result for the current settings, or compute it (and any
@@ -296,12 +350,7 @@ class SimgapApp:
                 self.result_keys[st] = k if self.results[st] is not None else None
         if stage == "collect":
             self.panels["system"].sync_from_settings()
-        self.panels["certificate"].show_summary()
-        self.panels["synthesis"].show_stats()
-        self.panels["rollouts"].show_stats()
-        self.panels["refine"].show_report()
-        self.refresh_result_layers()
-        self._update_buttons()
+        self._show_results()
 
     def start_job(self, name: str, fn: Callable[[JobContext], Any], then: Optional[Callable] = None) -> None:
         """Run ``fn(ctx)`` on the job thread (progress bar, cancel button enabled)."""

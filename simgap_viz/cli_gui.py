@@ -11,6 +11,10 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "gui", help="interactive web app (viser): collect, certify, synthesize, roll out, refine",
         description="Start the simgap web app and print the URL to open in a browser. "
                     "Binds 127.0.0.1 unless --host says otherwise.")
+    p.add_argument("results", nargs="?", default=None,
+                   help="a finished `simgap run` folder (e.g. results/pendulum-small): open it fully loaded")
+    p.add_argument("--method", default="stochastic", choices=("stochastic", "deterministic"),
+                   help="which certificate's results of RESULTS to show first (default: stochastic)")
     p.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1; 0.0.0.0 exposes it)")
     p.add_argument("--port", type=int, default=8080, help="port (default 8080; 0 picks a free one)")
     p.add_argument("--experiment", default=None, help="experiment name or TOML file (e.g. pendulum)")
@@ -25,14 +29,29 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
 
 def run(args) -> int:
+    from simgap.errors import SimgapError
+
     from .app import SimgapApp
     from .experiment import app_inputs
+    from .results import load_run
 
+    run_results = None
+    if args.results is not None:
+        if args.experiment or args.dataset or args.system:
+            raise SimgapError("give either a results folder or --experiment/--dataset/--system, not both")
+        run_results = load_run(args.results)
     settings, dataset, spec, arena, exp = app_inputs(experiment=args.experiment, profile=args.profile,
                                                 dataset=args.dataset, system=args.system)
     app = SimgapApp(host=args.host, port=args.port, settings=settings, dataset=dataset, spec=spec, arena=arena,
                     experiment=exp)
     app.executor = args.executor
+    if run_results is not None:
+        app.load_run(run_results, args.method if args.method in run_results.methods else next(iter(run_results.methods)))
+    if args.host in ("0.0.0.0", "::", ""):
+        print(f"simgap gui: WARNING: --host {args.host} serves the app to every machine that can reach this one; "
+              f"anyone who can connect can run stages and read files the app can read", flush=True)
+        print(f"simgap gui: listening on {args.host}:{app.server.get_port()}; addresses of this machine: "
+              f"{', '.join(_addresses()) or 'unknown'}", flush=True)
     print(f"simgap gui: open {app.url} in a browser (Ctrl+C to stop)", flush=True)
     t0 = time.monotonic()
     try:
@@ -43,3 +62,15 @@ def run(args) -> int:
     finally:
         app.stop()
     return 0
+
+
+def _addresses() -> list:
+    """This machine's IPv4 addresses (what another machine would connect to), best effort."""
+    import socket
+    out = set()
+    try:
+        for info in socket.getaddrinfo(socket.gethostname(), None, socket.AF_INET):
+            out.add(info[4][0])
+    except OSError:
+        pass
+    return sorted(out)

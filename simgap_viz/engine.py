@@ -367,12 +367,26 @@ def certificate_markdown(cert) -> str:
     return "\n".join(rows)
 
 
+def lines_table(lines, header: str = "") -> str:
+    """The engine's aligned "key   value" summary lines as a two-column markdown table (wraps in
+    the panel, where a code block would be clipped); lines without a key become plain text."""
+    import re
+    rows, text = [], [header] if header else []
+    for line in lines:
+        parts = re.split(r"\s{2,}", line.strip(), maxsplit=1)
+        if len(parts) == 2 and line.startswith(("  ", parts[0])) and len(parts[0]) <= 20:
+            rows.append(f"| {parts[0]} | {parts[1].replace('|', '/')} |")
+        elif line.strip():
+            text.append(line.strip())
+    return "  \n".join(text) + ("\n\n| | |\n|---|---|\n" + "\n".join(rows) if rows else "")
+
+
 def synthesis_markdown(res) -> str:
-    return "```\n" + res.summary() + "\n```"
+    return lines_table(res.summary().splitlines())
 
 
 def rollout_markdown(res) -> str:
-    return "```\n" + "\n".join(res.summary_lines()) + "\n```"
+    return lines_table(res.summary_lines())
 
 
 def compare_refined(dataset, res, settings, spec=None):

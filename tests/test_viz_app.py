@@ -148,16 +148,30 @@ def test_certify_summary_and_cheap_recertify(app):
     assert app.result_keys["certify"] != key2
     assert app.results["certify"].dims[1].terms == ["1", "x1", "x2", "u1"]
     assert app.panels["certificate"].summary.content != summary
-    # per-dimension deltas through the GUI
+    # switching to per-dimension deltas pre-fills the certificate's own deltas: gamma stays
     cp = app.panels["certificate"]
-    cp.delta1.value = "0.01, 0.01"
-    cp.delta2.value = "0.01, 0.01"
+    before = app.results["certify"]
     cp.mode.value = "per dimension"
+    app.wait(60)
+    after = app.results["certify"]
+    assert after is not before and [d.delta1 for d in after.dims] == [d.delta1 for d in before.dims]
+    x, u = app.results["collect"].x[:50], app.results["collect"].u[:50]
+    np.testing.assert_allclose(after.gamma(x, u), before.gamma(x, u), rtol=1e-9)
+    # per-dimension deltas through the GUI
+    cp.delta1.value = "0.01, 0.01"
+    cp.delta2.value = "0.01, 0.01"  # re-certifies after the job the first change started
+    deadline = time.time() + 60
+    while time.time() < deadline and [d.delta2 for d in app.results["certify"].dims] != [0.01, 0.01]:
+        time.sleep(0.1)
     app.wait(60)
     c = app.results["certify"]
     assert [d.delta1 for d in c.dims] == [0.01, 0.01] and [d.delta2 for d in c.dims] == [0.01, 0.01]
-    # switching back to confidence mode and degree 2 is a cache hit: the same object, no job
+    # switching back to confidence mode pre-fills this certificate's joint confidence
     cp.mode.value = "target confidence"
+    app.wait(60)
+    assert cp.confidence.value == pytest.approx(c.joint_confidence, rel=1e-5)
+    # confidence 0.9 and degree 2 again is a cache hit: the same object, no job
+    cp.confidence.value = 0.9
     app.wait(60)
     cp.degree.value = 2
     app.wait(60)

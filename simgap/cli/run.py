@@ -37,8 +37,9 @@ def run(args) -> int:
     if not args.no_record:
         rrd = _record(exp, out)
         if rrd:
-            print(f"recording: {rrd}   (open with: rerun {rrd})")
-    print(f"GUI: simgap gui --experiment {args.experiment} --profile {exp.profile}")
+            print(f"recording: {rrd}   (open with: rerun {rrd}; without a display: "
+                  f"rerun --web-viewer --bind 127.0.0.1 {rrd})")
+    print(f"GUI: simgap gui {out}")
     return 0
 
 

@@ -33,7 +33,7 @@ class CertificatePanel(Panel):
         self.buttons["certify"].on_click(lambda _: app.certify())
         self.summary = gui.add_markdown("*no certificate yet*")
         on = self.on
-        on(self.mode, lambda v: self.apply_deltas())
+        on(self.mode, lambda v: self.switch_mode())
         on(self.confidence, lambda v: self.apply_deltas())
         on(self.delta1, lambda v: self.apply_deltas(), debounce=0.6)
         on(self.delta2, lambda v: self.apply_deltas(), debounce=0.6)
@@ -42,6 +42,25 @@ class CertificatePanel(Panel):
         on(self.concentration, lambda v: app.update_settings(concentration=v))
         on(self.value_range, lambda v: app.update_settings(value_range=float(v) if float(v) != 0.0 else None))
         self.auto.on_update(lambda _: setattr(app, "auto_certify", bool(self.auto.value)))
+        self._show_mode()
+
+    def switch_mode(self) -> None:
+        """Switch how the deltas are given, pre-filled with what the current certificate used
+        (its deltas, or its joint confidence), so a mode switch alone never changes gamma."""
+        cert = self.app.results.get("certify")
+        if cert is not None:
+            if self.mode.value == MODES[1]:
+                self.set_quiet(self.delta1, ", ".join(repr(float(d.delta1)) for d in cert.dims))
+                self.set_quiet(self.delta2, ", ".join(repr(float(d.delta2)) for d in cert.dims))
+            elif cert.joint_confidence is not None and 0.0 < cert.joint_confidence < 1.0:
+                self.set_quiet(self.confidence, float(f"{cert.joint_confidence:.6g}"))
+        self._show_mode()
+        self.apply_deltas()
+
+    def _show_mode(self) -> None:
+        per_dim = self.mode.value == MODES[1]
+        self.confidence.disabled = per_dim
+        self.delta1.disabled = self.delta2.disabled = not per_dim
 
     def apply_deltas(self) -> None:
         n = self.app.system.n
@@ -64,10 +83,14 @@ class CertificatePanel(Panel):
         elif s.confidence is not None:
             self.set_quiet(self.mode, MODES[0])
             self.set_quiet(self.confidence, s.confidence)
+        self._show_mode()
 
     def show_summary(self) -> None:
         cert = self.app.results.get("certify")
         self.summary.content = "*no certificate yet*" if cert is None else engine.certificate_markdown(cert)
+        if cert is not None and self.mode.value == MODES[0]:  # show the deltas the confidence gave
+            self.set_quiet(self.delta1, fmt_vec([float(f"{d.delta1:.4g}") for d in cert.dims]))
+            self.set_quiet(self.delta2, fmt_vec([float(f"{d.delta2:.4g}") for d in cert.dims]))
 
 
 def build(app) -> CertificatePanel:

@@ -13,6 +13,11 @@ class SystemDataPanel(Panel):
         super().__init__(app)
         gui = app.server.gui
         s = app.settings
+        self.run_method = gui.add_dropdown(
+            "Run results", options=("stochastic", "deterministic"), initial_value="stochastic", visible=False,
+            hint="which certificate's results of the loaded run to show (the run's data, certificate, "
+                 "controller and rollouts)")
+        self.run_method.on_update(lambda _: app.guarded(self._switch_method))
         self.system = gui.add_dropdown("System", options=engine.SYSTEMS, initial_value=s.system)
         self.simulator = gui.add_dropdown("Simulator", options=engine.SIMULATORS, initial_value=s.simulator)
         self.noise = gui.add_number("Noise std", initial_value=s.noise_std, step=0.001,
@@ -42,6 +47,12 @@ class SystemDataPanel(Panel):
         on(self.seed, lambda v: app.update_settings(seed=int(v)))
         self.sync_from_settings()
 
+    def _switch_method(self) -> None:
+        app = self.app
+        if getattr(app, "_syncing", False) or app.run is None or self.run_method.value == app.run_method:
+            return
+        app.load_run(app.run, self.run_method.value)
+
     def load(self, path: str) -> None:
         """Load a dataset file (or store directory) and make it the current data."""
         self.app.set_dataset(load_dataset(path.strip()))
@@ -51,9 +62,15 @@ class SystemDataPanel(Panel):
         for h, v in ((self.system, s.system), (self.simulator, s.simulator), (self.noise, s.noise_std),
                      (self.epsilon, s.epsilon), (self.n_runs, s.n_runs), (self.steps, s.steps), (self.seed, s.seed)):
             self.set_quiet(h, v)
+        run = self.app.run
+        if run is not None:
+            self.run_method.options = tuple(run.methods)
+            self.set_quiet(self.run_method, self.app.run_method)
+        self.run_method.visible = run is not None
         d = self.app.results.get("collect")
         sysd = self.app.system
-        txt = [f"**{sysd.name}**: n = {sysd.n}, m = {sysd.m}, |U| = {sysd.inputs.shape[0]}, tau = {sysd.tau:g} s"]
+        txt = ([f"run: `{run.path}` ({run.summary.get('experiment')}, profile {run.summary.get('profile')})"]
+               if run is not None else []) + [f"**{sysd.name}**: n = {sysd.n}, m = {sysd.m}, |U| = {sysd.inputs.shape[0]}, tau = {sysd.tau:g} s"]
         if d is not None:
             txt.append(f"data: K = {d.K} pairs, N1hat = {d.n_runs}, epsilon = {d.epsilon:g}, "
                        f"max gap = {', '.join(f'{g:.3g}' for g in d.gap().max(axis=0))}")

@@ -1,0 +1,117 @@
+"""A finished ``simgap run`` folder, loaded for the app (``simgap gui RESULTS_DIR``).
+
+The folder layout is the pipeline's (:func:`simgap.pipeline.run_experiment`): ``summary.json``,
+``data`` and ``data_deterministic`` (collection stores), and per method (``stochastic``,
+``deterministic``) ``cert_<m>.json``, ``audit_<m>.json``, ``controller_<m>.npz`` and, when the
+rollouts ran, ``rollouts_<m>.npz``. Everything is read with the engine's own loaders (no
+pickle; the stores verify their digests); only files inside the folder are opened.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional
+
+from simgap.errors import SimgapError
+
+METHODS = ("stochastic", "deterministic")
+DATA_DIRS = {"stochastic": "data", "deterministic": "data_deterministic"}
+
+
+@dataclass
+class MethodResults:
+    """One method's stage outputs: dataset, certificate, audit report, synthesis, rollouts (or None)."""
+
+    dataset: object
+    certificate: object
+    audit: Optional[dict]
+    synthesis: object
+    rollouts: object = None
+
+
+@dataclass
+class RunResults:
+    path: Path
+    summary: dict
+    experiment: object = None  # simgap.config.ExperimentConfig, when its TOML is still readable
+    methods: dict = field(default_factory=dict)  # method -> MethodResults
+
+
+def is_run_dir(path) -> bool:
+    """True for a folder that holds a finished run's ``summary.json``."""
+    p = Path(path)
+    return p.is_dir() and (p / "summary.json").is_file()
+
+
+def _inside(root: Path, name: str) -> Path:
+    p = (root / name).resolve()
+    if root.resolve() not in p.parents:
+        raise SimgapError(f"results folder: {name!r} points outside {root}")
+    return p
+
+
+def _experiment(summary: dict, root: Path):
+    """The run's experiment config: its TOML file if it still loads, else the built-in of that name."""
+    from simgap.config import load_experiment
+    name, profile = summary.get("experiment"), summary.get("profile") or "base"
+    errors = []
+    for src in (summary.get("config_file"), name):
+        if not src:
+            continue
+        try:
+            return load_experiment(src, profile)
+        except SimgapError as e:
+            errors.append(str(e))
+    raise SimgapError(f"results folder {root}: cannot load its experiment {name!r} (profile {profile}): "
+                      + "; ".join(errors))
+
+
+def load_run(path) -> RunResults:
+    """Load every stage output of a finished run (see module docstring).
+
+    Raises SimgapError naming the folder and the missing or unreadable file.
+    """
+    from simgap.certify.certificate import load as load_certificate
+    from simgap.collect import load_store
+    from simgap.synthesis.controller import Controller, SynthesisResult
+    from simgap.synthesis.rollout import load_rollout
+
+    root = Path(path)
+    if not root.is_dir():
+        raise SimgapError(f"results folder {str(root)!r} does not exist")
+    if not (root / "summary.json").is_file():
+        raise SimgapError(f"{str(root)!r} has no summary.json: not a finished `simgap run` folder "
+                          "(run `simgap run EXPERIMENT` first, or give --experiment/--dataset)")
+    try:
+        summary = json.loads((root / "summary.json").read_text())
+    except (OSError, ValueError) as e:
+        raise SimgapError(f"{root / 'summary.json'} is not readable JSON: {e}") from None
+    if not isinstance(summary, dict) or not isinstance(summary.get("methods"), dict):
+        raise SimgapError(f"{root / 'summary.json'} has no 'methods' table: not a `simgap run` summary")
+    exp = _experiment(summary, root)
+    run = RunResults(path=root, summary=summary, experiment=exp)
+    for m in METHODS:
+        if m not in summary["methods"]:
+            continue
+        ds = load_store(_inside(root, DATA_DIRS[m]), system=exp.system)
+        cert = load_certificate(_inside(root, f"cert_{m}.json"))
+        audit = None
+        ap = _inside(root, f"audit_{m}.json")
+        if ap.is_file():
+            try:
+                audit = json.loads(ap.read_text())
+            except (OSError, ValueError) as e:
+                raise SimgapError(f"{ap} is not readable JSON: {e}") from None
+        cp = _inside(root, f"controller_{m}.npz")
+        if not cp.is_file():
+            raise SimgapError(f"results folder {root}: {cp.name} is missing")
+        ctrl = Controller.load(cp, system=exp.system)
+        syn = SynthesisResult(ctrl, dict(ctrl.meta.get("stats", {})))
+        rp = _inside(root, f"rollouts_{m}.npz")
+        ro = load_rollout(rp) if rp.is_file() else None
+        run.methods[m] = MethodResults(dataset=ds, certificate=cert, audit=audit, synthesis=syn, rollouts=ro)
+    if not run.methods:
+        raise SimgapError(f"{root / 'summary.json'} lists no method results")
+    return run

@@ -1,0 +1,172 @@
+"""`simgap gui RESULTS_DIR`: a finished `simgap run` folder opens with every stage loaded.
+
+The folder is made by the real pipeline (simgap.pipeline.run_experiment) on a tiny pendulum
+experiment with the numpy simulator (about 10 s).
+"""
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+TINY = """
+description = "tiny pendulum run for the app tests"
+[system]
+name = "pendulum"
+steps = 1
+[simulator]
+kind = "numpy"
+noise = { actuation_std = 0.01 }
+effects = { linear = [[0.0, 0.0], [0.0, -0.1]] }
+[collect]
+epsilon = 0.01
+n_runs = 20
+seed = 1
+executor = "serial"
+[certify]
+degree = 2
+beta1 = 0.05
+beta2 = 0.05
+[audit]
+points = 10
+runs = 50
+seed = 7
+[synthesis]
+spec = "invariance"
+eta = [0.005, 0.01]
+hold = 1
+[rollout]
+n = 50
+horizon = 60
+x0 = [0.05, 0.1]
+seed = 11
+"""
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory):
+    from simgap.config import load_experiment
+    from simgap.pipeline import run_experiment
+    d = tmp_path_factory.mktemp("run")
+    (d / "tiny.toml").write_text(TINY)
+    exp = load_experiment(d / "tiny.toml", "base")
+    summary = run_experiment(exp, d / "out", log=lambda m: None)
+    assert all(summary["methods"][m]["winning_cells"] > 0 for m in ("stochastic", "deterministic"))
+    return d / "out"
+
+
+@pytest.fixture
+def loaded(run_dir):
+    from simgap_viz.app import SimgapApp
+    from simgap_viz.results import load_run
+    run = load_run(run_dir)
+    app = SimgapApp(port=0, executor="serial")
+    app.load_run(run)
+    yield app, run
+    app.stop()
+
+
+def test_run_folder_opens_with_every_stage(loaded):
+    app, run = loaded
+    m = run.methods["stochastic"]
+    assert app.results["collect"] is m.dataset and app.results["certify"] is m.certificate
+    assert app.results["synthesize"] is m.synthesis and app.results["rollout"] is m.rollouts
+    assert app.audit is m.audit and m.audit["certificate_method"] == "stochastic"
+    assert app.settings.eta == (0.005, 0.01) and app.settings.x0 == (0.05, 0.1)
+    # summaries are tables that wrap in the panel, not clipped code blocks
+    for text in (app.panels["synthesis"].stats.content, app.panels["rollouts"].stats.content):
+        assert "```" not in text and "|---|---|" in text
+    assert "| winning |" in app.panels["synthesis"].stats.content
+    assert "| spec held | 50 / 50 |" in app.panels["rollouts"].stats.content
+    # the other method's results through the Data tab's dropdown
+    app.panels["system"].run_method.value = "deterministic"
+    d = run.methods["deterministic"]
+    assert app.run_method == "deterministic" and app.results["certify"] is d.certificate
+    assert app.results["collect"] is d.dataset and app.results["rollout"] is d.rollouts
+    # a knob change re-certifies from the run's data
+    app.panels["certificate"].degree.value = 1
+    out = app.wait(120)
+    assert out.ok, out.error
+    assert app.results["certify"] is not d.certificate and app.results["certify"].dims[0].terms == ["1", "x1", "x2", "u1"]
+
+
+def test_mode_switch_keeps_the_certificate(loaded):
+    """Switching 'delta from' pre-fills the current deltas: gamma does not jump to a placeholder."""
+    app, run = loaded
+    cert = app.results["certify"]
+    cp = app.panels["certificate"]
+    assert cp.mode.value == "target confidence" and cp.delta1.disabled and not cp.confidence.disabled
+    shown = [float(v) for v in cp.delta1.value.split(",")]
+    np.testing.assert_allclose(shown, [d.delta1 for d in cert.dims], rtol=1e-3)  # no stale placeholder
+    cp.mode.value = "per dimension"
+    out = app.wait(120)
+    assert out is None or out.ok
+    new = app.results["certify"]
+    assert [d.delta1 for d in new.dims] == [d.delta1 for d in cert.dims]
+    x, u = app.results["collect"].x[::97], app.results["collect"].u[::97]
+    np.testing.assert_allclose(new.gamma(x, u), cert.gamma(x, u), rtol=1e-9)
+    assert not cp.delta1.disabled and cp.confidence.disabled
+
+
+def test_cli_gui_opens_a_results_folder(run_dir, tmp_path):
+    p = subprocess.run([sys.executable, "-m", "simgap", "gui", str(run_dir), "--port", "0", "--exit-after", "0.5"],
+                       capture_output=True, text=True, timeout=180)
+    assert p.returncode == 0, p.stderr
+    assert "open http://127.0.0.1:" in p.stdout
+    bad = subprocess.run([sys.executable, "-m", "simgap", "gui", str(tmp_path), "--port", "0", "--exit-after", "0.5"],
+                         capture_output=True, text=True, timeout=180)
+    assert bad.returncode != 0 and "summary.json" in bad.stderr and "Traceback" not in bad.stderr
+
+
+def test_cli_gui_warns_on_all_interfaces():
+    p = subprocess.run([sys.executable, "-m", "simgap", "gui", "--host", "0.0.0.0", "--port", "0",
+                        "--exit-after", "0.3"], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    assert "WARNING" in p.stdout and "listening on 0.0.0.0:" in p.stdout
+
+
+def _free_port() -> int:
+    import socket
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_recording_opens_in_the_headless_web_viewer(run_dir, tmp_path):
+    """The README's command for a machine without a display: the installed rerun's web viewer
+    serves the recording over HTTP on localhost (no window needed)."""
+    import shutil
+    import time
+    import urllib.request
+
+    from simgap_viz.record import record_run
+    from simgap_viz.results import load_run
+    rerun = shutil.which("rerun")
+    if rerun is None:
+        pytest.fail("the rerun viewer (from rerun-sdk) is not on PATH")
+    run = load_run(run_dir)
+    m = run.methods["stochastic"]
+    rrd = tmp_path / "run.rrd"
+    record_run(rrd, run.experiment.system, dataset=m.dataset, certificate=m.certificate,
+               synthesis=m.synthesis, rollouts=m.rollouts)
+    web, grpc = _free_port(), _free_port()
+    log = tmp_path / "rerun.log"
+    with open(log, "w") as fh:
+        proc = subprocess.Popen([rerun, "--web-viewer", "--bind", "127.0.0.1", "--web-viewer-port", str(web),
+                                 "--port", str(grpc), str(rrd)], stdout=fh, stderr=subprocess.STDOUT,
+                                env={**__import__("os").environ, "DISPLAY": "", "WAYLAND_DISPLAY": ""})
+    try:
+        page, deadline = None, time.time() + 60
+        while page is None and time.time() < deadline and proc.poll() is None:
+            try:
+                page = urllib.request.urlopen(f"http://127.0.0.1:{web}/", timeout=2).read().decode()
+            except OSError:
+                time.sleep(0.3)
+        text = log.read_text()
+        assert page is not None, f"web viewer did not answer: {text[-2000:]}"
+        assert "<html" in page.lower() and "rerun" in page.lower()
+        assert f"Hosting a web-viewer at http://127.0.0.1:{web}" in text and str(rrd) in text
+    finally:
+        proc.terminate()
+        proc.wait(10)

@@ -12,7 +12,17 @@ transition data, and returns a :class:`RefineResult` whose ``report`` is the JSO
 * ``unexplained`` (bool) and per-state detail (``states``): remaining fraction of the
   residual, held-out R^2 of the structure test, lag-1 autocorrelation for time series;
 * ``multistep`` (time series only): RMS error of 10- and 100-step open-loop predictions with
-  the measured inputs from held-out states, for f and f'.
+  the measured inputs from held-out states, for f and f';
+* ``withdrawn``: effects the multi-step gate removed (f' predicted ``gate_steps`` steps ahead
+  worse than f on held-out data), each with the reason; their states are flagged unexplained;
+* ``history``: lags used (time series: ``input_delay`` candidates and lagged user terms);
+  history effects are reported (``in_refined_system`` false) and counted in rms_after and the
+  multi-step errors, but a memoryless f' cannot hold them;
+* per effect ``stderr`` = sqrt(stderr_statistical^2 + stderr_misfit^2): the bootstrap part and
+  the between-region spread of the coefficient (:func:`simgap.refine.selection.misfit_stderr`);
+* per state ``noise_floor_fraction`` (model-free, :mod:`simgap.refine.structure`) and
+  ``unexplained_fraction`` (remaining variance above the floor), both relative to the nominal
+  model's held-out residual variance.
 """
 
 from __future__ import annotations
@@ -113,8 +123,9 @@ def refine(system, data: Transitions, effects: Optional[Sequence[str]] = None,
     refined = build_refined(sysobj, base_spec, [c[0] for c in now], [c[1] for c in now],
                             [c[2] for c in now], name=name)
     after = _after(refined, data, hist, chosen)
-    for fit in fits:
+    for fit in fits:      # after a withdrawal the remaining residual is larger than selection saw
         fit.rss_heldout = float(np.sum((after.r[held, fit.state] / data.tau) ** 2))
+        fit.unexplained_fraction = max(0.0, fit.remaining_fraction - fit.noise_floor_fraction)
     report = _report(sysobj, refined, data, held, fits, chosen, before, after, opts, hist, withdrawn, hist_info)
     return RefineResult(system=sysobj, refined=refined, data=data, heldout=held, fits=fits,
                         effects=chosen, before=before, after=after, report=report)
@@ -327,12 +338,20 @@ def format_table(report: dict) -> str:
             var = e.get("input", e.get("variable")) or "-"
             ph = e["physical"]
             phs = f"{ph['value']:.4g} {ph['unit']} ({ph['quantity']})" if ph else ""
+            if not e.get("in_refined_system", True):
+                phs += " [needs memory: not in the saved f']"
             se = e["stderr"]
             lines.append(f"{e['name']:<18}{e['state_name']:<8}{var:<8}{e['coefficient']:>13.5g}"
                          f"{(se if se is not None else float('nan')):>11.2g}  {e['unit']:<16}"
                          f"{100 * e['explained_fraction']:>8.1f}%  {phs}")
     else:
         lines.append("no effect selected")
+    for w in report.get("withdrawn", []):
+        lines.append(f"withdrawn {w['key']} (coefficient {w['coefficient']:.4g}): {w['reason']}")
+    hist = report.get("history", {})
+    if hist.get("lags"):
+        lines.append(f"history: {hist['lags']} periods of lagged inputs/states used "
+                     f"({hist['rows_without_history']} rows at segment starts left out)")
     lines.append("")
     lines.append(f"{'held-out residual':<20}" + "".join(f"{n:>24}" for n in names))
     for key, label in (("rms_before", "RMS before (f)"), ("rms_after", "RMS after (f')"),

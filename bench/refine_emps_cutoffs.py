@@ -1,23 +1,21 @@
 """EMPS: stability of the refinement result under the low-pass cutoff, with and without input filtering.
 
-    python bench/refine_emps_cutoffs.py [--mat ../shared/data/emps/DATA_EMPS.mat]
+    python bench/refine_emps_cutoffs.py [--mat PATH]   (default: the record found via $SIMGAP_EMPS_DIR)
 
 Prints, per cutoff, the held-out velocity-update RMS of f and f', their ratio and the effects on
 qd in physical units (docs/refine.md, "Results, two cutoffs").
 """
 
 import argparse
-from pathlib import Path
-
+from simgap.records import emps_record
 from simgap.refine import from_trajectory_file, refine
-
-DEFAULT = Path(__file__).resolve().parents[2] / "shared" / "data" / "emps" / "DATA_EMPS.mat"
 
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("--mat", default=str(DEFAULT))
+    ap.add_argument("--mat", help="EMPS estimation record (default: simgap.records.emps_record())")
     args = ap.parse_args()
+    args.mat = args.mat or emps_record("estimation")
     for filt in (True, False):
         for fc in (10, 20, 50, 100, 200, 450):
             d = from_trajectory_file(args.mat, preset="emps", cutoff_hz=fc, filter_input=filt)

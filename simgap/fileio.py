@@ -13,13 +13,32 @@ from typing import Iterator
 import numpy as np
 
 
+def _umask() -> int:
+    """The process umask, read without changing it where the OS allows (Linux /proc)."""
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError):
+        pass
+    mask = os.umask(0o022)  # elsewhere: read by setting and restoring
+    os.umask(mask)
+    return mask
+
+
 @contextlib.contextmanager
 def atomic_file(path: str | os.PathLike, mode: str = "w", fsync: bool = False) -> Iterator:
-    """Open a temporary file beside ``path``; on success rename it to ``path``, else delete it."""
+    """Open a temporary file beside ``path``; on success rename it to ``path``, else delete it.
+
+    The file gets the permissions an ordinary ``open`` would give (0666 less the umask), not
+    the 0600 of the private temporary file.
+    """
     path = Path(path)
     folder = path.parent if str(path.parent) else Path(".")
     fd, tmp = tempfile.mkstemp(dir=folder, prefix=f".{path.name}.", suffix=".tmp")
     try:
+        os.fchmod(fd, 0o666 & ~_umask())
         with os.fdopen(fd, mode) as fh:
             yield fh
             if fsync:

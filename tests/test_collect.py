@@ -3,6 +3,7 @@
 import json
 import re
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -333,12 +334,16 @@ def test_progress_bar_and_stop_checks():
 
     from simgap.progress import ProgressBar, as_stop_check
     buf = io.StringIO()
-    bar = ProgressBar(unit="pairs", stream=buf, scale=100.0, scale_unit="sim steps")
-    for done in range(0, 1001, 50):
+    bar = ProgressBar(unit="pairs", stream=buf, scale=100.0, scale_unit="sim steps", desc="collect")
+    for done in range(200, 1001, 50):  # a resumed run: 200 pairs were done before
+        time.sleep(0.002)
         bar(done, 1000)
-    lines = buf.getvalue().splitlines()
-    assert 10 <= len(lines) <= 12  # not a tty: about one line per 10 %
-    assert "100.0%" in lines[-1] and "1,000/1,000 pairs" in lines[-1] and "sim steps/s" in lines[-1]
+    out = buf.getvalue()
+    final = out.replace("\r", "\n").strip().splitlines()[-1]
+    assert final.startswith("collect: 100%") and "1000/1000" in final, final
+    rate = float(final.split(", ")[-1].split(" sim steps/s")[0].replace(",", ""))
+    assert 0 < rate < 800 * 100 / 0.032, final  # 800 new pairs x 100 steps in at least 16 sleeps
+    assert out.count("\r") <= 3  # off a terminal: no redraw storm (first, final, close)
     ev = threading.Event()
     check = as_stop_check(ev)
     assert not check()

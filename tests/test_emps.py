@@ -1,7 +1,7 @@
 """The refinement loop on measured data: the EMPS benchmark record (real ball-screw axis).
 
-The record is read from ../shared/data/emps/DATA_EMPS.mat (next to the repository). When it is
-absent the EMPS tests skip with a message saying where to get it.
+The record is found through $SIMGAP_EMPS_DIR or in ../shared/data/emps/ next to the repository
+(simgap.records). When it is absent the EMPS tests skip with a message saying where they looked.
 """
 
 import json
@@ -12,15 +12,12 @@ import pytest
 
 from simgap.cli import main
 from simgap.errors import SimgapError
+from simgap.records import emps_missing_message, find_emps
 from simgap.refine.report import refine
 from simgap.refine.trajectory import from_trajectory_file, trajectory_to_transitions
 
-EMPS_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "emps"
-EMPS = EMPS_DIR / "DATA_EMPS.mat"
-needs_record = pytest.mark.skipif(
-    not EMPS.exists(),
-    reason=f"EMPS record not found at {EMPS}: get DATA_EMPS.mat from the EMPS benchmark "
-           f"(nonlinearbenchmark.org; `pip install nonlinear-benchmarks` downloads it) and put it there")
+EMPS = find_emps("estimation") or Path("DATA_EMPS.mat")
+needs_record = pytest.mark.skipif(not EMPS.exists(), reason=emps_missing_message("estimation"))
 
 
 @pytest.fixture(scope="module")
@@ -139,3 +136,29 @@ def test_from_trajectory_cli_csv_with_named_columns(tmp_path, capsys):
     assert "Nyquist = 250 Hz" in capsys.readouterr().err
     assert main(["data", "from-trajectory", str(path), "--time", "time", "--position", "pos",
                  "--cutoff", "40", "--out", str(out)]) == 2
+
+
+def test_emps_found_through_environment_variable(tmp_path, monkeypatch, capsys):
+    """$SIMGAP_EMPS_DIR is searched first; the missing-record message names every folder searched."""
+    from simgap.records import EMPS_ENV, emps_search_dirs
+
+    (tmp_path / "DATA_EMPS_PULSES.mat").write_bytes(b"")
+    monkeypatch.setenv(EMPS_ENV, str(tmp_path))
+    assert emps_search_dirs()[0] == tmp_path and find_emps("validation") == tmp_path / "DATA_EMPS_PULSES.mat"
+    msg = emps_missing_message("validation")
+    assert str(tmp_path) in msg and EMPS_ENV in msg and all(str(d) in msg for d in emps_search_dirs())
+    with pytest.raises(SimgapError, match="unknown EMPS record"):
+        find_emps("training")
+    assert main(["data", "from-trajectory", "--out", str(tmp_path / "x.npz")]) != 0
+    assert "trajectory file" in capsys.readouterr().err
+
+
+@needs_record
+def test_emps_cli_finds_record_by_itself(tmp_path, monkeypatch, capsys):
+    from simgap.records import EMPS_ENV
+
+    monkeypatch.setenv(EMPS_ENV, str(EMPS.parent))
+    out = tmp_path / "val.npz"
+    assert main(["data", "from-trajectory", "--preset", "emps", "--record", "validation", "--out", str(out)]) == 0
+    assert f"EMPS validation record: {EMPS.parent / 'DATA_EMPS_PULSES.mat'}" in capsys.readouterr().out
+    assert out.exists()

@@ -8,6 +8,8 @@ filtered with the same filter unless --no-filter-input.
 Examples::
 
     simgap data from-trajectory DATA_EMPS.mat --preset emps --cutoff 20 --out emps_20hz.npz
+    simgap data from-trajectory --preset emps --record validation --out emps_val.npz
+        (the EMPS record found through $SIMGAP_EMPS_DIR or ../shared/data/emps)
     simgap data from-trajectory log.csv --time t --position q --input u --cutoff 15 --out log.npz
 """
 
@@ -24,8 +26,11 @@ def add_parser(subparsers) -> None:
     sub = p.add_subparsers(dest="data_command", metavar="ACTION")
     t = sub.add_parser("from-trajectory", help="measured trajectory (.mat/.csv/.npz) -> transition .npz",
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    t.add_argument("file", help="trajectory file (.mat, .csv, .npz)")
+    t.add_argument("file", nargs="?", help="trajectory file (.mat, .csv, .npz); with --preset emps it may be "
+                                          "omitted: the EMPS --record is looked up ($SIMGAP_EMPS_DIR)")
     t.add_argument("--preset", help="known record layout: emps (t, qm, vir)")
+    t.add_argument("--record", choices=("estimation", "validation"), default="estimation",
+                   help="with --preset emps and no file: which EMPS record (default estimation)")
     t.add_argument("--time", help="name of the time variable [s]")
     t.add_argument("--position", action="append", help="name of a measured position variable (repeatable)")
     t.add_argument("--input", action="append", help="name of an input variable (repeatable)")
@@ -43,6 +48,13 @@ def run_from_trajectory(args) -> int:
 
     if not args.out.endswith(".npz"):
         raise SimgapError(f"--out {args.out!r}: the transition file must end in .npz")
+    if args.file is None:
+        if args.preset != "emps":
+            raise SimgapError("give the trajectory file (only --preset emps can find its record by itself)")
+        from ..records import emps_record
+
+        args.file = str(emps_record(args.record))
+        print(f"EMPS {args.record} record: {args.file}")
     tr = from_trajectory_file(args.file, preset=args.preset, time=args.time, positions=args.position,
                               inputs=args.input, cutoff_hz=args.cutoff, order=args.order, trim=args.trim,
                               filter_input=not args.no_filter_input)

@@ -31,7 +31,7 @@ def run(args) -> int:
     out = Path(args.out or Path("results") / f"{exp.name}-{exp.profile or 'base'}")
     print(f"simgap run {exp.name} (profile {exp.profile}) -> {out}", file=sys.stderr)
     summary = run_experiment(exp, out, executor=args.executor, workers=args.workers, n_rollouts=args.rollouts,
-                             log=lambda m: print(m, file=sys.stderr, flush=True), progress=lambda stage: ProgressBar("pairs"))
+                             log=lambda m: print(m, file=sys.stderr, flush=True), progress=lambda stage: ProgressBar("pairs", desc=stage))
     print(comparison_table(summary))
     print(f"\nsummary: {out / 'summary.json'}")
     if not args.no_record:

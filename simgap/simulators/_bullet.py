@@ -25,21 +25,44 @@ def urdf_path(name: str) -> Path:
 
 
 @contextlib.contextmanager
-def _quiet_stdout():
-    """Silence file descriptor 1 (C-level prints) for the duration of the block."""
+def _quiet_c_output():
+    """Silence file descriptors 1 and 2 (C-level prints) for the duration of the block.
+
+    PyBullet's C library prints "pybullet build time: ..." on stderr at import and "argv[0]="
+    on stdout at connect; neither says anything a user can act on.
+    """
+    saved = []
     try:
-        sys.stdout.flush()
-        saved = os.dup(1)
-    except (OSError, ValueError):  # no real stdout (e.g. captured): nothing to silence
-        yield
-        return
-    try:
+        for fd, stream in ((1, sys.stdout), (2, sys.stderr)):
+            try:
+                stream.flush()
+                saved.append((fd, os.dup(fd)))
+            except (OSError, ValueError, AttributeError):  # no real descriptor (e.g. captured)
+                pass
         with open(os.devnull, "w") as null:
-            os.dup2(null.fileno(), 1)
+            for fd, _ in saved:
+                os.dup2(null.fileno(), fd)
             yield
     finally:
-        os.dup2(saved, 1)
-        os.close(saved)
+        for fd, copy in saved:
+            os.dup2(copy, fd)
+            os.close(copy)
+
+
+def pybullet_module():
+    """The ``pybullet`` module, imported with its C-level build banner kept off the terminal."""
+    with _quiet_c_output():
+        import pybullet
+    return pybullet
+
+
+def direct_client():
+    """A bare private PyBullet client in DIRECT mode, connected without the "argv[0]=" banner."""
+    pybullet = pybullet_module()
+    with _quiet_c_output():
+        from pybullet_utils.bullet_client import BulletClient
+
+        return BulletClient(connection_mode=pybullet.DIRECT)
 
 
 def bullet_client(dt: float, gravity: float = 9.81, deterministic_pairs: bool = False):
@@ -50,11 +73,7 @@ def bullet_client(dt: float, gravity: float = 9.81, deterministic_pairs: bool = 
     overlapping pairs (contact order independent of history; costs time, only useful with
     contacts).
     """
-    with _quiet_stdout():  # the C library prints its build banner on import and "argv[0]=" on connect
-        import pybullet
-        from pybullet_utils.bullet_client import BulletClient
-
-        client = BulletClient(connection_mode=pybullet.DIRECT)
+    client = direct_client()
     client.setGravity(0.0, 0.0, -float(gravity))
     # numSubSteps=0: one stepSimulation call advances exactly dt (no internal substepping)
     client.setPhysicsEngineParameter(fixedTimeStep=float(dt), numSubSteps=0,

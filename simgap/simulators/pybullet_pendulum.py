@@ -56,7 +56,8 @@ from typing import Dict
 import numpy as np
 
 from ..errors import SimgapError
-from ._bullet import BulletSimulator, bullet_client, check_std, int_option, relative_factors, urdf_path
+from ._bullet import (BulletSimulator, bullet_client, check_std, int_option, pybullet_module, relative_factors,
+                      urdf_path)
 from .base import as_vector
 
 MAX_BRANCHES = 120  # Bullet multibodies take at most ~128 links
@@ -99,7 +100,7 @@ class PendulumSimulator(BulletSimulator):
 
     # ----- construction ------------------------------------------------------------------
     def _build(self, urdf: str) -> None:
-        import pybullet
+        pybullet = pybullet_module()
 
         path = Path(urdf) if Path(urdf).is_absolute() else urdf_path(urdf)
         c = self._client = bullet_client(self.dt, self.g)

@@ -59,7 +59,8 @@ import numpy as np
 
 from ..errors import SimgapError
 from ..systems import wrap_angle
-from ._bullet import BulletSimulator, bullet_client, check_std, int_option, relative_factors, urdf_path
+from ._bullet import (BulletSimulator, bullet_client, check_std, int_option, pybullet_module, relative_factors,
+                      urdf_path)
 from .base import as_vector
 
 # collision filter groups: the world (plane, obstacles) and the robots; robots only hit the world
@@ -132,7 +133,7 @@ class TurtlebotSimulator(BulletSimulator):
 
     # ----- construction ------------------------------------------------------------------
     def _build(self, urdf: str) -> None:
-        import pybullet
+        pybullet = pybullet_module()
 
         path = Path(urdf) if Path(urdf).is_absolute() else urdf_path(urdf)
         c = self._client = bullet_client(self.dt, 9.81, deterministic_pairs=True)
@@ -187,7 +188,7 @@ class TurtlebotSimulator(BulletSimulator):
 
         Every reset places the base at this height and tilt, rotated to the run's heading.
         """
-        import pybullet
+        pybullet = pybullet_module()
         c, body = self._client, self.bodies[0]
         c.setJointMotorControlArray(body, self.wheels, pybullet.VELOCITY_CONTROL,
                                     targetVelocities=[0.0, 0.0], forces=[self.motor_force] * 2)

@@ -14,6 +14,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from simgap.systems import System
+from simgap.simulators._bullet import direct_client, pybullet_module
 
 
 def _quat_matrix(q) -> np.ndarray:
@@ -25,8 +26,9 @@ def _quat_matrix(q) -> np.ndarray:
 
 
 def _shape_mesh(geom: int, dims, mesh_file: bytes, scale_hint=None):
-    import pybullet
     import trimesh
+
+    pybullet = pybullet_module()
 
     if geom == pybullet.GEOM_BOX:
         return trimesh.creation.box(extents=np.maximum(np.asarray(dims[:3], float), 1e-4))
@@ -52,10 +54,7 @@ def urdf_meshes(urdf: str | Path, base_position: Sequence[float] = (0.0, 0.0, 0.
 
     ``joint_positions`` sets the joints (radians / metres) before reading the link frames.
     """
-    import pybullet
-    from pybullet_utils.bullet_client import BulletClient
-
-    c = BulletClient(connection_mode=pybullet.DIRECT)
+    c = direct_client()
     try:
         b = c.loadURDF(str(urdf), basePosition=list(base_position), useFixedBase=fixed_base)
         if joint_positions is not None:

@@ -29,11 +29,12 @@ import numpy as np
 from .collect import DEFAULT_BATCH_RUNS, CollectionPlan, _int
 from .cover import Cover, CoverSpec, make_cover
 from .errors import SimgapError
+from .paths import ASSETS_DIR
 from .executors import EXECUTORS
 from .simulators.base import SimulatorConfig
 from .systems import System, get_system, input_grid
 
-EXPERIMENTS_DIR = Path(__file__).resolve().parents[1] / "assets" / "experiments"
+EXPERIMENTS_DIR = ASSETS_DIR / "experiments"
 
 SYSTEM_KEYS = {"name", "steps", "inputs", "input_grid"}
 SIMULATOR_KEYS = {"kind", "noise", "randomize", "effects", "options", "system", "steps"}

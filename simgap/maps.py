@@ -41,10 +41,11 @@ from typing import List
 import numpy as np
 
 from .errors import SimgapError
+from .paths import ASSETS_DIR
 from .synthesis.spec import Box, Spec
 
 #: where named maps live (repository assets, installed editable)
-MAPS_DIR = Path(__file__).resolve().parents[1] / "assets" / "maps"
+MAPS_DIR = ASSETS_DIR / "maps"
 
 _KEYS = {"name", "description", "bounds", "robot_radius", "initial_state", "target", "obstacles"}
 

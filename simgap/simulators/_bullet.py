@@ -10,10 +10,11 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import SimgapError
+from ..paths import ASSETS_DIR
 from .base import Simulator
 
 #: repository folder holding the URDF files (``assets/urdf``)
-URDF_DIR = Path(__file__).resolve().parents[2] / "assets" / "urdf"
+URDF_DIR = ASSETS_DIR / "urdf"
 
 
 def urdf_path(name: str) -> Path:

@@ -1,0 +1,319 @@
+"""Interval-MDP abstraction from simulator samples.
+
+States are the cells of a :class:`~simgap.synthesis.grid.UniformGrid` over X plus one sink
+``C`` (value 0: unsafe, obstacle, outside X, or any cell outside the sampled support). Actions
+are the inputs U, each held for ``hold`` = k sampling periods (one abstract step = k periods).
+For every live cell c (safe, not target) and input a the abstraction stores, sparsely, an
+interval [lo, hi] on the probability that one k-period run from ANY x in the cell ends in each
+successor cell.
+
+Construction (per (c, a), all vectorized over pairs x runs):
+
+1. Lipschitz widening. ASSUMPTION (per realization): for every noise draw w, the k-period
+   trajectory x -> y_t(x, u, w), t = 1..k, is Lipschitz
+   along each coordinate: |y_t,i(x) - y_t,i(x + s e_j)| <= L_ij |s| (L: Wood-Zhang estimates from
+   common-random-number slopes, or given). So the run from any x in the cell stays in the box
+   y_t(x_c, w) +- rho, rho_i = sum_j L_ij eta_j / 2, around the run from the center x_c.
+2. Pilot runs (N0, independent of step 3) fix the support T(c, a): the cells the widened end
+   boxes of the pilot runs touch.
+3. Main runs (N). Per run: the set S of cells its widened end box touches; the run is a "sink
+   run" if any widened box along the k periods leaves the safe set / X or meets an obstacle,
+   or S leaves T(c, a) or contains a non-live cell. For every x in the cell and successor j in T:
+       P_x(j) >= P(S = {j}, no sink)  and  P_x(j) <= P(j in S),   P_x(sink) <= P(sink run),
+   estimated by one-sided Clopper-Pearson bounds on n_in(j), n_hit(j), n_sink out of N.
+4. Union bound: every one-sided bound is taken at level beta / (number of bounds), so all of
+   them hold at once with probability >= 1 - beta (Bonferroni; Clopper-Pearson is exact, so the
+   number of bounds K costs ln K in the exponent: at zero counts hi = 1 - (beta/K)^(1/N)).
+
+Memory: entries (col int32, lo/hi float32 rounded outward) in CSR over rows c*M + a.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from .. import fileio
+from ..certify.lipschitz import wood_zhang
+from ..errors import SimgapError
+from ..synthesis.grid import UniformGrid
+from ..synthesis.spec import Spec
+from .orderstats import cp_lower, cp_upper
+
+FORMAT = "simgap-imdp"
+
+
+@dataclass
+class IMDP:
+    """Sparse interval MDP (see module docstring). Rows r = c * M + a; the sink is column C."""
+
+    grid: UniformGrid
+    inputs: np.ndarray          # (M, m)
+    hold: int                   # k sampling periods per abstract step
+    live: np.ndarray            # (C,) bool: sampled cells (safe, not target)
+    target: np.ndarray          # (C,) bool: reach-avoid target cells (value 1, absorbing)
+    row_ptr: np.ndarray         # (C*M + 1,) int64
+    col: np.ndarray             # (nnz,) int32 successor cell, C = sink
+    lo: np.ndarray              # (nnz,) float32 lower probability bound
+    hi: np.ndarray              # (nnz,) float32 upper probability bound
+    meta: dict = field(default_factory=dict)
+
+    @property
+    def C(self) -> int:
+        return self.grid.size
+
+    @property
+    def M(self) -> int:
+        return self.inputs.shape[0]
+
+    @property
+    def nnz(self) -> int:
+        return int(self.col.size)
+
+    def nbytes(self) -> int:
+        return int(self.row_ptr.nbytes + self.col.nbytes + self.lo.nbytes + self.hi.nbytes)
+
+    def save(self, path) -> Path:
+        meta = dict(self.meta, format=FORMAT, hold=self.hold, grid=self.grid.describe())
+        return fileio.savez(path, inputs=self.inputs, live=self.live, target=self.target, row_ptr=self.row_ptr,
+                            col=self.col, lo=self.lo, hi=self.hi, meta=np.array(fileio_json(meta)))
+
+
+def fileio_json(d: dict) -> str:
+    import json
+    return json.dumps(d, sort_keys=True, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))
+
+
+# ----------------------------------------------------------------------------------------------
+# Labels
+# ----------------------------------------------------------------------------------------------
+
+def box_unsafe(spec: Spec, lo: np.ndarray, hi: np.ndarray, x_lo: np.ndarray, x_hi: np.ndarray,
+               angle_dims=()) -> np.ndarray:
+    """(B,) bool: the box [lo, hi] is not entirely allowed (leaves X or the safe set, meets an obstacle).
+
+    Angle dimensions are never bounded by X (they wrap)."""
+    bounded = np.ones(lo.shape[1], dtype=bool)
+    bounded[list(angle_dims)] = False
+    bad = np.any(((lo < x_lo) | (hi > x_hi))[:, bounded], axis=1)
+    if spec.kind == "invariance":
+        s_lo, s_hi = spec.safe.lo, spec.safe.hi
+        bad |= np.any((lo < s_lo) | (hi > s_hi), axis=1)
+    for b in spec.obstacles:
+        bad |= np.all((hi >= b.lo) & (lo <= b.hi), axis=1)
+    return bad
+
+
+def cell_labels(grid: UniformGrid, spec: Spec, x_lo, x_hi, angle_dims=()):
+    """(live, target) (C,) bool: live = the whole cell is allowed and not target; target = inside the target box."""
+    ids = np.arange(grid.size)
+    c = grid.points(ids)
+    h = grid.eta / 2
+    allowed = ~box_unsafe(spec, c - h, c + h, x_lo, x_hi, angle_dims)
+    target = np.zeros(grid.size, dtype=bool)
+    if spec.kind == "reach_avoid":
+        target = allowed & grid.cells_inside(spec.target.lo, spec.target.hi)
+    return allowed & ~target, target
+
+
+# ----------------------------------------------------------------------------------------------
+# Sampling
+# ----------------------------------------------------------------------------------------------
+
+def trajectory_lipschitz(sim, hold: int, h: np.ndarray, rng: np.random.Generator, n_pairs: int = 300,
+                         runs: int = 20) -> tuple[np.ndarray, dict]:
+    """Per-coordinate constants L (n, n) of the k-period trajectory map, common random numbers.
+
+    L[i, j] bounds |y_t,i(x) - y_t,i(x + s e_j)| / |s| for every period t <= k and every noise draw:
+    pairs (x, x + h_j e_j), u uniform from U, the same noise per period at both ends; slopes
+    max_t |y_t,i(x) - y_t,i(x')| / h_j; Wood-Zhang estimate per (i, j).
+    """
+    s = sim.system
+    n = s.n
+    L = np.empty((n, n))
+    how = {}
+    B = n_pairs * runs
+    for j in range(n):
+        lo, hi = s.x_lo.copy(), s.x_hi.copy()
+        hi[j] -= h[j]
+        x = lo + rng.random((n_pairs, n)) * (hi - lo)
+        x2 = x.copy()
+        x2[:, j] += h[j]
+        u = s.inputs[rng.integers(0, len(s.inputs), n_pairs)]
+        X = np.repeat(np.concatenate([x, x2]), runs, axis=0)
+        U = np.repeat(np.concatenate([u, u]), runs, axis=0)
+        slope = np.zeros((B, n))
+        for _ in range(hold):
+            noise = {k: np.concatenate([v, v]) for k, v in sim.draw_noise(B, rng).items()}
+            X = sim.step_with_noise(X, U, noise)
+            slope = np.maximum(slope, np.abs(s.diff(X[:B], X[B:])) / h[j])
+        for i in range(n):
+            wz = wood_zhang(slope[:, i], np.random.default_rng([7, i, j]))
+            L[i, j] = wz.estimate
+            how[f"d{s.state_names[i]}/d{s.state_names[j]}"] = wz.to_dict()
+    return L, how
+
+
+def _hits(grid: UniformGrid, y: np.ndarray, rho: np.ndarray):
+    """Cells touched by the boxes y +- rho: (sample index, cell id or -1 outside the grid, single) arrays.
+
+    ``single`` (B,) bool: the box touches exactly one cell.
+    """
+    B, n = y.shape
+    lo_mi = np.floor((y - rho - grid.first) / grid.eta + 0.5).astype(np.int64)
+    hi_mi = np.floor((y + rho - grid.first) / grid.eta + 0.5).astype(np.int64)
+    span = hi_mi - lo_mi + 1
+    W = span.max(axis=0)
+    offs = np.stack(np.meshgrid(*[np.arange(w) for w in W], indexing="ij"), axis=-1).reshape(-1, n)
+    mi = lo_mi[:, None, :] + offs[None, :, :]                      # (B, P, n)
+    valid = np.all(offs[None, :, :] < span[:, None, :], axis=2)    # (B, P)
+    shape = np.asarray(grid.shape)
+    inside = np.ones(valid.shape, dtype=bool)
+    for d in range(n):
+        if grid.periodic_mask[d]:
+            mi[:, :, d] %= shape[d]
+        else:
+            inside &= (mi[:, :, d] >= 0) & (mi[:, :, d] < shape[d])
+    ids = np.where(inside, np.clip(mi, 0, shape - 1) @ grid.strides, -1)
+    b, p = np.nonzero(valid)
+    return b, ids[b, p], np.prod(span, axis=1) == 1
+
+
+def _simulate(sim, spec, x, u, hold, rho, rng, x_lo, x_hi, angle_dims):
+    """k periods with u held from x: (end states, sink flag: some widened box along the way was unsafe)."""
+    bad = np.zeros(len(x), dtype=bool)
+    y = x
+    for _ in range(hold):
+        y = sim.step(y, u, rng)
+        bad |= box_unsafe(spec, y - rho, y + rho, x_lo, x_hi, angle_dims)
+    return y, bad
+
+
+@dataclass
+class IMDPOptions:
+    """Options of :func:`build_imdp`.
+
+    eta : cell widths (state units); hold : k periods per abstract step; n_runs : N main runs per
+    (cell, input); pilot_runs : N0 support runs; beta : failure probability of all intervals;
+    lipschitz : (n, n) per-coordinate L_ij of the k-period map (None: estimated, see trajectory_lipschitz).
+    """
+
+    eta: object
+    hold: int = 10
+    n_runs: int = 2000
+    pilot_runs: int = 200
+    beta: float = 0.01
+    lipschitz: Optional[object] = None
+    seed: int = 0
+    batch_runs: int = 1 << 19
+
+    def validate(self, n: int):
+        if int(self.hold) < 1:
+            raise SimgapError(f"hold must be >= 1 sampling period, got {self.hold}")
+        if int(self.n_runs) < 10 or int(self.pilot_runs) < 1:
+            raise SimgapError(f"need n_runs >= 10 and pilot_runs >= 1, got {self.n_runs}, {self.pilot_runs}")
+        if not 0.0 < float(self.beta) < 1.0:
+            raise SimgapError(f"beta must be in (0, 1), got {self.beta}")
+        if self.lipschitz is not None:
+            L = np.broadcast_to(np.asarray(self.lipschitz, float), (n, n))
+            if not np.all(np.isfinite(L)) or np.any(L < 0):
+                raise SimgapError(f"lipschitz must be >= 0 and finite, got {self.lipschitz!r}")
+
+
+def build_imdp(sim, spec: Spec, options: IMDPOptions, log=None) -> IMDP:
+    """Sample ``sim`` and build the interval MDP of ``spec`` (see module docstring)."""
+    t0 = time.perf_counter()
+    s = sim.system
+    o = options
+    o.validate(s.n)
+    grid = UniformGrid(s.x_lo, s.x_hi, o.eta, periodic=tuple(s.angle_dims))
+    ad = tuple(s.angle_dims)
+    k, N, N0 = int(o.hold), int(o.n_runs), int(o.pilot_runs)
+    rng = np.random.default_rng([o.seed, 0])
+    half = grid.eta / 2
+    if o.lipschitz is None:
+        L, how = trajectory_lipschitz(sim, k, half, np.random.default_rng([o.seed, 1]))
+    else:
+        L, how = np.broadcast_to(np.asarray(o.lipschitz, float), (s.n, s.n)).copy(), "given"
+    rho = L @ half                                       # |y_i(x) - y_i(x_c)| <= sum_j L_ij |x_j - c_j|
+    live, target = cell_labels(grid, spec, s.x_lo, s.x_hi, ad)
+    C, M = grid.size, s.inputs.shape[0]
+    cells = np.flatnonzero(live)
+    P = cells.size * M                                   # sampled pairs, pair p = (cells[p // M], p % M)
+    centers = grid.points(cells)
+    good = live | target                                 # successors kept as columns; others go to the sink
+    t_lip = time.perf_counter() - t0
+
+    def run_pairs(pp, runs, rng):
+        x = np.repeat(centers[pp // M], runs, axis=0)
+        u = np.repeat(s.inputs[pp % M], runs, axis=0)
+        y, bad = _simulate(sim, spec, x, u, k, rho, rng, s.x_lo, s.x_hi, ad)
+        b, ids, single = _hits(grid, y, rho)
+        return b, ids, single, bad
+
+    # ----- pass 1: pilot support T(c, a) (sorted keys pair * (C+1) + cell) -------------------------
+    per = max(1, o.batch_runs // N0)
+    sup = []
+    for a in range(0, P, per):
+        pp = np.arange(a, min(P, a + per))
+        b, ids, _, bad = run_pairs(pp, N0, rng)
+        keep = (ids >= 0) & good[np.maximum(ids, 0)] & ~bad[b]
+        sup.append(np.unique(pp[b[keep] // N0] * (C + 1) + ids[keep]))
+    support = np.concatenate(sup) if sup else np.zeros(0, np.int64)
+    n_bounds = 2 * support.size + P                      # lo and hi per support entry, hi per sink
+    b_each = float(o.beta) / max(n_bounds, 1)
+    t_pilot = time.perf_counter() - t0 - t_lip
+    if log:
+        log(f"imdp: {cells.size} live cells x {M} inputs, support {support.size} entries; "
+            f"{n_bounds} one-sided bounds at level {b_each:.3g} each")
+
+    # ----- pass 2: main runs -> counts on the support ---------------------------------------------
+    n_hit = np.zeros(support.size, np.int64)
+    n_in = np.zeros(support.size, np.int64)
+    n_sink = np.zeros(P, np.int64)
+    per = max(1, o.batch_runs // N)
+    for a in range(0, P, per):
+        pp = np.arange(a, min(P, a + per))
+        b, ids, single, bad = run_pairs(pp, N, rng)
+        key = pp[b // N] * (C + 1) + np.maximum(ids, 0)
+        posc = np.minimum(np.searchsorted(support, key), max(support.size - 1, 0))
+        ok = (ids >= 0) & (support[posc] == key) if support.size else np.zeros(b.size, bool)
+        sink_run = bad.copy()
+        sink_run[b[~ok]] = True                          # a hit outside T(c,a), outside the grid or non-live
+        n_sink[pp] += sink_run.reshape(len(pp), N).sum(axis=1)
+        hit = ok                                         # j in S (counted even for sink runs: upper bound)
+        np.add.at(n_hit, posc[hit], 1)
+        inn = ok & single[b] & ~sink_run[b]
+        np.add.at(n_in, posc[inn], 1)
+    t_main = time.perf_counter() - t0 - t_lip - t_pilot
+
+    # ----- intervals, CSR ------------------------------------------------------------------------
+    pair_of = support // (C + 1)
+    rows_sup = cells[pair_of // M] * M + pair_of % M
+    rows_sink = cells.repeat(M) * M + np.tile(np.arange(M), cells.size)
+    rows = np.concatenate([rows_sup, rows_sink])
+    col = np.concatenate([support % (C + 1), np.full(P, C)]).astype(np.int32)
+    lo = np.concatenate([cp_lower(n_in, N, b_each), np.zeros(P)])
+    hi = np.concatenate([cp_upper(n_hit, N, b_each), cp_upper(n_sink, N, b_each)])
+    order = np.argsort(rows, kind="stable")
+    rows, col, lo, hi = rows[order], col[order], lo[order], hi[order]
+    row_ptr = np.zeros(C * M + 1, np.int64)
+    np.cumsum(np.bincount(rows, minlength=C * M), out=row_ptr[1:])
+    lo32 = np.nextafter(lo.astype(np.float32), np.float32(0))   # round outward: stays sound in float32
+    lo32[lo == 0] = 0
+    hi32 = np.minimum(np.nextafter(hi.astype(np.float32), np.float32(2)), np.float32(1))
+    meta = {"n_runs": N, "pilot_runs": N0, "beta": float(o.beta), "bounds": int(n_bounds),
+            "level_each": b_each, "lipschitz": L.tolist(), "lipschitz_how": how, "rho": rho.tolist(),
+            "live_cells": int(cells.size), "seed": int(o.seed),
+            "simulator": sim.config.to_dict(), "spec": spec.to_dict(),
+            "union_bound": "Bonferroni over all one-sided Clopper-Pearson bounds",
+            "assumption": "per realization: the k-period trajectory map is L-Lipschitz (common random numbers)",
+            "seconds": {"lipschitz": t_lip, "pilot": t_pilot, "main": t_main,
+                        "intervals": time.perf_counter() - t0 - t_lip - t_pilot - t_main},
+            "samples": int(P * (N + N0) * k)}
+    return IMDP(grid=grid, inputs=s.inputs.copy(), hold=k, live=live, target=target, row_ptr=row_ptr, col=col,
+                lo=lo32, hi=hi32, meta=meta)

@@ -1,0 +1,140 @@
+"""Pessimistic interval value iteration: a controller and the certified success probability p_cert per cell.
+
+For an interval MDP (:mod:`.imdp`) and a value vector V (cells plus the sink, V_sink = 0), the
+adversary picks, for each (cell, input), the distribution p with lo <= p <= hi, sum p = 1 that
+minimizes sum_j p_j V_j. The minimizer is greedy: start from p = lo and pour the free mass
+1 - sum lo into successors in ascending order of V, each up to hi (Givan et al. 2000). With
+the true transition probabilities inside the intervals (probability >= 1 - beta over the
+samples), the pessimistic value is a lower bound of the true one.
+
+Finite horizon H sampling periods = Ha = ceil(H / k) abstract steps:
+
+* invariance: V_0 = 1 on live cells; reach-avoid: V_0 = 1 on target cells, 0 elsewhere, and
+  target cells stay at 1 (absorbing: reaching counts);
+* V_{h+1}(c) = max_a Qpess_h(c, a) on live cells, 0 on the others; policy_h(c) = argmax.
+
+p_cert(c) = V_Ha(c) lower-bounds, for every x in cell c, the probability that one run under the
+time-varying policy (policy_{Ha-1-t} at abstract step t) satisfies the specification for
+Ha * k >= H periods. Everything is vectorized over the nnz entries (one argsort per step).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from .. import fileio
+from ..errors import SimgapError
+from ..synthesis.grid import UniformGrid
+from .imdp import IMDP
+
+FORMAT = "simgap-perrun-controller"
+
+
+def pessimistic_q(imdp: IMDP, V: np.ndarray, entry_row: np.ndarray) -> np.ndarray:
+    """Qpess (C*M,) = min over interval distributions of sum_j p_j V_j, per row (see module docstring)."""
+    Vs = np.append(V, 0.0)[imdp.col]
+    order = np.lexsort((Vs, entry_row))              # rows ascending, V ascending inside each row
+    v, lo, hi, r = Vs[order], imdp.lo[order].astype(np.float64), imdp.hi[order].astype(np.float64), entry_row[order]
+    R = imdp.row_ptr.size - 1
+    cap = hi - lo
+    free = 1.0 - np.bincount(r, weights=lo, minlength=R)
+    cumex = np.cumsum(cap) - cap                     # exclusive running sum over all entries
+    before = cumex - cumex[imdp.row_ptr[r]]          # ... restarted at each row's first entry
+    add = np.clip(free[r] - before, 0.0, cap)
+    return np.bincount(r, weights=(lo + add) * v, minlength=R)
+
+
+@dataclass
+class PerRunController:
+    """Time-varying controller of the interval MDP with its certified success probabilities.
+
+    policy (Ha, C) int16: input index at abstract steps-to-go h+1 (row Ha-1 is used first); -1 = none.
+    p_cert (C,): certified lower bound of the success probability over the horizon from each cell.
+    """
+
+    grid: UniformGrid
+    inputs: np.ndarray
+    hold: int
+    horizon: int                 # sampling periods H
+    policy: np.ndarray
+    p_cert: np.ndarray
+    target: np.ndarray
+    meta: dict
+
+    @property
+    def steps(self) -> int:
+        return self.policy.shape[0]
+
+    def cells(self, x: np.ndarray) -> np.ndarray:
+        return self.grid.x_to_ids(np.atleast_2d(x))
+
+    def certified(self, x: np.ndarray) -> np.ndarray:
+        """(B,) p_cert at states x (0 outside the grid)."""
+        ids = self.cells(x)
+        return np.where(ids >= 0, self.p_cert[np.maximum(ids, 0)], 0.0)
+
+    def input_index(self, x: np.ndarray, t: int) -> np.ndarray:
+        """(B,) input index at abstract step t (0-based) for states x; -1 outside the grid / no input."""
+        ids = self.cells(x)
+        h = self.steps - 1 - min(int(t), self.steps - 1)
+        return np.where(ids >= 0, self.policy[h, np.maximum(ids, 0)], -1)
+
+    def save(self, path) -> Path:
+        import json
+        meta = dict(self.meta, format=FORMAT, hold=self.hold, horizon=self.horizon, grid=self.grid.describe())
+        return fileio.savez(path, inputs=self.inputs, policy=self.policy, p_cert=self.p_cert, target=self.target,
+                            meta=np.array(json.dumps(meta, default=str)))
+
+    @classmethod
+    def load(cls, path) -> "PerRunController":
+        import json
+        path = Path(path)
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                meta = json.loads(str(z["meta"]))
+                arrays = {k: z[k] for k in ("inputs", "policy", "p_cert", "target")}
+        except (OSError, ValueError, KeyError) as e:
+            raise SimgapError(f"{str(path)!r} is not a per-run controller: {e}") from None
+        if meta.get("format") != FORMAT:
+            raise SimgapError(f"{str(path)!r} is not a per-run controller (format {meta.get('format')!r})")
+        grid = UniformGrid.from_dict(meta["grid"])
+        if arrays["policy"].ndim != 2 or arrays["policy"].shape[1] != grid.size or arrays["p_cert"].shape != (grid.size,):
+            raise SimgapError(f"{str(path)!r}: policy/p_cert do not match the grid")
+        return cls(grid=grid, inputs=arrays["inputs"], hold=int(meta["hold"]), horizon=int(meta["horizon"]),
+                   policy=arrays["policy"], p_cert=arrays["p_cert"], target=arrays["target"], meta=meta)
+
+
+def synthesize_imdp(imdp: IMDP, horizon: int, policy: Optional[np.ndarray] = None) -> PerRunController:
+    """Interval value iteration over ``horizon`` sampling periods (see module docstring).
+
+    ``policy`` (C,) fixed input indices (-1: none) evaluates that stationary controller instead of
+    maximizing (its pessimistic success probability)."""
+    if int(horizon) < 1:
+        raise SimgapError(f"horizon must be >= 1 sampling period, got {horizon}")
+    t0 = time.perf_counter()
+    C, M = imdp.C, imdp.M
+    Ha = -(-int(horizon) // imdp.hold)
+    entry_row = np.repeat(np.arange(C * M, dtype=np.int64), np.diff(imdp.row_ptr))
+    live, target = imdp.live, imdp.target
+    V = (live | target).astype(float) if not target.any() else target.astype(float)
+    pol = np.full((Ha, C), -1, np.int16)
+    for h in range(Ha):
+        Q = pessimistic_q(imdp, V, entry_row).reshape(C, M)
+        if policy is None:
+            a = np.argmax(Q, axis=1)
+        else:
+            a = np.asarray(policy, np.int64)
+        q = np.where(a >= 0, Q[np.arange(C), np.maximum(a, 0)], 0.0)
+        Vn = np.where(live, q, 0.0)
+        Vn[target] = 1.0
+        pol[h] = np.where(live, a, -1)
+        V = np.clip(Vn, 0.0, 1.0)
+    meta = dict(imdp.meta, steps=Ha, seconds_vi=time.perf_counter() - t0,
+                evaluated="fixed policy" if policy is not None else "maximized")
+    return PerRunController(grid=imdp.grid, inputs=imdp.inputs, hold=imdp.hold, horizon=int(horizon), policy=pol,
+                            p_cert=V, target=target.copy(), meta=meta)

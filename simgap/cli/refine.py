@@ -6,6 +6,8 @@ Examples::
     simgap refine --system emps --data emps_20hz.npz --out emps_report.json
     simgap refine --system turtlebot --data collected.npz --effects bias,input_gain
     simgap refine --system emps --data emps.npz --term cogging:qd:"sin(2*pi*q/0.01)"
+    simgap refine --system emps_refined.json --data DATA_EMPS_PULSES.mat --preset emps
+    simgap refine --system emps --data DATA_EMPS.mat --preset emps --validate DATA_EMPS_PULSES.mat
 
 The data are an .npz with x (K,n), u (K,m), x_next (K,n), tau (and optional t for a time
 series), a CSV/Parquet with columns x1.., x1_next.., u1.., tau (or state/input names), or a
@@ -36,6 +38,10 @@ def add_parser(subparsers) -> None:
                                      "gravity, integration")
     p.add_argument("--term", action="append", default=[], metavar="NAME:STATE:EXPR",
                    help="user-named candidate term entering STATE, e.g. cogging:qd:'sin(2*pi*q/0.01)'")
+    p.add_argument("--validate", metavar="DATA", help="a second record the fit never sees (same formats as "
+                                                      "--data, or a .mat trajectory with --preset): one-step and "
+                                                      "multi-step errors of f and f' on it")
+    p.add_argument("--preset", help="trajectory preset for .mat files given to --data/--validate (e.g. emps)")
     p.add_argument("--drop-nonfinite", action="store_true", help="drop rows with NaN/inf instead of refusing")
     p.add_argument("--holdout", type=float, default=0.3, help="held-out fraction (default 0.3)")
     p.add_argument("--segments", type=int, default=5, help="contiguous held-out segments for time series")
@@ -66,7 +72,8 @@ def run(args) -> int:
     from ..refine.selection import SelectionOptions
 
     system = load_system(args.system)
-    data = load_transitions(args.data, system=system, drop_nonfinite=args.drop_nonfinite)
+    data = _load(args.data, args, system)
+    extra = _load(args.validate, args, system) if args.validate else None
     names = None
     if args.effects:
         names = [e.strip() for e in args.effects.split(",") if e.strip()]
@@ -84,10 +91,16 @@ def run(args) -> int:
     res = refine(system, data, effects=names, user_terms=users, options=opts, name=args.name)
     if args.compare_gap or args.spec:
         res.report["gap_comparison"] = _compare(args, res)
+    if extra is not None:
+        from ..refine.report import validate
+        res.report["validation"] = validate(res, extra)
     if not args.quiet:
         print(format_table(res.report))
         if "gap_comparison" in res.report:
             print(format_gap_comparison(res.report["gap_comparison"], res.system.state_names))
+        if "validation" in res.report:
+            from ..refine.report import format_validation
+            print(format_validation(res.report["validation"], res.system.state_names))
     if args.out:
         out = Path(args.out)
         tmp = out.with_name(out.name + ".tmp")
@@ -108,6 +121,18 @@ def run(args) -> int:
         if not args.quiet:
             print(f"recording written to {args.record} (residual vs {info['against']}; open with: rerun {args.record})")
     return 0
+
+
+def _load(path, args, system):
+    """Transitions from a data file, or from a trajectory record (.mat) with --preset."""
+    from ..refine.data import load_transitions
+    if Path(path).suffix.lower() == ".mat":
+        if not args.preset:
+            raise SimgapError(f"{path}: a .mat trajectory record needs --preset (e.g. emps), or convert it "
+                              f"first with simgap data from-trajectory")
+        from ..refine.trajectory import from_trajectory_file
+        return from_trajectory_file(path, preset=args.preset)
+    return load_transitions(path, system=system, drop_nonfinite=args.drop_nonfinite)
 
 
 def _compare(args, res) -> dict:

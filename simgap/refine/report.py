@@ -131,6 +131,49 @@ def refine(system, data: Transitions, effects: Optional[Sequence[str]] = None,
                         effects=chosen, before=before, after=after, report=report)
 
 
+def validate(res: RefineResult, data: Transitions) -> dict:
+    """One-step and multi-step errors of f and f' on a record the fit never saw (all its rows).
+
+    One step: RMS of x_next - f(x, u) and of x_next - f'(x, u) per state (history effects included
+    when the record has the time order they need). Multi-step (time series): RMS of 10- and
+    100-step open-loop predictions with the record's inputs, as in the report's ``multistep``.
+    """
+    lags = int(res.report.get("history", {}).get("lags", 0))
+    data, hist, used, _ = _with_history(data, lags)
+    chosen = list(res.effects)
+    if used < lags:
+        chosen = [c for c in chosen if c[0].lag == 0]
+    s, f1 = match_tau(res.system, data.tau), match_tau(res.refined, data.tau)
+    allrows = np.ones(data.K, dtype=bool)
+    rb, ra = residuals(s, data).r, _after(f1, data, hist, chosen).r
+    out = {"data": data.source, "samples": int(data.K),
+           "rms_before": np.sqrt(np.mean(rb ** 2, axis=0)).tolist(),
+           "rms_after": np.sqrt(np.mean(ra ** 2, axis=0)).tolist(), "multistep": {}}
+    if len(chosen) < len(res.effects):
+        out["note"] = "history effects left out: the record has no time order"
+    if data.is_time_series:
+        for k in (10, 100):
+            b = multistep_rms(s, data, allrows, k)
+            if b is not None:
+                out["multistep"][str(k)] = {"rms_before": b.tolist(), "seconds": k * data.tau,
+                                            "rms_after": multistep_rms(f1, data, allrows, k, hist, chosen).tolist()}
+    return out
+
+
+def format_validation(v: dict, names) -> str:
+    """Table of :func:`validate`."""
+    lines = ["", f"validation on {v['data']} ({v['samples']} samples, not used for fitting)",
+             f"{'':<20}" + "".join(f"{n:>24}" for n in names)]
+    lines.append(f"{'RMS 1-step f':<20}" + "".join(f"{x:>24.4g}" for x in v["rms_before"]))
+    lines.append(f"{'RMS 1-step f' + chr(39):<20}" + "".join(f"{x:>24.4g}" for x in v["rms_after"]))
+    for k, ms in v["multistep"].items():
+        lines.append(f"{'RMS ' + k + '-step f':<20}" + "".join(f"{x:>24.4g}" for x in ms["rms_before"]))
+        lines.append(f"{'RMS ' + k + '-step f' + chr(39):<20}" + "".join(f"{x:>24.4g}" for x in ms["rms_after"]))
+    if "note" in v:
+        lines.append(v["note"])
+    return "\n".join(lines)
+
+
 def _with_history(data: Transitions, max_lag: int) -> tuple:
     """(data restricted to rows with ``max_lag`` periods of history, history, lags used, info)."""
     if not data.is_time_series or max_lag < 1:

@@ -314,3 +314,49 @@ def test_turtlebot_nan_is_reported(rng):
     with sim(TB) as t:
         with pytest.raises(SimgapError, match="NaN"):
             t.step([[np.nan, 1.0, 0.0]], [[0.5, 0.0]], rng)
+
+
+# ----------------------------------------------------------------------------------------
+# batches served by several processes; repeated rows simulated once
+# ----------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("base, sections", [(TB, FULL_TB), (PEND, {"noise": {"actuation_std": 0.05}})])
+def test_parallel_simulator_gives_the_same_numbers(rng, base, sections):
+    s = get_system(base["system"])
+    x = rng.uniform(s.x_lo, s.x_hi, (37, s.n))
+    u = s.inputs[rng.integers(0, len(s.inputs), 37)]
+    with sim(base, **sections) as one:
+        want = one.step(x, u, np.random.default_rng(5))
+        want5 = one.step(x[:5], u[:5], np.random.default_rng(5))
+    with make_simulator({**base, **sections}, workers=3) as par:
+        assert type(par).__name__ == "ParallelSimulator" and par.workers == 3
+        got = par.step(x, u, np.random.default_rng(5))
+        assert par._pool is not None  # the helpers really ran
+        assert np.array_equal(par.step(x[:5], u[:5], np.random.default_rng(5)), want5)  # small: not split
+    assert np.array_equal(got, want)
+
+
+def test_simulator_workers_validated():
+    with pytest.raises(SimgapError, match="workers"):
+        make_simulator(TB, workers=-2)
+
+
+def test_turtlebot_repeated_rows_simulated_once(rng, monkeypatch):
+    """Rows with the same x, u and physics draws are simulated once (a noise-free simulator
+    repeats every pair N1hat times); sensor noise still differs per row."""
+    x = np.repeat([[1.0, 1.0, 0.3], [2.0, 1.0, -2.0]], 6, axis=0)
+    u = np.repeat([[0.5, 0.5], [1.0, -1.0]], 6, axis=0)
+    with sim(TB, noise={"sensor_std": 0.001}) as t:
+        calls = []
+        inner = t._simulate
+        monkeypatch.setattr(t, "_simulate", lambda *a: calls.append(len(a[0])) or inner(*a))
+        noise = t.draw_noise(len(x), rng)
+        y = t.step_with_noise(x, u, noise)
+        assert calls == [2]
+        assert np.array_equal(y, np.concatenate([t.step_with_noise(x[i:i + 1], u[i:i + 1], rows(noise, i, i + 1))
+                                                 for i in range(len(x))]))
+        assert len(np.unique(y[:, 0])) == 12  # per-row sensor noise
+        calls.clear()
+        noise["act"][3, 0] += 1e-3  # a different draw is a different run
+        t.step_with_noise(x, u, noise)
+        assert calls == [3]

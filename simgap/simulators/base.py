@@ -124,8 +124,20 @@ _BACKENDS = {
 }
 
 
-def make_simulator(config: SimulatorConfig | dict, system: System | None = None) -> Simulator:
-    """Build a simulator from its config (a :class:`SimulatorConfig` or its dict)."""
+def make_simulator(config: SimulatorConfig | dict, system: System | None = None, workers: int = 1) -> Simulator:
+    """Build a simulator from its config (a :class:`SimulatorConfig` or its dict).
+
+    ``workers`` > 1 (0 = all cores) serves each batch with that many processes
+    (:class:`simgap.simulators.parallel.ParallelSimulator`); results are the same.
+    """
+    if workers != 1:
+        import os
+        from .parallel import ParallelSimulator
+        n = (os.cpu_count() or 1) if workers in (0, None) else int(workers)
+        if n < 1:
+            raise SimgapError(f"simulator workers must be >= 1 (0 = all cores), got {workers!r}")
+        inner = make_simulator(config, system)
+        return ParallelSimulator(inner, n, system) if n > 1 else inner
     if isinstance(config, dict):
         config = SimulatorConfig.from_dict(config)
     try:

@@ -360,3 +360,84 @@ def test_turtlebot_repeated_rows_simulated_once(rng, monkeypatch):
         noise["act"][3, 0] += 1e-3  # a different draw is a different run
         t.step_with_noise(x, u, noise)
         assert calls == [3]
+
+
+# ----------------------------------------------------------------------------------------
+# Gazebo-like stochasticity: intermittent wheel slip, actuation jitter within the hold
+# ----------------------------------------------------------------------------------------
+
+GAZEBO_TB = dict(noise={"actuation_std": [0.01, 0.02], "wheel_slip": [0.3, 0.5], "actuation_jitter": [0.05, 0.1]},
+                 randomize={"wheel_radius": 0.02, "friction": 0.2})
+
+
+def test_turtlebot_gazebo_keys_batched_equals_one_at_a_time_and_parallel(rng):
+    s = get_system("turtlebot", steps=3)
+    x = rng.uniform(s.x_lo, s.x_hi, (19, 3))
+    u = s.inputs[rng.integers(0, len(s.inputs), 19)]
+    with sim(TB, steps=3, options={"robots": 3}, **GAZEBO_TB) as t:
+        noise = t.draw_noise(len(x), np.random.default_rng(4))
+        assert noise["slip"].shape == (19, 2) and noise["jitter"].shape == (19, 3, 2)
+        batched = t.step_with_noise(x, u, noise)
+        single = np.concatenate([t.step_with_noise(x[i:i + 1], u[i:i + 1], rows(noise, i, i + 1))
+                                 for i in range(len(x))])
+    assert np.array_equal(batched, single)
+    with make_simulator({**TB, "steps": 3, **GAZEBO_TB}, workers=2) as par:
+        assert np.array_equal(par.step_with_noise(x, u, noise), batched)
+
+
+def test_turtlebot_wheel_slip_draws_and_turn():
+    """Each wheel slips with probability p, keeping 1 - s V of its speed (V ~ U(0,1)); a slipping
+    wheel turns the robot by tau v (f_R - f_L) / b."""
+    with sim(TB, noise={"wheel_slip": [0.3, 0.5]}) as t:
+        f = t.draw_noise(20000, np.random.default_rng(0))["slip"]
+    slipped = f < 1.0
+    se = np.sqrt(0.3 * 0.7 / f.size)
+    assert abs(slipped.mean() - 0.3) < 4 * se
+    assert f.min() >= 0.5 and abs(f[slipped].mean() - 0.75) < 0.01  # 1 - 0.5 E[V]
+    x, u = np.array([[1.0, 1.0, 0.0]]), np.array([[1.0, 0.0]])
+    with sim(TB, steps=10, options={"friction": 0.5}, noise={"wheel_slip": [1.0, 0.2]}) as t:
+        noise = t.draw_noise(1, np.random.default_rng(0))
+        noise["slip"][:] = [[0.9, 1.0]]  # the left wheel keeps 90 %: a left turn
+        y = t.step_with_noise(x, u, noise)
+    np.testing.assert_allclose(y[0, 2], 0.1 * 1.0 * 0.95 * 0.1 / 0.16 / 0.95, rtol=0.15)
+
+
+def test_turtlebot_actuation_jitter_applied_every_base_period():
+    """Jitter changes the wheel targets every base period, in order: a speed-up in the first half
+    of the hold moves the robot further than the same speed-up in the second half (the robot
+    accelerates at most mu g, so neither reaches the commanded extra 0.025 m); a constant jitter
+    equals the held actuation noise."""
+    x, u = np.array([[1.0, 1.0, 0.0]]), np.array([[0.5, 0.0]])
+    with sim(TB, steps=10, options={"friction": 0.5}, noise={"actuation_jitter": 0.1}) as t:
+        noise = t.draw_noise(1, np.random.default_rng(0))
+        noise["jitter"][:] = 0.0
+        plain = t.step_with_noise(x, u, noise)[0, 0] - 1.0
+        noise["jitter"][0, 5:, 0] = 0.5
+        later = t.step_with_noise(x, u, noise)[0, 0] - 1.0
+        noise["jitter"][0, :, 0] = 0.0
+        noise["jitter"][0, 1:6, 0] = 0.5
+        early = t.step_with_noise(x, u, noise)[0, 0] - 1.0
+        noise["jitter"][0, :, 0] = 0.2
+        const = t.step_with_noise(x, u, noise)
+    np.testing.assert_allclose(plain, 0.05, rtol=0.05)
+    assert 0.002 < later - plain < early - plain < 0.025
+    with sim(TB, steps=10, options={"friction": 0.5}, noise={"actuation_std": 0.1}) as t:
+        held = t.draw_noise(1, np.random.default_rng(0))
+        held["act"][:] = [[0.2, 0.0]]
+        assert np.array_equal(t.step_with_noise(x, u, held), const)
+
+
+def test_turtlebot_gazebo_keys_leave_other_streams_alone():
+    """The new draws come last and only when configured: data sets without them are unchanged."""
+    with sim(TB, noise={"actuation_std": 0.1}) as a, sim(TB, noise={"actuation_std": 0.1, "wheel_slip": [0.0, 0.5]}) as b:
+        na, nb = a.draw_noise(50, np.random.default_rng(3)), b.draw_noise(50, np.random.default_rng(3))
+    assert set(na) == set(nb) and all(np.array_equal(na[k], nb[k]) for k in na)
+
+
+@pytest.mark.parametrize("noise, match", [
+    ({"wheel_slip": 0.1}, "wheel_slip"), ({"wheel_slip": [0.1, 1.5]}, "wheel_slip"),
+    ({"wheel_slip": [-0.1, 0.5]}, "wheel_slip"), ({"actuation_jitter": -0.1}, "actuation_jitter"),
+    ({"actuation_jitter": [0.1, 0.1, 0.1]}, "actuation_jitter")])
+def test_turtlebot_gazebo_keys_bad_values(noise, match):
+    with pytest.raises(SimgapError, match=match):
+        sim(TB, noise=noise)

@@ -21,7 +21,8 @@ commanded speed. Contact caches are cleared at every reset (the robot's collisio
 re-inserted), so a run's result depends on its own (x, u, noise) only, never on the previous
 run: batched and one-at-a-time results are bit-identical.
 
-Randomness (all drawn by :meth:`draw_noise`, one draw per run, held for the whole tau):
+Randomness (all drawn by :meth:`draw_noise`, one draw per run, held for the whole tau unless
+said otherwise):
 
 * ``noise.actuation_std`` [m/s, rad/s]: scalar or 2 values, (v, omega) -> (v, omega) + a.
 * ``noise.sensor_std`` [m, m, rad]: scalar or 3 values, added to the read-back state.
@@ -32,6 +33,16 @@ Randomness (all drawn by :meth:`draw_noise`, one draw per run, held for the whol
 * ``randomize.mass`` (relative std): chassis mass and inertia scaled by (1 + s z).
 * ``randomize.friction`` (relative std): wheel-ground friction coefficient mu (1 + s z).
   All factors use z ~ N(0,1) clipped to +-3.
+
+Gazebo-like stochasticity (drawn only when configured; the experiment's ``gazebo`` profile):
+
+* ``noise.wheel_slip`` [p, s] (0 <= p <= 1, 0 <= s <= 1): intermittent loss of traction. In each
+  run each wheel, independently, slips with probability p and then covers only (1 - s V) of the
+  ground its rotation would, V ~ U(0, 1). Applied as its kinematic effect (the wheel's speed
+  target times its factor); one slipping wheel turns the robot: rare, large heading errors.
+* ``noise.actuation_jitter`` [m/s, rad/s] (scalar or 2 values): a fresh (v, omega) perturbation
+  in every base period of the hold (new wheel targets every base_tau), on top of the held
+  ``actuation_std`` draw.
 
 Undeclared effects (the nominal model lacks them):
 
@@ -94,10 +105,10 @@ def quat_yaw(q: np.ndarray) -> np.ndarray:
 class TurtlebotSimulator(BulletSimulator):
     """Stochastic PyBullet differential-drive robot (see module docstring)."""
 
-    NOISE_KEYS = ("actuation_std", "sensor_std")
+    NOISE_KEYS = ("actuation_std", "sensor_std", "wheel_slip", "actuation_jitter")
     RANDOMIZE_KEYS = ("wheel_radius", "mass", "friction")
     EFFECT_KEYS = ("actuator_gain", "wheel_radius_error")
-    _PHYSICS_DRAWS = ("act", "radius", "mass", "friction")  # the draws the physics sees (not the sensor's)
+    _PHYSICS_DRAWS = ("act", "radius", "mass", "friction", "slip", "jitter")  # what the physics sees (not "sens")
     OPTION_KEYS = ("substeps", "robots", "obstacles", "motor_force", "friction", "solver_iterations", "urdf")
 
     def __init__(self, config, system=None):
@@ -109,6 +120,8 @@ class TurtlebotSimulator(BulletSimulator):
         nz, rz, ef, op = config.noise, config.randomize, config.effects, config.options
         self.act_std = as_vector(nz.get("actuation_std", 0.0), 2, "noise.actuation_std")
         self.sens_std = as_vector(nz.get("sensor_std", 0.0), 3, "noise.sensor_std")
+        self.slip = _slip_option(nz.get("wheel_slip", [0.0, 0.0]))
+        self.jitter_std = as_vector(nz.get("actuation_jitter", 0.0), 2, "noise.actuation_jitter")
         self.radius_std = check_std(rz.get("wheel_radius", 0.0), "randomize.wheel_radius", 0.3)
         self.mass_std = check_std(rz.get("mass", 0.0), "randomize.mass", 0.3)
         self.friction_std = check_std(rz.get("friction", 0.0), "randomize.friction", 0.3)
@@ -210,21 +223,35 @@ class TurtlebotSimulator(BulletSimulator):
     # ----- randomness ----------------------------------------------------------------------
     def draw_noise(self, B: int, rng: np.random.Generator) -> Dict[str, np.ndarray]:
         """Per-run draws: ``act`` (B,2) input noise, ``sens`` (B,3) sensor noise, relative
-        factors ``radius``, ``mass``, ``friction`` (B,). Fixed draw order and count."""
+        factors ``radius``, ``mass``, ``friction`` (B,), always, in this order and count; then
+        only if configured (so that the streams of configurations without them are unchanged)
+        ``slip`` (B,2) rim-speed factors of the left and right wheel and ``jitter`` (B,steps,2)
+        (v, omega) perturbations, one per base period."""
         act = rng.standard_normal((B, 2)) * self.act_std
         sens = rng.standard_normal((B, 3)) * self.sens_std
         radius = relative_factors(rng, B, self.radius_std)
         mass = relative_factors(rng, B, self.mass_std)
         friction = relative_factors(rng, B, self.friction_std)
-        return {"act": act, "sens": sens, "radius": radius, "mass": mass, "friction": friction}
+        out = {"act": act, "sens": sens, "radius": radius, "mass": mass, "friction": friction}
+        if self.slip[0] > 0:  # per wheel: slips with probability p, losing a uniform share of [0, s]
+            hit = rng.random((B, 2)) < self.slip[0]
+            out["slip"] = 1.0 - hit * (self.slip[1] * rng.random((B, 2)))
+        if np.any(self.jitter_std > 0):
+            out["jitter"] = rng.standard_normal((B, self.system.steps, 2)) * self.jitter_std
+        return out
 
     # ----- kinematics -----------------------------------------------------------------------
     def wheel_targets(self, u: np.ndarray, noise: Dict[str, np.ndarray]) -> np.ndarray:
-        """Wheel-speed targets (B,2) [rad/s] for inputs u (B,2): noise, gain, radius factor."""
-        v_cmd = (u + noise["act"]) * self.gain
-        half = 0.5 * self.track * v_cmd[:, 1]
-        w = np.stack([v_cmd[:, 0] - half, v_cmd[:, 0] + half], axis=1) / self.r_nominal
-        return w * noise["radius"][:, None]
+        """Wheel-speed targets [rad/s] for inputs u (B,2): noise, gain, radius and slip factors;
+        (B,2), or (B,steps,2) (one per base period) with actuation jitter."""
+        v_cmd = u + noise["act"]
+        if "jitter" in noise:
+            v_cmd = v_cmd[:, None, :] + noise["jitter"]
+        v_cmd = v_cmd * self.gain
+        half = 0.5 * self.track * v_cmd[..., 1]
+        w = np.stack([v_cmd[..., 0] - half, v_cmd[..., 0] + half], axis=-1) / self.r_nominal
+        factor = noise["radius"][:, None] * noise.get("slip", 1.0)
+        return w * (factor[:, None, :] if w.ndim == 3 else factor)
 
     def body_velocity(self, w: np.ndarray) -> np.ndarray:
         """(v, omega) (B,2) that wheel speeds w (B,2) give with the true wheel radii (no slip)."""
@@ -241,11 +268,12 @@ class TurtlebotSimulator(BulletSimulator):
             raise SimgapError(f"pybullet_turtlebot: need x (B,3) and u (B,2), got {x.shape} and {u.shape}")
         # identical rows (same x, u and physics draws) give identical results: simulate each once
         # (a noise-free simulator repeats every (x, u) N1hat times in collection)
-        key = np.column_stack([x, u] + [noise[k].reshape(B, -1) for k in self._PHYSICS_DRAWS]) + 0.0  # -0.0 -> 0.0
+        draws = [k for k in self._PHYSICS_DRAWS if k in noise]
+        key = np.column_stack([x, u] + [noise[k].reshape(B, -1) for k in draws]) + 0.0  # -0.0 -> 0.0
         _, first, inverse = np.unique(key.view(np.dtype((np.void, key.dtype.itemsize * key.shape[1]))).ravel(),
                                       return_index=True, return_inverse=True)
         if len(first) < B:
-            phys = {k: noise[k][first] for k in self._PHYSICS_DRAWS}
+            phys = {k: noise[k][first] for k in draws}
             out = self._simulate(x[first], u[first], phys)[inverse.ravel()]
         else:
             out = self._simulate(x, u, noise)
@@ -256,7 +284,8 @@ class TurtlebotSimulator(BulletSimulator):
     def _simulate(self, x: np.ndarray, u: np.ndarray, noise: Dict[str, np.ndarray]) -> np.ndarray:
         """Noise-free read-back poses (B,3) (theta not wrapped) of runs from x with u and draws."""
         B, R = x.shape[0], self.robots
-        w = self.wheel_targets(u, noise)
+        w_all = self.wheel_targets(u, noise)  # (B,2) or, with jitter, (B,steps,2)
+        w = w_all[:, 0] if w_all.ndim == 3 else w_all
         vel = self.body_velocity(w)
         th = x[:, 2]
         # base (centre-of-mass) pose and velocity for every row, vectorized
@@ -276,6 +305,7 @@ class TurtlebotSimulator(BulletSimulator):
         idx = np.concatenate([np.arange(B), np.zeros(n_rounds * R - B, dtype=int)]).tolist()
         com_l, quat_l, lin_l, ang_l = com.tolist(), quat.tolist(), lin.tolist(), ang.tolist()
         w_l = w.tolist()
+        w_periods = w_all.tolist() if w_all.ndim == 3 else None
         if self._randomized:
             mass_l, inertia_l, mu_l = mass.tolist(), inertia.tolist(), mu.tolist()
         pb, cid, wheels, links, F = self._pb, self._cid, self.wheels, self.links, [self.motor_force] * 2
@@ -297,8 +327,18 @@ class TurtlebotSimulator(BulletSimulator):
                 pb.resetJointStatesMultiDof(body, wheels, zero2, targetVelocities=[[wl], [wr]], physicsClientId=cid)
                 pb.setJointMotorControlArray(body, wheels, pb.VELOCITY_CONTROL, targetVelocities=w_l[i],
                                              forces=F, physicsClientId=cid)
-            for _ in range(self.n_physics):
-                pb.stepSimulation(physicsClientId=cid)
+            if w_periods is None:
+                for _ in range(self.n_physics):
+                    pb.stepSimulation(physicsClientId=cid)
+            else:  # actuation jitter: new wheel targets every base period
+                for k in range(self.system.steps):
+                    if k:
+                        for body, i in zip(self.bodies, idx[r0:r0 + R]):
+                            pb.setJointMotorControlArray(body, wheels, pb.VELOCITY_CONTROL,
+                                                         targetVelocities=w_periods[i][k], forces=F,
+                                                         physicsClientId=cid)
+                    for _ in range(self.substeps):
+                        pb.stepSimulation(physicsClientId=cid)
             for body in self.bodies:
                 pos, orn = pb.getBasePositionAndOrientation(body, physicsClientId=cid)
                 poses.append(pos + orn)
@@ -307,6 +347,17 @@ class TurtlebotSimulator(BulletSimulator):
         link = P[:, :3] - quat_rotate(q, np.broadcast_to(self.com_local, (B, 3)))
         return np.column_stack([link[:, 0], link[:, 1], quat_yaw(q)])
 
+
+
+def _slip_option(value) -> np.ndarray:
+    """Validate ``noise.wheel_slip``: [probability p, largest lost share s], both in [0, 1]."""
+    try:
+        v = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        v = np.empty(0)
+    if v.shape != (2,) or not np.all(np.isfinite(v)) or np.any(v < 0) or np.any(v > 1):
+        raise SimgapError(f"noise.wheel_slip: need [probability, largest lost share], both in [0, 1], got {value!r}")
+    return v
 
 
 def _parse_obstacles(obstacles) -> list:

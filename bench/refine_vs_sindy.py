@@ -72,7 +72,7 @@ def main(K=20000):
     print("|---|---|---|---|---|---|---|---|")
     for name in CASES:
         c = make_case(name, K)
-        row(f"{name} ({c.shape})", c.system, c.data, c)
+        row(f"{name} ({c.shape})".replace("|", "\\|"), c.system, c.data, c)
     if EMPS.exists():
         from simgap.refine.trajectory import from_trajectory_file
         row("EMPS record", "emps", from_trajectory_file(EMPS, preset="emps"))

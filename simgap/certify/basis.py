@@ -30,7 +30,7 @@ from typing import List, Sequence, Tuple
 import numpy as np
 
 from ..errors import SimgapError
-from ..expr import VarSpace, parse
+from ..expr import Expr, VarSpace, parse
 from ..systems import System
 
 FUNCS = ("sin", "cos", "tan", "exp", "abs", "sqrt", "tanh", "sign")
@@ -128,45 +128,13 @@ def _ifn(name, al, ah):
     raise AssertionError(name)
 
 
-_POINT_FN = {"sin": np.sin, "cos": np.cos, "tan": np.tan, "exp": np.exp, "abs": np.abs,
-             "sqrt": np.sqrt, "tanh": np.tanh, "sign": np.sign}
-
-
 # ---------------------------------------------------------------------------------------
 # Terms
 # ---------------------------------------------------------------------------------------
 
 @dataclass(frozen=True)
-class Term:
-    """One basis function p(z), z = [x, u] (see module docstring)."""
-
-    text: str
-    tree: tuple
-
-    def __str__(self):
-        return self.text
-
-    # ----- points ----------------------------------------------------------------------
-    def eval(self, z: np.ndarray) -> np.ndarray:
-        """p(z) for z (B, n+m) -> (B,)."""
-        with np.errstate(all="ignore"):
-            out = self._ev(self.tree, z)
-        return np.broadcast_to(out, (z.shape[0],)).astype(float)
-
-    def _ev(self, t, z):
-        k = t[0]
-        if k == "const":
-            return np.float64(t[1])
-        if k == "var":
-            return z[:, t[1]]
-        if k == "neg":
-            return -self._ev(t[1], z)
-        if k == "pow":
-            return self._ev(t[1], z) ** float(t[2])
-        if k == "fn":
-            return _POINT_FN[t[1]](self._ev(t[2], z))
-        a, b = self._ev(t[1], z), self._ev(t[2], z)
-        return {"add": np.add, "sub": np.subtract, "mul": np.multiply, "div": np.divide}[k](a, b)
+class Term(Expr):
+    """One basis function p(z), z = [x, u] (see module docstring); points: :meth:`Expr.eval`."""
 
     # ----- boxes -----------------------------------------------------------------------
     def interval(self, zlo: np.ndarray, zhi: np.ndarray, cache: dict | None = None) -> Tuple[np.ndarray, np.ndarray]:
@@ -348,17 +316,7 @@ class Basis:
 
     def uses(self) -> set:
         """Columns of z = [x, u] that some term depends on."""
-        out = set()
-
-        def walk(t):
-            if t[0] == "var":
-                out.add(t[1])
-            for c in t[1:]:
-                if isinstance(c, tuple):
-                    walk(c)
-        for term in self.terms:
-            walk(term.tree)
-        return out
+        return set().union(*(t.columns for t in self.terms))
 
     @property
     def names(self) -> List[str]:

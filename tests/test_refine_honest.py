@@ -153,3 +153,19 @@ def test_cli_iterates_on_a_saved_refined_model_and_validates_on_a_second_record(
     capsys.readouterr()
     assert main(["refine", "--system", "emps", "--data", str(tmp_path / "rec.mat")]) == 2
     assert "needs --preset" in capsys.readouterr().err
+
+
+def test_user_term_with_lagged_input_on_time_ordered_data():
+    from simgap.refine.effects import user_effect
+    c = make_case("delay1", 12000)
+    s = get_system("pendulum")
+    late = user_effect(s, "late_torque", "omega", "3*(torque[k-1] - torque)", max_lag=3)
+    rep = refine(s, c.data, effects=["bias", "viscous_friction"], user_terms=[late]).report
+    (e,) = rep["effects"]
+    assert e["name"] == "late_torque" and e["in_refined_system"] is False
+    # the model's torque gain is 3 / (m l^2) = 3: the term is exactly the delayed torque's effect
+    assert e["coefficient"] == pytest.approx(1.0, rel=0.02)
+    rows = make_transitions(c.data.x, c.data.u, c.data.x_next, c.data.tau, system=s)   # no time order
+    from simgap.errors import SimgapError
+    with pytest.raises(SimgapError, match="no time order"):
+        refine(s, rows, user_terms=[late])

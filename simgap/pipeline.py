@@ -109,7 +109,11 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
     from .synthesis.rollout import rollout
 
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    per_run = exp.section("perrun")
+    if per_run:  # validated before any work: bad input writes nothing
+        from .perrun.stage import check_section
+        per_run = check_section(per_run, exp.system, exp.plan().n_pairs, exp.collect.n_runs,
+                                exp.section("rollout").get("horizon"))
     syn = _check_keys(exp.section("synthesis"), SYNTH_KEYS, "synthesis")
     ro = _check_keys(exp.section("rollout"), ROLLOUT_KEYS, "rollout")
     au = _check_keys(exp.section("audit"), AUDIT_KEYS, "audit")
@@ -123,6 +127,7 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
         raise SimgapError("[synthesis] eta (grid cell widths) is required")
     hold = int(syn.get("hold", 1))
     R = int(n_rollouts or ro.get("n", 1000))
+    out.mkdir(parents=True, exist_ok=True)  # after validation: bad input leaves no folder behind
     ex = executor or exp.collect.executor
     wk = workers if workers is not None else exp.collect.workers
     times: dict = {}
@@ -155,6 +160,7 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
     sims = {m: make_simulator(e.simulator.to_dict(), workers=wk or 0)
             for m, e in (("stochastic", exp), ("deterministic", baseline_experiment(exp)))}
     sim = sims["stochastic"]  # audits and rollouts run against the stochastic simulator
+    controllers = {}
     for method in METHODS:
         ds = data[method]
         opts = certify_options(cert_section, method)
@@ -167,6 +173,8 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
         sres = stage(f"synthesize/{method}", lambda: synthesize(exp.system, spec, syn["eta"], gap=cert, hold=hold,
                                                                 x0=x0))
         sres.controller.save(out / f"controller_{method}.npz")
+        if not sres.empty:
+            controllers[method] = sres.controller
         entry = {
             "gamma": _gamma_stats(cert, data["stochastic"]),
             "confidence_per_dim": cert.per_dim_confidence, "confidence_joint": cert.joint_confidence,
@@ -190,6 +198,10 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
             entry["n_rollouts"] = int(rr.n_rollouts)
             entry["mean_trajectory_satisfies"] = rr.mean_verdict["satisfied"]
         summary["methods"][method] = entry
+    if per_run:
+        from .perrun.stage import run_stage
+        summary["per_run"] = stage("perrun", lambda: run_stage(exp, out, data["stochastic"], controllers, spec, x0,
+                                                               per_run, sim=sim, log=log))
     for each in sims.values():
         each.close()
     summary["seconds"] = times

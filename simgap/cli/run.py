@@ -33,6 +33,10 @@ def run(args) -> int:
     summary = run_experiment(exp, out, executor=args.executor, workers=args.workers, n_rollouts=args.rollouts,
                              log=lambda m: print(m, file=sys.stderr, flush=True), progress=lambda stage: ProgressBar("pairs", desc=stage))
     print(comparison_table(summary))
+    if "per_run" in summary:
+        from ..perrun.stage import table
+        print()
+        print(table(summary["per_run"]))
     print(f"\nsummary: {out / 'summary.json'}")
     if not args.no_record:
         rrd = _record(exp, out)

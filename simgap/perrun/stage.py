@@ -1,0 +1,160 @@
+"""The per-run stage of ``simgap run``: certify, synthesize and validate guarantees about single runs.
+
+Runs when the experiment has a ``[perrun]`` section. From the stochastic data set and the
+experiment's simulator it
+
+1. certifies the realization gap gamma^alpha (``cert_run.json``);
+2. synthesizes the union-bound baseline: the robust controller on gamma^alpha, whose one-run
+   success probability is at least 1 - H n alpha (H sampling periods, n state dimensions: each
+   period's deviation is inside gamma^alpha with probability >= 1 - n alpha) in its winning domain;
+3. builds the interval MDP from fresh simulator samples and synthesizes the per-run controller
+   with p_cert per cell (``controller_perrun.npz``);
+4. validates every controller (the case study's deterministic- and stochastic-gap controllers,
+   the baseline, the per-run controller): R batched rollouts from x0 and from ``n_states``
+   initial states drawn in its own winning domain, p_emp with a Clopper-Pearson interval next to
+   p_cert (None where a method states no per-run probability).
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Callable, Dict
+
+import numpy as np
+
+from ..errors import SimgapError
+from .orderstats import alpha_min
+
+KEYS = {"alpha", "beta", "eta", "hold", "n_runs", "pilot_runs", "horizon", "n_rollouts", "n_states", "seed",
+        "baseline_eta", "baseline_hold"}
+
+
+def check_section(sec: dict, system, n_pairs: int, n_runs: int, horizon) -> dict:
+    """Validate ``[perrun]`` before any work (so bad input writes nothing); returns it with defaults."""
+    bad = set(sec) - KEYS
+    if bad:
+        raise SimgapError(f"experiment section [perrun]: unknown keys {sorted(bad)}; allowed: {sorted(KEYS)}")
+    o = {"alpha": 0.05, "beta": 0.01, "hold": 20, "n_runs": 2000, "pilot_runs": 200, "n_rollouts": 10000,
+         "n_states": 20, "seed": 0, **sec}
+    a = o["alpha"]
+    if not (isinstance(a, (int, float)) and 0.0 < float(a) < 1.0):
+        raise SimgapError(f"[perrun] alpha must be in (0, 1), got {a!r}")
+    b = o["beta"]
+    if not (isinstance(b, (int, float)) and 0.0 < float(b) < 1.0):
+        raise SimgapError(f"[perrun] beta must be in (0, 1), got {b!r}")
+    a_min = alpha_min(int(n_runs), float(b) / (n_pairs * system.n))
+    if float(a) < a_min:
+        raise SimgapError(f"[perrun] alpha = {a:g} is below what N1hat = {n_runs} runs per pair support: the smallest "
+                          f"supported alpha is {a_min:.4g} (beta = {b:g}, union over {n_pairs} pairs x {system.n} dims)")
+    o["horizon"] = int(o.get("horizon", horizon or 0))
+    if o["horizon"] < 1:
+        raise SimgapError(f"[perrun] horizon must be >= 1 sampling period, got {o['horizon']}")
+    if "eta" not in o:
+        raise SimgapError("[perrun] eta (interval-MDP cell widths) is required")
+    for k in ("hold", "n_runs", "pilot_runs", "n_rollouts", "n_states"):
+        if int(o[k]) < 1:
+            raise SimgapError(f"[perrun] {k} must be >= 1, got {o[k]}")
+    return o
+
+
+def validate_controller(name: str, input_fn, hold: int, sim, spec, x0, domain_states, p_cert_fn, o: dict) -> dict:
+    """Rollouts from x0 and the sampled domain states: per state x0, p_cert, p_emp, ci95, se, n_rollouts, horizon."""
+    from .validation import empirical, success_counts
+
+    xs = np.concatenate([np.atleast_2d(x0), domain_states]) if len(domain_states) else np.atleast_2d(x0)
+    R, H = int(o["n_rollouts"]), int(o["horizon"])
+    t0 = time.perf_counter()
+    k = success_counts(input_fn, hold, sim, spec, xs, R, H, seed=int(o["seed"]) + 17)
+    e = empirical(k, R)
+    pc = p_cert_fn(xs)
+    states = [{"x0": xs[i].tolist(), "p_cert": None if pc is None else float(pc[i]), "p_emp": e["p_emp"][i],
+               "ci95": e["ci95"][i], "se": e["se"][i], "n_rollouts": R, "horizon": H} for i in range(len(xs))]
+    return {"controller": name, "states": states, "seconds": round(time.perf_counter() - t0, 3)}
+
+
+def run_stage(exp, out: Path, data, controllers: Dict[str, object], spec, x0, o: dict, sim=None,
+              log: Callable[[str], None] = print) -> dict:
+    """Run the per-run stage (module docstring); ``controllers`` are the case study's {method: Controller}.
+
+    ``sim``: the experiment's stochastic simulator (default: built from the experiment)."""
+    import contextlib
+
+    from ..simulators import make_simulator
+    from ..synthesis.controller import synthesize
+    from ..synthesis.rollout import resolve_hold
+    from .imdp import IMDPOptions, build_imdp
+    from .realization import certify_run
+    from .validation import sample_in_cells
+    from .value_iteration import synthesize_imdp
+
+    system = exp.system
+    H, n = int(o["horizon"]), system.n
+    rng = np.random.default_rng([int(o["seed"]), 3])
+    res: dict = {"horizon": H, "n_rollouts": int(o["n_rollouts"]), "alpha": float(o["alpha"]),
+                 "beta": float(o["beta"]), "controllers": {}}
+    with (contextlib.nullcontext(sim) if sim is not None else
+          make_simulator(exp.simulator.to_dict(), system=system)) as sim:
+        t0 = time.perf_counter()
+        cert = certify_run(data, alpha=float(o["alpha"]), beta=float(o["beta"]), seed=int(o["seed"]), simulator=sim)
+        cert.save(out / "cert_run.json")
+        res["run_certificate"] = {"gamma_range": [d.scp["gamma_range_on_data"] for d in cert.dims],
+                                  "order_statistic": cert.options["order_statistic"],
+                                  "alpha_min": cert.options["alpha_min"], "seconds": round(time.perf_counter() - t0, 3)}
+        log(f"[perrun] gamma^alpha certified (alpha = {o['alpha']:g})")
+
+        syn_eta = o.get("baseline_eta", exp.section("synthesis").get("eta"))
+        syn_hold = int(o.get("baseline_hold", exp.section("synthesis").get("hold", 1)))
+        # composing gamma^alpha over held periods is valid here: the union bound covers every period
+        base = synthesize(system, spec, syn_eta, gap=cert, hold=syn_hold, x0=x0, compose_hold=True).controller
+        base.save(out / "controller_run_baseline.npz")
+        p_union = max(0.0, 1.0 - H * n * float(o["alpha"]))
+        res["baseline_rule"] = f"p >= 1 - H n alpha = 1 - {H}*{n}*{o['alpha']:g} = {1 - H * n * float(o['alpha']):.4g}" \
+                               f" (clipped at 0) in the winning domain, at confidence 1 - beta"
+
+        t0 = time.perf_counter()
+        imdp = build_imdp(sim, spec, IMDPOptions(eta=o["eta"], hold=int(o["hold"]), n_runs=int(o["n_runs"]),
+                                                 pilot_runs=int(o["pilot_runs"]), beta=float(o["beta"]),
+                                                 seed=int(o["seed"])), log=lambda m: log(f"[perrun] {m}"))
+        t_build = time.perf_counter() - t0
+        ctl = synthesize_imdp(imdp, H)
+        ctl.save(out / "controller_perrun.npz")
+        res["imdp"] = {"cells": int(imdp.C), "live_cells": int(imdp.live.sum()), "inputs": int(imdp.M),
+                       "nnz": imdp.nnz, "bytes": imdp.nbytes(), "hold": imdp.hold, "steps": ctl.steps,
+                       "seconds_build": round(t_build, 3), "seconds_vi": round(ctl.meta["seconds_vi"], 3),
+                       **{k: imdp.meta[k] for k in ("n_runs", "pilot_runs", "bounds", "level_each", "rho",
+                                                    "samples", "union_bound", "assumption")}}
+        log(f"[perrun] interval MDP {imdp.nnz} entries in {t_build:.1f} s; value iteration "
+            f"{ctl.meta['seconds_vi']:.1f} s; p_cert(x0) = {float(ctl.certified(np.atleast_2d(x0))[0]):.4f}")
+
+        def domain(grid, cells):
+            return sample_in_cells(grid, cells, int(o["n_states"]), rng)
+
+        entries = []
+        for name, c in controllers.items():
+            entries.append((name, lambda x, t, c=c: c.input_index(x), resolve_hold(c, sim),
+                            domain(c.grid, np.flatnonzero(c.winning_mask)), lambda xs: None))
+        entries.append(("run_baseline", lambda x, t: base.input_index(x), resolve_hold(base, sim),
+                        domain(base.grid, np.flatnonzero(base.winning_mask)),
+                        lambda xs: np.where(base.winning(xs), p_union, 0.0)))
+        entries.append(("perrun", lambda x, t: ctl.input_index(x, t), ctl.hold,
+                        domain(ctl.grid, np.flatnonzero(ctl.p_cert > 0)), ctl.certified))
+        for name, fn, hold, dom, pc in entries:
+            log(f"[perrun] rollouts: {name} ({len(dom) + 1} initial states x {o['n_rollouts']})")
+            res["controllers"][name] = validate_controller(name, fn, hold, sim, spec, x0, dom, pc, o)
+    return res
+
+
+def table(res: dict) -> str:
+    """Per controller: p_cert and p_emp (95 % CI) at x0, and the share of states with p_emp >= p_cert - 3 SE."""
+    lines = [f"per-run guarantees: horizon {res['horizon']} periods, {res['n_rollouts']} rollouts per initial state",
+             f"{'controller':<15}{'p_cert(x0)':>11}{'p_emp(x0)':>11}{'95% CI':>19}{'states':>8}{'sound':>7}"]
+    for name, c in res["controllers"].items():
+        s0 = c["states"][0]
+        ok = [s["p_cert"] is None or s["p_emp"] >= s["p_cert"] - 3 * max(s["se"], 1 / s["n_rollouts"])
+              for s in c["states"]]
+        pc = "-" if s0["p_cert"] is None else f"{s0['p_cert']:.4f}"
+        ci = f"[{s0['ci95'][0]:.4f}, {s0['ci95'][1]:.4f}]"
+        lines.append(f"{name:<15}{pc:>11}{s0['p_emp']:>11.4f}{ci:>19}{len(c['states']):>8}"
+                     f"{f'{sum(ok)}/{len(ok)}':>7}")
+    return "\n".join(lines)

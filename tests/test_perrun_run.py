@@ -1,0 +1,55 @@
+"""``simgap run`` with a [perrun] section: every controller validated next to p_cert; bad input writes nothing."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from simgap.cli import main
+from simgap.perrun.value_iteration import PerRunController
+
+TOML = Path(__file__).parent / "data" / "perrun_tiny.toml"
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("perrun") / "out"
+    assert main(["run", str(TOML), "--out", str(out), "--no-record"]) == 0
+    return out, json.loads((out / "summary.json").read_text())
+
+
+def test_summary_has_p_cert_and_p_emp_per_controller_and_state(run):
+    out, s = run
+    pr = s["per_run"]
+    assert set(pr["controllers"]) == {"deterministic", "stochastic", "run_baseline", "perrun"}
+    for name, c in pr["controllers"].items():
+        assert len(c["states"]) >= 1
+        for st in c["states"]:
+            assert {"x0", "p_cert", "p_emp", "ci95", "n_rollouts", "horizon"} <= set(st)
+            assert st["n_rollouts"] == 500 and st["horizon"] == 40
+            assert st["ci95"][0] <= st["p_emp"] <= st["ci95"][1]
+            if st["p_cert"] is not None:   # soundness at every tested initial state
+                assert st["p_emp"] >= st["p_cert"] - 3 * max(np.sqrt(st["p_emp"] * (1 - st["p_emp"]) / 500), 1 / 500)
+    per = pr["controllers"]["perrun"]["states"]
+    assert len(per) == 6 and per[0]["x0"] == [0.0, 0.0] and per[0]["p_cert"] > 0.5
+    # the union-bound baseline certifies nothing at this horizon: 1 - 40 * 2 * 0.1 < 0
+    assert pr["controllers"]["run_baseline"]["states"][0]["p_cert"] == 0.0
+    ctl = PerRunController.load(out / "controller_perrun.npz")
+    assert ctl.certified(np.array([[0.0, 0.0]]))[0] == pytest.approx(per[0]["p_cert"])
+    assert (out / "cert_run.json").stat().st_size > 0
+
+
+@pytest.mark.parametrize("old, new, msg", [
+    ("alpha = 0.1", "alpha = 1.5", "alpha must be in (0, 1)"),
+    ("alpha = 0.1", "alpha = 0.01", "smallest supported alpha is"),
+    ("n_states = 5", "n_states = 5\nhorizon = 0", "horizon must be >= 1"),
+    ("x0 = [0.0, 0.0]", "x0 = [0.5, 0.0]", "x0"),
+])
+def test_bad_input_is_refused_before_anything_is_written(tmp_path, capsys, old, new, msg):
+    toml = tmp_path / "bad.toml"
+    toml.write_text(TOML.read_text().replace(old, new))
+    out = tmp_path / "out"
+    assert main(["run", str(toml), "--out", str(out), "--no-record"]) == 2
+    assert msg in capsys.readouterr().err
+    assert not out.exists()

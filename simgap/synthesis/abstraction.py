@@ -370,7 +370,7 @@ def growth_function(system: System, growth: Optional[GrowthFn]) -> GrowthFn:
 
 def build_abstraction(system: System, grid: UniformGrid, *, growth: Optional[GrowthFn] = None,
                       gap=None, hold: int = 1, invariant_dims=(), guard: float = 1e-10,
-                      block: int = 1 << 16, check_invariance: bool = True,
+                      block: int = 1 << 14, check_invariance: bool = True,
                       compose_hold: bool = False) -> Abstraction:
     """Compute the successor boxes of all (cell, input) pairs (see the module docstring).
 

@@ -392,7 +392,7 @@ def synthesize(system: System, spec: Spec, eta, gap=None, hold: int = 1, *, grow
         "safe_cells": int(np.count_nonzero(cells)) if spec.kind == "invariance" else None,
         "blocked_cells": int(np.count_nonzero(blocked)),
         "iterations": res.iterations, "pairs_tested": res.info["pairs_tested"],
-        "game_method": res.info["method"],
+        "game_method": res.info["method"], "game_seconds": res.info["seconds_parts"],
         "invariant_dims": list(ab.info["invariant_dims"]),
         "abstraction_mb": ab.nbytes() / 2 ** 20,
         "seconds": {"labels": t1 - t0, "abstraction": t2 - t1, "game": t3 - t2, "total": t3 - t0},

@@ -225,10 +225,16 @@ class PairEvaluator:
         if ab.mid_lo is not None and allowed is not None:
             self.allowed_counter = BoxCounter(g.shape, g.periodic_mask).set(allowed)
             self.mid = BoxFamily(ab, ab.mid_lo, ab.mid_hi, self.allowed_counter)
-        self.mi_all = g.ids_to_multi(np.arange(g.size)).astype(np.int32)
-        self.cls_all = ab.cell_class(self.mi_all).astype(np.int64)
-        self.q0_all = self.cls_all * self.M  # flat (class, input 0) index per cell
-        self.base_all = (self.mi_all.astype(np.int64) @ self.counter.tstrides).astype(np.int32)
+        # per-cell indices in int32 (the generic path has one class per cell: these are full size)
+        self.mi_all = np.empty((g.size, g.n), dtype=np.int32)
+        for d, c in enumerate(np.unravel_index(np.arange(g.size, dtype=np.int32), g.shape)):
+            self.mi_all[:, d] = c
+        self.cls_all = ab.cell_class(self.mi_all).astype(np.int32)
+        it = np.int32 if ab.n_classes * self.M < 2 ** 31 else np.int64
+        self.q0_all = self.cls_all.astype(it) * it(self.M)  # flat (class, input 0) index per cell
+        self.base_all = np.zeros(g.size, dtype=np.int32)
+        for d in range(g.n):
+            self.base_all += self.mi_all[:, d] * np.int32(self.counter.tstrides[d])
         self.hull = None
 
     def build_hulls(self, group: int = 8) -> BoxCounter:
@@ -334,9 +340,10 @@ def live_pairs(ab: Abstraction, blocked: np.ndarray, keep: np.ndarray, allowed=N
 
 def _expand(counts: np.ndarray):
     """Rows with ``counts`` items each -> (row of every item, rank of the item in its row)."""
-    rows = np.repeat(np.arange(counts.size, dtype=np.int64), counts)
-    starts = np.cumsum(counts, dtype=np.int64) - counts
-    return rows, np.arange(rows.size, dtype=np.int64) - starts[rows]
+    it = np.int32 if counts.size < 2 ** 31 and counts.sum() < 2 ** 31 else np.int64
+    rows = np.repeat(np.arange(counts.size, dtype=it), counts)
+    starts = (np.cumsum(counts, dtype=np.int64) - counts).astype(it)
+    return rows, np.arange(rows.size, dtype=it) - starts[rows]
 
 
 class Predecessors:
@@ -350,7 +357,7 @@ class Predecessors:
     transition. ``usable`` (K*M,) bool selects the pairs to index.
     """
 
-    def __init__(self, ab: Abstraction, usable: np.ndarray, chunk: int = 1 << 20):
+    def __init__(self, ab: Abstraction, usable: np.ndarray, chunk: int = 1 << 16):
         g = ab.grid
         self.ab, self.M, self.n = ab, ab.n_inputs, g.n
         self.shape = np.array(g.shape, dtype=np.int64)
@@ -360,60 +367,64 @@ class Predecessors:
         self.strides = g.strides
         cshape = self.shape[self.cd]
         K = int(np.prod(cshape)) if self.cd else 1
-        # partial cell id of each class (its class-dimension coordinates)
-        kmi = np.stack(np.unravel_index(np.arange(K), tuple(cshape)), axis=1) if self.cd else \
-            np.zeros((1, 0), dtype=np.int64)
-        self.class_base = (kmi.astype(np.int64) @ self.strides[self.cd]) if self.cd else np.zeros(1, np.int64)
+        self.K = K
         self.cstrides = np.array([int(np.prod(cshape[j + 1:])) for j in range(len(self.cd))], dtype=np.int64)
-        qs = np.flatnonzero(usable)
+        # input-major order: the boxes of one input move smoothly with the cell, so the keys of
+        # a chunk come in long ascending runs and the stable sort below is nearly linear
+        usable = usable.reshape(K, self.M)
+        qs = np.concatenate([np.flatnonzero(usable[:, u]) * self.M + u for u in range(self.M)])
+        qs = qs.astype(np.int32 if usable.size < 2 ** 31 else np.int64)
         counts = np.zeros(K, dtype=np.int64)
         for s in range(0, qs.size, chunk):  # pass 1: list lengths
-            counts += np.bincount(self._class_keys(qs[s:s + chunk], kmi)[0], minlength=K)
+            counts += np.bincount(self._class_keys(qs[s:s + chunk])[0], minlength=K)
         self.indptr = np.zeros(K + 1, dtype=np.int64)
         np.cumsum(counts, out=self.indptr[1:])
-        it = np.int32 if usable.size < 2 ** 31 else np.int64
-        self.q = np.empty(int(self.indptr[-1]), dtype=it)
+        self.q = np.empty(int(self.indptr[-1]), dtype=qs.dtype)
         fill = self.indptr[:-1].copy()
         for s in range(0, qs.size, chunk):  # pass 2: counting sort, chunk by chunk
-            keys, q = self._class_keys(qs[s:s + chunk], kmi)
+            keys, q = self._class_keys(qs[s:s + chunk])
             o = np.argsort(keys, kind="stable")
             keys, q = keys[o], q[o]
-            first = np.r_[0, np.flatnonzero(np.diff(keys)) + 1]
+            first = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
             rank = np.arange(keys.size) - np.repeat(first, np.diff(np.r_[first, keys.size]))
             self.q[fill[keys] + rank] = q
             fill += np.bincount(keys, minlength=K)
         self.size = self.q.size
 
-    def _class_keys(self, q: np.ndarray, kmi: np.ndarray):
-        """(class index r_C, q) for every class-dimension cell r_C covered by the boxes of q."""
-        M = self.M
-        k = q // M
+    def _class_keys(self, q: np.ndarray):
+        """(class index r_C, q) for every class-dimension cell r_C covered by the boxes of q,
+        expanded one dimension at a time (int32 unless the grid is huge)."""
+        M, n = self.M, self.n
         if not self.cd:
             return np.zeros(q.size, dtype=np.int64), q
-        lo_all = self.ab.off_lo.reshape(-1, self.n)
-        hi_all = self.ab.off_hi.reshape(-1, self.n)
-        lo = kmi[k].astype(np.int64) + lo_all[q][:, self.cd]
-        ext = hi_all[q][:, self.cd].astype(np.int64) - lo_all[q][:, self.cd] + 1
-        for j, d in enumerate(self.cd):  # normalize: periodic mod n (extent capped), bounded clipped
-            nd = self.shape[d]
+        it = np.int32 if self.K < 2 ** 31 else np.int64
+        k = q // M
+        kc = np.unravel_index(k, tuple(self.shape[self.cd]))
+        flat = q.astype(np.int64) * n
+        lo_all, hi_all = self.ab.off_lo.reshape(-1), self.ab.off_hi.reshape(-1)
+        key = np.zeros(q.size, dtype=it)
+        cols = []
+        for j, d in enumerate(self.cd):  # normalized: periodic mod n (extent capped), bounded clipped
+            lo = kc[j].astype(it) + lo_all[flat + d]
+            hi = kc[j].astype(it) + hi_all[flat + d]
+            nd = it(self.shape[d])
             if self.pmask[d]:
-                ext[:, j] = np.minimum(ext[:, j], nd)
-                lo[:, j] %= nd
+                ext = np.minimum(hi - lo + 1, nd)
+                lo %= nd
             else:
-                hi = np.minimum(lo[:, j] + ext[:, j] - 1, nd - 1)
-                lo[:, j] = np.maximum(lo[:, j], 0)
-                ext[:, j] = np.maximum(hi - lo[:, j] + 1, 0)
-        rows, t = _expand(np.prod(ext, axis=1))
-        key = np.zeros(rows.size, dtype=np.int64)
-        for j in range(len(self.cd) - 1, -1, -1):  # mixed-radix decode of the rank
-            e = ext[rows, j]
-            c = lo[rows, j] + t % e
-            t //= e
-            d = self.cd[j]
+                lo = np.maximum(lo, 0)
+                ext = np.maximum(np.minimum(hi, nd - 1) - lo + 1, 0)
+            cols.append((lo, ext))
+        for j, d in enumerate(self.cd):
+            lo, ext = cols[j]
+            rows, t = _expand(ext)
+            c = lo[rows] + t.astype(it)
             if self.pmask[d]:
-                c %= self.shape[d]
-            key += c * self.cstrides[j]
-        return key, q[rows]
+                c %= it(self.shape[d])
+            key = key[rows] + c * it(self.cstrides[j])
+            q = q[rows]
+            cols[j + 1:] = [(a[rows], e[rows]) for a, e in cols[j + 1:]]  # dims still to expand
+        return key, q
 
     def _prepare_cells(self):
         """Per (class, input) arrays for the expansion over the invariant dimensions (int32)."""
@@ -423,7 +434,9 @@ class Predecessors:
         KM = ab.off_lo.shape[0] * M
         q = np.arange(KM, dtype=np.int64)
         # pair id of the predecessor with index 0 in every invariant dimension
-        self.qbase = (self.class_base[q // M] * M + q % M).astype(it)
+        kc = np.unravel_index(q // M, tuple(self.shape[self.cd])) if self.cd else ()
+        base = sum((c * self.strides[d] for c, d in zip(kc, self.cd)), np.zeros(KM, dtype=np.int64))
+        self.qbase = (base * M + q % M).astype(it)
         self.qlo = [ab.off_lo.reshape(KM, n)[:, d].astype(np.int32) for d in self.inv]
         self.qhi = [ab.off_hi.reshape(KM, n)[:, d].astype(np.int32) for d in self.inv]
         self.pstride = [it(self.strides[d] * M) for d in self.inv]
@@ -485,7 +498,8 @@ def _frontier(ab: Abstraction, changed: np.ndarray, candidates_mask: np.ndarray,
     """
     g = ab.grid
     span = (np.asarray(dhi, dtype=np.int64) - dlo + 1)
-    if changed.size * int(np.prod(span)) <= g.size * int(span.sum()) // 4:
+    # an enumerated offset costs about 50 times a shifted OR of one cell (measured)
+    if changed.size * int(np.prod(span)) * 50 <= g.size * int(span.sum()):
         offs = np.stack(np.meshgrid(*[np.arange(int(l), int(h) + 1) for l, h in zip(dlo, dhi)],
                                     indexing="ij"), axis=-1).reshape(-1, g.n)
         c = g.ids_to_multi(changed)[:, None, :] - offs[None]
@@ -552,10 +566,10 @@ _WORKLIST_MAX_PAIRS = 1 << 26  # (cell, input) pairs: the worklist keeps 2 bytes
 
 def choose_method(method: str, ab: Abstraction, ev: "PairEvaluator") -> str:
     """``worklist`` or ``sat`` for ``auto``: the worklist touches every transition into the
-    changed cells once (SCOTS's algorithm, cost ~ live transitions), the SAT game tests 2^n table
+    changed cells once (SCOTS's algorithm, cost ~ transitions), the SAT game tests 2^n table
     entries per candidate pair and rebuilds a table of all cells per level; the worklist wins
-    unless the boxes are large (many cells per box, as with long held inputs) or the pairs too
-    many for its per-pair counters."""
+    unless the boxes are large (mean box volume above a few times 2^n, as with long held
+    inputs) or the pairs too many for its per-pair counters."""
     if method not in METHODS:
         raise SimgapError(f"game method must be one of {', '.join(METHODS)}, got {method!r}")
     if method != "auto":
@@ -563,7 +577,10 @@ def choose_method(method: str, ab: Abstraction, ev: "PairEvaluator") -> str:
     if ab.grid.size * ab.n_inputs > _WORKLIST_MAX_PAIRS:
         return "sat"
     vol = ev.fam.vol[ab.ok]
-    return "worklist" if vol.size == 0 or vol.mean() <= 4 * (1 << ab.grid.n) else "sat"
+    # one class per cell: the worklist also builds the predecessor index (one entry per
+    # transition), so it wins only for smaller boxes (measured: bench_synthesis_generic.py)
+    limit = 1.5 if len(ab.class_dims) == ab.grid.n else 4
+    return "worklist" if vol.size == 0 or vol.mean() <= limit * (1 << ab.grid.n) else "sat"
 
 
 def _unpack(packed: np.ndarray, M: int) -> np.ndarray:
@@ -604,22 +621,29 @@ def solve_reach(ab: Abstraction, target: np.ndarray, blocked: np.ndarray,
     ev = PairEvaluator(ab, blocked, allowed)
     method = choose_method(method, ab, ev)
     live, n_boxes, n_trans = live_pairs(ab, blocked, ~blocked, allowed, ev=ev, test_keep=method == "sat")
-    t_live = time.perf_counter() - t0
+    t1 = time.perf_counter()
+    t_pre = 0.0
     if method == "worklist":
-        steps, packed, it, tested = _reach_worklist(ab, ev, target, _unpack(live, M))
+        live = _unpack(live, M)
+        pre = _predecessors(ab, live)
+        t_pre = time.perf_counter() - t1
+        steps, packed, it, tested = _reach_worklist(ab, ev, target, live, pre)
     else:
         steps, packed, it, tested = _reach_sat(ab, ev, target, blocked, live, group_filter)
+    t2 = time.perf_counter()
     return GameResult(kind="reach_avoid", winning=steps >= 0, steps=steps, valid_packed=packed,
                       n_inputs=M, target=target, iterations=it,
                       seconds=time.perf_counter() - t0,
                       info={"pairs_tested": int(tested), "boxes": n_boxes, "transitions": n_trans,
-                            "method": method, "seconds_live": t_live})
+                            "method": method, "seconds_parts": {
+                                "live_pairs": t1 - t0, "predecessors": t_pre,
+                                "fixed_point": t2 - t1 - t_pre, "controller": 0.0}})
 
 
-def _reach_worklist(ab: Abstraction, ev: PairEvaluator, target: np.ndarray, live: np.ndarray):
+def _reach_worklist(ab: Abstraction, ev: PairEvaluator, target: np.ndarray, live: np.ndarray,
+                    pre: Predecessors):
     """SCOTS's reach game, level-synchronous: cnt[c, u] = cells of box(c, u) not yet won."""
     N, M = ab.grid.size, ab.n_inputs
-    pre = _predecessors(ab, live)
     vol = ev.fam.vol
     cnt = vol.astype(_counter_dtype(int(vol.max(initial=0))))[ev.cls_all].reshape(-1)
     one = cnt.dtype.type(1)
@@ -727,25 +751,31 @@ def solve_invariance(ab: Abstraction, safe: np.ndarray, blocked: Optional[np.nda
     ev = PairEvaluator(ab, ~S, S)
     method = choose_method(method, ab, ev)
     live, n_boxes, n_trans = live_pairs(ab, ~S, S, S, ev=ev)
-    t_live = time.perf_counter() - t0
+    t1 = time.perf_counter()
+    t_pre = 0.0
     if method == "worklist":
-        W, it, tested = _invariance_worklist(ab, S, _unpack(live, M))
+        live_b = _unpack(live, M)
+        pre = _predecessors(ab, live_b)
+        t_pre = time.perf_counter() - t1
+        W, it, tested = _invariance_worklist(ab, S, live_b, pre)
     else:
         W, it, tested = _invariance_sat(ab, ev, S, live)
+    t2 = time.perf_counter()
     packed, chosen = _safety_controller(ab, ev, W, live, max_margin)
     steps = np.where(W, 0, -1).astype(np.int32)
     return GameResult(kind="invariance", winning=W, steps=steps, valid_packed=packed,
                       n_inputs=M, target=np.zeros(N, dtype=bool), chosen=chosen, iterations=it,
                       seconds=time.perf_counter() - t0,
                       info={"pairs_tested": int(tested), "boxes": n_boxes, "transitions": n_trans,
-                            "method": method, "seconds_live": t_live})
+                            "method": method, "seconds_parts": {
+                                "live_pairs": t1 - t0, "predecessors": t_pre, "fixed_point": t2 - t1 - t_pre,
+                                "controller": time.perf_counter() - t2}})
 
 
-def _invariance_worklist(ab: Abstraction, S: np.ndarray, live: np.ndarray):
+def _invariance_worklist(ab: Abstraction, S: np.ndarray, live: np.ndarray, pre: Predecessors):
     """Drop every pair whose box meets a lost cell; a cell with no pair left is lost next.
     Lost cells' pairs are all dropped, so ``alive`` alone filters the predecessors."""
     N, M = ab.grid.size, ab.n_inputs
-    pre = _predecessors(ab, live)
     alive = live.copy()
     n_alive = alive.reshape(N, M).sum(axis=1, dtype=np.int32)
     W = S & (n_alive > 0)
@@ -808,12 +838,20 @@ def _invariance_sat(ab: Abstraction, ev: PairEvaluator, S: np.ndarray, live: np.
 
 
 def _safety_controller(ab: Abstraction, ev: PairEvaluator, W: np.ndarray, live: np.ndarray, max_margin: int):
-    """Valid inputs on the fixed point, and the input of largest margin (grown boxes still in W)."""
+    """Valid inputs on the fixed point, and the input of largest margin k <= max_margin.
+
+    The box grown by k cells lies in W exactly when the box lies in E_k, W eroded k times by
+    the 3^n neighbourhood (outside the grid counts as not in W in bounded dimensions), so every
+    margin is one summed-area-table test of the box itself against E_k.
+    """
     g = ab.grid
     N, M = g.size, ab.n_inputs
-    B = _block_size(ab) * 4
-    Wc = BoxCounter(g.shape, g.periodic_mask)
-    Wc.set(W)
+    B = _block_size(ab) // 2
+    counters = [BoxCounter(g.shape, g.periodic_mask).set(W)]
+    E = W.reshape(g.shape)
+    for _ in range(max_margin):
+        E = _erode(E, g.periodic_mask)
+        counters.append(BoxCounter(g.shape, g.periodic_mask).set(E.ravel()))
     packed = np.zeros((N, (M + 7) // 8), dtype=np.uint8)
     chosen = np.full(N, -1, dtype=np.int32)
     ids_w = np.flatnonzero(W)
@@ -821,17 +859,39 @@ def _safety_controller(ab: Abstraction, ev: PairEvaluator, W: np.ndarray, live: 
         ids = ids_w[s:s + B]
         rows = np.unpackbits(live[ids], axis=1, count=M).view(bool)
         ci, uj = np.nonzero(rows)
-        lo, hi, vol = ev.pair_boxes(ids, ci, uj)
-        ok = Wc.count(lo, hi) == vol
-        rows[ci, uj] = ok
+        # the largest margin first (most pairs of a large W have it), then upwards from 0
+        top = ev.test_pairs(ids, ci, uj, counters[-1])
+        mg = np.where(top, np.int8(max_margin), np.int8(-1))
+        sel = np.flatnonzero(~top)
+        for k, counter in enumerate(counters[:-1]):  # only pairs with margin k - 1 are tested for k
+            ok = ev.test_pairs(ids, ci[sel], uj[sel], counter)
+            sel = sel[ok]
+            mg[sel] = k
+        rows[ci, uj] = mg >= 0
         packed[ids] = np.packbits(rows, axis=1)
-        mg = np.where(ok, 0, -1).astype(np.int8)
-        for k in range(1, max_margin + 1):  # grow the box by k cells and test again
-            l2, h2, ing = Wc.normalize(lo - k, hi + k)
-            okk = ok & ing & (Wc.count(l2, h2) == Wc.volume(l2, h2))
-            mg[okk] = k
         grid_mg = np.full((ids.size, M), -1, dtype=np.int8)
         grid_mg[ci, uj] = mg
         # largest margin first, ties by lowest index (argmax returns the first maximum)
         chosen[ids] = np.where(grid_mg.max(axis=1) >= 0, grid_mg.argmax(axis=1), -1)
     return packed, chosen
+
+
+def _erode(E: np.ndarray, periodic_mask) -> np.ndarray:
+    """E eroded by one cell in every dimension (Chebyshev), separable; the outside is empty."""
+    for d in range(E.ndim):
+        out = E.copy()
+        if periodic_mask[d]:
+            out &= np.roll(E, 1, axis=d)
+            out &= np.roll(E, -1, axis=d)
+        else:
+            lo = [slice(None)] * E.ndim
+            hi = [slice(None)] * E.ndim
+            lo[d], hi[d] = slice(0, -1), slice(1, None)
+            out[tuple(lo)] &= E[tuple(hi)]
+            out[tuple(hi)] &= E[tuple(lo)]
+            edge = [slice(None)] * E.ndim
+            for i in (0, -1):
+                edge[d] = i
+                out[tuple(edge)] = False
+        E = out
+    return E

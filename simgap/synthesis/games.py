@@ -579,7 +579,7 @@ def choose_method(method: str, ab: Abstraction, ev: "PairEvaluator") -> str:
     vol = ev.fam.vol[ab.ok]
     # one class per cell: the worklist also builds the predecessor index (one entry per
     # transition), so it wins only for smaller boxes (measured: bench_synthesis_generic.py)
-    limit = 1.5 if len(ab.class_dims) == ab.grid.n else 4
+    limit = 1.25 if len(ab.class_dims) == ab.grid.n else 4
     return "worklist" if vol.size == 0 or vol.mean() <= limit * (1 << ab.grid.n) else "sat"
 
 

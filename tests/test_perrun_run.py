@@ -53,3 +53,17 @@ def test_bad_input_is_refused_before_anything_is_written(tmp_path, capsys, old, 
     assert main(["run", str(toml), "--out", str(out), "--no-record"]) == 2
     assert msg in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_cli_synthesize_level_run(tmp_path, capsys):
+    out = tmp_path / "c.npz"
+    assert main(["synthesize", "--level", "run", "--spec", str(TOML), "--out", str(out), "--horizon", "20"]) == 0
+    txt = capsys.readouterr().out
+    assert "p_cert(x0 = [0.0, 0.0])" in txt and "one-sided Clopper-Pearson bounds" in txt
+    ctl = PerRunController.load(out)
+    assert ctl.horizon == 20 and ctl.steps == 2 and 0 < ctl.p_cert.max() <= 1
+    for extra, msg in ((["--horizon", "0"], "horizon must be >= 1"), (["--x0", "0.5,0"], "outside X"),
+                       (["--no-gap"], "drop --cert/--gamma/--no-gap")):
+        bad = tmp_path / "bad.npz"
+        assert main(["synthesize", "--level", "run", "--spec", str(TOML), "--out", str(bad), *extra]) == 2
+        assert msg in capsys.readouterr().err and not bad.exists()

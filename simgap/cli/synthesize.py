@@ -12,7 +12,15 @@ the defaults), or a JSON file holding ``Spec.to_dict()``; ``--safe`` gives an in
 directly. Exactly one of ``--cert``, ``--gamma`` and
 ``--no-gap`` says how the simulation gap enters. U is restricted to the inputs the certificate
 covers (the summary says so). With a gap, ``--hold k > 1`` is refused unless ``--compose-hold``
-is given: the default abstract step is the certificate's own step (``--steps``). Exit status: 0 with a controller written,
+is given: the default abstract step is the certificate's own step (``--steps``).
+
+``--level run`` synthesizes on an interval MDP sampled from the experiment's simulator (its
+``[perrun]`` section: eta, hold, n_runs, pilot_runs, beta, horizon) and writes a time-varying
+controller with the certified one-run success probability p_cert per cell (docs/per-run.md)::
+
+    simgap synthesize --level run --spec pendulum --profile noisy --out perrun.npz
+
+Exit status: 0 with a controller written,
 1 when the winning domain is empty (nothing written; the summary says why), 2 on bad input.
 """
 
@@ -43,7 +51,12 @@ def add_parser(subparsers) -> None:
                    help="accept a one-period gap composed over --hold periods (not covered by the certificate "
                         "for a nonlinear model; labelled in the controller). Default: certify at the abstraction "
                         "step and use --steps")
-    g = p.add_mutually_exclusive_group(required=True)
+    p.add_argument("--level", choices=["mean", "run"], default="mean",
+                   help="mean: robust game on the certified gap (default); run: interval MDP from the experiment's "
+                        "simulator with p_cert per cell (needs an experiment --spec with a [perrun] section)")
+    p.add_argument("--horizon", type=int, default=None, help="--level run: horizon in sampling periods "
+                                                                "(default: [perrun] or [rollout] horizon)")
+    g = p.add_mutually_exclusive_group()
     g.add_argument("--cert", help="certificate JSON written by 'simgap certify'")
     g.add_argument("--gamma", help="a constant gap per state dimension, comma separated (or one value)")
     g.add_argument("--no-gap", action="store_true", help="synthesize on the nominal model alone")
@@ -112,6 +125,10 @@ def _experiment_path(text: str):
 
 
 def run(args) -> int:
+    if args.level == "run":
+        return _run_level(args)
+    if not (args.cert or args.gamma or args.no_gap):
+        raise SimgapError("give one of --cert, --gamma or --no-gap (how the simulation gap enters)")
     from ..systems import get_system
     from ..synthesis.controller import synthesize
     from ..synthesis.spec import Box, Spec
@@ -190,3 +207,23 @@ def run(args) -> int:
 
 def _write_json(path, obj) -> None:
     fileio.write_json(path, obj)
+
+
+def _run_level(args) -> int:
+    from ..config import load_experiment
+    from ..perrun.stage import synthesize_experiment
+
+    if args.cert or args.gamma or args.no_gap:
+        raise SimgapError("--level run learns its transition probabilities from the simulator; drop --cert/--gamma/--no-gap")
+    exp = _experiment_path(args.spec) if args.spec else None
+    if exp is None:
+        raise SimgapError("--level run needs an experiment as --spec (its simulator and [perrun] section)")
+    e = load_experiment(exp, args.profile)
+    x0 = None if args.x0 is None else _floats(args.x0, "--x0")
+    ctl, text = synthesize_experiment(e, horizon=args.horizon, x0=x0,
+                                      eta=None if args.eta is None else _floats(args.eta, "--eta").tolist(),
+                                      hold=args.hold)
+    print(text)
+    ctl.save(args.out)
+    print(f"wrote {args.out}")
+    return 0

@@ -58,6 +58,41 @@ def check_section(sec: dict, system, n_pairs: int, n_runs: int, horizon) -> dict
     return o
 
 
+def synthesize_experiment(exp, horizon=None, x0=None, eta=None, hold=None, log=print):
+    """Interval-MDP controller of an experiment (``[perrun]`` options, overridable); returns (controller, summary text).
+
+    Bad input (no [perrun] section, horizon < 1, x0 outside X) raises before any sampling."""
+    from ..pipeline import experiment_spec
+    from ..simulators import make_simulator
+    from .imdp import IMDPOptions, build_imdp
+    from .value_iteration import synthesize_imdp
+
+    sec = exp.section("perrun")
+    if not sec:
+        raise SimgapError(f"experiment {exp.name!r} (profile {exp.profile}) has no [perrun] section")
+    sec.update({k: v for k, v in (("horizon", horizon), ("eta", eta), ("hold", hold)) if v is not None})
+    plan = exp.plan()
+    o = check_section(sec, exp.system, plan.n_pairs, exp.collect.n_runs, exp.section("rollout").get("horizon"))
+    spec, map_x0, _ = experiment_spec(exp)
+    x0 = np.asarray(x0 if x0 is not None else exp.section("rollout").get("x0", map_x0), dtype=float) \
+        if (x0 is not None or exp.section("rollout").get("x0") is not None or map_x0 is not None) else None
+    if x0 is not None:
+        exp.system.check_states(np.atleast_2d(x0), "x0")
+    with make_simulator(exp.simulator.to_dict(), system=exp.system) as sim:
+        imdp = build_imdp(sim, spec, IMDPOptions(eta=o["eta"], hold=int(o["hold"]), n_runs=int(o["n_runs"]),
+                                                 pilot_runs=int(o["pilot_runs"]), beta=float(o["beta"]),
+                                                 seed=int(o["seed"])), log=log)
+    ctl = synthesize_imdp(imdp, int(o["horizon"]))
+    lines = [f"interval MDP: {imdp.C} cells ({int(imdp.live.sum())} live) x {imdp.M} inputs, hold {imdp.hold}, "
+             f"{imdp.nnz} interval entries ({imdp.nbytes() / 2**20:.1f} MiB), {imdp.meta['bounds']} one-sided "
+             f"Clopper-Pearson bounds at level {imdp.meta['level_each']:.3g} each (total beta {o['beta']:g})",
+             f"horizon {o['horizon']} periods = {ctl.steps} abstract steps; cells with p_cert > 0: "
+             f"{int((ctl.p_cert > 0).sum())}; max p_cert {ctl.p_cert.max():.4f}"]
+    if x0 is not None:
+        lines.append(f"p_cert(x0 = {np.round(x0, 6).tolist()}) = {float(ctl.certified(np.atleast_2d(x0))[0]):.4f}")
+    return ctl, "\n".join(lines)
+
+
 def validate_controller(name: str, input_fn, hold: int, sim, spec, x0, domain_states, p_cert_fn, o: dict) -> dict:
     """Rollouts from x0 and the sampled domain states: per state x0, p_cert, p_emp, ci95, se, n_rollouts, horizon."""
     from .validation import empirical, success_counts

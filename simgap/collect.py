@@ -21,10 +21,14 @@ The store is a directory::
 
     manifest.json          full configuration (system, simulator, cover, N1hat, seed, chunking,
                            simgap version) and "hash" = sha256 of its canonical JSON
-    chunks/c000000.npz     one file per chunk, written atomically (temp file + os.replace), no pickle
+    chunks/c000000.npz     one file per chunk, written atomically (temp file + os.replace), no pickle;
+                           it carries its chunk id, the configuration hash, the sha256 of every
+                           array ("digests", JSON) and a digest over those ("digest")
 
-A killed run leaves only complete chunk files; :func:`collect` on the same store skips them
-and computes the rest, giving a data set bit-identical to an uninterrupted run. A store with a
+A killed run leaves only complete chunk files; :func:`collect` on the same store verifies
+each one's digests, recomputes the broken ones and the missing rest, giving a data set
+bit-identical to an uninterrupted run. Loading verifies every chunk too: a chunk re-saved with
+other numbers is refused. A store with a
 different configuration hash is refused, naming the keys that differ.
 """
 
@@ -42,6 +46,7 @@ from typing import Callable, Iterable, Optional, Sequence
 
 import numpy as np
 
+from . import fileio
 from .cover import Cover, CoverSpec, make_cover
 from .dataset import Dataset
 from .errors import SimgapError
@@ -63,17 +68,7 @@ TOP_ORDER_STATS = 32  # largest |fhat_i - f_i| kept per pair and dimension (per-
 
 def canonical_json(obj) -> str:
     """Canonical JSON (sorted keys, no whitespace, no NaN) used for configuration hashes."""
-    return json.dumps(obj, sort_keys=True, separators=(",", ":"), allow_nan=False, default=_json_default)
-
-
-def _json_default(o):
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, (tuple, set)):
-        return list(o)
-    raise TypeError(f"not JSON-serializable: {type(o).__name__}")
+    return fileio.canonical_json(obj)
 
 
 def config_hash(config: dict) -> str:
@@ -339,11 +334,19 @@ def _atomic_write_bytes(path: Path, data: bytes) -> None:
     os.replace(tmp, path)
 
 
+def _chunk_digests(c: int, h: str, arrays: dict) -> tuple:
+    """({name: sha256 of the array}, digest over the chunk id, configuration hash and those)."""
+    per = {k: fileio.content_digest(None, {k: v}) for k, v in arrays.items()}
+    return per, fileio.content_digest({"chunk": int(c), "config_hash": h, "digests": per})
+
+
 def _write_chunk(store: Path, c: int, h: str, arrays: dict) -> None:
     path = _chunk_path(store, c)
+    per, dig = _chunk_digests(c, h, arrays)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     with open(tmp, "wb") as f:
-        np.savez(f, chunk=np.int64(c), hash=np.array(h), **arrays)
+        np.savez(f, chunk=np.int64(c), hash=np.array(h), digests=np.array(json.dumps(per)), digest=np.array(dig),
+                 **arrays)
         f.flush()
         os.fsync(f.fileno())
     os.replace(tmp, path)
@@ -381,7 +384,8 @@ def _read_manifest(store: Path) -> dict:
     return man
 
 
-def _done_chunks(store: Path, n_chunks: int) -> set:
+def _done_chunks(store: Path, n_chunks: int, h: Optional[str] = None) -> set:
+    """Chunk ids with a file in the store; with the configuration hash ``h``, only files that verify."""
     d = store / CHUNK_DIR
     done = set()
     if d.is_dir():
@@ -392,7 +396,42 @@ def _done_chunks(store: Path, n_chunks: int) -> set:
                 continue
             if 0 <= c < n_chunks:
                 done.add(c)
+    if h is not None:
+        done = {c for c in done if _chunk_problem(store, c, h)[0] is None}
     return done
+
+
+def _chunk_problem(store: Path, c: int, h: str, names: Optional[Sequence[str]] = None, optional: Sequence[str] = ()):
+    """(None, arrays) if chunk ``c`` verifies, else (reason, None).
+
+    Returns (and verifies) the arrays ``names`` plus those of ``optional`` the chunk has; with
+    ``names`` None it verifies every array and returns none.
+    """
+    p = _chunk_path(store, c)
+    try:
+        with np.load(p, allow_pickle=False) as z:
+            if "digest" not in z.files or "digests" not in z.files:
+                return f"chunk file {p.name} carries no content digest (written by an older simgap)", None
+            if str(z["hash"]) != h or int(z["chunk"]) != c:
+                return f"chunk file {p.name} belongs to another collection", None
+            per = json.loads(str(z["digests"]))
+            want = str(z["digest"])
+            if not isinstance(per, dict) or fileio.content_digest(
+                    {"chunk": int(c), "config_hash": h, "digests": per}) != want:
+                return f"chunk file {p.name}: its digest list does not match its digest (modified)", None
+            out = {}
+            for k in (per if names is None else list(names) + [k for k in optional if k in per]):
+                if k not in per:
+                    return f"chunk file {p.name} has no digest for {k!r}", None
+                a = z[k]
+                if fileio.content_digest(None, {k: a}) != per[k]:
+                    return (f"chunk file {p.name}: the content of {k!r} does not match its digest "
+                            f"(modified or corrupted)"), None
+                if names is not None:
+                    out[k] = a
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as e:
+        return f"chunk file {p.name} is unreadable ({e})", None
+    return None, out
 
 
 def _diff(a, b, prefix="") -> list:
@@ -417,7 +456,7 @@ def store_status(store: str | Path) -> dict:
     store = Path(store)
     man = _read_manifest(store)
     n = int(man["config"]["n_chunks"])
-    done = len(_done_chunks(store, n))
+    done = len(_done_chunks(store, n, man["hash"]))  # only chunks whose digests verify
     return {"hash": man["hash"], "n_chunks": n, "done": done, "complete": done == n, "config": man["config"]}
 
 
@@ -430,7 +469,7 @@ class CollectResult:
     n_chunks: int
     done: int           # chunks present in the store now
     computed: int       # chunks computed by this call
-    resumed_from: int   # chunks present before this call
+    resumed_from: int   # chunks present (and verified) before this call
     cancelled: bool
     seconds: float
     runs: int           # simulator runs computed by this call
@@ -498,7 +537,10 @@ def collect(plan: CollectionPlan, store: str | Path, executor: str | Executor = 
             p.unlink(missing_ok=True)
 
     n_chunks = plan.n_chunks
-    done = _done_chunks(store, n_chunks)
+    present = _done_chunks(store, n_chunks)
+    done = _done_chunks(store, n_chunks, h)  # a chunk that does not verify is recomputed
+    for c in present - done:
+        _chunk_path(store, c).unlink(missing_ok=True)
     resumed_from = len(done)
     wanted = range(n_chunks) if chunk_ids is None else sorted(set(int(c) for c in chunk_ids))
     for c in wanted:
@@ -534,18 +576,10 @@ def collect(plan: CollectionPlan, store: str | Path, executor: str | Executor = 
 
 
 def _load_chunk(store: Path, c: int, h: str, rows: int, names: Sequence[str], optional: Sequence[str] = ()) -> dict:
+    why, out = _chunk_problem(store, c, h, names, optional)
+    if why is not None:
+        raise SimgapError(f"store {str(store)!r}: {why}; run the same collection again to recompute it")
     p = _chunk_path(store, c)
-    try:
-        with np.load(p, allow_pickle=False) as z:
-            if str(z["hash"]) != h or int(z["chunk"]) != c:
-                raise SimgapError(f"store {str(store)!r}: chunk file {p.name} belongs to another collection")
-            out = {k: z[k] for k in names}
-            out.update({k: z[k] for k in optional if k in z.files})
-    except SimgapError:
-        raise
-    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as e:
-        raise SimgapError(f"store {str(store)!r}: chunk file {p.name} is unreadable ({e}); delete it and "
-                          "resume the collection to recompute it") from None
     for k, a in out.items():
         if a.shape[0] != rows:
             raise SimgapError(f"store {str(store)!r}: chunk file {p.name} has {a.shape[0]} rows of {k}, expected {rows}")

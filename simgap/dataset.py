@@ -16,7 +16,10 @@ and shifted back (mean = wrap(f_nom + mean d), lo = f_nom + min d, hi = f_nom + 
 are not wrapped), so the observed gap ``gap()`` = |wrap(mean - f_nom)| is meaningful across
 the +-pi seam.
 
-``manifest`` carries the full configuration, its hash and provenance.
+``manifest`` carries the full configuration, its hash (``manifest["hash"]``, the configuration
+hash: what was asked for) and provenance. :attr:`Dataset.hash` is the CONTENT hash (what was
+obtained): sha256 over every array, N1hat, epsilon, the system and the configuration hash.
+Certificates record it, so data re-saved with other numbers no longer match their certificate.
 """
 
 from __future__ import annotations
@@ -71,9 +74,19 @@ class Dataset:
         return self.x.shape[0]
 
     @property
-    def hash(self) -> str:
-        """The configuration hash of the collection that produced this dataset."""
+    def config_hash(self) -> str:
+        """The configuration hash of the collection that produced this dataset (manifest "hash")."""
         return self.manifest.get("hash", "")
+
+    @property
+    def hash(self) -> str:
+        """Content hash: sha256 of the arrays, N1hat, epsilon, system (name, steps) and configuration hash."""
+        meta = {"n_runs": int(self.n_runs), "epsilon": float(self.epsilon), "system": self.system.name,
+                "steps": int(self.system.steps), "config_hash": self.config_hash}
+        arrays = {k: getattr(self, k) for k in ARRAYS}
+        if self.absdev_top is not None:
+            arrays["absdev_top"] = self.absdev_top
+        return fileio.content_digest(meta, arrays)
 
     def gap(self) -> np.ndarray:
         """Observed gap |mean_k fhat(x_r,u,w_k) - f(x_r,u)| per row and dimension, (K,n), angles wrapped."""
@@ -90,7 +103,7 @@ class Dataset:
     def save_npz(self, path: str | Path) -> Path:
         """Write the dataset as one .npz (atomically: temp file, then rename)."""
         meta = {"n_runs": int(self.n_runs), "epsilon": float(self.epsilon), "manifest": self.manifest,
-                "system": self.system.name, "steps": int(self.system.steps)}
+                "system": self.system.name, "steps": int(self.system.steps), "content_hash": self.hash}
         extra = {} if self.absdev_top is None else {"absdev_top": self.absdev_top}
         return fileio.savez(path, **{k: getattr(self, k) for k in ARRAYS}, **extra, meta=np.array(json.dumps(meta)))
 
@@ -115,5 +128,13 @@ def load_dataset(path: str | Path, system: System | None = None) -> Dataset:
     except (OSError, ValueError, KeyError) as e:
         raise SimgapError(f"dataset {str(path)!r} is unreadable or not a simgap dataset: {e}") from None
     sysobj = system or get_system(meta["system"], steps=meta.get("steps", 1))
-    return Dataset(system=sysobj, n_runs=int(meta["n_runs"]), epsilon=float(meta["epsilon"]),
-                   manifest=meta.get("manifest", {}), **arrays)
+    ds = Dataset(system=sysobj, n_runs=int(meta["n_runs"]), epsilon=float(meta["epsilon"]),
+                 manifest=meta.get("manifest", {}), **arrays)
+    want = meta.get("content_hash")
+    if want is None:
+        raise SimgapError(f"dataset {str(path)!r} records no content hash (written by an older simgap); "
+                          f"save it again from its collection store")
+    if ds.hash != want:
+        raise SimgapError(f"dataset {str(path)!r} was modified after it was written: its content hash is "
+                          f"{ds.hash[:16]}... but the file records {str(want)[:16]}...")
+    return ds

@@ -68,3 +68,35 @@ def savez(path, compressed: bool = False, **arrays) -> Path:
     with atomic_file(path, "wb") as fh:
         (np.savez_compressed if compressed else np.savez)(fh, **arrays)
     return Path(path)
+
+
+# ----- content digests -----------------------------------------------------------------------
+# A digest detects a file edited or corrupted after simgap wrote it (every reader recomputes
+# and compares it). It is a plain sha256, not a signature: whoever rewrites the digest too can
+# still forge a file, so results also carry the digests of what they were made from.
+
+def canonical_json(obj, allow_nan: bool = False) -> str:
+    """Canonical JSON (sorted keys, no whitespace) of JSON-ready data; numpy scalars/arrays and tuples allowed."""
+    return json.dumps(obj, sort_keys=True, separators=(",", ":"), allow_nan=allow_nan, default=_json_default)
+
+
+def _json_default(o):
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, (tuple, set)):
+        return list(o)
+    raise TypeError(f"not JSON-serializable: {type(o).__name__}")
+
+
+def content_digest(meta=None, arrays: dict | None = None) -> str:
+    """sha256 hex digest of JSON data ``meta`` (canonical form) and named ``arrays`` (dtype, shape, bytes)."""
+    import hashlib
+    h = hashlib.sha256()
+    h.update(canonical_json(meta, allow_nan=True).encode())
+    for name in sorted(arrays or {}):
+        a = np.ascontiguousarray(arrays[name])
+        h.update(f"\0{name}\0{a.dtype.str}\0{a.shape}\0".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()

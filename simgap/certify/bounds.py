@@ -21,9 +21,16 @@ Options that go BEYOND the paper (off by default, each labelled in the certifica
 * ``concentration="bernstein"``: bounded variables (range b, known a priori) with variance
   <= s^2: P(|mean - E| > delta) <= 2 exp(-N delta^2 / (2 s^2 + 2 b delta / 3)).
   Lemma 2 uses range 2b.
-* ``uniform=True``: Lemma 1 as the paper states it must hold at ALL K constraints of the
-  scenario program at once for the solution to be feasible for SCP; a union bound gives each
-  row beta_1 / K. (Lemma 2 is about the query point (x, u) and stays pointwise.)
+* ``uniform=True``: one statement for ALL K cover rows at once instead of one per (x, u).
+  Lemma 1 must hold at all K constraints of the scenario program for the solution to be
+  feasible for SCP, and synthesis reads gamma at every cell, i.e. near every cover row, at
+  once. A union bound over the K rows gives each row beta_1 / K in Lemma 1 AND beta_2 / K in
+  Lemma 2 (Lemma 2 taken at one query point per cover row), so the stated (simultaneous)
+  confidence 1 - beta_1 - beta_2 covers every row together.
+
+Pointwise vs simultaneous. Without ``uniform`` beta_1, beta_2 are per (x, u): the confidence
+is that of ONE query point. The simultaneous confidence over all K rows implied by the same
+deltas is, by the union bound, 1 - K (beta_1 + beta_2); see :func:`scope_confidences`.
 """
 
 from __future__ import annotations
@@ -59,10 +66,15 @@ class BoundOptions:
         out = []
         if self.concentration != "chebyshev":
             out.append(f"concentration={self.concentration}")
+        if self.concentration == "subgaussian":
+            out.append("assumption: fhat_i is sub-Gaussian with variance proxy Mhat_i (Lemma 1) and "
+                       f"{self.lemma2_factor:g} Mhat_i (Lemma 2); a variance bound alone does not imply it")
+        if self.concentration == "bernstein":
+            out.append(f"assumption: fhat_i has the known range b = {self.value_range:g}")
         if self.lemma2_factor != 2.0:
             out.append(f"lemma2_factor={self.lemma2_factor:g}")
         if self.uniform:
-            out.append("uniform (union bound over the K rows in Lemma 1)")
+            out.append("uniform (union bound over the K cover rows in Lemma 1 and Lemma 2: simultaneous statement)")
         return out
 
 
@@ -106,8 +118,9 @@ def beta_from_delta(M, delta1, delta2, N: int, K: int = 1, opts: BoundOptions = 
         raise SimgapError(f"delta must be finite and > 0, got delta_1={np.asarray(delta1).tolist()}, "
                           f"delta_2={np.asarray(delta2).tolist()}")
     b = opts.value_range or 0.0
-    b1 = _tail(d1, M, N, opts, b) * (K if opts.uniform else 1)
-    b2 = _tail(d2, opts.lemma2_factor * M, N, opts, 2.0 * b)
+    k = K if opts.uniform else 1
+    b1 = _tail(d1, M, N, opts, b) * k
+    b2 = _tail(d2, opts.lemma2_factor * M, N, opts, 2.0 * b) * k
     return np.asarray(b1, float), np.asarray(b2, float)
 
 
@@ -124,8 +137,9 @@ def delta_from_beta(M, beta1, beta2, N: int, K: int = 1, opts: BoundOptions = Bo
         if np.any(~np.isfinite(b)) or np.any(b <= 0) or np.any(b >= 1):
             raise SimgapError(f"{name} must be in (0, 1), got {np.asarray(b).tolist()}")
     rb = opts.value_range or 0.0
-    d1 = _inv_tail(b1 / (K if opts.uniform else 1), M, N, opts, rb)
-    d2 = _inv_tail(b2, opts.lemma2_factor * M, N, opts, 2.0 * rb)
+    k = K if opts.uniform else 1
+    d1 = _inv_tail(b1 / k, M, N, opts, rb)
+    d2 = _inv_tail(b2 / k, opts.lemma2_factor * M, N, opts, 2.0 * rb)
     # Mhat = 0 would give delta = 0: the lemmas need delta > 0, keep a floor at machine scale
     return np.maximum(d1, 1e-12), np.maximum(d2, 1e-12)
 
@@ -144,6 +158,21 @@ def required_runs(M, delta1, delta2, beta1, beta2, K: int = 1, opts: BoundOption
                     np.concatenate([np.broadcast_to(beta1, np.shape(M)), np.broadcast_to(beta2, np.shape(M))]))
         lo, hi = (lo, mid) if ok else (mid, hi)
     return hi
+
+
+def scope_confidences(beta1, beta2, beta_v, K: int, uniform: bool) -> dict:
+    """Joint confidences of one certificate read both ways (Theorem 2 plus a union bound).
+
+    ``beta1``, ``beta2`` are the stated per-dimension failure probabilities (per (x, u) when not
+    ``uniform``, for all K rows together when ``uniform``); ``beta_v`` the variance bound's, which
+    already holds for all rows at once. Returns {"pointwise": 1 - sum_i (b1p + b2p + bv),
+    "simultaneous": 1 - sum_i (K (b1p + b2p) + bv)} with b1p, b2p the pointwise betas.
+    A value <= 0 means that reading states nothing.
+    """
+    b = np.asarray(beta1, float) + np.asarray(beta2, float)
+    bp = b / K if uniform else b
+    bv = np.asarray(beta_v, float)
+    return {"pointwise": 1.0 - float(np.sum(bp + bv)), "simultaneous": 1.0 - float(np.sum(K * bp + bv))}
 
 
 def confidences(beta1, beta2):

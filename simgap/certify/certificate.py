@@ -5,7 +5,16 @@ with per-dimension confidence 1 - beta_1i - beta_2i (- beta_v,i) and joint confi
 1 - sum_i (...) (paper, Theorems 1-2). For the deterministic baseline delta = 0 and no
 confidence is stated.
 
-JSON layout (version 1): system (name, steps, names, X, angle dims), epsilon, n_runs, K, method,
+What the confidence is about (``scope``). By default (the paper's Lemmas) the confidence is
+POINTWISE: it holds for one query point (x, u) at a time. Synthesis reads gamma at every cell at
+once, which needs a SIMULTANEOUS statement; both readings of the same certificate are reported
+(``pointwise_joint_confidence``, ``simultaneous_joint_confidence`` = union bound over the K
+cover rows). ``uniform`` mode (bounds.py) sizes the deltas for the simultaneous one.
+
+Integrity: the JSON carries ``digest`` = sha256 of its canonical content without the digest;
+:func:`load` recomputes it and refuses an edited file, naming what no longer fits.
+
+JSON layout (version 2): system (name, steps, names, X, angle dims), epsilon, n_runs, K, method,
 options, per-dimension entries (basis terms, q, delta_1, delta_2, beta_1, beta_2, beta_v, Mhat,
 L_f / Lhat_fhat / L_2 with how each was obtained, L_x, repair, eta, gap_max, solver info,
 confidence), joint_confidence, provenance (dataset hash, package versions, seed, time).
@@ -23,9 +32,10 @@ import numpy as np
 from .. import fileio
 from ..errors import SimgapError
 from .basis import Basis
+from .bounds import scope_confidences
 
 FORMAT = "simgap-certificate"
-VERSION = 1
+VERSION = 2
 
 
 class _Names:
@@ -109,9 +119,37 @@ class Certificate:
 
     @property
     def joint_confidence(self) -> Optional[float]:
+        """Theorem 2's joint confidence in this certificate's ``scope``."""
         if any(c is None for c in self.per_dim_confidence):
             return None
         return 1.0 - sum(1.0 - c for c in self.per_dim_confidence)
+
+    @property
+    def uniform(self) -> bool:
+        return bool((self.options.get("bounds") or {}).get("uniform", False))
+
+    @property
+    def scope(self) -> str:
+        """"simultaneous" (uniform mode: one statement for all K cover rows) or "pointwise" (per (x, u))."""
+        return "simultaneous" if self.uniform else "pointwise"
+
+    def scope_confidences(self) -> dict:
+        """{"pointwise", "simultaneous"} joint confidences of this certificate (None without betas)."""
+        if self.joint_confidence is None:
+            return {"pointwise": None, "simultaneous": None}
+        return scope_confidences([d.beta1 for d in self.dims], [d.beta2 for d in self.dims],
+                                 [d.beta_v for d in self.dims], self.K, self.uniform)
+
+    def statement(self) -> str:
+        """In words, what the confidence covers."""
+        if self.joint_confidence is None:
+            return "no probability is stated (deterministic baseline)"
+        c = self.scope_confidences()
+        sim = c["simultaneous"]
+        sim_txt = f"{sim:.4f}" if sim > 0 else f"none ({sim:.3g} <= 0)"
+        return (f"confidence is {self.scope}: pointwise (for one query (x,u) at a time) {c['pointwise']:.4f}; "
+                f"simultaneous (for all K = {self.K} cover rows at once, union bound; what a controller using "
+                f"gamma at every cell relies on) {sim_txt}")
 
     def constant(self) -> np.ndarray:
         """The x-independent part of gamma per dimension: L_x eps + delta_2 + repair, (n,)."""
@@ -165,7 +203,9 @@ class Certificate:
 
     # ----- JSON ------------------------------------------------------------------------
     def to_dict(self) -> dict:
-        return {
+        """The JSON content, ``digest`` included."""
+        sc = self.scope_confidences()
+        d = {
             "format": FORMAT, "version": VERSION,
             "system": {"name": self.system_name, "steps": self.steps, "state_names": list(self.state_names),
                        "input_names": list(self.input_names), "x_lo": self.x_lo.tolist(),
@@ -174,19 +214,36 @@ class Certificate:
             "epsilon": self.epsilon, "n_runs": self.n_runs, "K": self.K, "method": self.method,
             "options": self.options, "dims": [d.to_dict() for d in self.dims],
             "per_dim_confidence": self.per_dim_confidence, "joint_confidence": self.joint_confidence,
+            "confidence_scope": self.scope, "pointwise_joint_confidence": sc["pointwise"],
+            "simultaneous_joint_confidence": sc["simultaneous"], "statement": self.statement(),
             "gamma_constant": self.constant().tolist(), "provenance": self.provenance,
         }
+        d["digest"] = fileio.content_digest(d)
+        return d
+
+    @property
+    def digest(self) -> str:
+        """sha256 of the certificate's content (what its file records as ``digest``)."""
+        return self.to_dict()["digest"]
 
     def save(self, path) -> Path:
         """Write JSON atomically (temp file in the same folder, then rename)."""
         return fileio.write_json(path, self.to_dict())
 
     @classmethod
-    def from_dict(cls, d: dict) -> "Certificate":
+    def from_dict(cls, d: dict, source: str = "certificate") -> "Certificate":
+        """Rebuild a certificate from its JSON content, verifying its digest (see :func:`verify`)."""
         if not isinstance(d, dict) or d.get("format") != FORMAT:
-            raise SimgapError("not a simgap certificate (missing format tag)")
+            raise SimgapError(f"{source}: not a simgap certificate (missing format tag)")
         if d.get("version") != VERSION:
-            raise SimgapError(f"certificate version {d.get('version')} is not supported (need {VERSION})")
+            raise SimgapError(f"{source}: certificate version {d.get('version')} is not supported (need {VERSION}: "
+                              f"files without a content digest are refused; certify the data again)")
+        cert = cls._from_dict(d)
+        verify(d, cert, source)
+        return cert
+
+    @classmethod
+    def _from_dict(cls, d: dict) -> "Certificate":
         try:
             s = d["system"]
             names = _Names(len(s["state_names"]), len(s["input_names"]), s["state_names"], s["input_names"])
@@ -239,15 +296,46 @@ class Certificate:
                               d.L_x * self.epsilon, lo, hi, d.confidence]))
         jc = self.joint_confidence
         lines.append("joint confidence (Theorem 2): " + ("not stated (deterministic baseline)" if jc is None
-                                                         else f"{jc:.4f} ({100 * jc:.2f} %)"))
+                                                         else f"{jc:.4f} ({100 * jc:.2f} %), {self.scope}"))
+        lines.append(self.statement())
         for name, d in zip(self.state_names, self.dims):
             terms = " ".join(f"{c:+.4g}*{t}" if t != "1" else f"{c:+.4g}" for c, t in zip(d.q, d.terms) if c != 0)
             lines.append(f"gamma_{name}(x,u) = {d.L_x * self.epsilon + d.delta2 + d.repair:.4g} + [{terms}]")
         return "\n".join(lines)
 
 
+def verify(d: dict, cert: Certificate, source: str = "certificate") -> None:
+    """Refuse a certificate whose content no longer matches its digest, naming what does not fit.
+
+    Derived fields (confidences, gamma's constant part) are recomputed from the parts and
+    compared first, so a typical edit is named; any other change shows as a digest mismatch.
+    """
+    derived = cert.to_dict()
+    bad = []
+    for k in ("per_dim_confidence", "joint_confidence", "pointwise_joint_confidence",
+              "simultaneous_joint_confidence", "gamma_constant"):
+        if not _same(d.get(k), derived[k]):
+            bad.append(f"{k} is {d.get(k)!r} in the file but {derived[k]!r} from its parts")
+    want = d.get("digest")
+    have = fileio.content_digest({k: v for k, v in d.items() if k != "digest"})
+    if not isinstance(want, str):
+        bad.append("it has no content digest")
+    elif want != have:
+        bad.append(f"its content digest is {have[:16]}... but the file records {want[:16]}...")
+    if bad:
+        raise SimgapError(f"{source} was modified after it was written (refused): " + "; ".join(bad))
+
+
+def _same(a, b) -> bool:
+    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    if isinstance(a, (int, float)) and isinstance(b, (int, float)) and not isinstance(a, bool):
+        return bool(np.isclose(a, b, rtol=1e-12, atol=1e-15))
+    return a == b
+
+
 def load(path, dataset=None) -> Certificate:
-    """Load a certificate JSON; with ``dataset``, check that its manifest hash matches."""
+    """Load a certificate JSON, verifying its digest; with ``dataset``, check its content hash matches."""
     path = Path(path)
     if not path.exists():
         raise SimgapError(f"certificate {str(path)!r} does not exist")
@@ -255,7 +343,7 @@ def load(path, dataset=None) -> Certificate:
         d = json.loads(path.read_text())
     except (OSError, ValueError) as e:
         raise SimgapError(f"certificate {str(path)!r} is not readable JSON: {e}") from None
-    cert = Certificate.from_dict(d)
+    cert = Certificate.from_dict(d, source=f"certificate {str(path)!r}")
     if dataset is not None:
         want = cert.provenance.get("dataset_hash", "")
         have = dataset.hash

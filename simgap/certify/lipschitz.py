@@ -130,7 +130,7 @@ def l2_analytic(basis, q: np.ndarray, system, splits: int | None = None, inputs=
 
 
 def fhat_slopes_crn(sim, rng: np.random.Generator, h: float, n_pairs: int = 2000, runs: int = 100,
-                    increment: bool = True) -> np.ndarray:
+                    increment: bool = True, dims=None, inputs=None) -> np.ndarray:
     """Slopes of the empirical mean of fhat with COMMON random numbers, (n_pairs, n).
 
     The quantity in the paper's proof of Theorem 1 is the Lipschitz constant of
@@ -138,16 +138,28 @@ def fhat_slopes_crn(sim, rng: np.random.Generator, h: float, n_pairs: int = 2000
     data set's means (independent draws per row) add noise of order sqrt(2) sigma/(sqrt(N) h);
     here each pair (x, x + h d) (d a random unit direction, u uniform from U) is simulated with
     the same ``runs`` noise draws at both ends, so that noise cancels.
+
+    ``dims`` (default all): the covered state dimensions; d lies in their span. Theorem 1 moves
+    x only along covered dimensions (declared-invariant ones are not covered and the gap does
+    not depend on them), so a direction with components elsewhere would dilute the slope.
+    ``inputs`` (default the system's U): the inputs u is drawn from (the data's, which gamma covers).
     """
     s = sim.system
-    lo, hi = s.x_lo + h, s.x_hi - h
-    if np.any(lo >= hi):
+    dims = list(range(s.n)) if dims is None else sorted(int(j) for j in dims)
+    if not dims:
+        raise SimgapError("Lipschitz (simulator): no covered dimension to draw pairs along")
+    lo, hi = s.x_lo.copy(), s.x_hi.copy()
+    lo[dims] += h
+    hi[dims] -= h
+    if np.any(lo > hi) or np.any(lo[dims] >= hi[dims]):
         raise SimgapError(f"Lipschitz (simulator): pair distance h={h:g} too large for X")
     x = lo + rng.random((n_pairs, s.n)) * (hi - lo)
-    d = rng.standard_normal((n_pairs, s.n))
+    d = np.zeros((n_pairs, s.n))
+    d[:, dims] = rng.standard_normal((n_pairs, len(dims)))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     x2 = x + h * d
-    u = s.inputs[rng.integers(0, len(s.inputs), n_pairs)]
+    U = s.inputs if inputs is None else np.atleast_2d(np.asarray(inputs, float))
+    u = U[rng.integers(0, len(U), n_pairs)]
     X = np.repeat(np.concatenate([x, x2]), runs, axis=0)
     U = np.repeat(np.concatenate([u, u]), runs, axis=0)
     noise = sim.draw_noise(n_pairs * runs, rng)

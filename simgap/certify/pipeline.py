@@ -280,11 +280,10 @@ def certify(dataset, options: Optional[CertifyOptions] = None, simulator=None, *
             basis=bases[i]))
 
     opts = o.to_dict()
-    opts["beyond_paper"] = (o.bounds.beyond_paper() if o.method == "stochastic" else []) + \
-        (["variance=maurer_pontil"] if o.method == "stochastic" and o.variance != "empirical" else [])
+    opts["beyond_paper"] = beyond_paper(o)
     opts["variance_bound"] = variance_info
     opts["notes"] = notes
-    prov = {"dataset_hash": ds.hash, "versions": _versions(), "seed": o.seed,
+    prov = {"dataset_hash": ds.hash, "dataset_config_hash": ds.config_hash, "versions": _versions(), "seed": o.seed,
             "dataset_seed": ds.manifest.get("seed"), "simulator": ds.manifest.get("simulator"),
             "created_unix": time.time(), "seconds": time.perf_counter() - t0}
     return Certificate(system_name=s.name, steps=int(s.steps), state_names=tuple(s.state_names),
@@ -292,6 +291,21 @@ def certify(dataset, options: Optional[CertifyOptions] = None, simulator=None, *
                        angle_dims=tuple(s.angle_dims), epsilon=float(ds.epsilon), n_runs=N, K=K,
                        method=o.method, options=opts, dims=dims, provenance=prov, inputs=U_data)
 
+
+
+def beyond_paper(o: CertifyOptions) -> List[str]:
+    """Labels of every choice in ``o`` that the paper does not make (stored in the certificate)."""
+    if o.method != "stochastic":
+        return []
+    out = list(o.bounds.beyond_paper())
+    if o.variance == "empirical" and o.safety != 10.0:
+        out.append(f"variance safety factor {o.safety:g} (the paper takes 10 x the largest sample variance)")
+    if o.variance != "empirical":
+        out.append(f"variance={o.variance}: Mhat holds with confidence 1 - beta_v at the K cover rows, "
+                   f"not over all of X (between rows the variance is assumed no larger)")
+    if o.lhat == "simulator":
+        out.append("Lhat_fhat from the simulator with common random numbers along the covered dimensions")
+    return out
 
 
 _LIP_CACHE: "OrderedDict[tuple, tuple]" = OrderedDict()
@@ -321,7 +335,9 @@ def _data_lipschitz(ds, o: CertifyOptions, simulator=None):
         Lf_analytic = s.lipschitz_f()
     if o.lhat == "simulator":
         from ..simulators.base import make_simulator
-        crn = dict(h=ds.epsilon, n_pairs=o.lhat_pairs, runs=o.lhat_runs, increment=o.lipschitz_mode == "increment")
+        cov = [j for j in range(s.n) if j not in invariant_dims(ds)]  # pairs along covered dims only
+        crn = dict(h=ds.epsilon, n_pairs=o.lhat_pairs, runs=o.lhat_runs, increment=o.lipschitz_mode == "increment",
+                   dims=cov, inputs=np.unique(ds.u, axis=0))
         if simulator is None:
             cfg = ds.manifest.get("simulator")
             if not cfg:
@@ -331,8 +347,8 @@ def _data_lipschitz(ds, o: CertifyOptions, simulator=None):
         else:
             sl_fhat = fhat_slopes_crn(simulator, np.random.default_rng([o.seed, 1]), **crn)
     src = (" over neighbouring cover points (independent draws per row)" if o.lhat == "data" else
-           f" at {o.lhat_pairs} random pairs ||x - x'|| = eps, {o.lhat_runs} runs each with common random "
-           f"numbers (simulator)")
+           f" at {o.lhat_pairs} random pairs ||x - x'|| = eps along the covered dimensions, {o.lhat_runs} runs "
+           f"each with common random numbers (simulator)")
     incr = o.lipschitz_mode == "increment"
     out = []
     for i in range(s.n):

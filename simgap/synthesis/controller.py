@@ -15,8 +15,10 @@ periods) per controller query.
 
 File format (``.npz``, no pickle): arrays ``steps`` (N,) int32, ``valid`` (N, ceil(M/8)) uint8
 (np.packbits of the valid-input mask), ``chosen`` (N,) int32, ``target`` (N,) bool, ``inputs``
-(M, m), and ``meta`` (a JSON string: system.describe(), grid, spec.to_dict(), gap provenance,
-hold, stats).
+(M, m), and ``meta`` (a JSON string: system.describe(), grid, spec.to_dict(), gap provenance
+(for a certificate: its content, digest included), hold, stats, and ``digest`` = sha256 of the
+meta without it and of every array). :meth:`Controller.load` recomputes the digest and refuses
+an edited file.
 """
 
 from __future__ import annotations
@@ -41,7 +43,7 @@ from .grid import UniformGrid
 from .spec import Spec
 
 FORMAT = "simgap-controller"
-VERSION = 1
+VERSION = 2
 
 #: systems whose f(x, u) - x and Jacobian growth bound do not depend on these state dimensions
 TRANSLATION_INVARIANT = {"turtlebot": (0, 1), "scots_vehicle": (0, 1)}
@@ -163,11 +165,14 @@ class Controller:
             meta["system"] = self.system.describe()
         if self.spec is not None:
             meta["spec"] = self.spec.to_dict()
+        meta.pop("digest", None)
+        meta = json.loads(json.dumps(meta, default=_json_default))  # the JSON the file holds
+        arrays = dict(steps=self.steps, valid=self.valid_packed, chosen=self.chosen, target=self.target,
+                      inputs=self.inputs)
+        meta["digest"] = fileio.content_digest(meta, arrays)
         folder = path.parent if str(path.parent) else Path(".")
         folder.mkdir(parents=True, exist_ok=True)
-        return fileio.savez(path, compressed=True, steps=self.steps, valid=self.valid_packed, chosen=self.chosen,
-                            target=self.target, inputs=self.inputs,
-                            meta=np.array(json.dumps(meta, default=_json_default)))
+        return fileio.savez(path, compressed=True, **arrays, meta=np.array(json.dumps(meta)))
 
     @classmethod
     def load(cls, path, system: Optional[System] = None) -> "Controller":
@@ -184,11 +189,20 @@ class Controller:
                 arrays = {k: z[k] for k in ("steps", "valid", "chosen", "target", "inputs", "meta")}
         except (OSError, ValueError, KeyError) as e:
             raise SimgapError(f"controller file {str(path)!r} is not a simgap controller ({e})") from None
-        meta = json.loads(str(arrays["meta"]))
-        if meta.get("format") != FORMAT:
+        try:
+            meta = json.loads(str(arrays.pop("meta")))
+        except ValueError as e:
+            raise SimgapError(f"controller file {str(path)!r}: its metadata is not JSON ({e})") from None
+        if not isinstance(meta, dict) or meta.get("format") != FORMAT:
             raise SimgapError(f"controller file {str(path)!r} is not a simgap controller (format tag)")
         if meta.get("version") != VERSION:
-            raise SimgapError(f"controller file version {meta.get('version')} is not supported (need {VERSION})")
+            raise SimgapError(f"controller file version {meta.get('version')} is not supported (need {VERSION}: "
+                              f"files without a content digest are refused; synthesize again)")
+        want = meta.get("digest")
+        have = fileio.content_digest({k: v for k, v in meta.items() if k != "digest"}, arrays)
+        if want != have:
+            raise SimgapError(f"controller file {str(path)!r} was modified after it was written (refused): its "
+                              f"content digest is {have[:16]}... but the file records {str(want)[:16]}...")
         grid = UniformGrid.from_dict(meta["grid"])
         if arrays["steps"].shape != (grid.size,):
             raise SimgapError(f"controller file {str(path)!r}: arrays do not match the grid size {grid.size}")

@@ -126,7 +126,8 @@ class Certificate:
 
     @property
     def uniform(self) -> bool:
-        return bool((self.options.get("bounds") or {}).get("uniform", False))
+        """True when the betas are spent over all K cover rows at once (uniform mode; run-level certificates)."""
+        return self.method == "run" or bool((self.options.get("bounds") or {}).get("uniform", False))
 
     @property
     def scope(self) -> str:

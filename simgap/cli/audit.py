@@ -1,8 +1,11 @@
 """``simgap audit CERT --data DATA``: check a certificate against fresh simulator ground truth.
 
 The simulator is rebuilt from the data set's manifest (its "simulator" config), or from the
-manifest of ``--against DATA2``, and the certificate's data hash must match ``--data``. Exit status 0 when the audit passes, 1 when
-gamma is violated beyond the audit's own Monte-Carlo error, 2 on bad input.
+manifest of ``--against DATA2``, and the certificate's data hash must match ``--data``. Each fresh
+point and dimension is a test of |E fhat_i - f_i| <= gamma_i(x,u), Holm-corrected over all tests
+at family-wise false-alarm rate --alpha; the power against a violated fraction --power-fraction
+is printed. Exit status 0 when the audit passes, 1 when gamma is violated beyond the audit's
+own Monte-Carlo error, 2 on bad input.
 """
 
 from __future__ import annotations
@@ -23,6 +26,10 @@ def add_parser(subparsers) -> None:
     p.add_argument("--points", type=int, default=200, help="fresh (x,u) points (default 200)")
     p.add_argument("--runs", type=int, default=2000, help="simulator runs per point (default 2000)")
     p.add_argument("--seed", type=int, default=12345)
+    p.add_argument("--alpha", type=float, default=0.05,
+                   help="family-wise false-alarm rate of the Holm-corrected tests (default 0.05)")
+    p.add_argument("--power-fraction", type=float, default=0.01,
+                   help="violated fraction of (x,u) the printed power refers to (default 0.01)")
     p.add_argument("--out", help="write the audit report JSON here")
     p.set_defaults(func=run)
 
@@ -45,7 +52,8 @@ def run(args) -> int:
             from ..perrun.run_audit import audit_run, report_table
             rep = audit_run(cert, sim, points=args.points, runs=args.runs, seed=args.seed)
         else:
-            rep = audit(cert, sim, points=args.points, runs=args.runs, seed=args.seed, dataset=ds)
+            rep = audit(cert, sim, points=args.points, runs=args.runs, seed=args.seed, dataset=ds, alpha=args.alpha,
+                    power_fraction=args.power_fraction)
     rep["simulator_source"] = str(args.against or args.data)
     print(report_table(rep))
     if args.out:

@@ -148,9 +148,9 @@ class Certificate:
         c = self.scope_confidences()
         sim = c["simultaneous"]
         sim_txt = f"{sim:.4f}" if sim > 0 else f"none ({sim:.3g} <= 0)"
-        return (f"confidence is {self.scope}: pointwise (for one query (x,u) at a time) {c['pointwise']:.4f}; "
-                f"simultaneous (for all K = {self.K} cover rows at once, union bound; what a controller using "
-                f"gamma at every cell relies on) {sim_txt}")
+        return (f"scope {self.scope}; joint confidence pointwise (one query (x,u) at a time) {c['pointwise']:.4f}, "
+                f"simultaneous (all K = {self.K} cover rows at once, union bound: what synthesis over every cell "
+                f"relies on) {sim_txt}")
 
     def constant(self) -> np.ndarray:
         """The x-independent part of gamma per dimension: L_x eps + delta_2 + repair, (n,)."""

@@ -190,7 +190,7 @@ def _edit(path, fn):
     path.write_text(json.dumps(d))
 
 
-def test_edited_certificate_is_refused(tmp_path, pend_cert, capsys):
+def test_edited_certificate_is_refused(tmp_path, pend_ds, pend_cert, capsys):
     p = pend_cert.save(tmp_path / "c.json")
     assert load(p).digest == pend_cert.digest == json.loads(p.read_text())["digest"]
 
@@ -216,8 +216,11 @@ def test_edited_certificate_is_refused(tmp_path, pend_cert, capsys):
     _edit(bad, lambda d: d["dims"][0]["q"].__setitem__(0, d["dims"][0]["q"][0] - 1e-4))
     with pytest.raises(SimgapError, match="content digest"):
         load(bad)
-    rc = main(["audit", str(bad), "--data", str(tmp_path / "nodata")])
-    assert rc == 2
+    data = pend_ds.save_npz(tmp_path / "d.npz")
+    assert main(["audit", str(p), "--data", str(data), "--points", "5", "--runs", "50"]) == 0
+    capsys.readouterr()
+    rc = main(["audit", str(bad), "--data", str(data), "--points", "5", "--runs", "50"])
+    assert rc == 2 and "content digest" in capsys.readouterr().err
 
 
 def test_edited_controller_is_refused(tmp_path):

@@ -318,7 +318,7 @@ def _data_lipschitz(ds, o: CertifyOptions, simulator=None):
     result is memoized per dataset (a delta or basis change re-solves only the programs). Each
     estimate has its own seeded generator, so the values do not depend on the call order.
     """
-    key = (id(ds), ds.hash, ds.K, o.lipschitz_mode, o.lhat, o.lhat_pairs, o.lhat_runs, o.seed,
+    key = (id(ds), ds.config_hash, ds.K, tuple(invariant_dims(ds)), o.lipschitz_mode, o.lhat, o.lhat_pairs, o.lhat_runs, o.seed,
            simulator is None)
     if key in _LIP_CACHE:
         _LIP_CACHE.move_to_end(key)

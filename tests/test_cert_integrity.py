@@ -293,3 +293,21 @@ def test_audit_power_is_what_it_reports(pend_cert):
     text = report_table(reps[0])
     assert "tested:" in text and "Holm" in text and "power:" in text and "not tested" in text
     assert "stated conf" not in text
+
+
+def test_uniform_deltas_hold_at_all_rows_at_once_monte_carlo():
+    """Lemma 1 and Lemma 2 events at K rows at once, Gaussian variables (sub-Gaussian with proxy = variance):
+    with the uniform deltas every row holds in >= 1 - beta of 2000 replications (3 standard errors);
+    the pointwise deltas fail at some row almost always, so they do not carry a simultaneous statement."""
+    K, N, R, M, beta = 200, 20, 2000, 0.04, 0.1
+    rng = np.random.default_rng(7)
+    bo_u = BoundOptions(concentration="subgaussian", uniform=True)
+    bo_p = BoundOptions(concentration="subgaussian")
+    d_u = delta_from_beta(np.array([M]), beta, beta, N, K, bo_u)
+    d_p = delta_from_beta(np.array([M]), beta, beta, N, K, bo_p)
+    for lemma, var in ((0, M), (1, 2 * M)):  # Lemma 2: the increment at (x, x_r) has variance <= 2 Mhat
+        dev = np.abs(rng.standard_normal((R, K, N)).mean(axis=2)) * np.sqrt(var)  # |empirical mean - E|
+        fail_u = (dev > d_u[lemma][0]).any(axis=1).mean()
+        fail_p = (dev > d_p[lemma][0]).any(axis=1).mean()
+        assert fail_u <= beta + 3 * np.sqrt(beta * (1 - beta) / R), (lemma, fail_u)
+        assert fail_p > 0.9, (lemma, fail_p)

@@ -133,12 +133,17 @@ def _forge(path, **changes):
     np.savez(path, **arrays)
 
 
-def test_forged_chunk_is_refused_and_resume_recomputes_it(tmp_path):
+def _collected(tmp_path):
+    """(plan, store, dataset, certificate) of a small numpy pendulum collection."""
     plan = _plan()
     store = tmp_path / "s"
     collect(plan, store, executor="serial")
     ds = load_store(store)
-    cert = certify(ds, degree=1)
+    return plan, store, ds, certify(ds, degree=1)
+
+
+def test_forged_chunk_is_refused_and_resume_recomputes_it(tmp_path):
+    plan, store, ds, cert = _collected(tmp_path)
     cert.save(tmp_path / "c.json")
     chunk = store / "chunks" / "c000001.npz"
     with np.load(chunk) as z:
@@ -155,11 +160,7 @@ def test_forged_chunk_is_refused_and_resume_recomputes_it(tmp_path):
 
 
 def test_dataset_hash_is_a_content_hash(tmp_path):
-    plan = _plan()
-    store = tmp_path / "s"
-    collect(plan, store, executor="serial")
-    ds = load_store(store)
-    cert = certify(ds, degree=1)
+    _, store, ds, cert = _collected(tmp_path)
     assert cert.provenance["dataset_hash"] == ds.hash != ds.config_hash
     # a forger who also rewrites the chunk's digests gets a store that loads, but another data set
     chunk = store / "chunks" / "c000001.npz"

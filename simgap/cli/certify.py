@@ -76,7 +76,7 @@ def add_parser(subparsers) -> None:
     g.add_argument("--beta-v", type=float, default=0.001, help="failure probability of the Maurer-Pontil bound")
     b = p.add_argument_group("options beyond the paper (off by default)")
     b.add_argument("--concentration", choices=["chebyshev", "bernstein", "subgaussian"], default="chebyshev")
-    b.add_argument("--uniform", action="store_true", help="union bound over all K rows in Lemma 1")
+    b.add_argument("--uniform", action="store_true", help="simultaneous statement: union bound over all K cover rows in Lemma 1 and Lemma 2")
     b.add_argument("--lemma2-factor", type=float, choices=[2.0, 4.0], default=2.0,
                    help="Var(fhat(x)-fhat(x_r)) <= factor*Mhat: 2 (paper) or 4 (general)")
     b.add_argument("--lipschitz", choices=["increment", "state"], default="increment",

@@ -15,7 +15,8 @@ Finite horizon H sampling periods = Ha = ceil(H / k) abstract steps:
 
 p_cert(c) = V_Ha(c) lower-bounds, for every x in cell c, the probability that one run under the
 time-varying policy (policy_{Ha-1-t} at abstract step t) satisfies the specification for
-Ha * k >= H periods. Everything is vectorized over the nnz entries (one argsort per step).
+Ha * k >= H periods. Everything is vectorized: rows padded to their block's longest row (ELL),
+one row-wise argsort per step.
 """
 
 from __future__ import annotations
@@ -35,18 +36,49 @@ from .imdp import IMDP
 FORMAT = "simgap-perrun-controller"
 
 
-def pessimistic_q(imdp: IMDP, V: np.ndarray, entry_row: np.ndarray) -> np.ndarray:
+def ell_layout(imdp: IMDP, rows_per_block: int = 1 << 17) -> list:
+    """Row blocks of the intervals padded to the block's longest row (ELL): [(r0, col, lo, cap)] per block.
+
+    col (B, W) int32 (padding: the sink, with lo = cap = 0), lo and cap = hi - lo (B, W) float64.
+    Sorting each padded row is far faster than one global sort of all entries.
+    """
+    ptr, R = imdp.row_ptr, imdp.row_ptr.size - 1
+    out = []
+    for r0 in range(0, R, rows_per_block):
+        r1 = min(R, r0 + rows_per_block)
+        length = np.diff(ptr[r0:r1 + 1])
+        W = max(int(length.max(initial=0)), 1)
+        pos = ptr[r0:r1, None] + np.arange(W)[None, :]
+        pad = np.arange(W)[None, :] >= length[:, None]
+        pos = np.where(pad, 0, pos)
+        if imdp.col.size == 0:
+            pad[:] = True
+            pos[:] = 0
+            col = np.full(pos.shape, imdp.C, np.int32)
+            lo = np.zeros(pos.shape)
+            hi = np.zeros(pos.shape)
+        else:
+            col = np.where(pad, imdp.C, imdp.col[pos]).astype(np.int32)
+            lo = np.where(pad, 0.0, imdp.lo[pos].astype(np.float64))
+            hi = np.where(pad, 0.0, imdp.hi[pos].astype(np.float64))
+        out.append((r0, col, lo, hi - lo))
+    return out
+
+
+def pessimistic_q(imdp: IMDP, V: np.ndarray, layout: list) -> np.ndarray:
     """Qpess (C*M,) = min over interval distributions of sum_j p_j V_j, per row (see module docstring)."""
-    Vs = np.append(V, 0.0)[imdp.col]
-    order = np.lexsort((Vs, entry_row))              # rows ascending, V ascending inside each row
-    v, lo, hi, r = Vs[order], imdp.lo[order].astype(np.float64), imdp.hi[order].astype(np.float64), entry_row[order]
-    R = imdp.row_ptr.size - 1
-    cap = hi - lo
-    free = 1.0 - np.bincount(r, weights=lo, minlength=R)
-    cumex = np.cumsum(cap) - cap                     # exclusive running sum over all entries
-    before = cumex - cumex[imdp.row_ptr[r]]          # ... restarted at each row's first entry
-    add = np.clip(free[r] - before, 0.0, cap)
-    return np.bincount(r, weights=(lo + add) * v, minlength=R)
+    Vx = np.append(V, 0.0)
+    Q = np.empty(imdp.row_ptr.size - 1)
+    for r0, col, lo, cap in layout:
+        v = Vx[col]
+        order = np.argsort(v, axis=1, kind="stable")       # ascending V inside each row
+        v = np.take_along_axis(v, order, axis=1)
+        c = np.take_along_axis(cap, order, axis=1)
+        free = 1.0 - lo.sum(axis=1, keepdims=True)
+        before = np.cumsum(c, axis=1) - c                  # mass already poured into lower values
+        add = np.clip(free - before, 0.0, c)
+        Q[r0:r0 + len(v)] = (lo * Vx[col]).sum(axis=1) + (add * v).sum(axis=1)
+    return Q
 
 
 @dataclass
@@ -119,12 +151,12 @@ def synthesize_imdp(imdp: IMDP, horizon: int, policy: Optional[np.ndarray] = Non
     t0 = time.perf_counter()
     C, M = imdp.C, imdp.M
     Ha = -(-int(horizon) // imdp.hold)
-    entry_row = np.repeat(np.arange(C * M, dtype=np.int64), np.diff(imdp.row_ptr))
+    layout = ell_layout(imdp)
     live, target = imdp.live, imdp.target
     V = (live | target).astype(float) if not target.any() else target.astype(float)
     pol = np.full((Ha, C), -1, np.int16)
     for h in range(Ha):
-        Q = pessimistic_q(imdp, V, entry_row).reshape(C, M)
+        Q = pessimistic_q(imdp, V, layout).reshape(C, M)
         if policy is None:
             a = np.argmax(Q, axis=1)
         else:

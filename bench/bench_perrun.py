@@ -1,0 +1,139 @@
+"""Per-run guarantees: interval-MDP cost, and p_cert next to p_emp from batched rollouts (run by hand).
+
+    python bench/bench_perrun.py vi                      # value iteration at the pendulum target size
+    python bench/bench_perrun.py validate                # numpy noisy pendulum, 10^4 rollouts x 21 states
+    python bench/bench_perrun.py validate --sim pybullet --inputs 5 --n-runs 500 --rollouts 2000
+
+1. ``vi``: value iteration alone on an interval MDP of the pendulum target size (201 x 201 cells,
+   21 inputs, horizon 400 periods at hold k = 20: 20 abstract steps) with a synthetic sparse
+   structure (``--succ`` successor cells per row + the sink, random valid intervals); wall time
+   per step and in total, peak RSS. Sampling the simulator is not part of this number (see 2).
+2. ``validate``: the noisy pendulum (actuation std 0.5 N m, joint damping as an undeclared
+   effect, invariance in X, x0 = (0.05, 0.1)): interval MDP from simulator samples (time per
+   phase, samples, entries, bytes), value iteration, then R rollouts of the per-run controller
+   from x0 and ``--states`` initial states in its domain: p_cert, p_emp (95 % Clopper-Pearson),
+   soundness p_emp >= p_cert - 3 SE per state, tightness p_emp - p_cert at x0.
+The machine may be shared: the report states wall times and the load average.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import resource
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from simgap.perrun.imdp import IMDP, IMDPOptions, build_imdp  # noqa: E402
+from simgap.perrun.validation import empirical, sample_in_cells, success_counts  # noqa: E402
+from simgap.perrun.value_iteration import synthesize_imdp  # noqa: E402
+from simgap.simulators.base import make_simulator  # noqa: E402
+from simgap.synthesis.grid import UniformGrid  # noqa: E402
+from simgap.synthesis.spec import Box, Spec  # noqa: E402
+from simgap.systems import get_system, input_grid  # noqa: E402
+
+
+def peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def bench_vi(a) -> dict:
+    s = get_system("pendulum")
+    grid = UniformGrid(s.x_lo, s.x_hi, [0.4 / 200, 1.0 / 200])
+    C, M, S = grid.size, 21, int(a.succ)
+    rng = np.random.default_rng(0)
+    rows = C * M
+    mi = grid.ids_to_multi(np.arange(C))
+    off = np.stack(np.meshgrid(np.arange(-1, 2), np.arange(-(S // 6), S // 6 + 1), indexing="ij"), -1).reshape(-1, 2)[:S]
+    t0 = time.perf_counter()
+    cols = np.empty((rows, S + 1), np.int32)
+    for j, o in enumerate(off):  # neighbours of each cell (clipped at the border), same for every input
+        cols[:, j] = np.repeat(grid.multi_to_ids(np.clip(mi + o, 0, np.array(grid.shape) - 1)), M)
+    cols[:, S] = C
+    p = rng.dirichlet(np.ones(S + 1), size=rows)
+    lo = np.maximum(p - 0.02, 0).astype(np.float32)
+    hi = np.minimum(p + 0.02, 1).astype(np.float32)
+    live = np.ones(C, bool)
+    live[mi[:, 0] == 0] = live[mi[:, 0] == grid.shape[0] - 1] = False
+    im = IMDP(grid=grid, inputs=input_grid([-1], [1], [M]), hold=20, live=live, target=np.zeros(C, bool),
+              row_ptr=np.arange(rows + 1, dtype=np.int64) * (S + 1), col=cols.ravel(), lo=lo.ravel(), hi=hi.ravel())
+    del cols, p, lo, hi
+    t_build = time.perf_counter() - t0
+    ctl = synthesize_imdp(im, 400)
+    return {"cells": C, "inputs": M, "nnz": im.nnz, "bytes_imdp": im.nbytes(), "steps": ctl.steps,
+            "seconds_synthetic_build": round(t_build, 2), "seconds_vi": round(ctl.meta["seconds_vi"], 2),
+            "seconds_per_step": round(ctl.meta["seconds_vi"] / ctl.steps, 3), "peak_rss_mb": round(peak_rss_mb())}
+
+
+def bench_validate(a) -> dict:
+    s = get_system("pendulum")
+    if a.inputs != 21:
+        s = dataclasses.replace(s, inputs=input_grid([-1], [1], [a.inputs]))
+    if a.sim == "numpy":
+        cfg = {"kind": "numpy", "system": "pendulum", "noise": {"actuation_std": 0.5},
+               "effects": {"linear": [[0.0, 0.0], [0.0, -0.3]]}}
+    else:
+        cfg = {"kind": "pybullet_pendulum", "system": "pendulum", "noise": {"actuation_std": 0.5, "sensor_std": 1e-4},
+               "effects": {"joint_damping": 0.1}, "options": {"branches": 25}}
+    sim = make_simulator(cfg, system=s)
+    spec = Spec("invariance", safe=Box(s.x_lo, s.x_hi))
+    x0 = np.array([0.05, 0.1])
+    t0 = time.perf_counter()
+    im = build_imdp(sim, spec, IMDPOptions(eta=a.eta, hold=a.hold, n_runs=a.n_runs, pilot_runs=a.pilot, seed=1),
+                    log=print)
+    t_build = time.perf_counter() - t0
+    ctl = synthesize_imdp(im, a.horizon)
+    rng = np.random.default_rng(5)
+    xs = np.concatenate([x0[None], sample_in_cells(im.grid, np.flatnonzero(ctl.p_cert > 0), a.states, rng)])
+    t1 = time.perf_counter()
+    k = success_counts(lambda x, t: ctl.input_index(x, t), ctl.hold, sim, spec, xs, a.rollouts, a.horizon, seed=9)
+    t_roll = time.perf_counter() - t1
+    e = empirical(k, a.rollouts)
+    pc = ctl.certified(xs)
+    pe, se = np.array(e["p_emp"]), np.maximum(np.array(e["se"]), 1 / a.rollouts)
+    sound = pe >= pc - 3 * se
+    rows = [{"x0": np.round(x, 4).tolist(), "p_cert": round(float(c), 4), "p_emp": round(float(p), 4),
+             "ci95": np.round(ci, 4).tolist()} for x, c, p, ci in zip(xs, pc, pe, e["ci95"])]
+    sim.close()
+    return {"simulator": a.sim, "eta": a.eta, "hold": a.hold, "inputs": a.inputs, "n_runs": a.n_runs,
+            "pilot_runs": a.pilot, "horizon": a.horizon, "abstract_steps": ctl.steps, "cells": im.C,
+            "live_cells": int(im.live.sum()), "nnz": im.nnz, "bytes_imdp": im.nbytes(), "samples": im.meta["samples"],
+            "seconds": {k: round(v, 2) for k, v in im.meta["seconds"].items()}, "seconds_build": round(t_build, 2),
+            "seconds_vi": round(ctl.meta["seconds_vi"], 2), "seconds_rollouts": round(t_roll, 2),
+            "rollouts_per_state": a.rollouts, "states": len(xs), "sound_states": int(sound.sum()),
+            "p_cert_x0": rows[0]["p_cert"], "p_emp_x0": rows[0]["p_emp"],
+            "tightness_x0": round(float(pe[0] - pc[0]), 4), "peak_rss_mb": round(peak_rss_mb()), "table": rows}
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("what", choices=["vi", "validate"])
+    ap.add_argument("--succ", type=int, default=18, help="vi: successor cells per row")
+    ap.add_argument("--sim", choices=["numpy", "pybullet"], default="numpy")
+    ap.add_argument("--eta", type=float, nargs=2, default=[0.02, 0.05])
+    ap.add_argument("--hold", type=int, default=20)
+    ap.add_argument("--inputs", type=int, default=11)
+    ap.add_argument("--n-runs", type=int, default=2000)
+    ap.add_argument("--pilot", type=int, default=200)
+    ap.add_argument("--horizon", type=int, default=400)
+    ap.add_argument("--rollouts", type=int, default=10000)
+    ap.add_argument("--states", type=int, default=20)
+    ap.add_argument("--json", default=None)
+    a = ap.parse_args()
+    rep = bench_vi(a) if a.what == "vi" else bench_validate(a)
+    rep["load_average"] = os.getloadavg()
+    rep["command"] = " ".join(["python"] + sys.argv)
+    print(json.dumps(rep, indent=1))
+    if a.json:
+        Path(a.json).write_text(json.dumps(rep, indent=1))
+
+
+if __name__ == "__main__":
+    main()

@@ -59,7 +59,12 @@ class SimgapApp:
         self.notifications: list = []  # (title, body, color) in order, also for tests
         self.timings: dict = {}  # stage -> seconds of the last run (or cache hit)
         self.auto_certify = True
-        self.view = {"dim": 0, "a": 0, "b": 1, "fixed": None, "zscale": None}
+        self.view = {"dim": 0, "a": 0, "b": 1, "fixed": None, "zscale": None, "n_draw": 100, "t": None,
+                     "rollout_index": 0}
+        self.legend = None  # what the gamma layer drew (range, height scale), for the View tab
+        self.winning_counts = None
+        self.rollout_drawn = None
+        self.body_frame = None
         self.layers_visible = {"gamma": True, "data": True, "map": True, "winning": True, "rollouts": True,
                                "bodies": True}
         self.jobs = JobRunner(on_progress=self._job_progress, on_finish=self._job_finished)
@@ -71,9 +76,8 @@ class SimgapApp:
         self.server = viser.ViserServer(host=host, port=port, verbose=False)
         self.server.gui.configure_theme(control_width="large", dark_mode=False, show_logo=False)
         self.server.scene.set_up_direction("+z")
-        self.server.initial_camera.position = (1.4, -3.4, 1.8)
-        self.server.initial_camera.look_at = (0.5, 0.0, 0.3)
         self._build_gui()
+        self.server.on_client_connect(self._on_connect)
         if dataset is not None:
             self.set_dataset(dataset)
         self.refresh_system_layers()
@@ -103,6 +107,10 @@ class SimgapApp:
             self.panels["view"] = view.build(self)
         self.tabs = tabs
         self._update_buttons()
+
+    def _on_connect(self, client) -> None:
+        from .layers import scene
+        scene.fit_camera(self, [client])
 
     @property
     def url(self) -> str:
@@ -470,6 +478,7 @@ class SimgapApp:
         with self.lock:
             self._scene_version += 1
         scene.draw_results(self)
+        self.panels["view"].show_legend()
 
     def set_layer_visible(self, layer: str, visible: bool) -> None:
         """Show or hide one layer (redraws it)."""
@@ -501,10 +510,31 @@ class SimgapApp:
                 fixed[int(fixed_index)] = float(fixed_value)
                 v["fixed"] = fixed
             self.view = v
+        drawn = scene.draw_gamma(self)
         view_panel = self.panels.get("view")
         if view_panel is not None:
             view_panel._mark_free()
-        return scene.draw_gamma(self)
+            view_panel.show_legend()
+        if dim is not None or a is not None or b is not None:
+            scene.fit_camera(self)
+        return drawn
+
+    def set_time(self, t=None, n_draw=None, rollout_index=None) -> None:
+        """Rollout display: step ``t`` of the drawn rollouts (moves the bodies along rollout
+        ``rollout_index``), how many rollouts are drawn (every rollout is counted regardless)."""
+        from .layers import scene
+        with self.lock:
+            if n_draw is not None:
+                self.view["n_draw"] = max(0, int(n_draw))
+            if rollout_index is not None:
+                self.view["rollout_index"] = max(0, int(rollout_index))
+            if t is not None:
+                self.view["t"] = int(t)
+        if n_draw is not None:
+            scene.draw_rollouts(self)
+            self.panels["view"].show_legend()
+        else:
+            scene.show_time(self, self.view["t"])
 
     def wait(self, timeout: float = 120.0):
         """Block until the running job (if any) ends; returns its outcome (tests, scripts)."""

@@ -340,6 +340,23 @@ def winning_cells(res):
     return centers, widths, frac[i, j]
 
 
+def cell_labels(res):
+    """(blocked (N,), allowed (N,)) cell labels of a synthesis result's grid for its spec
+    (simgap.synthesis.controller.label_cells: obstacle/outside-X cells, safe or target cells)."""
+    from simgap.synthesis.controller import label_cells
+    ctrl = res.controller
+    sysm = ctrl.system
+    x_lo, x_hi = (sysm.x_lo, sysm.x_hi) if sysm is not None else (ctrl.grid.lo, ctrl.grid.hi)
+    return label_cells(ctrl.grid, ctrl.spec, x_lo, x_hi, strict_domain=bool(ctrl.meta.get("strict_domain", True)))
+
+
+def mean_map_trajectory(res):
+    """The mean-map trajectory of a rollout result (the closed loop of x -> E[x+]), if the engine
+    computed one, else None."""
+    v = getattr(res, "mean_map_trajectory", None)
+    return None if v is None else np.asarray(v)
+
+
 def rollout_arrays(res):
     """(trajectories (R,T+1,n), failed (R,), mean (T+1,n), nominal (T+1,n) or None)."""
     return (np.asarray(res.trajectories), ~np.asarray(res.success), np.asarray(res.mean_trajectory),
@@ -382,7 +399,11 @@ def lines_table(lines, header: str = "") -> str:
 
 
 def synthesis_markdown(res) -> str:
-    return lines_table(res.summary().splitlines())
+    try:
+        lines = res.summary().splitlines()
+    except KeyError:  # a controller saved by an older engine lacks some statistics
+        lines = [f"{k}  {v}" for k, v in res.stats.items() if not isinstance(v, (dict, list))]
+    return lines_table(lines)
 
 
 def rollout_markdown(res) -> str:
@@ -414,20 +435,6 @@ def refine_markdown(res) -> str:
 
 
 # ----- static geometry -----------------------------------------------------------------------
-def map_meshes(app, frame) -> list:
-    """(name, trimesh) of the obstacle map and target, in display coordinates."""
-    from .layers.geometry import spec_meshes
-    try:
-        spec = app.current_spec()
-    except SimgapError:
-        return []
-    out = []
-    for name, mesh, rgb in spec_meshes(frame, spec):
-        mesh.visual.face_colors = np.array(list(rgb) + [200], np.uint8)
-        out.append((name, mesh))
-    return out
-
-
 def body_meshes(app) -> list:
     """(name, trimesh, position) of the simulator's bodies (from their URDF geometry)."""
     from .layers.bodies import simulator_bodies

@@ -1,60 +1,84 @@
-"""Take a screenshot of the app after a small pendulum walk-through (for the docs).
+"""Screenshots of the app in headless chromium (Playwright, software WebGL), for the docs and tests.
 
-    python -m simgap_viz.screenshot --out docs/app.png
+    python -m simgap_viz.screenshot results/pendulum-small --out docs/app.png
 
-Runs collect, certify, synthesize (nominal model, no gap, so the domain is not empty at this
-coarse data) and 200 rollouts on the pendulum small profile with epsilon 0.05 and N1hat 20,
-then opens the page in headless chromium and saves a PNG.
+opens the finished run (``simgap run pendulum``) in the app and saves one PNG per tab:
+``docs/app.png`` (the Certificate tab) and ``docs/app-<tab>.png`` for the others named by ``--tabs``.
 """
 
 from __future__ import annotations
 
 import argparse
 import time
+from pathlib import Path
 
+CHROMIUM = "/usr/bin/chromium"
 ARGS = ["--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--disable-background-networking",
         "--disable-component-update", "--disable-sync", "--no-first-run"]
 
 
+def open_page(browser, url: str, width: int = 1280, height: int = 800):
+    """A page with the app loaded and connected, viser's software-WebGL toast closed."""
+    page = browser.new_page(viewport={"width": width, "height": height})
+    page.goto(url)
+    page.wait_for_function("() => !document.body.innerText.includes('Connecting...')", timeout=120_000)
+    page.locator("canvas").first.wait_for(timeout=60_000)
+    time.sleep(1.0)
+    close_toasts(page)
+    return page
+
+
+def close_toasts(page) -> None:
+    for btn in page.locator(".mantine-Notification-closeButton").all():
+        try:
+            btn.click(force=True, no_wait_after=True, timeout=2000)
+        except Exception:  # the toast closed itself
+            pass
+
+
+def show_tab(page, tab: str, settle: float = 2.5) -> None:
+    page.get_by_role("tab", name=tab).click(force=True, no_wait_after=True)
+    time.sleep(settle)
+    close_toasts(page)
+
+
+def canvas_png(page, path=None) -> bytes:
+    """A screenshot of the 3-D canvas alone (bytes of a PNG; also written to ``path``)."""
+    return page.locator("canvas").first.screenshot(path=None if path is None else str(path), timeout=180_000)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--out", default="docs/app.png")
-    p.add_argument("--tab", default="Certificate")
+    p.add_argument("results", help="a finished `simgap run` folder")
+    p.add_argument("--out", default="docs/app.png", help="the main picture (Certificate tab)")
+    p.add_argument("--tabs", default="Synthesis,Rollouts,View", help="further tabs, one PNG each")
+    p.add_argument("--dim", type=int, default=2, help="gamma of state dimension (1-based)")
     p.add_argument("--width", type=int, default=1280)
-    p.add_argument("--height", type=int, default=760)
+    p.add_argument("--height", type=int, default=800)
     args = p.parse_args(argv)
     from playwright.sync_api import sync_playwright
 
     from .app import SimgapApp
-    from .experiment import app_inputs
+    from .results import load_run
 
-    st, ds, spec, arena, exp = app_inputs(experiment="pendulum", profile="small")
-    app = SimgapApp(port=0, settings=st, spec=spec, arena=arena, experiment=exp, executor="serial")
+    app = SimgapApp(port=0, executor="serial")
+    out = Path(args.out)
+    written = []
     try:
-        app.update_settings(epsilon=0.05, n_runs=20, use_gap=False, eta=(0.005, 0.01), n_rollouts=100, horizon=300,
-                            x0=(0.05, 0.1))
-        for stage in ("collect", "certify", "synthesize", "rollout"):
-            getattr(app, stage)()
-            out = app.wait(600)
-            if out is not None and not out.ok:
-                raise SystemExit(f"{stage} failed: {out.error}")
-        app.set_view(dim=1)
+        app.load_run(load_run(args.results))
+        app.set_view(dim=args.dim - 1)
         with sync_playwright() as pw:
-            b = pw.chromium.launch(executable_path="/usr/bin/chromium", args=ARGS)
-            page = b.new_page(viewport={"width": args.width, "height": args.height})
-            page.goto(app.url)
-            page.wait_for_function("() => !document.body.innerText.includes('Connecting...')", timeout=60_000)
-            page.get_by_role("tab", name=args.tab).click(force=True, no_wait_after=True)
-            time.sleep(1.0)
-            # close viser's "software WebGL" toast so it does not cover the scene
-            for btn in page.locator(".mantine-Notification-closeButton").all():
-                btn.click(force=True, no_wait_after=True)
-            time.sleep(3.0)
-            page.screenshot(path=args.out, timeout=180_000)
+            b = pw.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+            page = open_page(b, app.url, args.width, args.height)
+            for i, tab in enumerate(["Certificate"] + [t for t in args.tabs.split(",") if t]):
+                show_tab(page, tab)
+                path = out if i == 0 else out.with_name(f"{out.stem}-{tab.lower()}{out.suffix}")
+                page.screenshot(path=str(path), timeout=180_000)
+                written.append(path)
             b.close()
     finally:
         app.stop()
-    print(f"wrote {args.out}")
+    print("wrote " + ", ".join(map(str, written)))
     return 0
 
 

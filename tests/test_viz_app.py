@@ -303,7 +303,19 @@ def test_synthesize_and_rollout_layers(app):
     assert syn.stats["winning"] > 0 and "winning" in app.panels["synthesis"].stats.content
     centers, widths, frac = engine.winning_cells(syn)
     assert centers.shape[0] == syn.stats["winning"] and np.all(frac == 1.0)  # 2-D: one cell per column
-    assert scene.draw_winning(app) == syn.stats["winning"]
+    assert scene.draw_winning(app) == syn.stats["winning"]  # one image: a pixel block per (x1, x2) column
+    # the map's categories are the engine's: winning = steps >= 0, unsafe = blocked or outside the safe set
+    blocked, allowed = engine.cell_labels(syn)
+    wm = G.winning_map(syn.controller, blocked, allowed)
+    win = syn.controller.winning_mask
+    assert wm["counts"]["winning"] == win.sum() and wm["counts"]["unsafe"] == (~win & (blocked | ~allowed)).sum()
+    assert wm["counts"]["losing"] == (~win & ~blocked & allowed).sum()
+    img = wm["image"]
+    assert img.shape[0] % syn.controller.grid.shape[1] == 0 and img.shape[1] % syn.controller.grid.shape[0] == 0
+    k = img.shape[1] // syn.controller.grid.shape[0]
+    cell = img[::k, ::k][::-1].transpose(1, 0, 2)  # back to (i, j) cell order
+    is_win = np.all(cell == G.WIN_NEAR, axis=2).ravel()  # invariance in 2-D: every winning cell fully winning
+    assert np.array_equal(is_win, win)
     app.rollout()
     out = app.wait(120)
     assert out.ok, out.error
@@ -313,7 +325,17 @@ def test_synthesize_and_rollout_layers(app):
     assert seg["points"].shape == (200 * 150, 2, 3)  # one batched node, every step
     red = np.all(seg["colors"][:, 0] == G.RED, axis=1).reshape(200, 150)
     assert np.array_equal(red.all(axis=1), ~ro.success)
-    assert scene.draw_rollouts(app) == 200 * 150
+    # a subset is drawn (failures first), all are counted
+    app.set_time(n_draw=50)
+    assert app.rollout_drawn == {"drawn": 50, "total": 200, "failed": int((~ro.success).sum()),
+                                 "failed_drawn": min(50, int((~ro.success).sum()))}
+    assert scene.draw_rollouts(app) == 50 * 150
+    assert "50 of 200 drawn" in app.panels["view"].legend.content
+    sub = G.rollout_subset(np.arange(200) % 7 == 0, 20)
+    assert sub.size == 20 and np.all(sub % 7 == 0)  # 29 failures: the subset is all failures
+    app.set_time(t=75, rollout_index=3)  # moves the pendulum body to that rollout's angle
+    th = ro.trajectories[3, 75, 0]
+    np.testing.assert_allclose(app.body_frame.wxyz, [np.cos(th / 2), 0, np.sin(th / 2), 0], atol=1e-6)
     assert "rollouts of pendulum" in app.panels["rollouts"].stats.content
 
     # with the certified gap at this coarse data the domain is empty: a visible notification
@@ -378,3 +400,25 @@ def test_change_during_a_job_recertifies_afterwards(app):
     app.wait(60)
     assert app.results["certify"].dims[0].terms == ["1", "x1", "x2", "u1"]
     assert len(app.notifications) == n
+
+
+def test_gamma_layer_height_scale_and_colors(app):
+    """The height scale follows each certificate; the data gaps are colored by their margin."""
+    from simgap_viz.layers import geometry as G
+    app.certify()
+    assert app.wait(60).ok
+    d1 = app.set_view(dim=1)
+    top1 = d1["top"]
+    assert d1["vertices"][:, 2].max() <= 1.0 + 1e-6 and d1["vertices"][:, 2].max() > 0.5  # visible, in [0, 1]
+    assert top1 == pytest.approx(max(d1["range"][1], 0.0), rel=1e-6) or top1 >= d1["range"][1]
+    assert "gamma_omega" in app.panels["view"].legend.content
+    m = d1["margin"]
+    col = G.margin_colors(m, 1.0)
+    assert np.array_equal(np.all(col == G.RED, axis=1), m < 0)
+    # a looser certificate: the scale is recomputed, the surface stays inside [0, 1]
+    app.update_settings(confidence=0.999)
+    assert app.wait(60).ok
+    d2 = app.set_view(dim=1)
+    assert d2["top"] > top1 and d2["vertices"][:, 2].max() <= 1.0 + 1e-6
+    assert np.all(G.nice_ticks(0.0, 0.0058, 4) <= 0.0058) and G.nice_ticks(-0.2, 0.2, 5).tolist() == \
+        pytest.approx([-0.2, -0.1, 0.0, 0.1, 0.2])

@@ -4,6 +4,8 @@ The folder is made by the real pipeline (simgap.pipeline.run_experiment) on a ti
 experiment with the numpy simulator (about 10 s).
 """
 
+import os
+import signal
 import subprocess
 import sys
 
@@ -155,7 +157,8 @@ def test_recording_opens_in_the_headless_web_viewer(run_dir, tmp_path):
     with open(log, "w") as fh:
         proc = subprocess.Popen([rerun, "--web-viewer", "--bind", "127.0.0.1", "--web-viewer-port", str(web),
                                  "--port", str(grpc), str(rrd)], stdout=fh, stderr=subprocess.STDOUT,
-                                env={**__import__("os").environ, "DISPLAY": "", "WAYLAND_DISPLAY": ""})
+                                env={**os.environ, "DISPLAY": "", "WAYLAND_DISPLAY": ""},
+                                start_new_session=True)  # the entry point runs the viewer as a child
     try:
         page, deadline = None, time.time() + 60
         while page is None and time.time() < deadline and proc.poll() is None:
@@ -168,5 +171,5 @@ def test_recording_opens_in_the_headless_web_viewer(run_dir, tmp_path):
         assert "<html" in page.lower() and "rerun" in page.lower()
         assert f"Hosting a web-viewer at http://127.0.0.1:{web}" in text and str(rrd) in text
     finally:
-        proc.terminate()
+        os.killpg(proc.pid, signal.SIGTERM)  # the viewer and its launcher, nothing else
         proc.wait(10)

@@ -72,6 +72,115 @@ def colormap(t: np.ndarray) -> np.ndarray:
     return ((1 - f) * stops[i] + f * stops[i + 1]).astype(np.uint8)
 
 
+def margin_colors(margin: np.ndarray, scale: float) -> np.ndarray:
+    """Colors of data points by their margin gamma - gap: red where negative (not covered),
+    orange (margin 0, tight) -> grey-blue (margin >= ``scale``) otherwise."""
+    m = np.asarray(margin, dtype=float)
+    t = np.clip(m / max(scale, 1e-300), 0.0, 1.0)[:, None]
+    tight, loose = np.array([245, 120, 0], float), np.array([150, 160, 185], float)
+    col = ((1 - t) * tight + t * loose).astype(np.uint8)
+    col[~(m >= 0)] = RED
+    return col
+
+
+def colorbar(width: int = 256, height: int = 14) -> np.ndarray:
+    """(height, width, 3) uint8 image of :func:`colormap` from 0 (left) to 1 (right)."""
+    return np.repeat(colormap(np.linspace(0.0, 1.0, width))[None], height, axis=0)
+
+
+def nice_ticks(lo: float, hi: float, n: int = 5) -> np.ndarray:
+    """About ``n`` round tick values in [lo, hi] (1, 2, 5 x 10^k steps)."""
+    if not (np.isfinite(lo) and np.isfinite(hi)) or hi <= lo:
+        return np.array([lo])
+    raw = (hi - lo) / max(n - 1, 1)
+    mag = 10.0 ** np.floor(np.log10(raw))
+    step = mag * min((m for m in (1, 2, 2.5, 5, 10) if m * mag >= raw), default=10)
+    t = np.arange(np.ceil(lo / step - 1e-9), np.floor(hi / step + 1e-9) + 1) * step
+    return t[(t >= lo - 1e-12 * abs(step)) & (t <= hi + 1e-12 * abs(step))] + 0.0  # no "-0"
+
+
+def textured_surface(vertices: np.ndarray, faces: np.ndarray, t: np.ndarray):
+    """A trimesh whose color follows :func:`colormap` of the vertex values ``t`` in [0, 1], through
+    a 1-D texture and a matte PBR material (glTF's default material is metallic and washes
+    vertex colors out)."""
+    import trimesh
+    from PIL import Image
+    tex = Image.fromarray(np.repeat(colormap(np.linspace(0, 1, 256))[None], 4, axis=0))
+    uv = np.stack([np.clip(t, 0.002, 0.998), np.full(t.shape, 0.5)], axis=1)
+    mat = trimesh.visual.material.PBRMaterial(baseColorTexture=tex, metallicFactor=0.0, roughnessFactor=0.9,
+                                              doubleSided=True, alphaMode="BLEND",
+                                              baseColorFactor=[255, 255, 255, 215])  # the map shows through
+    return trimesh.Trimesh(vertices=vertices, faces=faces, process=False,
+                           visual=trimesh.visual.TextureVisuals(uv=uv, material=mat))
+
+
+# winning-domain map colors
+WIN_NEAR, WIN_FAR = (15, 100, 45), (140, 210, 130)
+LOSING = (238, 232, 205)
+UNSAFE = (150, 60, 60)
+TARGET = (40, 110, 210)
+
+
+def winning_map(controller, blocked: np.ndarray, allowed: np.ndarray, max_pixels: int = 1024) -> dict:
+    """The winning domain as a top-down image over the first two state dimensions.
+
+    Per (x1, x2) column of grid cells (other dimensions, e.g. the heading, reduced): *winning*
+    (green) if any cell of the column is winning, shaded by the worst-case steps-to-go of its best
+    cell for reach-avoid (dark: near the target, light: far) or by the winning fraction otherwise;
+    *unsafe* (red-brown) if every cell is blocked (obstacle, outside X) or, for invariance, outside
+    the safe set; *safe but losing* (beige) otherwise; target cells blue. ``blocked`` and
+    ``allowed`` (N,) are the engine's cell labels (``label_cells``). Returns dict(image (H,W,3)
+    uint8 with row 0 at the top (+x2), lo (2,), hi (2,) the image's extent in state units,
+    counts {winning, losing, unsafe} in columns).
+    """
+    g = controller.grid
+    shape = tuple(g.shape) + ((1,) if g.n == 1 else ())
+    cols = (shape[0], shape[1], -1)
+    steps = np.asarray(controller.steps).reshape(cols)
+    win = steps >= 0
+    reach = controller.kind == "reach_avoid"
+    unsafe_cell = np.asarray(blocked, bool).reshape(cols)
+    if not reach:
+        unsafe_cell = unsafe_cell | ~np.asarray(allowed, bool).reshape(cols)
+    target = np.asarray(controller.target, bool).reshape(cols).any(axis=2)
+    w_any = win.any(axis=2)
+    unsafe = unsafe_cell.all(axis=2) & ~w_any
+    img = np.empty(shape[:2] + (3,), np.uint8)
+    img[:] = LOSING
+    img[unsafe] = UNSAFE
+    if reach:
+        s = np.where(win, steps, np.iinfo(np.int32).max).min(axis=2).astype(float)
+        smax = max(float(s[w_any].max()) if w_any.any() else 1.0, 1.0)
+        t = np.where(w_any, s / smax, 0.0)
+    else:
+        t = 1.0 - win.mean(axis=2)
+    near, far = np.array(WIN_NEAR, float), np.array(WIN_FAR, float)
+    shade = ((1 - t)[..., None] * near + t[..., None] * far).astype(np.uint8)
+    img[w_any] = shade[w_any]
+    img[target] = TARGET
+    k = max(1, min(8, max_pixels // max(shape[0], shape[1])))  # crisp cell edges under texture filtering
+    image = np.repeat(np.repeat(img.transpose(1, 0, 2)[::-1], k, axis=0), k, axis=1)
+    lo, hi = g.domain_lo[:2], g.domain_hi[:2]
+    if g.n == 1:
+        lo, hi = np.array([lo[0], -1.0]), np.array([hi[0], 1.0])
+    return {"image": image, "lo": lo, "hi": hi,
+            "counts": {"winning": int(w_any.sum()), "losing": int((~w_any & ~unsafe).sum()),
+                       "unsafe": int(unsafe.sum())}, "max_steps": int(smax) if reach else None}
+
+
+def rollout_subset(failed: np.ndarray, n_draw: int, seed: int = 0) -> np.ndarray:
+    """Indices of the rollouts to draw: every failure first (up to ``n_draw``), then an even
+    (seeded) sample of the others; sorted."""
+    failed = np.asarray(failed, bool)
+    R = failed.size
+    if n_draw >= R:
+        return np.arange(R)
+    f = np.flatnonzero(failed)[:n_draw]
+    ok = np.flatnonzero(~failed)
+    rest = np.random.default_rng(seed).choice(ok, min(n_draw - f.size, ok.size), replace=False)
+    return np.sort(np.concatenate([f, rest]))
+
+
 def grid_faces(na: int, nb: int) -> np.ndarray:
     """Triangle indices (2 (na-1)(nb-1), 3) of a regular na x nb vertex grid (row-major, b fastest)."""
     i, j = np.meshgrid(np.arange(na - 1), np.arange(nb - 1), indexing="ij")
@@ -153,7 +262,7 @@ def data_points(dataset, system: System, dim: int, a: int, b: int, fixed: Sequen
 
     Colored green where g <= gamma_dim(x_r, u) (the certificate covers the data point), red
     where it does not, grey without a certificate. Returns dict(points (P,3), colors (P,3) uint8,
-    gap (P,), covered (P,) bool or None, rows (P,)).
+    gap (P,), covered (P,) bool or None, margin (P,) gamma_dim - g or None, rows (P,)).
     """
     rows = data_slice(dataset, system, a, b, fixed, max_points)
     P = np.hstack([dataset.x[rows], dataset.u[rows]])
@@ -162,14 +271,15 @@ def data_points(dataset, system: System, dim: int, a: int, b: int, fixed: Sequen
     pa = 2 * (P[:, a] - rng[a].mean()) / max(np.ptp(rng[a]), 1e-12)
     pb = 2 * (P[:, b] - rng[b].mean()) / max(np.ptp(rng[b]), 1e-12)
     pts = np.stack([pa, pb, zscale * g], axis=1).astype(np.float32)
-    covered = None
+    covered = margin = None
     colors = np.tile(np.array(GREY, np.uint8), (rows.size, 1))
     if gamma is not None and rows.size:
         gam = np.asarray(gamma(dataset.x[rows], dataset.u[rows]), dtype=float)[:, dim]
-        covered = g <= gam + 1e-12
+        margin = gam - g
+        covered = margin >= -1e-12
         colors[covered] = GREEN
         colors[~covered] = RED
-    return {"points": pts, "colors": colors, "gap": g, "covered": covered, "rows": rows}
+    return {"points": pts, "colors": colors, "gap": g, "covered": covered, "margin": margin, "rows": rows}
 
 
 def rollout_segments(frame: Frame, traj: np.ndarray, failed: np.ndarray | None = None,
@@ -227,28 +337,21 @@ def box_cells(frame: Frame, centers: np.ndarray, widths: np.ndarray, values: np.
     return {"positions": pos, "scales": sc, "colors": col, "fraction": frac}
 
 
-def box_mesh(frame: Frame, lo: np.ndarray, hi: np.ndarray, height: float = 0.1):
-    """A trimesh box for a state-space box (first two dims, infinite bounds clipped to X)."""
-    import trimesh
-
-    lo = np.asarray(lo, dtype=float)[:2]
-    hi = np.asarray(hi, dtype=float)[:2]
-    lo = np.maximum(lo, frame.lo)
-    hi = np.minimum(hi, frame.hi)
-    a, b = frame.xy(lo[None])[0], frame.xy(hi[None])[0]
-    ext = np.array([max(b[0] - a[0], 1e-6), max(b[1] - a[1], 1e-6), height])
-    m = trimesh.creation.box(extents=ext)
-    m.apply_translation([(a[0] + b[0]) / 2, (a[1] + b[1]) / 2, height / 2])
-    return m
-
-
-def spec_meshes(frame: Frame, spec) -> list:
-    """(name, trimesh, rgb) for the spec's obstacles (grey), target (green) and safe set (blue)."""
-    out = []
-    for i, ob in enumerate(getattr(spec, "obstacles", ()) or ()):
-        out.append((f"obstacle_{i}", box_mesh(frame, ob.lo, ob.hi, 0.15), GREY))
-    if getattr(spec, "target", None) is not None:
-        out.append(("target", box_mesh(frame, spec.target.lo, spec.target.hi, 0.02), GREEN))
-    if getattr(spec, "safe", None) is not None:
-        out.append(("safe", box_mesh(frame, spec.safe.lo, spec.safe.hi, 0.005), BLUE))
-    return out
+def spec_outlines(frame: Frame, spec) -> tuple:
+    """The spec's boxes (first two dims, clipped to X) as rectangle outlines in display
+    coordinates: (segments (S, 2, 3) float32, colors (S, 2, 3) uint8); safe blue, target green,
+    obstacles red."""
+    boxes = [(ob, RED) for ob in (getattr(spec, "obstacles", ()) or ())]
+    for attr, rgb in (("target", GREEN), ("safe", BLUE)):
+        if getattr(spec, attr, None) is not None:
+            boxes.append((getattr(spec, attr), rgb))
+    segs, cols = [], []
+    for box, rgb in boxes:
+        lo = np.maximum(np.asarray(box.lo, float)[:2], frame.lo)
+        hi = np.minimum(np.asarray(box.hi, float)[:2], frame.hi)
+        c = frame.xy(np.array([[lo[0], lo[1]], [hi[0], lo[1]], [hi[0], hi[1]], [lo[0], hi[1]]]))
+        segs.append(np.stack([c, np.roll(c, -1, axis=0)], axis=1))
+        cols.append(np.broadcast_to(np.array(rgb, np.uint8), (4, 2, 3)))
+    if not segs:
+        return np.zeros((0, 2, 3), np.float32), np.zeros((0, 2, 3), np.uint8)
+    return np.concatenate(segs).astype(np.float32), np.concatenate(cols)

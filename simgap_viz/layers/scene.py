@@ -1,9 +1,13 @@
-"""Drawing the app's layers into the viser scene (one scene node per layer, batched geometry).
+"""Drawing the app's layers into the viser scene: few nodes, batched geometry, one frame.
 
-Node names: ``/map``, ``/gamma/surface``, ``/gamma/data``, ``/winning``, ``/rollouts/all`` (every
-rollout as ONE line-segments node), ``/rollouts/mean``, ``/rollouts/nominal``, ``/bodies``.
-The state-space layers live in the display square [-1, 1]^2 (see :mod:`.geometry`); the
-simulator bodies are drawn in metres next to it, offset by ``BODIES_OFFSET``.
+Every state-space layer lives in one display frame: the first two state dimensions mapped to
+the square [-1, 1]^2 (z = 0, see :mod:`.geometry`). The gamma surface rises above it with heights
+z = gamma / top in [0, 1] (``top`` recomputed for each certificate and slice, shown as z ticks);
+the winning domain is one opaque image just below it; the rollouts are one line-segments node.
+A TurtleBot's arena and robot are drawn in the same frame (metres mapped like x, y), so the map
+appears once at one scale; the pendulum's rod, which has no place in the (theta, omega) plane,
+stands beside the square. Node names: ``/grid``, ``/axes``, ``/map``, ``/winning``,
+``/gamma/surface``, ``/gamma/data``, ``/rollouts/{all,mean,nominal,now}``, ``/bodies``, ``/refine``.
 """
 
 from __future__ import annotations
@@ -13,7 +17,8 @@ import numpy as np
 from .. import engine
 from . import geometry as G
 
-BODIES_OFFSET = (2.6, 0.0, 0.0)
+PENDULUM_PIVOT = (1.9, 0.0, 1.2)  # where the pendulum's pivot stands, beside the state square
+SURFACE_RES = 41
 
 
 def _remove(app, name: str) -> None:
@@ -23,30 +28,60 @@ def _remove(app, name: str) -> None:
         pass
 
 
+# ----- static layers ----------------------------------------------------------------------------
 def draw_system(app) -> None:
-    """Static layers of the current system: ground grid, map/spec, simulator bodies."""
+    """Layers of the current system: ground grid, axis ticks, map/spec, simulator bodies; fits the camera."""
     sc = app.server.scene
-    frame = G.Frame(app.system)
-    sc.add_grid("/grid", width=2.0, height=2.0, cell_size=0.25, plane="xy", position=(0.0, 0.0, -0.001))
-    names = variable_names_md(app)
-    sc.add_label("/grid/label_x", text=names[0], position=(1.1, -1.05, 0.0))
-    sc.add_label("/grid/label_y", text=names[1], position=(-1.1, 1.05, 0.0))
+    sc.add_grid("/grid", width=2.0, height=2.0, cell_size=0.25, plane="xy", position=(0.0, 0.0, -0.004),
+                cell_color=(215, 215, 215), section_color=(170, 170, 170))
+    draw_axes(app)
+    draw_map(app)
+    draw_bodies(app)
+    fit_camera(app)
+
+
+def draw_axes(app) -> None:
+    """Tick labels in state units along the square's edges (x1 along x, x2 along y)."""
+    sc = app.server.scene
+    _remove(app, "/axes")
+    s = app.system
+    names = list(s.state_names) + ([""] if s.n < 2 else [])
+    frame = G.Frame(s)
+    for d, axis in ((0, "x"), (1, "y")):
+        lo, hi = float(frame.lo[d]), float(frame.hi[d])
+        for k, t in enumerate(G.nice_ticks(lo, hi, 5)):
+            u = 2 * (t - frame.center[d]) / (hi - lo)
+            pos = (u, -1.06, 0.0) if axis == "x" else (-1.06, u, 0.0)
+            sc.add_label(f"/axes/{axis}{k}", text=f"{t:.3g}", position=pos,
+                         anchor="top-center" if axis == "x" else "center-right", font_screen_scale=0.7)
+        if names[d]:
+            pos = (0.0, -1.2, 0.0) if axis == "x" else (-1.25, 0.0, 0.0)
+            sc.add_label(f"/axes/{axis}_name", text=names[d], position=pos, anchor="center-center")
+
+
+def draw_map(app) -> None:
+    """The specification as outlines on the plane (one node): safe set blue, target green,
+    obstacles as the spec grows them (robot radius) red."""
     _remove(app, "/map")
-    for name, mesh in engine.map_meshes(app, frame):
-        _add_mesh(sc, f"/map/{name}", mesh, visible=app.layers_visible["map"])
-    _remove(app, "/bodies")
-    for name, mesh, pos in engine.body_meshes(app):
-        _add_mesh(sc, f"/bodies/{name}", mesh, position=tuple(np.add(pos, BODIES_OFFSET)),
-                  visible=app.layers_visible["bodies"])
+    try:
+        spec = app.current_spec()
+    except Exception:  # no specification for this system: nothing to outline
+        return
+    segs, cols = G.spec_outlines(G.Frame(app.system), spec)
+    if len(segs):
+        segs[..., 2] = 0.01
+        app.server.scene.add_line_segments("/map", points=segs, colors=cols, thickness=3.0,
+                                           thickness_units="screen", visible=app.layers_visible["map"])
 
 
-def _add_mesh(sc, name, mesh, position=(0.0, 0.0, 0.0), visible=True):
+def _add_mesh(sc, name, mesh, position=(0.0, 0.0, 0.0), visible=True, wxyz=(1.0, 0.0, 0.0, 0.0)):
     """A trimesh as a viser simple mesh in its (first) face color, opacity from its alpha."""
     fc = np.asarray(mesh.visual.face_colors)
     rgba = fc[0] if fc.size else np.array([150, 150, 150, 255])
     opacity = None if rgba[3] >= 255 else float(rgba[3]) / 255.0
-    sc.add_mesh_simple(name, np.asarray(mesh.vertices), np.asarray(mesh.faces), color=tuple(int(c) for c in rgba[:3]),
-                       opacity=opacity, position=position, visible=visible)
+    return sc.add_mesh_simple(name, np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces),
+                              color=tuple(int(c) for c in rgba[:3]), opacity=opacity, position=position,
+                              wxyz=wxyz, visible=visible)
 
 
 def variable_names_md(app) -> list:
@@ -55,10 +90,71 @@ def variable_names_md(app) -> list:
     return names if len(names) >= 2 else names + [""]
 
 
+# ----- simulator bodies --------------------------------------------------------------------------
+def draw_bodies(app) -> None:
+    """The simulator's bodies from their URDFs (trimesh), posed by :func:`pose_bodies`.
+
+    Pendulum: the rod under a frame at ``PENDULUM_PIVOT`` that rotates about +y by theta.
+    TurtleBot: the arena's obstacles and the robot in the state frame (x, y mapped like the
+    square, the same scale for z); the robot under a frame moved to (x, y, theta).
+    """
+    sc = app.server.scene
+    _remove(app, "/bodies")
+    app.body_frame = None
+    base = engine.base_system(app.system)
+    vis = app.layers_visible["bodies"]
+    bodies = engine.body_meshes(app)
+    if not bodies:
+        return
+    if base.name == "pendulum":
+        app.body_frame = sc.add_frame("/bodies/pendulum", show_axes=False, position=PENDULUM_PIVOT, visible=vis)
+        for name, mesh, _pos in bodies:
+            _add_mesh(sc, f"/bodies/pendulum/{name}", mesh)
+        sc.add_label("/bodies/label", text="PyBullet pendulum (1 m rod)", anchor="bottom-center",
+                     position=(PENDULUM_PIVOT[0], 0.0, PENDULUM_PIVOT[2] + 0.12), visible=vis)
+    elif base.name == "turtlebot":
+        frame = G.Frame(base)
+        k = 1.0 / float(frame.half.max())  # metres -> display units, the same for x, y and z
+        app.body_frame = sc.add_frame("/bodies/robot", show_axes=False, visible=vis, scale=k)
+        for name, mesh, _pos in bodies:
+            m = mesh.copy()
+            if name.startswith("robot_"):  # robot meshes about its own origin, moved by the frame
+                _add_mesh(sc, f"/bodies/robot/{name}", m)
+            else:  # arena coordinates = state coordinates
+                m.apply_translation([-frame.center[0], -frame.center[1], 0.0])
+                m.apply_scale(k)
+                _add_mesh(sc, f"/bodies/{name}", m, visible=vis)
+    pose_bodies(app, None)
+
+
+def pose_bodies(app, x) -> None:
+    """Move the bodies to state ``x`` (n,) (None: the experiment's or a resting pose)."""
+    fr = getattr(app, "body_frame", None)
+    if fr is None:
+        return
+    base = engine.base_system(app.system)
+    if x is None:
+        x = app.settings.x0 if app.settings.x0 is not None else 0.5 * (base.x_lo + base.x_hi)
+    x = np.asarray(x, dtype=float)
+    if base.name == "pendulum":
+        th = float(x[0])
+        fr.wxyz = (np.cos(th / 2), 0.0, np.sin(th / 2), 0.0)  # the hinge turns about +y
+    elif base.name == "turtlebot":
+        p = G.Frame(base).xy(x[None])[0]
+        th = float(x[2]) if x.size > 2 else 0.0
+        fr.position = (float(p[0]), float(p[1]), 0.0)
+        fr.wxyz = (np.cos(th / 2), 0.0, 0.0, np.sin(th / 2))
+
+
+# ----- gamma surface and data gaps -------------------------------------------------------------
 def draw_gamma(app) -> dict:
     """Gamma surface of the selected dimension over the selected variables, and the data gaps.
 
-    Returns what was drawn: dict(vertices, faces, points) (empty arrays when nothing).
+    The height scale z = gamma / top is recomputed whenever the certificate, the dimension or
+    the variables change (not for slider moves, so a fixed-variable change is visible), with
+    top = the largest of gamma on the slice and the gaps shown. The surface is colored by gamma
+    over its own range on the slice (colorbar in the View tab). Returns dict(vertices, faces,
+    points, range, top, margin) ("range"/"top" only with a certificate).
     """
     sc = app.server.scene
     v = app.view
@@ -68,91 +164,198 @@ def draw_gamma(app) -> dict:
     gamma = engine.gamma_function(cert) if cert is not None else None
     if gamma is None and data is None:
         _remove(app, "/gamma")
+        _remove(app, "/zaxis")
+        app.legend = None
         return out
     s = app.system
     fixed = v["fixed"] if v["fixed"] is not None else list(G.variable_ranges(s).mean(axis=1))
-    surf = None
-    if gamma is not None:
-        surf = G.gamma_surface(s, gamma, v["dim"], v["a"], v["b"], fixed, res=41, zscale=1.0)
-    pts = None
-    if data is not None:
-        pts = G.data_points(data, s, v["dim"], v["a"], v["b"], fixed, gamma=gamma, zscale=1.0)
-    if v.get("zscale") is None:  # fix the height scale once per dimension so changes are visible
+    surf = G.gamma_surface(s, gamma, v["dim"], v["a"], v["b"], fixed, res=SURFACE_RES) if gamma is not None else None
+    pts = G.data_points(data, s, v["dim"], v["a"], v["b"], fixed, gamma=gamma, max_points=20000) \
+        if data is not None else None
+    scale_key = (id(cert), id(data), v["dim"], v["a"], v["b"])
+    if v.get("zscale") is None or v.get("zscale_key") != scale_key:
         top = max([float(np.max(surf["values"])) if surf is not None else 0.0,
                    float(np.max(pts["gap"])) if pts is not None and pts["gap"].size else 0.0])
-        if top > 0 and np.isfinite(top):
-            v["zscale"] = 1.0 / top
-    z = v.get("zscale") or 1.0
+        v["zscale"] = 1.0 / top if top > 0 and np.isfinite(top) else 1.0
+        v["zscale_key"] = scale_key
+    z = v["zscale"]
+    legend = {"dim": s.state_names[v["dim"]], "top": 1.0 / z}
     if surf is not None:
         verts = surf["vertices"].copy()
         verts[:, 2] *= z
         vals = surf["values"]
-        # viser's own mesh material (non-metallic); GLB meshes without a material render washed out
-        sc.add_mesh_simple("/gamma/surface", verts, surf["faces"], color=G.DIM_COLORS[v["dim"] % len(G.DIM_COLORS)],
-                           side="double", opacity=0.7, visible=app.layers_visible["gamma"])
+        lo, hi = float(vals.min()), float(vals.max())
+        t = (vals - lo) / (hi - lo) if hi > lo else np.full(vals.shape, 0.5)
+        sc.add_mesh_trimesh("/gamma/surface", G.textured_surface(verts, surf["faces"], t),
+                            visible=app.layers_visible["gamma"])
         out["vertices"], out["faces"] = verts, surf["faces"]
-        out["range"] = (float(vals.min()), float(vals.max()))
+        out["range"] = legend["range"] = (lo, hi)
+        out["top"] = 1.0 / z
     else:
         _remove(app, "/gamma/surface")
     if pts is not None and pts["points"].shape[0]:
         p = pts["points"].copy()
         p[:, 2] *= z
-        sc.add_point_cloud("/gamma/data", points=p, colors=pts["colors"], point_size=0.02, point_shape="circle",
+        if gamma is not None:
+            margin = pts["margin"]
+            mscale = float(np.quantile(margin[margin >= 0], 0.95)) if np.any(margin >= 0) else 1.0
+            colors = G.margin_colors(margin, mscale)
+            out["margin"] = margin
+            legend["margin_scale"] = mscale
+            legend["uncovered"] = int(np.count_nonzero(margin < 0))
+        else:
+            colors = pts["colors"]
+        sc.add_point_cloud("/gamma/data", points=p, colors=colors, point_size=0.007, point_shape="circle",
                            visible=app.layers_visible["data"])
         out["points"] = p
+        legend["points"] = int(p.shape[0])
         app.last_data_covered = pts["covered"]
     else:
         _remove(app, "/gamma/data")
+    _draw_zaxis(app, 1.0 / z, legend["dim"], visible=app.layers_visible["gamma"])
+    app.legend = legend
     return out
 
 
+def _draw_zaxis(app, top: float, name: str, visible: bool = True) -> None:
+    """A vertical axis at the square's far corner with gamma ticks (state units of ``name``)."""
+    sc = app.server.scene
+    _remove(app, "/zaxis")
+    x, y = 1.0, 1.0
+    ticks = G.nice_ticks(0.0, top, 4)
+    segs = [[[x, y, 0.0], [x, y, 1.0]]] + [[[x, y, t / top], [x + 0.04, y, t / top]] for t in ticks]
+    sc.add_line_segments("/zaxis/line", points=np.asarray(segs, np.float32), colors=(60, 60, 60), thickness=2.0,
+                         thickness_units="screen", visible=visible)
+    for k, t in enumerate(ticks):
+        sc.add_label(f"/zaxis/t{k}", text=f"{t:.3g}", position=(x + 0.06, y, t / top), anchor="center-left",
+                     font_screen_scale=0.7, visible=visible)
+    sc.add_label("/zaxis/name", text=f"gamma_{name}", position=(x, y, 1.08), anchor="bottom-center",
+                 visible=visible)
+
+
+# ----- winning domain --------------------------------------------------------------------------
 def draw_winning(app) -> int:
-    """Winning domain as one batched-box node, colored by the fraction of winning cells per (x1, x2)."""
+    """The winning domain as ONE opaque image just below the surface (see geometry.winning_map).
+
+    Returns the number of winning (x1, x2) columns drawn."""
     res = app.results.get("synthesize")
-    if res is None:
+    if res is None or res.controller.size_with_target == 0:
         _remove(app, "/winning")
+        app.winning_counts = None
         return 0
-    centers, widths, values = engine.winning_cells(res)
-    if centers.shape[0] == 0:
-        _remove(app, "/winning")
-        return 0
+    blocked, allowed = engine.cell_labels(res)
+    wm = G.winning_map(res.controller, blocked, allowed)
     frame = G.Frame(app.system)
-    cells = G.box_cells(frame, centers, widths, values)
-    import trimesh
-    box = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
-    C = cells["positions"].shape[0]
-    app.server.scene.add_batched_meshes_simple(
-        "/winning", vertices=box.vertices, faces=box.faces,
-        batched_wxyzs=np.tile([1.0, 0.0, 0.0, 0.0], (C, 1)), batched_positions=cells["positions"],
-        batched_scales=cells["scales"] * np.array([0.95, 0.95, 1.0]), batched_colors=cells["colors"],
-        opacity=0.5, visible=app.layers_visible["winning"])
-    return C
+    a, b = frame.xy(wm["lo"][None])[0], frame.xy(wm["hi"][None])[0]
+    app.server.scene.add_image("/winning", wm["image"], render_width=float(b[0] - a[0]),
+                               render_height=float(b[1] - a[1]), format="png",
+                               position=(float(a[0] + b[0]) / 2, float(a[1] + b[1]) / 2, 0.002),
+                               cast_shadow=False, receive_shadow=False, visible=app.layers_visible["winning"])
+    app.winning_counts = {**wm["counts"], "max_steps": wm["max_steps"]}
+    return wm["counts"]["winning"]
 
 
+# ----- rollouts ---------------------------------------------------------------------------------
 def draw_rollouts(app) -> int:
-    """All rollouts as one line-segments node (failures red), the mean trajectory (yellow, thick)
-    and the nominal model's trajectory (black)."""
+    """A subset of the rollouts (every failure first, up to ``app.view["n_draw"]``) as ONE
+    line-segments node, failures red; the mean (or mean-map) and nominal trajectories bold.
+    Returns the number of segments of the subset node."""
     res = app.results.get("rollout")
     if res is None:
         _remove(app, "/rollouts")
+        app.rollout_drawn = None
         return 0
     frame = G.Frame(app.system)
     traj, failed, mean, nominal = engine.rollout_arrays(res)
-    seg = G.rollout_segments(frame, traj, failed)
+    idx = G.rollout_subset(failed, int(app.view.get("n_draw", 100)))
     sc = app.server.scene
     vis = app.layers_visible["rollouts"]
-    sc.add_line_segments("/rollouts/all", points=seg["points"], colors=seg["colors"], thickness=1.0,
-                         thickness_units="screen", visible=vis)
-    if mean is not None:
-        sc.add_line_segments("/rollouts/mean", points=G.polyline_segments(frame, mean), colors=G.YELLOW,
-                             thickness=5.0, thickness_units="screen", visible=vis)
-    if nominal is not None:
-        sc.add_line_segments("/rollouts/nominal", points=G.polyline_segments(frame, nominal), colors=(0, 0, 0),
-                             thickness=3.0, thickness_units="screen", visible=vis)
-    return seg["points"].shape[0]
+    if idx.size:
+        seg = G.rollout_segments(frame, traj[idx], failed[idx], max_segments=40000)
+        seg["points"][..., 2] = 0.004  # just above the winning map
+        sc.add_line_segments("/rollouts/all", points=seg["points"], colors=seg["colors"], thickness=1.5,
+                             thickness_units="screen", visible=vis)
+        nseg = seg["points"].shape[0]
+    else:
+        _remove(app, "/rollouts/all")
+        nseg = 0
+    for name, path, color, width in (("mean", mean, G.YELLOW, 6.0), ("nominal", nominal, (20, 20, 20), 4.0),
+                                     ("mean_map", engine.mean_map_trajectory(res), (200, 40, 200), 4.0)):
+        if path is None:
+            _remove(app, f"/rollouts/{name}")
+            continue
+        P = G.polyline_segments(frame, path)
+        P[..., 2] = 0.008
+        sc.add_line_segments(f"/rollouts/{name}", points=P, colors=color, thickness=width,
+                             thickness_units="screen", visible=vis)
+    app.rollout_drawn = {"drawn": int(idx.size), "total": int(failed.size), "failed": int(failed.sum()),
+                         "failed_drawn": int(failed[idx].sum())}
+    show_time(app, app.view.get("t", None))
+    return nseg
 
 
-RESIDUAL_PLANE_Y = -1.5
+def show_time(app, t) -> None:
+    """Mark the drawn rollouts' states at step ``t`` (None: hide) and pose the bodies along the
+    chosen rollout (``app.view["rollout_index"]``)."""
+    res = app.results.get("rollout")
+    if res is None or t is None:
+        _remove(app, "/rollouts/now")
+        pose_bodies(app, None)
+        return
+    traj, failed, _, _ = engine.rollout_arrays(res)
+    t = int(np.clip(t, 0, traj.shape[1] - 1))
+    idx = G.rollout_subset(failed, int(app.view.get("n_draw", 100)))
+    frame = G.Frame(app.system)
+    P = frame.xy(traj[idx, t]).astype(np.float32)
+    P[:, 2] = 0.012
+    col = np.where(failed[idx, None], np.array(G.RED, np.uint8), np.array((30, 60, 160), np.uint8))
+    app.server.scene.add_point_cloud("/rollouts/now", points=P, colors=col, point_size=0.025,
+                                     point_shape="circle", visible=app.layers_visible["rollouts"])
+    r = int(np.clip(app.view.get("rollout_index", 0), 0, traj.shape[0] - 1))
+    pose_bodies(app, traj[r, t])
+
+
+# ----- camera ------------------------------------------------------------------------------------
+def scene_bounds(app) -> tuple:
+    """(lo (3,), hi (3,)) of everything drawn: the square, the surface's [0, 1] heights, the
+    pendulum beside it, the refinement plane."""
+    lo, hi = np.array([-1.1, -1.1, 0.0]), np.array([1.1, 1.1, 1.05])
+    base = engine.base_system(app.system)
+    if base.name == "pendulum" and app.layers_visible.get("bodies", True):
+        hi[0] = max(hi[0], PENDULUM_PIVOT[0] + 0.2)
+        hi[2] = max(hi[2], PENDULUM_PIVOT[2] + 0.1)
+    if app.results.get("refine") is not None:
+        lo[1] = min(lo[1], RESIDUAL_PLANE_Y)
+    return lo, hi
+
+
+def fit_camera(app, clients=None) -> None:
+    """Point every client's camera (and the initial camera) at the whole scene from the front-left,
+    above: look at the centre of the bounds, at a distance that fits their diagonal."""
+    lo, hi = scene_bounds(app)
+    c = 0.5 * (lo + hi)
+    r = 0.5 * float(np.linalg.norm(hi - lo))
+    d = np.array([-0.3, -1.0, 1.0])
+    d /= np.linalg.norm(d)
+    right = np.cross(-d, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    look = c + 0.3 * r * right  # the control panel covers the canvas' right third
+    pos = look + d * r * 1.55
+    app.server.initial_camera.position = tuple(pos)
+    app.server.initial_camera.look_at = tuple(look)
+    app.server.initial_camera.up = (0.0, 0.0, 1.0)
+    for client in (list(app.server.get_clients().values()) if clients is None else clients):
+        try:
+            with client.atomic():
+                client.camera.up_direction = (0.0, 0.0, 1.0)
+                client.camera.position = tuple(pos)
+                client.camera.look_at = tuple(look)
+        except Exception:  # a client that just went away
+            pass
+
+
+# ----- refinement residuals ----------------------------------------------------------------------
+RESIDUAL_PLANE_Y = -1.6
 
 
 def draw_residuals(app, state: int = None, var: str = None, max_points: int = 20000) -> int:
@@ -200,5 +403,5 @@ def draw_results(app) -> None:
     draw_residuals(app)
 
 
-LAYER_NODES = {"gamma": ("/gamma/surface",), "data": ("/gamma/data",), "map": ("/map",),
+LAYER_NODES = {"gamma": ("/gamma/surface", "/zaxis"), "data": ("/gamma/data",), "map": ("/map",),
                "winning": ("/winning",), "rollouts": ("/rollouts",), "bodies": ("/bodies",)}

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..layers.geometry import variable_names, variable_ranges
+from ..layers.geometry import colorbar, variable_names, variable_ranges
 from .base import Panel
 
 LAYERS = (("gamma", "Gamma surface"), ("data", "Data gaps"), ("map", "Map / spec"),
@@ -22,10 +22,58 @@ class ViewPanel(Panel):
                 h = gui.add_checkbox(label, initial_value=app.layers_visible[key])
                 h.on_update(lambda _e, key=key, h=h: app.set_layer_visible(key, bool(h.value)))
                 self.checks[key] = h
+        with gui.add_folder("Legend"):
+            self.colorbar = gui.add_image(colorbar(256, 12), format="png")
+            self.legend = gui.add_markdown("*no certificate yet*")
+        with gui.add_folder("Rollouts"):
+            self.n_draw = gui.add_slider("Drawn", min=0, max=1000, step=10, initial_value=app.view["n_draw"],
+                                         hint="rollouts drawn (failures first); all are counted")
+            self.time = gui.add_slider("Time step", min=0, max=100, step=1, initial_value=0,
+                                       hint="marks the drawn rollouts' states and poses the simulator bodies")
+            self.rollout_index = gui.add_number("Bodies follow rollout", initial_value=0, min=0, step=1)
+            self.n_draw.on_update(lambda _e: app.set_time(n_draw=int(self.n_draw.value)))
+            self.time.on_update(lambda _e: app.set_time(t=int(self.time.value)))
+            self.rollout_index.on_update(lambda _e: app.guarded(app.set_time, rollout_index=int(self.rollout_index.value)))
         self.folder = gui.add_folder("Gamma surface")
         self.sliders = []
         self.handles = []
         self.rebuild_sliders()
+
+    def show_legend(self) -> None:
+        """The color map's range, the height scale, the data-gap colors, the winning-map colors and
+        the rollout counts, as a table that fits the panel."""
+        app = self.app
+        lg = app.legend
+        rows = []
+        if lg is not None:
+            d = lg["dim"]
+            if "range" in lg:
+                rows.append(f"| color: gamma_{d} | {lg['range'][0]:.4g} (blue) .. {lg['range'][1]:.4g} (yellow) |")
+            rows.append(f"| height 0 .. 1 | gamma_{d} = 0 .. {lg['top']:.4g} |")
+            if "margin_scale" in lg:
+                rows.append(f"| data gaps ({lg['points']}) | margin gamma - gap: orange 0 .. grey-blue "
+                            f">= {lg['margin_scale']:.3g}; red < 0: {lg['uncovered']} |")
+            elif "points" in lg:
+                rows.append(f"| data gaps ({lg['points']}) | grey: no certificate yet |")
+        wc = app.winning_counts
+        if wc is not None:
+            shade = (f"dark = near the target .. light = {wc['max_steps']} steps" if wc.get("max_steps")
+                     else "winning fraction over the other dimensions")
+            rows.append(f"| winning map | green {wc['winning']} (shade: {shade}), beige {wc['losing']} safe but "
+                        f"losing, red {wc['unsafe']} unsafe, blue target |")
+        rd = app.rollout_drawn
+        res = app.results.get("rollout")
+        if rd is not None and res is not None:
+            rows.append(f"| rollouts | {rd['drawn']} of {rd['total']} drawn; failures (red) {rd['failed']} of "
+                        f"{rd['total']}, {rd['failed_drawn']} drawn |")
+            rows.append("| bold | yellow: mean trajectory, black: nominal model"
+                        + (", magenta: mean map" if getattr(res, "mean_map_trajectory", None) is not None else "")
+                        + " |")
+            T = int(res.trajectories.shape[1]) - 1
+            self.time.max = max(T, 1)
+            self.n_draw.max = max(int(rd["total"]), 1)
+            self.rollout_index.max = int(rd["total"]) - 1
+        self.legend.content = ("| layer | shows |\n|---|---|\n" + "\n".join(rows)) if rows else "*nothing drawn yet*"
 
     def rebuild_sliders(self) -> None:
         """(Re)create the slice controls for the current system's variables."""

@@ -24,6 +24,7 @@ The store is a directory::
     chunks/c000000.npz     one file per chunk, written atomically (temp file + os.replace), no pickle;
                            it carries its chunk id, the configuration hash, the sha256 of every
                            array ("digests", JSON) and a digest over those ("digest")
+    .lock                  flock-ed by the one process collecting into the store (a second is refused)
 
 A killed run leaves only complete chunk files; :func:`collect` on the same store verifies
 each one's digests, recomputes the broken ones and the missing rest, giving a data set
@@ -34,6 +35,7 @@ different configuration hash is refused, naming the keys that differ.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import json
@@ -57,6 +59,7 @@ from .systems import System, get_system, wrap_angle
 
 STORE_FORMAT = "simgap-store/1"
 MANIFEST = "manifest.json"
+LOCK = ".lock"  # held by the one process collecting into the store (see store_lock)
 CHUNK_DIR = "chunks"
 DEFAULT_BATCH_RUNS = 1 << 18  # simulator runs per step call: ~50 MB of float64 work arrays
 TOP_ORDER_STATS = 32  # largest |fhat_i - f_i| kept per pair and dimension (per-run quantile bounds)
@@ -352,6 +355,30 @@ def _write_chunk(store: Path, c: int, h: str, arrays: dict) -> None:
     os.replace(tmp, path)
 
 
+@contextlib.contextmanager
+def store_lock(store: Path):
+    """Hold the store's exclusive lock (``.lock``, flock) while collecting into it.
+
+    A second collector into the same store is refused at once instead of recomputing every
+    chunk the first one computes. The kernel drops the lock when its process ends, even by
+    kill -9, so a killed collection never blocks its resumption.
+    """
+    import fcntl
+
+    fh = open(store / LOCK, "a")
+    try:
+        fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        fh.close()
+        raise SimgapError(f"store {str(store)!r} is being collected by another process; wait for it to finish "
+                          "(then run the same command to check it is complete) or collect into another "
+                          "folder") from None
+    try:
+        yield
+    finally:
+        fh.close()
+
+
 def _pid_alive(pid: str) -> bool:
     try:
         pid_i = int(pid)
@@ -513,8 +540,19 @@ def collect(plan: CollectionPlan, store: str | Path, executor: str | Executor = 
     stop = as_stop_check(should_stop)
     cfg = plan.config()
     h = config_hash(cfg)
+    # the executor first: one that cannot start (e.g. an unreachable Ray cluster) leaves no store
+    ex = executor if isinstance(executor, Executor) else make_executor(executor, workers, address)
     if store.exists() and not store.is_dir():
         raise SimgapError(f"store {str(store)!r} exists and is not a directory")
+    if not (store / MANIFEST).exists() and store.is_dir() and any(p.name != LOCK for p in store.iterdir()):
+        raise SimgapError(f"{str(store)!r} is a non-empty directory without {MANIFEST}; refusing to write into it")
+    store.mkdir(parents=True, exist_ok=True)
+    with store_lock(store):
+        return _collect_locked(plan, store, ex, cfg, h, on_progress, stop, chunk_ids, resume)
+
+
+def _collect_locked(plan, store, ex, cfg, h, on_progress, stop, chunk_ids, resume) -> CollectResult:
+    """The body of :func:`collect`, run while this process holds the store's lock."""
     if (store / MANIFEST).exists():
         man = _read_manifest(store)
         if man["hash"] != h:
@@ -524,8 +562,6 @@ def collect(plan: CollectionPlan, store: str | Path, executor: str | Executor = 
                               f"{' ...' if len(diffs) > 6 else ''}. Use another output directory.")
         if not resume:
             raise SimgapError(f"store {str(store)!r} already exists (resume disabled)")
-    elif store.is_dir() and any(store.iterdir()):
-        raise SimgapError(f"{str(store)!r} is a non-empty directory without {MANIFEST}; refusing to write into it")
     else:
         (store / CHUNK_DIR).mkdir(parents=True, exist_ok=True)
         from datetime import datetime, timezone
@@ -567,7 +603,6 @@ def collect(plan: CollectionPlan, store: str | Path, executor: str | Executor = 
         if on_progress:
             on_progress(state["pairs"], K)
 
-    ex = executor if isinstance(executor, Executor) else make_executor(executor, workers, address)
     t0 = time.perf_counter()
     finished = ex.map_chunks(run_chunk, _job(plan), todo, on_result, stop)
     return CollectResult(store=store, hash=h, n_chunks=n_chunks, done=len(done), computed=state["computed"],

@@ -1,18 +1,20 @@
 """Experiment configurations: TOML files with a base configuration and named profiles.
 
-Schema (``assets/experiments/pendulum.toml`` is a complete example)::
+Layout (``assets/experiments/pendulum.toml`` is a complete example; every section and key with
+its type and range is in :mod:`simgap.schema`)::
 
     description = "..."                      # optional
     [system]      name, steps, inputs (list of input vectors) or input_grid = {lo, hi, counts}
     [simulator]   kind, noise, randomize, effects, options      (see simgap.simulators)
     [collect]     epsilon, spacing, invariant_dims, fixed, n_runs, seed, chunk_size, batch_runs,
                   keep_samples, executor, workers, address, out
-    [certify], [synthesis], [rollout], ...   other stages' sections, kept as plain dicts
+    [certify], [audit], [synthesis], [rollout]   the other stages' options (simgap run)
     [profiles.<name>.<section>]              overrides any key of <section> for that profile
 
 A profile is merged over the base key by key (nested tables merge recursively), then explicit
-overrides (CLI flags) are merged over the profile. Only ``system``, ``simulator`` and
-``collect`` are validated here; other sections are returned untouched in ``sections``.
+overrides (CLI flags) are merged over the profile. Unknown sections and keys are errors naming
+the nearest valid name. ``system``, ``simulator`` and ``collect`` become typed objects; the
+other sections are returned as checked plain dicts in ``sections``.
 """
 
 from __future__ import annotations
@@ -26,21 +28,15 @@ from typing import Optional
 
 import numpy as np
 
-from .collect import DEFAULT_BATCH_RUNS, CollectionPlan, _int
+from . import schema
+from .collect import DEFAULT_BATCH_RUNS, CollectionPlan
 from .cover import Cover, CoverSpec, make_cover
 from .errors import SimgapError
 from .paths import ASSETS_DIR
-from .executors import EXECUTORS
 from .simulators.base import SimulatorConfig
 from .systems import System, get_system, input_grid
 
 EXPERIMENTS_DIR = ASSETS_DIR / "experiments"
-
-SYSTEM_KEYS = {"name", "steps", "inputs", "input_grid"}
-SIMULATOR_KEYS = {"kind", "noise", "randomize", "effects", "options", "system", "steps"}
-COLLECT_KEYS = {"epsilon", "spacing", "invariant_dims", "fixed", "n_runs", "seed", "chunk_size", "batch_runs",
-                "keep_samples", "executor", "workers", "address", "out"}
-
 
 @dataclass
 class CollectSettings:
@@ -132,64 +128,82 @@ def load_experiment(path_or_name: str | Path, profile: Optional[str] = "small",
 
     ``profile`` None or ``"base"`` uses the top-level configuration as is.
 
-    Raises SimgapError for a missing/unparsable file, an unknown profile, unknown or badly
-    typed keys in [system]/[simulator]/[collect], an unknown system, or a bad input set.
+    The whole file is checked against :mod:`simgap.schema` before anything runs: every profile
+    (a typo in one that is not used is still an error), then the requested one with the
+    overrides. Paths written in the file (``collect.out``, a ``synthesis.map`` file) are
+    resolved against the file's folder and must stay inside it; ``collect.out`` given in
+    ``overrides`` (the command line) is used as given.
+
+    Raises SimgapError for a missing/unparsable file, an unknown profile, an unknown section or
+    key (naming the nearest valid one), a badly typed value, an unknown system, a bad input set,
+    or a path that leaves the experiment's folder.
     """
     path = resolve_experiment(path_or_name)
     try:
         raw = tomllib.loads(path.read_text())
     except tomllib.TOMLDecodeError as e:
         raise SimgapError(f"experiment {str(path)!r} is not valid TOML: {e}") from None
-    except OSError as e:
+    except (OSError, UnicodeDecodeError) as e:
         raise SimgapError(f"experiment {str(path)!r} is unreadable: {e}") from None
     profiles = raw.pop("profiles", {})
-    if not isinstance(profiles, dict):
-        raise SimgapError(f"experiment {str(path)!r}: [profiles] must be a table")
+    schema.check_profiles(profiles, f"experiment {path.name}")
     if profile == "base":  # the top-level configuration without any profile
         profile = None
-    if profile is not None:
-        if profile not in profiles:
-            raise SimgapError(f"experiment {str(path)!r} has no profile {profile!r}; "
-                              f"profiles: {', '.join(sorted(profiles)) or 'none'}")
-        raw = _merge(raw, profiles[profile])
-    if overrides:
-        raw = _merge(raw, {k: {kk: vv for kk, vv in v.items() if vv is not None} for k, v in overrides.items()})
+    if profile is not None and profile not in profiles:
+        raise SimgapError(f"experiment {str(path)!r} has no profile {profile!r}; "
+                          f"profiles: {', '.join(sorted(profiles)) or 'none'} (or base)")
+    merged = _merge(raw, profiles[profile]) if profile else raw
+    cli = {k: {kk: vv for kk, vv in v.items() if vv is not None} for k, v in (overrides or {}).items()}
+    cli_out = cli.get("collect", {}).pop("out", None)
+    merged = _merge(merged, cli)
+    model = _validate(merged, path, profile, profiles.get(profile, {}) if profile else {})
+    for name in sorted(set(profiles) - {profile}):  # typos in the other profiles are errors too
+        _validate(_merge(raw, profiles[name]), path, name, profiles[name])
     where = f"experiment {path.name}" + (f" (profile {profile})" if profile else "")
 
-    for sec in ("system", "simulator", "collect"):
-        if not isinstance(raw.get(sec), dict):
-            raise SimgapError(f"{where}: missing [{sec}] section")
-    system = _system(raw["system"], where)
-    simulator = _simulator(raw["simulator"], system, where)
-    collect = _collect(raw["collect"], where)
-    desc = raw.get("description", "")
-    name = path.stem
-    return ExperimentConfig(name=name, profile=profile, path=path, system=system, simulator=simulator,
-                            collect=collect, sections=raw, description=str(desc))
+    folder = path.resolve().parent
+    out = None
+    if cli_out is not None:
+        out = str(cli_out)
+    elif model.collect.out is not None:
+        out = str(confined(model.collect.out, folder, f"{where}: collect.out"))
+        merged["collect"]["out"] = out
+    syn_map = model.synthesis.map
+    if syn_map is not None and ("/" in syn_map or "\\" in syn_map or syn_map.endswith(".toml")):
+        merged["synthesis"]["map"] = str(confined(syn_map, folder, f"{where}: synthesis.map"))
+    system = _system(model.system, where)
+    simulator = _simulator(model.simulator, merged["simulator"], system, where)
+    collect = _collect(model.collect, out)
+    return ExperimentConfig(name=path.stem, profile=profile, path=path, system=system, simulator=simulator,
+                            collect=collect, sections=merged, description=model.description)
 
 
-def _unknown(d: dict, allowed: set, where: str, sec: str) -> None:
-    bad = set(d) - allowed
-    if bad:
-        raise SimgapError(f"{where}: unknown keys in [{sec}]: {', '.join(sorted(bad))}; "
-                          f"allowed: {', '.join(sorted(allowed))}")
+def _validate(table: dict, path: Path, profile: Optional[str], ptable: dict) -> schema.Experiment:
+    """Schema-check one merged configuration; errors name the table a key was written in."""
+    def origin(loc: tuple) -> str:  # (section, key, ...) -> the table it was written in
+        node = ptable
+        for part in loc:
+            if not isinstance(node, dict) or part not in node:
+                return str(loc[0])
+            node = node[part]
+        return f"profiles.{profile}.{loc[0]}"
+
+    where = f"experiment {path.name}" + (f" (profile {profile})" if profile else "")
+    return schema.validate(table, where, origin)
 
 
-def _system(d: dict, where: str) -> System:
-    _unknown(d, SYSTEM_KEYS, where, "system")
-    if "name" not in d:
-        raise SimgapError(f"{where}: [system] needs a name")
-    steps = d.get("steps", 1)
-    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
-        raise SimgapError(f"{where}: system.steps must be an integer >= 1, got {steps!r}")
-    s = get_system(str(d["name"]), steps=steps)
-    if "inputs" in d and "input_grid" in d:
-        raise SimgapError(f"{where}: give system.inputs or system.input_grid, not both")
-    if "inputs" in d:
-        try:
-            U = np.array(d["inputs"], dtype=float)
-        except (TypeError, ValueError):
-            raise SimgapError(f"{where}: system.inputs is malformed (need a list of input vectors)") from None
+def confined(value: str, folder: Path, what: str) -> Path:
+    """``folder / value`` resolved; SimgapError if it leaves ``folder`` (also through symlinks)."""
+    p = (folder / value).resolve()
+    if not p.is_relative_to(folder):
+        raise SimgapError(f"{what} {value!r} leads outside the experiment's folder {str(folder)!r}")
+    return p
+
+
+def _system(d: schema.SystemSection, where: str) -> System:
+    s = get_system(d.name, steps=d.steps)
+    if d.inputs is not None:
+        U = np.array(d.inputs, dtype=float)
         if U.ndim == 1 and U.size and s.m == 1:
             U = U[:, None]
         if U.ndim != 2 or U.shape[0] == 0:
@@ -198,58 +212,26 @@ def _system(d: dict, where: str) -> System:
         if U.shape[1] != s.m:
             raise SimgapError(f"{where}: system.inputs has {U.shape[1]} components, system {s.name!r} has {s.m}")
         s = dataclasses.replace(s, inputs=U)
-    elif "input_grid" in d:
-        g = d["input_grid"]
-        try:
-            lo, hi, counts = g["lo"], g["hi"], g["counts"]
-            if not (len(lo) == len(hi) == len(counts) == s.m) or any(int(c) < 1 for c in counts):
-                raise ValueError
-            U = input_grid(lo, hi, counts)
-        except (TypeError, ValueError, KeyError):
-            raise SimgapError(f"{where}: system.input_grid needs lo, hi, counts with {s.m} entries each "
-                              "(counts >= 1)") from None
-        s = dataclasses.replace(s, inputs=U)
+    elif d.input_grid is not None:
+        g = d.input_grid
+        if not (len(g.lo) == len(g.hi) == len(g.counts) == s.m):
+            raise SimgapError(f"{where}: system.input_grid needs lo, hi, counts with {s.m} entries each")
+        s = dataclasses.replace(s, inputs=input_grid(g.lo, g.hi, g.counts))
     return s
 
 
-def _simulator(d: dict, system: System, where: str) -> SimulatorConfig:
-    _unknown(d, SIMULATOR_KEYS, where, "simulator")
-    if "kind" not in d:
-        raise SimgapError(f"{where}: [simulator] needs a kind")
-    if d.get("system", system.name) != system.name:
-        raise SimgapError(f"{where}: simulator.system {d['system']!r} differs from system.name {system.name!r}")
-    if d.get("steps", system.steps) != system.steps:
-        raise SimgapError(f"{where}: simulator.steps {d['steps']!r} differs from system.steps {system.steps}")
-    for k in ("noise", "randomize", "effects", "options"):
-        if not isinstance(d.get(k, {}), dict):
-            raise SimgapError(f"{where}: simulator.{k} must be a table")
-    return SimulatorConfig(kind=str(d["kind"]), system=system.name, steps=system.steps,
-                           noise=dict(d.get("noise", {})), randomize=dict(d.get("randomize", {})),
-                           effects=dict(d.get("effects", {})), options=dict(d.get("options", {})))
+def _simulator(d: schema.SimulatorSection, raw: dict, system: System, where: str) -> SimulatorConfig:
+    if d.system not in (None, system.name):
+        raise SimgapError(f"{where}: simulator.system {d.system!r} differs from system.name {system.name!r}")
+    if d.steps not in (None, system.steps):
+        raise SimgapError(f"{where}: simulator.steps {d.steps!r} differs from system.steps {system.steps}")
+    return SimulatorConfig(kind=d.kind, system=system.name, steps=system.steps, noise=dict(d.noise),
+                           randomize=dict(d.randomize), effects=dict(d.effects), options=dict(raw.get("options", {})))
 
 
-def _collect(d: dict, where: str) -> CollectSettings:
-    _unknown(d, COLLECT_KEYS, where, "collect")
-    for k in ("epsilon", "n_runs"):
-        if k not in d:
-            raise SimgapError(f"{where}: [collect] needs {k}")
-    eps = d["epsilon"]
-    if isinstance(eps, bool) or not isinstance(eps, (int, float)) or not eps > 0:
-        raise SimgapError(f"{where}: collect.epsilon must be a number > 0, got {eps!r}")
-    ex = d.get("executor", "local")
-    if ex not in EXECUTORS:
-        raise SimgapError(f"{where}: collect.executor must be one of {', '.join(EXECUTORS)}, got {ex!r}")
-    inv = d.get("invariant_dims", [])
-    fixed = d.get("fixed", {})
-    if not isinstance(inv, list) or not isinstance(fixed, dict):
-        raise SimgapError(f"{where}: collect.invariant_dims must be a list and collect.fixed a table")
-    workers = d.get("workers")
+def _collect(d: schema.CollectSection, out: Optional[str]) -> CollectSettings:
     return CollectSettings(
-        epsilon=float(eps),
-        n_runs=_int(d["n_runs"], f"{where}: collect.n_runs", 2, f"{where}: collect.n_runs (N1hat) must be >= 2"),
-        seed=_int(d.get("seed", 0), f"{where}: collect.seed", 0),
-        spacing=None if d.get("spacing") is None else tuple(d["spacing"]),
-        invariant_dims=tuple(inv), fixed=dict(fixed), chunk_size=d.get("chunk_size"),
-        batch_runs=d.get("batch_runs", DEFAULT_BATCH_RUNS), keep_samples=bool(d.get("keep_samples", False)),
-        executor=ex, workers=None if workers in (None, 0) else workers, address=d.get("address"),
-        out=d.get("out"))
+        epsilon=float(d.epsilon), n_runs=d.n_runs, seed=d.seed,
+        spacing=None if d.spacing is None else tuple(d.spacing), invariant_dims=tuple(d.invariant_dims),
+        fixed=dict(d.fixed), chunk_size=d.chunk_size, batch_runs=d.batch_runs, keep_samples=d.keep_samples,
+        executor=d.executor, workers=d.workers or None, address=d.address, out=out)

@@ -32,7 +32,7 @@ from typing import Optional
 import numpy as np
 
 from . import fileio
-from .errors import SimgapError
+from .errors import BAD_FILE_ERRORS, SimgapError
 from .systems import System, get_system
 
 ARRAYS = ("x", "u", "f_nom", "mean", "var", "lo", "hi", "cover_index", "input_index")
@@ -125,7 +125,7 @@ def load_dataset(path: str | Path, system: System | None = None) -> Dataset:
             if "absdev_top" in z.files:
                 arrays["absdev_top"] = z["absdev_top"]
             meta = json.loads(str(z["meta"]))
-    except (OSError, ValueError, KeyError) as e:
+    except (*BAD_FILE_ERRORS, KeyError) as e:
         raise SimgapError(f"dataset {str(path)!r} is unreadable or not a simgap dataset: {e}") from None
     sysobj = system or get_system(meta["system"], steps=meta.get("steps", 1))
     ds = Dataset(system=sysobj, n_runs=int(meta["n_runs"]), epsilon=float(meta["epsilon"]),

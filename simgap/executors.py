@@ -17,8 +17,9 @@ Backends:
   ``os.cpu_count()``). Workers are forked when the caller has a single thread (scripts need no
   ``if __name__ == "__main__"`` guard) and started by ``forkserver`` when it has more (the GUI),
   since forking a threaded process is unsafe;
-* ``ray``: Ray tasks on a cluster (``address``) or on a local instance started here with
-  ``num_cpus=workers``; needs the optional extra ``pip install simgap[ray]``.
+* ``ray``: Ray tasks on a cluster (``address``, checked to accept a connection within
+  ``RAY_CONNECT_TIMEOUT`` seconds when the executor is made) or on a local instance started
+  here with ``num_cpus=workers``; needs the optional extra ``pip install simgap[ray]``.
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ from typing import Any, Callable, Iterable, Optional
 from .errors import SimgapError
 
 EXECUTORS = ("serial", "local", "ray")
+RAY_CONNECT_TIMEOUT = 5.0  # seconds to reach a Ray cluster's address
 
 
 class Executor:
@@ -110,12 +112,15 @@ class RayExecutor(Executor):
     name = "ray"
 
     def __init__(self, workers: Optional[int] = None, address: Optional[str] = None):
+        self.workers = _check_workers(workers)
+        self.address = address
+        if address:  # fail in seconds, not minutes, before anything is written (ray.init retries long)
+            from .checks import reachable
+            reachable(address, timeout=RAY_CONNECT_TIMEOUT, what="Ray cluster")
         try:
             import ray  # noqa: F401  (optional extra)
         except ImportError:
             raise SimgapError("executor 'ray' needs Ray: pip install 'simgap[ray]' (or pip install ray)") from None
-        self.workers = _check_workers(workers)
-        self.address = address
 
     def map_chunks(self, fn, job, chunk_ids, on_result, should_stop=lambda: False):
         import ray

@@ -20,6 +20,7 @@ hold the stage options (see ``assets/experiments/pendulum.toml``).
 from __future__ import annotations
 
 import dataclasses
+import os
 import time
 from pathlib import Path
 from typing import Callable, Optional
@@ -35,21 +36,6 @@ from .synthesis.spec import Box, Spec
 
 METHODS = ("deterministic", "stochastic")
 
-CERTIFY_KEYS = {"degree", "terms", "delta1", "delta2", "beta1", "beta2", "variance", "safety", "value_range",
-                "concentration", "uniform", "lemma2_factor", "lipschitz_mode", "l2", "lhat", "lhat_pairs",
-                "lhat_runs", "solver", "seed"}
-SYNTH_KEYS = {"spec", "eta", "hold", "safe_lo", "safe_hi", "map"}
-ROLLOUT_KEYS = {"n", "horizon", "x0", "seed", "on_exit"}
-AUDIT_KEYS = {"points", "runs", "seed"}
-
-
-def _check_keys(d: dict, allowed: set, section: str) -> dict:
-    bad = set(d) - allowed
-    if bad:
-        raise SimgapError(f"experiment section [{section}]: unknown keys {sorted(bad)}; allowed: {sorted(allowed)}")
-    return d
-
-
 def baseline_experiment(exp: ExperimentConfig) -> ExperimentConfig:
     """The deterministic baseline's collection: noise and randomization off, N1hat = 2 identical runs."""
     sim = dataclasses.replace(exp.simulator, noise={}, randomize={})
@@ -62,7 +48,7 @@ def certify_options(section: dict, method: str):
     from .certify.bounds import BoundOptions
     from .certify.pipeline import CertifyOptions
 
-    s = dict(_check_keys(section, CERTIFY_KEYS, "certify"))
+    s = dict(section)  # keys and types checked by simgap.schema when the experiment was loaded
     bkw = {k: s.pop(k) for k in ("concentration", "uniform", "lemma2_factor") if k in s}
     if "terms" in s:
         s["terms"] = {int(k): list(v) for k, v in s["terms"].items()}
@@ -86,6 +72,71 @@ def experiment_spec(exp: ExperimentConfig) -> tuple[Spec, Optional[np.ndarray], 
         arena = load_map(syn.get("map", "arena"))
         return arena.spec(system), arena.x0(system), arena
     raise SimgapError(f"[synthesis] spec must be 'invariance' or 'reach_avoid', got {kind!r}")
+
+
+def check_experiment(exp: ExperimentConfig, out: Optional[str | Path] = None, *, n_rollouts: Optional[int] = None,
+                     workers: Optional[int] = None) -> dict:
+    """Check everything :func:`run_experiment` will need before any stage runs.
+
+    The file's keys and types were checked when it was loaded (:mod:`simgap.schema`); here the
+    values are checked against the system and each other: eta, the safe box, x0 and the
+    per-dimension margins have the system's dimension, x0 lies in X, the certify options build
+    (basis terms parse, the basis fits the data set's size), the simulator can be made, and the
+    collection and the rollouts fit in memory and on disk. Returns ``spec``, ``x0``, ``eta``,
+    ``hold`` and ``n_rollouts``; SimgapError naming the section and key otherwise.
+    """
+    from . import checks
+    from .certify.pipeline import bases_for
+
+    s = exp.system
+    n = s.n
+    syn, ro, cert = exp.section("synthesis"), exp.section("rollout"), exp.section("certify")
+    if n_rollouts is not None and (int(n_rollouts) != n_rollouts or n_rollouts < 1):
+        raise SimgapError(f"rollouts per controller must be an integer >= 1, got {n_rollouts!r}")
+    R = int(n_rollouts or ro.get("n", 1000))
+
+    def per_dim(section, key, value):
+        if np.ndim(value) and np.size(value) not in (1, n):
+            raise SimgapError(f"[{section}] {key}: need one value or {n} (one per state {', '.join(s.state_names)}), "
+                              f"got {value!r}")
+
+    if "eta" not in syn:
+        raise SimgapError("[synthesis] eta (grid cell widths) is required")
+    per_dim("synthesis", "eta", syn["eta"])
+    for k in ("safe_lo", "safe_hi"):
+        if k in syn and len(syn[k]) != n:
+            raise SimgapError(f"[synthesis] {k}: need {n} values, got {syn[k]!r}")
+    spec, map_x0, _ = experiment_spec(exp)
+    x0 = np.asarray(ro["x0"], dtype=float) if "x0" in ro else map_x0
+    if x0 is None:
+        raise SimgapError("[rollout] x0 is required (no map gives an initial state)")
+    if x0.shape != (n,):
+        raise SimgapError(f"[rollout] x0: need {n} values, got {ro.get('x0')!r}")
+    s.check_states(x0[None, :], "[rollout] x0")
+    if "horizon" in ro:
+        checks.check_memory(R * (ro["horizon"] + 1) * (2 * n * 8 + 4),
+                            f"{R:,} rollouts x horizon {ro['horizon']:,}", "use fewer rollouts or a shorter horizon")
+
+    for k in ("delta1", "delta2", "beta1", "beta2", "degree"):
+        if k in cert:
+            per_dim("certify", k, cert[k])
+    plan = exp.plan()
+    inv = [d if isinstance(d, int) else s.state_names.index(d) for d in exp.collect.invariant_dims
+           if isinstance(d, int) or d in s.state_names]
+    for method in METHODS:
+        opts = certify_options(cert, method)
+        degs = list(opts.degree) if np.ndim(opts.degree) else [opts.degree] * n
+        n_terms = max(len(opts.terms.get(-1, [])) + len(opts.terms.get(i, [])) for i in range(n))
+        checks.check_basis(plan.n_pairs, n + s.m - len(inv), degs, n_terms, what="[certify] degree")
+        bases_for(s, opts.degree, opts.terms, inv)  # every term parses
+
+    c = exp.collect
+    wk = workers if workers is not None else c.workers
+    checks.check_collection(plan.n_pairs, plan.n_runs, n, s.m, s.steps, plan.batch_runs, wk or os.cpu_count() or 1,
+                            plan.keep_samples, Path(out) if out is not None else Path("."))
+    with make_simulator(exp.simulator, s):
+        pass  # the simulator's kind, noise, effects and options are valid
+    return {"spec": spec, "x0": x0, "eta": syn["eta"], "hold": int(syn.get("hold", 1)), "n_rollouts": R}
 
 
 def _gamma_stats(cert, ds) -> dict:
@@ -114,19 +165,10 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
         from .perrun.stage import check_section
         per_run = check_section(per_run, exp.system, exp.plan().n_pairs, exp.collect.n_runs,
                                 exp.section("rollout").get("horizon"))
-    syn = _check_keys(exp.section("synthesis"), SYNTH_KEYS, "synthesis")
-    ro = _check_keys(exp.section("rollout"), ROLLOUT_KEYS, "rollout")
-    au = _check_keys(exp.section("audit"), AUDIT_KEYS, "audit")
+    checked = check_experiment(exp, out, n_rollouts=n_rollouts, workers=workers)
+    syn, ro, au = exp.section("synthesis"), exp.section("rollout"), exp.section("audit")
     cert_section = exp.section("certify")
-    spec, map_x0, arena = experiment_spec(exp)
-    x0 = np.asarray(ro["x0"], dtype=float) if "x0" in ro else map_x0
-    if x0 is None:
-        raise SimgapError("[rollout] x0 is required (no map gives an initial state)")
-    exp.system.check_states(x0[None, :], "rollout x0")
-    if "eta" not in syn:
-        raise SimgapError("[synthesis] eta (grid cell widths) is required")
-    hold = int(syn.get("hold", 1))
-    R = int(n_rollouts or ro.get("n", 1000))
+    spec, x0, hold, R = checked["spec"], checked["x0"], checked["hold"], checked["n_rollouts"]
     out.mkdir(parents=True, exist_ok=True)  # after validation: bad input leaves no folder behind
     ex = executor or exp.collect.executor
     wk = workers if workers is not None else exp.collect.workers

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import time
 
+from simgap.checks import check_bindable, host, port
+
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
@@ -15,8 +17,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                    help="a finished `simgap run` folder (e.g. results/pendulum-small): open it fully loaded")
     p.add_argument("--method", default="stochastic", choices=("stochastic", "deterministic"),
                    help="which certificate's results of RESULTS to show first (default: stochastic)")
-    p.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1; 0.0.0.0 exposes it)")
-    p.add_argument("--port", type=int, default=8080, help="port (default 8080; 0 picks a free one)")
+    p.add_argument("--host", type=host, default="127.0.0.1",
+                   help="address to bind (default 127.0.0.1; 0.0.0.0 exposes it)")
+    p.add_argument("--port", type=port, default=8080, help="port (default 8080; 0 picks a free one)")
     p.add_argument("--experiment", default=None, help="experiment name or TOML file (e.g. pendulum)")
     p.add_argument("--profile", default=None, help="experiment profile (e.g. small)")
     p.add_argument("--dataset", default=None, help="load this dataset (.npz or store directory) at start")
@@ -35,6 +38,7 @@ def run(args) -> int:
     from .experiment import app_inputs
     from .results import load_run
 
+    check_bindable(args.host)  # an address of this machine? (the server skips a taken port itself)
     run_results = None
     if args.results is not None:
         if args.experiment or args.dataset or args.system:

@@ -86,16 +86,16 @@ def test_cli_dry_run_writes_nothing(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("args,toml_kw,match", [
-    (["--epsilon", "0"], {}, "epsilon must be a number > 0"),
-    (["--epsilon", "-0.5"], {}, "epsilon must be a number > 0"),
-    (["--n-runs", "1"], {}, "N1hat"),
-    (["--workers", "0"], {}, "workers"),
+    (["--epsilon", "0"], {}, "\\[collect\\] epsilon: input should be greater than 0"),
+    (["--epsilon", "-0.5"], {}, "\\[collect\\] epsilon: input should be greater than 0"),
+    ([], {"text": BASE.format(system_extra="", collect_extra="").replace("n_runs = 8", "n_runs = 1")},
+     "n_runs \\(N1hat\\): input should be greater than or equal to 2"),
     (["--profile", "nope"], {}, "no profile 'nope'"),
     ([], {"system_extra": "inputs = []"}, "input"),
     ([], {"system_extra": 'inputs = [[1.0, 2.0]]'}, "components"),
-    ([], {"system_extra": 'inputs = "abc"'}, "malformed"),
-    ([], {"system_extra": 'input_grid = { lo = [-1.0], hi = [1.0], counts = [0] }'}, "input_grid"),
-    ([], {"system_extra": "colour = 3"}, "unknown keys in \\[system\\]"),
+    ([], {"system_extra": 'inputs = "abc"'}, "\\[system\\] inputs"),
+    ([], {"system_extra": 'input_grid = { lo = [-1.0], hi = [1.0], counts = [0] }'}, "input_grid.counts\\[0\\]"),
+    ([], {"system_extra": "colour = 3"}, "unknown key 'colour' in \\[system\\]"),
     ([], {"collect_extra": 'invariant_dims = ["theta", "omega"]'}, "nothing left to cover"),
     ([], {"collect_extra": 'invariant_dims = ["omega"]\nfixed = { omega = 9.0 }'}, "outside X"),
     ([], {"collect_extra": 'executor = "dask"'}, "executor"),
@@ -123,6 +123,6 @@ def test_cli_unknown_experiment_and_bad_store(tmp_path, capsys):
     assert "unknown experiment" in capsys.readouterr().err
     assert main(["collect", str(tmp_path / "missing.toml")]) == 2
     assert "does not exist" in capsys.readouterr().err
-    with pytest.raises(SimgapError, match="collect.n_runs"):
+    with pytest.raises(SimgapError, match=r"\[collect\] n_runs \(N1hat\): input should be a valid integer, got 1.5"):
         load_experiment(write(tmp_path, text=BASE.format(system_extra="", collect_extra="").replace(
             "n_runs = 8", "n_runs = 1.5")), None)

@@ -1,8 +1,10 @@
 """The ``simgap`` command: a thin dispatcher over one module per subcommand.
 
 Each module in ``SUBCOMMANDS`` defines ``add_parser(subparsers)`` (registering its parser and
-setting ``func=run`` via ``set_defaults``) and ``run(args) -> int``. Errors that name a bad
-input (SimgapError) print ``error: ...`` and exit with status 2; no traceback.
+setting ``func=run`` via ``set_defaults``) and ``run(args) -> int``. A parser may also set
+``outputs`` (argument names of result files) and ``output_dirs`` (of result folders): they are
+checked before the command does any work (:func:`simgap.checks.check_outputs`). Errors that
+name a bad input (SimgapError) print ``error: ...`` and exit with status 2; no traceback.
 """
 
 from __future__ import annotations
@@ -51,6 +53,8 @@ def main(argv=None) -> int:
         parser.print_help()
         return 0
     try:
+        from ..checks import check_outputs
+        check_outputs(args)
         return int(args.func(args) or 0)
     except SimgapError as e:
         print(f"error: {e}", file=sys.stderr)

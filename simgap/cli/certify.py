@@ -91,13 +91,17 @@ def add_parser(subparsers) -> None:
     p.add_argument("--compare", action="store_true",
                    help="certify under each bound option and print delta and gamma side by side")
     p.add_argument("--out", help="write the certificate JSON here")
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, outputs=("out",))
 
 
 def options_from_args(args, system):
     from ..certify import BoundOptions, CertifyOptions
 
     deg = _floats(args.degree, "degree")
+    for d in deg if isinstance(deg, list) else [deg]:
+        if d != int(d) or d < -1:
+            raise SimgapError(f"--degree {args.degree!r}: each degree must be an integer >= 0 "
+                              "(or -1 for the --term terms only)")
     deg = [int(d) for d in deg] if isinstance(deg, list) else int(deg)
     d1 = args.delta1 or args.delta
     d2 = args.delta2 or args.delta
@@ -113,6 +117,17 @@ def options_from_args(args, system):
         lipschitz_mode=args.lipschitz, l2=args.l2, lhat=args.lhat, scp_method=args.scp, solver=args.solver, seed=args.seed)
 
 
+def check_certify_size(opts, ds) -> None:
+    """Refuse a basis too large for the data set before building it (:func:`simgap.checks.check_basis`)."""
+    from ..certify.pipeline import invariant_dims
+    from ..checks import check_basis
+
+    s = ds.system
+    degs = list(opts.degree) if isinstance(opts.degree, (list, tuple)) else [opts.degree] * s.n
+    n_terms = max(len(opts.terms.get(-1, [])) + len(opts.terms.get(i, [])) for i in range(s.n))
+    check_basis(ds.K, s.n + s.m - len(invariant_dims(ds)), degs, n_terms, what="--degree")
+
+
 def run(args) -> int:
     from ..certify import certify
     from ..certify.pipeline import compare_options, comparison_table
@@ -124,6 +139,7 @@ def run(args) -> int:
         raise SimgapError("--alpha belongs to --level run (the mean-level certificate has beta, not alpha)")
     ds = load_dataset(args.data)
     opts = options_from_args(args, ds.system)
+    check_certify_size(opts, ds)
     if args.compare:
         print(comparison_table(compare_options(ds, opts), ds.system.state_names))
         return 0

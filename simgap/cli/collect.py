@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from ..errors import SimgapError
+from ..checks import check_collection, count, output_dir
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
@@ -23,17 +23,17 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--profile", default="small", help="profile in the TOML (default: small; e.g. paper; base = no profile)")
     p.add_argument("--out", help="store directory (default: runs/<experiment>-<profile>/data)")
     p.add_argument("--executor", choices=["local", "ray", "serial"], help="where chunks run (default from TOML)")
-    p.add_argument("--workers", type=int, help="worker processes / Ray CPUs (default: all cores)")
+    p.add_argument("--workers", type=count(1), help="worker processes / Ray CPUs (default: all cores)")
     p.add_argument("--address", help="Ray cluster address (default: a local Ray instance)")
-    p.add_argument("--seed", type=int, help="root seed")
+    p.add_argument("--seed", type=count(0), help="root seed")
     p.add_argument("--epsilon", type=float, help="cover radius epsilon")
-    p.add_argument("--n-runs", type=int, dest="n_runs", help="N1hat, simulator runs per (x_r, u) pair")
-    p.add_argument("--chunk-size", type=int, dest="chunk_size", help="(x_r, u) pairs per chunk")
+    p.add_argument("--n-runs", type=count(2), dest="n_runs", help="N1hat, simulator runs per (x_r, u) pair")
+    p.add_argument("--chunk-size", type=count(1), dest="chunk_size", help="(x_r, u) pairs per chunk")
     p.add_argument("--keep-samples", action="store_true", default=None, dest="keep_samples",
                    help="also store the raw N1hat next states per pair (large)")
     p.add_argument("--dry-run", action="store_true", help="print the cover size and cost estimate, collect nothing")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, output_dirs=("out",))
     return p
 
 
@@ -45,14 +45,13 @@ def run(args) -> int:
     from ..progress import ProgressBar
     from ..simulators.base import make_simulator
 
-    if args.workers is not None and args.workers < 1:
-        raise SimgapError(f"--workers must be >= 1, got {args.workers}")
     over = {"collect": {"seed": args.seed, "epsilon": args.epsilon, "n_runs": args.n_runs,
                         "chunk_size": args.chunk_size, "keep_samples": args.keep_samples,
                         "executor": args.executor, "workers": args.workers, "address": args.address,
                         "out": args.out}}
     exp = load_experiment(args.experiment, args.profile, overrides=over)
     c = exp.collect
+    store = output_dir(exp.store_dir(), "store")
     print(f"experiment {exp.name} (profile {exp.profile}): system {exp.system.name}, tau={exp.system.tau:g} s; "
           f"simulator {exp.simulator.kind}")
     cover = exp.cover()
@@ -66,9 +65,10 @@ def run(args) -> int:
                         rate_source=f"calibrated here, executor {ex.name}")
     print(est.summary())
     print(f"N1hat={plan.n_runs}, seed={plan.seed}, {plan.n_chunks} chunks of {plan.chunk_size} pairs")
-    store = exp.store_dir()
+    check_collection(plan.n_pairs, plan.n_runs, exp.system.n, exp.system.m, exp.system.steps, plan.batch_runs,
+                     ex.workers, plan.keep_samples, store, rate)
     if args.dry_run:
-        print(f"dry run: nothing collected (store would be {store})")
+        print(f"dry run: nothing collected (store would be {store.absolute()})")
         return 0
 
     if (store / "manifest.json").exists():
@@ -90,6 +90,6 @@ def run(args) -> int:
     rate_s = res.runs * exp.system.steps / res.seconds if res.seconds > 0 and res.runs else 0.0
     print(f"collected {res.computed} chunks ({res.runs:,} simulator runs) in {res.seconds:.1f} s"
           + (f", {rate_s:,.0f} simulator steps/s" if rate_s else ""))
-    print(f"data: {store} ({plan.n_pairs:,} pairs, hash {res.hash[:12]})")
+    print(f"data: {store.absolute()} ({plan.n_pairs:,} pairs, hash {res.hash[:12]})")
     print(f"load with: simgap.dataset.load_dataset({str(store)!r})")
     return 0

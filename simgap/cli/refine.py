@@ -23,6 +23,7 @@ import argparse
 import json
 from pathlib import Path
 
+from .. import fileio
 from ..errors import SimgapError
 
 
@@ -61,7 +62,7 @@ def add_parser(subparsers) -> None:
                                                   "both gaps; reports the winning-domain sizes (needs --eta)")
     g.add_argument("--eta", help="cell widths for the synthesis, comma-separated (one per state)")
     g.add_argument("--hold", type=int, default=1, help="sampling periods per abstract step (synthesis)")
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, outputs=("out", "save_system", "record"))
 
 
 def run(args) -> int:
@@ -103,9 +104,7 @@ def run(args) -> int:
             print(format_validation(res.report["validation"], res.system.state_names))
     if args.out:
         out = Path(args.out)
-        tmp = out.with_name(out.name + ".tmp")
-        tmp.write_text(json.dumps(res.report, indent=2, allow_nan=False))
-        tmp.replace(out)
+        fileio.write_text(out, json.dumps(res.report, indent=2, allow_nan=False))
         if not args.quiet:
             print(f"report written to {out}")
     if args.save_system:

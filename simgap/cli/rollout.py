@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..checks import count
 from ..errors import SimgapError
 
 
@@ -28,17 +29,17 @@ def add_parser(sub) -> None:
     p.add_argument("--profile", default=None, help="experiment profile (with an experiment --simulator)")
     p.add_argument("--map", default=None, help="map name or TOML: obstacles for the PyBullet world, default x0")
     p.add_argument("--x0", nargs="+", default=None, help="initial state, e.g. --x0 3.5 2 1.5 or --x0 3.5,2,1.5")
-    p.add_argument("--n", type=int, default=1000, help="number of rollouts R (default 1000)")
-    p.add_argument("--horizon", type=int, default=None, help="simulator steps T (default: from the controller)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the numpy generator (default 0)")
-    p.add_argument("--hold", type=int, default=None,
+    p.add_argument("--n", type=count(1), default=1000, help="number of rollouts R (default 1000)")
+    p.add_argument("--horizon", type=count(1), default=None, help="simulator steps T (default: from the controller)")
+    p.add_argument("--seed", type=count(0), default=0, help="seed of the numpy generator (default 0)")
+    p.add_argument("--hold", type=count(1), default=None,
                    help="simulator steps per controller query (default: what the controller records)")
     p.add_argument("--on-exit", choices=("hold", "stop"), default="hold",
                    help="outside the winning domain: keep the last input (hold) or stop the rollout")
     p.add_argument("--one-at-a-time", action="store_true", help="step rollouts one by one (benchmarking)")
     p.add_argument("--out", required=True, help="JSON report path")
     p.add_argument("--trajectories", default=None, help="also write all arrays to this .npz")
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, outputs=("out", "trajectories"))
 
 
 def parse_vector(tokens, what: str) -> np.ndarray:

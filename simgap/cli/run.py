@@ -5,6 +5,8 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+from ..checks import count, output_dir
+
 
 def add_parser(sub):
     p = sub.add_parser(
@@ -16,10 +18,11 @@ def add_parser(sub):
     p.add_argument("--profile", default="small", help="profile in the experiment file (default: small)")
     p.add_argument("--out", default=None, help="output folder (default results/<experiment>-<profile>)")
     p.add_argument("--executor", choices=("local", "serial", "ray"), default=None, help="collection executor")
-    p.add_argument("--workers", type=int, default=None, help="collection worker processes")
-    p.add_argument("--rollouts", type=int, default=None, help="closed-loop rollouts per controller (default 1000)")
+    p.add_argument("--workers", type=count(1), default=None, help="collection worker processes")
+    p.add_argument("--rollouts", type=count(1), default=None,
+                   help="closed-loop rollouts per controller (default: [rollout] n, else 1000)")
     p.add_argument("--no-record", action="store_true", help="skip the Rerun recording")
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, output_dirs=("out",))
 
 
 def run(args) -> int:
@@ -28,8 +31,8 @@ def run(args) -> int:
     from ..progress import ProgressBar
 
     exp = load_experiment(args.experiment, args.profile)
-    out = Path(args.out or Path("results") / f"{exp.name}-{exp.profile or 'base'}")
-    print(f"simgap run {exp.name} (profile {exp.profile}) -> {out}", file=sys.stderr)
+    out = output_dir(args.out or Path("results") / f"{exp.name}-{exp.profile or 'base'}")
+    print(f"simgap run {exp.name} (profile {exp.profile}): results go to {out.absolute()}", file=sys.stderr)
     summary = run_experiment(exp, out, executor=args.executor, workers=args.workers, n_rollouts=args.rollouts,
                              log=lambda m: print(m, file=sys.stderr, flush=True), progress=lambda stage: ProgressBar("pairs", desc=stage))
     print(comparison_table(summary))

@@ -72,7 +72,7 @@ def add_parser(subparsers) -> None:
     p.add_argument("--json", default=None, help="also write the statistics as JSON here")
     p.add_argument("--no-strict-domain", action="store_true",
                    help="let cells stick out of X by eta/2 (SCOTS's convention) instead of blocking them")
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, outputs=("out", "json"))
 
 
 def _floats(text: str, what: str) -> np.ndarray:

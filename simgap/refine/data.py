@@ -25,7 +25,7 @@ from typing import Optional
 
 import numpy as np
 
-from ..errors import SimgapError
+from ..errors import BAD_FILE_ERRORS, SimgapError
 from ..systems import System
 
 
@@ -250,7 +250,7 @@ def load_transitions(path: str | Path, system: Optional[System] = None,
                     arr = {k: z[k] for k in ("x", "u", "x_next", "tau")}
                     t = z["t"] if "t" in keys else None
                     meta = json.loads(str(z["meta"])) if "meta" in keys else {}
-        except (OSError, ValueError) as e:
+        except BAD_FILE_ERRORS as e:
             if isinstance(e, SimgapError):
                 raise
             raise SimgapError(f"{path}: unreadable .npz: {e}") from None

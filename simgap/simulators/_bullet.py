@@ -18,8 +18,11 @@ URDF_DIR = ASSETS_DIR / "urdf"
 
 
 def urdf_path(name: str) -> Path:
-    """Absolute path of ``assets/urdf/<name>``; SimgapError if it is missing."""
-    path = URDF_DIR / name
+    """Absolute path of ``assets/urdf/<name>``; SimgapError if it is missing or leads elsewhere
+    (a configuration file never points the simulator at an arbitrary file)."""
+    path = (URDF_DIR / str(name)).resolve()
+    if not path.is_relative_to(URDF_DIR.resolve()):
+        raise SimgapError(f"URDF {str(name)!r}: must be a file under {URDF_DIR} (no absolute path, no ..)")
     if not path.is_file():
         raise SimgapError(f"URDF file not found: {path}")
     return path

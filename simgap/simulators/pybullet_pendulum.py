@@ -43,14 +43,13 @@ Undeclared effects (the nominal model lacks them):
 * ``effects.actuator_gain`` k: the applied torque is k (u + a).
 
 Options: ``branches`` (pendulums per multibody, 1..120, default 50), ``substeps`` (physics
-steps per base period, default 1), ``urdf`` (file name under assets/urdf or an absolute path).
+steps per base period, default 1), ``urdf`` (file name under assets/urdf).
 """
 
 from __future__ import annotations
 
 import operator
 from itertools import chain
-from pathlib import Path
 from typing import Dict
 
 import numpy as np
@@ -102,7 +101,7 @@ class PendulumSimulator(BulletSimulator):
     def _build(self, urdf: str) -> None:
         pybullet = pybullet_module()
 
-        path = Path(urdf) if Path(urdf).is_absolute() else urdf_path(urdf)
+        path = urdf_path(urdf)
         c = self._client = bullet_client(self.dt, self.g)
         # read the link's inertial data from the URDF, then rebuild it as NB branches
         ref = c.loadURDF(str(path), useFixedBase=True, flags=pybullet.URDF_USE_INERTIA_FROM_FILE)

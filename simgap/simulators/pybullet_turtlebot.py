@@ -149,7 +149,7 @@ class TurtlebotSimulator(BulletSimulator):
     def _build(self, urdf: str) -> None:
         pybullet = pybullet_module()
 
-        path = Path(urdf) if Path(urdf).is_absolute() else urdf_path(urdf)
+        path = urdf_path(urdf)
         c = self._client = bullet_client(self.dt, 9.81, deterministic_pairs=True)
         c.setPhysicsEngineParameter(numSolverIterations=self.solver_iterations)
         self._pb, self._cid = pybullet, c._client

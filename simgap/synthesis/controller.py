@@ -34,7 +34,7 @@ from typing import Optional
 import numpy as np
 
 from .. import fileio
-from ..errors import SimgapError
+from ..errors import BAD_FILE_ERRORS, SimgapError
 from ..systems import System
 from .abstraction import (COMPOSED_HOLD_LABEL, as_gap, build_abstraction, certified_input_mask, check_hold,
                           describe_gap, growth_function, uncertified_inputs_message)
@@ -187,7 +187,7 @@ class Controller:
         try:
             with np.load(path, allow_pickle=False) as z:
                 arrays = {k: z[k] for k in ("steps", "valid", "chosen", "target", "inputs", "meta")}
-        except (OSError, ValueError, KeyError) as e:
+        except (*BAD_FILE_ERRORS, KeyError) as e:
             raise SimgapError(f"controller file {str(path)!r} is not a simgap controller ({e})") from None
         try:
             meta = json.loads(str(arrays.pop("meta")))

@@ -45,7 +45,7 @@ from typing import Optional
 import numpy as np
 
 from .. import fileio
-from ..errors import SimgapError
+from ..errors import BAD_FILE_ERRORS, SimgapError
 from .spec import Spec
 
 #: outcome codes (index = code stored in ``RolloutResult.outcome``)
@@ -368,7 +368,7 @@ def load_rollout(path) -> RolloutResult:
     try:
         with np.load(os.fspath(path), allow_pickle=False) as z:
             a = {k: z[k] for k in z.files}
-    except (OSError, ValueError) as e:
+    except BAD_FILE_ERRORS as e:
         raise SimgapError(f"rollout file {str(path)!r}: cannot read ({e})") from None
     if "meta_json" not in a:
         raise SimgapError(f"rollout file {str(path)!r}: not a simgap rollout file (no meta_json)")
@@ -481,6 +481,10 @@ def rollout(controller, simulator, x0=None, n_rollouts: int = 1000, horizon: Opt
     if int(horizon) != horizon or horizon < 1:
         raise SimgapError(f"rollout: horizon must be an integer >= 1 simulator steps, got {horizon!r}")
     horizon = int(horizon)
+    from ..checks import check_memory
+    # trajectories (R, T+1, n) float64 + inputs (R, T) int32, and the mean trajectory's copy
+    check_memory(n_rollouts * (horizon + 1) * (2 * system.n * 8 + 4), f"{n_rollouts:,} rollouts x horizon {horizon:,}",
+                 "use fewer rollouts (--n) or a shorter --horizon")
     if rng is None:
         rng = np.random.default_rng(seed)
     else:

@@ -1,0 +1,294 @@
+"""Boundary checks shared by the commands: output paths, counts, network addresses, sizes.
+
+Every command checks what it will write and how big the work is *before* doing any work, so
+bad input ends with a :class:`~simgap.errors.SimgapError` that names the problem (and, for
+sizes, the estimated numbers) instead of a traceback, a hang or a half-written file.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ipaddress
+import math
+import os
+import shutil
+import socket
+import tempfile
+from pathlib import Path
+from typing import Optional, Sequence
+
+from .errors import SimgapError
+
+#: work estimated to take longer than this is refused (the numbers are printed)
+MAX_SECONDS = 365 * 24 * 3600.0
+#: floating-point operations of a certify rank check + LP above which it is refused (~hours here)
+MAX_CERTIFY_FLOPS = 2e12
+
+
+# ----------------------------------------------------------------------------------------
+# Output paths
+# ----------------------------------------------------------------------------------------
+
+def _probe_writable(folder: Path, what: str, path: Path) -> None:
+    """Create and delete a temporary file in ``folder``: the only honest writability test
+    (permissions, read-only mounts, root)."""
+    try:
+        fd, tmp = tempfile.mkstemp(dir=folder, prefix=".simgap-write-check.", suffix=".tmp")
+        os.close(fd)
+        os.unlink(tmp)
+    except OSError as e:
+        raise SimgapError(f"{what} {str(path)!r}: cannot write in folder {str(folder)!r} "
+                          f"({e.strerror or e})") from None
+
+
+def output_file(path, what: str = "--out") -> Path:
+    """Check that a result file can be written at ``path``: not a directory, its folder exists
+    and is writable. Nothing is created. Returns ``Path(path)``."""
+    p = Path(path)
+    if p.is_dir():
+        raise SimgapError(f"{what} {str(p)!r} is a folder; give a file name (e.g. {str(p / 'result')!r}"
+                          " plus the extension)")
+    folder = p.parent if str(p.parent) else Path(".")
+    if not folder.exists():
+        raise SimgapError(f"{what} {str(p)!r}: folder {str(folder)!r} does not exist")
+    if not folder.is_dir():
+        raise SimgapError(f"{what} {str(p)!r}: {str(folder)!r} is not a folder")
+    _probe_writable(folder, what, p)
+    return p
+
+
+def output_dir(path, what: str = "--out") -> Path:
+    """Check that a result folder can be used at ``path``: a writable folder, or a path whose
+    nearest existing ancestor is a writable folder (it is created later). Nothing is created."""
+    p = Path(path)
+    if p.exists():
+        if not p.is_dir():
+            raise SimgapError(f"{what} {str(p)!r} exists and is not a folder")
+        _probe_writable(p, what, p)
+        return p
+    anc = p.absolute().parent
+    while not anc.exists():
+        anc = anc.parent
+    if not anc.is_dir():
+        raise SimgapError(f"{what} {str(p)!r}: {str(anc)!r} is a file, not a folder")
+    _probe_writable(anc, what, p)
+    return p
+
+
+def check_outputs(args) -> None:
+    """Check every output a parsed command declares (``set_defaults(outputs=..., output_dirs=...)``)."""
+    for name in getattr(args, "outputs", ()):
+        v = getattr(args, name, None)
+        if v is not None:
+            output_file(v, "--" + name.replace("_", "-"))
+    for name in getattr(args, "output_dirs", ()):
+        v = getattr(args, name, None)
+        if v is not None:
+            output_dir(v, "--" + name.replace("_", "-"))
+
+
+# ----------------------------------------------------------------------------------------
+# Command-line value types (argparse ``type=``): errors become "argument --x: message"
+# ----------------------------------------------------------------------------------------
+
+def _integer(text: str) -> int:
+    """An integer from ``"12"`` or an integral float such as ``"1e6"``."""
+    try:
+        return int(text)
+    except ValueError:
+        pass
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if not math.isfinite(v) or v != int(v):
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}")
+    return int(v)
+
+
+def count(lo: int = 1):
+    """argparse type: an integer >= ``lo`` (``1e6`` notation accepted)."""
+    def parse(text: str) -> int:
+        v = _integer(text)
+        if v < lo:
+            raise argparse.ArgumentTypeError(f"must be an integer >= {lo}, got {text!r}")
+        return v
+    parse.__name__ = f"integer >= {lo}"
+    return parse
+
+
+def port(text: str) -> int:
+    """argparse type: a TCP port 0..65535 (0 = any free port)."""
+    v = _integer(text)
+    if not 0 <= v <= 65535:
+        raise argparse.ArgumentTypeError(f"port must be 0..65535, got {text!r}")
+    return v
+
+
+def host(text: str) -> str:
+    """argparse type: an IP address to bind (or ``localhost``). Names are not resolved: no DNS."""
+    if text == "localhost":
+        return text
+    try:
+        return str(ipaddress.ip_address(text))
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"not an IP address: {text!r} (e.g. 127.0.0.1 for this machine only, 0.0.0.0 for every "
+            "interface, or localhost)") from None
+
+
+def check_bindable(host_: str, port_: int = 0) -> None:
+    """Bind and release ``(host, port)`` once (port 0: any), so a server that cannot start says
+    why at once (e.g. an address that is not this machine's)."""
+    family = socket.AF_INET6 if ":" in host_ else socket.AF_INET
+    with socket.socket(family, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind((host_, port_))
+        except OSError as e:
+            where = f"{host_}:{port_}" if port_ else host_
+            raise SimgapError(f"cannot listen on {where}: {e.strerror or e}") from None
+
+
+def reachable(address: str, timeout: float = 5.0, what: str = "server") -> None:
+    """Open and close a TCP connection to ``host:port`` (``ray://`` prefix allowed) within
+    ``timeout`` seconds, else SimgapError; ``auto`` is not checked."""
+    a = address.strip()
+    if a in ("", "auto", "local"):
+        return
+    for prefix in ("ray://", "http://", "https://"):
+        if a.startswith(prefix):
+            a = a[len(prefix):]
+    h, sep, p = a.rpartition(":")
+    if not sep or not h:
+        raise SimgapError(f"{what} address {address!r}: expected HOST:PORT, e.g. 127.0.0.1:6379")
+    try:
+        pnum = int(p)
+    except ValueError:
+        raise SimgapError(f"{what} address {address!r}: port {p!r} is not a number") from None
+    if not 0 < pnum <= 65535:
+        raise SimgapError(f"{what} address {address!r}: port must be 1..65535")
+    try:
+        with socket.create_connection((h.strip("[]"), pnum), timeout=timeout):
+            pass
+    except OSError as e:
+        raise SimgapError(f"cannot reach the {what} at {address} within {timeout:g} s ({e.strerror or e}); "
+                          "is it running?") from None
+
+
+# ----------------------------------------------------------------------------------------
+# Sizes
+# ----------------------------------------------------------------------------------------
+
+def available_memory() -> int:
+    """Bytes of memory available to new allocations (MemAvailable), or total RAM."""
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):
+        return 1 << 34
+
+
+def human_bytes(b: float) -> str:
+    for unit in ("B", "KB", "MB", "GB", "TB", "PB"):
+        if abs(b) < 1000 or unit == "PB":
+            return f"{b:.3g} {unit}"
+        b /= 1000.0
+    return f"{b:.3g} PB"
+
+
+def human_seconds(s: float) -> str:
+    for unit, d in (("years", 365 * 86400.0), ("days", 86400.0), ("h", 3600.0), ("min", 60.0)):
+        if s >= d:
+            return f"{s / d:.3g} {unit}"
+    return f"{s:.3g} s"
+
+
+def check_memory(need: float, what: str, hint: str = "") -> None:
+    """Refuse work whose estimated peak memory ``need`` [bytes] exceeds the available memory."""
+    have = available_memory()
+    if need > have:
+        raise SimgapError(f"{what} needs about {human_bytes(need)} of memory, {human_bytes(have)} is available"
+                          + (f"; {hint}" if hint else ""))
+
+
+def check_disk(need: float, folder, what: str, hint: str = "") -> None:
+    """Refuse writing an estimated ``need`` bytes below ``folder`` (nearest existing ancestor)."""
+    p = Path(folder).absolute()
+    while not p.exists():
+        p = p.parent
+    free = shutil.disk_usage(p).free
+    if need > free:
+        raise SimgapError(f"{what} needs about {human_bytes(need)} of disk in {str(p)!r}, {human_bytes(free)} is free"
+                          + (f"; {hint}" if hint else ""))
+
+
+def check_seconds(seconds: Optional[float], what: str, hint: str = "") -> None:
+    if seconds is not None and seconds > MAX_SECONDS:
+        raise SimgapError(f"{what} would take about {human_seconds(seconds)}" + (f"; {hint}" if hint else ""))
+
+
+def collection_size(n_pairs: int, n_runs: int, n: int, m: int, steps: int, batch_runs: int, workers: int,
+                    keep_samples: bool, rate_per_worker: Optional[float] = None) -> dict:
+    """Estimated peak memory, disk and time of a collection (see :mod:`simgap.collect`).
+
+    A worker steps at most max(batch_runs, N1hat) runs at once (whole pairs): states, inputs and
+    next states in float64 plus the simulator's own work arrays (a factor 4 is allowed for them).
+    With ``keep_samples`` a chunk also holds its raw samples. The store keeps 7 per-pair arrays.
+    """
+    per_call = max(int(batch_runs), int(n_runs))
+    worker = per_call * (3 * n + m) * 8 * 4
+    if keep_samples:
+        worker += min(int(n_pairs), max(1, int(batch_runs) // int(n_runs))) * int(n_runs) * n * 8
+    disk = n_pairs * (5 * n + m + 2) * 8 + (n_pairs * n_runs * n * 8 if keep_samples else 0)
+    runs = n_pairs * n_runs
+    secs = runs / (rate_per_worker * max(1, workers)) if rate_per_worker else None
+    return {"memory": worker * max(1, workers), "disk": disk, "seconds": secs, "runs": runs,
+            "sim_steps": runs * steps}
+
+
+def check_collection(n_pairs: int, n_runs: int, n: int, m: int, steps: int, batch_runs: int, workers: int,
+                     keep_samples: bool, store, rate_per_worker: Optional[float] = None) -> dict:
+    """Refuse a collection that cannot fit in memory or on disk, or would take over a year."""
+    est = collection_size(n_pairs, n_runs, n, m, steps, batch_runs, workers, keep_samples, rate_per_worker)
+    what = f"collecting {n_pairs:,} pairs x N1hat={n_runs:,} runs ({est['sim_steps']:,} simulator steps)"
+    hint = "lower --n-runs (N1hat) or raise --epsilon"
+    check_memory(est["memory"], f"{what} on {workers} worker(s)", hint + " or use fewer --workers")
+    check_disk(est["disk"], store, what, hint)
+    check_seconds(est["seconds"], what, hint)
+    return est
+
+
+def basis_terms(n_vars: int, degree: int) -> int:
+    """Number of monomials of total degree <= ``degree`` in ``n_vars`` variables: C(v + d, d)."""
+    return math.comb(n_vars + degree, degree) if degree >= 0 else 0
+
+
+def check_basis(n_pairs: int, n_vars: int, degrees: Sequence[int], extra_terms: int = 0,
+                what: str = "certify") -> None:
+    """Refuse a certify basis whose design matrices or LP cannot be handled.
+
+    Per state dimension the design matrix is K x P float64 (P = C(v + d, d) monomials plus the
+    user's terms); the rank check and the linear program cost about K P^2 flops each. A basis
+    with more terms than data pairs cannot have unique coefficients.
+    """
+    sizes = [basis_terms(n_vars, int(d)) + extra_terms for d in degrees]
+    P = max(sizes)
+    deg = max(int(d) for d in degrees)
+    head = f"{what}: degree {deg} gives {P:,} basis terms per dimension"
+    if P > n_pairs:
+        raise SimgapError(f"{head} but the data have only {n_pairs:,} (x_r, u) pairs, so the coefficients "
+                          "cannot be unique; use a smaller degree (the paper uses 1 or 2)")
+    check_memory(8.0 * n_pairs * sum(sizes) * 2, f"{head}; with {n_pairs:,} pairs the design matrices",
+                 "use a smaller degree")
+    flops = 2.0 * n_pairs * float(P) ** 2 * len(sizes)
+    if flops > MAX_CERTIFY_FLOPS:
+        raise SimgapError(f"{head}; with {n_pairs:,} pairs the rank check and linear program need about "
+                          f"{flops:.2g} floating-point operations (hours on this machine); use a smaller "
+                          "degree (the paper uses 1 or 2) or name the terms you need")

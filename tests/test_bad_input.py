@@ -1,0 +1,410 @@
+"""Bad input through the real command line: every case exits non-zero with a message naming the
+problem, no traceback, and leaves no file behind (subprocesses, so what a user sees is tested)."""
+
+import fcntl
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from simgap import checks
+from simgap.errors import SimgapError
+
+REPO = Path(__file__).resolve().parents[1]
+
+EXP = """
+[system]
+name = "pendulum"
+[simulator]
+kind = "numpy"
+noise = { actuation_std = 0.05 }
+[collect]
+epsilon = 0.1
+n_runs = 8
+seed = 5
+executor = "serial"
+[certify]
+beta1 = 0.01
+beta2 = 0.01
+[synthesis]
+eta = [0.004, 0.01]
+[rollout]
+x0 = [0.05, 0.1]
+n = 10
+horizon = 20
+[audit]
+points = 5
+runs = 20
+[profiles.small.collect]
+n_runs = 4
+"""
+
+
+def simgap(*args, cwd, timeout=120):
+    env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    return subprocess.run([sys.executable, "-m", "simgap", *map(str, args)], cwd=cwd, env=env,
+                          capture_output=True, text=True, timeout=timeout)
+
+
+def files(folder: Path) -> set:
+    return {str(p.relative_to(folder)) for p in folder.rglob("*")}
+
+
+def refused(r, *words):
+    """Non-zero exit, no traceback, and every word in the message."""
+    assert r.returncode != 0, r.stdout + r.stderr
+    assert "Traceback" not in r.stderr, r.stderr
+    for w in words:
+        assert w in r.stderr, (w, r.stderr)
+
+
+@pytest.fixture(scope="module")
+def work(tmp_path_factory):
+    """A folder with an experiment, its collected store, a single-file data set, a certificate
+    and a controller (numpy simulator, 504 pairs: seconds)."""
+    from simgap.certify import CertifyOptions, certify
+    from simgap.collect import collect
+    from simgap.config import load_experiment
+    from simgap.synthesis.controller import synthesize
+    from simgap.synthesis.spec import Box, Spec
+
+    d = tmp_path_factory.mktemp("bad")
+    (d / "exp.toml").write_text(EXP)
+    exp = load_experiment(d / "exp.toml", None)
+    res = collect(exp.plan(), d / "data", executor="serial")
+    ds = res.dataset()
+    ds.save_npz(d / "data.npz")
+    certify(ds, CertifyOptions(beta1=0.01, beta2=0.01)).save(d / "cert.json")
+    s = exp.system
+    synthesize(s, Spec("invariance", safe=Box(s.x_lo, s.x_hi)), [0.004, 0.01]).controller.save(d / "ctrl.npz")
+    for name in ("data.npz", "ctrl.npz", "cert.json"):
+        b = (d / name).read_bytes()
+        (d / f"trunc_{name}").write_bytes(b[: len(b) // 2])
+    (d / "adir").mkdir()
+    return d
+
+
+# ----- output paths: one check before any work ------------------------------------------------
+
+OUT_CASES = {
+    "certify": ["certify", "data", "--out", "{out}"],
+    "audit": ["audit", "cert.json", "--data", "data", "--points", "5", "--runs", "20", "--out", "{out}"],
+    "synthesize": ["synthesize", "--no-gap", "--system", "pendulum", "--safe=-0.2,0.2,-0.5,0.5",
+                   "--eta", "0.004,0.01", "--out", "{out}"],
+    "synthesize-json": ["synthesize", "--no-gap", "--system", "pendulum", "--safe=-0.2,0.2,-0.5,0.5",
+                        "--eta", "0.004,0.01", "--out", "c.npz", "--json", "{out}"],
+    "rollout": ["rollout", "--controller", "ctrl.npz", "--simulator", "exp.toml", "--profile", "base",
+                "--x0", "0.05,0.1", "--n", "5", "--out", "{out}"],
+    "rollout-traj": ["rollout", "--controller", "ctrl.npz", "--simulator", "exp.toml", "--profile", "base",
+                     "--x0", "0.05,0.1", "--n", "5", "--out", "r.json", "--trajectories", "{out}"],
+    "refine": ["refine", "--system", "pendulum", "--data", "data", "--bootstrap", "2", "--out", "{out}"],
+    "refine-system": ["refine", "--system", "pendulum", "--data", "data", "--bootstrap", "2",
+                      "--save-system", "{out}"],
+    "collect": ["collect", "exp.toml", "--out", "{out}"],
+    "run": ["run", "exp.toml", "--out", "{out}"],
+}
+
+
+BAD_OUTS = [
+    ("adir", ["'adir'", "is a folder"]),         # a folder where a file goes
+    ("exp.toml", ["'exp.toml'", "not a folder"]),  # a file where a folder goes
+    ("exp.toml/x", ["exp.toml", "folder"]),      # a path below a file
+    ("missing/deeper/x.json", ["missing"]),      # a file in a folder that does not exist
+]
+FOLDER_OUTPUTS = ("collect", "run")  # result folders: an existing folder is fine, parents are created
+
+
+@pytest.mark.parametrize("case,out,words", [
+    (case, out, words) for case in sorted(OUT_CASES) for out, words in BAD_OUTS
+    if (out == "exp.toml") == (case in FOLDER_OUTPUTS) or out == "exp.toml/x"])
+def test_unusable_output_is_refused_before_any_work(work, case, out, words):
+    args = [a.replace("{out}", out) for a in OUT_CASES[case]]
+    before = files(work)
+    r = simgap(*args, cwd=work)
+    refused(r, *words)
+    assert files(work) == before  # nothing written, no *.tmp left
+
+
+def test_unwritable_output_folder(work):
+    """A read-only folder (root may write anywhere, so a read-only mount stands in: /proc)."""
+    r = simgap("certify", "data", "--out", "/proc/cert.json", cwd=work)
+    refused(r, "/proc/cert.json", "cannot write")
+
+
+def test_refine_writes_no_tmp(work, tmp_path):
+    r = simgap("refine", "--system", "pendulum", "--data", "data", "--bootstrap", "2", "--quiet",
+               "--out", tmp_path / "rep.json", cwd=work)
+    assert r.returncode == 0, r.stderr
+    assert [p.name for p in tmp_path.iterdir()] == ["rep.json"]
+
+
+def test_output_checks_unit(tmp_path):
+    assert checks.output_file(tmp_path / "a.json") == tmp_path / "a.json"
+    assert checks.output_dir(tmp_path / "new" / "deeper") == tmp_path / "new" / "deeper"
+    assert list(tmp_path.iterdir()) == []  # checking creates nothing
+    with pytest.raises(SimgapError, match="is a folder"):
+        checks.output_file(tmp_path)
+    (tmp_path / "f").write_text("x")
+    with pytest.raises(SimgapError, match="not a folder"):
+        checks.output_dir(tmp_path / "f")
+    with pytest.raises(SimgapError, match="is a file, not a folder"):
+        checks.output_dir(tmp_path / "f" / "sub")
+
+
+# ----- hangs ------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("args,words", [
+    (["--port", "99999"], ["--port", "0..65535", "99999"]),
+    (["--port", "-1"], ["--port", "0..65535"]),
+    (["--port", "http"], ["--port", "integer"]),
+    (["--host", "999.1.1.1"], ["--host", "999.1.1.1", "IP address"]),
+    (["--host", "example.com"], ["--host", "example.com"]),
+    (["--host", "10.255.255.254", "--port", "0"], ["cannot listen on 10.255.255.254"]),
+])
+def test_gui_bad_address_exits_at_once(tmp_path, args, words):
+    r = simgap("gui", *args, "--exit-after", "0", cwd=tmp_path, timeout=60)
+    refused(r, *words)
+
+
+def test_ray_unreachable_address_fails_fast_and_writes_nothing(work, tmp_path):
+    import time
+    t0 = time.monotonic()
+    r = simgap("collect", work / "exp.toml", "--profile", "base", "--executor", "ray", "--address", "127.0.0.1:1",
+               "--out", tmp_path / "store", "--no-progress", cwd=tmp_path)
+    refused(r, "Ray cluster", "127.0.0.1:1")
+    assert time.monotonic() - t0 < 60
+    assert not (tmp_path / "store").exists()  # no manifest left behind
+
+
+def test_reachable_checks_address_form():
+    for bad, word in [("127.0.0.1", "HOST:PORT"), ("h:x", "not a number"), ("h:0", "1..65535")]:
+        with pytest.raises(SimgapError, match=word):
+            checks.reachable(bad)
+    checks.reachable("auto")  # left to Ray
+
+
+def test_certify_huge_degree_is_refused_with_sizes(work):
+    r = simgap("certify", "data", "--degree", "40", cwd=work, timeout=60)
+    refused(r, "degree 40", "12,341 basis terms", "504")
+    r = simgap("certify", "data", "--degree", "-5", cwd=work)
+    refused(r, "--degree", ">= 0")
+
+
+def test_basis_size_limits():
+    assert checks.basis_terms(3, 2) == 10 and checks.basis_terms(3, 40) == 12341
+    checks.check_basis(43239, 3, [2, 2])  # the pendulum's small profile: fine
+    with pytest.raises(SimgapError, match="floating-point operations"):
+        checks.check_basis(43239, 3, [40, 40])
+    with pytest.raises(SimgapError, match="cannot be unique"):
+        checks.check_basis(50, 3, [5, 5])  # 56 terms
+
+
+# ----- sizes ------------------------------------------------------------------------------------
+
+def test_collect_too_many_runs_is_refused_with_numbers(work, tmp_path):
+    r = simgap("collect", work / "exp.toml", "--profile", "base", "--n-runs", "1e11", "--out", tmp_path / "s",
+               cwd=tmp_path)
+    refused(r, "N1hat=100,000,000,000", "of memory", "available")
+    assert not (tmp_path / "s").exists()
+    r = simgap("collect", work / "exp.toml", "--n-runs", "100000000000", "--dry-run", cwd=tmp_path)
+    refused(r, "100,000,000,000", "TB")
+    r = simgap("collect", work / "exp.toml", "--n-runs", "-3", cwd=tmp_path)
+    refused(r, "--n-runs", ">= 2")
+
+
+def test_collection_estimates():
+    e = checks.collection_size(504, 8, 2, 1, 1, 1 << 18, 2, False, rate_per_worker=1e5)
+    assert e["runs"] == 4032 and e["seconds"] == pytest.approx(4032 / 2e5)
+    with pytest.raises(SimgapError, match="would take about"):
+        checks.check_collection(10 ** 6, 1000, 2, 1, 1, 1 << 18, 1, False, ".", rate_per_worker=10.0)
+    with pytest.raises(SimgapError, match="of disk"):
+        checks.check_collection(10 ** 8, 10 ** 5, 3, 2, 1, 1 << 18, 1, True, ".", rate_per_worker=1e12)
+
+
+def test_rollout_too_many_is_refused_with_numbers(work, tmp_path):
+    r = simgap("rollout", "--controller", work / "ctrl.npz", "--simulator", work / "exp.toml", "--profile", "base",
+               "--x0", "0.05,0.1", "--n", "1e9", "--horizon", "100", "--out", tmp_path / "r.json", cwd=tmp_path)
+    refused(r, "1,000,000,000 rollouts", "of memory")
+    assert list(tmp_path.iterdir()) == []
+
+
+# ----- truncated files --------------------------------------------------------------------------
+
+@pytest.mark.parametrize("args,words", [
+    (["certify", "trunc_data.npz"], ["trunc_data.npz", "not a zip file"]),
+    (["rollout", "--controller", "trunc_ctrl.npz", "--simulator", "exp.toml", "--profile", "base",
+      "--out", "r.json"], ["trunc_ctrl.npz", "not a zip file"]),
+    (["synthesize", "--cert", "trunc_cert.json", "--system", "pendulum", "--safe=-0.2,0.2,-0.5,0.5",
+      "--eta", "0.004,0.01", "--out", "c.npz"], ["trunc_cert.json", "JSON"]),
+    (["refine", "--system", "pendulum", "--data", "trunc_data.npz"], ["trunc_data.npz"]),
+])
+def test_truncated_files(work, args, words):
+    before = files(work)
+    refused(simgap(*args, cwd=work), *words)
+    assert files(work) == before
+
+
+# ----- concurrent collectors --------------------------------------------------------------------
+
+def test_second_collector_into_one_store_is_refused(work, tmp_path):
+    store = tmp_path / "s"
+    r = simgap("collect", work / "exp.toml", "--profile", "base", "--out", store, "--no-progress", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    manifest = (store / "manifest.json").read_bytes()
+    with open(store / ".lock", "a") as fh:  # a collector running into the store holds this lock
+        fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        r = simgap("collect", work / "exp.toml", "--profile", "base", "--out", store, "--no-progress",
+                   cwd=tmp_path)
+        refused(r, "being collected by another process", str(store))
+    assert (store / "manifest.json").read_bytes() == manifest
+    # released (as when the first collector exits or is killed): the same command resumes
+    r = simgap("collect", work / "exp.toml", "--profile", "base", "--out", store, "--no-progress", cwd=tmp_path)
+    assert r.returncode == 0 and "already done" in r.stdout, r.stderr
+
+
+def test_concurrent_collectors_compute_each_chunk_once(tmp_path):
+    """Two real collectors started together into one store: every chunk is computed once; the
+    later one is refused while the first runs (or, if it started after the end, finds all done)."""
+    import re
+    (tmp_path / "exp.toml").write_text(EXP.replace("epsilon = 0.1", "epsilon = 0.02"))
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    cmd = [sys.executable, "-m", "simgap", "collect", "exp.toml", "--profile", "base", "--out", "s", "--no-progress"]
+    procs = [subprocess.Popen(cmd, cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+             for _ in range(2)]
+    outs = [p.communicate(timeout=300) for p in procs]
+    computed = 0
+    for p, (out, err) in zip(procs, outs):
+        assert "Traceback" not in err, err
+        if p.returncode == 2:
+            assert "being collected by another process" in err, err
+        else:
+            assert p.returncode == 0, err
+            computed += int(re.search(r"collected (\d+) chunks", out).group(1))
+    from simgap.collect import store_status
+    st = store_status(tmp_path / "s")
+    assert st["complete"] and computed == st["n_chunks"], outs
+
+
+# ----- the experiment file: schema, typos, paths ------------------------------------------------
+
+def _exp(tmp_path, text, name="exp.toml"):
+    p = tmp_path / name
+    p.write_text(text)
+    return p
+
+
+@pytest.mark.parametrize("edit,profile,words", [
+    (lambda t: t + "\n[colect]\nepsilon = 0.1\n", "small", ["unknown section [colect]", "did you mean [collect]"]),
+    (lambda t: t + "\n[profiles.small.colect]\nn_runs = 3\n", "small",
+     ["unknown section [profiles.small.colect]", "did you mean [profiles.small.collect]"]),
+    (lambda t: t + "\n[profiles.paper.colect]\nn_runs = 3\n", "small",  # a profile not in use
+     ["[profiles.paper.colect]", "[profiles.paper.collect]"]),
+    (lambda t: t.replace("seed = 5", "seed = 5\nepsilom = 3"), "base",
+     ["unknown key 'epsilom' in [collect]", "did you mean 'epsilon'"]),
+    (lambda t: t.replace("[profiles.small.collect]\nn_runs = 4", "[profiles.small.collect]\nn_run = 4"), "small",
+     ["unknown key 'n_run' in [profiles.small.collect]", "did you mean 'n_runs'"]),
+    (lambda t: t.replace("[rollout]", "[rollout]\nhorizn = 3"), "small", ["'horizn'", "'horizon'"]),
+    (lambda t: "descripton = 'x'\n" + t, "small", ["[descripton]", "[description]"]),
+    (lambda t: t.replace("epsilon = 0.1", "epsilon = -0.1"), "base", ["[collect] epsilon", "greater than 0"]),
+    (lambda t: t.replace("epsilon = 0.1", "epsilon = inf"), "base", ["[collect] epsilon", "finite"]),
+    (lambda t: t.replace("epsilon = 0.1", "epsilon = '0.1'"), "base", ["[collect] epsilon", "valid number"]),
+    (lambda t: t.replace("[profiles.small.collect]\nn_runs = 4", "[profiles.small.collect]\nn_runs = 1"), "small",
+     ["[profiles.small.collect] n_runs (N1hat)", "greater than or equal to 2"]),
+    (lambda t: t.replace("beta1 = 0.01", "beta1 = 2.0"), "small", ["[certify] beta1", "less than 1"]),
+    (lambda t: t.replace("beta1 = 0.01", "beta1 = [0.01, 5]"), "small", ["[certify] beta1[1]", "less than 1"]),
+    (lambda t: t.replace("beta1 = 0.01", "beta1 = 0.01\nconcentration = 'hoeffding'"), "small",
+     ["[certify] concentration", "'chebyshev'"]),
+    (lambda t: t.replace("beta1 = 0.01", "beta1 = 0.01\nterms = { x = ['sin(x1)'] }"), "small", ["terms", "'x'"]),
+    (lambda t: t.replace("eta = [0.004, 0.01]", "eta = [0.004, -0.01]"), "small", ["[synthesis] eta[1]"]),
+    (lambda t: t.replace("eta = [0.004, 0.01]", "eta = [0.004, 0.01]\nspec = 'reach'"), "small",
+     ["[synthesis] spec", "'reach_avoid'"]),
+    (lambda t: t.replace("n = 10", "n = -3"), "small", ["[rollout] n", "greater than or equal to 1"]),
+    (lambda t: t.replace("points = 5", "points = 5.5"), "small", ["[audit] points", "valid integer"]),
+    (lambda t: t.replace("executor = \"serial\"", "executor = \"dask\""), "small", ["[collect] executor", "'ray'"]),
+    (lambda t: t + "\n[profiles.x]\ncollect = 3\n", "small", ["[profiles.x.collect] must be a table"]),
+    (lambda t: t, "smal", ["no profile 'smal'", "small"]),
+    # paths written in the file stay in the experiment's folder; URDFs are files under assets/urdf
+    (lambda t: t.replace("seed = 5", "seed = 5\nout = '../../..'"), "small", ["[collect] out", "'../../..'"]),
+    (lambda t: t.replace("seed = 5", "seed = 5\nout = '/tmp/x'"), "small", ["[collect] out", "relative path"]),
+    (lambda t: t.replace("eta = [0.004, 0.01]", "eta = [0.004, 0.01]\nmap = '../arena.toml'"), "small",
+     ["synthesis.map", "outside the experiment's folder"]),
+    (lambda t: t.replace('kind = "numpy"', 'kind = "numpy"\noptions = { urdf = "/etc/passwd" }'), "small",
+     ["[simulator] options.urdf", "assets/urdf"]),
+    (lambda t: t.replace('kind = "numpy"', 'kind = "numpy"\noptions = { urdf = "../../x.urdf" }'), "small",
+     ["[simulator] options.urdf"]),
+])
+def test_experiment_file_errors_name_the_place(tmp_path, edit, profile, words):
+    from simgap.config import load_experiment
+    p = _exp(tmp_path, edit(EXP))
+    with pytest.raises(SimgapError) as e:
+        load_experiment(p, profile)
+    for w in words:
+        assert w in str(e.value), (w, str(e.value))
+
+
+def test_profile_typo_never_falls_back_to_the_base_scale(tmp_path):
+    """The issue's case: a misspelled section in the small profile ran the paper-scale base."""
+    text = EXP.replace("[profiles.small.collect]", "[profiles.small.colect]")
+    p = _exp(tmp_path, text)
+    r = simgap("collect", p, "--dry-run", cwd=tmp_path)
+    refused(r, "[profiles.small.colect]", "did you mean [profiles.small.collect]")
+    assert "cover:" not in r.stdout  # nothing was planned, let alone collected
+    assert files(tmp_path) == {"exp.toml"}
+
+
+def test_paths_in_the_file_resolve_against_it(tmp_path):
+    from simgap.config import load_experiment
+    sub = tmp_path / "cases"
+    sub.mkdir()
+    p = _exp(sub, EXP.replace("seed = 5", "seed = 5\nout = 'results/data'"))
+    assert load_experiment(p, None).store_dir() == sub.resolve() / "results" / "data"
+    # the command line's --out is the user's own choice, taken as given
+    e = load_experiment(p, None, overrides={"collect": {"out": str(tmp_path / "elsewhere")}})
+    assert e.store_dir() == tmp_path / "elsewhere"
+    (sub / "link").symlink_to(tmp_path)  # a symlink out of the folder is caught after resolving
+    with pytest.raises(SimgapError, match="outside the experiment's folder"):
+        load_experiment(_exp(sub, EXP.replace("seed = 5", "seed = 5\nout = 'link/data'"), "link.toml"), None)
+    r = simgap("collect", p, "--profile", "base", "--no-progress", cwd=tmp_path)  # cwd is not the file's folder
+    assert r.returncode == 0, r.stderr
+    assert f"data: {sub.resolve() / 'results' / 'data'}" in r.stdout  # says where the data went
+    assert (sub / "results" / "data" / "manifest.json").is_file()
+
+
+def test_simulator_refuses_urdf_outside_assets():
+    pytest.importorskip("pybullet")
+    from simgap.simulators.base import make_simulator
+    for bad in ("/etc/passwd", "../../pyproject.toml"):
+        with pytest.raises(SimgapError, match="under"):
+            make_simulator({"kind": "pybullet_pendulum", "system": "pendulum", "options": {"urdf": bad}})
+
+
+# ----- simgap run validates the whole experiment before any stage -------------------------------
+
+@pytest.mark.parametrize("edit,args,words", [
+    (lambda t: t, ["--rollouts", "-3"], ["--rollouts", ">= 1"]),
+    (lambda t: t.replace("beta1 = 0.01", "beta1 = 2.0"), [], ["[certify] beta1"]),
+    (lambda t: t.replace("beta1 = 0.01", "beta1 = [0.01, 0.01, 0.01]"), [], ["[certify] beta1", "one value or 2"]),
+    (lambda t: t.replace("beta1 = 0.01", "beta1 = 0.01\ndegree = 40"), [], ["[certify] degree", "12,341"]),
+    (lambda t: t.replace("beta1 = 0.01", "beta1 = 0.01\nterms = { \"0\" = [\"__import__('os')\"] }"), [],
+     ["__import__", "not allowed"]),
+    (lambda t: t.replace("beta1 = 0.01", "beta1 = 0.01\nterms = { \"5\" = [\"x1\"] }"), [], ["dimension 6"]),
+    (lambda t: t.replace("eta = [0.004, 0.01]", "eta = [0.004, 0.01, 0.1]"), [], ["[synthesis] eta"]),
+    (lambda t: t.replace("eta = [0.004, 0.01]", "hold = 1"), [], ["[synthesis] eta", "required"]),
+    (lambda t: t.replace("x0 = [0.05, 0.1]", "x0 = [5.0, 0.1]"), [], ["[rollout] x0", "outside X"]),
+    (lambda t: t.replace("x0 = [0.05, 0.1]", "x0 = [0.05]"), [], ["[rollout] x0", "need 2"]),
+    (lambda t: t.replace("horizon = 20", "horizon = 0"), [], ["[rollout] horizon"]),
+    (lambda t: t.replace("eta = [0.004, 0.01]", "eta = [0.004, 0.01]\nsafe_lo = [0.1]"), [], ["safe_lo"]),
+    (lambda t: t.replace("eta = [0.004, 0.01]", "eta = [0.004, 0.01]\nspec = 'reach_avoid'\nmap = 'nomap'"), [],
+     ["nomap"]),
+    (lambda t: t.replace("actuation_std = 0.05", "actuation_std = -0.05"), [], ["actuation_std"]),
+    (lambda t: t.replace("n_runs = 8", "n_runs = 100000000000"), [], ["N1hat=100,000,000,000", "memory"]),
+])
+def test_run_validates_before_any_stage(tmp_path, edit, args, words):
+    p = _exp(tmp_path, edit(EXP))
+    r = simgap("run", p, "--profile", "base", "--out", tmp_path / "res", "--no-record", *args, cwd=tmp_path)
+    refused(r, *words)
+    assert "[collect/" not in r.stderr  # no stage started
+    assert files(tmp_path) == {"exp.toml"}  # no partial results

@@ -67,3 +67,17 @@ def test_cli_synthesize_level_run(tmp_path, capsys):
         bad = tmp_path / "bad.npz"
         assert main(["synthesize", "--level", "run", "--spec", str(TOML), "--out", str(bad), *extra]) == 2
         assert msg in capsys.readouterr().err and not bad.exists()
+
+
+def test_rerun_recording_of_the_per_run_results(run, tmp_path):
+    from simgap_viz.record import read_back
+    from simgap_viz.record_perrun import record_per_run
+
+    out, s = run
+    ctl = PerRunController.load(out / "controller_perrun.npz")
+    info = record_per_run(tmp_path / "perrun.rrd", ctl, s["per_run"])
+    back = read_back(tmp_path / "perrun.rrd")
+    assert info["cells"] == ctl.grid.size
+    for ent in ("/perrun/p_cert", "/perrun/perrun/p_emp", "/perrun/deterministic/p_emp", "/perrun/summary"):
+        assert ent in back, sorted(back)
+    assert back["/perrun/perrun/p_emp"]["rows"] >= 1

@@ -46,6 +46,12 @@ def run(args) -> int:
         if rrd:
             print(f"recording: {rrd}   (open with: rerun {rrd}; without a display: "
                   f"rerun --web-viewer --bind 127.0.0.1 {rrd})")
+        if rrd and "per_run" in summary:
+            from simgap_viz.record_perrun import record_per_run
+
+            from ..perrun.value_iteration import PerRunController
+            record_per_run(out / "perrun.rrd", PerRunController.load(out / "controller_perrun.npz"), summary["per_run"])
+            print(f"per-run recording: {out / 'perrun.rrd'}")
     print(f"GUI: simgap gui {out}")
     return 0
 

@@ -32,19 +32,16 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Optional
 
 import numpy as np
 
-from .. import fileio
 from ..certify.lipschitz import wood_zhang
 from ..errors import SimgapError
 from ..synthesis.grid import UniformGrid
 from ..synthesis.spec import Spec
 from .orderstats import cp_lower, cp_upper
 
-FORMAT = "simgap-imdp"
 
 
 @dataclass
@@ -76,16 +73,6 @@ class IMDP:
 
     def nbytes(self) -> int:
         return int(self.row_ptr.nbytes + self.col.nbytes + self.lo.nbytes + self.hi.nbytes)
-
-    def save(self, path) -> Path:
-        meta = dict(self.meta, format=FORMAT, hold=self.hold, grid=self.grid.describe())
-        return fileio.savez(path, inputs=self.inputs, live=self.live, target=self.target, row_ptr=self.row_ptr,
-                            col=self.col, lo=self.lo, hi=self.hi, meta=np.array(fileio_json(meta)))
-
-
-def fileio_json(d: dict) -> str:
-    import json
-    return json.dumps(d, sort_keys=True, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))
 
 
 # ----------------------------------------------------------------------------------------------

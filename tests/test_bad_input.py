@@ -408,3 +408,24 @@ def test_run_validates_before_any_stage(tmp_path, edit, args, words):
     refused(r, *words)
     assert "[collect/" not in r.stderr  # no stage started
     assert files(tmp_path) == {"exp.toml"}  # no partial results
+
+
+# ----- messages that named the wrong problem -----------------------------------------------------
+
+def test_negative_numbers_are_values():
+    from simgap.cli import build_parser
+    p = build_parser()
+    a = p.parse_args(["synthesize", "--no-gap", "--system", "pendulum", "--safe", "-0.2,0.2,-0.5,0.5",
+                      "--eta", "0.004,0.01", "--x0", "-0.05,0.1", "--out", "c.npz"])
+    assert a.x0 == "-0.05,0.1" and a.safe == "-0.2,0.2,-0.5,0.5"
+    a = p.parse_args(["rollout", "--controller", "c.npz", "--simulator", "s.json", "--x0", "-0.05", "-1e-3",
+                      "--out", "r.json"])
+    assert a.x0 == ["-0.05", "-1e-3"]
+    with pytest.raises(SystemExit):  # an option that does not exist is still an error
+        p.parse_args(["rollout", "--controller", "c.npz", "--simulator", "s.json", "--out", "r.json", "-x"])
+
+
+def test_unknown_spec_is_named(tmp_path):
+    r = simgap("synthesize", "--no-gap", "--spec", "nosuchspec", "--eta", "0.1", "--out", "c.npz", cwd=tmp_path)
+    refused(r, "unknown map 'nosuchspec'")
+    assert list(tmp_path.iterdir()) == []

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import re
 import sys
 
 from ..errors import SimgapError
@@ -33,7 +34,20 @@ def build_parser() -> argparse.ArgumentParser:
         _register(sub, f"simgap.cli.{name}")
     for name in VIZ_SUBCOMMANDS:
         _register(sub, f"simgap_viz.cli_{name}")
+    _numbers_are_values(p)
     return p
+
+
+# argparse takes "-0.05,0.1" for an option (only "-5" and "-0.5" count as numbers): every
+# number list that starts with a minus is a value (no simgap option looks like a number)
+NEGATIVE_NUMBERS = re.compile(r"^-\.?\d[\d.,eE+\- ]*$")
+
+
+def _numbers_are_values(parser: argparse.ArgumentParser) -> None:
+    parser._negative_number_matcher = NEGATIVE_NUMBERS
+    for action in parser._subparsers._group_actions if parser._subparsers else ():
+        for child in getattr(action, "choices", {}).values():
+            _numbers_are_values(child)
 
 
 def _register(sub, module: str) -> None:

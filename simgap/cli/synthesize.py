@@ -153,6 +153,9 @@ def run(args) -> int:
         spec, x0, _ = experiment_spec(e)
     else:
         if args.system is None:
+            if args.spec and Path(args.spec).suffix != ".json":
+                from ..maps import load_map
+                load_map(args.spec)  # names an unknown map or experiment before asking for --system
             raise SimgapError("give --system (or an experiment as --spec)")
         steps = args.steps if args.steps is not None else (getattr(cert, "steps", 1) if cert is not None else 1)
         system = get_system(args.system, steps)

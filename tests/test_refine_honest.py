@@ -169,3 +169,11 @@ def test_user_term_with_lagged_input_on_time_ordered_data():
     from simgap.errors import SimgapError
     with pytest.raises(SimgapError, match="no time order"):
         refine(s, rows, user_terms=[late])
+
+
+def test_structure_test_on_tiny_data_sets():
+    """Fewer train rows than the largest k of the kNN fit still give a report, not an IndexError."""
+    c = make_case("viscous", 40)
+    rep = refine("pendulum", c.data, effects=["viscous_friction"]).report
+    assert [e["name"] for e in rep["effects"]] == ["viscous_friction"]
+    assert all(np.isfinite(s["structure_r2"]) for s in rep["states"])

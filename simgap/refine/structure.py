@@ -43,6 +43,8 @@ def features(V: np.ndarray, angle_cols: np.ndarray, train: np.ndarray) -> np.nda
     F = np.stack(cols, axis=1)
     mu, sd = F[train].mean(axis=0), F[train].std(axis=0)
     keep = sd > 0
+    if not keep.any():                    # nothing varies: one constant column keeps the shapes valid
+        return np.zeros((F.shape[0], 1))
     return (F[:, keep] - mu[keep]) / sd[keep]
 
 
@@ -60,13 +62,15 @@ class Probe:
         self.train_rows = np.flatnonzero(tr)
         tree = cKDTree(F[tr])
         self.sub = rng.choice(self.train_rows.size, min(2000, self.train_rows.size), replace=False)
-        _, idx = tree.query(F[tr][self.sub], k=max(KS) + 1)
+        self.ks = tuple(k for k in KS if k < self.train_rows.size) or (1,)     # tiny data sets
+        _, idx = tree.query(F[tr][self.sub], k=max(self.ks) + 1)
         self.loo_idx = idx[:, 1:]                          # leave-one-out: drop the point itself
         # R^2 on at most MAX_ROWS held-out rows and the floor from at most MAX_ROWS pairs per
         # chunk class: a few percent of precision for a bounded time (refine <= 2 s at 20k rows)
         hrows = np.flatnonzero(held)
         self.held_rows = np.sort(rng.choice(hrows, min(MAX_ROWS, hrows.size), replace=False))
-        _, self.held_idx = tree.query(F[self.held_rows], k=max(KS))
+        _, idx = tree.query(F[self.held_rows], k=max(self.ks))
+        self.held_idx = idx.reshape(self.held_rows.size, -1)
         self._rng = rng
         self._pairs = {}
 
@@ -101,8 +105,8 @@ class Probe:
         """(held-out R^2, k) of a kNN regression of e trained on the rows not held out."""
         et = e[self.train_rows]
         csum = np.cumsum(et[self.loo_idx], axis=1)
-        loo = [float(np.mean((et[self.sub] - csum[:, k - 1] / k) ** 2)) for k in KS]
-        k = KS[int(np.argmin(loo))]
+        loo = [float(np.mean((et[self.sub] - csum[:, k - 1] / k) ** 2)) for k in self.ks]
+        k = self.ks[int(np.argmin(loo))]
         pred = et[self.held_idx[:, :k]].mean(axis=1)
         eh = e[self.held_rows]
         ss = float(eh @ eh)

@@ -169,6 +169,8 @@ def test_user_term_with_lagged_input_on_time_ordered_data():
     from simgap.errors import SimgapError
     with pytest.raises(SimgapError, match="no time order"):
         refine(s, rows, user_terms=[late])
+    with pytest.raises(SimgapError, match="input_delay needs time-ordered data"):
+        refine(s, rows, effects=["input_delay"])
 
 
 def test_structure_test_on_tiny_data_sets():

@@ -79,6 +79,9 @@ def refine(system, data: Transitions, effects: Optional[Sequence[str]] = None,
     sysobj = match_tau(load_system(system), data.tau)
     rng = np.random.default_rng(opts.seed)
     data, hist, lags, hist_info = _with_history(data, opts.max_lag)
+    if effects is not None and "input_delay" in effects and not lags:
+        raise SimgapError(f"input_delay needs time-ordered data (time stamps t and x_next equal to the next "
+                          f"row's x); {hist_info['reason']}")
     deep = [e.name for e in user_terms if e.lag > lags]
     if deep:
         raise SimgapError(f"user term(s) {deep} read lagged values, but "

@@ -420,16 +420,20 @@ def build_abstraction(system: System, grid: UniformGrid, *, growth: Optional[Gro
     z = guard * eta
     pmask = grid.periodic_mask
 
-    # class representatives: invariant dims at index 0
-    K = int(np.prod([grid.shape[d] for d in class_dims])) if class_dims else 1
-    rep_mi = np.zeros((K, n), dtype=np.int64)
-    if class_dims:
-        sub = np.unravel_index(np.arange(K), [grid.shape[d] for d in class_dims])
-        for j, d in enumerate(class_dims):
-            rep_mi[:, d] = sub[j]
+    # class representatives: invariant dims at index 0 (computed per block: with one class per
+    # cell a (K, n) table would be as large as the grid)
+    cshape = [grid.shape[d] for d in class_dims]
+    K = int(np.prod(cshape)) if class_dims else 1
+
+    def rep_mi(k: np.ndarray) -> np.ndarray:
+        mi = np.zeros((k.size, n), dtype=np.int32)
+        if class_dims:
+            for d, c in zip(class_dims, np.unravel_index(k, cshape)):
+                mi[:, d] = c
+        return mi
 
     if inv and check_invariance:
-        _check_invariance(system, grid, growth, U, rep_mi, inv, hold)
+        _check_invariance(system, grid, growth, U, rep_mi, K, inv, hold)
 
     off_lo = np.empty((K, M, n), dtype=np.int16)
     off_hi = np.empty((K, M, n), dtype=np.int16)
@@ -444,7 +448,7 @@ def build_abstraction(system: System, grid: UniformGrid, *, growth: Optional[Gro
     for s in range(0, total, block):  # blocks of (class, input) pairs bound the memory
         idx = np.arange(s, min(total, s + block))
         k, j = idx // M, idx % M
-        mi = rep_mi[k]
+        mi = rep_mi(k)
         x0 = grid.multi_to_points(mi)
         u = U[j]
         x = x0.copy()
@@ -506,13 +510,13 @@ def build_abstraction(system: System, grid: UniformGrid, *, growth: Optional[Gro
     return ab
 
 
-def _check_invariance(system, grid, growth, U, rep_mi, inv, hold, samples: int = 64):
+def _check_invariance(system, grid, growth, U, rep_mi, K, inv, hold, samples: int = 64):
     """Check on a seeded sample that f(x,u) - x and the growth bound ignore the invariant dims."""
     rng = np.random.default_rng(0)
-    K, M = rep_mi.shape[0], U.shape[0]
+    M = U.shape[0]
     k = rng.integers(0, K, samples)
     j = rng.integers(0, M, samples)
-    mi = rep_mi[k].copy()
+    mi = rep_mi(k)
     mi2 = mi.copy()
     for d in inv:
         mi2[:, d] = rng.integers(0, grid.shape[d], samples)

@@ -133,10 +133,9 @@ class BoxFamily:
     is 2^n gathers and adds.
     """
 
-    _PRECOMPUTE_BYTES = 64 << 20  # above this, corner offsets are computed per query
+    _PRECOMPUTE_BYTES = 16 << 20  # above this, corner offsets are computed per query
 
-    def __init__(self, ab: Abstraction, off_lo: np.ndarray, off_hi: np.ndarray, counter: BoxCounter,
-                 clamp: bool = True):
+    def __init__(self, ab: Abstraction, off_lo: np.ndarray, off_hi: np.ndarray, counter: BoxCounter):
         g = ab.grid
         n = g.n
         self.ab, self.n, self.counter = ab, n, counter
@@ -157,13 +156,8 @@ class BoxFamily:
         self.vol = np.prod(ext, axis=-1, dtype=np.int32)
         self.tstr = counter.tstrides.astype(np.int64)
         self.shape = shape
-        # in-domain test per bounded dimension: mi_d in [-off_lo_d, n_d - off_lo_d - ext_d]
         self.bounded = np.flatnonzero(~pm)
-        self.rlo = (-lo).astype(it)
-        self.rhi = (shape32 - lo - ext).astype(it)
         del lo, ext
-        if not clamp:
-            self.rlo = self.rhi = None
         self.signs = np.array([(-1) ** bin(c).count("1") for c in range(1 << n)], dtype=np.int32)
         K, M = off_lo.shape[:2]
         self.M = M
@@ -190,10 +184,12 @@ class BoxFamily:
         return self._corners(self.lo.reshape(-1, n)[q], self.ext.reshape(-1, n)[q])
 
     def in_domain(self, mi: np.ndarray, k: np.ndarray) -> np.ndarray:
-        """(B, M) bool: boxes of the rows (mi (B,n), class k (B,)) stay in the grid (bounded dims)."""
+        """(B, M) bool: boxes of the rows (mi (B,n), class k (B,)) stay in the grid (bounded dims):
+        0 <= mi_d + lo_d and mi_d + lo_d + ext_d <= n_d."""
         ok = np.ones((mi.shape[0], self.M), dtype=bool)
         for d in self.bounded:
-            ok &= (mi[:, d, None] >= self.rlo[k, :, d]) & (mi[:, d, None] <= self.rhi[k, :, d])
+            lo = mi[:, d, None] + self.lo[k, :, d].astype(np.int32)
+            ok &= (lo >= 0) & (lo + self.ext[k, :, d] <= np.int32(self.shape[d]))
         return ok
 
     def count(self, table: np.ndarray, base: np.ndarray, q: np.ndarray, k=None) -> np.ndarray:
@@ -259,7 +255,7 @@ class PairEvaluator:
         hi = np.where(empty, -1, hi)  # empty hull: extent 0 (never meets anything)
         pad = np.maximum(np.abs(lo).max(axis=(0, 1)), np.abs(hi).max(axis=(0, 1))) + 1
         hc = BoxCounter(g.shape, g.periodic_mask, pad=pad)
-        self.hull = BoxFamily(ab, lo, hi, hc, clamp=False)
+        self.hull = BoxFamily(ab, lo, hi, hc)
         self.hull_base = ((self.mi_all.astype(np.int64) + hc.pad) @ hc.tstrides).astype(np.int32)
         self.hull_G = G
         self.group = group

@@ -10,7 +10,8 @@
   one-step system (gap composed 10 times) or ``--turtlebot-steps 10 --hold 1`` with a gap
   certified at 0.1 s. Gap: the certificate, else a constant (5e-4, 5e-4, 1e-3) per period.
 
-Prints wall and CPU time per stage, peak RSS (ru_maxrss) and the result sizes.
+Prints wall and CPU time per stage, the kernel (system) share of the CPU time and the minor
+page faults, peak RSS (ru_maxrss) and the result sizes.
 """
 
 from __future__ import annotations
@@ -42,12 +43,14 @@ else:
     system = get_system("turtlebot", a.get("steps", 1))
     amap = load_map("arena")
     spec, x0 = amap.spec(system), amap.x0(system)
+r0 = resource.getrusage(resource.RUSAGE_SELF)
 c0 = time.process_time()
 res = synthesize(system, spec, a["eta"], gap=gap, hold=a.get("hold", 1), x0=x0,
                  compose_hold=a.get("hold", 1) > 1)  # --hold k on a one-step gap: labelled composed
 cpu = time.process_time() - c0
+r1 = resource.getrusage(resource.RUSAGE_SELF)
 s = res.stats
-out = {"cpu": cpu, "stats": s, "x0_winning": None if x0 is None else bool(res.controller.winning(x0[None])[0]),
+out = {"cpu": cpu, "sys": r1.ru_stime - r0.ru_stime, "minflt": r1.ru_minflt - r0.ru_minflt, "stats": s, "x0_winning": None if x0 is None else bool(res.controller.winning(x0[None])[0]),
        "x0_steps": None if x0 is None else int(res.controller.steps_to_go(x0[None])[0])}
 print(json.dumps(out, default=float))
 """
@@ -70,6 +73,8 @@ def show(name: str, r: dict) -> None:
              f" of {s['safe_cells']:,} safe cells"))
     print(f"   time: abstraction {t['abstraction']:.2f} s, game {t['game']:.2f} s, total {t['total']:.2f} s wall, "
           f"{r['cpu']:.2f} s CPU; peak RSS {s['peak_rss_mb']:.0f} MB; iterations {s['iterations']}")
+    print(f"   kernel time {r['sys']:.2f} s = {100 * r['sys'] / max(r['cpu'], 1e-9):.1f} % of CPU, "
+          f"{r['minflt']:,} minor page faults; game method {s.get('game_method')}")
     if r.get("x0_winning") is not None:
         print(f"   x0 winning: {r['x0_winning']}, steps to go {r['x0_steps']}")
     if s.get("diagnosis"):

@@ -472,10 +472,12 @@ class Predecessors:
         rows2, t = _expand(tot)
         p = base[rows2]
         for j in range(len(self.inv) - 1, -1, -1):  # mixed-radix decode of the rank
-            e = ext[j][rows2] if len(self.inv) > 1 else None
-            o = (t % e if j else t).astype(self.it) if e is not None else t.astype(self.it)
             if j:
+                e = ext[j][rows2]
+                o = (t % e).astype(self.it, copy=False)
                 t //= e
+            else:
+                o = t.astype(self.it, copy=False)
             d = self.inv[j]
             if self.pmask[d]:  # wrap: add the first index, modulo n_d
                 o = (o + first[j][rows2]) % self.it(self.shape[d])
@@ -686,7 +688,7 @@ def _reach_sat(ab: Abstraction, ev: PairEvaluator, target, blocked, live, group_
     changed = np.flatnonzero(target)
     buf = np.zeros(N, dtype=bool)
     it = 0
-    B = _block_size(ab) * 4
+    B = _block_size(ab)  # ~2^18 pairs: block temporaries stay small enough for the heap to reuse
     tested = 0
     while True:
         # a cell can gain only when one of its boxes meets the cells won last round
@@ -802,7 +804,7 @@ def _invariance_sat(ab: Abstraction, ev: PairEvaluator, S: np.ndarray, live: np.
     W = S & live.any(axis=1)
     dlo, dhi = ab.offset_range()
     Wc = BoxCounter(g.shape, g.periodic_mask)
-    B = _block_size(ab) * 4
+    B = _block_size(ab)  # ~2^18 pairs: block temporaries stay small enough for the heap to reuse
     buf = np.zeros(N, dtype=bool)
     changed = None
     it = 0

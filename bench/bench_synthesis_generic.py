@@ -1,7 +1,7 @@
 """Benchmark: synthesis on systems without translation invariance, and the vehicle against the
 previous release's game.
 
-    python bench/bench_synthesis_generic.py [--repeat 3] [--only dcdc|vortex|vehicle] [--reference]
+    python bench/bench_synthesis_generic.py [--repeat 3] [--only dcdc|vortex|vehicle|turtlebot] [--reference]
 
 Cases (each repetition in a fresh process, so the peak RSS is per run):
 
@@ -13,11 +13,14 @@ Cases (each repetition in a fresh process, so the peak RSS is per run):
 * ``vehicle``: the SCOTS vehicle (shared boxes): abstraction once, then the game of this
   release and the previous release's game (``bench/reference_games.py``, kept unchanged)
   alternately in the same process, CPU times compared as a ratio.
+* ``turtlebot`` (only with ``--only turtlebot``, minutes): the same comparison on the TurtleBot
+  arena (SAT game), with the kernel share of the CPU time and the minor page faults.
 
-Per case: abstraction and game time (wall and CPU; the game split into the pass over all pairs,
-the predecessor index, the fixed point and the controller), transitions, winning cells,
-iterations and peak RSS. With ``--reference`` the dcdc game is also run with the previous
-release's game (slow: seconds).
+Per case: abstraction and game time (wall, the game split into the pass over all pairs, the
+predecessor index, the fixed point and the controller; CPU of the abstraction and of the game
+measured again on the same abstraction), transitions, winning cells, iterations and peak RSS of
+``synthesize``. With ``--reference`` the dcdc game is also timed with the previous release's
+game on the same abstraction (slow: seconds).
 """
 
 from __future__ import annotations
@@ -52,33 +55,54 @@ if case in ("dcdc", "vortex"):
     out["cpu"] = time.process_time() - c0
     out["stats"] = res.stats
     out["peak_rss_mb"] = rss()
-    if reference:  # the previous release's game on the same abstraction
-        import reference_games as ref
-        from simgap.synthesis import UniformGrid, build_abstraction, label_cells
-        sysm, spec, eta = args
-        grid = UniformGrid(sysm.x_lo, sysm.x_hi, eta, periodic=sysm.angle_dims)
-        blocked, cells = label_cells(grid, spec, sysm.x_lo, sysm.x_hi)
-        ab = build_abstraction(sysm, grid, **kw)
-        c0 = time.process_time()
-        r = (ref.solve_invariance(ab, cells, blocked) if spec.kind == "invariance" else
-             ref.solve_reach(ab, cells, blocked))
-        out["reference"] = {"cpu": time.process_time() - c0, "wall": r.seconds,
-                            "winning": int((r.winning & ~r.target).sum())}
+    # CPU time of the stages (synthesize reports wall times), then the previous release's game
+    import reference_games as ref
+    from simgap.synthesis import UniformGrid, build_abstraction, label_cells, solve_invariance, solve_reach
+    sysm, spec, eta = args
+    grid = UniformGrid(sysm.x_lo, sysm.x_hi, eta, periodic=sysm.angle_dims)
+    blocked, cells = label_cells(grid, spec, sysm.x_lo, sysm.x_hi)
+    c0 = time.process_time()
+    ab = build_abstraction(sysm, grid, **kw)
+    out["abstraction_cpu"] = time.process_time() - c0
+    games = [("new", solve_invariance if spec.kind == "invariance" else solve_reach)]
+    if reference:
+        games.append(("previous", ref.solve_invariance if spec.kind == "invariance" else ref.solve_reach))
+    for _ in range(2):  # alternate, so that both see the same load
+        for name, fn in games:
+            c0 = time.process_time()
+            r = fn(ab, cells, blocked)
+            out.setdefault(name + "_game_cpu", []).append(time.process_time() - c0)
+            out[name + "_winning"] = int((r.winning & ~r.target).sum())
 else:
     import reference_games as ref
     from simgap.synthesis import UniformGrid, build_abstraction, label_cells, solve_reach
-    sysm, spec = ex.vehicle_system(), ex.vehicle_spec()
-    grid = UniformGrid(sysm.x_lo, sysm.x_hi, ex.VEHICLE_ETA)
-    blocked, cells = label_cells(grid, spec, sysm.x_lo, sysm.x_hi, strict_domain=False)
-    ab = build_abstraction(sysm, grid, growth=ex.vehicle_growth, invariant_dims=(0, 1))
+    if case == "vehicle":
+        sysm, spec = ex.vehicle_system(), ex.vehicle_spec()
+        grid = UniformGrid(sysm.x_lo, sysm.x_hi, ex.VEHICLE_ETA)
+        blocked, cells = label_cells(grid, spec, sysm.x_lo, sysm.x_hi, strict_domain=False)
+        ab = build_abstraction(sysm, grid, growth=ex.vehicle_growth, invariant_dims=(0, 1))
+        rounds = 3
+    else:  # the TurtleBot arena at eta 0.08, 441 inputs held 10 periods, no gap
+        from simgap.maps import load_map
+        from simgap.systems import get_system
+        sysm = get_system("turtlebot")
+        spec = load_map("arena").spec(sysm)
+        grid = UniformGrid(sysm.x_lo, sysm.x_hi, 0.08, periodic=sysm.angle_dims)
+        blocked, cells = label_cells(grid, spec, sysm.x_lo, sysm.x_hi)
+        ab = build_abstraction(sysm, grid, hold=10, invariant_dims=(0, 1))
+        rounds = 2
     t = {"new": [], "previous": []}
-    for _ in range(3):  # alternate, so that both see the same load
+    for _ in range(rounds):  # alternate, so that both see the same load
         for name, fn in (("previous", ref.solve_reach), ("new", solve_reach)):
+            r0 = resource.getrusage(resource.RUSAGE_SELF)
             c0, w0 = time.process_time(), time.perf_counter()
             r = fn(ab, cells, blocked)
-            t[name].append((time.process_time() - c0, time.perf_counter() - w0))
+            r1 = resource.getrusage(resource.RUSAGE_SELF)
+            t[name].append((time.process_time() - c0, time.perf_counter() - w0,
+                            r1.ru_stime - r0.ru_stime, r1.ru_minflt - r0.ru_minflt))
             out[name + "_winning"] = int((r.winning & ~r.target).sum())
             out[name + "_transitions"] = r.info["transitions"]
+            out["method"] = r.info.get("method", out.get("method"))
     out["times"] = t
     out["peak_rss_mb"] = rss()
 print(json.dumps(out, default=float))
@@ -117,46 +141,54 @@ def report_generic(case: str, runs: list) -> None:
     w = (f"winning {s0['winning']:,} of {s0['safe_cells']:,} safe cells" if s0["spec_kind"] == "invariance" else
          f"winning {s0['winning']:,} cells (+{s0['target_cells']:,} target)")
     print(f"transitions {s0['transitions']:,} ({s0['boxes']:,} valid boxes), {w}, iterations {s0['iterations']}")
-    refs = [r["reference"] for r in runs if "reference" in r]
+    new = _med([min(r["new_game_cpu"]) for r in runs])
+    print(f"CPU: abstraction {_med([r['abstraction_cpu'] for r in runs]):.3f} s, game {new:.3f} s "
+          f"(best of 2 per run, median over runs)")
+    refs = [r for r in runs if "previous_game_cpu" in r]
     if refs:
-        g = _med([r["stats"]["seconds"]["game"] for r in runs])
-        print(f"previous release's game on the same abstraction: {_med([r['cpu'] for r in refs]):.3f} s CPU, "
-              f"{_med([r['wall'] for r in refs]):.3f} s wall (this release: {g:.3f} s wall); winning "
-              f"{refs[0]['winning']:,} ({'same' if refs[0]['winning'] == s0['winning'] else 'DIFFERENT'})")
+        old = _med([min(r["previous_game_cpu"]) for r in refs])
+        new = _med([min(r["new_game_cpu"]) for r in refs])
+        print(f"previous release's game on the same abstraction: {old:.3f} s CPU against {new:.3f} s "
+              f"(ratio {new / old:.2f}); winning {refs[0]['previous_winning']:,} "
+              f"({'same' if refs[0]['previous_winning'] == s0['winning'] else 'DIFFERENT'})")
 
 
-def report_vehicle(runs: list) -> bool:
-    print("\n== vehicle (SCOTS v2 example, shared boxes): game of this release vs the previous release's")
-    print(f"{'run':>4} {'previous cpu':>13} {'new cpu':>8} {'ratio':>6} {'previous wall':>14} {'new wall':>9}")
+def report_pair(case: str, runs: list) -> bool:
+    what = ("vehicle (SCOTS v2 example, shared boxes)" if case == "vehicle" else
+            "turtlebot arena (205k cells, 441 inputs, hold 10, no gap)")
+    print(f"\n== {what}: game of this release ({runs[0]['method']}) vs the previous release's")
+    print(f"{'run':>4} {'previous cpu':>13} {'new cpu':>8} {'ratio':>6} {'previous wall':>14} {'new wall':>9} "
+          f"{'kernel % prev':>13} {'new':>5} {'page faults prev':>17} {'new':>9}")
     ratios = []
     for i, r in enumerate(runs):
-        p = min(c for c, _ in r["times"]["previous"])
-        n = min(c for c, _ in r["times"]["new"])
-        pw = min(w for _, w in r["times"]["previous"])
-        nw = min(w for _, w in r["times"]["new"])
-        ratios.append(n / p)
-        print(f"{i:>4} {p:>13.3f} {n:>8.3f} {n / p:>6.2f} {pw:>14.3f} {nw:>9.3f}")
-    ok = all(r["new_winning"] == r["previous_winning"] == 48018 and r["new_transitions"] == 35_772_302
-             for r in runs)
-    print(f"median ratio new / previous (CPU, best of 3 alternating calls per run): {_med(ratios):.2f}; "
-          f"parity (48,018 winning, 35,772,302 transitions): {'yes' if ok else 'NO'}; "
-          f"peak RSS {_med([r['peak_rss_mb'] for r in runs]):.1f} MB (both games)")
+        best = {k: min(v, key=lambda x: x[0]) for k, v in r["times"].items()}
+        p, n = best["previous"], best["new"]
+        ratios.append(n[0] / p[0])
+        print(f"{i:>4} {p[0]:>13.3f} {n[0]:>8.3f} {n[0] / p[0]:>6.2f} {p[1]:>14.3f} {n[1]:>9.3f} "
+              f"{100 * p[2] / p[0]:>13.1f} {100 * n[2] / n[0]:>5.1f} {p[3]:>17,} {n[3]:>9,}")
+    ok = all(r["new_winning"] == r["previous_winning"] for r in runs)
+    if case == "vehicle":
+        ok &= all(r["new_winning"] == 48018 and r["new_transitions"] == 35_772_302 for r in runs)
+    print(f"median ratio new / previous (CPU, the fastest of the alternating calls per run): {_med(ratios):.2f}; "
+          f"same winning domain{' and parity (48,018 winning, 35,772,302 transitions)' if case == 'vehicle' else ''}: "
+          f"{'yes' if ok else 'NO'}; peak RSS {_med([r['peak_rss_mb'] for r in runs]):.1f} MB (both games)")
     return ok
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--repeat", type=int, default=3)
-    ap.add_argument("--only", choices=["dcdc", "vortex", "vehicle"])
+    ap.add_argument("--only", choices=["dcdc", "vortex", "vehicle", "turtlebot"],
+                    help="one case; turtlebot (minutes) runs only when named")
     ap.add_argument("--reference", action="store_true", help="also run the previous release's game on dcdc")
     a = ap.parse_args()
     ok = True
-    for case in ("dcdc", "vortex", "vehicle"):
-        if a.only and case != a.only:
+    for case in ("dcdc", "vortex", "vehicle", "turtlebot"):
+        if (a.only and case != a.only) or (case == "turtlebot" and a.only != "turtlebot"):
             continue
         runs = [run_child(case, a.reference and case == "dcdc" and i == 0) for i in range(a.repeat)]
-        if case == "vehicle":
-            ok &= report_vehicle(runs)
+        if case in ("vehicle", "turtlebot"):
+            ok &= report_pair(case, runs)
         else:
             report_generic(case, runs)
     return 0 if ok else 1

@@ -1,4 +1,13 @@
-"""Fixed-point games on an implicit abstraction, with summed-area tables (SAT).
+"""Fixed-point games on an implicit abstraction: a worklist over predecessors, or summed-area tables.
+
+Two algorithms with identical results (``method``; :func:`choose_method` picks one):
+
+* worklist (SCOTS's algorithm, level-synchronous): a :class:`Predecessors` index inverts the box
+  relation; reach keeps per-pair counters of box cells not yet won, invariance drops the pairs
+  whose box meets a lost cell. The work of a level is the number of transitions into the cells
+  changed in the level before.
+* summed-area tables (SAT), described below: O(2^n) per pair test whatever the box volume, plus
+  one table of all cells per level; better when boxes hold many cells.
 
 Every successor set is an index box, so "all successors of (c, u) lie in Z" is the O(1) test
 ``count_Z(box) == volume(box)`` on a summed-area table of Z (2^n lookups). Periodic dimensions

@@ -336,6 +336,28 @@ def test_parallel_simulator_gives_the_same_numbers(rng, base, sections):
     assert np.array_equal(got, want)
 
 
+def test_parallel_simulator_remembers_large_batches(rng, monkeypatch):
+    """A repeated large batch (the second audit) is a lookup with the same numbers; any change
+    of x, u or a draw is a new batch."""
+    import simgap.simulators.parallel as par_mod
+    monkeypatch.setattr(par_mod, "MEMO_ROWS", 16)
+    s = get_system("turtlebot")
+    x = rng.uniform(s.x_lo, s.x_hi, (20, 3))
+    u = s.inputs[rng.integers(0, len(s.inputs), 20)]
+    with make_simulator({**TB, **FULL_TB}, workers=2) as par:
+        calls = []
+        step = par._step
+        monkeypatch.setattr(par, "_step", lambda *a: calls.append(1) or step(*a))
+        first = par.step(x, u, np.random.default_rng(1))
+        first[:] = 0.0  # the caller's copy, not the remembered one
+        again = par.step(x, u, np.random.default_rng(1))
+        assert len(calls) == 1
+        other = par.step(x, u, np.random.default_rng(2))
+        assert len(calls) == 2 and not np.array_equal(other, again)
+    with sim(TB, **FULL_TB) as one:
+        assert np.array_equal(again, one.step(x, u, np.random.default_rng(1)))
+
+
 def test_simulator_workers_validated():
     with pytest.raises(SimgapError, match="workers"):
         make_simulator(TB, workers=-2)
@@ -441,3 +463,26 @@ def test_turtlebot_gazebo_keys_leave_other_streams_alone():
 def test_turtlebot_gazebo_keys_bad_values(noise, match):
     with pytest.raises(SimgapError, match=match):
         sim(TB, noise=noise)
+
+
+def test_turtlebot_gazebo_profile_simulator_and_its_noise_free_baseline(rng):
+    """The experiment's `gazebo` profile builds; its baseline (the deterministic method's data)
+    drops slip and jitter with the rest of the noise; slip makes single runs far off while the
+    mean moves little."""
+    from simgap.config import load_experiment
+    from simgap.pipeline import baseline_experiment
+
+    exp = load_experiment("turtlebot", "gazebo")
+    assert {"wheel_slip", "actuation_jitter"} <= set(exp.simulator.noise)
+    base = baseline_experiment(exp).simulator
+    assert base.noise == {} and base.randomize == {}
+    x, u = np.tile([[2.0, 2.0, 0.0]], (32, 1)), np.tile([[1.0, 0.0]], (32, 1))
+    with make_simulator(exp.simulator) as g, make_simulator(base) as b:
+        noise = g.draw_noise(32, rng)
+        assert {"slip", "jitter"} <= set(noise) and not {"slip", "jitter"} & set(b.draw_noise(2, rng))
+        y = g.step_with_noise(x, u, noise)
+        y0 = b.step(x[:1], u[:1], rng)
+    slipped = (noise["slip"] < 1).any(axis=1)
+    dth = np.abs(get_system("turtlebot").diff(y, y0)[:, 2])
+    assert slipped.any() and (~slipped).any()
+    assert dth[slipped].max() > 3 * dth[~slipped].max()  # a slipping wheel turns the robot

@@ -31,7 +31,7 @@ import numpy as np
 
 from simgap.maps import load_map
 from simgap.simulators.base import make_simulator
-from simgap.synthesis.rollout import rollout
+from simgap.rollout import rollout
 from simgap.synthesis.spec import Box, Spec
 from simgap.synthesis.controller import synthesize
 from simgap.systems import pendulum, turtlebot

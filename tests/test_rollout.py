@@ -7,7 +7,7 @@ import pytest
 
 from simgap.errors import SimgapError
 from simgap.simulators.base import make_simulator
-from simgap.synthesis.rollout import OUTCOMES, load_rollout, resolve_hold, rollout
+from simgap.rollout import OUTCOMES, load_rollout, resolve_hold, rollout
 from simgap.synthesis.spec import Box, Spec
 from simgap.systems import pendulum, turtlebot
 
@@ -104,7 +104,7 @@ def test_collision_with_an_obstacle_is_a_failure():
     assert (y >= 2.5).all() and (y_prev < 2.5).all()
     assert 45 <= r.violation_time.min() and r.violation_time.max() <= 60
     assert r.nominal["outcome"] == "violation" and r.nominal["violation_kind"] == "obstacle"
-    assert not r.mean_verdict["satisfied"]
+    assert not r.rollout_average_verdict["satisfied"] and r.mean_map["outcome"] == "violation"
 
 
 def test_partial_failures_are_counted_per_rollout():
@@ -149,7 +149,7 @@ def test_invariance_failure_and_success():
     ctrl.input_index = (lambda f: lambda x: f(np.atleast_2d(x) - [0.1, 0.0]))(ctrl.input_index)
     r = rollout(ctrl, sim, [0.1, 0.0], n_rollouts=50, horizon=400, seed=0)
     assert r.n_failures == 0 and (r.violation_time == -1).all() and (r.lengths == 400).all()
-    assert r.nominal["satisfied"] and r.mean_verdict["satisfied"]
+    assert r.nominal["satisfied"] and r.rollout_average_verdict["satisfied"] and r.mean_map["satisfied"]
 
 
 def test_progress_callback_and_cancel():
@@ -175,7 +175,7 @@ def test_hold_and_steps():
     c = Const(sys_, north_spec(), [1.0, 0.0], hold=5)
     assert resolve_hold(c, tb_sim()) == 5
     r = rollout(c, tb_sim(), X0, n_rollouts=4, horizon=30, seed=0)
-    assert r.hold == 5 and c.calls == 1 + 6 + 6  # x0 check, 6 queries for rollouts, 6 for the nominal run
+    assert r.hold == 5 and c.calls == 1 + 6 + 6 + 6  # x0 check, 6 queries each: rollouts, nominal run, mean map
     # controller on a system with steps=10, simulator stepping 5 base periods: hold 2
     c10 = Const(sys_.with_steps(10), north_spec(), [1.0, 0.0])
     assert resolve_hold(c10, tb_sim(steps=5)) == 2

@@ -9,7 +9,7 @@ from simgap.cli import main
 from simgap.maps import load_map
 from simgap.simulators.base import make_simulator
 from simgap.synthesis.controller import Controller, synthesize
-from simgap.synthesis.rollout import load_rollout, rollout
+from simgap.rollout import load_rollout, rollout
 from simgap.synthesis.spec import Box, Spec
 from simgap.systems import input_grid, pendulum, turtlebot
 

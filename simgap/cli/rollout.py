@@ -3,8 +3,10 @@
     simgap rollout --controller ctrl.npz --simulator sim.json --x0 3.5 2 1.5 --n 1000 \\
                    --horizon 800 --seed 0 --out report.json --trajectories traj.npz
 
-``--simulator`` takes a JSON SimulatorConfig (file or inline ``{...}``) or an experiment
-(name or TOML, via :func:`simgap.config.load_experiment`). ``--map`` supplies the PyBullet
+The report gives the rollouts, the nominal model, the mean map m+ = E fhat(m, u(m)) (what the
+controller's guarantee is about; ``--mean-map-runs`` runs per step) and, separately, the
+average of the rollouts. ``--simulator`` takes a JSON SimulatorConfig (file or inline
+``{...}``) or an experiment (name or TOML, via :func:`simgap.config.load_experiment`). ``--map`` supplies the PyBullet
 TurtleBot's physical obstacles (when the config has none) and the default x0.
 """
 
@@ -37,6 +39,9 @@ def add_parser(sub) -> None:
     p.add_argument("--on-exit", choices=("hold", "stop"), default="hold",
                    help="outside the winning domain: keep the last input (hold) or stop the rollout")
     p.add_argument("--one-at-a-time", action="store_true", help="step rollouts one by one (benchmarking)")
+    p.add_argument("--mean-map-runs", type=int, default=None,
+                   help="simulator runs per step for the mean map m+ = E fhat(m, u(m)), the sequence the "
+                        "controller's guarantee is about (default: --n clipped to [100, 1000]; 0 skips it)")
     p.add_argument("--out", required=True, help="JSON report path")
     p.add_argument("--trajectories", default=None, help="also write all arrays to this .npz")
     p.set_defaults(func=run, outputs=("out", "trajectories"))
@@ -102,7 +107,7 @@ def simulator_config(arg: str, profile=None) -> dict:
 def run(args) -> int:
     from ..maps import load_map
     from ..simulators.base import make_simulator
-    from ..synthesis.rollout import rollout
+    from ..rollout import rollout
 
     ctrl = load_controller(args.controller)
     cfg = simulator_config(args.simulator, args.profile)
@@ -125,7 +130,7 @@ def run(args) -> int:
         else:
             raise SimgapError("give --x0 (or --map, whose initial_state is used)")
         res = rollout(ctrl, sim, x0, n_rollouts=args.n, horizon=args.horizon, seed=args.seed, hold=args.hold,
-                      on_exit=args.on_exit, batched=not args.one_at_a_time)
+                      on_exit=args.on_exit, batched=not args.one_at_a_time, mean_map_runs=args.mean_map_runs)
     finally:
         sim.close()
     res.save_json(args.out)

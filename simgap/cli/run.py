@@ -67,7 +67,7 @@ def _record(exp, out: Path):
     from ..collect import load_store
     from ..pipeline import experiment_spec
     from ..synthesis.controller import Controller, SynthesisResult
-    from ..synthesis.rollout import load_rollout
+    from ..rollout import load_rollout
 
     ds = load_store(out / "data", system=exp.system)
     cert = load_certificate(out / "cert_stochastic.json")

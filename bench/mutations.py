@@ -2,7 +2,7 @@
 make the tight-margin tests fail.
 
     python bench/mutations.py [--tests tests/test_soundness_margins.py tests/test_certificate_margins.py]
-                              [--only NAME ...] [--json out.json]
+                              [--only NAME ...] [--all-failures] [--json out.json]
 
 The repository this script lives in is copied to a temporary directory (never edited in place).
 The chosen tests are run once unmutated (they must pass), then once per mutation with the
@@ -78,15 +78,16 @@ def copy_repo(dst: Path) -> Path:
     return dst
 
 
-def run_tests(root: Path, tests, timeout: int) -> tuple[bool, str, float]:
-    """(passed, first failing test or '', seconds) of pytest on ``tests`` in ``root``."""
+def run_tests(root: Path, tests, timeout: int, stop_first: bool = True) -> tuple[bool, str, float]:
+    """(passed, failing tests or '', seconds) of pytest on ``tests`` in ``root``."""
     env = dict(os.environ, PYTHONPATH=str(root), PYTHONDONTWRITEBYTECODE="1")
     t0 = time.perf_counter()
-    p = subprocess.run([sys.executable, "-m", "pytest", "-x", "-q", "-p", "no:cacheprovider", *tests],
+    p = subprocess.run([sys.executable, "-m", "pytest", *(["-x"] if stop_first else []), "-q",
+                        "-p", "no:cacheprovider", *tests],
                        cwd=root, env=env, capture_output=True, text=True, timeout=timeout)
     secs = time.perf_counter() - t0
     failed = re.findall(r"^(?:FAILED|ERROR) (\S+)", p.stdout, flags=re.M)
-    return p.returncode == 0, (failed[0] if failed else ("" if p.returncode == 0 else p.stdout[-300:])), secs
+    return p.returncode == 0, (", ".join(failed) if failed else ("" if p.returncode == 0 else p.stdout[-300:])), secs
 
 
 def main(argv=None) -> int:
@@ -94,6 +95,8 @@ def main(argv=None) -> int:
     ap.add_argument("--tests", nargs="+", default=DEFAULT_TESTS, help="test files/ids to run per mutation")
     ap.add_argument("--only", nargs="+", default=None, help="run only these mutations (names)")
     ap.add_argument("--timeout", type=int, default=1800, help="seconds per pytest run")
+    ap.add_argument("--all-failures", action="store_true",
+                    help="run every test per mutation (default: stop at the first failure, pytest -x)")
     ap.add_argument("--json", default=None, help="also write the results as JSON here")
     a = ap.parse_args(argv)
     chosen = [m for m in MUTATIONS if a.only is None or m[0] in a.only]
@@ -117,7 +120,7 @@ def main(argv=None) -> int:
                 print(f"{name:<30} NOT APPLIED ({e})")
                 continue
             try:
-                passed, first, secs = run_tests(root, a.tests, a.timeout)
+                passed, first, secs = run_tests(root, a.tests, a.timeout, not a.all_failures)
             finally:
                 path.write_text(orig)
             rows.append({"mutation": name, "file": rel, "what": what, "caught": not passed,

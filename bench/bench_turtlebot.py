@@ -2,6 +2,7 @@
 
     python bench/bench_turtlebot.py            # simulator table (~2 min), then the whole small profile
     python bench/bench_turtlebot.py --no-run   # the simulator table only
+    python bench/bench_turtlebot.py --no-table # the whole run only
 
 (1) Robot-steps (0.01 s base periods) per CPU second of one process on a collection-like batch
     (x = (2, 2, theta), theta uniform, the small profile's 25 inputs, tau_k = 0.3 s), for
@@ -129,9 +130,11 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=400, help="batch size of the simulator table")
     ap.add_argument("--no-run", action="store_true", help="skip the whole `simgap run turtlebot`")
+    ap.add_argument("--no-table", action="store_true", help="skip the simulator table")
     ap.add_argument("--profile", default="small")
     a = ap.parse_args()
-    simulator_table(a.runs)
+    if not a.no_table:
+        simulator_table(a.runs)
     if not a.no_run:
         whole_run(a.profile)
 

@@ -515,6 +515,7 @@ class SimgapApp:
         if view_panel is not None:
             view_panel._mark_free()
             view_panel.show_legend()
+            self.panels["certificate"].show_plots()
         if dim is not None or a is not None or b is not None:
             scene.fit_camera(self)
         return drawn

@@ -81,16 +81,30 @@ def test_run_folder_opens_with_every_stage(loaded):
         assert "```" not in text and "|---|---|" in text
     assert "| winning |" in app.panels["synthesis"].stats.content
     assert "| spec held | 50 / 50 |" in app.panels["rollouts"].stats.content
+    # the panel's plots: gamma along theta with the data gaps, the audit's margin quantiles
+    from simgap_viz.panels import plots
+    cp = app.panels["certificate"]
+    assert cp.slice_plot.visible and cp.audit_plot.visible
+    xs, gam, gap = cp.slice_plot.data
+    ok = np.isfinite(gap)
+    assert ok.sum() == plots.gamma_slice(app, cp.slice_plot) > 0 and np.all(np.diff(xs) >= 0)
+    assert np.all(gap[ok] >= 0) and np.isfinite(gam).sum() == 161
+    q, *margins = cp.audit_plot.data
+    assert len(margins) == 2 and q[0] == 0.0 and q[-1] == 1.0
+    mq = m.audit["per_dim"]["omega"]["margin_quantiles"]
+    assert margins[1][0] == pytest.approx(mq["0.0"]) and np.all(np.diff(margins[1]) >= 0)
     # the other method's results through the Data tab's dropdown
     app.panels["system"].run_method.value = "deterministic"
     d = run.methods["deterministic"]
     assert app.run_method == "deterministic" and app.results["certify"] is d.certificate
+    assert app.audit is d.audit and app.audit["certificate_method"] == "deterministic"
     assert app.results["collect"] is d.dataset and app.results["rollout"] is d.rollouts
     # a knob change re-certifies from the run's data
     app.panels["certificate"].degree.value = 1
     out = app.wait(120)
     assert out.ok, out.error
     assert app.results["certify"] is not d.certificate and app.results["certify"].dims[0].terms == ["1", "x1", "x2", "u1"]
+    assert not cp.audit_plot.visible  # the run's audit is not about this new certificate
 
 
 def test_mode_switch_keeps_the_certificate(loaded):
@@ -173,3 +187,55 @@ def test_recording_opens_in_the_headless_web_viewer(run_dir, tmp_path):
     finally:
         os.killpg(proc.pid, signal.SIGTERM)  # the viewer and its launcher, nothing else
         proc.wait(10)
+
+
+def _near(img: np.ndarray, rgb, tol: int = 40) -> int:
+    """Pixels within ``tol`` per channel of ``rgb``."""
+    return int(np.count_nonzero(np.all(np.abs(img[..., :3].astype(int) - np.array(rgb)) <= tol, axis=-1)))
+
+
+@pytest.mark.browser
+def test_run_in_browser_every_layer_in_frame(run_dir, tmp_path):
+    """The loaded run in headless chromium: the canvas shows the surface's color map, the winning
+    map, the rollouts' bold mean and the panel's plots; a screenshot per tab."""
+    import io
+
+    from PIL import Image
+    from test_browser_app import _need_browser
+    _need_browser()
+    from playwright.sync_api import sync_playwright
+
+    from simgap_viz import screenshot as S
+    from simgap_viz.app import SimgapApp
+    from simgap_viz.layers import geometry as G
+    from simgap_viz.results import load_run
+    app = SimgapApp(port=0, executor="serial")
+    try:
+        app.load_run(load_run(run_dir))
+        app.set_view(dim=1)
+        with sync_playwright() as pw:
+            b = pw.chromium.launch(executable_path=S.CHROMIUM, args=S.ARGS)
+            try:
+                page = S.open_page(b, app.url, 1280, 800)
+                shots = {}
+                for tab in ("Certificate", "Synthesis", "Rollouts"):
+                    S.show_tab(page, tab, settle=2.0)
+                    shots[tab] = np.asarray(Image.open(io.BytesIO(S.canvas_png(page, tmp_path / f"{tab}.png")))
+                                            .convert("RGB"))
+                page.get_by_role("tab", name="Certificate").click(force=True, no_wait_after=True)
+                page.get_by_text("along theta").first.wait_for(timeout=60_000)  # the gamma-slice plot
+                page.get_by_text("audit: margin").first.wait_for(timeout=60_000)
+            finally:
+                b.close()
+    finally:
+        app.stop()
+    img = shots["Rollouts"]
+    h, w, _ = img.shape
+    scene = img[:, : int(w * 0.68)]  # left of the control panel
+    background = _near(scene, (255, 255, 255), 6)
+    assert background < 0.9 * scene.shape[0] * scene.shape[1], "the scene is nearly empty"
+    # the surface's color map (both ends), the winning map's green, the mean trajectory's yellow
+    stops = G.colormap(np.array([0.0, 1.0]))
+    assert _near(scene, stops[0], 50) + _near(scene, stops[1], 50) > 500
+    assert _near(scene, G.WIN_NEAR, 35) > 500
+    assert _near(scene, G.YELLOW, 50) > 30

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from .. import engine
 from ..settings import CONCENTRATIONS, parse_vector
+from . import plots
 from .base import Panel, fmt_vec
 
 MODES = ("target confidence", "per dimension")
@@ -32,6 +33,8 @@ class CertificatePanel(Panel):
         self.buttons["certify"] = gui.add_button("Certify")
         self.buttons["certify"].on_click(lambda _: app.certify())
         self.summary = gui.add_markdown("*no certificate yet*")
+        self.slice_plot = plots.add(gui, "gamma slice")
+        self.audit_plot = plots.add(gui, "audit margins")
         on = self.on
         on(self.mode, lambda v: self.switch_mode())
         on(self.confidence, lambda v: self.apply_deltas())
@@ -88,9 +91,15 @@ class CertificatePanel(Panel):
     def show_summary(self) -> None:
         cert = self.app.results.get("certify")
         self.summary.content = "*no certificate yet*" if cert is None else engine.certificate_markdown(cert)
+        self.show_plots()
         if cert is not None and self.mode.value == MODES[0]:  # show the deltas the confidence gave
             self.set_quiet(self.delta1, fmt_vec([float(f"{d.delta1:.4g}") for d in cert.dims]))
             self.set_quiet(self.delta2, fmt_vec([float(f"{d.delta2:.4g}") for d in cert.dims]))
+
+
+    def show_plots(self) -> None:
+        plots.gamma_slice(self.app, self.slice_plot)
+        plots.audit_margins(self.app, self.audit_plot)
 
 
 def build(app) -> CertificatePanel:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from .. import engine
+from . import plots
 from .base import Panel
 
 
@@ -25,6 +26,7 @@ class RefinementPanel(Panel):
                                         initial_value=names[-1])
         self.res_state.on_update(lambda _: app.guarded(self.show_residuals))
         self.res_var.on_update(lambda _: app.guarded(self.show_residuals))
+        self.plot = plots.add(gui, "residuals")
         self.comparison = gui.add_markdown("")
         self.report = gui.add_markdown("")
 
@@ -39,11 +41,13 @@ class RefinementPanel(Panel):
             self.res_state.value, self.res_var.value = names[-1], names[-1]
         self.app.view["res_state"] = names.index(self.res_state.value)
         self.app.view["res_var"] = self.res_var.value
+        plots.residuals(self.app, self.plot)
         return scene.draw_residuals(self.app)
 
     def show_report(self) -> None:
         res = self.app.results.get("refine")
         self.report.content = "" if res is None else engine.refine_markdown(res)
+        plots.residuals(self.app, self.plot)
         self.compare_button.disabled = res is None
         self.use_button.disabled = res is None
 

@@ -1,0 +1,142 @@
+"""2-D plots in the panel (viser's uPlot charts), where a plot says more than the 3-D scene.
+
+* gamma along one variable (the View tab's slice, the other variables at their sliders) with the
+  observed data gaps of the rows near that line: how much room the certificate leaves;
+* the audit's margins gamma - gap at fresh points, as its quantile function per dimension
+  (what ``audit_<method>.json`` stores), for a run's certificate;
+* the refinement residuals before and after (binned means against the chosen variable).
+
+Each function computes nothing itself: it reads engine results and the layer geometry.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..layers import geometry as G
+
+ORANGE, BLUE, RED, GREEN = "#f07800", "#2850c8", "#d23232", "#28a050"
+
+
+def _axes(x: str, y: str) -> tuple:
+    return ({"label": x, "size": 36}, {"label": y, "size": 64})
+
+
+def _empty(plot) -> None:
+    plot.visible = False
+
+
+def gamma_slice(app, plot, res: int = 161) -> int:
+    """gamma_dim along the View tab's first variable, data gaps as points; returns the points shown."""
+    cert, data = app.results.get("certify"), app.results.get("collect")
+    if cert is None:
+        _empty(plot)
+        return 0
+    s, v = app.system, app.view
+    fixed = v["fixed"] if v["fixed"] is not None else list(G.variable_ranges(s).mean(axis=1))
+    a, dim = v["a"], v["dim"]
+    names = G.variable_names(s)
+    lo, hi = G.variable_ranges(s)[a]
+    P = np.tile(np.asarray(fixed, float), (res, 1))
+    P[:, a] = np.linspace(lo, hi, res)
+    xs = P[:, a]
+    gam = np.asarray(cert.gamma(P[:, :s.n], P[:, s.n:]), dtype=float)[:, dim]
+    gap = np.full(res, np.nan)
+    rows = _line_rows(data, s, a, fixed) if data is not None else np.zeros(0, int)
+    if rows.size:
+        xd = np.hstack([data.x, data.u])[rows, a]
+        order = np.argsort(np.concatenate([xs, xd]), kind="stable")
+        xs = np.concatenate([xs, xd])[order]
+        gam = np.concatenate([gam, np.full(xd.shape, np.nan)])[order]
+        gap = np.concatenate([gap, data.gap()[rows, dim]])[order]
+    plot.data = (xs, gam, gap)
+    plot.series = ({"label": names[a]}, {"label": f"gamma_{s.state_names[dim]}", "stroke": BLUE, "width": 2,
+                                         "spanGaps": True},
+                   {"label": "data gap", "stroke": ORANGE, "width": 0, "points": {"show": True, "size": 4,
+                                                                                   "fill": ORANGE}})
+    plot.axes = _axes(names[a], s.state_names[dim])
+    plot.title = f"gamma_{s.state_names[dim]} along {names[a]} (others at the View sliders)"
+    plot.visible = True
+    return int(rows.size)
+
+
+def _line_rows(data, s, a, fixed):
+    """Rows near the line through ``fixed`` along variable ``a`` (every other variable near its value)."""
+    P = np.hstack([data.x, data.u])
+    keep = np.ones(P.shape[0], dtype=bool)
+    for j in range(P.shape[1]):
+        if j == a:
+            continue
+        if j < s.n:
+            keep &= np.abs(P[:, j] - fixed[j]) <= max(data.epsilon, 1e-12)
+        else:
+            vals = np.unique(P[:, j])
+            keep &= P[:, j] == vals[np.argmin(np.abs(vals - fixed[j]))]
+    return np.flatnonzero(keep)[:4000]
+
+
+def audit_margins(app, plot) -> bool:
+    """The audit's margin quantiles (gamma - gap at fresh points) per dimension, each divided by
+    its dimension's largest gamma on the data so the dimensions share one axis."""
+    rep = app.audit
+    run = app.run
+    shown = app.results.get("certify")
+    if rep is None or run is None or shown is not run.methods[app.run_method].certificate:
+        _empty(plot)
+        return False
+    dims = list(rep.get("per_dim", {}))
+    if not dims:
+        _empty(plot)
+        return False
+    qs = sorted(float(q) for q in rep["per_dim"][dims[0]]["margin_quantiles"])
+    series, ys = [{"label": "quantile"}], []
+    colors = ("#2850c8", "#e07020", "#30a050", "#a040c0")
+    for k, d in enumerate(dims):
+        mq = rep["per_dim"][d]["margin_quantiles"]
+        y = np.array([mq[_key(mq, q)] for q in qs], float)
+        ys.append(y)
+        series.append({"label": f"{d} [{y.min():.3g} .. {y.max():.3g}]", "stroke": colors[k % 4], "width": 2,
+                       "points": {"show": True, "size": 5}})
+    plot.data = (np.array(qs),) + tuple(ys)
+    plot.series = tuple(series)
+    plot.axes = _axes("quantile of the audit points", "gamma - gap")
+    pj = rep.get("joint", {}).get("fraction_holds")
+    plot.title = (f"audit: margin at {rep.get('points', '?')} fresh points x {rep.get('runs', '?')} runs"
+                  + (f", joint holds {pj:.3f}" if pj is not None else ""))
+    plot.visible = True
+    return True
+
+
+def _key(d: dict, q: float) -> str:
+    for k in d:
+        if float(k) == q:
+            return k
+    raise KeyError(q)
+
+
+def residuals(app, plot) -> bool:
+    """Binned mean residual of the chosen state against the chosen variable, before (f) and after (f')."""
+    res = app.results.get("refine")
+    if res is None:
+        _empty(plot)
+        return False
+    s = res.system
+    v = app.view
+    state = v.get("res_state", s.n - 1)
+    var = v.get("res_var") or s.state_names[-1]
+    b0, b1 = res.before.binned(var, bins=30), res.after.binned(var, bins=30)
+    plot.data = (np.asarray(b0["centers"], float), np.asarray(b0["mean"][:, state], float),
+                 np.asarray(b1["mean"][:, state], float))
+    plot.series = ({"label": var}, {"label": "before (f)", "stroke": RED, "width": 2},
+                   {"label": "after (f')", "stroke": GREEN, "width": 2})
+    plot.axes = _axes(var, f"residual {s.state_names[state]}")
+    plot.title = f"mean residual of {s.state_names[state]} against {var}"
+    plot.visible = True
+    return True
+
+
+def add(gui, title: str):
+    """An empty, hidden chart (its data and series are set by the functions above)."""
+    z = np.zeros(2)
+    return gui.add_uplot(data=(z, z), series=({"label": "x"}, {"label": "y"}), title=title, aspect=1.4,
+                         visible=False)

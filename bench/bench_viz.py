@@ -3,6 +3,7 @@
     python bench/bench_viz.py                        # pendulum case-study data (collected once into runs/)
     python bench/bench_viz.py --dataset PATH         # any dataset (.npz or store)
     python bench/bench_viz.py --profile small        # quick check on the small profile
+    python bench/bench_viz.py --browser results/pendulum-small   # frame time and a change, in chromium
 
 1. Cheap changes: the time from a delta or basis change in the GUI (a handle's value set from
    Python, which fires the same callback as the browser) to the updated gamma surface in the
@@ -12,12 +13,16 @@
 2. Recording: 1000 closed-loop rollouts x 1000 steps of the pendulum (no-gap controller,
    numpy simulator) logged to an .rrd (column-wise), time and file size; the rollouts
    themselves are computed first and not timed.
+3. ``--browser RESULTS``: frame times in headless chromium (software WebGL) with the run's
+   winning domain and ``--draw`` rollouts drawn, and a typed confidence change until the new
+   surface is in the page (see :func:`bench_browser`).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import platform
 import statistics
@@ -55,9 +60,9 @@ def bench_cheap_changes(ds, repeats: int):
         app.certify()
         app.wait(600)
         first = time.perf_counter() - t
-        cp.delta1.value = "0.01, 0.02"
+        cp.mode.value = "per dimension"  # pre-filled with the certificate's deltas (same gamma)
+        app.wait(600)
         cp.delta2.value = "0.01, 0.02"
-        cp.mode.value = "per dimension"
         app.wait(600)
 
         def timed(change):
@@ -102,6 +107,64 @@ def bench_cheap_changes(ds, repeats: int):
         app.stop()
 
 
+FRAME_JS = """(ms) => new Promise(r => { const t = []; let last = performance.now();
+  function f(now) { t.push(now - last); last = now; if (t.length < 400 && now - t0 < ms) requestAnimationFrame(f);
+                    else r(t.slice(1)); }
+  const t0 = performance.now(); requestAnimationFrame(f); })"""
+
+
+def bench_browser(results: str, n_draw: int, repeats: int):
+    """In headless chromium (software WebGL): (1) frame times with the run's winning domain and
+    ``n_draw`` rollouts drawn (requestAnimationFrame intervals while the camera orbits, which
+    forces a redraw every frame); (2) a confidence change typed into the page until the new
+    surface is in the browser: the legend (sent right after the surface) shows the new gamma
+    range, plus one animation frame. The 0.5 s typing debounce is part of it and reported."""
+    from playwright.sync_api import sync_playwright
+
+    from simgap_viz import screenshot as S
+    from simgap_viz.app import SimgapApp
+    from simgap_viz.results import load_run
+    app = SimgapApp(port=0, executor="serial")
+    try:
+        app.load_run(load_run(results))
+        app.set_view(dim=1)
+        app.set_time(n_draw=n_draw)
+        with sync_playwright() as pw:
+            b = pw.chromium.launch(executable_path=S.CHROMIUM, args=S.ARGS)
+            page = S.open_page(b, app.url)
+            S.show_tab(page, "View")
+            frames = []
+            for k in range(repeats):  # orbit the camera so that every frame is redrawn
+                for c in app.server.get_clients().values():
+                    c.camera.position = tuple(float(v) for v in (2.5 * math.cos(k), -2.5, 2.0))
+                frames += page.evaluate(FRAME_JS, 3000)
+            S.show_tab(page, "Certificate", settle=1.0)
+            conf = page.locator('xpath=//label[normalize-space(text())="Confidence"]'
+                                '/ancestor::div[contains(@class, "mantine-Flex-root")][1]//input').first
+            changes = []
+            for k in range(repeats):
+                before = app.legend["range"]
+                value = f"{0.9 + 0.01 * (k + 1):.2f}"
+                t0 = time.perf_counter()
+                conf.fill(value)
+                conf.press("Tab")
+                deadline = time.time() + 120
+                while app.legend["range"] == before and time.time() < deadline:
+                    time.sleep(0.01)
+                txt = f"{app.legend['range'][0]:.4g} (blue)"
+                page.wait_for_function("(s) => document.body.innerText.includes(s)", arg=txt, timeout=120_000)
+                page.evaluate("() => new Promise(r => requestAnimationFrame(() => r(0)))")
+                changes.append(time.perf_counter() - t0)
+            b.close()
+    finally:
+        app.stop()
+    frames.sort()
+    return {"rollouts_drawn": n_draw, "frames": len(frames), "frame_median_ms": statistics.median(frames),
+            "frame_p90_ms": frames[int(0.9 * (len(frames) - 1))],
+            "confidence_change_to_surface_s": {"n": len(changes), "median": statistics.median(changes),
+                                               "max": max(changes), "includes_debounce_s": 0.5}}
+
+
 def bench_recording(R: int, T: int):
     from simgap_viz import engine
     from simgap_viz.jobs import JobContext
@@ -135,8 +198,15 @@ def main(argv=None):
     p.add_argument("--rollouts", type=int, default=1000)
     p.add_argument("--steps", type=int, default=1000)
     p.add_argument("--skip-certify", action="store_true")
+    p.add_argument("--browser", default=None, metavar="RESULTS",
+                   help="a finished `simgap run` folder: measure frame times and a change end to end in chromium")
+    p.add_argument("--draw", type=int, default=1000, help="rollouts drawn for the frame times (default 1000)")
     args = p.parse_args(argv)
     out = {"machine": {"cores": os.cpu_count(), "python": platform.python_version()}}
+    if args.browser:
+        out["browser"] = bench_browser(args.browser, args.draw, args.repeats)
+        print(json.dumps(out, indent=1))
+        return
     if not args.skip_certify:
         ds = load_or_collect(args)
         out["data"] = {"pairs": ds.K, "n_runs": ds.n_runs, "epsilon": ds.epsilon}

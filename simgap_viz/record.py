@@ -61,7 +61,9 @@ def blueprint(state_names) -> "object":
     gamma_views = [rrb.Spatial3DView(origin=f"/gamma/{name}", name=f"gamma_{name}") for name in state_names]
     return rrb.Blueprint(
         rrb.Horizontal(
-            rrb.Spatial3DView(origin="/world", name="state space"),
+            rrb.Vertical(rrb.Spatial3DView(origin="/world", name="state space"),
+                         rrb.TimeSeriesView(origin="/timeseries", name="mean and nominal trajectories"),
+                         row_shares=[3, 1]),
             rrb.Vertical(*gamma_views, rrb.TextDocumentView(origin="/summary", name="summary")),
             column_shares=[3, 2]),
         rrb.TimePanel(expanded=False),
@@ -190,6 +192,16 @@ def record_run(out: str | Path, system, *, dataset=None, certificate=None, spec=
             columns=[*rr.Points3D.columns(positions=P.transpose(1, 0, 2).reshape(-1, 3),
                                           colors=np.tile(colors, (T1, 1))).partition(np.full(T1, R))])
         info["entities"].append("world/rollouts/state")
+        # each state's mean and nominal trajectory over time: the blueprint's time-series view
+        for name, path in (("mean", mean), ("nominal", nominal)):
+            if path is None:
+                continue
+            for d, sname in enumerate(system.state_names):
+                rec.send_columns(f"timeseries/{sname}/{name}",
+                                 indexes=[rr.TimeColumn("step", sequence=steps),
+                                          rr.TimeColumn("time", duration=steps * tau)],
+                                 columns=rr.Scalars.columns(scalars=np.asarray(path, float)[:, d]))
+                info["entities"].append(f"timeseries/{sname}/{name}")
         info["n_rollouts"], info["n_steps"] = int(R), int(T1)
         md.append(engine.rollout_markdown(rollouts))
 

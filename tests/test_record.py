@@ -60,6 +60,12 @@ def test_record_read_back(tmp_path, run_results):
     assert counts == [R] * T1
     steps = np.concatenate([np.asarray(c.column("step").to_pylist()) for c in st["chunks"]])
     assert np.array_equal(np.sort(steps), np.arange(T1))
+    # the time-series view's mean and nominal trajectories: T+1 scalars on the step timeline
+    ts = rb["/timeseries/omega/mean"]
+    assert ts["rows"] == T1 and "step" in ts["columns"]
+    vals = np.concatenate([np.asarray(c.column("Scalars:scalars").to_pylist(), float).ravel() for c in ts["chunks"]])
+    assert np.allclose(np.sort(vals), np.sort(np.asarray(ro.mean_trajectory)[:, 1]))
+    assert "/timeseries/theta/nominal" in rb
     # first time row = x0 for every rollout (x1, x2, 0)
     first = np.asarray(st["chunks"][0].column("Points3D:positions").to_pylist()[0])
     assert np.allclose(first[:, :2], ro.x0[None, :2], atol=1e-6) and np.allclose(first[:, 2], 0)

@@ -234,8 +234,10 @@ def test_run_in_browser_every_layer_in_frame(run_dir, tmp_path):
     scene = img[:, : int(w * 0.68)]  # left of the control panel
     background = _near(scene, (255, 255, 255), 6)
     assert background < 0.9 * scene.shape[0] * scene.shape[1], "the scene is nearly empty"
-    # the surface's color map (both ends), the winning map's green, the mean trajectory's yellow
-    stops = G.colormap(np.array([0.0, 1.0]))
-    assert _near(scene, stops[0], 50) + _near(scene, stops[1], 50) > 500
+    # the surface's color map (its blue and its yellow end, lit and translucent), the winning
+    # map's green, the mean trajectory's yellow
+    r, g, bl = (scene[..., k].astype(int) for k in range(3))
+    assert np.count_nonzero((bl - r > 60) & (bl > 150)) > 2000
+    assert np.count_nonzero((r > 190) & (g > 190) & (bl < 170)) > 2000
     assert _near(scene, G.WIN_NEAR, 35) > 500
     assert _near(scene, G.YELLOW, 50) > 30

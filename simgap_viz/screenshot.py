@@ -25,6 +25,7 @@ def open_page(browser, url: str, width: int = 1280, height: int = 800):
     page.locator("canvas").first.wait_for(timeout=60_000)
     time.sleep(1.0)
     close_toasts(page)
+    time.sleep(3.0)  # the scene fades in after connecting
     return page
 
 

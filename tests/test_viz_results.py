@@ -219,6 +219,8 @@ def test_run_in_browser_every_layer_in_frame(run_dir, tmp_path):
                 page = S.open_page(b, app.url, 1280, 800)
                 shots = {}
                 for tab in ("Certificate", "Synthesis", "Rollouts"):
+                    if tab == "Rollouts":  # the surface above would tint the trajectories below it
+                        app.panels["view"].checks["gamma"].value = False
                     S.show_tab(page, tab, settle=2.0)
                     shots[tab] = np.asarray(Image.open(io.BytesIO(S.canvas_png(page, tmp_path / f"{tab}.png")))
                                             .convert("RGB"))
@@ -236,8 +238,12 @@ def test_run_in_browser_every_layer_in_frame(run_dir, tmp_path):
     assert background < 0.9 * scene.shape[0] * scene.shape[1], "the scene is nearly empty"
     # the surface's color map (its blue and its yellow end, lit and translucent), the winning
     # map's green, the mean trajectory's yellow
-    r, g, bl = (scene[..., k].astype(int) for k in range(3))
+    cert = shots["Certificate"][:, : int(w * 0.68)]
+    r, g, bl = (cert[..., k].astype(int) for k in range(3))
     assert np.count_nonzero((bl - r > 60) & (bl > 150)) > 2000
     assert np.count_nonzero((r > 190) & (g > 190) & (bl < 170)) > 2000
     assert _near(scene, G.WIN_NEAR, 35) > 500
     assert _near(scene, G.YELLOW, 50) > 30
+    # hiding the surface removes its colors
+    r, g, bl = (scene[..., k].astype(int) for k in range(3))
+    assert np.count_nonzero((bl - r > 60) & (bl > 150)) < 500

@@ -165,7 +165,8 @@ def winning_map(controller, blocked: np.ndarray, allowed: np.ndarray, max_pixels
         lo, hi = np.array([lo[0], -1.0]), np.array([hi[0], 1.0])
     return {"image": image, "lo": lo, "hi": hi,
             "counts": {"winning": int(w_any.sum()), "losing": int((~w_any & ~unsafe).sum()),
-                       "unsafe": int(unsafe.sum())}, "max_steps": int(smax) if reach else None}
+                       "unsafe": int(unsafe.sum())}, "max_steps": int(smax) if reach else None,
+            "reduced_dims": max(g.n - 2, 0)}
 
 
 def rollout_subset(failed: np.ndarray, n_draw: int, seed: int = 0) -> np.ndarray:

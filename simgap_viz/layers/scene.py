@@ -133,8 +133,9 @@ def pose_bodies(app, x) -> None:
     if fr is None:
         return
     base = engine.base_system(app.system)
-    if x is None:
-        x = app.settings.x0 if app.settings.x0 is not None else 0.5 * (base.x_lo + base.x_hi)
+    if x is None:  # the rollouts' initial state: the settings', the map's, else the middle of X
+        x = app.settings.x0 if app.settings.x0 is not None else \
+            app.arena.x0(base) if getattr(app, "arena", None) is not None else 0.5 * (base.x_lo + base.x_hi)
     x = np.asarray(x, dtype=float)
     if base.name == "pendulum":
         th = float(x[0])
@@ -251,7 +252,7 @@ def draw_winning(app) -> int:
                                render_height=float(b[1] - a[1]), format="png",
                                position=(float(a[0] + b[0]) / 2, float(a[1] + b[1]) / 2, 0.002),
                                cast_shadow=False, receive_shadow=False, visible=app.layers_visible["winning"])
-    app.winning_counts = {**wm["counts"], "max_steps": wm["max_steps"]}
+    app.winning_counts = {**wm["counts"], "max_steps": wm["max_steps"], "reduced_dims": wm["reduced_dims"]}
     return wm["counts"]["winning"]
 
 

@@ -57,9 +57,10 @@ class ViewPanel(Panel):
                 rows.append(f"| data gaps ({lg['points']}) | grey: no certificate yet |")
         wc = app.winning_counts
         if wc is not None:
-            shade = (f"dark = near the target .. light = {wc['max_steps']} steps" if wc.get("max_steps")
-                     else "winning fraction over the other dimensions")
-            rows.append(f"| winning map | green {wc['winning']} (shade: {shade}), beige {wc['losing']} safe but "
+            shade = (f" (dark = near the target .. light = {wc['max_steps']} steps to go)" if wc.get("max_steps")
+                     else " (shade: share of winning cells over the other dimensions)" if wc.get("reduced_dims")
+                     else "")
+            rows.append(f"| winning map | green {wc['winning']} winning{shade}, beige {wc['losing']} safe but "
                         f"losing, red {wc['unsafe']} unsafe, blue target |")
         rd = app.rollout_drawn
         res = app.results.get("rollout")

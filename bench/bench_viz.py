@@ -117,8 +117,8 @@ def bench_browser(results: str, n_draw: int, repeats: int):
     """In headless chromium (software WebGL): (1) frame times with the run's winning domain and
     ``n_draw`` rollouts drawn (requestAnimationFrame intervals while the camera orbits, which
     forces a redraw every frame); (2) a confidence change typed into the page until the new
-    surface is in the browser: the legend (sent right after the surface) shows the new gamma
-    range, plus one animation frame. The 0.5 s typing debounce is part of it and reported."""
+    surface is in the browser: the status line (sent after the surface) shows in the page, plus
+    one animation frame. The 0.5 s typing debounce is part of it and reported."""
     from playwright.sync_api import sync_playwright
 
     from simgap_viz import screenshot as S
@@ -143,16 +143,18 @@ def bench_browser(results: str, n_draw: int, repeats: int):
                                 '/ancestor::div[contains(@class, "mantine-Flex-root")][1]//input').first
             changes = []
             for k in range(repeats):
-                before = app.legend["range"]
+                before = app.status.content
                 value = f"{0.9 + 0.01 * (k + 1):.2f}"
                 t0 = time.perf_counter()
                 conf.fill(value)
                 conf.press("Tab")
                 deadline = time.time() + 120
-                while app.legend["range"] == before and time.time() < deadline:
+                while not (app.status.content != before and app.status.content.startswith("certify: done")) \
+                        and time.time() < deadline:
                     time.sleep(0.01)
-                txt = f"{app.legend['range'][0]:.4g} (blue)"
-                page.wait_for_function("(s) => document.body.innerText.includes(s)", arg=txt, timeout=120_000)
+                # the status line is sent after the new surface: once the page shows it, the surface is there
+                page.wait_for_function("(s) => document.body.innerText.includes(s)", arg=app.status.content,
+                                       timeout=120_000)
                 page.evaluate("() => new Promise(r => requestAnimationFrame(() => r(0)))")
                 changes.append(time.perf_counter() - t0)
             b.close()

@@ -71,9 +71,10 @@ def main(argv=None) -> int:
         with sync_playwright() as pw:
             b = pw.chromium.launch(executable_path=CHROMIUM, args=ARGS)
             page = open_page(b, app.url, args.width, args.height)
-            for i, tab in enumerate(["Certificate"] + [t for t in args.tabs.split(",") if t]):
+            # the main picture last: the tick labels appear once the camera has settled
+            for tab in [t for t in args.tabs.split(",") if t] + ["Certificate"]:
                 show_tab(page, tab)
-                path = out if i == 0 else out.with_name(f"{out.stem}-{tab.lower()}{out.suffix}")
+                path = out if tab == "Certificate" else out.with_name(f"{out.stem}-{tab.lower()}{out.suffix}")
                 page.screenshot(path=str(path), timeout=180_000)
                 written.append(path)
             b.close()

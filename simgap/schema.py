@@ -242,9 +242,8 @@ def _describe(err: dict, origin) -> str:
         names = list(model.model_fields) if model is not None else []
         guess = nearest(loc[-1], names)
         if len(loc) == 1:
-            sec = origin(loc)
-            hint = f"; did you mean [{sec.rsplit('.', 1)[0] + '.' if '.' in sec else ''}{guess}]?" if guess else ""
-            return f"unknown section [{sec}]{hint} (sections: {', '.join(SECTIONS)})"
+            hint = f"; did you mean [{guess}]?" if guess else ""  # (profiles: check_profiles)
+            return f"unknown section [{loc[0]}]{hint} (sections: {', '.join(SECTIONS)})"
         hint = f"; did you mean {guess!r}?" if guess else ""
         return f"unknown key {loc[-1]!r} in [{origin(loc)}]{hint} (keys: {', '.join(names)})"
     if typ == "missing":

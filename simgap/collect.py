@@ -24,7 +24,7 @@ The store is a directory::
     chunks/c000000.npz     one file per chunk, written atomically (temp file + os.replace), no pickle;
                            it carries its chunk id, the configuration hash, the sha256 of every
                            array ("digests", JSON) and a digest over those ("digest")
-    .lock                  flock-ed by the one process collecting into the store (a second is refused)
+    .lock                  locked by the one process collecting into the store (a second is refused)
 
 A killed run leaves only complete chunk files; :func:`collect` on the same store verifies
 each one's digests, recomputes the broken ones and the missing rest, giving a data set
@@ -357,17 +357,18 @@ def _write_chunk(store: Path, c: int, h: str, arrays: dict) -> None:
 
 @contextlib.contextmanager
 def store_lock(store: Path):
-    """Hold the store's exclusive lock (``.lock``, flock) while collecting into it.
+    """Hold the store's exclusive lock (``.lock``) while collecting into it.
 
     A second collector into the same store is refused at once instead of recomputing every
-    chunk the first one computes. The kernel drops the lock when its process ends, even by
-    kill -9, so a killed collection never blocks its resumption.
+    chunk the first one computes. It is a POSIX record lock (``lockf``): it belongs to this
+    process alone (forked pool workers do not inherit it) and the kernel drops it when the
+    process ends, even by kill -9, so a killed collection never blocks its resumption.
     """
     import fcntl
 
     fh = open(store / LOCK, "a")
     try:
-        fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        fcntl.lockf(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
     except OSError:
         fh.close()
         raise SimgapError(f"store {str(store)!r} is being collected by another process; wait for it to finish "

@@ -255,7 +255,7 @@ def test_second_collector_into_one_store_is_refused(work, tmp_path):
     assert r.returncode == 0, r.stderr
     manifest = (store / "manifest.json").read_bytes()
     with open(store / ".lock", "a") as fh:  # a collector running into the store holds this lock
-        fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        fcntl.lockf(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
         r = simgap("collect", work / "exp.toml", "--profile", "base", "--out", store, "--no-progress",
                    cwd=tmp_path)
         refused(r, "being collected by another process", str(store))

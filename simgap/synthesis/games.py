@@ -150,18 +150,21 @@ class BoxFamily:
         self.ab, self.n, self.counter = ab, n, counter
         shape = np.array(g.shape, dtype=np.int64)
         pm = g.periodic_mask
-        shape32 = shape.astype(np.int32)  # int32 temporaries: the generic path has K = N classes
-        ext = off_hi.astype(np.int32) - off_lo + 1
+        # int16 per (class, input, dim) when it fits (the generic path has one class per cell:
+        # these tables, and their temporaries, are as large as the grid times the inputs)
+        vmax = max([abs(int(f(a, initial=0))) for a in (off_lo, off_hi) for f in (np.min, np.max)])
+        it = np.int16 if max(2 * vmax + 1, int(shape.max())) < 16000 else np.int32
+        shape_it = shape.astype(it)
+        ext = off_hi.astype(it)
+        ext -= off_lo
+        ext += 1
         np.maximum(ext, 0, out=ext)
-        lo = off_lo.astype(np.int32)
-        if pm.any():
-            ext = np.where(pm, np.minimum(ext, shape32), ext)
-            lo = np.where(pm, np.mod(lo, shape32), lo)
-        # int16 per (class, input, dim) when it fits: the generic path has one class per cell
-        small = max(int(np.abs(lo).max(initial=0)), int(ext.max(initial=0)), int(shape.max())) < 16000
-        it = np.int16 if small else np.int32
-        self.lo = lo.astype(it)
-        self.ext = ext.astype(it)
+        lo = off_lo.astype(it)
+        for d in np.flatnonzero(pm):
+            np.minimum(ext[..., d], shape_it[d], out=ext[..., d])
+            lo[..., d] %= shape_it[d]
+        self.lo = lo
+        self.ext = ext
         self.vol = np.prod(ext, axis=-1, dtype=np.int32)
         self.tstr = counter.tstrides.astype(np.int64)
         self.shape = shape
@@ -362,7 +365,7 @@ class Predecessors:
     transition. ``usable`` (K*M,) bool selects the pairs to index.
     """
 
-    def __init__(self, ab: Abstraction, usable: np.ndarray, chunk: int = 1 << 16):
+    def __init__(self, ab: Abstraction, usable: np.ndarray, chunk: int = 1 << 15):
         g = ab.grid
         self.ab, self.M, self.n = ab, ab.n_inputs, g.n
         self.shape = np.array(g.shape, dtype=np.int64)
@@ -377,14 +380,16 @@ class Predecessors:
         # input-major order: the boxes of one input move smoothly with the cell, so the keys of
         # a chunk come in long ascending runs and the stable sort below is nearly linear
         usable = usable.reshape(K, self.M)
-        qs = np.concatenate([np.flatnonzero(usable[:, u]) * self.M + u for u in range(self.M)])
-        qs = qs.astype(np.int32 if usable.size < 2 ** 31 else np.int64)
+        qt = np.int32 if usable.size < 2 ** 31 else np.int64
+        qs = np.concatenate([np.flatnonzero(usable[:, u]).astype(qt) * qt(self.M) + qt(u) for u in range(self.M)])
         counts = np.zeros(K, dtype=np.int64)
         for s in range(0, qs.size, chunk):  # pass 1: list lengths
             counts += np.bincount(self._class_keys(qs[s:s + chunk])[0], minlength=K)
-        self.indptr = np.zeros(K + 1, dtype=np.int64)
+        it = np.int32 if counts.sum() < 2 ** 31 else np.int64
+        self.indptr = np.zeros(K + 1, dtype=it)
         np.cumsum(counts, out=self.indptr[1:])
-        self.q = np.empty(int(self.indptr[-1]), dtype=qs.dtype)
+        del counts
+        self.q = np.empty(int(self.indptr[-1]), dtype=qt)
         fill = self.indptr[:-1].copy()
         for s in range(0, qs.size, chunk):  # pass 2: counting sort, chunk by chunk
             keys, q = self._class_keys(qs[s:s + chunk])
@@ -393,7 +398,7 @@ class Predecessors:
             first = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
             rank = np.arange(keys.size) - np.repeat(first, np.diff(np.r_[first, keys.size]))
             self.q[fill[keys] + rank] = q
-            fill += np.bincount(keys, minlength=K)
+            fill += np.bincount(keys, minlength=K).astype(it, copy=False)
         self.size = self.q.size
 
     def _class_keys(self, q: np.ndarray):

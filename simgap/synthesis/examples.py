@@ -107,8 +107,10 @@ def _dcdc_rhs(x, u):
     (a, _), (_, d) = _DCDC_A[0]
     (e, f), (g, h) = _DCDC_A[1]
     x0, x1 = x[:, 0], x[:, 1]
-    return np.stack([np.where(m2, e * x0 + f * x1, a * x0) + _DCDC_B[0],
-                     np.where(m2, g * x0 + h * x1, d * x1)], axis=1)
+    out = np.empty_like(x)
+    out[:, 0] = np.where(m2, e * x0 + f * x1, a * x0) + _DCDC_B[0]
+    out[:, 1] = np.where(m2, g * x0 + h * x1, d * x1)
+    return out
 
 
 def dcdc_system(x_lo=(1.15, 5.45), x_hi=(1.55, 5.85)) -> System:

@@ -506,7 +506,8 @@ def _frontier(ab: Abstraction, changed: np.ndarray, candidates_mask: np.ndarray,
 
     Few changed cells: the offsets are enumerated per changed cell (cost ~ changed cells times
     the offset range). Many: a separable binary dilation of the mask of the changed cells
-    (``buf``, (N,) bool, reused) with one pass of shifted ORs per offset and dimension.
+    (``buf``, (3, N) bool, reused across levels) with one pass of shifted ORs per offset and
+    dimension.
     """
     g = ab.grid
     span = (np.asarray(dhi, dtype=np.int64) - dlo + 1)
@@ -523,27 +524,33 @@ def _frontier(ab: Abstraction, changed: np.ndarray, candidates_mask: np.ndarray,
                 ok &= (c[..., d] >= 0) & (c[..., d] < g.shape[d])
         ids = np.unique(c[ok] @ g.strides)
         return ids[candidates_mask[ids]]
-    buf[:] = False
-    buf[changed] = True
-    D = buf.reshape(g.shape)
-    for d in range(g.n):
-        src = D
-        D = np.zeros_like(src)
+    buf[0] = False
+    buf[0, changed] = True
+    src = buf[0].reshape(g.shape)
+    for d in range(g.n):  # separable dilation into the two other reused buffers, alternately
+        D = buf[1 + d % 2].reshape(g.shape)
+        D[...] = False
         s = g.shape[d]
         for delta in range(int(dlo[d]), int(dhi[d]) + 1):  # a handful of shifts (offset range)
-            if g.periodic_mask[d]:
-                D |= np.roll(src, -delta, axis=d)
+            dst = [slice(None)] * g.n
+            sl = [slice(None)] * g.n
+            if g.periodic_mask[d]:  # D[i] |= src[(i + delta) mod s], as two slices
+                k = delta % s
+                dst[d], sl[d] = slice(0, s - k), slice(k, s)
+                D[tuple(dst)] |= src[tuple(sl)]
+                if k:
+                    dst[d], sl[d] = slice(s - k, s), slice(0, k)
+                    D[tuple(dst)] |= src[tuple(sl)]
             else:
                 if abs(delta) >= s:
                     continue
-                dst = [slice(None)] * g.n
-                sl = [slice(None)] * g.n
                 if delta >= 0:  # D[i] |= src[i + delta]
                     dst[d], sl[d] = slice(0, s - delta), slice(delta, s)
                 else:
                     dst[d], sl[d] = slice(-delta, s), slice(0, s + delta)
                 D[tuple(dst)] |= src[tuple(sl)]
-    return np.flatnonzero(D.ravel() & candidates_mask)
+        src = D
+    return np.flatnonzero(np.logical_and(src.ravel(), candidates_mask, out=buf[0]))
 
 
 @dataclass
@@ -700,7 +707,7 @@ def _reach_sat(ab: Abstraction, ev: PairEvaluator, target, blocked, live, group_
     # the input-group filter pays off with many inputs (its SAT costs one more build per level)
     hc = ev.build_hulls() if (group_filter if group_filter is not None else M >= 100) else None
     changed = np.flatnonzero(target)
-    buf = np.zeros(N, dtype=bool)
+    buf = np.zeros((3, N), dtype=bool)  # frontier buffers, reused every level
     it = 0
     B = _block_size(ab)  # ~2^18 pairs: block temporaries stay small enough for the heap to reuse
     tested = 0
@@ -711,9 +718,9 @@ def _reach_sat(ab: Abstraction, ev: PairEvaluator, target, blocked, live, group_
             break
         Wc.set(W)
         if hc is not None:
-            buf[:] = False
-            buf[changed] = True
-            hc.set(buf)
+            buf[0] = False
+            buf[0, changed] = True
+            hc.set(buf[0])
         new_ids, new_rows = [], []
         for s in range(0, cand.size, B):
             ids = cand[s:s + B]
@@ -819,7 +826,7 @@ def _invariance_sat(ab: Abstraction, ev: PairEvaluator, S: np.ndarray, live: np.
     dlo, dhi = ab.offset_range()
     Wc = BoxCounter(g.shape, g.periodic_mask)
     B = _block_size(ab)  # ~2^18 pairs: block temporaries stay small enough for the heap to reuse
-    buf = np.zeros(N, dtype=bool)
+    buf = np.zeros((3, N), dtype=bool)  # frontier buffers, reused every round
     changed = None
     it = 0
     tested = 0

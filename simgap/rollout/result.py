@@ -151,8 +151,8 @@ class RolloutResult:
         else:
             lines.append(f"  mean map        {mm['outcome']}" + (f", reach step {mm['reach_time']}" if mm["reach_time"] >= 0 else "")
                          + (f", violation step {mm['violation_time']} ({mm['violation_kind']})" if mm["violation_time"] >= 0 else "")
-                         + f": m+ = E fhat(m, u(m)), {mm['runs_per_step']} runs per step, std. error <= "
-                         + str(np.round(mm["max_std_error"], 5).tolist()) + " (the sequence the guarantee is about)")
+                         + f": m+ = E fhat(m, u(m)), {mm['runs_per_step']} runs per step, std. error <= ["
+                         + ", ".join(f"{v:.2g}" for v in mm["max_std_error"]) + "] (the sequence the guarantee is about)")
         mv = d["rollout_average"]
         lines.append(f"  rollout average {'satisfies' if mv['satisfied'] else 'violates'} the spec"
                      + (f" (reach step {mv['reach_time']})" if mv["reach_time"] >= 0 else "")

@@ -81,3 +81,14 @@ def test_rerun_recording_of_the_per_run_results(run, tmp_path):
     for ent in ("/perrun/p_cert", "/perrun/perrun/p_emp", "/perrun/deterministic/p_emp", "/perrun/summary"):
         assert ent in back, sorted(back)
     assert back["/perrun/perrun/p_emp"]["rows"] >= 1
+
+
+def test_pendulum_perrun_profile_is_valid():
+    from simgap.config import load_experiment
+    from simgap.perrun.stage import check_section
+
+    e = load_experiment("pendulum", "perrun")
+    o = check_section(e.section("perrun"), e.system, e.plan().n_pairs, e.collect.n_runs,
+                      e.section("rollout").get("horizon"))
+    assert o["horizon"] == 400 and o["n_rollouts"] == 10000 and o["alpha"] == 0.05
+    assert load_experiment("pendulum", "noisy").section("perrun") == {}   # the other profiles are unchanged

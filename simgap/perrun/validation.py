@@ -49,12 +49,12 @@ def success_counts(input_fn: InputFn, hold: int, sim, spec: Spec, x0s: np.ndarra
             alive &= ~ok
         t = 0
         for period in range(int(horizon)):
+            if not alive.any():
+                break
             if period % hold == 0:
                 idx = np.asarray(input_fn(x[alive], t))
                 cur[alive] = np.where(idx >= 0, idx, cur[alive])
                 t += 1
-            if not alive.any():
-                break
             x[alive] = sim.step(x[alive], U[cur[alive]], rng)
             bad = alive & spec.violated(x, s.x_lo, s.x_hi)
             alive &= ~bad

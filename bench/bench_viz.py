@@ -115,8 +115,8 @@ FRAME_JS = """(ms) => new Promise(r => { const t = []; let last = performance.no
 
 def bench_browser(results: str, n_draw: int, repeats: int):
     """In headless chromium (software WebGL): (1) frame times with the run's winning domain and
-    ``n_draw`` rollouts drawn (requestAnimationFrame intervals while the camera orbits, which
-    forces a redraw every frame); (2) a confidence change typed into the page until the new
+    each count in ``n_draw`` of rollouts drawn, in one browser session so that the counts compare
+    under the same load (requestAnimationFrame intervals while the camera moves); (2) a confidence change typed into the page until the new
     surface is in the browser: the status line (sent after the surface) shows in the page, plus
     one animation frame. The 0.5 s typing debounce is part of it and reported."""
     from playwright.sync_api import sync_playwright
@@ -128,16 +128,19 @@ def bench_browser(results: str, n_draw: int, repeats: int):
     try:
         app.load_run(load_run(results))
         app.set_view(dim=1)
-        app.set_time(n_draw=n_draw)
         with sync_playwright() as pw:
             b = pw.chromium.launch(executable_path=S.CHROMIUM, args=S.ARGS)
             page = S.open_page(b, app.url)
             S.show_tab(page, "View")
-            frames = []
-            for k in range(repeats):  # orbit the camera so that every frame is redrawn
-                for c in app.server.get_clients().values():
-                    c.camera.position = tuple(float(v) for v in (2.5 * math.cos(k), -2.5, 2.0))
-                frames += page.evaluate(FRAME_JS, 3000)
+            frames = {}
+            for nd in n_draw:
+                app.set_time(n_draw=nd)
+                time.sleep(2.0)
+                frames[nd] = []
+                for k in range(repeats):  # orbit the camera so that every frame is redrawn
+                    for c in app.server.get_clients().values():
+                        c.camera.position = tuple(float(v) for v in (2.5 * math.cos(k), -2.5, 2.0))
+                    frames[nd] += page.evaluate(FRAME_JS, 4000)
             S.show_tab(page, "Certificate", settle=1.0)
             conf = page.locator('xpath=//label[normalize-space(text())="Confidence"]'
                                 '/ancestor::div[contains(@class, "mantine-Flex-root")][1]//input').first
@@ -160,9 +163,8 @@ def bench_browser(results: str, n_draw: int, repeats: int):
             b.close()
     finally:
         app.stop()
-    frames.sort()
-    return {"rollouts_drawn": n_draw, "frames": len(frames), "frame_median_ms": statistics.median(frames),
-            "frame_p90_ms": frames[int(0.9 * (len(frames) - 1))],
+    return {"frame_ms_by_rollouts_drawn": {nd: {"frames": len(f), "median": statistics.median(f) if f else None,
+                                                "max": max(f) if f else None} for nd, f in frames.items()},
             "confidence_change_to_surface_s": {"n": len(changes), "median": statistics.median(changes),
                                                "max": max(changes), "includes_debounce_s": 0.5}}
 
@@ -202,11 +204,11 @@ def main(argv=None):
     p.add_argument("--skip-certify", action="store_true")
     p.add_argument("--browser", default=None, metavar="RESULTS",
                    help="a finished `simgap run` folder: measure frame times and a change end to end in chromium")
-    p.add_argument("--draw", type=int, default=1000, help="rollouts drawn for the frame times (default 1000)")
+    p.add_argument("--draw", default="0,100,1000", help="rollouts drawn for the frame times, comma separated")
     args = p.parse_args(argv)
     out = {"machine": {"cores": os.cpu_count(), "python": platform.python_version()}}
     if args.browser:
-        out["browser"] = bench_browser(args.browser, args.draw, args.repeats)
+        out["browser"] = bench_browser(args.browser, [int(d) for d in args.draw.split(",")], args.repeats)
         print(json.dumps(out, indent=1))
         return
     if not args.skip_certify:

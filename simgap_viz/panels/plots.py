@@ -42,7 +42,8 @@ def gamma_slice(app, plot, res: int = 161) -> int:
     xs = P[:, a]
     gam = np.asarray(cert.gamma(P[:, :s.n], P[:, s.n:]), dtype=float)[:, dim]
     gap = np.full(res, np.nan)
-    rows = _line_rows(data, s, a, fixed) if data is not None else np.zeros(0, int)
+    # rows on the line: every variable but a near its fixed value (a slice over (a, a))
+    rows = G.data_slice(data, s, a, a, fixed, max_points=4000) if data is not None else np.zeros(0, int)
     if rows.size:
         xd = np.hstack([data.x, data.u])[rows, a]
         order = np.argsort(np.concatenate([xs, xd]), kind="stable")
@@ -58,21 +59,6 @@ def gamma_slice(app, plot, res: int = 161) -> int:
     plot.title = f"gamma_{s.state_names[dim]} along {names[a]} (others at the View sliders)"
     plot.visible = True
     return int(rows.size)
-
-
-def _line_rows(data, s, a, fixed):
-    """Rows near the line through ``fixed`` along variable ``a`` (every other variable near its value)."""
-    P = np.hstack([data.x, data.u])
-    keep = np.ones(P.shape[0], dtype=bool)
-    for j in range(P.shape[1]):
-        if j == a:
-            continue
-        if j < s.n:
-            keep &= np.abs(P[:, j] - fixed[j]) <= max(data.epsilon, 1e-12)
-        else:
-            vals = np.unique(P[:, j])
-            keep &= P[:, j] == vals[np.argmin(np.abs(vals - fixed[j]))]
-    return np.flatnonzero(keep)[:4000]
 
 
 def audit_margins(app, plot) -> bool:

@@ -55,7 +55,7 @@ from .errors import SimgapError
 from .executors import Executor, make_executor
 from .progress import StopCheck, as_stop_check
 from .simulators.base import SimulatorConfig, make_simulator
-from .systems import System, get_system, wrap_angle
+from .systems import System, resolve_system, wrap_angle
 
 STORE_FORMAT = "simgap-store/1"
 MANIFEST = "manifest.json"
@@ -237,8 +237,8 @@ _WORKER_CACHE: dict = {}
 
 
 def _system_from_config(desc: dict, steps: int) -> System:
-    """Rebuild a built-in system (with its recorded input set) from a manifest description."""
-    s = get_system(desc["name"], steps=steps)
+    """Rebuild a built-in or refined system (with its recorded input set) from a manifest description."""
+    s = resolve_system(desc.get("params", {}).get("_refined_json") or desc["name"], steps=steps, paths=False)
     U = np.asarray(desc["inputs"], dtype=float)
     if U.shape != s.inputs.shape or not np.array_equal(U, s.inputs):
         s = dataclasses.replace(s, inputs=U)

@@ -34,7 +34,7 @@ from .cover import Cover, CoverSpec, make_cover
 from .errors import SimgapError
 from .paths import ASSETS_DIR
 from .simulators.base import SimulatorConfig
-from .systems import System, get_system, input_grid
+from .systems import BUILTIN, System, get_system, input_grid, resolve_system
 
 EXPERIMENTS_DIR = ASSETS_DIR / "experiments"
 
@@ -171,7 +171,7 @@ def load_experiment(path_or_name: str | Path, profile: Optional[str] = "small",
     syn_map = model.synthesis.map
     if syn_map is not None and ("/" in syn_map or "\\" in syn_map or syn_map.endswith(".toml")):
         merged["synthesis"]["map"] = str(confined(syn_map, folder, f"{where}: synthesis.map"))
-    system = _system(model.system, where)
+    system = _system(model.system, where, folder)
     simulator = _simulator(model.simulator, merged["simulator"], system, where)
     collect = _collect(model.collect, out)
     return ExperimentConfig(name=path.stem, profile=profile, path=path, system=system, simulator=simulator,
@@ -200,8 +200,16 @@ def confined(value: str, folder: Path, what: str) -> Path:
     return p
 
 
-def _system(d: schema.SystemSection, where: str) -> System:
-    s = get_system(d.name, steps=d.steps)
+def _system(d: schema.SystemSection, where: str, folder: Path) -> System:
+    """A built-in by name, or a refined-system JSON (in the experiment's folder), read once here:
+    its content travels embedded in manifests, data sets and controllers from now on."""
+    if d.name in BUILTIN:
+        s = get_system(d.name, steps=d.steps)
+    elif d.name.endswith(".json"):
+        s = resolve_system(confined(d.name, folder, f"{where}: system.name"), steps=d.steps)
+    else:
+        raise SimgapError(f"{where}: unknown system {d.name!r} in system.name; built-in systems: "
+                          f"{', '.join(sorted(BUILTIN))}, or a refined-system .json file")
     if d.inputs is not None:
         U = np.array(d.inputs, dtype=float)
         if U.ndim == 1 and U.size and s.m == 1:
@@ -221,7 +229,7 @@ def _system(d: schema.SystemSection, where: str) -> System:
 
 
 def _simulator(d: schema.SimulatorSection, raw: dict, system: System, where: str) -> SimulatorConfig:
-    if d.system not in (None, system.name):
+    if d.system not in (None, system.name, system.params.get("base_system")):
         raise SimgapError(f"{where}: simulator.system {d.system!r} differs from system.name {system.name!r}")
     if d.steps not in (None, system.steps):
         raise SimgapError(f"{where}: simulator.steps {d.steps!r} differs from system.steps {system.steps}")

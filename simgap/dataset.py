@@ -24,6 +24,8 @@ Certificates record it, so data re-saved with other numbers no longer match thei
 
 from __future__ import annotations
 
+import dataclasses
+
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -33,7 +35,7 @@ import numpy as np
 
 from . import fileio
 from .errors import BAD_FILE_ERRORS, SimgapError
-from .systems import System, get_system
+from .systems import System, resolve_system, system_ref
 
 ARRAYS = ("x", "u", "f_nom", "mean", "var", "lo", "hi", "cover_index", "input_index")
 
@@ -92,6 +94,19 @@ class Dataset:
         """Observed gap |mean_k fhat(x_r,u,w_k) - f(x_r,u)| per row and dimension, (K,n), angles wrapped."""
         return np.abs(self.system.diff(self.mean, self.f_nom))
 
+    def with_nominal(self, system: System) -> "Dataset":
+        """The same simulator data against another nominal model f' (e.g. a refined system):
+        f_nom = f'(x_r, u) at the data's steps; the empirical means, variances and extremes are
+        unchanged, so the observed gap becomes |mean - f'|. f' must have the data's state
+        variables and box X."""
+        s, own = system.with_steps(self.system.steps), self.system
+        if (s.state_names, s.input_names) != (own.state_names, own.input_names) \
+                or not (np.array_equal(s.x_lo, own.x_lo) and np.array_equal(s.x_hi, own.x_hi)):
+            raise SimgapError(f"system {s.name!r} does not fit the data of {own.name!r}: need the same state and "
+                              f"input names and state box X = {own._box_str()}")
+        # the kept per-run deviations are from the old f_nom: dropped, not silently reused
+        return dataclasses.replace(self, system=s, f_nom=s.f(self.x, self.u), absdev_top=None)
+
     def check_finite(self) -> None:
         for name in ("x", "u", "f_nom", "mean", "var"):
             a = getattr(self, name)
@@ -103,7 +118,7 @@ class Dataset:
     def save_npz(self, path: str | Path) -> Path:
         """Write the dataset as one .npz (atomically: temp file, then rename)."""
         meta = {"n_runs": int(self.n_runs), "epsilon": float(self.epsilon), "manifest": self.manifest,
-                "system": self.system.name, "steps": int(self.system.steps), "content_hash": self.hash}
+                "system": system_ref(self.system) or self.system.name, "steps": int(self.system.steps), "content_hash": self.hash}
         extra = {} if self.absdev_top is None else {"absdev_top": self.absdev_top}
         return fileio.savez(path, **{k: getattr(self, k) for k in ARRAYS}, **extra, meta=np.array(json.dumps(meta)))
 
@@ -111,7 +126,8 @@ class Dataset:
 def load_dataset(path: str | Path, system: System | None = None) -> Dataset:
     """Load a dataset from a single .npz or from a collection store directory.
 
-    ``system`` overrides the built-in system named in the file (needed for user systems).
+    ``system`` overrides the system the file records (a built-in name or an embedded refined
+    system; needed for user systems).
     """
     path = Path(path)
     if path.is_dir():
@@ -127,7 +143,10 @@ def load_dataset(path: str | Path, system: System | None = None) -> Dataset:
             meta = json.loads(str(z["meta"]))
     except (*BAD_FILE_ERRORS, KeyError) as e:
         raise SimgapError(f"dataset {str(path)!r} is unreadable or not a simgap dataset: {e}") from None
-    sysobj = system or get_system(meta["system"], steps=meta.get("steps", 1))
+    try:
+        sysobj = system or resolve_system(meta["system"], steps=meta.get("steps", 1), paths=False)
+    except SimgapError as e:
+        raise SimgapError(f"dataset {str(path)!r}: cannot rebuild its system ({e}); pass the System") from None
     ds = Dataset(system=sysobj, n_runs=int(meta["n_runs"]), epsilon=float(meta["epsilon"]),
                  manifest=meta.get("manifest", {}), **arrays)
     want = meta.get("content_hash")

@@ -57,7 +57,8 @@ class InputGrid(Section):
 
 
 class SystemSection(Section):
-    """``[system]``: a built-in system by name; its input set as a list or a grid."""
+    """``[system]``: a built-in system by name or a refined-system .json (in the experiment's
+    folder); its input set as a list or a grid."""
     name: str
     steps: Int1 = 1
     inputs: Optional[Union[list[list[Finite]], list[Finite]]] = None

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import os
 from dataclasses import dataclass, field
 from typing import Callable, Optional, Sequence
 
@@ -350,3 +351,51 @@ def get_system(name: str, steps: int = 1) -> System:
     except KeyError:
         raise SimgapError(f"unknown system {name!r}; built-in systems: {', '.join(sorted(BUILTIN))}") from None
     return factory().with_steps(steps)
+
+
+def resolve_system(ref, steps: Optional[int] = None, paths: bool = True) -> System:
+    """The one way to turn a system reference into a :class:`System`.
+
+    ``ref`` is a built-in name (``pendulum``, ``turtlebot``, ``emps``), a refined system's JSON
+    object (``format: simgap-refined-system``, as embedded in manifests, data sets and
+    controllers), the path of a refined-system JSON file (command line, experiment TOML), or a
+    System (returned as is). The refined JSON is parsed with the expression allow-list, never
+    executed. ``steps`` (k base periods per sampling period) overrides the reference's own.
+    ``paths=False`` for references read from a file: data never make simgap open another file.
+    """
+    if isinstance(ref, System):
+        s = ref
+    elif isinstance(ref, str) and ref in BUILTIN:
+        s = get_system(ref)
+    else:
+        from .refine.refined import load_refined, system_from_dict  # refine builds on this module
+        if isinstance(ref, dict):
+            s = system_from_dict(ref)
+        elif paths and isinstance(ref, (str, os.PathLike)) and os.path.isfile(ref):
+            s = load_refined(ref)
+        else:
+            raise SimgapError(f"unknown system {str(ref)[:200]!r}: not a built-in ({', '.join(sorted(BUILTIN))})"
+                              + (" and no such refined-system JSON file" if paths else
+                                 " or an embedded refined system"))
+    return s.with_steps(steps) if steps is not None else s
+
+
+def system_ref(system: System):
+    """What :func:`resolve_system` rebuilds ``system`` from: the refined system's JSON object
+    (self-contained, not tied to a file) or a built-in name; ``None`` for a user-defined system."""
+    d = system.params.get("_refined_json")
+    if d is not None:
+        return dict(d, steps=int(system.steps), name=system.name)
+    return system.name if system.name in BUILTIN else None
+
+
+def system_digest(system: System) -> Optional[str]:
+    """sha256 of what the model computes: the built-in's name or the refined system's JSON
+    (base and effects with coefficients; name and steps are compared separately). Certificates
+    record it, so a certificate is never used with a different model of the same name.
+    ``None`` for a user-defined system."""
+    from .fileio import content_digest
+    ref = system_ref(system)
+    if isinstance(ref, dict):
+        ref = {"base": ref.get("base"), "effects": ref.get("effects")}
+    return None if ref is None else content_digest({"system": ref})

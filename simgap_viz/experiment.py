@@ -20,6 +20,7 @@ def app_inputs(experiment: Optional[str] = None, profile: Optional[str] = None, 
     if experiment:
         settings, spec, arena, exp = settings_from_experiment(experiment, profile)
     if system:
+        system = _selectable(system)
         settings = settings.replace(system=system, simulator=engine.default_simulator(system, settings.simulator))
         if system == "turtlebot" and arena is None:
             from simgap.maps import load_map
@@ -29,7 +30,22 @@ def app_inputs(experiment: Optional[str] = None, profile: Optional[str] = None, 
     if dataset:
         from simgap.dataset import load_dataset
         data = load_dataset(dataset)
+        _selectable(data.system)
     return settings, data, spec, arena, exp
+
+
+def _selectable(system) -> str:
+    """The app's name of a system given by name, refined-system JSON or System: a refined model
+    is registered (its simulator runs the base system), so the app can select it by name."""
+    from simgap.systems import BUILTIN, get_system, resolve_system
+
+    if isinstance(system, str) and system in BUILTIN:
+        return system
+    s = resolve_system(system)
+    base = s.params.get("base_system")
+    if s.name not in BUILTIN and base in BUILTIN:
+        engine.register_refined(s, get_system(base, s.steps))
+    return s.name
 
 
 def settings_from_experiment(name: str, profile: Optional[str]):

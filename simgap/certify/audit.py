@@ -89,8 +89,12 @@ def power(points: int, fraction: float) -> float:
 
 
 def audit(cert, simulator, points: int = 200, runs: int = 2000, seed: int = 0, dataset=None,
-          chunk_samples: int = 1_000_000, alpha: float = 0.05, power_fraction: float = 0.01) -> dict:
+          chunk_samples: int = 1_000_000, alpha: float = 0.05, power_fraction: float = 0.01,
+          system=None) -> dict:
     """Audit ``cert`` with ``simulator`` (a Simulator, SimulatorConfig or its dict). Returns the report dict.
+
+    ``system``: the nominal model f the certificate is for when it is not the simulator's own
+    (a refined model certified on the simulator's data, ``simgap certify --system``).
 
     ``alpha``: family-wise false-alarm rate of the Holm-corrected tests; ``power_fraction``: the
     violated fraction of (x, u) the reported power refers to (see module docstring).
@@ -101,7 +105,7 @@ def audit(cert, simulator, points: int = 200, runs: int = 2000, seed: int = 0, d
         raise SimgapError(f"audit: need 0 < alpha < 1 and 0 < power fraction <= 1, got alpha={alpha}, "
                           f"power fraction={power_fraction}")
     sim = simulator if isinstance(simulator, Simulator) else make_simulator(simulator)
-    s = sim.system
+    s = sim.system if system is None else system.with_steps(sim.system.steps)
     cert.check_system(s)
     rng = np.random.default_rng(seed)
     cover, cov_dims = None, list(range(s.n))

@@ -103,6 +103,7 @@ class Certificate:
     dims: List[DimCertificate]
     provenance: dict
     inputs: Optional[np.ndarray] = None   # (M, m) the inputs the data covered: gamma is certified for these
+    system_digest: Optional[str] = None   # simgap.systems.system_digest of the nominal model
 
     # ----- shape -----------------------------------------------------------------------
     @property
@@ -197,10 +198,16 @@ class Certificate:
     # ----- compatibility ---------------------------------------------------------------
     def check_system(self, system) -> None:
         """Raise unless the certificate was made for ``system`` (name, steps, dimensions)."""
+        from ..systems import system_digest
         if system.name != self.system_name or system.steps != self.steps or system.n != self.n \
                 or system.m != self.m:
             raise SimgapError(f"certificate is for system {self.system_name!r} (steps={self.steps}, n={self.n}, "
                               f"m={self.m}), not {system.name!r} (steps={system.steps}, n={system.n}, m={system.m})")
+        have = system_digest(system)
+        if self.system_digest is not None and have != self.system_digest:
+            raise SimgapError(f"certificate is for a different model named {self.system_name!r}: its model digest "
+                              f"is {self.system_digest[:16]}..., this system's is {str(have)[:16]}... (a refined "
+                              f"system with other effects or coefficients?)")
 
     # ----- JSON ------------------------------------------------------------------------
     def to_dict(self) -> dict:
@@ -211,7 +218,8 @@ class Certificate:
             "system": {"name": self.system_name, "steps": self.steps, "state_names": list(self.state_names),
                        "input_names": list(self.input_names), "x_lo": self.x_lo.tolist(),
                        "x_hi": self.x_hi.tolist(), "angle_dims": list(self.angle_dims),
-                       "inputs": None if self.inputs is None else self.inputs.tolist()},
+                       "inputs": None if self.inputs is None else self.inputs.tolist(),
+                       **({} if self.system_digest is None else {"digest": self.system_digest})},
             "epsilon": self.epsilon, "n_runs": self.n_runs, "K": self.K, "method": self.method,
             "options": self.options, "dims": [d.to_dict() for d in self.dims],
             "per_dim_confidence": self.per_dim_confidence, "joint_confidence": self.joint_confidence,
@@ -269,7 +277,8 @@ class Certificate:
                        x_hi=np.asarray(s["x_hi"], float), angle_dims=tuple(s["angle_dims"]),
                        epsilon=float(d["epsilon"]), n_runs=int(d["n_runs"]), K=int(d["K"]), method=d["method"],
                        options=d["options"], dims=dims, provenance=d["provenance"],
-                       inputs=None if s.get("inputs") is None else np.asarray(s["inputs"], float).reshape(-1, names.m))
+                       inputs=None if s.get("inputs") is None else np.asarray(s["inputs"], float).reshape(-1, names.m),
+                       system_digest=s.get("digest"))
         except (KeyError, TypeError) as e:
             raise SimgapError(f"certificate is malformed: missing or bad field {e}") from None
 

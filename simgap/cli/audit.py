@@ -23,6 +23,9 @@ def add_parser(subparsers) -> None:
     p.add_argument("--against", metavar="DATA2",
                    help="audit against the simulator of another data set (e.g. a deterministic-baseline "
                         "certificate made with a noise-free simulator, against the noisy one)")
+    p.add_argument("--system", metavar="NAME|JSON",
+                   help="the nominal model the certificate is for, when it was certified with `simgap certify "
+                        "--system` (a refined-system JSON); the simulator stays the data set's")
     p.add_argument("--points", type=int, default=200, help="fresh (x,u) points (default 200)")
     p.add_argument("--runs", type=int, default=2000, help="simulator runs per point (default 2000)")
     p.add_argument("--seed", type=int, default=12345)
@@ -38,9 +41,11 @@ def run(args) -> int:
     from ..certify import load
     from ..certify.audit import audit, report_table, save_report
     from ..dataset import load_dataset
+    from ..systems import resolve_system
 
     ds = load_dataset(args.data)
-    cert = load(args.cert, dataset=ds)
+    nominal = ds if args.system is None else ds.with_nominal(resolve_system(args.system))
+    cert = load(args.cert, dataset=nominal)
     src = load_dataset(args.against) if args.against else ds
     sim_cfg = src.manifest.get("simulator")
     if not sim_cfg:
@@ -50,10 +55,10 @@ def run(args) -> int:
     with make_simulator(sim_cfg, system=ds.system) as sim:
         if cert.method == "run":  # run-level certificate: coverage of gamma^alpha, not the mean gap
             from ..perrun.run_audit import audit_run, report_table
-            rep = audit_run(cert, sim, points=args.points, runs=args.runs, seed=args.seed)
+            rep = audit_run(cert, sim, points=args.points, runs=args.runs, seed=args.seed, system=nominal.system)
         else:
             rep = audit(cert, sim, points=args.points, runs=args.runs, seed=args.seed, dataset=ds, alpha=args.alpha,
-                    power_fraction=args.power_fraction)
+                    power_fraction=args.power_fraction, system=nominal.system)
     rep["simulator_source"] = str(args.against or args.data)
     print(report_table(rep))
     if args.out:

@@ -41,7 +41,8 @@ def add_parser(subparsers) -> None:
         description="Abstraction on a uniform grid (SCOTS conventions) and a reach-avoid or invariance game; "
                     "writes the controller (.npz) and prints grid size, boxes/transitions, winning domain and times.")
     p.add_argument("--system", default=None,
-                   help="built-in system name (pendulum, turtlebot, emps); default: the experiment's")
+                   help="built-in system name (pendulum, turtlebot, emps) or refined-system JSON; "
+                        "default: the experiment's")
     p.add_argument("--steps", type=int, default=None,
                    help="base periods per sampling period (default: the certificate's, else 1)")
     p.add_argument("--hold", type=int, default=None,
@@ -129,7 +130,7 @@ def run(args) -> int:
         return _run_level(args)
     if not (args.cert or args.gamma or args.no_gap):
         raise SimgapError("give one of --cert, --gamma or --no-gap (how the simulation gap enters)")
-    from ..systems import get_system
+    from ..systems import resolve_system
     from ..synthesis.controller import synthesize
     from ..synthesis.spec import Box, Spec
 
@@ -146,7 +147,7 @@ def run(args) -> int:
         e = load_experiment(exp, args.profile)
         syn = e.section("synthesis")
         system = e.system
-        if args.system is not None and args.system != system.name:
+        if args.system is not None and resolve_system(args.system).name != system.name:
             raise SimgapError(f"--system {args.system!r} does not match the experiment's system {system.name!r}")
         if args.steps is not None and args.steps != system.steps:
             system = system.with_steps(args.steps)
@@ -158,7 +159,7 @@ def run(args) -> int:
                 load_map(args.spec)  # names an unknown map or experiment before asking for --system
             raise SimgapError("give --system (or an experiment as --spec)")
         steps = args.steps if args.steps is not None else (getattr(cert, "steps", 1) if cert is not None else 1)
-        system = get_system(args.system, steps)
+        system = resolve_system(args.system, steps)
     if cert is not None:
         cert.check_system(system)
         gap = cert

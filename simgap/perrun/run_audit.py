@@ -23,13 +23,15 @@ from .realization import run_alpha
 
 
 def audit_run(cert, simulator, points: int = 100, runs: int = 2000, seed: int = 0, level: float = 0.001,
-              chunk_samples: int = 1_000_000) -> dict:
-    """Coverage audit of the run-level certificate ``cert`` (see module docstring); returns a report dict."""
+              chunk_samples: int = 1_000_000, system=None) -> dict:
+    """Coverage audit of the run-level certificate ``cert`` (see module docstring); returns a report dict.
+
+    ``system``: the nominal model when it is not the simulator's own (as in :func:`simgap.certify.audit.audit`)."""
     alpha = run_alpha(cert)
     if int(points) < 1 or int(runs) < 10:
         raise SimgapError(f"run audit: need points >= 1 and runs >= 10, got points={points}, runs={runs}")
     sim = simulator if isinstance(simulator, Simulator) else make_simulator(simulator)
-    s = sim.system
+    s = sim.system if system is None else system.with_steps(sim.system.steps)
     cert.check_system(s)
     B, R = int(points), int(runs)
     x, u = draw_points(s, B, np.random.default_rng([seed, 0]), inputs=cert.inputs)

@@ -11,7 +11,6 @@ winning-domain sizes (cells).
 
 from __future__ import annotations
 
-import dataclasses
 from typing import Optional
 
 import numpy as np
@@ -38,9 +37,8 @@ def gap_comparison(dataset, refined: System, certify_options=None, spec=None, et
     from ..certify import CertifyOptions, certify
 
     opts = certify_options or CertifyOptions()
-    if refined.steps != dataset.system.steps:
-        refined = refined.with_steps(dataset.system.steps)
-    ds_ref = dataclasses.replace(dataset, system=refined, f_nom=refined.f(dataset.x, dataset.u))
+    ds_ref = dataset.with_nominal(refined)
+    refined = ds_ref.system
     out = {"certify_options": opts.to_dict()}
     certs = {}
     for tag, ds in (("before", dataset), ("after", ds_ref)):

@@ -37,7 +37,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from ..errors import SimgapError
-from ..systems import BUILTIN, System, get_system
+from ..systems import BUILTIN, System, get_system, resolve_system
 from .effects import Effect, effect_from_spec, integration_effect
 
 FORMAT = "simgap-refined-system"
@@ -100,7 +100,7 @@ def refined_system(base: System, effects: Sequence[Effect], coefficients: Sequen
             uniq, inv = np.unique(u, axis=0, return_inverse=True)
             return J + 1.05 * dt0 * effect_bound(uniq)[inv.reshape(-1)]
 
-    refinement = [dict(e.spec(), coefficient=float(ck), stderr=float(sk))
+    refinement = [dict(e.spec(), coefficient=float(ck), stderr=float(sk) if np.isfinite(sk) else None)
                   for e, ck, sk in zip(effects, c, se)]
     params = dict(base.params)
     params["base_system"] = str(base.params.get("base_system", base.name))
@@ -149,16 +149,24 @@ def build_refined(base: System, base_spec, effects: Sequence[Effect], coefficien
     return sysobj
 
 
-def system_from_dict(d: dict) -> System:
+MAX_NESTING = 16  # refinements of refinements a file may hold
+
+
+def system_from_dict(d: dict, _depth: int = 0) -> System:
     """Rebuild a refined system from its JSON object (see module docstring)."""
     if not isinstance(d, dict) or d.get("format") != FORMAT:
         raise SimgapError(f"not a simgap refined-system file (need \"format\": \"{FORMAT}\")")
+    if _depth > MAX_NESTING:
+        raise SimgapError(f"refined system: more than {MAX_NESTING} nested refinements")
     try:
         base_spec, effs, steps = d["base"], d["effects"], int(d.get("steps", 1))
     except (KeyError, TypeError, ValueError):
         raise SimgapError("refined system: needs 'base' and 'effects'") from None
+    name = d.get("name")
+    if name is not None and (not isinstance(name, str) or name in BUILTIN):
+        raise SimgapError(f"refined system: name {name!r} must be a string other than a built-in's")
     if isinstance(base_spec, dict):
-        base = system_from_dict(base_spec).with_steps(1)
+        base = system_from_dict(base_spec, _depth + 1).with_steps(1)
     elif isinstance(base_spec, str) and base_spec in BUILTIN:
         base = get_system(base_spec)
     else:
@@ -168,13 +176,17 @@ def system_from_dict(d: dict) -> System:
         raise SimgapError("refined system: 'effects' must be a list")
     effects, coefs, ses = [], [], []
     for spec in effs:
-        if "coefficient" not in spec:
+        if not isinstance(spec, dict) or "coefficient" not in spec:
             raise SimgapError(f"refined system: effect {spec!r} has no coefficient")
         effects.append(effect_from_spec(base, spec))
-        coefs.append(float(spec["coefficient"]))
-        se = spec.get("stderr")
-        ses.append(float("nan") if se is None else float(se))
-    return build_refined(base, base_spec, effects, coefs, ses, name=d.get("name")).with_steps(steps)
+        try:
+            coefs.append(float(spec["coefficient"]))
+            se = spec.get("stderr")
+            ses.append(float("nan") if se is None else float(se))
+        except (TypeError, ValueError):
+            raise SimgapError(f"refined system: effect {spec.get('name')!r} has a coefficient or stderr that is "
+                              f"not a number") from None
+    return build_refined(base, base_spec, effects, coefs, ses, name=name).with_steps(steps)
 
 
 def load_refined(path: str | Path) -> System:
@@ -184,25 +196,12 @@ def load_refined(path: str | Path) -> System:
         d = json.loads(path.read_text())
     except OSError as e:
         raise SimgapError(f"cannot read refined system {str(path)!r}: {e}") from None
-    except json.JSONDecodeError as e:
-        raise SimgapError(f"refined system {str(path)!r} is not valid JSON: {e}") from None
+    except (json.JSONDecodeError, RecursionError) as e:
+        raise SimgapError(f"refined system {str(path)!r} is not valid JSON or nested too deeply: {e}") from None
     return system_from_dict(d)
 
 
 def load_system(name_or_path, steps: Optional[int] = None) -> System:
-    """A system by built-in name (``pendulum``, ``turtlebot``, ``emps``) or refined-system JSON path.
-
-    ``steps`` (k base periods per sampling period) overrides the file's value when given.
-    Accepts a :class:`System` unchanged (apart from ``steps``).
-    """
-    if isinstance(name_or_path, System):
-        s = name_or_path
-    elif isinstance(name_or_path, str) and name_or_path in BUILTIN:
-        s = get_system(name_or_path)
-    else:
-        p = Path(str(name_or_path))
-        if not p.exists():
-            raise SimgapError(f"unknown system {str(name_or_path)!r}: not a built-in "
-                              f"({', '.join(sorted(BUILTIN))}) and no such refined-system file")
-        s = load_refined(p)
-    return s.with_steps(steps) if steps is not None else s
+    """A system by built-in name, refined-system JSON (path or object) or System:
+    :func:`simgap.systems.resolve_system`."""
+    return resolve_system(name_or_path, steps)

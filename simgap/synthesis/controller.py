@@ -178,8 +178,8 @@ class Controller:
     def load(cls, path, system: Optional[System] = None) -> "Controller":
         """Load a controller saved by :meth:`save` (no pickle).
 
-        The system is rebuilt from its name (built-ins and the SCOTS vehicle) with the stored
-        input set, unless ``system`` is given.
+        The system is rebuilt from its description (built-ins, the SCOTS vehicle, an embedded
+        refined system) with the stored input set, unless ``system`` is given.
         """
         path = Path(path)
         if not path.exists():
@@ -224,13 +224,14 @@ def _json_default(o):
 
 
 def _rebuild_system(d: dict, inputs: np.ndarray) -> Optional[System]:
-    from ..systems import BUILTIN, get_system
+    from ..systems import BUILTIN, resolve_system
     name = d.get("name")
+    refined = (d.get("params") or {}).get("_refined_json")
     if name == "scots_vehicle":
         from .examples import vehicle_system
         sysm = vehicle_system()
-    elif name in BUILTIN:
-        sysm = get_system(name, int(d.get("steps", 1)))
+    elif name in BUILTIN or refined is not None:
+        sysm = resolve_system(refined or name, int(d.get("steps", 1)), paths=False)
     else:
         return None  # a user-defined system: pass it to Controller.load(system=...)
     if sysm.inputs.shape != inputs.shape or not np.allclose(sysm.inputs, inputs):

@@ -199,7 +199,7 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
 
     # one simulator per data set for the stages that call it directly (Lhat_fhat, audit, rollouts),
     # each batch spread over the collection's cores (the same results as in one process)
-    sims = {m: make_simulator(e.simulator.to_dict(), workers=wk or 0)
+    sims = {m: make_simulator(e.simulator.to_dict(), e.system, workers=wk or 0)
             for m, e in (("stochastic", exp), ("deterministic", baseline_experiment(exp)))}
     sim = sims["stochastic"]  # audits and rollouts run against the stochastic simulator
     controllers = {}

@@ -26,6 +26,7 @@ from typing import Dict, Optional
 
 import numpy as np
 
+from ..systems import system_ref
 from .base import Simulator, SimulatorConfig
 
 #: batches smaller than this many rows per process run in the calling process only
@@ -38,8 +39,9 @@ _HELPER: Optional[Simulator] = None  # the simulator of a helper process
 
 def _start_helper(config: dict, system) -> None:
     global _HELPER
+    from ..systems import resolve_system
     from .base import make_simulator
-    _HELPER = make_simulator(config, system)
+    _HELPER = make_simulator(config, None if system is None else resolve_system(system, paths=False))
 
 
 def _helper_step(x, u, noise):
@@ -58,7 +60,9 @@ class ParallelSimulator(Simulator):
         self.config: SimulatorConfig = inner.config
         self.system = inner.system
         self.workers = max(1, int(workers))
-        self._system_arg = system  # rebuilt in the helpers (None: by name from the config)
+        # what the helpers rebuild the system from: a System's step is a closure that does not
+        # pickle (forkserver/spawn), so a built-in name or the embedded refined system travels instead
+        self._system_arg = system if system is None else (system_ref(system) or system)
         self._pool = None
         self._memo: OrderedDict = OrderedDict()
 

@@ -104,6 +104,7 @@ class Dataset:
                 or not (np.array_equal(s.x_lo, own.x_lo) and np.array_equal(s.x_hi, own.x_hi)):
             raise SimgapError(f"system {s.name!r} does not fit the data of {own.name!r}: need the same state and "
                               f"input names and state box X = {own._box_str()}")
+        s = dataclasses.replace(s, inputs=own.inputs)  # the input set the data cover
         # the kept per-run deviations are from the old f_nom: dropped, not silently reused
         return dataclasses.replace(self, system=s, f_nom=s.f(self.x, self.u), absdev_top=None)
 
@@ -118,7 +119,8 @@ class Dataset:
     def save_npz(self, path: str | Path) -> Path:
         """Write the dataset as one .npz (atomically: temp file, then rename)."""
         meta = {"n_runs": int(self.n_runs), "epsilon": float(self.epsilon), "manifest": self.manifest,
-                "system": system_ref(self.system) or self.system.name, "steps": int(self.system.steps), "content_hash": self.hash}
+                "system": system_ref(self.system) or self.system.name, "steps": int(self.system.steps),
+                "content_hash": self.hash}
         extra = {} if self.absdev_top is None else {"absdev_top": self.absdev_top}
         return fileio.savez(path, **{k: getattr(self, k) for k in ARRAYS}, **extra, meta=np.array(json.dumps(meta)))
 

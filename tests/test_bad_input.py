@@ -438,3 +438,144 @@ def test_unknown_spec_is_named(tmp_path):
     r = simgap("synthesize", "--no-gap", "--spec", "nosuchspec", "--eta", "0.1", "--out", "c.npz", cwd=tmp_path)
     refused(r, "unknown map 'nosuchspec'")
     assert list(tmp_path.iterdir()) == []
+
+
+# ----- a wider probe, in process (main() is what the console script calls) -------------------
+
+def _cert_edit(fn):
+    def make(d: Path) -> str:
+        import json
+        c = json.loads((d / "cert.json").read_text())
+        fn(c)
+        (d / "edited.json").write_text(json.dumps(c))
+        return "edited.json"
+    return make
+
+
+def _set(path, value):
+    def edit(c):
+        obj = c
+        for k in path[:-1]:
+            obj = obj[k]
+        obj[path[-1]] = value
+    return edit
+
+
+CERT_EDITS = [  # (edit, words): every reader must refuse, naming the problem
+    (_set(["system"], "pendulum"), ["'system' must be an object", "string"]),
+    (_set(["system"], None), ["'system' must be an object", "null"]),
+    (_set(["dims"], 5), ["'dims' must be a list", "number"]),
+    (_set(["dims"], {}), ["'dims' must be a list", "object"]),
+    (lambda c: c["dims"].__setitem__(0, "x"), ["dims[0] must be an object"]),
+    (lambda c: c["dims"][0].pop("terms"), ["dims[0]", "'terms'"]),
+    (lambda c: c["system"].pop("state_names"), ["'state_names'"]),
+    (_set(["system", "x_lo"], "0"), ["'x_lo' must be a list"]),
+    (lambda c: c["dims"].pop(), ["dimension entries"]),
+    (_set(["dims", 0, "q"], [1.0]), ["q does not match"]),
+    (_set(["dims", 0, "terms"], ["__import__('os')"]), ["not allowed"]),
+    (_set(["dims", 0, "delta1"], "big"), ["malformed"]),
+    (_set(["format"], "other"), ["not a simgap certificate"]),
+    (_set(["version"], 1), ["version 1"]),
+    (_set(["joint_confidence"], 0.999999), ["joint_confidence"]),
+    (lambda c: c["dims"][0].__setitem__("q", [0.0] * len(c["dims"][0]["q"])), ["digest"]),
+    (_set(["digest"], "0" * 64), ["digest"]),
+    (_set(["epsilon"], 1e-9), ["digest"]),
+]
+
+
+@pytest.mark.parametrize("edit,words", CERT_EDITS, ids=[f"cert{i}" for i in range(len(CERT_EDITS))])
+@pytest.mark.parametrize("command", ["synthesize", "audit"])
+def test_edited_certificates_are_refused_by_every_reader(work, capsys, edit, words, command):
+    from simgap.cli import main
+
+    name = _cert_edit(edit)(work)
+    args = {"synthesize": ["synthesize", "--cert", name, "--system", "pendulum", "--safe=-0.2,0.2,-0.5,0.5",
+                           "--eta", "0.004,0.01", "--out", str(work / "never.npz")],
+            "audit": ["audit", name, "--data", str(work / "data"), "--points", "5", "--runs", "20",
+                      "--out", str(work / "never.json")]}[command]
+    cwd = os.getcwd()
+    os.chdir(work)
+    try:
+        rc = main(args)
+    finally:
+        os.chdir(cwd)
+    err = capsys.readouterr().err
+    assert rc != 0 and err.startswith("error:"), err
+    for w in words:
+        assert w in err, (w, err)
+    assert not (work / "never.npz").exists() and not (work / "never.json").exists()
+
+
+CLI_CASES = [  # (args, words); "{w}" is the work folder
+    (["certify", "{w}/data", "--delta", "1e300"], ["delta1", "1e6 times the size"]),
+    (["certify", "{w}/data", "--delta", "-0.1"], ["delta must be > 0"]),
+    (["certify", "{w}/data", "--delta", "0.1,0.1,0.1"], ["delta1", "one value or 2 values"]),
+    (["certify", "{w}/data", "--delta", "nan"], ["delta1", "NaN"]),
+    (["certify", "{w}/data", "--delta", "abc"], ["delta"]),
+    (["certify", "{w}/data", "--beta", "1.5"], ["beta"]),
+    (["certify", "{w}/data", "--beta", "0"], ["beta"]),
+    (["certify", "{w}/data", "--degree", "-5"], ["degree"]),
+    (["certify", "{w}/data", "--term", "1:lambda: 0"], ["not allowed"]),
+    (["certify", "{w}/data", "--term", "9:theta"], ["9"]),
+    (["certify", "{w}/data", "--term", "1:os.system"], ["not allowed"]),
+    (["certify", "{w}/data", "--safety", "-1"], ["safety"]),
+    (["certify", "{w}/data", "--level", "run", "--alpha", "1.5"], ["alpha"]),
+    (["certify", "{w}/data", "--level", "run", "--alpha", "0"], ["alpha"]),
+    (["certify", "{w}/nowhere"], ["nowhere"]),
+    (["certify", "{w}/exp.toml"], ["exp.toml"]),
+    (["synthesize", "--no-gap", "--system", "nosuch", "--safe=-0.2,0.2,-0.5,0.5", "--eta", "0.004,0.01",
+      "--out", "{w}/never.npz"], ["nosuch"]),
+    (["synthesize", "--no-gap", "--system", "pendulum", "--safe=-0.2,0.2", "--eta", "0.004,0.01",
+      "--out", "{w}/never.npz"], ["safe"]),
+    (["synthesize", "--no-gap", "--system", "pendulum", "--safe=-0.2,0.2,-0.5,0.5", "--eta", "0,0.01",
+      "--out", "{w}/never.npz"], ["eta"]),
+    (["synthesize", "--no-gap", "--system", "pendulum", "--safe=-0.2,0.2,-0.5,0.5", "--eta", "0.004,0.01,1",
+      "--out", "{w}/never.npz"], ["eta"]),
+    (["synthesize", "--no-gap", "--system", "pendulum", "--safe=0.2,-0.2,-0.5,0.5", "--eta", "0.004,0.01",
+      "--out", "{w}/never.npz"], ["lo <= hi"]),
+    (["synthesize", "--no-gap", "--system", "pendulum", "--safe=-0.2,0.2,-0.5,0.5", "--eta", "0.004,0.01",
+      "--x0", "9,9", "--out", "{w}/never.npz"], ["x0"]),
+    (["rollout", "--controller", "{w}/ctrl.npz", "--simulator", "{w}/exp.toml", "--profile", "base",
+      "--x0", "0.05", "--out", "{w}/never.json"], ["x0"]),
+    (["rollout", "--controller", "{w}/ctrl.npz", "--simulator", "{w}/exp.toml", "--profile", "base",
+      "--x0", "0.05,0.1", "--n", "0", "--out", "{w}/never.json"], ["--n"]),
+    (["rollout", "--controller", "{w}/ctrl.npz", "--simulator", "{w}/exp.toml", "--profile", "base",
+      "--x0", "0.05,0.1", "--horizon", "0", "--out", "{w}/never.json"], ["horizon"]),
+    (["rollout", "--controller", "{w}/exp.toml", "--simulator", "{w}/exp.toml", "--profile", "base",
+      "--out", "{w}/never.json"], ["exp.toml"]),
+    (["rollout", "--controller", "{w}/ctrl.npz", "--simulator", "nosuchsim", "--out", "{w}/never.json"],
+     ["nosuchsim"]),
+    (["rollout", "--controller", "{w}/ctrl.npz", "--simulator", "{w}/exp.toml", "--profile", "nosuch",
+      "--out", "{w}/never.json"], ["nosuch"]),
+    (["collect", "{w}/exp.toml", "--profile", "nosuch", "--out", "{w}/never"], ["nosuch"]),
+    (["collect", "{w}/exp.toml", "--epsilon", "-1", "--out", "{w}/never"], ["epsilon"]),
+    (["collect", "{w}/exp.toml", "--n-runs", "0", "--out", "{w}/never"], ["n-runs"]),
+    (["collect", "{w}/exp.toml", "--workers", "0", "--out", "{w}/never"], ["workers"]),
+    (["collect", "{w}/nosuch.toml", "--out", "{w}/never"], ["nosuch"]),
+    (["refine", "--system", "nosuch", "--data", "{w}/data"], ["nosuch"]),
+    (["refine", "--system", "pendulum", "--data", "{w}/nowhere.npz"], ["nowhere"]),
+    (["refine", "--system", "pendulum", "--data", "{w}/data", "--term", "t:omega:__import__('os')"], ["not allowed"]),
+    (["refine", "--system", "pendulum", "--data", "{w}/data", "--term", "t:omega:[x for x in u]"], ["not allowed"]),
+    (["refine", "--system", "pendulum", "--data", "{w}/data", "--term", "1:theta"], ["NAME:STATE:EXPR"]),
+    (["refine", "--system", "pendulum", "--data", "{w}/data", "--effects", "nosuch_effect"], ["nosuch_effect"]),
+    (["data", "from-trajectory", "{w}/exp.toml", "--preset", "emps", "--out", "{w}/never.npz"], ["exp.toml"]),
+    (["data", "from-trajectory", "{w}/data.npz", "--preset", "nosuch", "--out", "{w}/never.npz"], ["nosuch"]),
+    (["data", "from-trajectory", "{w}/data.npz", "--preset", "emps", "--out", "{w}/never.txt"], [".npz"]),
+]
+
+
+@pytest.mark.parametrize("args,words", CLI_CASES, ids=[f"cli{i}" for i in range(len(CLI_CASES))])
+def test_more_bad_values_are_named(work, capsys, args, words):
+    from simgap.cli import main
+
+    before = files(work)
+    try:
+        rc = main([a.replace("{w}", str(work)) for a in args])
+    except SystemExit as e:  # argparse's own refusal (exit 2 with usage on stderr)
+        rc = e.code
+    err = capsys.readouterr().err
+    assert rc not in (0, None), err
+    assert "Traceback" not in err
+    for w in words:
+        assert w in err, (w, err)
+    assert files(work) == before

@@ -46,6 +46,22 @@ class _Names:
         self.state_names, self.input_names = tuple(state_names), tuple(input_names)
 
 
+
+def _kind(v) -> str:
+    """The JSON kind of a value, for messages."""
+    return {dict: "an object", list: "a list", str: "a string", bool: "a boolean", type(None): "null"}.get(
+        type(v), "a number" if isinstance(v, (int, float)) else type(v).__name__)
+
+
+def _field(obj: dict, key: str, kind: type, where: str):
+    """obj[key] if present and of JSON kind ``kind``, else SimgapError naming the field."""
+    if key not in obj:
+        raise SimgapError(f"{where} is malformed: missing field {key!r}")
+    v = obj[key]
+    if not isinstance(v, kind):
+        raise SimgapError(f"{where} is malformed: field {key!r} must be {_kind(kind())}, got {_kind(v)}")
+    return v
+
 @dataclass
 class DimCertificate:
     """Everything about gamma_i for one state dimension i."""
@@ -253,11 +269,18 @@ class Certificate:
 
     @classmethod
     def _from_dict(cls, d: dict) -> "Certificate":
+        s = _field(d, "system", dict, "certificate")
+        for key in ("state_names", "input_names", "x_lo", "x_hi", "angle_dims"):
+            _field(s, key, list, "certificate system")
+        entries = _field(d, "dims", list, "certificate")
+        for i, e in enumerate(entries):
+            if not isinstance(e, dict):
+                raise SimgapError(f"certificate is malformed: dims[{i}] must be an object, got {_kind(e)}")
+            _field(e, "terms", list, f"certificate dims[{i}]")
         try:
-            s = d["system"]
             names = _Names(len(s["state_names"]), len(s["input_names"]), s["state_names"], s["input_names"])
             dims = []
-            for e in d["dims"]:
+            for e in entries:
                 basis = Basis(names, e["terms"])
                 q = np.asarray(e["q"], dtype=float)
                 if q.shape != (len(basis),) or not np.all(np.isfinite(q)):
@@ -279,8 +302,12 @@ class Certificate:
                        options=d["options"], dims=dims, provenance=d["provenance"],
                        inputs=None if s.get("inputs") is None else np.asarray(s["inputs"], float).reshape(-1, names.m),
                        system_digest=s.get("digest"))
-        except (KeyError, TypeError) as e:
-            raise SimgapError(f"certificate is malformed: missing or bad field {e}") from None
+        except SimgapError:
+            raise
+        except KeyError as e:
+            raise SimgapError(f"certificate is malformed: missing field {e}") from None
+        except (TypeError, ValueError) as e:
+            raise SimgapError(f"certificate is malformed: a field has the wrong type ({e})") from None
 
     # ----- text ------------------------------------------------------------------------
     def summary(self) -> str:

@@ -210,6 +210,16 @@ def certify(dataset, options: Optional[CertifyOptions] = None, simulator=None, *
             b2 = b1 if b2 is None else b2
         if d1 is not None and (np.any(d1 <= 0) or np.any(d2 <= 0)):
             raise SimgapError(f"delta must be > 0 (delta1={d1.tolist()}, delta2={d2.tolist()})")
+        if d1 is not None:
+            # a margin a million times the size of the states certifies nothing and overflows the
+            # bounds' arithmetic downstream (the LP's coefficients, then L_2): refuse it here, by name
+            scale = np.maximum(np.abs(ds.x).max(axis=0), 1.0)
+            for name, d in (("delta1", d1), ("delta2", d2)):
+                big = d > 1e6 * scale
+                if np.any(big):
+                    i = int(np.argmax(big))
+                    raise SimgapError(f"{name} = {d[i]:g} for {s.state_names[i]} is over 1e6 times the size of "
+                                      f"the states (|x| up to {scale[i]:g}): a margin that large certifies nothing")
         if d1 is None and b1 is None:
             b1 = b2 = np.full(n, 0.01)
         if d1 is None:

@@ -55,3 +55,16 @@ def test_compare_gap_needs_a_collected_dataset(tmp_path, capsys):
     np.savez(tmp_path / "t.npz", x=x, u=u, x_next=s.f(x, u) + 1e-4 * rng.standard_normal((2000, 2)), tau=s.tau)
     assert main(["refine", "--system", "pendulum", "--data", str(tmp_path / "t.npz"), "--compare-gap"]) == 2
     assert "need a collected data set" in capsys.readouterr().err
+
+
+def test_held_comparison_composes_only_when_asked():
+    """hold > 1 with a one-period gap is refused unless composing is asked for, and then labelled."""
+    from simgap.errors import SimgapError
+
+    ds = damped_dataset(eps=0.02, N=20)
+    res = refine("pendulum", from_dataset(ds))
+    spec = Spec("invariance", safe=Box([0.0, -0.5], [0.2, 0.5]))
+    with pytest.raises(SimgapError, match="compose"):
+        gap_comparison(ds, res.refined, spec=spec, eta=[0.004, 0.01], hold=2)
+    c = gap_comparison(ds, res.refined, spec=spec, eta=[0.004, 0.01], hold=2, compose_hold=True)
+    assert c["hold"] == 2 and c["compose_hold"] is True and "winning_after" in c

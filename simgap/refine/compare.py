@@ -19,7 +19,7 @@ from ..systems import System
 
 
 def gap_comparison(dataset, refined: System, certify_options=None, spec=None, eta=None,
-                   hold: int = 1) -> dict:
+                   hold: int = 1, compose_hold: bool = False) -> dict:
     """Certified gap (gamma max/mean per dimension) and winning-domain size for f and f'.
 
     Parameters
@@ -30,8 +30,8 @@ def gap_comparison(dataset, refined: System, certify_options=None, spec=None, et
         f' from :func:`simgap.refine.report.refine` on (the transitions of) this data set.
     certify_options : simgap.certify.CertifyOptions, optional
         Used for both certificates (default: the paper's method).
-    spec, eta, hold : optional
-        Specification, cell widths and hold for :func:`simgap.synthesis.controller.synthesize`;
+    spec, eta, hold, compose_hold : optional
+        Specification, cell widths, hold and hold mode for :func:`simgap.synthesis.controller.synthesize`;
         without ``spec`` and ``eta`` no synthesis is run.
     """
     from ..certify import CertifyOptions, certify
@@ -51,11 +51,12 @@ def gap_comparison(dataset, refined: System, certify_options=None, spec=None, et
     if spec is not None and eta is not None:
         from ..synthesis.controller import synthesize
         for tag, sysobj in (("before", dataset.system), ("after", refined)):
-            res = synthesize(sysobj, spec, eta, gap=certs[tag], hold=hold)
+            res = synthesize(sysobj, spec, eta, gap=certs[tag], hold=hold, compose_hold=compose_hold)
             st = res.stats
             out[f"winning_{tag}"] = int(st["winning"])
             out["domain_cells"] = int(st["safe_cells"] if st["spec_kind"] == "invariance" else st["cells"])
         out["spec"] = spec.to_dict() if hasattr(spec, "to_dict") else str(spec)
         out["eta"] = np.broadcast_to(np.asarray(eta, dtype=float), (refined.n,)).tolist()
         out["hold"] = int(hold)
+        out["compose_hold"] = bool(compose_hold)
     return out

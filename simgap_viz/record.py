@@ -206,6 +206,11 @@ def record_run(out: str | Path, system, *, dataset=None, certificate=None, spec=
         md.append(engine.rollout_markdown(rollouts))
 
     log("summary", rr.TextDocument("\n".join(md), media_type=rr.MediaType.MARKDOWN))
+    return finish_recording(rec, tmp, out, info, t0)
+
+
+def finish_recording(rec, tmp: Path, out: Path, info: dict, t0: float) -> dict:
+    """Close ``rec``'s file sink, rename ``tmp`` into place as ``out``; add seconds and bytes to ``info``."""
     rec.flush()
     rec.disconnect()  # closes the file sink before the rename
     tmp.replace(out)
@@ -291,9 +296,4 @@ def record_refinement(out: str | Path, result, against: Optional[str] = None, bi
            f"unexplained: {rep['unexplained']}"]
     rec.log("refine/report", rr.TextDocument("\n".join(md), media_type=rr.MediaType.MARKDOWN), static=True)
     info["entities"].append("refine/report")
-    rec.flush()
-    rec.disconnect()
-    tmp.replace(out)
-    info["seconds"] = time.perf_counter() - t0
-    info["bytes"] = out.stat().st_size
-    return info
+    return finish_recording(rec, tmp, out, info, t0)

@@ -20,6 +20,8 @@ import numpy as np
 
 from simgap.errors import SimgapError
 
+from .record import finish_recording
+
 
 def _color(p: np.ndarray) -> np.ndarray:
     p = np.clip(np.asarray(p, float), 0, 1)
@@ -67,9 +69,4 @@ def record_per_run(out: str | Path, controller, per_run: dict) -> dict:
                       f"[{s['ci95'][0]:.4f}, {s['ci95'][1]:.4f}] |")
     rec.log("perrun/summary", rr.TextDocument("\n".join(md), media_type=rr.MediaType.MARKDOWN), static=True)
     info["entities"].append("perrun/summary")
-    rec.flush()
-    rec.disconnect()
-    tmp.replace(out)
-    info["seconds"] = time.perf_counter() - t0
-    info["bytes"] = out.stat().st_size
-    return info
+    return finish_recording(rec, tmp, out, info, t0)

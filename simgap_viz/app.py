@@ -24,7 +24,7 @@ import numpy as np
 
 from simgap.errors import SimgapError
 
-from . import engine
+from . import engine, origin
 from .jobs import JobContext, JobRunner
 from .settings import STAGES, Settings
 
@@ -73,6 +73,7 @@ class SimgapApp:
         self.run_method = None
         self.audit = None  # the shown certificate's audit report (from a run folder)
 
+        origin.install()  # refuse websockets from other pages before the server starts
         self.server = viser.ViserServer(host=host, port=port, verbose=False)
         self.server.gui.configure_theme(control_width="large", dark_mode=False, show_logo=False)
         self.server.scene.set_up_direction("+z")

@@ -73,6 +73,7 @@ def test_audit_report_contents_and_mc_error():
     # MC standard error of the audit: process noise 0.002 / sqrt(400) = 1e-4
     assert d["mc_standard_error"]["median"] == pytest.approx(1e-4, rel=0.2)
     assert set(d["margin_quantiles"]) == {"0.0", "0.01", "0.05", "0.5", "0.95", "1.0"}
+    assert len(d["margins"]) == 60 and min(d["margins"]) == pytest.approx(d["margin_quantiles"]["0.0"])
     assert r["exact"]["joint_fraction_holds"] == 1.0
     assert 0 < r["distance_to_cover"]["min"] and r["distance_to_cover"]["max"] <= ds.epsilon + 1e-12
     with pytest.raises(SimgapError, match="runs >= 2"):

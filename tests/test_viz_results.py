@@ -81,7 +81,7 @@ def test_run_folder_opens_with_every_stage(loaded):
         assert "```" not in text and "|---|---|" in text
     assert "| winning |" in app.panels["synthesis"].stats.content
     assert "| spec held | 50 / 50 |" in app.panels["rollouts"].stats.content
-    # the panel's plots: gamma along theta with the data gaps, the audit's margin quantiles
+    # the panel's plots: gamma along theta with the data gaps, the audit's margin histogram
     from simgap_viz.panels import plots
     cp = app.panels["certificate"]
     assert cp.slice_plot.visible and cp.audit_plot.visible
@@ -89,10 +89,13 @@ def test_run_folder_opens_with_every_stage(loaded):
     ok = np.isfinite(gap)
     assert ok.sum() == plots.gamma_slice(app, cp.slice_plot) > 0 and np.all(np.diff(xs) >= 0)
     assert np.all(gap[ok] >= 0) and np.isfinite(gam).sum() == 161
-    q, *margins = cp.audit_plot.data
-    assert len(margins) == 2 and q[0] == 0.0 and q[-1] == 1.0
-    mq = m.audit["per_dim"]["omega"]["margin_quantiles"]
-    assert margins[1][0] == pytest.approx(mq["0.0"]) and np.all(np.diff(margins[1]) >= 0)
+    centers, *counts = cp.audit_plot.data
+    assert len(counts) == 2 and centers[-1] < 1.0 and np.all(np.diff(centers) > 0)
+    # every audit point is counted once per dimension; a margin below 0 would land left of 0
+    per = m.audit["per_dim"]["omega"]["margins"]
+    assert counts[1].sum() == len(per) == m.audit["points"]
+    assert (centers[counts[1] > 0] < 0).any() == (min(per) < 0)
+    assert "histogram" in cp.audit_plot.title
     # the other method's results through the Data tab's dropdown
     app.panels["system"].run_method.value = "deterministic"
     d = run.methods["deterministic"]

@@ -177,6 +177,7 @@ def audit(cert, simulator, points: int = 200, runs: int = 2000, seed: int = 0, d
             "worst_point": {"x": x[worst].tolist(), "u": u[worst].tolist(), "gap": float(gap[worst, i]),
                             "gamma": float(gam[worst, i]), "se": float(se[worst, i])},
             "margin_quantiles": {str(q): float(v) for q, v in zip(QUANTILES, np.quantile(margin[:, i], QUANTILES))},
+            "margins": margin[:, i].tolist(),  # per audit point, for histograms (the app's audit plot)
             "gap_max": float(gap[:, i].max()), "gamma_min": float(gam[:, i].min()),
             "mc_standard_error": {"median": float(np.median(se[:, i])), "max": float(se[:, i].max())},
         }

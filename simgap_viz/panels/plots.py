@@ -2,8 +2,8 @@
 
 * gamma along one variable (the View tab's slice, the other variables at their sliders) with the
   observed data gaps of the rows near that line: how much room the certificate leaves;
-* the audit's margins gamma - gap at fresh points, as its quantile function per dimension
-  (what ``audit_<method>.json`` stores), for a run's certificate;
+* the audit's margins gamma - gap at fresh points, as a histogram per dimension (from the
+  per-point margins ``audit_<method>.json`` stores), for a run's certificate;
 * the refinement residuals before and after (binned means against the chosen variable).
 
 Each function computes nothing itself: it reads engine results and the layer geometry.
@@ -50,20 +50,30 @@ def gamma_slice(app, plot, res: int = 161) -> int:
         xs = np.concatenate([xs, xd])[order]
         gam = np.concatenate([gam, np.full(xd.shape, np.nan)])[order]
         gap = np.concatenate([gap, data.gap()[rows, dim]])[order]
-    plot.data = (xs, gam, gap)
     plot.series = ({"label": names[a]}, {"label": f"gamma_{s.state_names[dim]}", "stroke": BLUE, "width": 2,
                                          "spanGaps": True},
                    {"label": "data gap", "stroke": ORANGE, "width": 0, "points": {"show": True, "size": 4,
                                                                                    "fill": ORANGE}})
-    plot.axes = _axes(names[a], s.state_names[dim])
+    # uPlot's tick labels keep a few decimals: show small or large values in units of 10^k
+    top = float(np.nanmax(np.concatenate([gam, gap])))
+    k = int(np.floor(np.log10(top))) if top > 0 else 0
+    k = k if (k < -2 or k > 3) else 0
+    unit = f" [x 1e{k}]" if k else ""
+    plot.data = (xs, gam / 10.0 ** k, gap / 10.0 ** k)
+    plot.axes = _axes(names[a], f"gamma_{s.state_names[dim]}, gap{unit}")
+    # from 0: gamma and gaps are >= 0, and a flat gamma (a constant certificate) has no range of
+    # its own for uPlot to scale to
+    plot.scales = {"x": {"time": False}, "y": {"range": (0.0, 1.1 * top / 10.0 ** k if top > 0 else 1.0)}}
     plot.title = f"gamma_{s.state_names[dim]} along {names[a]} (others at the View sliders)"
     plot.visible = True
     return int(rows.size)
 
 
-def audit_margins(app, plot) -> bool:
-    """The audit's margin quantiles (gamma - gap at fresh points) per dimension, each divided by
-    its dimension's largest gamma on the data so the dimensions share one axis."""
+def audit_margins(app, plot, bins: int = 30) -> bool:
+    """Histogram of the audit's margins gamma - gap at fresh points per dimension, each divided by
+    its dimension's largest margin so the dimensions share one axis (a bar left of 0 is a point
+    where the estimated gap exceeds gamma). Older reports without per-point margins show their
+    margin quantiles instead."""
     rep = app.audit
     run = app.run
     shown = app.results.get("certify")
@@ -74,20 +84,34 @@ def audit_margins(app, plot) -> bool:
     if not dims:
         _empty(plot)
         return False
-    qs = sorted(float(q) for q in rep["per_dim"][dims[0]]["margin_quantiles"])
-    series, ys = [{"label": "quantile"}], []
     colors = ("#2850c8", "#e07020", "#30a050", "#a040c0")
-    for k, d in enumerate(dims):
-        mq = rep["per_dim"][d]["margin_quantiles"]
-        y = np.array([mq[_key(mq, q)] for q in qs], float)
-        ys.append(y)
-        series.append({"label": f"{d} [{y.min():.3g} .. {y.max():.3g}]", "stroke": colors[k % 4], "width": 2,
-                       "points": {"show": True, "size": 5}})
-    plot.data = (np.array(qs),) + tuple(ys)
+    if all("margins" in rep["per_dim"][d] for d in dims):
+        m = [np.asarray(rep["per_dim"][d]["margins"], float) for d in dims]
+        scale = [max(float(np.abs(v).max()), 1e-300) for v in m]
+        edges = np.linspace(min(0.0, min(float((v / sc).min()) for v, sc in zip(m, scale))), 1.0, bins + 1)
+        centers = 0.5 * (edges[:-1] + edges[1:])
+        ys = [np.histogram(v / sc, edges)[0].astype(float) for v, sc in zip(m, scale)]
+        series = [{"label": "margin / max margin"}] + [
+            {"label": f"{d} (max {sc:.3g}, {int((v < 0).sum())} < 0)", "stroke": colors[k % 4], "width": 2,
+             "points": {"show": True, "size": 4}} for k, (d, v, sc) in enumerate(zip(dims, m, scale))]
+        plot.data = (centers,) + tuple(ys)
+        plot.axes = _axes("(gamma - gap) / largest margin", "audit points")
+        kind = "margin histogram"
+    else:
+        qs = sorted(float(q) for q in rep["per_dim"][dims[0]]["margin_quantiles"])
+        series, ys = [{"label": "quantile"}], []
+        for k, d in enumerate(dims):
+            mq = rep["per_dim"][d]["margin_quantiles"]
+            y = np.array([mq[_key(mq, q)] for q in qs], float)
+            ys.append(y)
+            series.append({"label": f"{d} [{y.min():.3g} .. {y.max():.3g}]", "stroke": colors[k % 4], "width": 2,
+                           "points": {"show": True, "size": 5}})
+        plot.data = (np.array(qs),) + tuple(ys)
+        plot.axes = _axes("quantile of the audit points", "gamma - gap")
+        kind = "margin quantiles"
     plot.series = tuple(series)
-    plot.axes = _axes("quantile of the audit points", "gamma - gap")
     pj = rep.get("joint", {}).get("fraction_holds")
-    plot.title = (f"audit: margin at {rep.get('points', '?')} fresh points x {rep.get('runs', '?')} runs"
+    plot.title = (f"audit: {kind} at {rep.get('points', '?')} fresh points x {rep.get('runs', '?')} runs"
                   + (f", joint holds {pj:.3f}" if pj is not None else ""))
     plot.visible = True
     return True
@@ -124,5 +148,6 @@ def residuals(app, plot) -> bool:
 def add(gui, title: str):
     """An empty, hidden chart (its data and series are set by the functions above)."""
     z = np.zeros(2)
+    # x is a state variable or a margin, not a time: uPlot's default x scale would print dates
     return gui.add_uplot(data=(z, z), series=({"label": "x"}, {"label": "y"}), title=title, aspect=1.4,
-                         visible=False)
+                         scales={"x": {"time": False}}, visible=False)

@@ -13,6 +13,7 @@ import itertools
 import numpy as np
 import pytest
 
+from simgap.synthesis.examples import integrator_system
 from simgap.certify.basis import Basis
 from simgap.certify.certificate import Certificate, DimCertificate
 from simgap.errors import SimgapError
@@ -106,15 +107,7 @@ def test_seam_states_sampled_near_pi(rng):
 # ---------------------------------------------------------------------------------------
 
 def integrator(tau=0.07):
-    def step(x, u, dt):
-        return x + dt * u
-
-    def jac(u):
-        return np.broadcast_to(np.eye(2), (u.shape[0], 2, 2))
-
-    return System(name="integrator2", state_names=("p", "q"), input_names=("a", "b"),
-                  x_lo=(0, 0), x_hi=(2, 2), inputs=input_grid([-1, -1], [1, 1], [5, 5]),
-                  base_tau=tau, step=step, jacobian_bound=jac)
+    return integrator_system(tau, hi=2.0)
 
 
 def test_state_dependent_gamma_bounded_over_the_whole_cell(rng):

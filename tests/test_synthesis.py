@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from simgap.synthesis.examples import integrator_system
 from simgap.cli import main
 from simgap.errors import SimgapError
 from simgap.synthesis.abstraction import ConstantGap
@@ -13,7 +14,7 @@ from simgap.synthesis.controller import Controller, synthesize
 from simgap.synthesis.games import BoxCounter
 from simgap.synthesis.grid import UniformGrid
 from simgap.synthesis.spec import Box, Spec
-from simgap.systems import System, get_system, input_grid
+from simgap.systems import get_system, input_grid
 
 
 # ---------------------------------------------------------------------------------------
@@ -22,15 +23,7 @@ from simgap.systems import System, get_system, input_grid
 
 def integrator(tau=0.07):
     """x+ = x + tau u on [0,1]^2, 5 x 5 inputs in [-1, 1]^2."""
-    def step(x, u, dt):
-        return x + dt * u
-
-    def jac(u):
-        return np.broadcast_to(np.eye(2), (u.shape[0], 2, 2))
-
-    return System(name="integrator2", state_names=("p", "q"), input_names=("a", "b"),
-                  x_lo=(0, 0), x_hi=(1, 1), inputs=input_grid([-1, -1], [1, 1], [5, 5]),
-                  base_tau=tau, step=step, jacobian_bound=jac)
+    return integrator_system(tau)
 
 
 class LinearGap:

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..systems import System
+from ..systems import System, input_grid
 from .grid import UniformGrid
 from .runge_kutta import rk4_growth, rk4_integrate, rk4_step
 from .spec import Box, Spec
@@ -170,3 +170,16 @@ def vortex_spec() -> Spec:
     inf = np.inf
     return Spec(kind="reach_avoid", target=Box([8.0, 8.0, -inf], [9.5, 9.5, inf]),
                 obstacles=(Box([3.0, 0.0, -inf], [3.6, 6.5, inf]), Box([6.4, 3.5, -inf], [7.0, 10.0, inf])))
+
+
+def integrator_system(tau: float = 0.07, hi: float = 1.0) -> System:
+    """x+ = x + tau u on [0, hi]^2 with 5 x 5 inputs in [-1, 1]^2 (a small system for tests)."""
+    def step(x, u, dt):
+        return x + dt * u
+
+    def jac(u):
+        return np.broadcast_to(np.eye(2), (u.shape[0], 2, 2))
+
+    return System(name="integrator2", state_names=("p", "q"), input_names=("a", "b"),
+                  x_lo=(0, 0), x_hi=(hi, hi), inputs=input_grid([-1, -1], [1, 1], [5, 5]),
+                  base_tau=tau, step=step, jacobian_bound=jac)

@@ -88,26 +88,32 @@ def bench_validate(a) -> dict:
     spec = Spec("invariance", safe=Box(s.x_lo, s.x_hi))
     x0 = np.array([0.05, 0.1])
     t0 = time.perf_counter()
-    im = build_imdp(sim, spec, IMDPOptions(eta=a.eta, hold=a.hold, n_runs=a.n_runs, pilot_runs=a.pilot, seed=1),
-                    log=print)
+    opts = IMDPOptions(eta=a.eta, hold=a.hold, n_runs=a.n_runs, pilot_runs=a.pilot, seed=a.seed,
+                       **({"split": tuple(a.split)} if a.split else {}))
+    c0 = time.process_time()
+    im = build_imdp(sim, spec, opts, log=print)
+    cpu_build = time.process_time() - c0
     t_build = time.perf_counter() - t0
     ctl = synthesize_imdp(im, a.horizon)
     rng = np.random.default_rng(5)
     xs = np.concatenate([x0[None], sample_in_cells(im.grid, np.flatnonzero(ctl.p_cert > 0), a.states, rng)])
-    t1 = time.perf_counter()
+    t1, c1 = time.perf_counter(), time.process_time()
     k = success_counts(lambda x, t: ctl.input_index(x, t), ctl.hold, sim, spec, xs, a.rollouts, a.horizon, seed=9)
-    t_roll = time.perf_counter() - t1
+    t_roll, cpu_roll = time.perf_counter() - t1, time.process_time() - c1
     e = empirical(k, a.rollouts)
     pc = ctl.certified(xs)
     pe, se = np.array(e["p_emp"]), np.maximum(np.array(e["se"]), 1 / a.rollouts)
     sound = pe >= pc - 3 * se
     rows = [{"x0": np.round(x, 4).tolist(), "p_cert": round(float(c), 4), "p_emp": round(float(p), 4),
-             "ci95": np.round(ci, 4).tolist()} for x, c, p, ci in zip(xs, pc, pe, e["ci95"])]
+             "ci95": np.round(ci, 4).tolist(), "se": round(float(sd), 5)}
+            for x, c, p, ci, sd in zip(xs, pc, pe, e["ci95"], e["se"])]
     sim.close()
     return {"simulator": a.sim, "eta": a.eta, "hold": a.hold, "inputs": a.inputs, "n_runs": a.n_runs,
             "pilot_runs": a.pilot, "horizon": a.horizon, "abstract_steps": ctl.steps, "cells": im.C,
             "live_cells": int(im.live.sum()), "nnz": im.nnz, "bytes_imdp": im.nbytes(), "samples": im.meta["samples"],
             "seconds": {k: round(v, 2) for k, v in im.meta["seconds"].items()}, "seconds_build": round(t_build, 2), "cpu_seconds_total": round(time.process_time(), 2),
+            "cpu_seconds_build": round(cpu_build, 2), "cpu_seconds_rollouts": round(cpu_roll, 2),
+            "split": im.meta["split"], "levels": im.meta["levels"], "bounds": im.meta["bounds"], "seed": a.seed,
             "seconds_vi": round(ctl.meta["seconds_vi"], 2), "seconds_rollouts": round(t_roll, 2),
             "rollouts_per_state": a.rollouts, "states": len(xs), "sound_states": int(sound.sum()),
             "p_cert_x0": rows[0]["p_cert"], "p_emp_x0": rows[0]["p_emp"],
@@ -127,6 +133,9 @@ def main():
     ap.add_argument("--horizon", type=int, default=400)
     ap.add_argument("--rollouts", type=int, default=10000)
     ap.add_argument("--states", type=int, default=20)
+    ap.add_argument("--seed", type=int, default=1, help="validate: sampling seed of the interval MDP")
+    ap.add_argument("--split", type=float, nargs=3, default=None, metavar=("SINK", "LO", "HI"),
+                    help="validate: shares of beta for the three bound families (default: IMDPOptions.split)")
     ap.add_argument("--json", default=None)
     a = ap.parse_args()
     rep = bench_vi(a) if a.what == "vi" else bench_validate(a)

@@ -2,11 +2,12 @@
 
 import numpy as np
 import pytest
+from scipy import stats
 from scipy.optimize import linprog
 
 from simgap.errors import SimgapError
 from simgap.perrun import value_iteration as vi
-from simgap.perrun.imdp import IMDP, IMDPOptions, build_imdp
+from simgap.perrun.imdp import IMDP, Allocation, IMDPOptions, build_imdp, reallocate
 from simgap.perrun.validation import empirical, sample_in_cells, success_counts
 from simgap.simulators.base import SimulatorConfig
 from simgap.simulators.numpy_sim import NumpySimulator
@@ -104,3 +105,45 @@ def test_bad_input(walk):
         build_imdp(sim, SPEC, IMDPOptions(eta=[0.1], hold=0))
     with pytest.raises(SimgapError, match="beta must be in"):
         build_imdp(sim, SPEC, IMDPOptions(eta=[0.1], beta=1.5))
+
+
+def _spent_beta(im: IMDP) -> float:
+    """Total failure probability the intervals spend, read back from counts and bounds alone.
+
+    A one-sided Clopper-Pearson upper bound hi at count k has level P(Bin(N, hi) <= k); a lower
+    bound lo at count k > 0 has level P(Bin(N, lo) >= k); trivial bounds (hi = 1, lo = 0) spend
+    nothing. The union bound is sound only if the sum is <= beta, whatever the split claims."""
+    N = im.meta["n_runs"]
+    hi = im.hi.astype(float)
+    spent = stats.binom.cdf(im.k_hi, N, hi)[hi < 1].sum()
+    has_lo = im.lo > 0
+    return float(spent + stats.binom.sf(im.k_lo[has_lo] - 1, N, im.lo[has_lo].astype(float)).sum())
+
+
+def test_the_union_bound_spends_at_most_beta(walk, monkeypatch):
+    sim, im = walk
+    beta = im.meta["beta"]
+    assert sum(im.meta["split"].values()) <= 1 + 1e-12
+    assert 0.8 * beta < _spent_beta(im) <= beta           # the split is used, and not overspent
+    for split in [(1.0, 0.0, 0.0), (0.5, 0.25, 0.25), (0.2, 0.4, 0.4)]:
+        assert _spent_beta(reallocate(im, beta, split)) <= beta
+    # reallocating with the build's own split reproduces its intervals
+    same = reallocate(im, beta, tuple(im.meta["split"].values()))
+    assert np.array_equal(same.lo, im.lo) and np.array_equal(same.hi, im.hi)
+    # a wrong allocation (every family at beta / its own count: 2 beta in total) is detected
+    monkeypatch.setattr(Allocation, "levels", lambda self, b, n_rows, n_sup: {"sink": b / n_rows, "lo": b / n_sup,
+                                                                               "hi": b / n_sup})
+    bad = build_imdp(sim, SPEC, IMDPOptions(eta=[0.02], hold=5, n_runs=1000, pilot_runs=100, seed=1))
+    assert _spent_beta(bad) > 1.5 * beta
+
+
+def test_the_split_is_checked():
+    with pytest.raises(SimgapError, match="sums to 1.1 > 1"):
+        Allocation.of((0.5, 0.3, 0.3))
+    with pytest.raises(SimgapError, match="each >= 0"):
+        Allocation.of((1.2, -0.1, -0.1))
+    with pytest.raises(SimgapError, match="three shares"):
+        Allocation.of((1.0,))
+    a = Allocation.of((0.9, 0.05, 0.05))
+    lev = a.levels(0.01, 100, 1000)
+    assert lev == pytest.approx({"sink": 0.009 / 100, "lo": 0.0005 / 1000, "hi": 0.0005 / 1000})

@@ -21,15 +21,21 @@ Construction (per (c, a), all vectorized over pairs x runs):
    or S leaves T(c, a) or contains a non-live cell. For every x in the cell and successor j in T:
        P_x(j) >= P(S = {j}, no sink)  and  P_x(j) <= P(j in S),   P_x(sink) <= P(sink run),
    estimated by one-sided Clopper-Pearson bounds on n_in(j), n_hit(j), n_sink out of N.
-4. Union bound: every one-sided bound is taken at level beta / (number of bounds), so all of
-   them hold at once with probability >= 1 - beta (Bonferroni; Clopper-Pearson is exact, so the
-   number of bounds K costs ln K in the exponent: at zero counts hi = 1 - (beta/K)^(1/N)).
+4. Union bound with a stated split (:class:`Allocation`): the bounds form three families, the
+   sink upper bounds (one per row), the successor lower bounds and the successor upper bounds
+   (one per support entry each). Family f gets the share w_f of beta, w_sink + w_lo + w_hi <= 1,
+   and each of its n_f bounds is taken at level beta w_f / n_f, so all of them hold at once with
+   probability >= 1 - beta sum_f w_f >= 1 - beta (Bonferroni: any split fixed before the main
+   runs is valid; n_f comes from the independent pilot). A family with share 0 is not estimated:
+   its bounds are the trivial lo = 0 / hi = 1, true with probability 1, at no cost in beta.
+   Clopper-Pearson is exact, so at zero counts hi = 1 - (beta w_f / n_f)^(1/N) ~ ln(n_f / (beta w_f)) / N.
 
 Memory: entries (col int32, lo/hi float32 rounded outward) in CSR over rows c*M + a.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 from typing import Optional
@@ -58,6 +64,8 @@ class IMDP:
     lo: np.ndarray              # (nnz,) float32 lower probability bound
     hi: np.ndarray              # (nnz,) float32 upper probability bound
     meta: dict = field(default_factory=dict)
+    k_lo: Optional[np.ndarray] = None   # (nnz,) int32 count behind lo (n_in; -1 for the sink: no lower bound)
+    k_hi: Optional[np.ndarray] = None   # (nnz,) int32 count behind hi (n_hit; n_sink for the sink)
 
     @property
     def C(self) -> int:
@@ -73,6 +81,80 @@ class IMDP:
 
     def nbytes(self) -> int:
         return int(self.row_ptr.nbytes + self.col.nbytes + self.lo.nbytes + self.hi.nbytes)
+
+
+# ----------------------------------------------------------------------------------------------
+# Union bound
+# ----------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Allocation:
+    """Bonferroni split of the failure probability beta over the three families of one-sided bounds.
+
+    sink, lo, hi : shares w_f >= 0 of beta, w_sink + w_lo + w_hi <= 1. With n_f bounds in family f,
+    each is taken at level beta w_f / n_f; the probability that any bound fails is at most
+    sum_f n_f (beta w_f / n_f) = beta sum_f w_f <= beta. Share 0: the family is not estimated
+    (trivial bounds lo = 0, hi = 1).
+    """
+
+    sink: float
+    lo: float
+    hi: float
+
+    @classmethod
+    def of(cls, split) -> "Allocation":
+        try:
+            w = [float(v) for v in split]
+        except (TypeError, ValueError):
+            raise SimgapError(f"split must be three shares (sink, lo, hi) of beta, got {split!r}") from None
+        if len(w) != 3 or not all(np.isfinite(w)) or min(w) < 0 or w[0] <= 0:
+            raise SimgapError(f"split must be three shares (sink, lo, hi) of beta, each >= 0 and the sink's > 0, "
+                              f"got {split!r}")
+        if sum(w) > 1.0 + 1e-12:
+            raise SimgapError(f"split {split!r} sums to {sum(w):g} > 1: the union bound would exceed beta")
+        return cls(*w)
+
+    def levels(self, beta: float, n_rows: int, n_support: int) -> dict:
+        """Per-bound level of each family: beta w_f / n_f (0 for a family that is not estimated)."""
+        n = {"sink": n_rows, "lo": n_support, "hi": n_support}
+        return {f: float(beta) * getattr(self, f) / max(n[f], 1) for f in n}
+
+
+def intervals(k_lo: np.ndarray, k_hi: np.ndarray, is_sink: np.ndarray, N: int, levels: dict):
+    """(lo, hi) float64 one-sided Clopper-Pearson bounds at the family levels (:class:`Allocation`).
+
+    Successor entries: lo from k_lo (n_in), hi from k_hi (n_hit); sink entries: lo = 0, hi from k_hi
+    (n_sink). A family at level 0 gets its trivial bound (lo = 0 / hi = 1)."""
+    lo = np.zeros(k_lo.shape)
+    if levels["lo"] > 0:
+        lo = np.where(is_sink, 0.0, cp_lower(np.maximum(k_lo, 0), N, levels["lo"]))
+    hi_succ = cp_upper(k_hi, N, levels["hi"]) if levels["hi"] > 0 else np.ones(k_hi.shape)
+    hi = np.where(is_sink, cp_upper(k_hi, N, levels["sink"]), hi_succ)
+    return lo, hi
+
+
+def float32_outward(lo: np.ndarray, hi: np.ndarray):
+    """Round lo down and hi up to float32 (stays sound); exact zeros stay zero, hi stays <= 1."""
+    lo32 = np.nextafter(lo.astype(np.float32), np.float32(0))
+    lo32[lo == 0] = 0
+    hi32 = np.minimum(np.nextafter(hi.astype(np.float32), np.float32(2)), np.float32(1))
+    return lo32, hi32
+
+
+def reallocate(imdp: "IMDP", beta: float, split) -> "IMDP":
+    """The same counts with another union-bound split (e.g. to compare allocations; a reported
+    certificate must use a split fixed before its main runs)."""
+    a = Allocation.of(split)
+    is_sink = imdp.col == imdp.C
+    lev = a.levels(beta, int(is_sink.sum()), int((~is_sink).sum()))
+    lo32, hi32 = float32_outward(*intervals(imdp.k_lo, imdp.k_hi, is_sink, int(imdp.meta["n_runs"]), lev))
+    meta = dict(imdp.meta, beta=float(beta), split=dataclasses.asdict(a), levels=lev,
+                bounds=_bound_count(a, int(is_sink.sum()), int((~is_sink).sum())))
+    return dataclasses.replace(imdp, lo=lo32, hi=hi32, meta=meta)
+
+
+def _bound_count(a: Allocation, n_rows: int, n_support: int) -> int:
+    return n_rows * (a.sink > 0) + n_support * ((a.lo > 0) + (a.hi > 0))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -186,7 +268,8 @@ class IMDPOptions:
 
     eta : cell widths (state units); hold : k periods per abstract step; n_runs : N main runs per
     (cell, input); pilot_runs : N0 support runs; beta : failure probability of all intervals;
-    lipschitz : (n, n) per-coordinate L_ij of the k-period map (None: estimated, see trajectory_lipschitz).
+    lipschitz : (n, n) per-coordinate L_ij of the k-period map (None: estimated, see trajectory_lipschitz);
+    split : shares of beta for the (sink, lo, hi) bound families, summing to <= 1 (see :class:`Allocation`).
     """
 
     eta: object
@@ -197,6 +280,7 @@ class IMDPOptions:
     lipschitz: Optional[object] = None
     seed: int = 0
     batch_runs: int = 1 << 19
+    split: tuple = (0.9, 0.05, 0.05)
 
     def validate(self, n: int):
         if int(self.hold) < 1:
@@ -209,6 +293,7 @@ class IMDPOptions:
             L = np.broadcast_to(np.asarray(self.lipschitz, float), (n, n))
             if not np.all(np.isfinite(L)) or np.any(L < 0):
                 raise SimgapError(f"lipschitz must be >= 0 and finite, got {self.lipschitz!r}")
+        Allocation.of(self.split)
 
 
 def build_imdp(sim, spec: Spec, options: IMDPOptions, log=None) -> IMDP:
@@ -244,19 +329,25 @@ def build_imdp(sim, spec: Spec, options: IMDPOptions, log=None) -> IMDP:
 
     # ----- pass 1: pilot support T(c, a) (sorted keys pair * (C+1) + cell) -------------------------
     per = max(1, o.batch_runs // N0)
-    sup = []
+    sup, single_seen = [], False
     for a in range(0, P, per):
         pp = np.arange(a, min(P, a + per))
-        b, ids, _, bad = run_pairs(pp, N0, rng)
+        b, ids, single, bad = run_pairs(pp, N0, rng)
         keep = (ids >= 0) & good[np.maximum(ids, 0)] & ~bad[b]
+        single_seen |= bool(np.any(single & ~bad))
         sup.append(np.unique(pp[b[keep] // N0] * (C + 1) + ids[keep]))
     support = np.concatenate(sup) if sup else np.zeros(0, np.int64)
-    n_bounds = 2 * support.size + P                      # lo and hi per support entry, hi per sink
-    b_each = float(o.beta) / max(n_bounds, 1)
+    alloc = Allocation.of(o.split)
+    if not single_seen and alloc.lo > 0:
+        # no pilot run ended with its widened box in one cell: lower bounds would be ~0 everywhere;
+        # their share goes to the sink family (a choice made from the pilot alone: still valid)
+        alloc = Allocation(alloc.sink + alloc.lo, 0.0, alloc.hi)
+    levels = alloc.levels(float(o.beta), P, support.size)   # fixed by the pilot, before the main runs
+    n_bounds = _bound_count(alloc, P, support.size)
     t_pilot = time.perf_counter() - t0 - t_lip
     if log:
         log(f"imdp: {cells.size} live cells x {M} inputs, support {support.size} entries; "
-            f"{n_bounds} one-sided bounds at level {b_each:.3g} each")
+            f"{n_bounds} one-sided bounds, levels " + ", ".join(f"{f} {v:.3g}" for f, v in levels.items()))
 
     # ----- pass 2: main runs -> counts on the support ---------------------------------------------
     n_hit = np.zeros(support.size, np.int64)
@@ -284,23 +375,22 @@ def build_imdp(sim, spec: Spec, options: IMDPOptions, log=None) -> IMDP:
     rows_sink = cells.repeat(M) * M + np.tile(np.arange(M), cells.size)
     rows = np.concatenate([rows_sup, rows_sink])
     col = np.concatenate([support % (C + 1), np.full(P, C)]).astype(np.int32)
-    lo = np.concatenate([cp_lower(n_in, N, b_each), np.zeros(P)])
-    hi = np.concatenate([cp_upper(n_hit, N, b_each), cp_upper(n_sink, N, b_each)])
+    k_lo = np.concatenate([n_in, np.full(P, -1)]).astype(np.int32)
+    k_hi = np.concatenate([n_hit, n_sink]).astype(np.int32)
     order = np.argsort(rows, kind="stable")
-    rows, col, lo, hi = rows[order], col[order], lo[order], hi[order]
+    rows, col, k_lo, k_hi = rows[order], col[order], k_lo[order], k_hi[order]
     row_ptr = np.zeros(C * M + 1, np.int64)
     np.cumsum(np.bincount(rows, minlength=C * M), out=row_ptr[1:])
-    lo32 = np.nextafter(lo.astype(np.float32), np.float32(0))   # round outward: stays sound in float32
-    lo32[lo == 0] = 0
-    hi32 = np.minimum(np.nextafter(hi.astype(np.float32), np.float32(2)), np.float32(1))
+    lo32, hi32 = float32_outward(*intervals(k_lo, k_hi, col == C, N, levels))
     meta = {"n_runs": N, "pilot_runs": N0, "beta": float(o.beta), "bounds": int(n_bounds),
-            "level_each": b_each, "lipschitz": L.tolist(), "lipschitz_how": how, "rho": rho.tolist(),
+            "split": dataclasses.asdict(alloc), "levels": levels, "lipschitz": L.tolist(), "lipschitz_how": how, "rho": rho.tolist(),
             "live_cells": int(cells.size), "seed": int(o.seed),
             "simulator": sim.config.to_dict(), "spec": spec.to_dict(),
-            "union_bound": "Bonferroni over all one-sided Clopper-Pearson bounds",
+            "union_bound": "Bonferroni over all one-sided Clopper-Pearson bounds; family f (sink, lo, hi) gets the "
+                           "share split[f] of beta, each of its bounds level beta split[f] / (its count)",
             "assumption": "per realization: the k-period trajectory map is L-Lipschitz (common random numbers)",
             "seconds": {"lipschitz": t_lip, "pilot": t_pilot, "main": t_main,
                         "intervals": time.perf_counter() - t0 - t_lip - t_pilot - t_main},
             "samples": int(P * (N + N0) * k)}
     return IMDP(grid=grid, inputs=s.inputs.copy(), hold=k, live=live, target=target, row_ptr=row_ptr, col=col,
-                lo=lo32, hi=hi32, meta=meta)
+                lo=lo32, hi=hi32, meta=meta, k_lo=k_lo, k_hi=k_hi)

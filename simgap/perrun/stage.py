@@ -85,7 +85,8 @@ def synthesize_experiment(exp, horizon=None, x0=None, eta=None, hold=None, log=p
     ctl = synthesize_imdp(imdp, int(o["horizon"]))
     lines = [f"interval MDP: {imdp.C} cells ({int(imdp.live.sum())} live) x {imdp.M} inputs, hold {imdp.hold}, "
              f"{imdp.nnz} interval entries ({imdp.nbytes() / 2**20:.1f} MiB), {imdp.meta['bounds']} one-sided "
-             f"Clopper-Pearson bounds at level {imdp.meta['level_each']:.3g} each (total beta {o['beta']:g})",
+             f"Clopper-Pearson bounds, levels " + ", ".join(f"{f} {v:.3g}" for f, v in imdp.meta["levels"].items())
+             + f" (total beta {o['beta']:g})",
              f"horizon {o['horizon']} periods = {ctl.steps} abstract steps; cells with p_cert > 0: "
              f"{int((ctl.p_cert > 0).sum())}; max p_cert {ctl.p_cert.max():.4f}"]
     if x0 is not None:
@@ -157,7 +158,7 @@ def run_stage(exp, out: Path, data, controllers: Dict[str, object], spec, x0, o:
         res["imdp"] = {"cells": int(imdp.C), "live_cells": int(imdp.live.sum()), "inputs": int(imdp.M),
                        "nnz": imdp.nnz, "bytes": imdp.nbytes(), "hold": imdp.hold, "steps": ctl.steps,
                        "seconds_build": round(t_build, 3), "seconds_vi": round(ctl.meta["seconds_vi"], 3),
-                       **{k: imdp.meta[k] for k in ("n_runs", "pilot_runs", "bounds", "level_each", "rho",
+                       **{k: imdp.meta[k] for k in ("n_runs", "pilot_runs", "bounds", "split", "levels", "rho",
                                                     "samples", "union_bound", "assumption")}}
         log(f"[perrun] interval MDP {imdp.nnz} entries in {t_build:.1f} s; value iteration "
             f"{ctl.meta['seconds_vi']:.1f} s; p_cert(x0) = {float(ctl.certified(np.atleast_2d(x0))[0]):.4f}")

@@ -180,6 +180,7 @@ class PerrunSection(Section):
     seed: Int0 = 0
     baseline_eta: Optional[Union[Positive, list[Positive]]] = None
     baseline_hold: Optional[Int1] = None
+    split: Optional[list[Finite]] = None
 
 
 class Experiment(Section):

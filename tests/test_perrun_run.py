@@ -45,6 +45,9 @@ def test_summary_has_p_cert_and_p_emp_per_controller_and_state(run):
     ("alpha = 0.1", "alpha = 0.01", "smallest supported alpha is"),
     ("n_states = 5", "n_states = 5\nhorizon = 0", "horizon must be >= 1"),
     ("x0 = [0.0, 0.0]", "x0 = [0.5, 0.0]", "x0"),
+    ("n_states = 5", "n_states = 5\nsplit = [0.9, 0.1, 0.1]", "sums to 1.1 > 1"),
+    ("n_states = 5", "n_states = 5\nsplit = 0.9", "split: input should be a valid list"),
+    ("n_states = 5", "n_states = 5\nsplit = [0.9, 0.1]", "three shares (sink, lo, hi)"),
 ])
 def test_bad_input_is_refused_before_anything_is_written(tmp_path, capsys, old, new, msg):
     toml = tmp_path / "bad.toml"

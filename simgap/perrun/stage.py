@@ -27,7 +27,7 @@ from ..errors import SimgapError
 from .orderstats import alpha_min
 
 KEYS = {"alpha", "beta", "eta", "hold", "n_runs", "pilot_runs", "horizon", "n_rollouts", "n_states", "seed",
-        "baseline_eta", "baseline_hold"}
+        "baseline_eta", "baseline_hold", "split"}
 
 
 def check_section(sec: dict, system, n_pairs: int, n_runs: int, horizon) -> dict:
@@ -55,6 +55,12 @@ def check_section(sec: dict, system, n_pairs: int, n_runs: int, horizon) -> dict
     for k in ("hold", "n_runs", "pilot_runs", "n_rollouts", "n_states"):
         if int(o[k]) < 1:
             raise SimgapError(f"[perrun] {k} must be >= 1, got {o[k]}")
+    from .imdp import Allocation, IMDPOptions
+    o["split"] = o.get("split", IMDPOptions.split)
+    try:
+        Allocation.of(o["split"])
+    except SimgapError as e:
+        raise SimgapError(f"[perrun] {e}") from None
     return o
 
 
@@ -81,7 +87,7 @@ def synthesize_experiment(exp, horizon=None, x0=None, eta=None, hold=None, log=p
     with make_simulator(exp.simulator.to_dict(), system=exp.system) as sim:
         imdp = build_imdp(sim, spec, IMDPOptions(eta=o["eta"], hold=int(o["hold"]), n_runs=int(o["n_runs"]),
                                                  pilot_runs=int(o["pilot_runs"]), beta=float(o["beta"]),
-                                                 seed=int(o["seed"])), log=log)
+                                                 seed=int(o["seed"]), split=o["split"]), log=log)
     ctl = synthesize_imdp(imdp, int(o["horizon"]))
     lines = [f"interval MDP: {imdp.C} cells ({int(imdp.live.sum())} live) x {imdp.M} inputs, hold {imdp.hold}, "
              f"{imdp.nnz} interval entries ({imdp.nbytes() / 2**20:.1f} MiB), {imdp.meta['bounds']} one-sided "
@@ -151,7 +157,7 @@ def run_stage(exp, out: Path, data, controllers: Dict[str, object], spec, x0, o:
         t0 = time.perf_counter()
         imdp = build_imdp(sim, spec, IMDPOptions(eta=o["eta"], hold=int(o["hold"]), n_runs=int(o["n_runs"]),
                                                  pilot_runs=int(o["pilot_runs"]), beta=float(o["beta"]),
-                                                 seed=int(o["seed"])), log=lambda m: log(f"[perrun] {m}"))
+                                                 seed=int(o["seed"]), split=o["split"]), log=lambda m: log(f"[perrun] {m}"))
         t_build = time.perf_counter() - t0
         ctl = synthesize_imdp(imdp, H)
         ctl.save(out / "controller_perrun.npz")

@@ -57,6 +57,7 @@ import numpy as np
 
 from ..errors import SimgapError
 from ..systems import System
+from .corner_index import CornerIndex
 from .grid import UniformGrid
 
 GrowthFn = Callable[[np.ndarray, np.ndarray, np.ndarray, float], np.ndarray]
@@ -275,6 +276,9 @@ class Abstraction:
         False where the image is not finite or already out of domain in a class dimension.
     mid_lo, mid_hi : (K, M, n) or None
         Hull of the intermediate boxes when ``hold > 1``.
+    corner_index : CornerIndex or None
+        Predecessor index (one class per cell and small boxes only; built with the abstraction,
+        as SCOTS builds its predecessor lists).
     """
 
     grid: UniformGrid
@@ -288,6 +292,7 @@ class Abstraction:
     hold: int = 1
     seconds: float = 0.0
     info: dict = field(default_factory=dict)
+    corner_index: Optional[CornerIndex] = None
 
     @property
     def n_classes(self) -> int:
@@ -346,6 +351,8 @@ class Abstraction:
         b = self.off_lo.nbytes + self.off_hi.nbytes + self.ok.nbytes
         if self.mid_lo is not None:
             b += self.mid_lo.nbytes + self.mid_hi.nbytes
+        if self.corner_index is not None:
+            b += self.corner_index.nbytes()
         return b
 
 
@@ -505,8 +512,12 @@ def build_abstraction(system: System, grid: UniformGrid, *, growth: Optional[Gro
     ab = Abstraction(grid=grid, inputs=U, class_dims=class_dims, off_lo=small(off_lo),
                      off_hi=small(off_hi), ok=ok, mid_lo=small(mid_lo), mid_hi=small(mid_hi),
                      hold=hold)
+    t1 = time.perf_counter()
+    if not inv:  # one class per cell: the predecessor index, one entry per usable pair
+        ab.corner_index = CornerIndex.build(ab)
     ab.seconds = time.perf_counter() - t0
-    ab.info = {"invariant_dims": list(inv), "classes": K, "guard": guard, "hold": hold}
+    ab.info = {"invariant_dims": list(inv), "classes": K, "guard": guard, "hold": hold,
+               "seconds_index": time.perf_counter() - t1}
     return ab
 
 

@@ -45,6 +45,7 @@ import numpy as np
 
 from ..errors import SimgapError
 from .abstraction import Abstraction
+from .corner_index import expand_counts as _expand
 
 
 # ---------------------------------------------------------------------------------------
@@ -315,43 +316,118 @@ class PairEvaluator:
         return lo, hi, self.vol[k, uj]
 
 
-def live_pairs(ab: Abstraction, blocked: np.ndarray, keep: np.ndarray, allowed=None,
-               ev: Optional["PairEvaluator"] = None, test_keep: bool = True):
+class RowBoxes:
+    """The normalized boxes of all pairs of the cells ``s:e`` (a range) or ``ids``, one (B, M)
+    int32 array per dimension (no (B, M, n) arrays: numpy is slow along a short last axis).
+
+    Periodic dimensions: lo modulo n_d, extent capped at n_d (a full circle); ``in_grid`` is
+    False where a bounded dimension leaves the grid. ``lo_tab``/``hi_tab`` (K, M, n) are the
+    relative successor boxes (default) or the hulls of the held periods.
+    """
+
+    def __init__(self, ab: Abstraction, cells, lo_tab=None, hi_tab=None):
+        g = ab.grid
+        lo_tab = ab.off_lo if lo_tab is None else lo_tab
+        hi_tab = ab.off_hi if hi_tab is None else hi_tab
+        ids = np.arange(cells.start, cells.stop, dtype=np.int32) if isinstance(cells, slice) else \
+            np.asarray(cells).astype(np.int32)
+        mi = [(ids // np.int32(g.strides[d])) % np.int32(g.shape[d]) for d in range(g.n)]
+        if len(ab.class_dims) == g.n:
+            k = cells  # one class per cell: the class is the cell (a slice keeps views)
+        else:
+            k = np.zeros(ids.size, dtype=np.int32)
+            cstride = 1
+            for d in reversed(ab.class_dims):
+                k += mi[d] * np.int32(cstride)
+                cstride *= g.shape[d]
+        self.ok = ab.ok[k]
+        self.lo, self.hi = [], []
+        self.in_grid = np.ones(self.ok.shape, dtype=bool)
+        self.vol = np.ones(self.ok.shape, dtype=np.int32)
+        for d in range(g.n):
+            lo = lo_tab[k, :, d] + mi[d][:, None]
+            hi = hi_tab[k, :, d] + mi[d][:, None]
+            nd = np.int32(g.shape[d])
+            if g.periodic_mask[d]:
+                ext = np.minimum(hi - lo + 1, nd)
+                lo %= nd
+                hi = lo + ext - 1
+            else:
+                self.in_grid &= (lo >= 0) & (hi < nd)
+            self.vol *= hi - lo + 1
+            self.lo.append(lo)
+            self.hi.append(hi)
+
+    def count(self, counter: "BoxCounter", sel=None) -> np.ndarray:
+        """Cells of the counter's mask in the boxes (all, or those at index ``sel``); boxes that
+        leave the grid give meaningless counts."""
+        lo = self.lo if sel is None else [a[sel] for a in self.lo]
+        hi = self.hi if sel is None else [a[sel] for a in self.hi]
+        terms = [(0, 1)]
+        for d in range(len(lo)):  # partial flat offsets, combined over the 2^n corners
+            st = np.int32(counter.tstrides[d])
+            a, b = lo[d] * st, (hi[d] + 1) * st
+            terms = [(t + b, sg) for t, sg in terms] + [(t + a, -sg) for t, sg in terms]
+        out = None
+        for flat, sg in terms:
+            v = counter.table.take(flat, mode="clip")
+            out = v if out is None else (np.add(out, v, out=out) if sg > 0 else np.subtract(out, v, out=out))
+        return out
+
+    def inside(self, counter: "BoxCounter", sel=None) -> np.ndarray:
+        """The boxes (all, or at ``sel``) lie in the counter's mask."""
+        return self.count(counter, sel) == (self.vol if sel is None else self.vol[sel])
+
+
+def pair_volumes(ab: Abstraction) -> np.ndarray:
+    """(K, M) int32 cells per box (extent capped at n_d in periodic dimensions)."""
+    vol = np.ones(ab.off_lo.shape[:2], dtype=np.int32)
+    for d in range(ab.grid.n):
+        ext = ab.off_hi[..., d].astype(np.int32) - ab.off_lo[..., d] + 1
+        if ab.grid.periodic_mask[d]:
+            np.minimum(ext, ab.grid.shape[d], out=ext)
+        vol *= np.maximum(ext, 0)
+    return vol
+
+
+def live_pairs(ab: Abstraction, blocked: np.ndarray, keep: np.ndarray, allowed=None, test_keep: bool = True):
     """One pass over all pairs: which can ever be used, and the SCOTS transition count.
 
     A pair (c, u) is *live* when it is valid (see module docstring) and its box lies in
     ``keep`` (reach: the unblocked cells; invariance: the safe cells); pairs that are not live
     can never be in the controller, so the games never test them again. With ``test_keep``
     False the pairs are only tested for validity (the reach worklist needs no more: a box that
-    meets a blocked cell never gets all its cells won).
+    meets a blocked cell never gets all its cells won). Ranges of about 2^18 pairs, int32
+    boxes, 2^n summed-area-table lookups per pair.
 
     Returns (live (N, ceil(M/8)) packed bits, number of valid boxes, sum of their volumes).
     """
     g = ab.grid
     N, M = g.size, ab.n_inputs
-    if ev is None:
-        ev = PairEvaluator(ab, blocked, allowed)
-    kc = BoxCounter(g.shape, g.periodic_mask).set(keep)
+    kc = BoxCounter(g.shape, g.periodic_mask)
+    if test_keep:
+        kc.set(keep)
+    ac = None
+    if ab.mid_lo is not None and allowed is not None:
+        ac = BoxCounter(g.shape, g.periodic_mask).set(allowed)
     packed = np.zeros((N, (M + 7) // 8), dtype=np.uint8)
     B = _block_size(ab)
     boxes = trans = 0
-    free = np.flatnonzero(~blocked)  # blocked cells have no valid pairs
-    for s in range(0, free.size, B):
-        ids = free[s:s + B]
-        valid, q = ev.valid_rows(ids)
-        vol = ev.fam.vol_flat[q]
-        boxes += int(valid.sum())
-        trans += int(vol[valid].sum(dtype=np.int64))
-        packed[ids] = np.packbits(valid & ev.test_rows(ids, q, kc) if test_keep else valid, axis=1)
+    for s in range(0, N, B):
+        rng = slice(s, min(N, s + B))
+        bx = RowBoxes(ab, rng)
+        valid = bx.ok & bx.in_grid
+        valid &= ~blocked[rng, None]  # blocked cells have no valid pairs
+        if ac is not None:  # the hull of the held periods stays in the allowed cells
+            mid = RowBoxes(ab, rng, ab.mid_lo, ab.mid_hi)
+            valid &= mid.in_grid
+            valid &= mid.inside(ac)
+        boxes += int(np.count_nonzero(valid))
+        trans += int(bx.vol[valid].sum(dtype=np.int64))
+        if test_keep:
+            valid &= bx.inside(kc)
+        packed[rng] = np.packbits(valid, axis=1)
     return packed, boxes, trans
-
-
-def _expand(counts: np.ndarray):
-    """Rows with ``counts`` items each -> (row of every item, rank of the item in its row)."""
-    it = np.int32 if counts.size < 2 ** 31 and counts.sum() < 2 ** 31 else np.int64
-    rows = np.repeat(np.arange(counts.size, dtype=it), counts)
-    starts = (np.cumsum(counts, dtype=np.int64) - counts).astype(it)
-    return rows, np.arange(rows.size, dtype=it) - starts[rows]
 
 
 class Predecessors:
@@ -583,7 +659,7 @@ METHODS = ("auto", "worklist", "sat")
 _WORKLIST_MAX_PAIRS = 1 << 26  # (cell, input) pairs: the worklist keeps 2 bytes or so per pair
 
 
-def choose_method(method: str, ab: Abstraction, ev: "PairEvaluator") -> str:
+def choose_method(method: str, ab: Abstraction) -> str:
     """``worklist`` or ``sat`` for ``auto``: the worklist touches every transition into the
     changed cells once (SCOTS's algorithm, cost ~ transitions), the SAT game tests 2^n table
     entries per candidate pair and rebuilds a table of all cells per level; the worklist wins
@@ -595,7 +671,7 @@ def choose_method(method: str, ab: Abstraction, ev: "PairEvaluator") -> str:
         return method
     if ab.grid.size * ab.n_inputs > _WORKLIST_MAX_PAIRS:
         return "sat"
-    vol = ev.fam.vol[ab.ok]
+    vol = pair_volumes(ab)[ab.ok]
     # one class per cell: the worklist also builds the predecessor index (one entry per
     # transition), so it wins only for smaller boxes (measured: bench_synthesis_generic.py)
     limit = 1.25 if len(ab.class_dims) == ab.grid.n else 4
@@ -607,7 +683,12 @@ def _unpack(packed: np.ndarray, M: int) -> np.ndarray:
     return np.unpackbits(packed, axis=1, count=M).view(bool).reshape(-1)
 
 
-def _predecessors(ab: Abstraction, live: np.ndarray) -> Predecessors:
+def _predecessors(ab: Abstraction, live: np.ndarray):
+    """The predecessor index: the abstraction's corner index when it has one (one class per
+    cell, small boxes), else :class:`Predecessors` (its pairs() may return pairs that are not
+    live; the games filter them)."""
+    if ab.corner_index is not None:
+        return ab.corner_index
     one_class_per_cell = len(ab.class_dims) == ab.grid.n
     return Predecessors(ab, live if one_class_per_cell else ab.ok.reshape(-1))
 
@@ -637,17 +718,17 @@ def solve_reach(ab: Abstraction, target: np.ndarray, blocked: np.ndarray,
     target = target & ~blocked
     if allowed is None:
         allowed = ~blocked
-    ev = PairEvaluator(ab, blocked, allowed)
-    method = choose_method(method, ab, ev)
-    live, n_boxes, n_trans = live_pairs(ab, blocked, ~blocked, allowed, ev=ev, test_keep=method == "sat")
+    method = choose_method(method, ab)
+    live, n_boxes, n_trans = live_pairs(ab, blocked, ~blocked, allowed, test_keep=method == "sat")
     t1 = time.perf_counter()
     t_pre = 0.0
     if method == "worklist":
         live = _unpack(live, M)
         pre = _predecessors(ab, live)
         t_pre = time.perf_counter() - t1
-        steps, packed, it, tested = _reach_worklist(ab, ev, target, live, pre)
+        steps, packed, it, tested = _reach_worklist(ab, target, live, pre)
     else:
+        ev = PairEvaluator(ab, blocked, allowed)
         steps, packed, it, tested = _reach_sat(ab, ev, target, blocked, live, group_filter)
     t2 = time.perf_counter()
     return GameResult(kind="reach_avoid", winning=steps >= 0, steps=steps, valid_packed=packed,
@@ -659,12 +740,15 @@ def solve_reach(ab: Abstraction, target: np.ndarray, blocked: np.ndarray,
                                 "fixed_point": t2 - t1 - t_pre, "controller": 0.0}})
 
 
-def _reach_worklist(ab: Abstraction, ev: PairEvaluator, target: np.ndarray, live: np.ndarray,
-                    pre: Predecessors):
+def _reach_worklist(ab: Abstraction, target: np.ndarray, live: np.ndarray, pre):
     """SCOTS's reach game, level-synchronous: cnt[c, u] = cells of box(c, u) not yet won."""
     N, M = ab.grid.size, ab.n_inputs
-    vol = ev.fam.vol
-    cnt = vol.astype(_counter_dtype(int(vol.max(initial=0))))[ev.cls_all].reshape(-1)
+    vol = pair_volumes(ab)
+    vol = vol.astype(_counter_dtype(int(vol.max(initial=0))))
+    if len(ab.class_dims) == ab.grid.n:
+        cnt = vol.reshape(-1)
+    else:
+        cnt = vol[ab.cell_class(ab.grid.ids_to_multi(np.arange(N)))].reshape(-1)
     one = cnt.dtype.type(1)
     steps = np.full(N, -1, dtype=np.int32)
     steps[target] = 0
@@ -767,9 +851,8 @@ def solve_invariance(ab: Abstraction, safe: np.ndarray, blocked: Optional[np.nda
     if blocked is None:
         blocked = np.zeros(N, dtype=bool)
     S = safe & ~blocked
-    ev = PairEvaluator(ab, ~S, S)
-    method = choose_method(method, ab, ev)
-    live, n_boxes, n_trans = live_pairs(ab, ~S, S, S, ev=ev)
+    method = choose_method(method, ab)
+    live, n_boxes, n_trans = live_pairs(ab, ~S, S, S)
     t1 = time.perf_counter()
     t_pre = 0.0
     if method == "worklist":
@@ -778,9 +861,9 @@ def solve_invariance(ab: Abstraction, safe: np.ndarray, blocked: Optional[np.nda
         t_pre = time.perf_counter() - t1
         W, it, tested = _invariance_worklist(ab, S, live_b, pre)
     else:
-        W, it, tested = _invariance_sat(ab, ev, S, live)
+        W, it, tested = _invariance_sat(ab, PairEvaluator(ab, ~S, S), S, live)
     t2 = time.perf_counter()
-    packed, chosen = _safety_controller(ab, ev, W, live, max_margin)
+    packed, chosen = _safety_controller(ab, W, live, max_margin)
     steps = np.where(W, 0, -1).astype(np.int32)
     return GameResult(kind="invariance", winning=W, steps=steps, valid_packed=packed,
                       n_inputs=M, target=np.zeros(N, dtype=bool), chosen=chosen, iterations=it,
@@ -856,7 +939,7 @@ def _invariance_sat(ab: Abstraction, ev: PairEvaluator, S: np.ndarray, live: np.
     return W, it, tested
 
 
-def _safety_controller(ab: Abstraction, ev: PairEvaluator, W: np.ndarray, live: np.ndarray, max_margin: int):
+def _safety_controller(ab: Abstraction, W: np.ndarray, live: np.ndarray, max_margin: int):
     """Valid inputs on the fixed point, and the input of largest margin k <= max_margin.
 
     The box grown by k cells lies in W exactly when the box lies in E_k, W eroded k times by
@@ -865,33 +948,31 @@ def _safety_controller(ab: Abstraction, ev: PairEvaluator, W: np.ndarray, live: 
     """
     g = ab.grid
     N, M = g.size, ab.n_inputs
-    B = _block_size(ab) // 2
+    B = _block_size(ab)
     counters = [BoxCounter(g.shape, g.periodic_mask).set(W)]
     E = W.reshape(g.shape)
     for _ in range(max_margin):
         E = _erode(E, g.periodic_mask)
         counters.append(BoxCounter(g.shape, g.periodic_mask).set(E.ravel()))
+    del E
     packed = np.zeros((N, (M + 7) // 8), dtype=np.uint8)
     chosen = np.full(N, -1, dtype=np.int32)
-    ids_w = np.flatnonzero(W)
-    for s in range(0, ids_w.size, B):
-        ids = ids_w[s:s + B]
-        rows = np.unpackbits(live[ids], axis=1, count=M).view(bool)
-        ci, uj = np.nonzero(rows)
+    for s in range(0, N, B):
+        rng = slice(s, min(N, s + B))
+        rows = np.unpackbits(live[rng], axis=1, count=M).view(bool)
+        rows &= W[rng, None]
+        bx = RowBoxes(ab, rng)
         # the largest margin first (most pairs of a large W have it), then upwards from 0
-        top = ev.test_pairs(ids, ci, uj, counters[-1])
+        top = rows & bx.inside(counters[-1])
         mg = np.where(top, np.int8(max_margin), np.int8(-1))
-        sel = np.flatnonzero(~top)
+        sel = np.nonzero(rows & ~top)
         for k, counter in enumerate(counters[:-1]):  # only pairs with margin k - 1 are tested for k
-            ok = ev.test_pairs(ids, ci[sel], uj[sel], counter)
-            sel = sel[ok]
+            ok = bx.inside(counter, sel)
+            sel = tuple(a[ok] for a in sel)
             mg[sel] = k
-        rows[ci, uj] = mg >= 0
-        packed[ids] = np.packbits(rows, axis=1)
-        grid_mg = np.full((ids.size, M), -1, dtype=np.int8)
-        grid_mg[ci, uj] = mg
+        packed[rng] = np.packbits(mg >= 0, axis=1)
         # largest margin first, ties by lowest index (argmax returns the first maximum)
-        chosen[ids] = np.where(grid_mg.max(axis=1) >= 0, grid_mg.argmax(axis=1), -1)
+        chosen[rng] = np.where(mg.max(axis=1) >= 0, mg.argmax(axis=1), -1)
     return packed, chosen
 
 

@@ -12,6 +12,7 @@ from simgap.errors import SimgapError
 from simgap.synthesis import (Box, Spec, UniformGrid, build_abstraction, rk4_growth, rk4_integrate,
                               rk4_step, solve_invariance, solve_reach, synthesize)
 from simgap.synthesis.controller import label_cells
+from simgap.synthesis import examples as ex
 from simgap.synthesis.games import Predecessors, _unpack, live_pairs
 from simgap.systems import System, get_system, input_grid
 
@@ -45,6 +46,11 @@ def _cases():
         (dataclasses.replace(_drift(), inputs=input_grid([-0.2, -1], [0.2, 1], [3, 3])),
          Spec(kind="invariance", safe=Box([0.3, -np.inf], [1.7, np.inf])),
          (0.05, 2 * np.pi / 30), rk4_growth(DRIFT_L, 4), (0,), 1),
+        # one class per cell, no held input: the corner index without a pass over all pairs
+        (ex.dcdc_system(), ex.dcdc_spec(), (0.002, 0.002), ex.dcdc_growth(), (), 1),
+        (dataclasses.replace(_drift(), inputs=input_grid([-0.2, -1], [0.2, 1], [3, 3])),
+         Spec(kind="invariance", safe=Box([0.3, -np.inf], [1.7, np.inf])),
+         (0.05, 2 * np.pi / 30), rk4_growth(DRIFT_L, 4), (), 1),
     ]
 
 
@@ -56,7 +62,7 @@ def _abstraction(sysm, spec, eta, growth, inv, hold):
     return ab, blocked, cells
 
 
-@pytest.mark.parametrize("case", range(4))
+@pytest.mark.parametrize("case", range(6))
 def test_worklist_game_equals_sat_game(case):
     ab, blocked, cells = _abstraction(*_cases()[case])
     if _cases()[case][1].kind == "reach_avoid":
@@ -75,7 +81,7 @@ def test_worklist_game_equals_sat_game(case):
     assert np.array_equal(a.valid_packed, b.valid_packed)
 
 
-@pytest.mark.parametrize("case", [0, 1, 2])
+@pytest.mark.parametrize("case", [0, 1, 2, 4])
 def test_predecessors_equal_brute_force(case, rng):
     ab, blocked, cells = _abstraction(*_cases()[case])
     g = ab.grid

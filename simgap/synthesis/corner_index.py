@@ -34,24 +34,29 @@ def expand_counts(counts: np.ndarray):
 class CornerIndex:
     """CSR of the usable pairs by the flat id of their box's normalized lo corner (module docstring).
 
-    Attributes: ``indptr`` (N + 1,) int32, ``q`` (pairs,) int32 pair ids, ``emax`` (n,) the
-    largest box extent per dimension, ``offsets`` (prod(emax), n) the corner offsets a.
+    Attributes: ``indptr`` (N + 1,) int32; ``q`` (pairs,) int32 pair ids and ``code`` (pairs,)
+    uint8 their box extents (mixed radix over ``emax``, the largest extent per dimension);
+    ``offsets`` (prod(emax), n) the corner offsets a; per cell, for the games' one-off work:
+    ``usable`` (N, ceil(M/8)) packed bits of the indexed pairs, ``cell_boxes`` (N,) their number
+    and ``cell_transitions`` (N,) the sum of their box volumes.
     """
 
     #: prod(e_max) above this: the per-transition index (games.Predecessors) answers queries cheaper
     MAX_ROWS = 64
 
-    def __init__(self, indptr, q, emax, ab):
-        self.indptr, self.q, self.emax = indptr, q, emax
+    def __init__(self, ab, indptr, q, code, emax, usable, cell_boxes, cell_transitions):
+        self.indptr, self.q, self.code, self.emax = indptr, q, code, emax
+        self.usable, self.cell_boxes, self.cell_transitions = usable, cell_boxes, cell_transitions
         g = ab.grid
         self.M, self.n = ab.n_inputs, g.n
-        self.shape = np.array(g.shape, dtype=np.int64)
+        self.shape = [int(s) for s in g.shape]
         self.pmask = g.periodic_mask
-        self.strides = g.strides.astype(np.int32)
-        self.off_lo = ab.off_lo.reshape(-1, g.n)
-        self.off_hi = ab.off_hi.reshape(-1, g.n)
+        self.strides = [int(s) for s in g.strides]
         self.offsets = np.stack(np.meshgrid(*[np.arange(int(e), dtype=np.int32) for e in emax],
                                             indexing="ij"), axis=-1).reshape(-1, g.n)
+        # fits[a, code]: offset a lies inside a box of extents ``code`` (a_d < ext_d for all d)
+        ext = self.offsets + 1  # the codes enumerate the same mixed radix as the offsets
+        self.fits = np.all(self.offsets[:, None, :] < ext[None, :, :], axis=2)
         self.size = q.size
 
     @classmethod
@@ -64,14 +69,18 @@ class CornerIndex:
         strides = g.strides.astype(np.int32)
         keys = np.empty((M, N), dtype=np.int32)  # input-major: long ascending runs for the sort
         use = np.empty((M, N), dtype=bool)
+        exts = np.empty((n, M, N), dtype=np.uint8)
+        cell_boxes = np.zeros(N, dtype=np.int32)
+        cell_trans = np.zeros(N, dtype=np.int64)
         emax = np.zeros(n, dtype=np.int64)
         for s in range(0, N, block):
             e = min(N, s + block)
-            mi = np.stack(np.unravel_index(np.arange(s, e, dtype=np.int32), g.shape), axis=1).astype(np.int32)
+            ids = np.arange(s, e, dtype=np.int32)
             usable = ab.ok[s:e].copy()
             key = np.zeros((e - s, M), dtype=np.int32)
+            vol = np.ones((e - s, M), dtype=np.int64)
             for d in range(n):
-                lo = ab.off_lo[s:e, :, d] + mi[:, d, None]
+                lo = ab.off_lo[s:e, :, d] + ((ids // strides[d]) % shape[d])[:, None]
                 ext = ab.off_hi[s:e, :, d].astype(np.int32) - ab.off_lo[s:e, :, d] + 1
                 if g.periodic_mask[d]:
                     lo %= shape[d]
@@ -79,48 +88,61 @@ class CornerIndex:
                 else:
                     usable &= (lo >= 0) & (lo + ext <= shape[d])
                 key += lo * strides[d]
-                if usable.any():
-                    emax[d] = max(emax[d], int(ext[usable].max()))
+                vol *= ext
+                exts[d, :, s:e] = np.minimum(ext, 255).T
+            if usable.any():
+                emax = np.maximum(emax, [int(exts[d, :, s:e].T[usable].max()) for d in range(n)])
             keys[:, s:e] = key.T
             use[:, s:e] = usable.T
+            vol *= usable
+            for u in range(M):  # per column: a reduction along a short last axis is slow
+                cell_boxes[s:e] += usable[:, u]
+                cell_trans[s:e] += vol[:, u]
         if int(np.prod(emax)) > cls.MAX_ROWS:
             return None
+        emax = np.maximum(emax, 1)
+        code = np.zeros((M, N), dtype=np.uint8)
+        for d in range(n):  # mixed radix over emax, the order of the offsets
+            code *= np.uint8(emax[d])
+            code += np.maximum(exts[d], 1) - np.uint8(1)
+        del exts
         pos = np.flatnonzero(use.ravel())
-        del use
         k = keys.ravel()[pos]
         del keys
         order = np.argsort(k, kind="stable")
         pos = pos[order]
         del order
-        q = ((pos % N) * M + pos // N).astype(np.int32)  # input-major position -> pair id c * M + u
         indptr = np.zeros(N + 1, dtype=np.int32)
         np.cumsum(np.bincount(k, minlength=N), out=indptr[1:])
-        return cls(indptr, q, np.maximum(emax, 1), ab)
+        del k
+        q = ((pos % N) * M + pos // N).astype(np.int32)  # input-major position -> pair id c * M + u
+        code = code.ravel()[pos]
+        usable = np.packbits(use.T, axis=1)
+        return cls(ab, indptr, q, code, emax, usable, cell_boxes, cell_trans)
 
     def pairs(self, cells: np.ndarray) -> np.ndarray:
         """Pair ids q = c * M + u of all transitions (c, u) -> r, r in ``cells`` (one per transition)."""
-        n = self.n
-        mi = np.stack(np.unravel_index(cells, tuple(self.shape)), axis=1).astype(np.int32)
-        corner = mi[:, None, :] - self.offsets[None]  # (R, E, n) candidate lo corners
-        ok = np.ones(corner.shape[:2], dtype=bool)
-        key = np.zeros(corner.shape[:2], dtype=np.int32)
-        for d in range(n):
+        cells = np.asarray(cells).astype(np.int32, copy=False)
+        E = self.offsets.shape[0]
+        key = np.zeros((cells.size, E), dtype=np.int32)
+        ok = np.ones((cells.size, E), dtype=bool)
+        for d in range(self.n):  # candidate lo corners r - a, per dimension
+            nd, st = self.shape[d], self.strides[d]
+            c = ((cells // np.int32(st)) % np.int32(nd))[:, None] - self.offsets[:, d]
             if self.pmask[d]:
-                corner[..., d] %= np.int32(self.shape[d])
+                c %= np.int32(nd)
             else:
-                ok &= corner[..., d] >= 0
-            key += corner[..., d] * self.strides[d]
+                ok &= c >= 0
+            c *= np.int32(st)
+            key += c
         sel = np.flatnonzero(ok)
         key = key.ravel()[sel]
         start = self.indptr[key]
         rows, t = expand_counts(self.indptr[key + 1] - start)
-        q = self.q[start[rows] + t]
-        a = self.offsets[sel[rows] % self.offsets.shape[0]]
-        keep = np.ones(q.size, dtype=bool)
-        for d in range(n):  # r - lo(q) = a must lie inside the box: a < ext(q)
-            ext = self.off_hi[q, d].astype(np.int32) - self.off_lo[q, d] + 1
-            keep &= a[:, d] < ext
-        return q[keep]
+        e = start[rows] + t
+        keep = self.fits[sel[rows] % E, self.code[e]]  # r - lo(q) = a lies in the box
+        return self.q[e[keep]]
 
     def nbytes(self) -> int:
-        return self.indptr.nbytes + self.q.nbytes
+        return sum(a.nbytes for a in (self.indptr, self.q, self.code, self.usable, self.cell_boxes,
+                                      self.cell_transitions))

@@ -322,10 +322,10 @@ class RowBoxes:
 
     Periodic dimensions: lo modulo n_d, extent capped at n_d (a full circle); ``in_grid`` is
     False where a bounded dimension leaves the grid. ``lo_tab``/``hi_tab`` (K, M, n) are the
-    relative successor boxes (default) or the hulls of the held periods.
+    relative successor boxes (default) or the hulls of the held periods; ``inputs`` a slice of them.
     """
 
-    def __init__(self, ab: Abstraction, cells, lo_tab=None, hi_tab=None):
+    def __init__(self, ab: Abstraction, cells, lo_tab=None, hi_tab=None, inputs=slice(None)):
         g = ab.grid
         lo_tab = ab.off_lo if lo_tab is None else lo_tab
         hi_tab = ab.off_hi if hi_tab is None else hi_tab
@@ -340,13 +340,13 @@ class RowBoxes:
             for d in reversed(ab.class_dims):
                 k += mi[d] * np.int32(cstride)
                 cstride *= g.shape[d]
-        self.ok = ab.ok[k]
+        self.ok = ab.ok[k, inputs]
         self.lo, self.hi = [], []
         self.in_grid = np.ones(self.ok.shape, dtype=bool)
         self.vol = np.ones(self.ok.shape, dtype=np.int32)
         for d in range(g.n):
-            lo = lo_tab[k, :, d] + mi[d][:, None]
-            hi = hi_tab[k, :, d] + mi[d][:, None]
+            lo = lo_tab[k, inputs, d] + mi[d][:, None]
+            hi = hi_tab[k, inputs, d] + mi[d][:, None]
             nd = np.int32(g.shape[d])
             if g.periodic_mask[d]:
                 ext = np.minimum(hi - lo + 1, nd)
@@ -377,6 +377,19 @@ class RowBoxes:
     def inside(self, counter: "BoxCounter", sel=None) -> np.ndarray:
         """The boxes (all, or at ``sel``) lie in the counter's mask."""
         return self.count(counter, sel) == (self.vol if sel is None else self.vol[sel])
+
+    def min_over(self, values: np.ndarray, shape, strides, sel) -> np.ndarray:
+        """min of ``values`` (N,) over the cells of the boxes at ``sel`` (one entry per box)."""
+        vol = self.vol[sel]
+        rows, t = _expand(vol)
+        cell = np.zeros(rows.size, dtype=np.int32)
+        for d in range(len(self.lo) - 1, -1, -1):  # mixed-radix decode of the rank in the box
+            lo = self.lo[d][sel]
+            ext = (self.hi[d][sel] - lo + 1)[rows]
+            cell += ((lo[rows] + t % ext) % np.int32(shape[d])) * np.int32(strides[d])
+            t //= ext
+        starts = np.cumsum(vol, dtype=np.int64) - vol
+        return np.minimum.reduceat(values[cell], starts)
 
 
 def pair_volumes(ab: Abstraction) -> np.ndarray:
@@ -426,7 +439,7 @@ def live_pairs(ab: Abstraction, blocked: np.ndarray, keep: np.ndarray, allowed=N
         trans += int(bx.vol[valid].sum(dtype=np.int64))
         if test_keep:
             valid &= bx.inside(kc)
-        packed[rng] = np.packbits(valid, axis=1)
+        packed[rng] = pack_rows(valid)
     return packed, boxes, trans
 
 
@@ -671,6 +684,8 @@ def choose_method(method: str, ab: Abstraction) -> str:
         return method
     if ab.grid.size * ab.n_inputs > _WORKLIST_MAX_PAIRS:
         return "sat"
+    if ab.corner_index is not None:  # one class per cell, small boxes: an index of one entry per pair
+        return "worklist"
     vol = pair_volumes(ab)[ab.ok]
     # one class per cell: the worklist also builds the predecessor index (one entry per
     # transition), so it wins only for smaller boxes (measured: bench_synthesis_generic.py)
@@ -680,7 +695,29 @@ def choose_method(method: str, ab: Abstraction) -> str:
 
 def _unpack(packed: np.ndarray, M: int) -> np.ndarray:
     """(N, ceil(M/8)) packed bits -> (N*M,) bool, pair id c * M + u."""
-    return np.unpackbits(packed, axis=1, count=M).view(bool).reshape(-1)
+    return unpack_rows(packed, M).reshape(-1)
+
+
+def unpack_rows(packed: np.ndarray, M: int) -> np.ndarray:
+    """(N, ceil(M/8)) bits (np.packbits order) -> (N, M) bool; column by column for few inputs
+    (np.unpackbits along a short axis is several times slower)."""
+    if M > 16:
+        return np.unpackbits(packed, axis=1, count=M).view(bool)
+    out = np.empty((packed.shape[0], M), dtype=bool)
+    for u in range(M):
+        np.not_equal(packed[:, u >> 3] & np.uint8(0x80 >> (u & 7)), 0, out=out[:, u])
+    return out
+
+
+def pack_rows(rows: np.ndarray) -> np.ndarray:
+    """(N, M) bool -> (N, ceil(M/8)) uint8, as np.packbits(rows, axis=1)."""
+    N, M = rows.shape
+    if M > 16:
+        return np.packbits(rows, axis=1)
+    out = np.zeros((N, (M + 7) // 8), dtype=np.uint8)
+    for u in range(M):
+        out[:, u >> 3] |= rows[:, u].view(np.uint8) << np.uint8(7 - (u & 7))
+    return out
 
 
 def _predecessors(ab: Abstraction, live: np.ndarray):
@@ -719,7 +756,10 @@ def solve_reach(ab: Abstraction, target: np.ndarray, blocked: np.ndarray,
     if allowed is None:
         allowed = ~blocked
     method = choose_method(method, ab)
-    live, n_boxes, n_trans = live_pairs(ab, blocked, ~blocked, allowed, test_keep=method == "sat")
+    if method == "worklist" and ab.corner_index is not None and ab.hold == 1:
+        live, n_boxes, n_trans = _usable_pairs(ab.corner_index, blocked)  # no pass over all pairs
+    else:
+        live, n_boxes, n_trans = live_pairs(ab, blocked, ~blocked, allowed, test_keep=method == "sat")
     t1 = time.perf_counter()
     t_pre = 0.0
     if method == "worklist":
@@ -852,18 +892,27 @@ def solve_invariance(ab: Abstraction, safe: np.ndarray, blocked: Optional[np.nda
         blocked = np.zeros(N, dtype=bool)
     S = safe & ~blocked
     method = choose_method(method, ab)
-    live, n_boxes, n_trans = live_pairs(ab, ~S, S, S)
+    ci = ab.corner_index if method == "worklist" and ab.hold == 1 else None
+    alive = None
+    if ci is not None and np.count_nonzero(~S) * ci.offsets.shape[0] <= N:
+        # the abstraction's usable pairs of the safe cells, minus those whose box meets an unsafe
+        # cell (their predecessors): no pass over all pairs
+        live, n_boxes, n_trans = _usable_pairs(ci, ~S)
+        alive = _unpack(live, M)
+        alive[ci.pairs(np.flatnonzero(~S))] = False
+    else:
+        live, n_boxes, n_trans = live_pairs(ab, ~S, S, S)
     t1 = time.perf_counter()
     t_pre = 0.0
     if method == "worklist":
-        live_b = _unpack(live, M)
-        pre = _predecessors(ab, live_b)
+        alive = _unpack(live, M) if alive is None else alive
+        pre = _predecessors(ab, alive)
         t_pre = time.perf_counter() - t1
-        W, it, tested = _invariance_worklist(ab, S, live_b, pre)
+        W, it, tested = _invariance_worklist(ab, S, alive, pre)  # alive: box in W, updated in place
     else:
         W, it, tested = _invariance_sat(ab, PairEvaluator(ab, ~S, S), S, live)
     t2 = time.perf_counter()
-    packed, chosen = _safety_controller(ab, W, live, max_margin)
+    packed, chosen = _safety_controller(ab, W, live, max_margin, alive=alive)
     steps = np.where(W, 0, -1).astype(np.int32)
     return GameResult(kind="invariance", winning=W, steps=steps, valid_packed=packed,
                       n_inputs=M, target=np.zeros(N, dtype=bool), chosen=chosen, iterations=it,
@@ -874,14 +923,16 @@ def solve_invariance(ab: Abstraction, safe: np.ndarray, blocked: Optional[np.nda
                                 "controller": time.perf_counter() - t2}})
 
 
-def _invariance_worklist(ab: Abstraction, S: np.ndarray, live: np.ndarray, pre: Predecessors):
+def _invariance_worklist(ab: Abstraction, S: np.ndarray, alive: np.ndarray, pre):
     """Drop every pair whose box meets a lost cell; a cell with no pair left is lost next.
-    Lost cells' pairs are all dropped, so ``alive`` alone filters the predecessors."""
+
+    ``alive`` (N*M,) bool, the live pairs, is updated in place: on return it marks the pairs
+    whose box lies in W (every lost cell dropped the pairs that reach it)."""
     N, M = ab.grid.size, ab.n_inputs
-    alive = live.copy()
-    n_alive = alive.reshape(N, M).sum(axis=1, dtype=np.int32)
+    n_alive = _row_counts(alive, N, M)
     W = S & (n_alive > 0)
     R = np.flatnonzero(S & ~W)
+    owner = np.empty(alive.size, dtype=np.int32)  # scratch for removing duplicate pairs
     it = tested = 0
     while True:
         it += 1
@@ -889,16 +940,42 @@ def _invariance_worklist(ab: Abstraction, S: np.ndarray, live: np.ndarray, pre: 
         p = p[alive[p]]
         if p.size == 0:
             break
-        p = np.unique(p)
+        p = _distinct(p, owner)
         tested += p.size
         alive[p] = False
         c = p // M
         np.subtract.at(n_alive, c, np.int32(1))
-        R = np.unique(c[n_alive[c] == 0])
+        R = _distinct(c[n_alive[c] == 0], owner)
         if R.size == 0:
             break
         W[R] = False
     return W, it, tested
+
+
+def _distinct(a: np.ndarray, owner: np.ndarray) -> np.ndarray:
+    """The distinct values of ``a`` (indices into ``owner``, a scratch int32 array), without
+    sorting: every value keeps the one position whose index its owner entry holds."""
+    pos = np.arange(a.size, dtype=np.int32)
+    owner[a] = pos
+    return a[owner[a] == pos]
+
+
+def _row_counts(flags: np.ndarray, N: int, M: int) -> np.ndarray:
+    """(N,) int32 number of True per row of ``flags`` (N*M,) (column by column: a reduction
+    along a short last axis is slow)."""
+    rows = flags.reshape(N, M)
+    out = np.zeros(N, dtype=np.int32)
+    for u in range(M):
+        out += rows[:, u]
+    return out
+
+
+def _usable_pairs(ci, blocked: np.ndarray):
+    """The abstraction's usable pairs of the unblocked cells, as :func:`live_pairs` without
+    the keep test (packed bits, boxes, transitions), from the corner index's per-cell tables."""
+    free = ~blocked
+    packed = ci.usable * free[:, None].view(np.uint8)
+    return packed, int(ci.cell_boxes[free].sum()), int(ci.cell_transitions[free].sum())
 
 
 def _invariance_sat(ab: Abstraction, ev: PairEvaluator, S: np.ndarray, live: np.ndarray):
@@ -939,40 +1016,55 @@ def _invariance_sat(ab: Abstraction, ev: PairEvaluator, S: np.ndarray, live: np.
     return W, it, tested
 
 
-def _safety_controller(ab: Abstraction, W: np.ndarray, live: np.ndarray, max_margin: int):
+def _safety_controller(ab: Abstraction, W: np.ndarray, live: np.ndarray, max_margin: int,
+                       alive: Optional[np.ndarray] = None):
     """Valid inputs on the fixed point, and the input of largest margin k <= max_margin.
 
     The box grown by k cells lies in W exactly when the box lies in E_k, W eroded k times by
-    the 3^n neighbourhood (outside the grid counts as not in W in bounded dimensions), so every
-    margin is one summed-area-table test of the box itself against E_k.
+    the 3^n neighbourhood (outside the grid counts as not in W in bounded dimensions), so the
+    margin of a valid pair is the min over its box of D, the number of erosions a cell
+    survives. Valid means box(c, u) in W: ``alive`` (N*M,) from the worklist says so for the
+    live pairs of W's cells, else one summed-area-table test. The inputs are taken in index
+    order and a cell is settled by its first input of margin ``max_margin`` (one
+    summed-area-table test against E_max), so most cells test one pair; the other pairs take
+    the min of D over their box.
     """
     g = ab.grid
     N, M = g.size, ab.n_inputs
-    B = _block_size(ab)
-    counters = [BoxCounter(g.shape, g.periodic_mask).set(W)]
     E = W.reshape(g.shape)
+    D = W.astype(np.int8) - np.int8(1)  # -1 outside W
     for _ in range(max_margin):
         E = _erode(E, g.periodic_mask)
-        counters.append(BoxCounter(g.shape, g.periodic_mask).set(E.ravel()))
+        D += E.ravel()
+    top = BoxCounter(g.shape, g.periodic_mask).set(E.ravel())
     del E
-    packed = np.zeros((N, (M + 7) // 8), dtype=np.uint8)
+    if alive is None:
+        wc = BoxCounter(g.shape, g.periodic_mask).set(W)
+        valid = np.zeros((N, M), dtype=bool)
+        B = _block_size(ab)
+        for s in range(0, N, B):
+            rng = slice(s, min(N, s + B))
+            valid[rng] = unpack_rows(live[rng], M) & W[rng, None] & RowBoxes(ab, rng).inside(wc)
+    else:
+        valid = alive.reshape(N, M) & W[:, None]
+    packed = pack_rows(valid)
     chosen = np.full(N, -1, dtype=np.int32)
-    for s in range(0, N, B):
-        rng = slice(s, min(N, s + B))
-        rows = np.unpackbits(live[rng], axis=1, count=M).view(bool)
-        rows &= W[rng, None]
-        bx = RowBoxes(ab, rng)
-        # the largest margin first (most pairs of a large W have it), then upwards from 0
-        top = rows & bx.inside(counters[-1])
-        mg = np.where(top, np.int8(max_margin), np.int8(-1))
-        sel = np.nonzero(rows & ~top)
-        for k, counter in enumerate(counters[:-1]):  # only pairs with margin k - 1 are tested for k
-            ok = bx.inside(counter, sel)
-            sel = tuple(a[ok] for a in sel)
-            mg[sel] = k
-        packed[rng] = np.packbits(mg >= 0, axis=1)
-        # largest margin first, ties by lowest index (argmax returns the first maximum)
-        chosen[rng] = np.where(mg.max(axis=1) >= 0, mg.argmax(axis=1), -1)
+    best = np.full(N, -1, dtype=np.int8)
+    open_ = W.copy()  # cells without an input of margin max_margin yet
+    B = 1 << 18
+    for u in range(M):
+        ids_u = np.flatnonzero(open_ & valid[:, u])
+        for s in range(0, ids_u.size, B):
+            ids = ids_u[s:s + B]
+            bx = RowBoxes(ab, ids, inputs=slice(u, u + 1))
+            mg = np.where(bx.inside(top)[:, 0], np.int8(max_margin), np.int8(-1))
+            rest = np.flatnonzero(mg < 0)
+            if rest.size:
+                mg[rest] = bx.min_over(D, g.shape, g.strides, (rest, np.zeros_like(rest)))
+            better = mg > best[ids]  # strictly: ties keep the lowest input
+            best[ids[better]] = mg[better]
+            chosen[ids[better]] = u
+        open_[ids_u[best[ids_u] == max_margin]] = False
     return packed, chosen
 
 

@@ -71,14 +71,14 @@ class CornerIndex:
         use = np.empty((M, N), dtype=bool)
         exts = np.empty((n, M, N), dtype=np.uint8)
         cell_boxes = np.zeros(N, dtype=np.int32)
-        cell_trans = np.zeros(N, dtype=np.int64)
+        cell_trans = np.zeros(N, dtype=np.int32)  # <= M * MAX_ROWS
         emax = np.zeros(n, dtype=np.int64)
         for s in range(0, N, block):
             e = min(N, s + block)
             ids = np.arange(s, e, dtype=np.int32)
             usable = ab.ok[s:e].copy()
             key = np.zeros((e - s, M), dtype=np.int32)
-            vol = np.ones((e - s, M), dtype=np.int64)
+            vol = np.ones((e - s, M), dtype=np.int32)
             for d in range(n):
                 lo = ab.off_lo[s:e, :, d] + ((ids // strides[d]) % shape[d])[:, None]
                 ext = ab.off_hi[s:e, :, d].astype(np.int32) - ab.off_lo[s:e, :, d] + 1
@@ -106,18 +106,21 @@ class CornerIndex:
             code *= np.uint8(emax[d])
             code += np.maximum(exts[d], 1) - np.uint8(1)
         del exts
-        pos = np.flatnonzero(use.ravel())
-        k = keys.ravel()[pos]
+        usable = np.packbits(use.T, axis=1)
+        it = np.int32 if N * M < 2 ** 31 else np.int64
+        use = use.ravel()
+        k = keys.ravel()[use]
         del keys
+        pos = np.arange(use.size, dtype=it)[use]  # (an int32 arange: half the memory of flatnonzero)
+        del use
         order = np.argsort(k, kind="stable")
-        pos = pos[order]
-        del order
         indptr = np.zeros(N + 1, dtype=np.int32)
         np.cumsum(np.bincount(k, minlength=N), out=indptr[1:])
         del k
-        q = ((pos % N) * M + pos // N).astype(np.int32)  # input-major position -> pair id c * M + u
+        pos = pos[order]
+        del order
         code = code.ravel()[pos]
-        usable = np.packbits(use.T, axis=1)
+        q = (pos % it(N)) * it(M) + pos // it(N)  # input-major position -> pair id c * M + u
         return cls(ab, indptr, q, code, emax, usable, cell_boxes, cell_trans)
 
     def pairs(self, cells: np.ndarray) -> np.ndarray:

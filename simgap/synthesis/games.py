@@ -1051,7 +1051,7 @@ def _safety_controller(ab: Abstraction, W: np.ndarray, live: np.ndarray, max_mar
     chosen = np.full(N, -1, dtype=np.int32)
     best = np.full(N, -1, dtype=np.int8)
     open_ = W.copy()  # cells without an input of margin max_margin yet
-    B = 1 << 18
+    B = 1 << 16  # cells per block: the block's temporaries stay small
     for u in range(M):
         ids_u = np.flatnonzero(open_ & valid[:, u])
         for s in range(0, ids_u.size, B):

@@ -72,6 +72,7 @@ class SimgapApp:
         self.run = None  # a loaded `simgap run` folder (results.RunResults) and the method shown
         self.run_method = None
         self.audit = None  # the shown certificate's audit report (from a run folder)
+        self.perrun_view = {"map": True, "markers": True, "controller": "perrun"}  # the per-run layer
 
         origin.install()  # refuse websockets from other pages before the server starts
         self.server = viser.ViserServer(host=host, port=port, verbose=False)
@@ -85,7 +86,7 @@ class SimgapApp:
 
     # ----- GUI construction -----------------------------------------------------------
     def _build_gui(self) -> None:
-        from .panels import certificate, refinement, rollouts, synthesis, system_data, view
+        from .panels import certificate, perrun, refinement, rollouts, synthesis, system_data, view
 
         gui = self.server.gui
         self.status = gui.add_markdown("**simgap** ready", order=0)
@@ -102,6 +103,8 @@ class SimgapApp:
             self.panels["synthesis"] = synthesis.build(self)
         with tabs.add_tab("Rollouts"):
             self.panels["rollouts"] = rollouts.build(self)
+        with tabs.add_tab("Per run"):
+            self.panels["perrun"] = perrun.build(self)
         with tabs.add_tab("Refine"):
             self.panels["refine"] = refinement.build(self)
         with tabs.add_tab("View"):
@@ -215,6 +218,8 @@ class SimgapApp:
         self.panels["view"].rebuild_sliders()
         self.refresh_system_layers()
         self.refresh_result_layers()
+        if "perrun" in self.panels:
+            self.panels["perrun"].show()
 
     # ----- data -----------------------------------------------------------------------
     def set_dataset(self, dataset) -> None:
@@ -278,6 +283,7 @@ class SimgapApp:
         for p in self.panels.values():
             p.sync_from_settings()
         self._show_results()
+        self.panels["perrun"].show()
         self.set_status(f"run **{run.path.name}** ({method}): data K = {m.dataset.K}, "
                         f"{m.synthesis.controller.size_with_target} winning cells"
                         + (f", {m.rollouts.n_rollouts} rollouts" if m.rollouts is not None else ""))

@@ -3,7 +3,8 @@
 The folder layout is the pipeline's (:func:`simgap.pipeline.run_experiment`): ``summary.json``,
 ``data`` and ``data_deterministic`` (collection stores), and per method (``stochastic``,
 ``deterministic``) ``cert_<m>.json``, ``audit_<m>.json``, ``controller_<m>.npz`` and, when the
-rollouts ran, ``rollouts_<m>.npz``. Everything is read with the engine's own loaders (no
+rollouts ran, ``rollouts_<m>.npz``; with a ``[perrun]`` section, the per-run results
+(:mod:`.results_perrun`). Everything is read with the engine's own loaders (no
 pickle; the stores verify their digests); only files inside the folder are opened.
 """
 
@@ -37,6 +38,7 @@ class RunResults:
     summary: dict
     experiment: object = None  # simgap.config.ExperimentConfig, when its TOML is still readable
     methods: dict = field(default_factory=dict)  # method -> MethodResults
+    per_run: object = None  # results_perrun.PerRunResults, when the run had a [perrun] section
 
 
 def is_run_dir(path) -> bool:
@@ -78,6 +80,8 @@ def load_run(path) -> RunResults:
     from simgap.synthesis.controller import Controller, SynthesisResult
     from simgap.synthesis.rollout import load_rollout
 
+    from .results_perrun import load_per_run
+
     root = Path(path)
     if not root.is_dir():
         raise SimgapError(f"results folder {str(root)!r} does not exist")
@@ -114,4 +118,5 @@ def load_run(path) -> RunResults:
         run.methods[m] = MethodResults(dataset=ds, certificate=cert, audit=audit, synthesis=syn, rollouts=ro)
     if not run.methods:
         raise SimgapError(f"{root / 'summary.json'} lists no method results")
+    run.per_run = load_per_run(root, summary, exp.system)
     return run

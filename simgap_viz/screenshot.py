@@ -3,7 +3,8 @@
     python -m simgap_viz.screenshot results/pendulum-small --out docs/app.png
 
 opens the finished run (``simgap run pendulum``) in the app and saves one PNG per tab:
-``docs/app.png`` (the Certificate tab) and ``docs/app-<tab>.png`` for the others named by ``--tabs``.
+``docs/app.png`` (the Certificate tab) and ``docs/app-<tab>.png`` for the others named by ``--tabs``,
+plus ``docs/app-per-run.png`` (the Per run tab, gamma surface hidden) when the run has per-run results.
 """
 
 from __future__ import annotations
@@ -66,15 +67,20 @@ def main(argv=None) -> int:
     out = Path(args.out)
     written = []
     try:
-        app.load_run(load_run(args.results))
+        run = load_run(args.results)
+        app.load_run(run)
         app.set_view(dim=args.dim - 1)
+        tabs = [t for t in args.tabs.split(",") if t] + (["Per run"] if run.per_run is not None else [])
         with sync_playwright() as pw:
             b = pw.chromium.launch(executable_path=CHROMIUM, args=ARGS)
             page = open_page(b, app.url, args.width, args.height)
             # the main picture last: the tick labels appear once the camera has settled
-            for tab in [t for t in args.tabs.split(",") if t] + ["Certificate"]:
+            for tab in tabs + ["Certificate"]:
+                gamma = app.panels["view"].checks["gamma"]
+                gamma.value = tab != "Per run"  # the surface would hide the p_cert map
                 show_tab(page, tab)
-                path = out if tab == "Certificate" else out.with_name(f"{out.stem}-{tab.lower()}{out.suffix}")
+                name = tab.lower().replace(" ", "-")
+                path = out if tab == "Certificate" else out.with_name(f"{out.stem}-{name}{out.suffix}")
                 page.screenshot(path=str(path), timeout=180_000)
                 written.append(path)
             b.close()

@@ -187,14 +187,19 @@ def run_stage(exp, out: Path, data, controllers: Dict[str, object], spec, x0, o:
     return res
 
 
+def sound(p_cert, p_emp: float, se: float, n_rollouts: int) -> bool:
+    """The validation's soundness check at one initial state: p_emp >= p_cert - 3 SE (SE at least
+    1/R, so a state with no observed failure still has a margin); True where there is no p_cert."""
+    return p_cert is None or p_emp >= p_cert - 3 * max(se, 1 / n_rollouts)
+
+
 def table(res: dict) -> str:
     """Per controller: p_cert and p_emp (95 % CI) at x0, and the share of states with p_emp >= p_cert - 3 SE."""
     lines = [f"per-run guarantees: horizon {res['horizon']} periods, {res['n_rollouts']} rollouts per initial state",
              f"{'controller':<15}{'p_cert(x0)':>11}{'p_emp(x0)':>11}{'95% CI':>19}{'states':>8}{'sound':>7}"]
     for name, c in res["controllers"].items():
         s0 = c["states"][0]
-        ok = [s["p_cert"] is None or s["p_emp"] >= s["p_cert"] - 3 * max(s["se"], 1 / s["n_rollouts"])
-              for s in c["states"]]
+        ok = [sound(s["p_cert"], s["p_emp"], s["se"], s["n_rollouts"]) for s in c["states"]]
         pc = "-" if s0["p_cert"] is None else f"{s0['p_cert']:.4f}"
         ci = f"[{s0['ci95'][0]:.4f}, {s0['ci95'][1]:.4f}]"
         lines.append(f"{name:<15}{pc:>11}{s0['p_emp']:>11.4f}{ci:>19}{len(c['states']):>8}"

@@ -29,7 +29,7 @@ from typing import Optional
 import numpy as np
 
 from .. import fileio
-from ..errors import SimgapError
+from ..errors import BAD_FILE_ERRORS, SimgapError
 from ..synthesis.grid import UniformGrid
 from .imdp import IMDP
 
@@ -117,10 +117,14 @@ class PerRunController:
         return np.where(ids >= 0, self.policy[h, np.maximum(ids, 0)], -1)
 
     def save(self, path) -> Path:
+        """Write the controller as .npz with a content digest of its metadata and arrays."""
         import json
         meta = dict(self.meta, format=FORMAT, hold=self.hold, horizon=self.horizon, grid=self.grid.describe())
-        return fileio.savez(path, inputs=self.inputs, policy=self.policy, p_cert=self.p_cert, target=self.target,
-                            meta=np.array(json.dumps(meta, default=str)))
+        meta.pop("digest", None)
+        meta = json.loads(json.dumps(meta, default=str))  # the JSON the file holds
+        arrays = dict(inputs=self.inputs, policy=self.policy, p_cert=self.p_cert, target=self.target)
+        meta["digest"] = fileio.content_digest(meta, arrays)
+        return fileio.savez(path, **arrays, meta=np.array(json.dumps(meta)))
 
     @classmethod
     def load(cls, path) -> "PerRunController":
@@ -130,13 +134,21 @@ class PerRunController:
             with np.load(path, allow_pickle=False) as z:
                 meta = json.loads(str(z["meta"]))
                 arrays = {k: z[k] for k in ("inputs", "policy", "p_cert", "target")}
-        except (OSError, ValueError, KeyError) as e:
+        except (*BAD_FILE_ERRORS, KeyError) as e:
             raise SimgapError(f"{str(path)!r} is not a per-run controller: {e}") from None
-        if meta.get("format") != FORMAT:
-            raise SimgapError(f"{str(path)!r} is not a per-run controller (format {meta.get('format')!r})")
+        if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+            raise SimgapError(f"{str(path)!r} is not a per-run controller (format tag)")
+        want = meta.get("digest")
+        have = fileio.content_digest({k: v for k, v in meta.items() if k != "digest"}, arrays)
+        if want != have:
+            raise SimgapError(f"{str(path)!r} was modified after it was written or has no content digest (refused; "
+                              f"synthesize again): its digest is {have[:16]}... but the file records {str(want)[:16]}...")
         grid = UniformGrid.from_dict(meta["grid"])
         if arrays["policy"].ndim != 2 or arrays["policy"].shape[1] != grid.size or arrays["p_cert"].shape != (grid.size,):
             raise SimgapError(f"{str(path)!r}: policy/p_cert do not match the grid")
+        p = np.asarray(arrays["p_cert"], float)
+        if not np.all((p >= 0.0) & (p <= 1.0)):  # also refuses NaN
+            raise SimgapError(f"{str(path)!r}: p_cert holds values outside [0, 1]")
         return cls(grid=grid, inputs=arrays["inputs"], hold=int(meta["hold"]), horizon=int(meta["horizon"]),
                    policy=arrays["policy"], p_cert=arrays["p_cert"], target=arrays["target"], meta=meta)
 

@@ -1,0 +1,251 @@
+"""The app's per-run view: the p_cert map, the p_emp markers, the table and the p_emp-against-p_cert plot.
+
+A real per-run results folder is made once with ``simgap run`` (tests/data/perrun_gui.toml: numpy
+pendulum, about half a minute) and opened in the app. The checks compare what the app sends to
+the browser with the engine's files, refuse tampered files, and look at the pixels in headless
+chromium.
+"""
+
+import io
+import json
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from simgap.cli import main
+from simgap.errors import SimgapError
+
+TOML = Path(__file__).parent / "data" / "perrun_gui.toml"
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory):
+    out = tmp_path_factory.mktemp("perrun_gui") / "out"
+    assert main(["run", str(TOML), "--out", str(out), "--no-record"]) == 0
+    return out
+
+
+@pytest.fixture
+def app(run_dir):
+    from simgap_viz.app import SimgapApp
+    from simgap_viz.results import load_run
+    a = SimgapApp(port=0, executor="serial")
+    a.load_run(load_run(run_dir))
+    yield a
+    a.stop()
+
+
+def test_what_the_app_sends_is_what_the_engine_wrote(app, run_dir):
+    from simgap.perrun.value_iteration import PerRunController
+    from simgap_viz.layers import perrun as layer
+    from simgap_viz.layers.geometry import Frame
+    from simgap_viz.panels import perrun as panel
+
+    summary = json.loads((run_dir / "summary.json").read_text())["per_run"]
+    ctl = PerRunController.load(run_dir / "controller_perrun.npz")
+    pr = app.run.per_run
+    assert list(pr.controllers) == list(summary["controllers"])
+    drawn = app.panels["perrun"].show()
+    # the map: one pixel block per grid cell, p_cert of that cell on the color scale
+    m = drawn["map"]
+    g = ctl.grid
+    assert m["p"].shape == tuple(g.shape)
+    np.testing.assert_array_equal(m["p"], ctl.p_cert.reshape(g.shape))
+    k = m["image"].shape[1] // g.shape[0]
+    assert m["image"].shape == (g.shape[1] * k, g.shape[0] * k, 3)
+    # pixel (row, col) shows cell (i = col // k, j = n2 - 1 - row // k): +x2 up
+    i, j = np.unravel_index(np.argmax(ctl.p_cert), g.shape)
+    np.testing.assert_array_equal(m["image"][(g.shape[1] - 1 - j) * k, i * k], layer.pcolormap(ctl.p_cert.max()))
+    assert 0 < ctl.p_cert.max() <= 1 and (ctl.p_cert == 0).any()  # both ends of the scale are on the map
+    # the markers: the per-run controller's validated states at their places, colored by p_emp
+    st = summary["controllers"]["perrun"]["states"]
+    mk = drawn["markers"]
+    np.testing.assert_allclose(mk["points"][:, :2], Frame(app.system).xy(np.array([s["x0"] for s in st]))[:, :2],
+                               atol=1e-6)
+    np.testing.assert_array_equal(mk["colors"], layer.pcolormap([s["p_emp"] for s in st]))
+    # the color scale: 0 red, 0.5 yellow, 1 green, monotone in between
+    c = layer.pcolormap(np.array([0.0, 0.5, 1.0])).astype(int)
+    assert c[0, 0] > 150 > c[0, 1] and c[1, 0] > 200 and c[1, 1] > 200 and c[2, 1] > 100 > c[2, 0]
+    # the plot: one point per (controller with p_cert, state), at x = p_cert, y = p_emp, with
+    # its interval as a bar of points from lo to hi at the same x; the diagonal from 0 to 1
+    pd = panel.plot_data(pr)
+    x, *ys = pd["data"]
+    assert np.all(np.diff(x) >= 0) and all(len(y) == len(x) for y in ys)
+    assert pd["names"] == ["run_baseline", "perrun"]  # the gap controllers state no p_cert
+    for name, y in zip(pd["names"], ys):
+        pts = sorted(zip(x[np.isfinite(y)], y[np.isfinite(y)]))
+        want = sorted((s["p_cert"], s["p_emp"]) for s in summary["controllers"][name]["states"])
+        np.testing.assert_allclose(pts, want)
+    ci, diag = ys[-2], ys[-1]
+    for s in st:
+        bar = ci[np.isclose(x, s["p_cert"]) & np.isfinite(ci)]
+        assert bar.min() <= s["ci95"][0] + 1e-12 and bar.max() >= s["ci95"][1] - 1e-12
+    assert np.all(ci[np.isfinite(ci)] >= 0) and np.all(ci[np.isfinite(ci)] <= 1)
+    np.testing.assert_array_equal(x[np.isfinite(diag)], [0.0, 1.0])
+    np.testing.assert_array_equal(diag[np.isfinite(diag)], [0.0, 1.0])
+    p = app.panels["perrun"]
+    assert p.plot.visible and np.array_equal(p.plot.data[0], pd["data"][0])
+    # the tables: every state of the chosen controller with its numbers, the soundness count
+    for s in st:
+        assert f"{s['p_emp']:.4f} [{s['ci95'][0]:.4f}, {s['ci95'][1]:.4f}]" in p.states.content
+    n_ok = sum(s["p_emp"] >= s["p_cert"] - 3 * max(s["se"], 1 / s["n_rollouts"]) for s in st)
+    assert f"| per-run (interval MDP) | {st[0]['p_cert']:.4f} |" in p.overview.content
+    assert f"{n_ok} / {len(st)} |" in p.overview.content
+
+
+def test_toggles_and_the_controller_choice(app):
+    from simgap_viz.layers import perrun as layer
+    p = app.panels["perrun"]
+    p.controller.value = "stochastic"
+    st = app.run.per_run.controllers["stochastic"]
+    assert app.perrun_view["controller"] == "stochastic" and "stochastic gap" in p.states.content
+    drawn = layer.draw(app)
+    assert len(drawn["markers"]["points"]) == len(st.p_emp)
+    assert p.states.content.count("\n| ") == len(st.p_emp) + 1  # header separator + one row per state
+    p.show_map.value = False
+    p.show_markers.value = False
+    assert app.perrun_view == {"map": False, "markers": False, "controller": "stochastic"}
+
+
+def test_a_run_without_per_run_results_says_how_to_get_them(tmp_path, run_dir):
+    from simgap_viz.app import SimgapApp
+    from simgap_viz.results import load_run
+    d = tmp_path / "run"
+    shutil.copytree(run_dir, d)
+    s = json.loads((d / "summary.json").read_text())
+    del s["per_run"]
+    (d / "summary.json").write_text(json.dumps(s))
+    a = SimgapApp(port=0, executor="serial")
+    try:
+        a.load_run(load_run(d))
+        p = a.panels["perrun"]
+        assert a.run.per_run is None and p.note.visible and "[perrun]" in p.note.content
+        assert not p.plot.visible and not p.show_map.visible
+    finally:
+        a.stop()
+
+
+def _tampered(run_dir, tmp_path, edit) -> Path:
+    d = tmp_path / "run"
+    shutil.copytree(run_dir, d)
+    edit(d)
+    return d
+
+
+def _summary_edit(fn):
+    def edit(d):
+        s = json.loads((d / "summary.json").read_text())
+        fn(s["per_run"])
+        (d / "summary.json").write_text(json.dumps(s))
+    return edit
+
+
+def _raise_pcert(d):
+    import zipfile
+    p = d / "controller_perrun.npz"
+    with np.load(p) as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays["p_cert"] = np.minimum(arrays["p_cert"] + 0.05, 1.0)  # an optimistic edit, digest left as it was
+    with open(p, "wb") as fh:
+        np.savez(fh, **arrays)
+    assert zipfile.is_zipfile(p)
+
+
+@pytest.mark.parametrize("edit, msg", [
+    (_raise_pcert, "modified after it was written"),
+    (lambda d: (d / "controller_perrun.npz").unlink(), "controller_perrun.npz is missing"),
+    (_summary_edit(lambda pr: pr["controllers"]["perrun"]["states"][1].update(p_cert=0.999)), "disagree"),
+    (_summary_edit(lambda pr: pr["controllers"]["perrun"]["states"][0].update(p_emp=1.5)), "p_emp must be"),
+    (_summary_edit(lambda pr: pr["controllers"]["stochastic"]["states"][0].update(p_emp=float("nan"))), "p_emp must be"),
+    (_summary_edit(lambda pr: pr["controllers"]["perrun"]["states"][0].update(x0=[9.0, 0.0])), "outside X"),
+    (_summary_edit(lambda pr: pr["controllers"]["perrun"]["states"][0].update(ci95=[0.0])), "ci95 must be"),
+    (_summary_edit(lambda pr: pr["controllers"]["perrun"]["states"][0].update(ci95=[0.0, 0.1])), "outside its ci95"),
+    (_summary_edit(lambda pr: pr.update(controllers=[])), "no 'controllers' table"),
+])
+def test_tampered_per_run_results_are_refused(run_dir, tmp_path, edit, msg):
+    from simgap_viz.results import load_run
+    d = _tampered(run_dir, tmp_path, edit)
+    with pytest.raises(SimgapError, match=None) as e:
+        load_run(d)
+    assert msg in str(e.value)
+
+
+def test_cli_gui_refuses_a_tampered_folder_with_a_message(run_dir, tmp_path):
+    import subprocess
+    import sys
+    d = _tampered(run_dir, tmp_path, _raise_pcert)
+    p = subprocess.run([sys.executable, "-m", "simgap", "gui", str(d), "--port", "0", "--exit-after", "0.3"],
+                       capture_output=True, text=True, timeout=180)
+    assert p.returncode != 0 and "modified after it was written" in p.stderr and "Traceback" not in p.stderr
+
+
+def _count(img, rgb, tol):
+    return int(np.count_nonzero(np.all(np.abs(img[..., :3].astype(int) - np.array(rgb)) <= tol, axis=-1)))
+
+
+@pytest.mark.browser
+def test_per_run_view_in_the_browser(run_dir, tmp_path):
+    """Headless chromium: the map's colors for p_cert = 0 and for the largest p_cert inside the
+    canvas, the markers' rings, and the plot drawn (uPlot's chart object holds our series, and its
+    canvas has the series' colors); hiding the map removes its colors."""
+    from PIL import Image
+    from test_browser_app import _need_browser
+    _need_browser()
+    from playwright.sync_api import sync_playwright
+
+    from simgap_viz import screenshot as S
+    from simgap_viz.app import SimgapApp
+    from simgap_viz.layers import perrun as layer
+    from simgap_viz.results import load_run
+    a = SimgapApp(port=0, executor="serial")
+    try:
+        a.load_run(load_run(run_dir))
+        a.panels["view"].checks["gamma"].value = False  # the surface would tint the map below it
+        pr = a.run.per_run
+        with sync_playwright() as pw:
+            b = pw.chromium.launch(executable_path=S.CHROMIUM, args=S.ARGS)
+            try:
+                page = S.open_page(b, a.url, 1280, 800)
+                S.show_tab(page, "Per run")
+                shot = np.asarray(Image.open(io.BytesIO(S.canvas_png(page, tmp_path / "perrun.png"))).convert("RGB"))
+                page.get_by_text("p_emp against p_cert").first.wait_for(timeout=60_000)
+                chart = page.evaluate("""() => {
+                    const reg = (window.__viserTestpoints || {}).uplots || {};
+                    for (const k in reg) {
+                        const u = reg[k].chart;
+                        if (u.series.some(s => s.label === 'p_emp = p_cert')) {
+                            const cv = u.ctx.canvas;
+                            return {labels: u.series.map(s => s.label), n: u.data[0].length,
+                                    png: cv.toDataURL('image/png')};
+                        }
+                    }
+                    return null; }""")
+                a.panels["perrun"].show_map.value = False
+                time.sleep(2.0)
+                hidden = np.asarray(Image.open(io.BytesIO(S.canvas_png(page))).convert("RGB"))
+            finally:
+                b.close()
+    finally:
+        a.stop()
+    w = shot.shape[1]
+    scene, scene_hidden = shot[:, : int(w * 0.68)], hidden[:, : int(w * 0.68)]  # left of the control panel
+    zero = layer.pcolormap(0.0)
+    top = layer.pcolormap(float(pr.controller.p_cert.max()))
+    assert _count(scene, zero, 12) > 5000, "the map's p_cert = 0 color is missing"
+    assert _count(scene, top, 12) > 500, "the map's largest-p_cert color is missing"
+    assert _count(scene, layer.RING, 25) > 100, "the markers' rings are missing"
+    assert _count(scene_hidden, zero, 12) < 0.05 * _count(scene, zero, 12)
+    # the plot: our series in uPlot, and its canvas shows the per-run points and the CI bars
+    assert chart is not None, "no uPlot chart with the diagonal series"
+    assert chart["labels"][1:] == ["union-bound baseline", "per-run (interval MDP)", "95 % CI", "p_emp = p_cert"]
+    import base64
+    plot = np.asarray(Image.open(io.BytesIO(base64.b64decode(chart["png"].split(",", 1)[1]))).convert("RGB"))
+    from simgap_viz.panels.perrun import CI_COLOR, COLORS
+
+    def rgb(h):
+        return tuple(int(h[i:i + 2], 16) for i in (1, 3, 5))
+    assert _count(plot, rgb(COLORS["perrun"]), 30) > 40, "the per-run points are not drawn"
+    assert _count(plot, rgb(CI_COLOR), 30) > 10, "the CI bars are not drawn"

@@ -4,7 +4,7 @@
 
 opens the finished run (``simgap run pendulum``) in the app and saves one PNG per tab:
 ``docs/app.png`` (the Certificate tab) and ``docs/app-<tab>.png`` for the others named by ``--tabs``,
-plus ``docs/app-per-run.png`` (the Per run tab, gamma surface hidden) when the run has per-run results.
+plus ``docs/app-per-run.png`` (the Per run tab, gamma surface and data gaps hidden) when the run has per-run results.
 """
 
 from __future__ import annotations
@@ -76,8 +76,8 @@ def main(argv=None) -> int:
             page = open_page(b, app.url, args.width, args.height)
             # the main picture last: the tick labels appear once the camera has settled
             for tab in tabs + ["Certificate"]:
-                gamma = app.panels["view"].checks["gamma"]
-                gamma.value = tab != "Per run"  # the surface would hide the p_cert map
+                for layer in ("gamma", "data"):  # the surface and the gaps would hide the p_cert map
+                    app.panels["view"].checks[layer].value = tab != "Per run"
                 show_tab(page, tab)
                 name = tab.lower().replace(" ", "-")
                 path = out if tab == "Certificate" else out.with_name(f"{out.stem}-{name}{out.suffix}")

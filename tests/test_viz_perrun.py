@@ -105,9 +105,12 @@ def test_toggles_and_the_controller_choice(app):
     drawn = layer.draw(app)
     assert len(drawn["markers"]["points"]) == len(st.p_emp)
     assert p.states.content.count("\n| ") == len(st.p_emp) + 1  # header separator + one row per state
+    legend = app.panels["view"].legend
+    assert "| p_cert map | drawn over the winning map" in legend.content
     p.show_map.value = False
     p.show_markers.value = False
     assert app.perrun_view == {"map": False, "markers": False, "controller": "stochastic"}
+    assert "p_cert map" not in legend.content and "| winning map |" in legend.content
 
 
 def test_a_run_without_per_run_results_says_how_to_get_them(tmp_path, run_dir):
@@ -203,7 +206,8 @@ def test_per_run_view_in_the_browser(run_dir, tmp_path):
     a = SimgapApp(port=0, executor="serial")
     try:
         a.load_run(load_run(run_dir))
-        a.panels["view"].checks["gamma"].value = False  # the surface would tint the map below it
+        for layer_name in ("gamma", "data"):  # the surface and the gap points would cover the map
+            a.panels["view"].checks[layer_name].value = False
         pr = a.run.per_run
         with sync_playwright() as pw:
             b = pw.chromium.launch(executable_path=S.CHROMIUM, args=S.ARGS)

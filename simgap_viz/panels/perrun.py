@@ -116,6 +116,7 @@ class PerRunPanel(Panel):
         with self.app.lock:
             self.app.perrun_view.update(changes)
         self.show()
+        self.app.panels["view"].show_legend()
 
     def show(self) -> dict:
         """Draw the layer and fill the tab from the loaded run's per-run results; returns what was drawn."""

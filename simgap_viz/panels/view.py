@@ -62,6 +62,8 @@ class ViewPanel(Panel):
                      else "")
             rows.append(f"| winning map | green {wc['winning']} winning{shade}, beige {wc['losing']} safe but "
                         f"losing, red {wc['unsafe']} unsafe, blue target |")
+        if getattr(app.run, "per_run", None) is not None and app.perrun_view["map"]:
+            rows.append("| p_cert map | drawn over the winning map (Per run tab: colors, toggle) |")
         rd = app.rollout_drawn
         res = app.results.get("rollout")
         if rd is not None and res is not None:

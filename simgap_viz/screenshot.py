@@ -3,8 +3,11 @@
     python -m simgap_viz.screenshot results/pendulum-small --out docs/app.png
 
 opens the finished run (``simgap run pendulum``) in the app and saves one PNG per tab:
-``docs/app.png`` (the Certificate tab) and ``docs/app-<tab>.png`` for the others named by ``--tabs``,
-plus ``docs/app-per-run.png`` (the Per run tab, gamma surface and data gaps hidden) when the run has per-run results.
+``docs/app.png`` (the Certificate tab; ``--no-main`` skips it) and ``docs/app-<tab>.png`` for the others
+named by ``--tabs``. For the "Per run" tab (a run with ``[perrun]``) the gamma surface and the data gaps
+are hidden, so the p_cert map shows:
+
+    python -m simgap_viz.screenshot results/perrun-gui --out docs/app.png --tabs "Per run" --no-main
 """
 
 from __future__ import annotations
@@ -54,6 +57,7 @@ def main(argv=None) -> int:
     p.add_argument("results", help="a finished `simgap run` folder")
     p.add_argument("--out", default="docs/app.png", help="the main picture (Certificate tab)")
     p.add_argument("--tabs", default="Synthesis,Rollouts,View", help="further tabs, one PNG each")
+    p.add_argument("--no-main", action="store_true", help="skip the main picture")
     p.add_argument("--dim", type=int, default=2, help="gamma of state dimension (1-based)")
     p.add_argument("--width", type=int, default=1280)
     p.add_argument("--height", type=int, default=800)
@@ -67,15 +71,14 @@ def main(argv=None) -> int:
     out = Path(args.out)
     written = []
     try:
-        run = load_run(args.results)
-        app.load_run(run)
+        app.load_run(load_run(args.results))
         app.set_view(dim=args.dim - 1)
-        tabs = [t for t in args.tabs.split(",") if t] + (["Per run"] if run.per_run is not None else [])
+        tabs = [t for t in args.tabs.split(",") if t] + ([] if args.no_main else ["Certificate"])
         with sync_playwright() as pw:
             b = pw.chromium.launch(executable_path=CHROMIUM, args=ARGS)
             page = open_page(b, app.url, args.width, args.height)
             # the main picture last: the tick labels appear once the camera has settled
-            for tab in tabs + ["Certificate"]:
+            for tab in tabs:
                 for layer in ("gamma", "data"):  # the surface and the gaps would hide the p_cert map
                     app.panels["view"].checks[layer].value = tab != "Per run"
                 show_tab(page, tab)

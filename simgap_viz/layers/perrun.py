@@ -47,7 +47,7 @@ def pcert_map(controller, max_pixels: int = 1024) -> dict:
     g = controller.grid
     shape = tuple(g.shape) + ((1,) if g.n == 1 else ())
     p = np.asarray(controller.p_cert, float).reshape(shape[0], shape[1], -1).max(axis=2)
-    k = max(1, min(8, max_pixels // max(shape[0], shape[1])))  # crisp cell edges under texture filtering
+    k = max(1, min(64, max_pixels // max(shape[0], shape[1])))  # crisp cell edges under texture filtering
     image = np.repeat(np.repeat(pcolormap(p).transpose(1, 0, 2)[::-1], k, axis=0), k, axis=1)
     lo, hi = g.domain_lo[:2], g.domain_hi[:2]
     if g.n == 1:

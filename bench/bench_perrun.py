@@ -12,7 +12,8 @@
    effect, invariance in X, x0 = (0.05, 0.1)): interval MDP from simulator samples (time per
    phase, samples, entries, bytes), value iteration, then R rollouts of the per-run controller
    from x0 and ``--states`` initial states in its domain: p_cert, p_emp (95 % Clopper-Pearson),
-   soundness p_emp >= p_cert - 3 SE per state, tightness p_emp - p_cert at x0.
+   soundness p_emp >= p_cert - 3 SE per state, tightness p_emp - p_cert at x0, and p_cert(x0)
+   from the same counts with the uniform Bonferroni split (every bound at beta / all bounds).
 The machine may be shared: the report states wall times and the load average.
 """
 
@@ -31,7 +32,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from simgap.perrun.imdp import IMDP, IMDPOptions, build_imdp  # noqa: E402
+from simgap.perrun.imdp import IMDP, IMDPOptions, build_imdp, reallocate  # noqa: E402
 from simgap.perrun.validation import empirical, sample_in_cells, success_counts  # noqa: E402
 from simgap.perrun.value_iteration import synthesize_imdp  # noqa: E402
 from simgap.simulators.base import make_simulator  # noqa: E402
@@ -95,6 +96,11 @@ def bench_validate(a) -> dict:
     cpu_build = time.process_time() - c0
     t_build = time.perf_counter() - t0
     ctl = synthesize_imdp(im, a.horizon)
+    # ablation on the same counts: the uniform Bonferroni split (every bound at beta / all bounds)
+    n_sink = int((im.col == im.C).sum())
+    n_sup = im.nnz - n_sink
+    uniform = reallocate(im, im.meta["beta"], np.array([n_sink, n_sup, n_sup]) / (n_sink + 2 * n_sup))
+    p_uniform = float(synthesize_imdp(uniform, a.horizon).certified(x0[None])[0])
     rng = np.random.default_rng(5)
     xs = np.concatenate([x0[None], sample_in_cells(im.grid, np.flatnonzero(ctl.p_cert > 0), a.states, rng)])
     t1, c1 = time.perf_counter(), time.process_time()
@@ -117,6 +123,7 @@ def bench_validate(a) -> dict:
             "seconds_vi": round(ctl.meta["seconds_vi"], 2), "seconds_rollouts": round(t_roll, 2),
             "rollouts_per_state": a.rollouts, "states": len(xs), "sound_states": int(sound.sum()),
             "p_cert_x0": rows[0]["p_cert"], "p_emp_x0": rows[0]["p_emp"],
+            "p_cert_x0_uniform_split": round(p_uniform, 4),
             "tightness_x0": round(float(pe[0] - pc[0]), 4), "peak_rss_mb": round(peak_rss_mb()), "table": rows}
 
 
@@ -128,8 +135,8 @@ def main():
     ap.add_argument("--eta", type=float, nargs=2, default=[0.02, 0.05])
     ap.add_argument("--hold", type=int, default=20)
     ap.add_argument("--inputs", type=int, default=11)
-    ap.add_argument("--n-runs", type=int, default=2000)
-    ap.add_argument("--pilot", type=int, default=200)
+    ap.add_argument("--n-runs", type=int, default=4000)
+    ap.add_argument("--pilot", type=int, default=400)
     ap.add_argument("--horizon", type=int, default=400)
     ap.add_argument("--rollouts", type=int, default=10000)
     ap.add_argument("--states", type=int, default=20)

@@ -30,7 +30,8 @@ Construction (per (c, a), all vectorized over pairs x runs):
    its bounds are the trivial lo = 0 / hi = 1, true with probability 1, at no cost in beta.
    Clopper-Pearson is exact, so at zero counts hi = 1 - (beta w_f / n_f)^(1/N) ~ ln(n_f / (beta w_f)) / N.
 
-Memory: entries (col int32, lo/hi float32 rounded outward) in CSR over rows c*M + a.
+Memory: entries (col int32, lo/hi float32 rounded outward, the int32 counts behind them) in CSR
+over rows c*M + a.
 """
 
 from __future__ import annotations

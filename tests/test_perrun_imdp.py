@@ -127,6 +127,12 @@ def test_the_union_bound_spends_at_most_beta(walk, monkeypatch):
     assert 0.8 * beta < _spent_beta(im) <= beta           # the split is used, and not overspent
     for split in [(1.0, 0.0, 0.0), (0.5, 0.25, 0.25), (0.2, 0.4, 0.4)]:
         assert _spent_beta(reallocate(im, beta, split)) <= beta
+    # with no widening (L = 0: end boxes are points) the pilot sees single-cell ends and all
+    # three families are estimated; the spent beta still stays within beta
+    points = build_imdp(sim, SPEC, IMDPOptions(eta=[0.02], hold=5, n_runs=500, pilot_runs=50, lipschitz=0.0, seed=2))
+    assert points.meta["split"]["lo"] > 0 and np.any(points.lo > 0)
+    assert 0.8 * beta < _spent_beta(points) <= beta
+    assert im.meta["split"]["lo"] == 0 and im.meta["split"]["sink"] == pytest.approx(0.95)  # widened: lo never > 0
     # reallocating with the build's own split reproduces its intervals
     same = reallocate(im, beta, tuple(im.meta["split"].values()))
     assert np.array_equal(same.lo, im.lo) and np.array_equal(same.hi, im.hi)

@@ -2,8 +2,9 @@
 
 Entities (state units, first two state dimensions; further dimensions are projected by the max):
 
-* ``perrun/p_cert`` -- Points2D at the interval-MDP cell centers, colored red (0) -> green (1) by
-  the certified success probability p_cert, labelled with its value;
+* ``perrun/p_cert`` -- Points2D at the interval-MDP cell centers, colored by the certified success
+  probability p_cert on the app's scale (dark red 0 -> yellow 0.5 -> dark green 1,
+  :func:`simgap_viz.layers.perrun.pcolormap`), labelled with its value;
 * ``perrun/<controller>/p_emp`` -- Points2D at the validated initial states, colored by p_emp,
   labelled "p_emp [CI] / p_cert";
 * ``perrun/summary`` -- TextDocument (markdown) with the per-controller table.
@@ -20,12 +21,8 @@ import numpy as np
 
 from simgap.errors import SimgapError
 
+from .layers.perrun import pcolormap
 from .record import finish_recording
-
-
-def _color(p: np.ndarray) -> np.ndarray:
-    p = np.clip(np.asarray(p, float), 0, 1)
-    return np.stack([255 * (1 - p), 200 * p, 40 * np.ones_like(p)], axis=1).astype(np.uint8)
 
 
 def record_per_run(out: str | Path, controller, per_run: dict) -> dict:
@@ -49,7 +46,7 @@ def record_per_run(out: str | Path, controller, per_run: dict) -> dict:
     best = np.zeros(len(key))
     np.maximum.at(best, inv.ravel(), controller.p_cert)
     xy = key * g.eta[:2]
-    rec.log("perrun/p_cert", rr.Points2D(xy.astype(np.float32), colors=_color(best),
+    rec.log("perrun/p_cert", rr.Points2D(xy.astype(np.float32), colors=pcolormap(best),
                                          radii=float(min(g.eta[:2])) / 2, labels=[f"{v:.3f}" for v in best]),
             static=True)
     info = {"entities": ["perrun/p_cert"], "cells": int(len(key))}
@@ -60,7 +57,7 @@ def record_per_run(out: str | Path, controller, per_run: dict) -> dict:
         pe = np.array([s["p_emp"] for s in c["states"]])
         labels = [f"{s['p_emp']:.3f} [{s['ci95'][0]:.3f}, {s['ci95'][1]:.3f}] / "
                   + ("-" if s["p_cert"] is None else f"{s['p_cert']:.3f}") for s in c["states"]]
-        rec.log(f"perrun/{name}/p_emp", rr.Points2D(xs.astype(np.float32), colors=_color(pe),
+        rec.log(f"perrun/{name}/p_emp", rr.Points2D(xs.astype(np.float32), colors=pcolormap(pe),
                                                     radii=rr.Radius.ui_points(6.0), labels=labels), static=True)
         info["entities"].append(f"perrun/{name}/p_emp")
         for i, s in enumerate(c["states"]):

@@ -96,10 +96,33 @@ def test_what_the_app_sends_is_what_the_engine_wrote(app, run_dir):
     assert f"{n_ok} / {len(st)} |" in p.overview.content
 
 
+def test_map_of_a_three_dimensional_grid_shows_the_best_third_coordinate():
+    """TurtleBot-like (x, y, heading): each (x, y) column shows the largest p_cert over the headings."""
+    from types import SimpleNamespace
+
+    from simgap.synthesis.grid import UniformGrid
+    from simgap_viz.layers import perrun as layer
+    g = UniformGrid([0.0, 0.0, -3.0], [4.0, 2.0, 3.0], [1.0, 0.5, 1.0])
+    p = np.random.default_rng(0).random(g.size)
+    m = layer.pcert_map(SimpleNamespace(grid=g, p_cert=p))
+    best = p.reshape(g.shape).max(axis=2)
+    np.testing.assert_array_equal(m["p"], best)
+    assert m["reduced_dims"] == 1 and m["p"].shape == g.shape[:2]
+    k = m["image"].shape[0] // g.shape[1]
+    assert m["image"].shape[:2] == (g.shape[1] * k, g.shape[0] * k)
+    # top-left pixel: x1 first cell, x2 last cell
+    np.testing.assert_array_equal(m["image"][0, 0], layer.pcolormap(best[0, -1]))
+    np.testing.assert_array_equal(m["image"][-1, -1], layer.pcolormap(best[-1, 0]))
+    np.testing.assert_allclose(m["lo"], g.domain_lo[:2])
+    np.testing.assert_allclose(m["hi"], g.domain_hi[:2])
+
+
 def test_toggles_and_the_controller_choice(app):
     from simgap_viz.layers import perrun as layer
     p = app.panels["perrun"]
-    p.controller.value = "stochastic"
+    assert p.controller.options == ("deterministic gap", "stochastic gap (paper)", "union-bound baseline",
+                                    "per-run (interval MDP)")
+    p.controller.value = "stochastic gap (paper)"
     st = app.run.per_run.controllers["stochastic"]
     assert app.perrun_view["controller"] == "stochastic" and "stochastic gap" in p.states.content
     drawn = layer.draw(app)

@@ -28,6 +28,11 @@ CI_COLOR, DIAGONAL_COLOR = "#505050", "#909090"
 BAR_POINTS = 24  # points per CI bar (uPlot draws a line series through NaN, so bars are dense points)
 
 
+def label(name: str) -> str:
+    """How a controller of the summary is named in the tab."""
+    return NAMES.get(name, name)
+
+
 def plot_data(per_run) -> dict:
     """What the p_emp-against-p_cert plot shows (sent to uPlot as it is).
 
@@ -55,7 +60,7 @@ def plot_data(per_run) -> dict:
     for k, n in enumerate(names):
         color = COLORS.get(n, OTHER_COLORS[k % len(OTHER_COLORS)])
         data.append(np.where(col == k, y, np.nan))
-        series.append({"label": NAMES.get(n, n), "stroke": color, "width": 0,
+        series.append({"label": label(n), "stroke": color, "width": 0,
                        "points": {"show": True, "size": 9, "fill": color, "stroke": color}})
     data.append(np.where(col == -1, y, np.nan))
     series.append({"label": "95 % CI", "stroke": CI_COLOR, "width": 0,
@@ -73,7 +78,7 @@ def overview_markdown(per_run) -> str:
         ok = sum(sound(None if np.isnan(pc) else float(pc), float(pe), float(se), c.n_rollouts)
                  for pc, pe, se in zip(c.p_cert, c.p_emp, c.se))
         pc = "-" if np.isnan(c.p_cert[0]) else f"{c.p_cert[0]:.4f}"
-        rows.append(f"| {NAMES.get(n, n)} | {pc} | {c.p_emp[0]:.4f} [{c.ci95[0, 0]:.4f}, {c.ci95[0, 1]:.4f}] | "
+        rows.append(f"| {label(n)} | {pc} | {c.p_emp[0]:.4f} [{c.ci95[0, 0]:.4f}, {c.ci95[0, 1]:.4f}] | "
                     f"{ok} / {c.p_emp.size} |")
     return "\n".join(rows)
 
@@ -94,12 +99,14 @@ class PerRunPanel(Panel):
         super().__init__(app)
         gui = app.server.gui
         v = app.perrun_view
+        self._names = {}  # dropdown label -> controller name in the summary
         self.note = gui.add_markdown(NO_RESULTS)
         self.show_map = gui.add_checkbox("p_cert map", initial_value=v["map"],
                                          hint="certified success probability per cell of the interval MDP")
         self.show_markers = gui.add_checkbox("p_emp markers", initial_value=v["markers"],
                                              hint="the validated initial states, colored by their empirical rate")
-        self.controller = gui.add_dropdown("Markers of", options=(v["controller"],), initial_value=v["controller"],
+        self.controller = gui.add_dropdown("Markers of", options=(label(v["controller"]),),
+                                           initial_value=label(v["controller"]),
                                            hint="whose validated initial states the markers and the table show")
         self.colorbar = gui.add_image(layer.pcolorbar(256, 12), format="png")
         self.legend = gui.add_markdown("")
@@ -108,7 +115,7 @@ class PerRunPanel(Panel):
         self.states = gui.add_markdown("")
         self.on(self.show_map, lambda val: self.set_view(map=bool(val)))
         self.on(self.show_markers, lambda val: self.set_view(markers=bool(val)))
-        self.on(self.controller, lambda val: self.set_view(controller=str(val)))
+        self.on(self.controller, lambda val: self.set_view(controller=self._names.get(val, val)))
         self.show()
 
     def set_view(self, **changes) -> None:
@@ -134,8 +141,9 @@ class PerRunPanel(Panel):
         with app.lock:
             if app.perrun_view["controller"] not in names:
                 app.perrun_view["controller"] = "perrun" if "perrun" in names else names[0]
-        self.controller.options = names
-        self.set_quiet(self.controller, app.perrun_view["controller"])
+        self._names = {label(n): n for n in names}
+        self.controller.options = tuple(self._names)
+        self.set_quiet(self.controller, label(app.perrun_view["controller"]))
         drawn = layer.draw(app)
         st = pr.controllers[app.perrun_view["controller"]]
         m = drawn["map"]
@@ -144,7 +152,7 @@ class PerRunPanel(Panel):
             f"0 (red) .. 0.5 (yellow) .. 1 (green), for both layers.  \n**map**: p_cert of the per-run controller, "
             f"a certified lower bound on P(one run satisfies the spec for {pr.horizon} periods) from every state of "
             f"the cell{red}.  \n**markers** (ringed, numbered as the table): p_emp of "
-            f"{NAMES.get(st.name, st.name)} from {st.n_rollouts} rollouts per state.")
+            f"{label(st.name)} from {st.n_rollouts} rollouts per state.")
         pd = plot_data(pr)
         if pd["points"]:
             self.plot.data = pd["data"]
@@ -155,7 +163,7 @@ class PerRunPanel(Panel):
                                f"each): on or above the diagonal = sound")
         self.plot.visible = bool(pd["points"])
         self.overview.content = overview_markdown(pr)
-        self.states.content = f"**{NAMES.get(st.name, st.name)}**, per initial state:\n\n" + states_markdown(st)
+        self.states.content = f"**{label(st.name)}**, per initial state:\n\n" + states_markdown(st)
         return drawn
 
 

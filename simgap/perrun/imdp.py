@@ -195,19 +195,20 @@ def cell_labels(grid: UniformGrid, spec: Spec, x_lo, x_hi, angle_dims=()):
 # ----------------------------------------------------------------------------------------------
 
 def trajectory_lipschitz(sim, hold: int, h: np.ndarray, rng: np.random.Generator, n_pairs: int = 300,
-                         runs: int = 20) -> tuple[np.ndarray, dict]:
+                         runs: int = 20, dims=None) -> tuple[np.ndarray, dict]:
     """Per-coordinate constants L (n, n) of the k-period trajectory map, common random numbers.
 
     L[i, j] bounds |y_t,i(x) - y_t,i(x + s e_j)| / |s| for every period t <= k and every noise draw:
     pairs (x, x + h_j e_j), u uniform from U, the same noise per period at both ends; slopes
-    max_t |y_t,i(x) - y_t,i(x')| / h_j; Wood-Zhang estimate per (i, j).
+    max_t |y_t,i(x) - y_t,i(x')| / h_j; Wood-Zhang estimate per (i, j). ``dims``: estimate only
+    these columns j (the others are left at the identity's).
     """
     s = sim.system
     n = s.n
-    L = np.empty((n, n))
+    L = np.eye(n)
     how = {}
     B = n_pairs * runs
-    for j in range(n):
+    for j in range(n) if dims is None else dims:
         lo, hi = s.x_lo.copy(), s.x_hi.copy()
         hi[j] -= h[j]
         x = lo + rng.random((n_pairs, n)) * (hi - lo)

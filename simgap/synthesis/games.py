@@ -526,19 +526,39 @@ class Predecessors:
         return key, q
 
     def _prepare_cells(self):
-        """Per (class, input) arrays for the expansion over the invariant dimensions (int32)."""
+        """Per CSR entry arrays for the expansion over the invariant dimensions (int32): the
+        pair id of the predecessor with index 0 in every invariant dimension, and the box."""
         ab, M, n = self.ab, self.M, self.n
         it = np.int32 if ab.grid.size * M < 2 ** 31 else np.int64
         self.it = it
-        KM = ab.off_lo.shape[0] * M
-        q = np.arange(KM, dtype=np.int64)
-        # pair id of the predecessor with index 0 in every invariant dimension
+        q = self.q.astype(np.int64)
         kc = np.unravel_index(q // M, tuple(self.shape[self.cd])) if self.cd else ()
-        base = sum((c * self.strides[d] for c, d in zip(kc, self.cd)), np.zeros(KM, dtype=np.int64))
-        self.qbase = (base * M + q % M).astype(it)
-        self.qlo = [ab.off_lo.reshape(KM, n)[:, d].astype(np.int32) for d in self.inv]
-        self.qhi = [ab.off_hi.reshape(KM, n)[:, d].astype(np.int32) for d in self.inv]
-        self.pstride = [it(self.strides[d] * M) for d in self.inv]
+        base = sum((c * self.strides[d] for c, d in zip(kc, self.cd)), np.zeros(q.size, dtype=np.int64))
+        self.ebase = (base * M + q % M).astype(it)
+        self.elo = [ab.off_lo.reshape(-1, n)[q, d].astype(np.int32) for d in self.inv]
+        self.ehi = [ab.off_hi.reshape(-1, n)[q, d].astype(np.int32) for d in self.inv]
+        self.pstride = [int(self.strides[d] * M) for d in self.inv]
+        self._ramps = {}
+
+    def _ramp(self, total: int, step: int, dtype) -> np.ndarray:
+        """arange(total) * step, cached and grown on demand (the levels reuse it)."""
+        key = (step, np.dtype(dtype).str)
+        r = self._ramps.get(key)
+        if r is None or r.size < total:
+            r = np.arange(max(total, 2 * (0 if r is None else r.size), 1024), dtype=dtype) * dtype(step)
+            self._ramps[key] = r
+        return r[:total]
+
+    def _progression(self, first: np.ndarray, counts: np.ndarray, step: int, it):
+        """The rows' arithmetic progressions first + step * [0, counts), concatenated (np.repeat
+        and a cached ramp: streaming copies, no gathers)."""
+        starts = np.cumsum(counts, dtype=np.int64) - counts
+        total = int(starts[-1] + counts[-1]) if counts.size else 0
+        if (total + 1) * step >= 2 ** 31 or np.dtype(it) == np.int64:
+            it = np.int64
+        out = np.repeat(first.astype(it, copy=False) - starts.astype(it) * it(step), counts)
+        out += self._ramp(total, step, it)
+        return out
 
     def pairs(self, cells: np.ndarray) -> np.ndarray:
         """Flat pair ids c * M + u of all transitions (c, u) -> r, r in ``cells`` (one per transition)."""
@@ -547,17 +567,18 @@ class Predecessors:
         for j, d in enumerate(self.cd):
             kr += mi[d] * self.cstrides[j]
         start = self.indptr[kr]
-        rows, t = _expand(self.indptr[kr + 1] - start)
-        q = self.q[start[rows] + t]
+        counts = self.indptr[kr + 1] - start
         if not self.inv:
-            return q  # one class per cell: q is the pair id
-        if not hasattr(self, "qbase"):
+            rows, t = _expand(counts)
+            return self.q[start[rows] + t]  # one class per cell: q is the pair id
+        if not hasattr(self, "ebase"):
             self._prepare_cells()
-        base = self.qbase[q]
+        idx = self._progression(start, counts, 1, np.int32)  # CSR entries of the cells' class rows
+        base = self.ebase[idx]
         first, ext = [], []
         for j, d in enumerate(self.inv):  # predecessor indices c_d in r_d - [hi_d, lo_d]
-            r = mi[d][rows]
-            lo, hi = self.qlo[j][q], self.qhi[j][q]
+            r = np.repeat(mi[d], counts)
+            lo, hi = self.elo[j][idx], self.ehi[j][idx]
             nd = np.int32(self.shape[d])
             if self.pmask[d]:
                 e = np.minimum(hi - lo + 1, nd)
@@ -565,27 +586,25 @@ class Predecessors:
             else:
                 a = np.maximum(r - hi, 0)
                 e = np.maximum(np.minimum(r - lo, nd - 1) - a + 1, 0)
-            if not self.pmask[d]:
-                base += a.astype(self.it) * self.pstride[j]
+                base += a.astype(self.it) * self.it(self.pstride[j])
             first.append(a)
             ext.append(e)
-        tot = ext[0].astype(np.int64)
-        for e in ext[1:]:
-            tot *= e
-        rows2, t = _expand(tot)
-        p = base[rows2]
-        for j in range(len(self.inv) - 1, -1, -1):  # mixed-radix decode of the rank
-            if j:
-                e = ext[j][rows2]
-                o = (t % e).astype(self.it, copy=False)
-                t //= e
-            else:
-                o = t.astype(self.it, copy=False)
-            d = self.inv[j]
-            if self.pmask[d]:  # wrap: add the first index, modulo n_d
-                o = (o + first[j][rows2]) % self.it(self.shape[d])
-            p += o * self.pstride[j]
-        return p
+        # expand one invariant dimension at a time (no division): a bounded dimension's
+        # predecessors are an arithmetic progression per row (its first index is in ``base``);
+        # periodic ones wrap
+        for j, d in enumerate(self.inv):
+            e, ps = ext[j], self.pstride[j]
+            if self.pmask[d]:
+                rows, t = _expand(e)
+                base = base[rows] + (t.astype(self.it, copy=False) + first[j][rows]) % self.it(self.shape[d]) \
+                    * self.it(ps)
+                ext[j + 1:] = [x[rows] for x in ext[j + 1:]]
+                first[j + 1:] = [x[rows] for x in first[j + 1:]]
+                continue
+            base = self._progression(base, e, ps, self.it)
+            ext[j + 1:] = [np.repeat(x, e) for x in ext[j + 1:]]
+            first[j + 1:] = [np.repeat(x, e) for x in first[j + 1:]]
+        return base
 
 
 def _frontier(ab: Abstraction, changed: np.ndarray, candidates_mask: np.ndarray, dlo, dhi,
@@ -784,22 +803,24 @@ def _reach_worklist(ab: Abstraction, target: np.ndarray, live: np.ndarray, pre):
     """SCOTS's reach game, level-synchronous: cnt[c, u] = cells of box(c, u) not yet won."""
     N, M = ab.grid.size, ab.n_inputs
     vol = pair_volumes(ab)
-    vol = vol.astype(_counter_dtype(int(vol.max(initial=0))))
+    vol = vol.astype(_counter_dtype(int(vol.max(initial=0)) + 1))
     if len(ab.class_dims) == ab.grid.n:
         cnt = vol.reshape(-1)
     else:
         cnt = vol[ab.cell_class(ab.grid.ids_to_multi(np.arange(N)))].reshape(-1)
+    # a pair that is not live starts one above its box volume: it never completes, so the
+    # decrements need no per-pair filter, only the (small, cached) per-cell one below
+    cnt += ~live
     one = cnt.dtype.type(1)
     steps = np.full(N, -1, dtype=np.int32)
     steps[target] = 0
+    won = target.copy()
     packed = np.zeros((N, (M + 7) // 8), dtype=np.uint8)
     R = np.flatnonzero(target)
-    open_ = live  # pairs of cells not yet won (the caller's array, updated in place)
-    open_.reshape(N, M)[R] = False
     it = tested = 0
     while R.size:
         p = pre.pairs(R)
-        p = p[open_[p]]
+        p = p[~won[p // M]]  # pairs of cells not yet won
         if p.size == 0:
             break
         it += 1
@@ -811,8 +832,8 @@ def _reach_worklist(ab: Abstraction, target: np.ndarray, live: np.ndarray, pre):
         R, row = np.unique(done // M, return_inverse=True)
         rows = np.zeros((R.size, M), dtype=bool)
         rows[row, done % M] = True
-        packed[R] = np.packbits(rows, axis=1)
-        open_.reshape(N, M)[R] = False
+        packed[R] = pack_rows(rows)
+        won[R] = True
         steps[R] = it
     return steps, packed, it, tested
 

@@ -13,7 +13,7 @@ from simgap.synthesis import (Box, Spec, UniformGrid, build_abstraction, rk4_gro
                               rk4_step, solve_invariance, solve_reach, synthesize)
 from simgap.synthesis.controller import label_cells
 from simgap.synthesis import examples as ex
-from simgap.synthesis.games import Predecessors, _unpack, live_pairs
+from simgap.synthesis.games import Predecessors, _unpack, _valid_shared, live_pairs
 from simgap.systems import System, get_system, input_grid
 
 
@@ -172,3 +172,13 @@ def test_public_api_invariance_in_python():
     assert res.stats["winning"] > 300 and res.stats["game_method"] in ("worklist", "sat")
     with pytest.raises(SimgapError, match="game method"):
         synthesize(sysm, spec, eta=(0.004, 0.01), method="fast")
+
+
+@pytest.mark.parametrize("case", [2, 3])
+def test_shared_valid_pairs_by_broadcasting_equal_the_pass_over_all_pairs(case):
+    ab, blocked, cells = _abstraction(*_cases()[case])
+    blocked = blocked | ~cells if _cases()[case][1].kind == "invariance" else blocked
+    want = live_pairs(ab, blocked, ~blocked, test_keep=False)
+    got = _valid_shared(ab, blocked)
+    assert 0 < want[1] < ab.grid.size * ab.n_inputs  # some pairs leave the grid, some do not
+    assert np.array_equal(got[0], want[0]) and got[1:] == want[1:]

@@ -777,6 +777,8 @@ def solve_reach(ab: Abstraction, target: np.ndarray, blocked: np.ndarray,
     method = choose_method(method, ab)
     if method == "worklist" and ab.corner_index is not None and ab.hold == 1:
         live, n_boxes, n_trans = _usable_pairs(ab.corner_index, blocked)  # no pass over all pairs
+    elif method == "worklist" and ab.mid_lo is None and len(ab.class_dims) < ab.grid.n:
+        live, n_boxes, n_trans = _valid_shared(ab, blocked)
     else:
         live, n_boxes, n_trans = live_pairs(ab, blocked, ~blocked, allowed, test_keep=method == "sat")
     t1 = time.perf_counter()
@@ -807,7 +809,7 @@ def _reach_worklist(ab: Abstraction, target: np.ndarray, live: np.ndarray, pre):
     if len(ab.class_dims) == ab.grid.n:
         cnt = vol.reshape(-1)
     else:
-        cnt = vol[ab.cell_class(ab.grid.ids_to_multi(np.arange(N)))].reshape(-1)
+        cnt = np.broadcast_to(_per_class(ab, vol), tuple(ab.grid.shape) + (M,)).reshape(-1)  # a copy
     # a pair that is not live starts one above its box volume: it never completes, so the
     # decrements need no per-pair filter, only the (small, cached) per-cell one below
     cnt += ~live
@@ -989,6 +991,49 @@ def _row_counts(flags: np.ndarray, N: int, M: int) -> np.ndarray:
     for u in range(M):
         out += rows[:, u]
     return out
+
+
+def _per_class(ab: Abstraction, a: np.ndarray) -> np.ndarray:
+    """(K, M) per (class, input) -> an n-D + 1 array broadcastable over grid.shape + (M,): the
+    class dimensions at their positions, size 1 in the invariant ones."""
+    a = a.reshape([ab.grid.shape[d] for d in ab.class_dims] + [a.shape[-1]])
+    for d in range(ab.grid.n):
+        if d not in ab.class_dims:
+            a = np.expand_dims(a, d)
+    return a
+
+
+def _valid_shared(ab: Abstraction, blocked: np.ndarray):
+    """:func:`live_pairs` without the keep test for shared boxes and no held input, by
+    broadcasting: a pair is valid when ``ok``, its cell is not blocked and its box stays in the
+    grid, which in an invariant dimension d is an index range per (class, input),
+    -off_lo_d <= i_d <= n_d - 1 - off_hi_d. No pass over the pairs' boxes."""
+    g = ab.grid
+    N, M = g.size, ab.n_inputs
+    K = ab.n_classes
+    ok = ab.ok.copy()
+    cmi = np.zeros((K, g.n), dtype=np.int64)
+    if ab.class_dims:
+        cmi[:, list(ab.class_dims)] = np.stack(np.unravel_index(
+            np.arange(K), [g.shape[d] for d in ab.class_dims]), axis=1)
+    valid = None
+    for d in range(g.n):
+        if g.periodic_mask[d]:
+            continue
+        lo, hi = ab.off_lo[..., d].astype(np.int64), ab.off_hi[..., d].astype(np.int64)
+        if d in ab.class_dims:
+            ok &= (cmi[:, d, None] + lo >= 0) & (cmi[:, d, None] + hi <= g.shape[d] - 1)
+            continue
+        i = np.arange(g.shape[d]).reshape([-1 if e == d else 1 for e in range(g.n)] + [1])
+        v = (i + _per_class(ab, lo) >= 0) & (i + _per_class(ab, hi) <= g.shape[d] - 1)
+        valid = v if valid is None else valid & v
+    full = np.broadcast_to(_per_class(ab, ok), tuple(g.shape) + (M,))
+    valid = full & (True if valid is None else valid)
+    valid &= ~blocked.reshape(tuple(g.shape) + (1,))
+    inv_axes = tuple(d for d in range(g.n) if d not in ab.class_dims)
+    per_class = valid.sum(axis=inv_axes, dtype=np.int64).reshape(K, M)  # valid cells per (class, input)
+    trans = int((per_class * pair_volumes(ab)).sum())
+    return pack_rows(valid.reshape(N, M)), int(per_class.sum()), trans
 
 
 def _usable_pairs(ci, blocked: np.ndarray):

@@ -139,12 +139,12 @@ class CornerIndex:
             c *= np.int32(st)
             key += c
         sel = np.flatnonzero(ok)
-        key = key.ravel()[sel]
-        start = self.indptr[key]
-        rows, t = expand_counts(self.indptr[key + 1] - start)
-        e = start[rows] + t
-        keep = self.fits[sel[rows] % E, self.code[e]]  # r - lo(q) = a lies in the box
-        return self.q[e[keep]]
+        key = key.ravel().take(sel)
+        start = self.indptr.take(key)
+        rows, t = expand_counts(self.indptr.take(key + 1) - start)
+        e = start.take(rows) + t
+        fit = self.fits.take((sel.take(rows) % E) * self.fits.shape[1] + self.code.take(e))
+        return self.q.take(np.compress(fit, e))  # r - lo(q) = a lies in the box
 
     def nbytes(self) -> int:
         return sum(a.nbytes for a in (self.indptr, self.q, self.code, self.usable, self.cell_boxes,

@@ -955,7 +955,8 @@ def _invariance_worklist(ab: Abstraction, S: np.ndarray, alive: np.ndarray, pre)
     n_alive = _row_counts(alive, N, M)
     W = S & (n_alive > 0)
     R = np.flatnonzero(S & ~W)
-    owner = np.empty(alive.size, dtype=np.int32)  # scratch for removing duplicate pairs
+    # scratch for removing duplicate pairs without sorting (at most 16 MB; else np.unique)
+    owner = np.empty(alive.size, dtype=np.int32) if alive.size <= 1 << 22 else None
     it = tested = 0
     while True:
         it += 1
@@ -975,9 +976,11 @@ def _invariance_worklist(ab: Abstraction, S: np.ndarray, alive: np.ndarray, pre)
     return W, it, tested
 
 
-def _distinct(a: np.ndarray, owner: np.ndarray) -> np.ndarray:
+def _distinct(a: np.ndarray, owner: Optional[np.ndarray]) -> np.ndarray:
     """The distinct values of ``a`` (indices into ``owner``, a scratch int32 array), without
     sorting: every value keeps the one position whose index its owner entry holds."""
+    if owner is None:
+        return np.unique(a)
     pos = np.arange(a.size, dtype=np.int32)
     owner[a] = pos
     return np.compress(owner.take(a) == pos, a)

@@ -215,8 +215,8 @@ def _count(img, rgb, tol):
 @pytest.mark.browser
 def test_per_run_view_in_the_browser(run_dir, tmp_path):
     """Headless chromium: the map's colors for p_cert = 0 and for the largest p_cert inside the
-    canvas, the markers' rings, and the plot drawn (uPlot's chart object holds our series, and its
-    canvas has the series' colors); hiding the map removes its colors."""
+    canvas, the markers' colors and rings, and the plot drawn (uPlot's chart object holds our
+    series, and its canvas has the points' color); hiding the markers or the map removes them."""
     from PIL import Image
     from test_browser_app import _need_browser
     _need_browser()
@@ -246,10 +246,14 @@ def test_per_run_view_in_the_browser(run_dir, tmp_path):
                         if (u.series.some(s => s.label === 'p_emp = p_cert')) {
                             const cv = u.ctx.canvas;
                             return {labels: u.series.map(s => s.label), n: u.data[0].length,
+                                    finite: u.data.map(d => Array.from(d).filter(Number.isFinite).length),
                                     png: cv.toDataURL('image/png')};
                         }
                     }
                     return null; }""")
+                a.panels["perrun"].show_markers.value = False
+                time.sleep(2.0)
+                no_markers = np.asarray(Image.open(io.BytesIO(S.canvas_png(page))).convert("RGB"))
                 a.panels["perrun"].show_map.value = False
                 time.sleep(2.0)
                 hidden = np.asarray(Image.open(io.BytesIO(S.canvas_png(page))).convert("RGB"))
@@ -258,21 +262,25 @@ def test_per_run_view_in_the_browser(run_dir, tmp_path):
     finally:
         a.stop()
     w = shot.shape[1]
-    scene, scene_hidden = shot[:, : int(w * 0.68)], hidden[:, : int(w * 0.68)]  # left of the control panel
+    scene, scene_nm, scene_hidden = (im[:, : int(w * 0.68)] for im in (shot, no_markers, hidden))  # left of the panel
     zero = layer.pcolormap(0.0)
     top = layer.pcolormap(float(pr.controller.p_cert.max()))
     assert _count(scene, zero, 12) > 5000, "the map's p_cert = 0 color is missing"
     assert _count(scene, top, 12) > 500, "the map's largest-p_cert color is missing"
-    assert _count(scene, layer.RING, 25) > 100, "the markers' rings are missing"
-    assert _count(scene_hidden, zero, 12) < 0.05 * _count(scene, zero, 12)
-    # the plot: our series in uPlot, and its canvas shows the per-run points and the CI bars
+    assert _count(scene_hidden, zero, 12) < 0.05 * _count(scene, zero, 12), "hiding the map left its colors"
+    # the markers: their p_emp color (the per-run controller's rates are not on the map) and
+    # their dark rings, gone when the markers are hidden
+    p_emp = layer.pcolormap(float(np.min(pr.controllers["perrun"].p_emp)))
+    assert _count(scene, p_emp, 10) > 100 > 10 > _count(scene_nm, p_emp, 10), "the markers' colors"
+    assert _count(scene, layer.RING, 25) - _count(scene_nm, layer.RING, 25) > 100, "the markers' rings"
+    # the plot: uPlot holds our series (one finite value per point, BAR_POINTS per interval bar,
+    # the diagonal's two ends), and its canvas shows the per-run points
+    from simgap_viz.panels.perrun import BAR_POINTS, COLORS
     assert chart is not None, "no uPlot chart with the diagonal series"
     assert chart["labels"][1:] == ["union-bound baseline", "per-run (interval MDP)", "95 % CI", "p_emp = p_cert"]
+    n_pts = [int(np.isfinite(pr.controllers[c].p_cert).sum()) for c in ("run_baseline", "perrun")]
+    assert chart["finite"][1:] == n_pts + [BAR_POINTS * sum(n_pts), 2]
     import base64
     plot = np.asarray(Image.open(io.BytesIO(base64.b64decode(chart["png"].split(",", 1)[1]))).convert("RGB"))
-    from simgap_viz.panels.perrun import CI_COLOR, COLORS
-
-    def rgb(h):
-        return tuple(int(h[i:i + 2], 16) for i in (1, 3, 5))
-    assert _count(plot, rgb(COLORS["perrun"]), 30) > 40, "the per-run points are not drawn"
-    assert _count(plot, rgb(CI_COLOR), 30) > 10, "the CI bars are not drawn"
+    blue = tuple(int(COLORS["perrun"][i:i + 2], 16) for i in (1, 3, 5))
+    assert _count(plot, blue, 30) > 40, "the per-run points are not drawn"

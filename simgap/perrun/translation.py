@@ -24,8 +24,8 @@ boxes touching the reference offsets o (cells x_ref + o):
   not live/target for one of its offsets o;
 * n_hit(c, c + o) = #runs touching o (the same for every c), n_in(c, c + o) = #runs touching o
   only and not a sink run for c, n_sink(c) = #sink runs for c;
-* intervals and the Bonferroni union bound exactly as :func:`simgap.perrun.imdp.build_imdp`
-  (each bound uses N i.i.d. runs of its own cell; Bonferroni needs no independence between bounds).
+* intervals and the union bound's split exactly as :func:`simgap.perrun.imdp.build_imdp` (each
+  bound uses N i.i.d. runs of its own cell; Bonferroni needs no independence between bounds).
 
 The widening constants: along an invariant dimension j the trajectory is shifted exactly, so
 L[:, j] = e_j; the other columns are Wood-Zhang estimates from common-random-number slopes.
@@ -33,6 +33,7 @@ L[:, j] = e_j; the other columns are Wood-Zhang estimates from common-random-num
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from typing import Sequence
 
@@ -41,8 +42,8 @@ import numpy as np
 from ..errors import SimgapError
 from ..synthesis.grid import UniformGrid
 from ..synthesis.spec import Spec
-from .imdp import IMDP, IMDPOptions, box_unsafe, cell_labels, trajectory_lipschitz
-from .orderstats import cp_lower, cp_upper
+from .imdp import (IMDP, Allocation, IMDPOptions, _bound_count, box_unsafe, cell_labels, float32_outward, intervals,
+                   trajectory_lipschitz)
 
 
 def _runs(sim, x: np.ndarray, u: np.ndarray, k: int, rng) -> np.ndarray:
@@ -154,13 +155,14 @@ def build_imdp_translation(sim, spec: Spec, options: IMDPOptions, invariant: Seq
         inside = np.all((tm >= 0) & (tm < shape), axis=2)
         return np.where(inside, np.clip(tm, 0, shape - 1) @ grid.strides, -1)
 
-    rows, cols, n_ins, n_hits, n_bounds = [], [], [], [], 0
+    rows, cols, n_ins, n_hits, single_seen = [], [], [], [], False
     for p in range(P):  # pairs (class, input): a few hundred; the work inside is vectorized over cells x runs
         h, a = divmod(p, M)
         cells = np.flatnonzero(live & (cls_of == h))
         if cells.size == 0:
             continue
-        _, pkey, _ = offsets(pilot, N0, p)
+        _, pkey, psingle = offsets(pilot, N0, p)
+        single_seen |= bool(psingle.any())
         rb, mkey, single = offsets(main, N, p)
         keys, inv_k = np.unique(np.concatenate([pkey, mkey]), axis=0, return_inverse=True)
         inv_k = inv_k.ravel()
@@ -189,25 +191,29 @@ def build_imdp_translation(sim, spec: Spec, options: IMDPOptions, invariant: Seq
         ci, ki = np.nonzero(ok & in_pilot[None])                             # the support T(c, a)
         rows += [cells[ci] * M + a, cells * M + a]
         cols += [tid[ci, ki], np.full(cells.size, C)]
-        n_ins += [np.rint(n_in[ki, ci]).astype(np.int64), np.zeros(cells.size, np.int64)]
+        n_ins += [np.rint(n_in[ki, ci]).astype(np.int64), np.full(cells.size, -1)]
         n_hits += [np.rint(n_hit[ki]).astype(np.int64), bad.sum(axis=0)]
-        n_bounds += 2 * ci.size + cells.size
-    b_each = float(o.beta) / max(n_bounds, 1)
     rows = np.concatenate(rows) if rows else np.zeros(0, np.int64)
     col = (np.concatenate(cols) if cols else np.zeros(0)).astype(np.int32)
-    lo = cp_lower(np.concatenate(n_ins) if n_ins else np.zeros(0, np.int64), N, b_each)   # 0 for the sink
-    hi = cp_upper(np.concatenate(n_hits) if n_hits else np.zeros(0, np.int64), N, b_each)
+    k_lo = (np.concatenate(n_ins) if n_ins else np.zeros(0)).astype(np.int32)
+    k_hi = (np.concatenate(n_hits) if n_hits else np.zeros(0)).astype(np.int32)
     order = np.argsort(rows, kind="stable")
-    rows, col, lo, hi = rows[order], col[order], lo[order], hi[order]
+    rows, col, k_lo, k_hi = rows[order], col[order], k_lo[order], k_hi[order]
     row_ptr = np.zeros(C * M + 1, np.int64)
     np.cumsum(np.bincount(rows, minlength=C * M), out=row_ptr[1:])
-    lo32 = np.nextafter(lo.astype(np.float32), np.float32(0))   # round outward: stays sound in float32
-    lo32[lo == 0] = 0
-    hi32 = np.minimum(np.nextafter(hi.astype(np.float32), np.float32(2)), np.float32(1))
-    meta = {"n_runs": N, "pilot_runs": N0, "beta": float(o.beta), "bounds": int(n_bounds), "level_each": b_each,
+    # the split is fixed by the pilot (support sizes, single-cell end boxes), before the main counts
+    is_sink = col == C
+    alloc = Allocation.of(o.split)
+    if not single_seen and alloc.lo > 0:
+        alloc = Allocation(alloc.sink + alloc.lo, 0.0, alloc.hi)
+    levels = alloc.levels(float(o.beta), int(is_sink.sum()), int((~is_sink).sum()))
+    lo32, hi32 = float32_outward(*intervals(k_lo, k_hi, is_sink, N, levels))
+    meta = {"n_runs": N, "pilot_runs": N0, "beta": float(o.beta), "split": dataclasses.asdict(alloc), "levels": levels,
+            "bounds": _bound_count(alloc, int(is_sink.sum()), int((~is_sink).sum())),
             "lipschitz": L.tolist(), "lipschitz_how": how, "rho": rho.tolist(), "live_cells": int(live.sum()),
             "seed": int(o.seed), "simulator": sim.config.to_dict(), "spec": spec.to_dict(),
-            "union_bound": "Bonferroni over all one-sided Clopper-Pearson bounds",
+            "union_bound": "Bonferroni over all one-sided Clopper-Pearson bounds; family f (sink, lo, hi) gets the "
+                           "share split[f] of beta, each of its bounds level beta split[f] / (its count)",
             "assumption": "per realization: the k-period trajectory map is L-Lipschitz (common random numbers); "
                           f"translation invariance along {[s.state_names[d] for d in inv]}: runs shifted by whole "
                           "cells are runs of the shifted cell",
@@ -216,4 +222,4 @@ def build_imdp_translation(sim, spec: Spec, options: IMDPOptions, invariant: Seq
                         "intervals": time.perf_counter() - t0 - t_lip - t_pilot - t_sim},
             "samples": int(P * (N + N0) * k)}
     return IMDP(grid=grid, inputs=s.inputs.copy(), hold=k, live=live, target=target, row_ptr=row_ptr, col=col,
-                lo=lo32, hi=hi32, meta=meta)
+                lo=lo32, hi=hi32, meta=meta, k_lo=k_lo, k_hi=k_hi)

@@ -2,10 +2,11 @@
 
 Two algorithms with identical results (``method``; :func:`choose_method` picks one):
 
-* worklist (SCOTS's algorithm, level-synchronous): a :class:`Predecessors` index inverts the box
-  relation; reach keeps per-pair counters of box cells not yet won, invariance drops the pairs
-  whose box meets a lost cell. The work of a level is the number of transitions into the cells
-  changed in the level before.
+* worklist (SCOTS's algorithm, level-synchronous): a predecessor index inverts the box relation
+  (:class:`Predecessors` for shared boxes; without them the abstraction's
+  :class:`~simgap.synthesis.corner_index.CornerIndex`); reach keeps per-pair counters of box
+  cells not yet won, invariance drops the pairs whose box meets a lost cell. The work of a
+  level is the number of transitions into the cells changed in the level before.
 * summed-area tables (SAT), described below: O(2^n) per pair test whatever the box volume, plus
   one table of all cells per level; better when boxes hold many cells.
 
@@ -125,9 +126,6 @@ class BoxCounter:
                 out -= v
         return out
 
-    def volume(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-        """Number of cells in normalized boxes."""
-        return np.prod(hi - lo + 1, axis=-1, dtype=np.int64)
 
 
 # ---------------------------------------------------------------------------------------
@@ -195,15 +193,6 @@ class BoxFamily:
             return self.corner[q]
         n = self.n
         return self._corners(self.lo.reshape(-1, n)[q], self.ext.reshape(-1, n)[q])
-
-    def in_domain(self, mi: np.ndarray, k: np.ndarray) -> np.ndarray:
-        """(B, M) bool: boxes of the rows (mi (B,n), class k (B,)) stay in the grid (bounded dims):
-        0 <= mi_d + lo_d and mi_d + lo_d + ext_d <= n_d."""
-        ok = np.ones((mi.shape[0], self.M), dtype=bool)
-        for d in self.bounded:
-            lo = mi[:, d, None] + self.lo[k, :, d].astype(np.int32)
-            ok &= (lo >= 0) & (lo + self.ext[k, :, d] <= np.int32(self.shape[d]))
-        return ok
 
     def count(self, table: np.ndarray, base: np.ndarray, q: np.ndarray, k=None) -> np.ndarray:
         """Cells of the SAT's mask in the boxes with cell bases ``base`` and pair indices ``q``
@@ -280,40 +269,12 @@ class PairEvaluator:
         q = k[:, None] * self.hull_G + np.arange(self.hull_G)
         return self.hull.count(hc.table, self.hull_base[ids][:, None], q, k=k) > 0
 
-    def valid_rows(self, ids: np.ndarray):
-        """(B,) cell ids -> valid (B, M) bool (in grid, finite, cell not blocked, intermediate
-        hull allowed), and the flat pair indices q (B, M)."""
-        ab = self.ab
-        mi = self.mi_all[ids]
-        k = self.cls_all[ids]
-        q = self.q0_all[ids][:, None] + np.arange(self.M)
-        valid = ab.ok[k] & self.fam.in_domain(mi, k)
-        valid &= ~self.blocked[ids][:, None]
-        if self.mid is not None:
-            valid &= self.mid.in_domain(mi, k)
-            valid &= self.mid.count(self.allowed_counter.table, self.base_all[ids][:, None], q, k=k) == \
-                self.mid.vol[k]
-        return valid, q
-
-    def test_rows(self, ids: np.ndarray, q: np.ndarray, counter: BoxCounter) -> np.ndarray:
-        """(B, M) bool: box(ids, u) lies in the counter's mask (meaningful for valid pairs)."""
-        k = self.cls_all[ids]
-        return self.fam.count(counter.table, self.base_all[ids][:, None], q, k=k) == self.fam.vol[k]
-
     def test_pairs(self, ids: np.ndarray, ci: np.ndarray, uj: np.ndarray, counter: BoxCounter) -> np.ndarray:
         """(P,) bool: box(ids[ci], uj) lies in the counter's mask (pairs assumed valid)."""
         cells = ids[ci]
         q = self.q0_all[cells] + uj
         return self.fam.count(counter.table, self.base_all[cells], q) == self.fam.vol_flat[q]
 
-    def pair_boxes(self, ids: np.ndarray, ci: np.ndarray, uj: np.ndarray):
-        """Explicit normalized boxes (lo, hi (P, n) int32) of the pairs (ids[ci], uj)."""
-        ab = self.ab
-        cells = ids[ci]
-        k = self.cls_all[cells]
-        mi = self.mi_all[cells]
-        lo, hi, _ = self.counter.normalize(mi + ab.off_lo[k, uj], mi + ab.off_hi[k, uj])
-        return lo, hi, self.vol[k, uj]
 
 
 class RowBoxes:
@@ -696,7 +657,8 @@ def choose_method(method: str, ab: Abstraction) -> str:
     changed cells once (SCOTS's algorithm, cost ~ transitions), the SAT game tests 2^n table
     entries per candidate pair and rebuilds a table of all cells per level; the worklist wins
     unless the boxes are large (mean box volume above a few times 2^n, as with long held
-    inputs) or the pairs too many for its per-pair counters."""
+    inputs; with a corner index, boxes small enough for it) or the pairs too many for its
+    per-pair counters."""
     if method not in METHODS:
         raise SimgapError(f"game method must be one of {', '.join(METHODS)}, got {method!r}")
     if method != "auto":
@@ -770,7 +732,7 @@ def solve_reach(ab: Abstraction, target: np.ndarray, blocked: np.ndarray,
     (:func:`choose_method`); both give identical results.
     """
     t0 = time.perf_counter()
-    N, M = ab.grid.size, ab.n_inputs
+    M = ab.n_inputs
     target = target & ~blocked
     if allowed is None:
         allowed = ~blocked

@@ -14,7 +14,7 @@ number of position cells.
 Reported: robot-steps (0.01 s periods) simulated, wall and CPU seconds per phase (this process
 plus the simulator helper processes, from getrusage), the interval MDP's size, value iteration
 time, p_cert(x0), and R batched rollouts from x0 and ``--states`` initial states in the domain
-(p_cert > 0): p_emp with its 95 % Clopper-Pearson interval, soundness p_emp >= p_cert - 3 SE per
+(p_cert > 0, target cells excluded): p_emp with its 95 % Clopper-Pearson interval, soundness p_emp >= p_cert - 3 SE per
 state, tightness p_emp - p_cert at x0. The machine may be shared: the load average is reported.
 """
 
@@ -94,7 +94,7 @@ def main():
 
     # ----- validation: batched rollouts -----------------------------------------------------------
     rng = np.random.default_rng([a.seed, 5])
-    dom = np.flatnonzero(ctl.p_cert > 0)
+    dom = np.flatnonzero((ctl.p_cert > 0) & im.live)            # target cells (p_cert = 1) are not drawn
     xs = np.concatenate([x0[None], sample_in_cells(im.grid, dom, a.states, rng)])
     w2, c2 = time.perf_counter(), cpu_now()
     with make_simulator(cfg, system=system, workers=a.workers) as sim:
@@ -118,7 +118,7 @@ def main():
            "vi": {"wall_s": round(w_vi, 1), "cpu_s": round(c_vi, 1)},
            "build_plus_vi": {"wall_s": round(w_build + w_vi, 1), "cpu_s": round(c_build + c_vi, 1)},
            "robot_steps_per_cpu_s": round(steps * periods / max(c_build, 1e-9)),
-           "cells_p_cert_pos": int(dom.size), "p_cert_x0": round(p0, 4),
+           "live_cells_p_cert_pos": int(dom.size), "target_cells": int(im.target.sum()), "p_cert_x0": round(p0, 4),
            "rollouts": {"per_state": a.rollouts, "states": len(xs), "wall_s": round(w_roll, 1), "cpu_s": round(c_roll, 1)},
            "sound_states": int(sound.sum()), "p_emp_x0": rows[0]["p_emp"],
            "tightness_x0": round(float(pe[0] - pc[0]), 4), "peak_rss_mb": round(resource.getrusage(

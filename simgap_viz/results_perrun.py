@@ -127,6 +127,6 @@ def load_per_run(root: Path, summary: dict, system) -> PerRunResults | None:
             raise SimgapError(f"{root / 'summary.json'} and {CONTROLLER_FILE} disagree: p_cert at state {i} "
                               f"{per.x0[i].tolist()} is {per.p_cert[i]:.6g} in the summary, {have[i]:.6g} in the "
                               f"controller file (refused)")
-    return PerRunResults(controller=ctl, controllers=controllers,
-                         horizon=_count(pr.get("horizon"), "horizon"), n_rollouts=_count(pr.get("n_rollouts"), "n_rollouts"),
+    return PerRunResults(controller=ctl, controllers=controllers, horizon=_count(pr.get("horizon"), "horizon"),
+                         n_rollouts=_count(pr.get("n_rollouts"), "n_rollouts"),
                          info={k: v for k, v in pr.items() if k != "controllers"})

@@ -151,8 +151,9 @@ class PerRunPanel(Panel):
         self.legend.content = (
             f"0 (red) .. 0.5 (yellow) .. 1 (green), for both layers.  \n**map**: p_cert of the per-run controller, "
             f"a certified lower bound on P(one run satisfies the spec for {pr.horizon} periods) from every state of "
-            f"the cell{red}.  \n**markers** (ringed, numbered as the table): p_emp of "
-            f"{label(st.name)} from {st.n_rollouts} rollouts per state.")
+            f"the cell{red}; 0 where nothing is certified (also every cell outside the safe set).  \n"
+            f"**markers** (ringed, numbered as the table): p_emp of {label(st.name)} from {st.n_rollouts} "
+            f"rollouts per state.")
         pd = plot_data(pr)
         if pd["points"]:
             self.plot.data = pd["data"]

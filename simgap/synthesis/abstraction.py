@@ -513,7 +513,7 @@ def build_abstraction(system: System, grid: UniformGrid, *, growth: Optional[Gro
                      off_hi=small(off_hi), ok=ok, mid_lo=small(mid_lo), mid_hi=small(mid_hi),
                      hold=hold)
     t1 = time.perf_counter()
-    if not inv:  # one class per cell: the predecessor index, one entry per usable pair
+    if not inv and K * M <= CornerIndex.MAX_PAIRS:  # one class per cell: the predecessor index
         ab.corner_index = CornerIndex.build(ab)
     ab.seconds = time.perf_counter() - t0
     ab.info = {"invariant_dims": list(inv), "classes": K, "guard": guard, "hold": hold,

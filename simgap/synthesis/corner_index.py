@@ -43,6 +43,9 @@ class CornerIndex:
 
     #: prod(e_max) above this: the per-transition index (games.Predecessors) answers queries cheaper
     MAX_ROWS = 64
+    #: more (cell, input) pairs: no index (its build holds about 20 bytes per pair; such games
+    #: run on summed-area tables, whose memory is bounded)
+    MAX_PAIRS = 1 << 24
 
     def __init__(self, ab, indptr, q, code, emax, usable, cell_boxes, cell_transitions):
         self.indptr, self.q, self.code, self.emax = indptr, q, code, emax

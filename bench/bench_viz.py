@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import platform
 import statistics
@@ -107,18 +106,104 @@ def bench_cheap_changes(ds, repeats: int):
         app.stop()
 
 
-FRAME_JS = """(ms) => new Promise(r => { const t = []; let last = performance.now();
-  function f(now) { t.push(now - last); last = now; if (t.length < 400 && now - t0 < ms) requestAnimationFrame(f);
-                    else r(t.slice(1)); }
-  const t0 = performance.now(); requestAnimationFrame(f); })"""
+# One frame per animation frame: the camera turns a little (alternating) before each, so that
+# viser's on-demand loop renders every frame; returns the intervals and three.js' counts of the
+# last rendered frame (draw calls, triangles, line segments, points).
+FRAME_JS = """async (n) => {
+  const m = window.__viserMutable, info = window.__viserTestpoints.rendererInfo;
+  const t = []; let last = performance.now(), k = 0;
+  return await new Promise(res => { function f(now) {
+    if (k > 0) t.push(now - last);
+    last = now;
+    if (k++ >= n) { res({ms: t, calls: info.render.calls, triangles: info.render.triangles,
+                         lines: info.render.lines, points: info.render.points}); return; }
+    m.cameraControl.rotate(0.01 * (k % 2 ? 1 : -1), 0, false);
+    requestAnimationFrame(f); }
+  requestAnimationFrame(f); }); }"""
 
 
-def bench_browser(results: str, n_draw: int, repeats: int):
-    """In headless chromium (software WebGL): (1) frame times with the run's winning domain and
-    each count in ``n_draw`` of rollouts drawn, in one browser session so that the counts compare
-    under the same load (requestAnimationFrame intervals while the camera moves); (2) a confidence change typed into the page until the new
-    surface is in the browser: the status line (sent after the surface) shows in the page, plus
-    one animation frame. The 0.5 s typing debounce is part of it and reported."""
+def chromium_cpu_s() -> float:
+    """CPU seconds used so far by the chromium processes below this one (Linux /proc): the
+    browser's own work, which other jobs on a shared machine inflate much less than wall time."""
+    kids = {}
+    for p in os.listdir("/proc"):
+        if not p.isdigit():
+            continue
+        try:
+            with open(f"/proc/{p}/stat") as f:
+                st = f.read()
+        except OSError:
+            continue
+        r = st.rfind(")")
+        fields = st[r + 2:].split()
+        kids.setdefault(int(fields[1]), []).append((int(p), st[st.find("(") + 1:r], int(fields[11]) + int(fields[12])))
+    total, stack = 0, [os.getpid()]
+    while stack:
+        for pid, comm, ticks in kids.get(stack.pop(), []):
+            total += ticks if "chrom" in comm.lower() else 0
+            stack.append(pid)
+    return total / os.sysconf("SC_CLK_TCK")
+
+
+def frames(page, n: int) -> dict:
+    """``n`` rendered frames: median and max wall interval, chromium CPU per frame, counts."""
+    page.evaluate(FRAME_JS, 3)  # warm-up: uploads and shader compiles after a scene change
+    c0 = chromium_cpu_s()
+    r = page.evaluate(FRAME_JS, n)
+    cpu = chromium_cpu_s() - c0
+    ms = r.pop("ms")
+    return {"median_ms": round(statistics.median(ms), 1), "max_ms": round(max(ms), 1),
+            "cpu_ms_per_frame": round(1000 * cpu / n, 1), **r}
+
+
+def draw_previous(app) -> None:
+    """The previous drawing of the same results, for a same-run comparison: the default light's
+    shadow maps on, the rollout subset as viser line segments (six triangles each), the gamma
+    surface as a lit, textured PBR mesh."""
+    import numpy as np
+    import trimesh
+    from PIL import Image
+
+    from simgap_viz import engine
+    from simgap_viz.layers import geometry as G
+    from simgap_viz.layers import scene
+    sc = app.server.scene
+    sc.configure_default_lights(enabled=True, cast_shadow=True)
+    traj, failed, _, _ = engine.rollout_arrays(app.results["rollout"])
+    idx = G.rollout_subset(failed, int(app.view["n_draw"]))
+    if idx.size:
+        seg = G.rollout_segments(G.Frame(app.system), traj[idx], failed[idx], max_segments=40000)
+        seg["points"][..., 2] = 0.004
+        sc.add_line_segments("/rollouts/all", points=seg["points"], colors=seg["colors"], thickness=1.5,
+                             thickness_units="screen")
+    v = app.view
+    surf = G.gamma_surface(app.system, engine.gamma_function(app.results["certify"]), v["dim"], v["a"], v["b"],
+                           v["fixed"], res=scene.SURFACE_RES)
+    verts = surf["vertices"].copy()
+    verts[:, 2] *= v["zscale"]
+    t = (surf["values"] - surf["values"].min()) / max(float(np.ptp(surf["values"])), 1e-300)
+    tex = Image.fromarray(np.repeat(G.colormap(np.linspace(0, 1, 256))[None], 4, axis=0))
+    mat = trimesh.visual.material.PBRMaterial(baseColorTexture=tex, metallicFactor=0.0, roughnessFactor=0.9,
+                                              doubleSided=True, alphaMode="BLEND", baseColorFactor=[255, 255, 255, 215])
+    uv = np.stack([np.clip(t, 0.002, 0.998), np.full(t.shape, 0.5)], axis=1)
+    sc.add_mesh_trimesh("/gamma/surface", trimesh.Trimesh(vertices=verts, faces=surf["faces"], process=False,
+                                                          visual=trimesh.visual.TextureVisuals(uv=uv, material=mat)))
+    app._drawn_keys = {}  # the app's next redraw sends its own layers again
+
+
+def bench_browser(results: str, n_draw: list, repeats: int, n_frames: int = 20):
+    """In headless chromium (software WebGL, device pixel ratio pinned to 1, 1280 x 800):
+
+    (1) frame times with the run's winning domain, gamma surface, data gaps and each count in
+    ``n_draw`` of rollouts drawn, and the same scene in the previous drawing
+    (:func:`draw_previous`), alternating in one browser session so that they compare under the
+    same load. A frame is one requestAnimationFrame interval while the camera turns every frame
+    (viser renders on demand); also chromium's CPU time per frame and three.js' counts.
+    (2) a confidence typed into the page until the new surface is in the browser: the status
+    line (sent after the surface) shows in the page, plus one animation frame. The 0.5 s typing
+    debounce is part of it and reported; so is the split into typing -> app, certify job (the
+    engine plus the redraw), and job end -> page.
+    """
     from playwright.sync_api import sync_playwright
 
     from simgap_viz import screenshot as S
@@ -130,22 +215,36 @@ def bench_browser(results: str, n_draw: int, repeats: int):
         app.set_view(dim=1)
         with sync_playwright() as pw:
             b = pw.chromium.launch(executable_path=S.CHROMIUM, args=S.ARGS)
-            page = S.open_page(b, app.url)
+            page = S.open_page(b, app.url + "/?fixedDpr=1")
             S.show_tab(page, "View")
-            frames = {}
-            for nd in n_draw:
-                app.set_time(n_draw=nd)
-                time.sleep(2.0)
-                frames[nd] = []
-                for k in range(repeats):  # orbit the camera so that every frame is redrawn
-                    for c in app.server.get_clients().values():
-                        c.camera.position = tuple(float(v) for v in (2.5 * math.cos(k), -2.5, 2.0))
-                    frames[nd] += page.evaluate(FRAME_JS, 4000)
+            out = {}
+            for k in range(repeats):
+                for nd in n_draw:
+                    for kind in ("now", "previous"):
+                        app.set_time(n_draw=nd)
+                        if kind == "previous":
+                            draw_previous(app)
+                        else:
+                            app.refresh_result_layers()
+                            app.server.scene.configure_default_lights(enabled=True, cast_shadow=False)
+                        time.sleep(1.5)
+                        out.setdefault(f"{kind} {nd} rollouts", []).append(frames(page, n_frames))
+                        print(f"frames {kind} {nd}: {out[f'{kind} {nd} rollouts'][-1]}", file=sys.stderr, flush=True)
+            app.refresh_result_layers()
+            app.server.scene.configure_default_lights(enabled=True, cast_shadow=False)
             S.show_tab(page, "Certificate", settle=1.0)
             conf = page.locator('xpath=//label[normalize-space(text())="Confidence"]'
                                 '/ancestor::div[contains(@class, "mantine-Flex-root")][1]//input').first
+            seen = {}
+            orig = app.update_settings
+
+            def update_settings(**kw):
+                seen.setdefault("app", time.perf_counter())
+                return orig(**kw)
+            app.update_settings = update_settings
             changes = []
             for k in range(repeats):
+                seen.clear()
                 before = app.status.content
                 value = f"{0.9 + 0.01 * (k + 1):.2f}"
                 t0 = time.perf_counter()
@@ -154,19 +253,36 @@ def bench_browser(results: str, n_draw: int, repeats: int):
                 deadline = time.time() + 120
                 while not (app.status.content != before and app.status.content.startswith("certify: done")) \
                         and time.time() < deadline:
-                    time.sleep(0.01)
+                    time.sleep(0.005)
+                t_job = time.perf_counter()
                 # the status line is sent after the new surface: once the page shows it, the surface is there
                 page.wait_for_function("(s) => document.body.innerText.includes(s)", arg=app.status.content,
                                        timeout=120_000)
                 page.evaluate("() => new Promise(r => requestAnimationFrame(() => r(0)))")
-                changes.append(time.perf_counter() - t0)
+                t1 = time.perf_counter()
+                job = app.timings.get("certify", float("nan"))
+                changes.append({"total_s": t1 - t0, "typing_to_app_s": seen.get("app", t0) - t0,
+                                "certify_job_s": job, "job_end_to_page_s": t1 - t_job})
+                print(f"change {value}: {changes[-1]}", file=sys.stderr, flush=True)
             b.close()
     finally:
         app.stop()
-    return {"frame_ms_by_rollouts_drawn": {nd: {"frames": len(f), "median": statistics.median(f) if f else None,
-                                                "max": max(f) if f else None} for nd, f in frames.items()},
-            "confidence_change_to_surface_s": {"n": len(changes), "median": statistics.median(changes),
-                                               "max": max(changes), "includes_debounce_s": 0.5}}
+
+    def med(rows, key):
+        return round(statistics.median(r[key] for r in rows), 1)
+    frames_out = {k: {"median_ms": med(v, "median_ms"), "cpu_ms_per_frame": med(v, "cpu_ms_per_frame"),
+                      "max_ms": max(r["max_ms"] for r in v), "calls": v[-1]["calls"],
+                      "triangles": v[-1]["triangles"], "lines": v[-1]["lines"], "points": v[-1]["points"]}
+                  for k, v in out.items()}
+    ratios = {f"previous / now, {nd} rollouts": {
+        "wall": round(frames_out[f"previous {nd} rollouts"]["median_ms"] / frames_out[f"now {nd} rollouts"]["median_ms"], 2),
+        "cpu": round(frames_out[f"previous {nd} rollouts"]["cpu_ms_per_frame"]
+                     / frames_out[f"now {nd} rollouts"]["cpu_ms_per_frame"], 2)} for nd in n_draw}
+    return {"load_average": os.getloadavg(), "frames": frames_out, "ratios": ratios,
+            "confidence_change": {"n": len(changes),
+                                  **{k: round(statistics.median(c[k] for c in changes), 3) for k in changes[0]},
+                                  "max_total_s": round(max(c["total_s"] for c in changes), 3),
+                                  "includes_debounce_s": 0.5}}
 
 
 def bench_recording(R: int, T: int):
@@ -204,11 +320,11 @@ def main(argv=None):
     p.add_argument("--skip-certify", action="store_true")
     p.add_argument("--browser", default=None, metavar="RESULTS",
                    help="a finished `simgap run` folder: measure frame times and a change end to end in chromium")
-    p.add_argument("--draw", default="0,100,1000", help="rollouts drawn for the frame times, comma separated")
+    p.add_argument("--draw", default="0,1000", help="rollouts drawn for the frame times, comma separated")
     args = p.parse_args(argv)
     out = {"machine": {"cores": os.cpu_count(), "python": platform.python_version()}}
     if args.browser:
-        out["browser"] = bench_browser(args.browser, [int(d) for d in args.draw.split(",")], args.repeats)
+        out["browser"] = bench_browser(args.browser, [int(d) for d in args.draw.split(",")], min(args.repeats, 3))
         print(json.dumps(out, indent=1))
         return
     if not args.skip_certify:

@@ -328,9 +328,17 @@ def test_synthesize_and_rollout_layers(app):
     # a subset is drawn (failures first), all are counted
     app.set_time(n_draw=50)
     assert app.rollout_drawn == {"drawn": 50, "total": 200, "failed": int((~ro.success).sum()),
-                                 "failed_drawn": min(50, int((~ro.success).sum()))}
+                                 "failed_drawn": min(50, int((~ro.success).sum())), "segments": 50 * 150}
+    sent = []
+    add_glb = app.server.scene.add_glb
+    app.server.scene.add_glb = lambda name, *a, **k: (sent.append(name), add_glb(name, *a, **k))[1]
+    app.refresh_result_layers()  # nothing changed: the rollouts and the map are not sent again
+    assert "/rollouts/all" not in sent
     assert scene.draw_rollouts(app) == 50 * 150
-    assert "50 of 200 drawn" in app.panels["view"].legend.content
+    app.set_time(n_draw=60)
+    assert sent.count("/rollouts/all") == 1 and app.rollout_drawn["drawn"] == 60
+    app.server.scene.add_glb = add_glb
+    assert "60 of 200 drawn" in app.panels["view"].legend.content
     sub = G.rollout_subset(np.arange(200) % 7 == 0, 20)
     assert sub.size == 20 and np.all(sub % 7 == 0)  # 29 failures: the subset is all failures
     app.set_time(t=75, rollout_index=3)  # moves the pendulum body to that rollout's angle
@@ -400,6 +408,45 @@ def test_change_during_a_job_recertifies_afterwards(app):
     app.wait(60)
     assert app.results["certify"].dims[0].terms == ["1", "x1", "x2", "u1"]
     assert len(app.notifications) == n
+
+
+def test_glb_lines_and_unlit_surface():
+    """The GLB writer: one LINES primitive (segment pairs) or an indexed, unlit, translucent
+    triangle mesh, with the given sRGB colors stored as linear vertex colors; read back by trimesh."""
+    import io
+    import json
+    import struct
+
+    import trimesh
+
+    from simgap_viz.layers import geometry as G
+
+    def chunk(b):
+        n = struct.unpack("<I", b[12:16])[0]
+        return json.loads(b[20:20 + n])
+    P = np.random.default_rng(0).random((7, 2, 3))
+    C = np.zeros((7, 2, 3), np.uint8)
+    C[:] = G.BLUE
+    C[3] = G.RED
+    b = G.glb(P, C)
+    doc = chunk(b)
+    assert doc["meshes"][0]["primitives"][0]["mode"] == 1 and doc["accessors"][0]["count"] == 14
+    path = trimesh.load(io.BytesIO(b), file_type="glb").geometry["GLTF"]
+    np.testing.assert_allclose(np.sort(path.vertices, axis=0), np.sort(P.reshape(-1, 3), axis=0), atol=1e-6)
+    lin = G.srgb_to_linear(np.array([G.BLUE, G.RED]))
+    body = b[20 + struct.unpack("<I", b[12:16])[0] + 8:]
+    col = np.frombuffer(body[14 * 12: 14 * 12 + 14 * 8], np.uint16).reshape(14, 4)[:, :3] / 65535
+    np.testing.assert_allclose(col[6:8], [lin[1]] * 2, atol=1e-4)  # segment 3 red, the others blue
+    np.testing.assert_allclose(col[:6], [lin[0]] * 6, atol=1e-4)
+    V = np.random.default_rng(1).random((9, 3))
+    F = G.grid_faces(3, 3)
+    b = G.glb(V, np.zeros((9, 3), np.uint8), F, unlit=True, opacity=0.85)
+    mat = chunk(b)["materials"][0]
+    assert "KHR_materials_unlit" in mat["extensions"] and mat["alphaMode"] == "BLEND"
+    mesh = trimesh.load(io.BytesIO(b), file_type="glb", force="mesh")
+    assert mesh.faces.shape == (8, 3) and np.allclose(mesh.vertices, V, atol=1e-6)
+    lit = chunk(G.glb(V, np.zeros((9, 3), np.uint8), F))
+    assert "NORMAL" in lit["meshes"][0]["primitives"][0]["attributes"] and "alphaMode" not in lit["materials"][0]
 
 
 def test_gamma_layer_height_scale_and_colors(app):

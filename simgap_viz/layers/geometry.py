@@ -99,21 +99,6 @@ def nice_ticks(lo: float, hi: float, n: int = 5) -> np.ndarray:
     return t[(t >= lo - 1e-12 * abs(step)) & (t <= hi + 1e-12 * abs(step))] + 0.0  # no "-0"
 
 
-def textured_surface(vertices: np.ndarray, faces: np.ndarray, t: np.ndarray):
-    """A trimesh whose color follows :func:`colormap` of the vertex values ``t`` in [0, 1], through
-    a 1-D texture and a matte PBR material (glTF's default material is metallic and washes
-    vertex colors out)."""
-    import trimesh
-    from PIL import Image
-    tex = Image.fromarray(np.repeat(colormap(np.linspace(0, 1, 256))[None], 4, axis=0))
-    uv = np.stack([np.clip(t, 0.002, 0.998), np.full(t.shape, 0.5)], axis=1)
-    mat = trimesh.visual.material.PBRMaterial(baseColorTexture=tex, metallicFactor=0.0, roughnessFactor=0.9,
-                                              doubleSided=True, alphaMode="BLEND",
-                                              baseColorFactor=[255, 255, 255, 215])  # the map shows through
-    return trimesh.Trimesh(vertices=vertices, faces=faces, process=False,
-                           visual=trimesh.visual.TextureVisuals(uv=uv, material=mat))
-
-
 # winning-domain map colors
 WIN_NEAR, WIN_FAR = (15, 100, 45), (140, 210, 130)
 LOSING = (238, 232, 205)
@@ -308,6 +293,45 @@ def rollout_segments(frame: Frame, traj: np.ndarray, failed: np.ndarray | None =
     return {"points": seg, "colors": col.reshape(-1, 2, 3), "stride": stride}
 
 
+def rollout_image(frame: Frame, traj: np.ndarray, failed: np.ndarray | None = None, px: int = 1024,
+                  width: int = 2, max_samples: int = 20_000_000) -> np.ndarray:
+    """The rollouts as an RGBA image of the display square [-1, 1]^2 (row 0 at +x2): every step
+    of every trajectory rasterized as a ``width``-pixel line, blue, failures red on top; transparent
+    elsewhere.
+
+    Drawn as one textured plane, 1000 rollouts cost a frame no more than the winning map does,
+    while as geometry even 1-pixel GL lines cost several ms per 10k segments in software WebGL.
+    Each segment is sampled one pixel apart (the ``width`` covers the gaps; fewer samples if the
+    total would exceed ``max_samples``). Returns (px, px, 4) uint8.
+    """
+    traj = np.asarray(traj, dtype=float)
+    R = traj.shape[0]
+    failed = np.zeros(R, bool) if failed is None else np.asarray(failed, bool)
+    img = np.zeros((px, px, 4), np.uint8)
+    if R == 0 or traj.shape[1] < 2:
+        return img
+    P = ((frame.xy(traj)[..., :2] + 1.0) * (0.5 * px)).astype(np.float32)  # pixels, x right, y up
+    a = P[:, :-1].reshape(-1, 2)
+    d = P[:, 1:].reshape(-1, 2) - a
+    n = np.minimum(np.ceil(np.hypot(d[:, 0], d[:, 1])).astype(np.int64) + 1, 4 * px)  # 1 pixel apart
+    if n.sum() > max_samples:
+        n = np.maximum(1, (n * (max_samples / n.sum())).astype(np.int64))
+    t = (np.arange(n.sum(), dtype=np.float32) - np.repeat((np.cumsum(n) - n).astype(np.float32), n)) \
+        / np.repeat(n.astype(np.float32), n)
+    ix = np.clip((np.repeat(a[:, 0], n) + t * np.repeat(d[:, 0], n)).astype(np.int64), 0, px - 1)
+    iy = np.clip(px - 1 - (np.repeat(a[:, 1], n) + t * np.repeat(d[:, 1], n)).astype(np.int64), 0, px - 1)
+    bad = np.repeat(np.repeat(failed, traj.shape[1] - 1), n)
+    for mask, rgb in ((~bad, BLUE), (bad, RED)):
+        hit = np.zeros((px, px), bool)
+        hit[iy[mask], ix[mask]] = True
+        wide = hit.copy()
+        for k in range(1, width):  # thicken right and down
+            wide[:, k:] |= hit[:, :-k]
+            wide[k:, :] |= hit[:-k, :]
+        img[wide] = (*rgb, 255)
+    return img
+
+
 def polyline_segments(frame: Frame, path: np.ndarray) -> np.ndarray:
     """One trajectory (T+1, n) as (T, 2, 3) display segments."""
     P = frame.xy(np.asarray(path, dtype=float))
@@ -356,3 +380,76 @@ def spec_outlines(frame: Frame, spec) -> tuple:
     if not segs:
         return np.zeros((0, 2, 3), np.float32), np.zeros((0, 2, 3), np.uint8)
     return np.concatenate(segs).astype(np.float32), np.concatenate(cols)
+
+
+def srgb_to_linear(rgb: np.ndarray) -> np.ndarray:
+    """sRGB colors 0-255 -> linear-light values in [0, 1] (glTF vertex colors are linear)."""
+    c = np.asarray(rgb, dtype=float) / 255.0
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+
+
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(V, 3) float32 unit vertex normals: the area-weighted sum of the adjacent faces' normals."""
+    V = np.asarray(vertices, float)
+    F = np.asarray(faces, np.int64).reshape(-1, 3)
+    fn = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+    N = np.zeros_like(V)
+    for k in range(3):
+        np.add.at(N, F[:, k], fn)
+    N /= np.maximum(np.linalg.norm(N, axis=1, keepdims=True), 1e-30)
+    return np.ascontiguousarray(N, dtype=np.float32)
+
+
+def glb(positions: np.ndarray, colors: np.ndarray, faces: np.ndarray | None = None, unlit: bool = False,
+        opacity: float = 1.0) -> bytes:
+    """One glTF primitive as binary glTF (GLB) bytes, for viser's ``add_glb``.
+
+    ``positions`` (V, 3) display coordinates and ``colors`` (V, 3) uint8 sRGB per vertex.
+    With ``faces`` (F, 3): a double-sided triangle mesh (matte, or ``unlit``: flat vertex
+    colors without lighting), translucent if ``opacity`` < 1; without: LINES, consecutive vertex
+    pairs are segments, drawn by a glTF viewer (three.js) as native 1-pixel lines with an unlit
+    material.
+    """
+    import json
+    import struct
+    P = np.ascontiguousarray(np.asarray(positions, np.float32).reshape(-1, 3))
+    if P.shape[0] == 0:
+        raise SimgapError("glb: no vertices")
+    C = np.round(65535 * srgb_to_linear(np.asarray(colors).reshape(-1, 3))).astype(np.uint16)
+    C = np.ascontiguousarray(np.concatenate([C, np.full((C.shape[0], 1), 65535, np.uint16)], axis=1))
+    chunks = [P.tobytes(), C.tobytes()]
+    n = P.shape[0]
+    accessors = [{"bufferView": 0, "componentType": 5126, "count": n, "type": "VEC3",
+                  "min": P.min(axis=0).tolist(), "max": P.max(axis=0).tolist()},
+                 {"bufferView": 1, "componentType": 5123, "normalized": True, "count": n, "type": "VEC4"}]
+    prim = {"attributes": {"POSITION": 0, "COLOR_0": 1}, "mode": 1}
+    if faces is not None and not unlit:  # smooth shading (a glTF viewer shades a mesh without normals flat)
+        N = vertex_normals(P, faces)
+        chunks.append(N.tobytes())
+        accessors.append({"bufferView": 2, "componentType": 5126, "count": n, "type": "VEC3"})
+        prim["attributes"]["NORMAL"] = 2
+    doc = {"asset": {"version": "2.0", "generator": "simgap"}, "scene": 0, "scenes": [{"nodes": [0]}],
+           "nodes": [{"mesh": 0}], "meshes": [{"primitives": [prim]}]}
+    if faces is not None:
+        F = np.ascontiguousarray(np.asarray(faces, np.uint32).reshape(-1))
+        chunks.append(F.tobytes())
+        accessors.append({"bufferView": len(chunks) - 1, "componentType": 5125, "count": int(F.size), "type": "SCALAR"})
+        prim.update(mode=4, indices=len(chunks) - 1, material=0)
+        mat = {"pbrMetallicRoughness": {"baseColorFactor": [1.0, 1.0, 1.0, float(opacity)], "metallicFactor": 0.0,
+                                        "roughnessFactor": 0.9}, "doubleSided": True}
+        if opacity < 1.0:
+            mat["alphaMode"] = "BLEND"
+        if unlit:
+            mat["extensions"] = {"KHR_materials_unlit": {}}
+            doc["extensionsUsed"] = ["KHR_materials_unlit"]
+        doc["materials"] = [mat]
+    offsets = np.concatenate([[0], np.cumsum([len(c) for c in chunks])]).tolist()  # each a multiple of 4
+    doc["bufferViews"] = [{"buffer": 0, "byteOffset": offsets[k], "byteLength": len(c)} for k, c in enumerate(chunks)]
+    doc["buffers"] = [{"byteLength": offsets[-1]}]
+    doc["accessors"] = accessors
+    js = json.dumps(doc, separators=(",", ":")).encode()
+    js += b" " * (-len(js) % 4)
+    body = b"".join(chunks)
+    total = 12 + 8 + len(js) + 8 + len(body)
+    return (struct.pack("<III", 0x46546C67, 2, total) + struct.pack("<II", len(js), 0x4E4F534A) + js
+            + struct.pack("<II", len(body), 0x004E4942) + body)

@@ -3,11 +3,20 @@
 Every state-space layer lives in one display frame: the first two state dimensions mapped to
 the square [-1, 1]^2 (z = 0, see :mod:`.geometry`). The gamma surface rises above it with heights
 z = gamma / top in [0, 1] (``top`` recomputed for each certificate and slice, shown as z ticks);
-the winning domain is one opaque image just below it; the rollouts are one line-segments node.
+the winning domain is one opaque image just below it; the rollouts are one transparent image
+on top of it (the bold mean and nominal trajectories are line segments).
 A TurtleBot's arena and robot are drawn in the same frame (metres mapped like x, y), so the map
 appears once at one scale; the pendulum's rod, which has no place in the (theta, omega) plane,
 stands beside the square. Node names: ``/grid``, ``/axes``, ``/map``, ``/winning``,
 ``/gamma/surface``, ``/gamma/data``, ``/rollouts/{all,mean,nominal,now}``, ``/bodies``, ``/refine``.
+
+Frame cost in software WebGL (SwiftShader, bench/bench_viz.py --browser) decides the drawing:
+no shadow maps (the default light's three shadow cascades re-render the scene three times per
+frame), the surface unlit with vertex colors (a lit PBR surface costs its screen area times an
+environment-map shader), the rollout subset rasterized into one image (as geometry, viser's
+``add_line_segments`` costs about 30 ms per 1000 segments there, since it extrudes each into six
+triangles, and even 1-pixel GL lines about 3 ms), and layers whose inputs did not change are not
+sent again.
 """
 
 from __future__ import annotations
@@ -21,17 +30,42 @@ PENDULUM_PIVOT = (1.9, 0.0, 1.2)  # where the pendulum's pivot stands, beside th
 SURFACE_RES = 41
 
 
+# viser draws an image's row 0 at the plane's -y (camera-image convention): this turn about x
+# puts row 0 at +x2, as geometry.winning_map and geometry.rollout_image lay their images out
+IMAGE_UP = (0.0, 1.0, 0.0, 0.0)
+
+
 def _remove(app, name: str) -> None:
+    _drawn(app).pop(name, None)
     try:
         app.server.scene.remove_by_name(name)
     except Exception:  # node not present
         pass
 
 
+def _drawn(app) -> dict:
+    """What each layer last sent to the scene (node name -> key of its inputs)."""
+    d = getattr(app, "_drawn_keys", None)
+    if d is None:
+        d = app._drawn_keys = {}
+    return d
+
+
+def _unchanged(app, name: str, key) -> bool:
+    """True if ``name`` was last drawn from the same inputs ``key`` (nothing to send); else
+    records ``key`` as drawn."""
+    d = _drawn(app)
+    if name in d and d[name] == key:
+        return True
+    d[name] = key
+    return False
+
+
 # ----- static layers ----------------------------------------------------------------------------
 def draw_system(app) -> None:
     """Layers of the current system: ground grid, axis ticks, map/spec, simulator bodies; fits the camera."""
     sc = app.server.scene
+    sc.configure_default_lights(enabled=True, cast_shadow=False)
     sc.add_grid("/grid", width=2.0, height=2.0, cell_size=0.25, plane="xy", position=(0.0, 0.0, -0.004),
                 cell_color=(215, 215, 215), section_color=(170, 170, 170))
     draw_axes(app)
@@ -187,8 +221,9 @@ def draw_gamma(app) -> dict:
         vals = surf["values"]
         lo, hi = float(vals.min()), float(vals.max())
         t = (vals - lo) / (hi - lo) if hi > lo else np.full(vals.shape, 0.5)
-        sc.add_mesh_trimesh("/gamma/surface", G.textured_surface(verts, surf["faces"], t),
-                            visible=app.layers_visible["gamma"])
+        # unlit vertex colors: the legend's colors exactly, and the map shows through
+        sc.add_glb("/gamma/surface", G.glb(verts, G.colormap(t), surf["faces"], unlit=True, opacity=0.85),
+                   cast_shadow=False, receive_shadow=False, visible=app.layers_visible["gamma"])
         out["vertices"], out["faces"] = verts, surf["faces"]
         out["range"] = legend["range"] = (lo, hi)
         out["top"] = 1.0 / z
@@ -244,13 +279,15 @@ def draw_winning(app) -> int:
         _remove(app, "/winning")
         app.winning_counts = None
         return 0
+    if _unchanged(app, "/winning", (id(res), app.layers_visible["winning"])):
+        return app.winning_counts["winning"]
     blocked, allowed = engine.cell_labels(res)
     wm = G.winning_map(res.controller, blocked, allowed)
     frame = G.Frame(app.system)
     a, b = frame.xy(wm["lo"][None])[0], frame.xy(wm["hi"][None])[0]
     app.server.scene.add_image("/winning", wm["image"], render_width=float(b[0] - a[0]),
                                render_height=float(b[1] - a[1]), format="png",
-                               position=(float(a[0] + b[0]) / 2, float(a[1] + b[1]) / 2, 0.002),
+                               position=(float(a[0] + b[0]) / 2, float(a[1] + b[1]) / 2, 0.002), wxyz=IMAGE_UP,
                                cast_shadow=False, receive_shadow=False, visible=app.layers_visible["winning"])
     app.winning_counts = {**wm["counts"], "max_steps": wm["max_steps"], "reduced_dims": wm["reduced_dims"]}
     return wm["counts"]["winning"]
@@ -259,24 +296,26 @@ def draw_winning(app) -> int:
 # ----- rollouts ---------------------------------------------------------------------------------
 def draw_rollouts(app) -> int:
     """A subset of the rollouts (every failure first, up to ``app.view["n_draw"]``) as ONE
-    line-segments node, failures red; the mean (or mean-map) and nominal trajectories bold.
-    Returns the number of segments of the subset node."""
+    image on the plane (every step), failures red; the mean (or mean-map) and nominal
+    trajectories bold. Returns the number of trajectory segments in the image."""
     res = app.results.get("rollout")
     if res is None:
         _remove(app, "/rollouts")
         app.rollout_drawn = None
         return 0
+    if _unchanged(app, "/rollouts", (id(res), int(app.view.get("n_draw", 100)), app.layers_visible["rollouts"])):
+        show_time(app, app.view.get("t", None))
+        return app.rollout_drawn["segments"]
     frame = G.Frame(app.system)
     traj, failed, mean, nominal = engine.rollout_arrays(res)
     idx = G.rollout_subset(failed, int(app.view.get("n_draw", 100)))
     sc = app.server.scene
     vis = app.layers_visible["rollouts"]
-    if idx.size:
-        seg = G.rollout_segments(frame, traj[idx], failed[idx], max_segments=40000)
-        seg["points"][..., 2] = 0.004  # just above the winning map
-        sc.add_line_segments("/rollouts/all", points=seg["points"], colors=seg["colors"], thickness=1.5,
-                             thickness_units="screen", visible=vis)
-        nseg = seg["points"].shape[0]
+    if idx.size:  # one image on the plane (see geometry.rollout_image), every step of every drawn rollout
+        sc.add_image("/rollouts/all", G.rollout_image(frame, traj[idx], failed[idx]), render_width=2.0,
+                     render_height=2.0, format="png", position=(0.0, 0.0, 0.004), wxyz=IMAGE_UP, cast_shadow=False,
+                     receive_shadow=False, visible=vis)
+        nseg = int(idx.size) * (traj.shape[1] - 1)
     else:
         _remove(app, "/rollouts/all")
         nseg = 0
@@ -290,7 +329,7 @@ def draw_rollouts(app) -> int:
         sc.add_line_segments(f"/rollouts/{name}", points=P, colors=color, thickness=width,
                              thickness_units="screen", visible=vis)
     app.rollout_drawn = {"drawn": int(idx.size), "total": int(failed.size), "failed": int(failed.sum()),
-                         "failed_drawn": int(failed[idx].sum())}
+                         "failed_drawn": int(failed[idx].sum()), "segments": nseg}
     show_time(app, app.view.get("t", None))
     return nseg
 
@@ -371,6 +410,8 @@ def draw_residuals(app, state: int = None, var: str = None, max_points: int = 20
     v = app.view
     state = v.get("res_state", s.n - 1) if state is None else state
     var = v.get("res_var") or s.state_names[-1] if var is None else var
+    if _unchanged(app, "/refine", (id(res), state, var, max_points)):
+        return app._drawn_residuals
     x, r0 = res.before.against(var)
     _, r1 = res.after.against(var)
     K = x.size
@@ -394,6 +435,7 @@ def draw_residuals(app, state: int = None, var: str = None, max_points: int = 20
                                  colors=col, thickness=3.0, thickness_units="screen")
     sc.add_label("/refine/label", text=f"residual of {s.state_names[state]} vs {var} (red: f, green: f')",
                  position=(-1.0, RESIDUAL_PLANE_Y, 1.45))
+    app._drawn_residuals = int(idx.size)
     return int(idx.size)
 
 

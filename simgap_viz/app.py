@@ -242,6 +242,7 @@ class SimgapApp:
         self.panels["synthesis"].sync_from_settings()
         self.set_status(f"dataset: {dataset.K} pairs (x_r, u), N1hat = {dataset.n_runs}, "
                         f"epsilon = {dataset.epsilon:g}")
+        engine.warm_up()  # data in hand: a certification (a knob change) is what comes next
         self.refresh_result_layers()
         self._update_buttons()
 

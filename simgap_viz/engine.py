@@ -233,6 +233,19 @@ def certify_options(settings, n: int):
     return CertifyOptions(**kw)
 
 
+def warm_up() -> None:
+    """Import the certification's solver stack (cvxpy, about half a second) ahead of the first
+    re-certification, on a background thread, so that the first knob change does not pay it."""
+    import threading
+
+    def load():
+        try:
+            importlib.import_module("cvxpy")
+        except Exception:  # reported by certify itself when it runs
+            pass
+    threading.Thread(target=load, name="simgap-warm-up", daemon=True).start()
+
+
 def certify(dataset, settings, ctx):
     """The certificate of ``dataset`` for the settings' deltas/confidence, basis and bound (simgap.certify)."""
     from simgap.certify.pipeline import certify as run_certify

@@ -329,15 +329,20 @@ def test_synthesize_and_rollout_layers(app):
     app.set_time(n_draw=50)
     assert app.rollout_drawn == {"drawn": 50, "total": 200, "failed": int((~ro.success).sum()),
                                  "failed_drawn": min(50, int((~ro.success).sum())), "segments": 50 * 150}
+    # the drawn rollouts are one image of the square: blue where a drawn trajectory passes
+    img = G.rollout_image(G.Frame(app.system), ro.trajectories[:1], np.zeros(1, bool), px=64, width=1)
+    P = (G.Frame(app.system).xy(ro.trajectories[0])[:, :2] + 1) * 32
+    rows, cols = np.clip(63 - P[:, 1].astype(int), 0, 63), np.clip(P[:, 0].astype(int), 0, 63)
+    assert np.all(img[rows, cols] == (*G.BLUE, 255)) and (img[..., 3] > 0).sum() < 0.5 * 64 * 64
     sent = []
-    add_glb = app.server.scene.add_glb
-    app.server.scene.add_glb = lambda name, *a, **k: (sent.append(name), add_glb(name, *a, **k))[1]
+    add_image = app.server.scene.add_image
+    app.server.scene.add_image = lambda name, *a, **k: (sent.append(name), add_image(name, *a, **k))[1]
     app.refresh_result_layers()  # nothing changed: the rollouts and the map are not sent again
-    assert "/rollouts/all" not in sent
+    assert sent == []
     assert scene.draw_rollouts(app) == 50 * 150
     app.set_time(n_draw=60)
-    assert sent.count("/rollouts/all") == 1 and app.rollout_drawn["drawn"] == 60
-    app.server.scene.add_glb = add_glb
+    assert sent == ["/rollouts/all"] and app.rollout_drawn["drawn"] == 60
+    app.server.scene.add_image = add_image
     assert "60 of 200 drawn" in app.panels["view"].legend.content
     sub = G.rollout_subset(np.arange(200) % 7 == 0, 20)
     assert sub.size == 20 and np.all(sub % 7 == 0)  # 29 failures: the subset is all failures

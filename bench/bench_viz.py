@@ -274,10 +274,10 @@ def bench_browser(results: str, n_draw: list, repeats: int, n_frames: int = 20):
                       "max_ms": max(r["max_ms"] for r in v), "calls": v[-1]["calls"],
                       "triangles": v[-1]["triangles"], "lines": v[-1]["lines"], "points": v[-1]["points"]}
                   for k, v in out.items()}
-    ratios = {f"previous / now, {nd} rollouts": {
-        "wall": round(frames_out[f"previous {nd} rollouts"]["median_ms"] / frames_out[f"now {nd} rollouts"]["median_ms"], 2),
-        "cpu": round(frames_out[f"previous {nd} rollouts"]["cpu_ms_per_frame"]
-                     / frames_out[f"now {nd} rollouts"]["cpu_ms_per_frame"], 2)} for nd in n_draw}
+    def ratio(nd, key):
+        return round(frames_out[f"previous {nd} rollouts"][key] / frames_out[f"now {nd} rollouts"][key], 2)
+    ratios = {f"previous / now, {nd} rollouts": {"wall": ratio(nd, "median_ms"), "cpu": ratio(nd, "cpu_ms_per_frame")}
+              for nd in n_draw}
     return {"load_average": os.getloadavg(), "frames": frames_out, "ratios": ratios,
             "confidence_change": {"n": len(changes),
                                   **{k: round(statistics.median(c[k] for c in changes), 3) for k in changes[0]},
@@ -324,8 +324,16 @@ def main(argv=None):
     args = p.parse_args(argv)
     out = {"machine": {"cores": os.cpu_count(), "python": platform.python_version()}}
     if args.browser:
-        out["browser"] = bench_browser(args.browser, [int(d) for d in args.draw.split(",")], min(args.repeats, 3))
+        draw = [int(d) for d in args.draw.split(",")]
+        br = out["browser"] = bench_browser(args.browser, draw, min(args.repeats, 3))
         print(json.dumps(out, indent=1))
+        f, c = br["frames"][f"now {max(draw)} rollouts"], br["confidence_change"]
+        print(f"target frame <= 100 ms with {max(draw)} rollouts + winning domain: median {f['median_ms']} ms "
+              f"(chromium CPU {f['cpu_ms_per_frame']} ms/frame; previous drawing "
+              f"{br['frames'][f'previous {max(draw)} rollouts']['median_ms']} ms)\n"
+              f"target delta change <= 1 s end to end: median {c['total_s']} s (certify job {c['certify_job_s']} s, "
+              f"typing incl. 0.5 s debounce {c['typing_to_app_s']} s, job end to page {c['job_end_to_page_s']} s)\n"
+              f"load average {', '.join(f'{x:.1f}' for x in br['load_average'])} (2 cores shared: compare ratios)")
         return
     if not args.skip_certify:
         ds = load_or_collect(args)

@@ -23,6 +23,9 @@ GREEN = (40, 170, 80)
 YELLOW = (250, 200, 20)
 GREY = (150, 150, 150)
 DIM_COLORS = ((70, 130, 230), (230, 120, 40), (120, 180, 60), (170, 90, 200))
+# viser draws an image's row 0 at the plane's -y (camera-image convention); this orientation
+# (a half turn about x) puts row 0 at +x2, as the top-down maps here lay their images out
+IMAGE_UP = (0.0, 1.0, 0.0, 0.0)
 
 
 class Frame:

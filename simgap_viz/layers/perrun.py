@@ -90,7 +90,7 @@ def draw(app) -> dict:
     a, b = frame.xy(m["lo"][None])[0], frame.xy(m["hi"][None])[0]
     sc.add_image("/perrun/map", m["image"], render_width=float(b[0] - a[0]), render_height=float(b[1] - a[1]),
                  format="png", position=(float(a[0] + b[0]) / 2, float(a[1] + b[1]) / 2, MAP_Z),
-                 cast_shadow=False, receive_shadow=False, visible=v["map"])
+                 wxyz=G.IMAGE_UP, cast_shadow=False, receive_shadow=False, visible=v["map"])
     out["map"] = m
     _remove(app, "/perrun/labels")
     st = pr.controllers.get(v["controller"])

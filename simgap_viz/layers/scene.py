@@ -30,11 +30,6 @@ PENDULUM_PIVOT = (1.9, 0.0, 1.2)  # where the pendulum's pivot stands, beside th
 SURFACE_RES = 41
 
 
-# viser draws an image's row 0 at the plane's -y (camera-image convention): this turn about x
-# puts row 0 at +x2, as geometry.winning_map and geometry.rollout_image lay their images out
-IMAGE_UP = (0.0, 1.0, 0.0, 0.0)
-
-
 def _remove(app, name: str) -> None:
     _drawn(app).pop(name, None)
     try:
@@ -287,7 +282,7 @@ def draw_winning(app) -> int:
     a, b = frame.xy(wm["lo"][None])[0], frame.xy(wm["hi"][None])[0]
     app.server.scene.add_image("/winning", wm["image"], render_width=float(b[0] - a[0]),
                                render_height=float(b[1] - a[1]), format="png",
-                               position=(float(a[0] + b[0]) / 2, float(a[1] + b[1]) / 2, 0.002), wxyz=IMAGE_UP,
+                               position=(float(a[0] + b[0]) / 2, float(a[1] + b[1]) / 2, 0.002), wxyz=G.IMAGE_UP,
                                cast_shadow=False, receive_shadow=False, visible=app.layers_visible["winning"])
     app.winning_counts = {**wm["counts"], "max_steps": wm["max_steps"], "reduced_dims": wm["reduced_dims"]}
     return wm["counts"]["winning"]
@@ -313,7 +308,7 @@ def draw_rollouts(app) -> int:
     vis = app.layers_visible["rollouts"]
     if idx.size:  # one image on the plane (see geometry.rollout_image), every step of every drawn rollout
         sc.add_image("/rollouts/all", G.rollout_image(frame, traj[idx], failed[idx]), render_width=2.0,
-                     render_height=2.0, format="png", position=(0.0, 0.0, 0.004), wxyz=IMAGE_UP, cast_shadow=False,
+                     render_height=2.0, format="png", position=(0.0, 0.0, 0.004), wxyz=G.IMAGE_UP, cast_shadow=False,
                      receive_shadow=False, visible=vis)
         nseg = int(idx.size) * (traj.shape[1] - 1)
     else:

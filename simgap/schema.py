@@ -181,6 +181,7 @@ class PerrunSection(Section):
     baseline_eta: Optional[Union[Positive, list[Positive]]] = None
     baseline_hold: Optional[Int1] = None
     split: Optional[list[Finite]] = None
+    invariant: Optional[list[str]] = None
 
 
 class Experiment(Section):

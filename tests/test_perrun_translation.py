@@ -67,3 +67,24 @@ def test_invariant_dimension_must_not_be_an_angle():
     sim, spec = _setup()
     with pytest.raises(SimgapError, match="invariant"):
         build_imdp_translation(sim, spec, IMDPOptions(eta=[0.5, 0.5, 1.0], n_runs=10, pilot_runs=1), invariant=(2,))
+
+
+def test_cli_synthesize_level_run_with_invariant(tmp_path, capsys):
+    """`[perrun] invariant` selects the shifted construction: its cost is classes x inputs x runs."""
+    from pathlib import Path
+
+    from simgap.cli import main
+    from simgap.perrun.value_iteration import PerRunController
+
+    toml = Path(__file__).parent / "data" / "perrun_turtle_tiny.toml"
+    out = tmp_path / "c.npz"
+    assert main(["synthesize", "--level", "run", "--spec", str(toml), "--out", str(out)]) == 0
+    assert "p_cert(x0 = [3.5, 2.0, 1.5])" in capsys.readouterr().out
+    ctl = PerRunController.load(out)
+    assert ctl.meta["classes"] == 8 and ctl.meta["samples"] == 8 * 6 * 330 and ctl.meta["invariant"] == ["x", "y"]
+    assert ctl.p_cert[ctl.target].min() == 1.0 and ctl.p_cert.max() <= 1.0
+    bad = tmp_path / "bad.toml"
+    bad.write_text(toml.read_text().replace('invariant = ["x", "y"]', 'invariant = ["theta"]'))
+    assert main(["synthesize", "--level", "run", "--spec", str(bad), "--out", str(tmp_path / "b.npz")]) == 2
+    assert "invariant must list non-angle state names" in capsys.readouterr().err
+    assert not (tmp_path / "b.npz").exists()

@@ -27,7 +27,7 @@ from ..errors import SimgapError
 from .orderstats import alpha_min
 
 KEYS = {"alpha", "beta", "eta", "hold", "n_runs", "pilot_runs", "horizon", "n_rollouts", "n_states", "seed",
-        "baseline_eta", "baseline_hold", "split"}
+        "baseline_eta", "baseline_hold", "split", "invariant"}
 
 
 def check_section(sec: dict, system, n_pairs: int, n_runs: int, horizon) -> dict:
@@ -52,6 +52,11 @@ def check_section(sec: dict, system, n_pairs: int, n_runs: int, horizon) -> dict
         raise SimgapError(f"[perrun] horizon must be >= 1 sampling period, got {o['horizon']}")
     if "eta" not in o:
         raise SimgapError("[perrun] eta (interval-MDP cell widths) is required")
+    inv = o.get("invariant") or []
+    if not isinstance(inv, list) or any(v not in system.state_names or system.state_names.index(v) in system.angle_dims
+                                        for v in inv):
+        raise SimgapError(f"[perrun] invariant must list non-angle state names of {system.name!r} "
+                          f"({list(system.state_names)}), got {inv!r}")
     for k in ("hold", "n_runs", "pilot_runs", "n_rollouts", "n_states"):
         if int(o[k]) < 1:
             raise SimgapError(f"[perrun] {k} must be >= 1, got {o[k]}")
@@ -64,13 +69,26 @@ def check_section(sec: dict, system, n_pairs: int, n_runs: int, horizon) -> dict
     return o
 
 
+def build(sim, spec, o: dict, log):
+    """The interval MDP of checked ``[perrun]`` options ``o``: sampled per cell, or with ``invariant``
+    (state names) once per class of cells and shifted (:mod:`simgap.perrun.translation`)."""
+    from .imdp import IMDPOptions, build_imdp
+    from .translation import build_imdp_translation
+
+    opts = IMDPOptions(eta=o["eta"], hold=int(o["hold"]), n_runs=int(o["n_runs"]), pilot_runs=int(o["pilot_runs"]),
+                       beta=float(o["beta"]), seed=int(o["seed"]), split=o["split"])
+    if o.get("invariant"):
+        names = list(sim.system.state_names)
+        return build_imdp_translation(sim, spec, opts, [names.index(v) for v in o["invariant"]], log=log)
+    return build_imdp(sim, spec, opts, log=log)
+
+
 def synthesize_experiment(exp, horizon=None, x0=None, eta=None, hold=None, log=print):
     """Interval-MDP controller of an experiment (``[perrun]`` options, overridable); returns (controller, summary text).
 
     Bad input (no [perrun] section, horizon < 1, x0 outside X) raises before any sampling."""
     from ..pipeline import experiment_spec
     from ..simulators import make_simulator
-    from .imdp import IMDPOptions, build_imdp
     from .value_iteration import synthesize_imdp
 
     sec = exp.section("perrun")
@@ -85,9 +103,7 @@ def synthesize_experiment(exp, horizon=None, x0=None, eta=None, hold=None, log=p
     if x0 is not None:
         exp.system.check_states(np.atleast_2d(x0), "x0")
     with make_simulator(exp.simulator.to_dict(), system=exp.system) as sim:
-        imdp = build_imdp(sim, spec, IMDPOptions(eta=o["eta"], hold=int(o["hold"]), n_runs=int(o["n_runs"]),
-                                                 pilot_runs=int(o["pilot_runs"]), beta=float(o["beta"]),
-                                                 seed=int(o["seed"]), split=o["split"]), log=log)
+        imdp = build(sim, spec, o, log)
     ctl = synthesize_imdp(imdp, int(o["horizon"]))
     lines = [f"interval MDP: {imdp.C} cells ({int(imdp.live.sum())} live) x {imdp.M} inputs, hold {imdp.hold}, "
              f"{imdp.nnz} interval entries ({imdp.nbytes() / 2**20:.1f} MiB), {imdp.meta['bounds']} one-sided "
@@ -125,7 +141,6 @@ def run_stage(exp, out: Path, data, controllers: Dict[str, object], spec, x0, o:
     from ..simulators import make_simulator
     from ..synthesis.controller import synthesize
     from ..synthesis.rollout import resolve_hold
-    from .imdp import IMDPOptions, build_imdp
     from .realization import certify_run
     from .validation import sample_in_cells
     from .value_iteration import synthesize_imdp
@@ -155,9 +170,7 @@ def run_stage(exp, out: Path, data, controllers: Dict[str, object], spec, x0, o:
                                f" (clipped at 0) in the winning domain, at confidence 1 - beta"
 
         t0 = time.perf_counter()
-        imdp = build_imdp(sim, spec, IMDPOptions(eta=o["eta"], hold=int(o["hold"]), n_runs=int(o["n_runs"]),
-                                                 pilot_runs=int(o["pilot_runs"]), beta=float(o["beta"]),
-                                                 seed=int(o["seed"]), split=o["split"]), log=lambda m: log(f"[perrun] {m}"))
+        imdp = build(sim, spec, o, lambda m: log(f"[perrun] {m}"))
         t_build = time.perf_counter() - t0
         ctl = synthesize_imdp(imdp, H)
         ctl.save(out / "controller_perrun.npz")

@@ -88,3 +88,15 @@ def test_cli_synthesize_level_run_with_invariant(tmp_path, capsys):
     assert main(["synthesize", "--level", "run", "--spec", str(bad), "--out", str(tmp_path / "b.npz")]) == 2
     assert "invariant must list non-angle state names" in capsys.readouterr().err
     assert not (tmp_path / "b.npz").exists()
+
+
+def test_turtlebot_perrun_profile_is_valid():
+    from simgap.config import load_experiment
+    from simgap.perrun.stage import check_section
+
+    e = load_experiment("turtlebot", "perrun")
+    o = check_section(e.section("perrun"), e.system, e.plan().n_pairs, e.collect.n_runs,
+                      e.section("rollout").get("horizon"))
+    assert o["invariant"] == ["x", "y"] and o["hold"] == 1 and e.system.inputs.shape == (10, 2)
+    assert e.simulator.to_dict()["noise"]["wheel_slip"] == [0.2, 1.0]
+    assert load_experiment("turtlebot", "gazebo").section("perrun") == {}   # the other profiles are unchanged

@@ -546,6 +546,9 @@ def collect(plan: CollectionPlan, store: str | Path, executor: str | Executor = 
     if store.exists() and not store.is_dir():
         raise SimgapError(f"store {str(store)!r} exists and is not a directory")
     if not (store / MANIFEST).exists() and store.is_dir() and any(p.name != LOCK for p in store.iterdir()):
+        if (store / LOCK).exists():
+            with store_lock(store):  # a collector that has not written its manifest yet is refused here
+                pass
         raise SimgapError(f"{str(store)!r} is a non-empty directory without {MANIFEST}; refusing to write into it")
     store.mkdir(parents=True, exist_ok=True)
     with store_lock(store):

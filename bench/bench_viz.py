@@ -232,7 +232,8 @@ def bench_browser(results: str, n_draw: list, repeats: int, n_frames: int = 20):
                         print(f"frames {kind} {nd}: {out[f'{kind} {nd} rollouts'][-1]}", file=sys.stderr, flush=True)
             app.refresh_result_layers()
             app.server.scene.configure_default_lights(enabled=True, cast_shadow=False)
-            S.show_tab(page, "Certificate", settle=1.0)
+            S.show_tab(page, "Certificate", settle=3.0)
+            frames(page, 5)  # the page has taken in the redraw above before the clock starts
             conf = page.locator('xpath=//label[normalize-space(text())="Confidence"]'
                                 '/ancestor::div[contains(@class, "mantine-Flex-root")][1]//input').first
             seen = {}

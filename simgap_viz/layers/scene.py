@@ -46,13 +46,14 @@ def _drawn(app) -> dict:
     return d
 
 
-def _unchanged(app, name: str, key) -> bool:
-    """True if ``name`` was last drawn from the same inputs ``key`` (nothing to send); else
-    records ``key`` as drawn."""
+def _unchanged(app, name: str, result, *params) -> bool:
+    """True if ``name`` was last drawn from this very ``result`` object and equal ``params``
+    (nothing to send); else records them as drawn (holding the result, so its id is not reused)."""
     d = _drawn(app)
-    if name in d and d[name] == key:
+    prev = d.get(name)
+    if prev is not None and prev[0] is result and prev[1] == params:
         return True
-    d[name] = key
+    d[name] = (result, params)
     return False
 
 
@@ -274,7 +275,7 @@ def draw_winning(app) -> int:
         _remove(app, "/winning")
         app.winning_counts = None
         return 0
-    if _unchanged(app, "/winning", (id(res), app.layers_visible["winning"])):
+    if _unchanged(app, "/winning", res, app.layers_visible["winning"]):
         return app.winning_counts["winning"]
     blocked, allowed = engine.cell_labels(res)
     wm = G.winning_map(res.controller, blocked, allowed)
@@ -298,7 +299,7 @@ def draw_rollouts(app) -> int:
         _remove(app, "/rollouts")
         app.rollout_drawn = None
         return 0
-    if _unchanged(app, "/rollouts", (id(res), int(app.view.get("n_draw", 100)), app.layers_visible["rollouts"])):
+    if _unchanged(app, "/rollouts", res, int(app.view.get("n_draw", 100)), app.layers_visible["rollouts"]):
         show_time(app, app.view.get("t", None))
         return app.rollout_drawn["segments"]
     frame = G.Frame(app.system)
@@ -405,7 +406,7 @@ def draw_residuals(app, state: int = None, var: str = None, max_points: int = 20
     v = app.view
     state = v.get("res_state", s.n - 1) if state is None else state
     var = v.get("res_var") or s.state_names[-1] if var is None else var
-    if _unchanged(app, "/refine", (id(res), state, var, max_points)):
+    if _unchanged(app, "/refine", res, state, var, max_points):
         return app._drawn_residuals
     x, r0 = res.before.against(var)
     _, r1 = res.after.against(var)

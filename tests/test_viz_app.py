@@ -474,3 +474,59 @@ def test_gamma_layer_height_scale_and_colors(app):
     assert d2["top"] > top1 and d2["vertices"][:, 2].max() <= 1.0 + 1e-6
     assert np.all(G.nice_ticks(0.0, 0.0058, 4) <= 0.0058) and G.nice_ticks(-0.2, 0.2, 5).tolist() == \
         pytest.approx([-0.2, -0.1, 0.0, 0.1, 0.2])
+
+
+def test_typed_number_applies_at_once_when_valid_and_waits_otherwise(app):
+    """A browser's valid confidence applies without the typing wait; "0." (0) waits, so a
+    half-typed number never notifies while the user is still typing."""
+    from types import SimpleNamespace
+    cp = app.panels["certificate"]
+    browser = SimpleNamespace(client=object())
+    cbs = cp.confidence._impl.update_cb
+
+    def type_value(v):
+        cp.set_quiet(cp.confidence, v)
+        for cb in cbs:
+            cb(browser)
+
+    n = len(app.notifications)
+    type_value(0.0)  # what "0." parses to: not applied now, no notification yet
+    assert app.settings.confidence != 0.0 and len(app.notifications) == n
+    type_value(0.85)  # valid: applied at once (the pending "0." is dropped)
+    assert app.settings.confidence == 0.85
+    time.sleep(0.8)
+    assert len(app.notifications) == n
+    type_value(1.5)  # invalid and left: notified after the wait, settings kept
+    assert app.settings.confidence == 0.85 and len(app.notifications) == n
+    time.sleep(0.8)
+    assert app.settings.confidence == 0.85 and app.notifications[-1][0] == "Invalid value"
+    app.wait(60)
+
+
+def test_newer_settings_supersede_a_running_certify_quietly(app):
+    """A certification knob changed while a certify runs cancels it (no "Cancelled" notice) and
+    the certificate that lands is the newer settings' one."""
+    app.certify()
+    app.wait(60)
+    before = app.results["certify"]
+    started = threading.Event()
+
+    def slow(ctx):  # stands for a long certify: reports progress, so a cancel stops it
+        started.set()
+        for _ in range(600):
+            ctx.progress(0, 1)
+            time.sleep(0.05)
+
+    n = len(app.notifications)
+    app.start_job("certify", slow)
+    assert started.wait(10)
+    t0 = time.time()
+    app.update_settings(confidence=0.8)
+    deadline = time.time() + 60
+    while time.time() < deadline and (app.results["certify"] is before or app.jobs.busy):
+        time.sleep(0.05)
+    app.wait(60)
+    assert app.results["certify"] is not before and app.settings.confidence == 0.8
+    assert app.result_keys["certify"] == app.settings.stage_key("certify")
+    assert time.time() - t0 < 20  # not the 30 s the superseded job would have taken
+    assert all(t != "Cancelled" for t, _, _ in app.notifications[n:])

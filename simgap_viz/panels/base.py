@@ -12,13 +12,15 @@ class Panel:
         self.app = app
         self.buttons = {}
 
-    def on(self, handle, fn, debounce: float | None = None) -> None:
+    def on(self, handle, fn, debounce: float | None = None, ready=None) -> None:
         """Call ``fn(value)`` when ``handle`` changes, unless the app is syncing its handles.
 
         ``fn`` runs through ``app.guarded``: a bad value gives a notification, never an exception
         in viser's callback thread. With ``debounce`` > 0, changes coming from a browser (typing
         in a text field) are applied only once the value has been stable for that many seconds,
         so half-typed terms do not raise notifications; changes made from Python apply at once.
+        ``ready(value)`` True marks a browser value complete enough to apply without the wait (a
+        valid number: typing on re-applies, and the app supersedes the job the earlier value started).
         """
         app = self.app
         timer = {"t": None}
@@ -34,6 +36,9 @@ class Panel:
             if debounce > 0 and getattr(event, "client", None) is not None:
                 if timer["t"] is not None:
                     timer["t"].cancel()
+                if ready is not None and ready(handle.value):
+                    apply()
+                    return
                 timer["t"] = threading.Timer(debounce, apply)
                 timer["t"].daemon = True
                 timer["t"].start()

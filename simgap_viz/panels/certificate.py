@@ -37,7 +37,7 @@ class CertificatePanel(Panel):
         self.audit_plot = plots.add(gui, "audit margins")
         on = self.on
         on(self.mode, lambda v: self.switch_mode())
-        on(self.confidence, lambda v: self.apply_deltas())
+        on(self.confidence, lambda v: self.apply_deltas(), ready=lambda v: v is not None and 0.0 < float(v) < 1.0)
         on(self.delta1, lambda v: self.apply_deltas(), debounce=0.6)
         on(self.delta2, lambda v: self.apply_deltas(), debounce=0.6)
         on(self.degree, lambda v: app.update_settings(degree=int(v)))

@@ -68,7 +68,6 @@ class SimgapApp:
         self.layers_visible = {"gamma": True, "data": True, "map": True, "winning": True, "rollouts": True,
                                "bodies": True}
         self.jobs = JobRunner(on_progress=self._job_progress, on_finish=self._job_finished)
-        self._superseded = False  # the running certify was cancelled by newer settings
         self._scene_version = 0
         self.run = None  # a loaded `simgap run` folder (results.RunResults) and the method shown
         self.run_method = None
@@ -184,8 +183,7 @@ class SimgapApp:
                 and self.result_keys["collect"] == new.stage_key("collect"):
             if self.jobs.busy:  # re-certify once the running job is done, without a notification
                 if self.jobs.current == "certify":  # its settings are superseded: stop it quietly
-                    self._superseded = True
-                    self.jobs.cancel()
+                    self.jobs.cancel(superseded=True)
                 self._schedule_after_job(self.certify)
                 self.set_status(f"{self.jobs.current} running; will re-certify when it is done")
             else:
@@ -452,14 +450,13 @@ class SimgapApp:
         self._update_buttons()
 
     def _job_finished(self, out) -> None:
-        superseded, self._superseded = self._superseded, False
         self.progress.visible = False
         self.progress.animated = False
         self.timings[out.name] = out.seconds
         if out.ok:
             self.set_status(f"{out.name}: done in {out.seconds:.2f} s ({self.result_keys.get(out.name)})")
         elif out.cancelled:
-            if not superseded:
+            if not out.superseded:
                 self.notify("Cancelled", f"{out.name} was cancelled", color="yellow")
         else:
             self.notify(f"{out.name} failed", out.error or "unknown error")

@@ -26,6 +26,7 @@ class JobCancelled(Exception):
 class JobContext:
     name: str
     cancelled: threading.Event = field(default_factory=threading.Event)
+    superseded: bool = False  # cancelled because newer settings replace it (no notice to the user)
     on_progress: Optional[Callable[[float], None]] = None
     done: float = 0.0
     total: float = 1.0
@@ -56,6 +57,7 @@ class JobOutcome:
     result: Any = None
     error: Optional[str] = None
     cancelled: bool = False
+    superseded: bool = False
     seconds: float = 0.0
 
 
@@ -113,7 +115,7 @@ class JobRunner:
                 then(result)
             out = JobOutcome(ctx.name, True, result=result)
         except JobCancelled:
-            out = JobOutcome(ctx.name, False, error="cancelled", cancelled=True)
+            out = JobOutcome(ctx.name, False, error="cancelled", cancelled=True, superseded=ctx.superseded)
         except SimgapError as e:
             out = JobOutcome(ctx.name, False, error=str(e))
         except Exception as e:  # a bug must not kill the GUI: report it instead
@@ -127,10 +129,12 @@ class JobRunner:
             except Exception:
                 traceback.print_exc()
 
-    def cancel(self) -> bool:
-        """Ask the running job to stop; True if there was one."""
+    def cancel(self, superseded: bool = False) -> bool:
+        """Ask the running job to stop; True if there was one. ``superseded``: newer settings
+        replace it, which its outcome says (the app then shows no "Cancelled" notice)."""
         ctx = self._ctx
         if ctx is not None and self.busy:
+            ctx.superseded = superseded
             ctx.cancelled.set()
             return True
         return False

@@ -530,3 +530,10 @@ def test_newer_settings_supersede_a_running_certify_quietly(app):
     assert app.result_keys["certify"] == app.settings.stage_key("certify")
     assert time.time() - t0 < 20  # not the 30 s the superseded job would have taken
     assert all(t != "Cancelled" for t, _, _ in app.notifications[n:])
+    # a cancel by the user is still announced
+    started.clear()
+    app.start_job("certify", slow)
+    assert started.wait(10)
+    app.cancel()
+    app.wait(60)
+    assert app.notifications[-1][0] == "Cancelled"

@@ -115,6 +115,12 @@ class Allocation:
             raise SimgapError(f"split {split!r} sums to {sum(w):g} > 1: the union bound would exceed beta")
         return cls(*w)
 
+    def after_pilot(self, single_seen: bool) -> "Allocation":
+        """The split to use when the pilot runs are in: if no pilot run ended with its widened box in
+        one cell, the lower bounds would be ~0 everywhere and their share goes to the sink family
+        (a choice made from the pilot alone, fixed before the main runs: still valid)."""
+        return self if single_seen or self.lo == 0 else Allocation(self.sink + self.lo, 0.0, self.hi)
+
     def levels(self, beta: float, n_rows: int, n_support: int) -> dict:
         """Per-bound level of each family: beta w_f / n_f (0 for a family that is not estimated)."""
         n = {"sink": n_rows, "lo": n_support, "hi": n_support}
@@ -156,6 +162,36 @@ def reallocate(imdp: "IMDP", beta: float, split) -> "IMDP":
 
 def _bound_count(a: Allocation, n_rows: int, n_support: int) -> int:
     return n_rows * (a.sink > 0) + n_support * ((a.lo > 0) + (a.hi > 0))
+
+
+UNION_BOUND = ("Bonferroni over all one-sided Clopper-Pearson bounds; family f (sink, lo, hi) gets the "
+               "share split[f] of beta, each of its bounds level beta split[f] / (its count)")
+
+
+def assemble(grid: UniformGrid, inputs: np.ndarray, hold: int, live: np.ndarray, target: np.ndarray,
+             rows: np.ndarray, col: np.ndarray, k_lo: np.ndarray, k_hi: np.ndarray, alloc: Allocation,
+             n_runs: int, beta: float, meta: dict) -> IMDP:
+    """The CSR interval MDP from per-entry counts (rows c*M + a, any order; col C = the sink).
+
+    ``alloc`` must have been fixed before the main runs (from the pilot); the per-bound levels come
+    from the number of sink rows and support entries. ``meta`` is completed with the union bound."""
+    t0 = time.perf_counter()
+    C, M = grid.size, inputs.shape[0]
+    order = np.argsort(rows, kind="stable")
+    rows = rows[order]
+    col, k_lo, k_hi = col[order].astype(np.int32), k_lo[order].astype(np.int32), k_hi[order].astype(np.int32)
+    row_ptr = np.zeros(C * M + 1, np.int64)
+    np.cumsum(np.bincount(rows, minlength=C * M), out=row_ptr[1:])
+    is_sink = col == C
+    n_rows, n_support = int(is_sink.sum()), int((~is_sink).sum())
+    levels = alloc.levels(float(beta), n_rows, n_support)
+    lo32, hi32 = float32_outward(*intervals(k_lo, k_hi, is_sink, int(n_runs), levels))
+    meta = dict(meta, n_runs=int(n_runs), beta=float(beta), split=dataclasses.asdict(alloc), levels=levels,
+                bounds=_bound_count(alloc, n_rows, n_support), union_bound=UNION_BOUND)
+    if "seconds" in meta:  # the CSR and the bounds count as the intervals phase
+        meta["seconds"] = dict(meta["seconds"], intervals=meta["seconds"].get("intervals", 0.0) + time.perf_counter() - t0)
+    return IMDP(grid=grid, inputs=inputs.copy(), hold=int(hold), live=live, target=target, row_ptr=row_ptr, col=col,
+                lo=lo32, hi=hi32, meta=meta, k_lo=k_lo, k_hi=k_hi)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -339,11 +375,7 @@ def build_imdp(sim, spec: Spec, options: IMDPOptions, log=None) -> IMDP:
         single_seen |= bool(np.any(single & ~bad))
         sup.append(np.unique(pp[b[keep] // N0] * (C + 1) + ids[keep]))
     support = np.concatenate(sup) if sup else np.zeros(0, np.int64)
-    alloc = Allocation.of(o.split)
-    if not single_seen and alloc.lo > 0:
-        # no pilot run ended with its widened box in one cell: lower bounds would be ~0 everywhere;
-        # their share goes to the sink family (a choice made from the pilot alone: still valid)
-        alloc = Allocation(alloc.sink + alloc.lo, 0.0, alloc.hi)
+    alloc = Allocation.of(o.split).after_pilot(single_seen)
     levels = alloc.levels(float(o.beta), P, support.size)   # fixed by the pilot, before the main runs
     n_bounds = _bound_count(alloc, P, support.size)
     t_pilot = time.perf_counter() - t0 - t_lip
@@ -373,26 +405,14 @@ def build_imdp(sim, spec: Spec, options: IMDPOptions, log=None) -> IMDP:
 
     # ----- intervals, CSR ------------------------------------------------------------------------
     pair_of = support // (C + 1)
-    rows_sup = cells[pair_of // M] * M + pair_of % M
-    rows_sink = cells.repeat(M) * M + np.tile(np.arange(M), cells.size)
-    rows = np.concatenate([rows_sup, rows_sink])
-    col = np.concatenate([support % (C + 1), np.full(P, C)]).astype(np.int32)
-    k_lo = np.concatenate([n_in, np.full(P, -1)]).astype(np.int32)
-    k_hi = np.concatenate([n_hit, n_sink]).astype(np.int32)
-    order = np.argsort(rows, kind="stable")
-    rows, col, k_lo, k_hi = rows[order], col[order], k_lo[order], k_hi[order]
-    row_ptr = np.zeros(C * M + 1, np.int64)
-    np.cumsum(np.bincount(rows, minlength=C * M), out=row_ptr[1:])
-    lo32, hi32 = float32_outward(*intervals(k_lo, k_hi, col == C, N, levels))
-    meta = {"n_runs": N, "pilot_runs": N0, "beta": float(o.beta), "bounds": int(n_bounds),
-            "split": dataclasses.asdict(alloc), "levels": levels, "lipschitz": L.tolist(), "lipschitz_how": how, "rho": rho.tolist(),
-            "live_cells": int(cells.size), "seed": int(o.seed),
-            "simulator": sim.config.to_dict(), "spec": spec.to_dict(),
-            "union_bound": "Bonferroni over all one-sided Clopper-Pearson bounds; family f (sink, lo, hi) gets the "
-                           "share split[f] of beta, each of its bounds level beta split[f] / (its count)",
+    rows = np.concatenate([cells[pair_of // M] * M + pair_of % M, cells.repeat(M) * M + np.tile(np.arange(M), cells.size)])
+    col = np.concatenate([support % (C + 1), np.full(P, C)])
+    k_lo = np.concatenate([n_in, np.full(P, -1)])
+    k_hi = np.concatenate([n_hit, n_sink])
+    meta = {"pilot_runs": N0, "lipschitz": L.tolist(), "lipschitz_how": how, "rho": rho.tolist(),
+            "live_cells": int(cells.size), "seed": int(o.seed), "simulator": sim.config.to_dict(), "spec": spec.to_dict(),
             "assumption": "per realization: the k-period trajectory map is L-Lipschitz (common random numbers)",
             "seconds": {"lipschitz": t_lip, "pilot": t_pilot, "main": t_main,
                         "intervals": time.perf_counter() - t0 - t_lip - t_pilot - t_main},
             "samples": int(P * (N + N0) * k)}
-    return IMDP(grid=grid, inputs=s.inputs.copy(), hold=k, live=live, target=target, row_ptr=row_ptr, col=col,
-                lo=lo32, hi=hi32, meta=meta, k_lo=k_lo, k_hi=k_hi)
+    return assemble(grid, s.inputs, k, live, target, rows, col, k_lo, k_hi, alloc, N, o.beta, meta)

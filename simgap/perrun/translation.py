@@ -33,7 +33,6 @@ L[:, j] = e_j; the other columns are Wood-Zhang estimates from common-random-num
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from typing import Sequence
 
@@ -42,8 +41,7 @@ import numpy as np
 from ..errors import SimgapError
 from ..synthesis.grid import UniformGrid
 from ..synthesis.spec import Spec
-from .imdp import (IMDP, Allocation, IMDPOptions, _bound_count, box_unsafe, cell_labels, float32_outward, intervals,
-                   trajectory_lipschitz)
+from .imdp import IMDP, Allocation, IMDPOptions, assemble, box_unsafe, cell_labels, trajectory_lipschitz
 
 
 def _runs(sim, x: np.ndarray, u: np.ndarray, k: int, rng) -> np.ndarray:
@@ -193,27 +191,11 @@ def build_imdp_translation(sim, spec: Spec, options: IMDPOptions, invariant: Seq
         cols += [tid[ci, ki], np.full(cells.size, C)]
         n_ins += [np.rint(n_in[ki, ci]).astype(np.int64), np.full(cells.size, -1)]
         n_hits += [np.rint(n_hit[ki]).astype(np.int64), bad.sum(axis=0)]
-    rows = np.concatenate(rows) if rows else np.zeros(0, np.int64)
-    col = (np.concatenate(cols) if cols else np.zeros(0)).astype(np.int32)
-    k_lo = (np.concatenate(n_ins) if n_ins else np.zeros(0)).astype(np.int32)
-    k_hi = (np.concatenate(n_hits) if n_hits else np.zeros(0)).astype(np.int32)
-    order = np.argsort(rows, kind="stable")
-    rows, col, k_lo, k_hi = rows[order], col[order], k_lo[order], k_hi[order]
-    row_ptr = np.zeros(C * M + 1, np.int64)
-    np.cumsum(np.bincount(rows, minlength=C * M), out=row_ptr[1:])
-    # the split is fixed by the pilot (support sizes, single-cell end boxes), before the main counts
-    is_sink = col == C
-    alloc = Allocation.of(o.split)
-    if not single_seen and alloc.lo > 0:
-        alloc = Allocation(alloc.sink + alloc.lo, 0.0, alloc.hi)
-    levels = alloc.levels(float(o.beta), int(is_sink.sum()), int((~is_sink).sum()))
-    lo32, hi32 = float32_outward(*intervals(k_lo, k_hi, is_sink, N, levels))
-    meta = {"n_runs": N, "pilot_runs": N0, "beta": float(o.beta), "split": dataclasses.asdict(alloc), "levels": levels,
-            "bounds": _bound_count(alloc, int(is_sink.sum()), int((~is_sink).sum())),
-            "lipschitz": L.tolist(), "lipschitz_how": how, "rho": rho.tolist(), "live_cells": int(live.sum()),
-            "seed": int(o.seed), "simulator": sim.config.to_dict(), "spec": spec.to_dict(),
-            "union_bound": "Bonferroni over all one-sided Clopper-Pearson bounds; family f (sink, lo, hi) gets the "
-                           "share split[f] of beta, each of its bounds level beta split[f] / (its count)",
+    cat = lambda parts: np.concatenate(parts) if parts else np.zeros(0, np.int64)  # noqa: E731
+    # the split is fixed by the pilot (single-cell end boxes), before the main counts
+    alloc = Allocation.of(o.split).after_pilot(single_seen)
+    meta = {"pilot_runs": N0, "lipschitz": L.tolist(), "lipschitz_how": how, "rho": rho.tolist(),
+            "live_cells": int(live.sum()), "seed": int(o.seed), "simulator": sim.config.to_dict(), "spec": spec.to_dict(),
             "assumption": "per realization: the k-period trajectory map is L-Lipschitz (common random numbers); "
                           f"translation invariance along {[s.state_names[d] for d in inv]}: runs shifted by whole "
                           "cells are runs of the shifted cell",
@@ -221,5 +203,4 @@ def build_imdp_translation(sim, spec: Spec, options: IMDPOptions, invariant: Seq
             "seconds": {"lipschitz": t_lip, "pilot": t_pilot, "main": t_sim,
                         "intervals": time.perf_counter() - t0 - t_lip - t_pilot - t_sim},
             "samples": int(P * (N + N0) * k)}
-    return IMDP(grid=grid, inputs=s.inputs.copy(), hold=k, live=live, target=target, row_ptr=row_ptr, col=col,
-                lo=lo32, hi=hi32, meta=meta, k_lo=k_lo, k_hi=k_hi)
+    return assemble(grid, s.inputs, k, live, target, cat(rows), cat(cols), cat(n_ins), cat(n_hits), alloc, N, o.beta, meta)

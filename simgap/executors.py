@@ -27,6 +27,7 @@ from __future__ import annotations
 import multiprocessing
 import os
 import threading
+import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 from typing import Any, Callable, Iterable, Optional
@@ -84,7 +85,7 @@ class LocalExecutor(Executor):
         if not todo:
             return True
         pool = ProcessPoolExecutor(max_workers=min(self.workers, len(todo)), mp_context=self._context(),
-                                   initializer=_fresh_worker)
+                                   initializer=_fresh_worker, initargs=(os.getpid(),))
         pending = {}
 
         def result(fut, c):
@@ -184,10 +185,52 @@ def _bounded_map(submit, wait_some, result, todo, limit, pending, on_result, sho
             c = pending.pop(h)
             on_result(c, result(h, c))
 
-def _fresh_worker():
+def _fresh_worker(parent: int):
     # a forked worker must not reuse simulators the parent cached (e.g. after a serial run)
     from . import collect
     collect._WORKER_CACHE.clear()
+    exit_with_parent(parent)
+
+
+def _process_token(pid: int):
+    """(alive, start time) of a process from /proc (Linux); None where /proc is not available."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            fields = f.read().rsplit(b")", 1)[1].split()
+        return fields[0] != b"Z", fields[19]          # state, start time (fields 3 and 22)
+    except FileNotFoundError:
+        return False, None
+    except OSError:
+        return None
+
+
+def exit_with_parent(pid: int, period: float = 1.0) -> None:
+    """In a pool worker: exit when process ``pid`` (the one that started the pool) is gone.
+
+    A worker of a killed or crashed parent would otherwise finish its task and block for ever on a
+    result pipe that nobody reads (it holds both ends). Its OS parent is the fork server, not the
+    pool's owner, so this polls: once per ``period`` seconds, by the /proc start time (immune to pid
+    reuse) where there is /proc, else by ``os.kill(pid, 0)``."""
+    first = _process_token(pid)
+
+    def gone() -> bool:
+        if first is None:
+            try:
+                os.kill(pid, 0)
+            except ProcessLookupError:
+                return True
+            except PermissionError:
+                return True                            # the pid now belongs to another user's process
+            return False
+        now = _process_token(pid)
+        return now is None or not now[0] or now[1] != first[1]
+
+    def watch():
+        while not gone():
+            time.sleep(period)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="simgap-exit-with-parent", daemon=True).start()
 
 
 def _call(fn, job, c):

@@ -20,6 +20,7 @@ function of its inputs).
 from __future__ import annotations
 
 import hashlib
+import os
 from collections import OrderedDict
 from concurrent.futures import ProcessPoolExecutor
 from typing import Dict, Optional
@@ -37,10 +38,12 @@ MEMO_ROWS, MEMO_BATCHES = 5000, 4
 _HELPER: Optional[Simulator] = None  # the simulator of a helper process
 
 
-def _start_helper(config: dict, system) -> None:
+def _start_helper(config: dict, system, parent: int) -> None:
     global _HELPER
+    from ..executors import exit_with_parent
     from ..systems import resolve_system
     from .base import make_simulator
+    exit_with_parent(parent)
     _HELPER = make_simulator(config, None if system is None else resolve_system(system, paths=False))
 
 
@@ -105,7 +108,7 @@ class ParallelSimulator(Simulator):
             from ..executors import LocalExecutor
             self._pool = ProcessPoolExecutor(self.workers - 1, mp_context=LocalExecutor()._context(),
                                              initializer=_start_helper,
-                                             initargs=(self.config.to_dict(), self._system_arg))
+                                             initargs=(self.config.to_dict(), self._system_arg, os.getpid()))
         cuts = np.linspace(0, B, parts + 1).astype(int)
         futures = [self._pool.submit(_helper_step, x[a:b], u[a:b], {k: v[a:b] for k, v in noise.items()})
                    for a, b in zip(cuts[1:-1], cuts[2:])]

@@ -1,0 +1,80 @@
+"""Worker processes leave with the process that started them: a killed `simgap` leaves nothing running.
+
+Without simgap.executors.exit_with_parent, a pool worker of a killed parent finishes its task and
+then blocks for ever on a result pipe it holds both ends of (measured: every worker was left)."""
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+import uuid
+from pathlib import Path
+
+import pytest
+
+CHILD = textwrap.dedent("""
+    import sys, time
+    import numpy as np
+    from simgap.executors import LocalExecutor
+    from simgap.simulators.base import make_simulator
+    from simgap.simulators.parallel import ParallelSimulator
+
+    def slow(job, c):
+        time.sleep(120)
+        return c
+
+    if __name__ == "__main__":
+        if sys.argv[1] == "pool":
+            LocalExecutor(2, start_method=sys.argv[2]).map_chunks(slow, None, range(4), lambda c, r: None)
+        else:
+            sim = ParallelSimulator(make_simulator({"kind": "numpy", "system": "pendulum"}), 2)
+            x, u = np.zeros((2_000_000, 2)), np.zeros((2_000_000, 1))
+            rng = np.random.default_rng(0)
+            while True:
+                sim.step(x, u, rng)
+""")
+
+
+def _tagged(token: str) -> list:
+    """Processes whose environment carries the token (the child and everything it started)."""
+    out = []
+    for p in Path("/proc").iterdir():
+        if p.name.isdigit():
+            try:
+                if f"SIMGAP_TEST_TOKEN={token}".encode() in (p / "environ").read_bytes():
+                    state = (p / "stat").read_bytes().rsplit(b")", 1)[1].split()[0]
+                    if state != b"Z":
+                        out.append(int(p.name))
+            except OSError:
+                pass
+    return out
+
+
+@pytest.mark.skipif(not Path("/proc/self/environ").exists(), reason="needs /proc (Linux) to find the processes")
+@pytest.mark.parametrize("args", [("pool", "fork"), ("pool", "forkserver"), ("simulator", "")])
+def test_killed_parent_leaves_no_worker(tmp_path, args):
+    script = tmp_path / "child.py"
+    script.write_text(CHILD)
+    token = uuid.uuid4().hex
+    env = dict(os.environ, SIMGAP_TEST_TOKEN=token)
+    child = subprocess.Popen([sys.executable, str(script), *args], env=env)
+    try:
+        deadline = time.time() + 60
+        while len(_tagged(token)) < 2 and time.time() < deadline:   # the child and at least one worker
+            time.sleep(0.2)
+        assert len(_tagged(token)) >= 2, "the workers did not start"
+        time.sleep(1.0)
+        child.send_signal(signal.SIGKILL)
+        child.wait()
+        deadline = time.time() + 10
+        while _tagged(token) and time.time() < deadline:
+            time.sleep(0.2)
+        left = _tagged(token)
+        assert not left, f"{len(left)} worker processes outlived their killed parent"
+    finally:
+        for pid in _tagged(token):
+            os.kill(pid, signal.SIGKILL)
+        if child.poll() is None:
+            child.kill()

@@ -392,7 +392,7 @@ class SimgapApp:
         self.guarded(self._run_stage, "synthesize", background)
 
     def rollout(self, background: bool = True) -> None:
-        """Roll the controller out in the simulator (engine: ``simgap.synthesis.rollout``)."""
+        """Roll the controller out in the simulator (engine: ``simgap.rollout``)."""
         self.guarded(self._run_stage, "rollout", background)
 
     def refine(self, background: bool = True) -> None:

@@ -74,7 +74,7 @@ def settings_from_args(args):
 
 
 def run(args) -> int:
-    from simgap.synthesis.rollout import load_rollout
+    from simgap.rollout import load_rollout
 
     from .pipeline import compute, load_synthesis
     from .record import record_run

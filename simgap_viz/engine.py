@@ -27,7 +27,7 @@ _NEEDS = {
     "collect": ("simgap.collect", "simgap.cover"),
     "certify": ("simgap.certify.pipeline", "simgap.certify.certificate"),
     "synthesize": ("simgap.synthesis.controller",),
-    "rollout": ("simgap.synthesis.rollout",),
+    "rollout": ("simgap.rollout",),
     "refine": ("simgap.refine.report", "simgap.refine.data"),
 }
 _ATTRS = {"certify": ("simgap.certify.pipeline", "certify"),
@@ -295,8 +295,8 @@ def initial_state(settings, system, syn, spec, arena=None) -> np.ndarray:
 
 
 def rollout(system, spec, syn, settings, ctx, experiment=None, arena=None):
-    """R closed-loop rollouts of the controller in the stochastic simulator (simgap.synthesis.rollout)."""
-    from simgap.synthesis.rollout import rollout as run_rollout
+    """R closed-loop rollouts of the controller in the stochastic simulator (simgap.rollout)."""
+    from simgap.rollout import rollout as run_rollout
     ctx.check()
     sim = rollout_simulator(settings, system, experiment)
     try:

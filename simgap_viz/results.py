@@ -78,7 +78,7 @@ def load_run(path) -> RunResults:
     from simgap.certify.certificate import load as load_certificate
     from simgap.collect import load_store
     from simgap.synthesis.controller import Controller, SynthesisResult
-    from simgap.synthesis.rollout import load_rollout
+    from simgap.rollout import load_rollout
 
     from .results_perrun import load_per_run
 

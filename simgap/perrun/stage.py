@@ -140,7 +140,7 @@ def run_stage(exp, out: Path, data, controllers: Dict[str, object], spec, x0, o:
 
     from ..simulators import make_simulator
     from ..synthesis.controller import synthesize
-    from ..synthesis.rollout import resolve_hold
+    from ..rollout import resolve_hold
     from .realization import certify_run
     from .validation import sample_in_cells
     from .value_iteration import synthesize_imdp

@@ -40,6 +40,22 @@ def test_summary_has_p_cert_and_p_emp_per_controller_and_state(run):
     assert (out / "cert_run.json").stat().st_size > 0
 
 
+def test_table_judges_only_stated_probabilities(run):
+    """The printed table: a controller without p_cert gets no soundness verdict, and one state below
+    p_cert - 3 SE is counted as unsound."""
+    from simgap.perrun.stage import table
+    _, s = run
+    pr = json.loads(json.dumps(s["per_run"]))
+    rows = {line.split()[0]: line.split() for line in table(pr).splitlines()[2:]}
+    assert rows["deterministic"][-1] == "-" and rows["stochastic"][-1] == "-"
+    n = len(pr["controllers"]["perrun"]["states"])
+    assert rows["perrun"][-1] == f"{n}/{n}"
+    worst = pr["controllers"]["perrun"]["states"][-1]
+    worst.update(p_cert=1.0, p_emp=0.5, se=0.02)
+    rows = {line.split()[0]: line.split() for line in table(pr).splitlines()[2:]}
+    assert rows["perrun"][-1] == f"{n - 1}/{n}" and float(rows["perrun"][-2]) == 0.5
+
+
 @pytest.mark.parametrize("old, new, msg", [
     ("alpha = 0.1", "alpha = 1.5", "alpha must be in (0, 1)"),
     ("alpha = 0.1", "alpha = 0.01", "smallest supported alpha is"),

@@ -207,14 +207,18 @@ def sound(p_cert, p_emp: float, se: float, n_rollouts: int) -> bool:
 
 
 def table(res: dict) -> str:
-    """Per controller: p_cert and p_emp (95 % CI) at x0, and the share of states with p_emp >= p_cert - 3 SE."""
+    """Per controller: p_cert and p_emp (95 % CI) at x0, the lowest p_emp over its initial states, and
+    the share of states with p_emp >= p_cert - 3 SE ("-" for a controller that states no p_cert)."""
     lines = [f"per-run guarantees: horizon {res['horizon']} periods, {res['n_rollouts']} rollouts per initial state",
-             f"{'controller':<15}{'p_cert(x0)':>11}{'p_emp(x0)':>11}{'95% CI':>19}{'states':>8}{'sound':>7}"]
+             f"{'controller':<15}{'p_cert(x0)':>11}{'p_emp(x0)':>11}{'95% CI':>19}{'states':>8}{'min p_emp':>11}"
+             f"{'sound':>7}"]
     for name, c in res["controllers"].items():
         s0 = c["states"][0]
-        ok = [sound(s["p_cert"], s["p_emp"], s["se"], s["n_rollouts"]) for s in c["states"]]
+        stated = [s for s in c["states"] if s["p_cert"] is not None]
+        ok = sum(sound(s["p_cert"], s["p_emp"], s["se"], s["n_rollouts"]) for s in stated)
         pc = "-" if s0["p_cert"] is None else f"{s0['p_cert']:.4f}"
         ci = f"[{s0['ci95'][0]:.4f}, {s0['ci95'][1]:.4f}]"
+        verdict = f"{ok}/{len(stated)}" if stated else "-"
         lines.append(f"{name:<15}{pc:>11}{s0['p_emp']:>11.4f}{ci:>19}{len(c['states']):>8}"
-                     f"{f'{sum(ok)}/{len(ok)}':>7}")
+                     f"{min(s['p_emp'] for s in c['states']):>11.4f}{verdict:>7}")
     return "\n".join(lines)

@@ -194,6 +194,8 @@ def _fresh_worker(parent: int):
 
 def _process_token(pid: int):
     """(alive, start time) of a process from /proc (Linux); None where /proc is not available."""
+    if not os.path.exists("/proc/self/stat"):
+        return None                                    # no /proc (macOS): the caller falls back to os.kill
     try:
         with open(f"/proc/{pid}/stat", "rb") as f:
             fields = f.read().rsplit(b")", 1)[1].split()

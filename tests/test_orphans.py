@@ -78,3 +78,27 @@ def test_killed_parent_leaves_no_worker(tmp_path, args):
             os.kill(pid, signal.SIGKILL)
         if child.poll() is None:
             child.kill()
+
+
+@pytest.mark.parametrize("proc", [True, False])
+def test_watch_exits_only_after_the_parent(monkeypatch, proc):
+    """The watcher with /proc (start time) and without it (os.kill, as on macOS): it must not fire while
+    the watched process lives (a worker that left at once would break every pool), and must fire after."""
+    import simgap.executors as ex
+    if not proc:
+        real = os.path.exists
+        monkeypatch.setattr(ex.os.path, "exists", lambda p: False if p == "/proc/self/stat" else real(p))
+        assert ex._process_token(os.getpid()) is None
+    elif not Path("/proc/self/stat").exists():
+        pytest.skip("needs /proc")
+    exited = []
+    monkeypatch.setattr(ex.os, "_exit", lambda code: exited.append(code))
+    parent = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(2)"])
+    ex.exit_with_parent(parent.pid, period=0.1)
+    time.sleep(1.0)
+    assert not exited, "the watcher fired while the process was alive"
+    parent.wait()
+    deadline = time.time() + 5
+    while not exited and time.time() < deadline:
+        time.sleep(0.1)
+    assert exited == [1]

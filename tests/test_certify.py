@@ -343,3 +343,24 @@ def test_lhat_from_simulator_with_common_random_numbers(pend_ds):
     assert c_data.dims[1].L_f == pytest.approx(0.005 * 1.5 * 9.81, rel=0.05)
     with pytest.raises(SimgapError, match="lhat"):
         certify(pend_ds, lhat="oracle")
+
+
+def test_lhat_from_noisy_means_is_flagged_with_its_remedy():
+    """Lhat_fhat from slopes between empirical means of few runs estimates their noise: the certificate
+    says so (share of the largest slope noise alone gives) and names lhat = "simulator", whose common
+    random numbers give a smaller constant; data with many runs per row are not flagged."""
+    from simgap.certify.pipeline import CertifyOptions, certify
+    from simgap.certify.synthetic import synthetic_dataset
+    cfg = {"kind": "numpy", "system": "pendulum", "noise": {"actuation_std": 0.5},
+           "effects": {"linear": [[0.0, 0.0], [0.0, -0.5]]}}
+    few = synthetic_dataset(cfg, epsilon=0.03, n_runs=20, seed=1)
+    c = certify(few, CertifyOptions(method="stochastic", degree=1))
+    share = c.dims[1].lipschitz_how["L_fhat"]["noise_share"]
+    assert share > 0.5 and any("Lhat_fhat[omega]" in n and "simulator" in n for n in c.options["notes"])
+    crn = certify(few, CertifyOptions(method="stochastic", degree=1, lhat="simulator", lhat_pairs=200, lhat_runs=20))
+    assert not any("Lhat_fhat" in n for n in crn.options["notes"])
+    assert crn.dims[1].L_fhat < 0.5 * c.dims[1].L_fhat
+    many = synthetic_dataset(cfg, epsilon=0.03, n_runs=5000, seed=1)
+    cm = certify(many, CertifyOptions(method="stochastic", degree=1))
+    assert cm.dims[1].lipschitz_how["L_fhat"]["noise_share"] < 0.5
+    assert not any("Lhat_fhat" in n for n in cm.options["notes"])

@@ -259,6 +259,12 @@ def certify(dataset, options: Optional[CertifyOptions] = None, simulator=None, *
 
     # ----- Lipschitz constants from the data (no dependence on delta or the basis) --------
     pairs, lip, U_data = _data_lipschitz(ds, o, simulator)  # U_data: the inputs gamma is certified for
+    for i, (_, _, L_fhat, how_fhat) in enumerate(lip):
+        share = how_fhat.get("noise_share", 0.0)
+        if o.method == "stochastic" and share > NOISE_SHARE_NOTE:
+            notes.append(f"Lhat_fhat[{s.state_names[i]}] = {L_fhat:.4g} is mostly the noise of the empirical means: "
+                         f"noise alone gives {share:.0%} of the largest slope (N1hat = {N}); lhat = \"simulator\" "
+                         f"(--lhat simulator) estimates it with common random numbers, usually far smaller")
     rng = np.random.default_rng(o.seed)  # only for l2 = "estimated"
 
     dims = []
@@ -303,6 +309,25 @@ def certify(dataset, options: Optional[CertifyOptions] = None, simulator=None, *
                        method=o.method, options=opts, dims=dims, provenance=prov, inputs=U_data,
                        system_digest=system_digest(s))
 
+
+
+#: above this share of the largest data slope explained by the empirical means' noise, the
+#: certificate notes that Lhat_fhat is mostly noise and names the remedy
+NOISE_SHARE_NOTE = 0.5
+
+
+def mean_noise_share(ds, pairs, i: int, slopes: np.ndarray, rng: np.random.Generator) -> float:
+    """Share of the largest slope of the empirical means along dimension i that their noise alone gives.
+
+    The means of two rows carry independent noise of variance (s_a^2 + s_b^2) / N1hat (sample
+    variances s^2), so a pair at distance d has a pure-noise slope |Z| sqrt(s_a^2 + s_b^2) / (sqrt(N1hat) d),
+    Z ~ N(0, 1). Drawing Z once per pair gives the largest slope noise alone would show; a share near
+    1 means Lhat_fhat estimates the sampling noise of the means, not the simulator."""
+    ra, rb, dist = pairs
+    if ra.size == 0 or not np.max(slopes, initial=0.0) > 0:
+        return 0.0
+    sd = np.sqrt((ds.var[ra, i] + ds.var[rb, i]) / ds.n_runs) / dist
+    return float(min(1.0, np.max(np.abs(rng.standard_normal(ra.size)) * sd) / np.max(slopes)))
 
 
 def beyond_paper(o: CertifyOptions) -> List[str]:
@@ -375,6 +400,8 @@ def _data_lipschitz(ds, o: CertifyOptions, simulator=None):
         wz = wood_zhang(sl_fhat[:, i], np.random.default_rng([o.seed, 3, i]))
         how_fhat = {"how": "Wood-Zhang estimate on slopes of the empirical mean"
                     + (" increment (mean - x)" if incr else "") + src, **wz.to_dict()}
+        if o.lhat == "data" and ds.n_runs > 1:
+            how_fhat["noise_share"] = mean_noise_share(ds, pairs, i, sl_fhat[:, i], np.random.default_rng([o.seed, 4, i]))
         out.append((L_f, how_f, wz.estimate, how_fhat))
     _LIP_CACHE[key] = (pairs, out, np.unique(ds.u, axis=0))
     while len(_LIP_CACHE) > 4:

@@ -226,7 +226,7 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
             "audit_pass_rate_joint": rep["joint"]["fraction_holds"],
             "audit_violated_joint": rep["joint"]["fraction_violated"],
             "winning_cells": int(sres.stats["winning"]), "synthesis": sres.stats,
-            "dataset_hash": ds.hash,
+            "dataset_hash": ds.hash, "warnings": list(cert.options.get("warnings") or []),
         }
         if sres.empty or not bool(sres.controller.winning(x0[None, :])[0]):
             why = "empty winning domain" if sres.empty else "x0 is outside the winning domain"
@@ -296,6 +296,10 @@ def comparison_table(summary: dict) -> str:
     w = [max(len(str(r[c])) for r in rows) for c in range(3)]
     lines = ["  ".join(str(r[c]).ljust(w[c]) if c == 0 else str(r[c]).rjust(w[c]) for c in range(3)) for r in rows]
     lines.insert(1, "-" * len(lines[0]))
+    warnings = [(m, w) for m in METHODS for w in summary["methods"][m].get("warnings", [])]
+    if warnings:
+        lines.append("")
+        lines += [f"warning ({m} certificate): {w}" for m, w in warnings]
     secs = summary.get("seconds", {})
     if secs:
         lines.append("")

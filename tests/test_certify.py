@@ -357,8 +357,9 @@ def test_lhat_from_noisy_means_is_flagged_with_its_remedy():
     c = certify(few, CertifyOptions(method="stochastic", degree=1))
     share = c.dims[1].lipschitz_how["L_fhat"]["noise_share"]
     assert share > 0.5 and any("Lhat_fhat[omega]" in n and "simulator" in n for n in c.options["notes"])
+    assert [w for w in c.options["warnings"] if "Lhat_fhat[omega]" in w]   # `simgap run` shows warnings
     crn = certify(few, CertifyOptions(method="stochastic", degree=1, lhat="simulator", lhat_pairs=200, lhat_runs=20))
-    assert not any("Lhat_fhat" in n for n in crn.options["notes"])
+    assert not any("Lhat_fhat" in n for n in crn.options["notes"]) and not crn.options["warnings"]
     assert crn.dims[1].L_fhat < 0.5 * c.dims[1].L_fhat
     many = synthetic_dataset(cfg, epsilon=0.03, n_runs=5000, seed=1)
     cm = certify(many, CertifyOptions(method="stochastic", degree=1))

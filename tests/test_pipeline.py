@@ -43,6 +43,16 @@ def test_summary_structure_and_sanity(small_run):
         assert (out / name).stat().st_size > 0, name
 
 
+def test_certificate_warnings_reach_the_table(small_run):
+    """`simgap run` prints what a certificate warns about (none on the small profile), per method."""
+    from simgap.pipeline import comparison_table
+    _, s = small_run
+    assert s["methods"]["stochastic"]["warnings"] == [] and "warning" not in comparison_table(s)
+    s = json.loads(json.dumps(s))
+    s["methods"]["stochastic"]["warnings"] = ["Lhat_fhat[omega] = 0.4 is mostly noise"]
+    assert "warning (stochastic certificate): Lhat_fhat[omega] = 0.4 is mostly noise" in comparison_table(s)
+
+
 def test_rerun_resumes_and_reproduces(small_run, tmp_path):
     out, s = small_run
     rc = main(["run", "pendulum", "--profile", "small", "--out", str(out), "--no-record", "--workers", "2"])

@@ -259,10 +259,11 @@ def certify(dataset, options: Optional[CertifyOptions] = None, simulator=None, *
 
     # ----- Lipschitz constants from the data (no dependence on delta or the basis) --------
     pairs, lip, U_data = _data_lipschitz(ds, o, simulator)  # U_data: the inputs gamma is certified for
+    warnings = []  # notes that likely cost the user: also shown by `simgap run`
     for i, (_, _, L_fhat, how_fhat) in enumerate(lip):
         share = how_fhat.get("noise_share", 0.0)
         if o.method == "stochastic" and share > NOISE_SHARE_NOTE:
-            notes.append(f"Lhat_fhat[{s.state_names[i]}] = {L_fhat:.4g} is mostly the noise of the empirical means: "
+            warnings.append(f"Lhat_fhat[{s.state_names[i]}] = {L_fhat:.4g} is mostly the noise of the empirical means: "
                          f"noise alone gives {share:.0%} of the largest slope (N1hat = {N}); lhat = \"simulator\" "
                          f"(--lhat simulator) estimates it with common random numbers, usually far smaller")
     rng = np.random.default_rng(o.seed)  # only for l2 = "estimated"
@@ -299,7 +300,8 @@ def certify(dataset, options: Optional[CertifyOptions] = None, simulator=None, *
     opts = o.to_dict()
     opts["beyond_paper"] = beyond_paper(o)
     opts["variance_bound"] = variance_info
-    opts["notes"] = notes
+    opts["notes"] = notes + warnings
+    opts["warnings"] = warnings
     prov = {"dataset_hash": ds.hash, "dataset_config_hash": ds.config_hash, "versions": _versions(), "seed": o.seed,
             "dataset_seed": ds.manifest.get("seed"), "simulator": ds.manifest.get("simulator"),
             "created_unix": time.time(), "seconds": time.perf_counter() - t0}

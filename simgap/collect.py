@@ -233,7 +233,9 @@ def chunk_rng(seed: int, chunk: int) -> np.random.Generator:
 
 
 # One simulator (and cover) per worker process, kept alive across chunks: PyBullet set-up is not free.
+# Keyed to the process: a forked worker must not reuse the simulators its parent cached.
 _WORKER_CACHE: dict = {}
+_WORKER_PID = None
 
 
 def _system_from_config(desc: dict, steps: int) -> System:
@@ -259,6 +261,10 @@ def _job(plan: CollectionPlan) -> dict:
 
 
 def _worker_state(job: dict) -> dict:
+    global _WORKER_PID
+    if _WORKER_PID != os.getpid():
+        _WORKER_CACHE.clear()                 # the parent's (inherited by fork): not ours to close
+        _WORKER_PID = os.getpid()
     h = job["hash"]
     st = _WORKER_CACHE.get(h)
     if st is None:

@@ -85,7 +85,7 @@ class LocalExecutor(Executor):
         if not todo:
             return True
         pool = ProcessPoolExecutor(max_workers=min(self.workers, len(todo)), mp_context=self._context(),
-                                   initializer=_fresh_worker, initargs=(os.getpid(),))
+                                   initializer=exit_with_parent, initargs=(os.getpid(),))
         pending = {}
 
         def result(fut, c):
@@ -184,13 +184,6 @@ def _bounded_map(submit, wait_some, result, todo, limit, pending, on_result, sho
         for h in wait_some(pending):
             c = pending.pop(h)
             on_result(c, result(h, c))
-
-def _fresh_worker(parent: int):
-    # a forked worker must not reuse simulators the parent cached (e.g. after a serial run)
-    from . import collect
-    collect._WORKER_CACHE.clear()
-    exit_with_parent(parent)
-
 
 def _process_token(pid: int):
     """(alive, start time) of a process from /proc (Linux); None where /proc is not available."""

@@ -151,8 +151,9 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
 
     Writes ``out/data`` and ``out/data_deterministic`` (resumable stores), ``cert_<method>.json``,
     ``audit_<method>.json``, ``controller_<method>.npz``, ``rollouts_<method>.npz`` and
-    ``summary.json`` (written last, atomically). ``progress(stage_name)``, if given, returns an
-    ``on_progress(done, total)`` callback for that collection.
+    ``summary.json`` (written last, atomically). ``progress(stage_name, unit)``, if given, returns an
+    ``on_progress(done, total)`` callback for that stage: each collection ("pairs") and the long
+    parts of the per-run stage (:func:`simgap.perrun.stage.run_stage`).
     """
     from .certify.audit import audit
     from .certify.pipeline import certify
@@ -192,7 +193,7 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
                                                           "data_deterministic")):
         plan = e.plan()
         res = stage(f"collect/{method}", lambda: collect(plan, out / sub, executor=ex, workers=wk or None,
-                                                         on_progress=progress and progress(method)))
+                                                         on_progress=progress and progress(method, "pairs")))
         if not res.complete:
             raise SimgapError(f"collection of {out / sub} did not finish (cancelled); run again to resume")
         data[method] = load_store(out / sub, system=e.system)
@@ -246,7 +247,7 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
     if per_run:
         from .perrun.stage import run_stage
         summary["per_run"] = stage("perrun", lambda: run_stage(exp, out, data["stochastic"], controllers, spec, x0,
-                                                               per_run, sim=sim, log=log))
+                                                               per_run, sim=sim, log=log, progress=progress))
     for each in sims.values():
         each.close()
     summary["seconds"] = times

@@ -153,3 +153,24 @@ def test_the_split_is_checked():
     a = Allocation.of((0.9, 0.05, 0.05))
     lev = a.levels(0.01, 100, 1000)
     assert lev == pytest.approx({"sink": 0.009 / 100, "lo": 0.0005 / 1000, "hi": 0.0005 / 1000})
+
+
+def test_progress_is_reported_and_changes_nothing(walk):
+    """The long parts report progress: sampling in pairs over both passes, rollouts in periods; the
+    counts are the same with and without a callback (progress does not touch the random streams)."""
+    sim, im = walk
+    seen = []
+    opts = IMDPOptions(eta=[0.02], hold=5, n_runs=1000, pilot_runs=100, seed=1, batch_runs=20_000)  # several batches
+    im2 = build_imdp(sim, SPEC, opts, on_progress=lambda d, t: seen.append((d, t)))
+    P = int(im.live.sum()) * im.M
+    assert seen[-1] == (2 * P, 2 * P) and len(seen) > 2
+    assert all(a[0] <= b[0] for a, b in zip(seen, seen[1:])) and {t for _, t in seen} == {2 * P}
+    np.testing.assert_array_equal(im2.k_hi, build_imdp(sim, SPEC, opts).k_hi)
+    ctl = vi.synthesize_imdp(im, H)
+    ticks = []
+    x0s = np.array([[0.0], [0.3]])
+    k1 = success_counts(lambda x, t: ctl.input_index(x, t), ctl.hold, sim, SPEC, x0s, 300, H, seed=2, max_batch=300,
+                        on_progress=lambda d, t: ticks.append((d, t)))
+    k2 = success_counts(lambda x, t: ctl.input_index(x, t), ctl.hold, sim, SPEC, x0s, 300, H, seed=2, max_batch=300)
+    np.testing.assert_array_equal(k1, k2)
+    assert ticks[-1] == (2 * H, 2 * H) and all(a[0] <= b[0] for a, b in zip(ticks, ticks[1:]))

@@ -34,7 +34,7 @@ def run(args) -> int:
     out = output_dir(args.out or Path("results") / f"{exp.name}-{exp.profile or 'base'}")
     print(f"simgap run {exp.name} (profile {exp.profile}): results go to {out.absolute()}", file=sys.stderr)
     summary = run_experiment(exp, out, executor=args.executor, workers=args.workers, n_rollouts=args.rollouts,
-                             log=lambda m: print(m, file=sys.stderr, flush=True), progress=lambda stage: ProgressBar("pairs", desc=stage))
+                             log=lambda m: print(m, file=sys.stderr, flush=True), progress=lambda stage, unit: ProgressBar(unit, desc=stage))
     print(comparison_table(summary))
     if "per_run" in summary:
         from ..perrun.stage import table

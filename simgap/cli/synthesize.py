@@ -27,6 +27,7 @@ Exit status: 0 with a controller written,
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -224,9 +225,11 @@ def _run_level(args) -> int:
         raise SimgapError("--level run needs an experiment as --spec (its simulator and [perrun] section)")
     e = load_experiment(exp, args.profile)
     x0 = None if args.x0 is None else _floats(args.x0, "--x0")
+    from ..progress import ProgressBar
     ctl, text = synthesize_experiment(e, horizon=args.horizon, x0=x0,
                                       eta=None if args.eta is None else _floats(args.eta, "--eta").tolist(),
-                                      hold=args.hold)
+                                      hold=args.hold, on_progress=ProgressBar("pairs", desc="interval MDP"),
+                                      log=lambda m: print(m, file=sys.stderr, flush=True))
     print(text)
     ctl.save(args.out)
     print(f"wrote {args.out}")

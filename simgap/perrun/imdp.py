@@ -334,8 +334,10 @@ class IMDPOptions:
         Allocation.of(self.split)
 
 
-def build_imdp(sim, spec: Spec, options: IMDPOptions, log=None) -> IMDP:
-    """Sample ``sim`` and build the interval MDP of ``spec`` (see module docstring)."""
+def build_imdp(sim, spec: Spec, options: IMDPOptions, log=None, on_progress=None) -> IMDP:
+    """Sample ``sim`` and build the interval MDP of ``spec`` (see module docstring).
+
+    ``on_progress(done, total)``: after every batch, in (cell, input) pairs of both passes (2 x pairs)."""
     t0 = time.perf_counter()
     s = sim.system
     o = options
@@ -374,6 +376,8 @@ def build_imdp(sim, spec: Spec, options: IMDPOptions, log=None) -> IMDP:
         keep = (ids >= 0) & good[np.maximum(ids, 0)] & ~bad[b]
         single_seen |= bool(np.any(single & ~bad))
         sup.append(np.unique(pp[b[keep] // N0] * (C + 1) + ids[keep]))
+        if on_progress:
+            on_progress(int(pp[-1]) + 1, 2 * P)
     support = np.concatenate(sup) if sup else np.zeros(0, np.int64)
     alloc = Allocation.of(o.split).after_pilot(single_seen)
     levels = alloc.levels(float(o.beta), P, support.size)   # fixed by the pilot, before the main runs
@@ -401,6 +405,8 @@ def build_imdp(sim, spec: Spec, options: IMDPOptions, log=None) -> IMDP:
         np.add.at(n_hit, posc[hit], 1)
         inn = ok & single[b] & ~sink_run[b]
         np.add.at(n_in, posc[inn], 1)
+        if on_progress:
+            on_progress(P + int(pp[-1]) + 1, 2 * P)
     t_main = time.perf_counter() - t0 - t_lip - t_pilot
 
     # ----- intervals, CSR ------------------------------------------------------------------------

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Callable, Dict
+from typing import Callable, Dict, Optional
 
 import numpy as np
 
@@ -69,7 +69,7 @@ def check_section(sec: dict, system, n_pairs: int, n_runs: int, horizon) -> dict
     return o
 
 
-def build(sim, spec, o: dict, log):
+def build(sim, spec, o: dict, log, on_progress=None):
     """The interval MDP of checked ``[perrun]`` options ``o``: sampled per cell, or with ``invariant``
     (state names) once per class of cells and shifted (:mod:`simgap.perrun.translation`)."""
     from .imdp import IMDPOptions, build_imdp
@@ -79,11 +79,12 @@ def build(sim, spec, o: dict, log):
                        beta=float(o["beta"]), seed=int(o["seed"]), split=o["split"])
     if o.get("invariant"):
         names = list(sim.system.state_names)
-        return build_imdp_translation(sim, spec, opts, [names.index(v) for v in o["invariant"]], log=log)
-    return build_imdp(sim, spec, opts, log=log)
+        return build_imdp_translation(sim, spec, opts, [names.index(v) for v in o["invariant"]], log=log,
+                                      on_progress=on_progress)
+    return build_imdp(sim, spec, opts, log=log, on_progress=on_progress)
 
 
-def synthesize_experiment(exp, horizon=None, x0=None, eta=None, hold=None, log=print):
+def synthesize_experiment(exp, horizon=None, x0=None, eta=None, hold=None, log=print, on_progress=None):
     """Interval-MDP controller of an experiment (``[perrun]`` options, overridable); returns (controller, summary text).
 
     Bad input (no [perrun] section, horizon < 1, x0 outside X) raises before any sampling."""
@@ -103,7 +104,7 @@ def synthesize_experiment(exp, horizon=None, x0=None, eta=None, hold=None, log=p
     if x0 is not None:
         exp.system.check_states(np.atleast_2d(x0), "x0")
     with make_simulator(exp.simulator.to_dict(), system=exp.system) as sim:
-        imdp = build(sim, spec, o, log)
+        imdp = build(sim, spec, o, log, on_progress)
     ctl = synthesize_imdp(imdp, int(o["horizon"]))
     lines = [f"interval MDP: {imdp.C} cells ({int(imdp.live.sum())} live) x {imdp.M} inputs, hold {imdp.hold}, "
              f"{imdp.nnz} interval entries ({imdp.nbytes() / 2**20:.1f} MiB), {imdp.meta['bounds']} one-sided "
@@ -116,14 +117,15 @@ def synthesize_experiment(exp, horizon=None, x0=None, eta=None, hold=None, log=p
     return ctl, "\n".join(lines)
 
 
-def validate_controller(name: str, input_fn, hold: int, sim, spec, x0, domain_states, p_cert_fn, o: dict) -> dict:
+def validate_controller(name: str, input_fn, hold: int, sim, spec, x0, domain_states, p_cert_fn, o: dict,
+                        on_progress=None) -> dict:
     """Rollouts from x0 and the sampled domain states: per state x0, p_cert, p_emp, ci95, se, n_rollouts, horizon."""
     from .validation import empirical, success_counts
 
     xs = np.concatenate([np.atleast_2d(x0), domain_states]) if len(domain_states) else np.atleast_2d(x0)
     R, H = int(o["n_rollouts"]), int(o["horizon"])
     t0 = time.perf_counter()
-    k = success_counts(input_fn, hold, sim, spec, xs, R, H, seed=int(o["seed"]) + 17)
+    k = success_counts(input_fn, hold, sim, spec, xs, R, H, seed=int(o["seed"]) + 17, on_progress=on_progress)
     e = empirical(k, R)
     pc = p_cert_fn(xs)
     states = [{"x0": xs[i].tolist(), "p_cert": None if pc is None else float(pc[i]), "p_emp": e["p_emp"][i],
@@ -132,10 +134,13 @@ def validate_controller(name: str, input_fn, hold: int, sim, spec, x0, domain_st
 
 
 def run_stage(exp, out: Path, data, controllers: Dict[str, object], spec, x0, o: dict, sim=None,
-              log: Callable[[str], None] = print) -> dict:
+              log: Callable[[str], None] = print, progress: Optional[Callable] = None) -> dict:
     """Run the per-run stage (module docstring); ``controllers`` are the case study's {method: Controller}.
 
-    ``sim``: the experiment's stochastic simulator (default: built from the experiment)."""
+    ``sim``: the experiment's stochastic simulator (default: built from the experiment).
+    ``progress(name, unit)``, if given, returns an ``on_progress(done, total)`` callback for the
+    interval-MDP sampling ("pairs") and for each controller's rollouts ("periods")."""
+    bar = (lambda name, unit: progress(name, unit)) if progress else (lambda name, unit: None)
     import contextlib
 
     from ..simulators import make_simulator
@@ -170,7 +175,7 @@ def run_stage(exp, out: Path, data, controllers: Dict[str, object], spec, x0, o:
                                f" (clipped at 0) in the winning domain, at confidence 1 - beta"
 
         t0 = time.perf_counter()
-        imdp = build(sim, spec, o, lambda m: log(f"[perrun] {m}"))
+        imdp = build(sim, spec, o, lambda m: log(f"[perrun] {m}"), bar("perrun/imdp", "pairs"))
         t_build = time.perf_counter() - t0
         ctl = synthesize_imdp(imdp, H)
         ctl.save(out / "controller_perrun.npz")
@@ -196,7 +201,8 @@ def run_stage(exp, out: Path, data, controllers: Dict[str, object], spec, x0, o:
                         domain(ctl.grid, np.flatnonzero(ctl.p_cert > 0)), ctl.certified))
         for name, fn, hold, dom, pc in entries:
             log(f"[perrun] rollouts: {name} ({len(dom) + 1} initial states x {o['n_rollouts']})")
-            res["controllers"][name] = validate_controller(name, fn, hold, sim, spec, x0, dom, pc, o)
+            res["controllers"][name] = validate_controller(name, fn, hold, sim, spec, x0, dom, pc, o,
+                                                           bar(f"perrun/{name}", "periods"))
     return res
 
 

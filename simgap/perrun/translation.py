@@ -44,18 +44,22 @@ from ..synthesis.spec import Spec
 from .imdp import IMDP, Allocation, IMDPOptions, assemble, box_unsafe, cell_labels, trajectory_lipschitz
 
 
-def _runs(sim, x: np.ndarray, u: np.ndarray, k: int, rng) -> np.ndarray:
-    """(B, k, n) states after each of the k periods with u held."""
+def _runs(sim, x: np.ndarray, u: np.ndarray, k: int, rng, tick=lambda: None) -> np.ndarray:
+    """(B, k, n) states after each of the k periods with u held (``tick()`` after each period)."""
     out = np.empty((x.shape[0], k, x.shape[1]))
     y = x
     for t in range(k):
         y = out[:, t] = sim.step(y, u, rng)
+        tick()
     return out
 
 
 def build_imdp_translation(sim, spec: Spec, options: IMDPOptions, invariant: Sequence[int] = (0, 1),
-                           lipschitz_pairs: int = 100, lipschitz_runs: int = 20, log=None) -> IMDP:
-    """Interval MDP of ``spec`` from runs at one reference cell per class (module docstring)."""
+                           lipschitz_pairs: int = 100, lipschitz_runs: int = 20, log=None, on_progress=None) -> IMDP:
+    """Interval MDP of ``spec`` from runs at one reference cell per class (module docstring).
+
+    ``on_progress(done, total)``: in steps of 2 k simulated periods (pilot, main) plus one per
+    (class, input) pair counted."""
     t0 = time.perf_counter()
     s, o = sim.system, options
     o.validate(s.n)
@@ -97,9 +101,16 @@ def build_imdp_translation(sim, spec: Spec, options: IMDPOptions, invariant: Seq
     P = n_cls * M
     xs = x_ref[np.arange(P) // M]
     us = s.inputs[np.arange(P) % M]
-    pilot = _runs(sim, np.repeat(xs, N0, axis=0), np.repeat(us, N0, axis=0), k, rng)
+    done = [0]
+
+    def tick(by: int = 1):
+        done[0] += by
+        if on_progress:
+            on_progress(done[0], 2 * k + P)
+
+    pilot = _runs(sim, np.repeat(xs, N0, axis=0), np.repeat(us, N0, axis=0), k, rng, tick)
     t_pilot = time.perf_counter() - t0 - t_lip
-    main = _runs(sim, np.repeat(xs, N, axis=0), np.repeat(us, N, axis=0), k, rng)
+    main = _runs(sim, np.repeat(xs, N, axis=0), np.repeat(us, N, axis=0), k, rng, tick)
     t_sim = time.perf_counter() - t0 - t_lip - t_pilot
     if log:
         log(f"imdp (translation): {n_cls} classes x {M} inputs x ({N} + {N0}) runs x {k} periods simulated in "
@@ -156,6 +167,7 @@ def build_imdp_translation(sim, spec: Spec, options: IMDPOptions, invariant: Seq
     rows, cols, n_ins, n_hits, single_seen = [], [], [], [], False
     for p in range(P):  # pairs (class, input): a few hundred; the work inside is vectorized over cells x runs
         h, a = divmod(p, M)
+        tick()
         cells = np.flatnonzero(live & (cls_of == h))
         if cells.size == 0:
             continue

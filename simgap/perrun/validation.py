@@ -21,11 +21,12 @@ InputFn = Callable[[np.ndarray, int], np.ndarray]   # (states (B, n), abstract s
 
 
 def success_counts(input_fn: InputFn, hold: int, sim, spec: Spec, x0s: np.ndarray, n_rollouts: int, horizon: int,
-                   seed: int = 0, max_batch: int = 400_000) -> np.ndarray:
+                   seed: int = 0, max_batch: int = 400_000, on_progress=None) -> np.ndarray:
     """(S,) successes of ``n_rollouts`` runs from each of the S initial states ``x0s`` (S, n).
 
     ``input_fn`` picks an input index per state at each abstract step (the input is then held
     ``hold`` periods); -1 keeps the previous input (the middle input at the start).
+    ``on_progress(done, total)``: called after every simulated period, in periods over all batches.
     """
     x0s = np.atleast_2d(np.asarray(x0s, float))
     if int(horizon) < 1:
@@ -36,6 +37,7 @@ def success_counts(input_fn: InputFn, hold: int, sim, spec: Spec, x0s: np.ndarra
     out = np.zeros(S, np.int64)
     per = max(1, max_batch // R)
     rng = np.random.default_rng([seed, 5])
+    H, n_batches = int(horizon), -(-S // per)
     for a in range(0, S, per):  # batches of whole initial states: bounded memory, vectorized runs
         b = min(S, a + per)
         x = np.repeat(x0s[a:b], R, axis=0)
@@ -48,7 +50,9 @@ def success_counts(input_fn: InputFn, hold: int, sim, spec: Spec, x0s: np.ndarra
             ok |= alive & spec.reached(x)
             alive &= ~ok
         t = 0
-        for period in range(int(horizon)):
+        for period in range(H):
+            if on_progress:
+                on_progress((a // per) * H + period, n_batches * H)
             if not alive.any():
                 break
             if period % hold == 0:
@@ -65,6 +69,8 @@ def success_counts(input_fn: InputFn, hold: int, sim, spec: Spec, x0s: np.ndarra
         if spec.kind == "invariance":
             ok |= alive
         out[a:b] = ok.reshape(b - a, R).sum(axis=1)
+    if on_progress:
+        on_progress(n_batches * H, n_batches * H)
     return out
 
 

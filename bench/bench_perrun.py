@@ -92,7 +92,7 @@ def bench_validate(a) -> dict:
     x0 = np.array([0.05, 0.1])
     t0 = time.perf_counter()
     opts = IMDPOptions(eta=a.eta, hold=a.hold, n_runs=a.n_runs, pilot_runs=a.pilot, seed=a.seed,
-                       **({"split": tuple(a.split)} if a.split else {}))
+                       **({"split": tuple(a.split)} if a.split else {}), share=a.share)
     c0 = time.process_time()
     im = build_imdp(sim, spec, opts, log=print)
     cpu_build = time.process_time() - c0
@@ -121,7 +121,8 @@ def bench_validate(a) -> dict:
             "live_cells": int(im.live.sum()), "nnz": im.nnz, "bytes_imdp": im.nbytes(), "samples": im.meta["samples"],
             "seconds": {k: round(v, 2) for k, v in im.meta["seconds"].items()}, "seconds_build": round(t_build, 2), "cpu_seconds_total": round(time.process_time(), 2),
             "cpu_seconds_build": round(cpu_build, 2), "cpu_seconds_rollouts": round(cpu_roll, 2),
-            "split": im.meta["split"], "levels": im.meta["levels"], "bounds": im.meta["bounds"], "seed": a.seed,
+            "split": im.meta["split"], "levels": im.meta["levels"], "share": im.meta.get("share"),
+            "anchors": im.meta.get("anchors"), "rho": im.meta["rho"], "bounds": im.meta["bounds"], "seed": a.seed,
             "seconds_vi": round(ctl.meta["seconds_vi"], 2), "seconds_rollouts": round(t_roll, 2),
             "rollouts_per_state": a.rollouts, "states": len(xs), "sound_states": int(sound.sum()),
             "p_cert_x0": rows[0]["p_cert"], "p_emp_x0": rows[0]["p_emp"],
@@ -145,6 +146,8 @@ def main():
     ap.add_argument("--seed", type=int, default=1, help="validate: sampling seed of the interval MDP")
     ap.add_argument("--split", type=float, nargs=3, default=None, metavar=("SINK", "LO", "HI"),
                     help="validate: shares of beta for the three bound families (default: IMDPOptions.split)")
+    ap.add_argument("--share", type=int, nargs="+", default=None,
+                    help="validate: cells per block sharing one anchor's runs (one, or one per dimension)")
     ap.add_argument("--json", default=None)
     a = ap.parse_args()
     rep = bench_vi(a) if a.what == "vi" else bench_validate(a)

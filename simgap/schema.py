@@ -182,6 +182,7 @@ class PerrunSection(Section):
     baseline_hold: Optional[Int1] = None
     split: Optional[list[Finite]] = None
     invariant: Optional[list[str]] = None
+    share: Optional[Union[Int1, list[Int1]]] = None
 
 
 class Experiment(Section):

@@ -174,3 +174,48 @@ def test_progress_is_reported_and_changes_nothing(walk):
     k2 = success_counts(lambda x, t: ctl.input_index(x, t), ctl.hold, sim, SPEC, x0s, 300, H, seed=2, max_batch=300)
     np.testing.assert_array_equal(k1, k2)
     assert ticks[-1] == (2 * H, 2 * H) and all(a[0] <= b[0] for a, b in zip(ticks, ticks[1:]))
+
+
+def test_shared_runs_are_sound_cheap_and_need_the_residual_term():
+    """Cells sharing one anchor's runs (share), on a walk whose simulator pushes outward
+    (x += 0.6 x dt, not in the nominal model): (1) the box the construction uses contains the run
+    from every sampled x of a cell far from the anchor, with the same noise, at every period; with
+    the residual's Lipschitz term dropped (Lr = 0) it does not; (2) the whole interval MDP is sound
+    against Monte Carlo; (3) the simulator cost is divided by the block size."""
+    import dataclasses
+    from simgap.perrun.imdp import residual_lipschitz, shared_box
+    sim = NumpySimulator(SimulatorConfig("numpy", "walk", noise={"process_std": 0.08}, effects={"linear": [[0.6]]}),
+                         system=WALK)
+    k, half = 5, np.array([0.01])
+    Ln, Lr, _ = residual_lipschitz(sim, k, half, np.random.default_rng(0))
+    assert Lr[0, 0] > 0.2                                   # the outward push, seen per realization
+    rng = np.random.default_rng(1)
+    xs, xc = np.array([[0.0]]), np.array([[0.6], [-0.45]])  # anchor, two cell centers far from it
+    B = 4000
+    x = np.repeat(xc, B, axis=0) + rng.uniform(-half, half, (2 * B, 1))
+    u = np.repeat(WALK.inputs[[0, 2]], B, axis=0)
+    for L_res, holds in ((Lr, True), (0 * Lr, False)):
+        shift, r = shared_box(WALK, np.repeat(xc, B, axis=0), np.repeat(xs, 2 * B, axis=0), u, k, Ln, L_res, half)
+        y, ya, inside = x.copy(), np.repeat(xs, 2 * B, axis=0), True
+        for t in range(k):
+            noise = sim.draw_noise(2 * B, rng)
+            y, ya = sim.step_with_noise(y, u, noise), sim.step_with_noise(ya, u, noise)
+            inside &= bool(np.all(np.abs(y - (ya + shift[:, t])) <= r + 1e-12))
+        assert inside == holds
+    opts = IMDPOptions(eta=[0.02], hold=k, n_runs=1000, pilot_runs=100, seed=1, share=20)
+    im = build_imdp(sim, SPEC, opts)
+    assert im.meta["anchors"] == 5 and im.meta["samples"] == 5 * 3 * 1100 * k     # 5 anchors x 3 inputs
+    pc, pe, se = _check(sim, vi.synthesize_imdp(im, H))
+    assert np.all(pe >= pc - 3 * se), (pc, pe)
+    assert pc.max() > 0.3
+    per_cell = build_imdp(sim, SPEC, dataclasses.replace(opts, share=None))
+    assert per_cell.meta["samples"] == int(per_cell.live.sum()) * 3 * 1100 * k
+
+
+def test_share_is_checked():
+    with pytest.raises(SimgapError, match="share"):
+        IMDPOptions(eta=[0.1], share=0).validate(1)
+    with pytest.raises(SimgapError, match="share"):
+        IMDPOptions(eta=[0.1], share=[2, 2]).validate(1)
+    with pytest.raises(SimgapError, match="lipschitz"):
+        IMDPOptions(eta=[0.1], share=2, lipschitz=-1.0).validate(1)

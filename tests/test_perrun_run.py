@@ -111,3 +111,24 @@ def test_pendulum_perrun_profile_is_valid():
                       e.section("rollout").get("horizon"))
     assert o["horizon"] == 400 and o["n_rollouts"] == 10000 and o["alpha"] == 0.05
     assert load_experiment("pendulum", "noisy").section("perrun") == {}   # the other profiles are unchanged
+
+
+def test_share_in_an_experiment(tmp_path, capsys):
+    """`[perrun] share` reaches the interval MDP (fewer simulator runs, recorded), and its bad values are
+    refused before any sampling (with invariant, not a whole number of cells)."""
+    import re
+    text = TOML.read_text()
+    shared = tmp_path / "shared.toml"
+    shared.write_text(text.replace("[perrun]\n", "[perrun]\nshare = 3\n"))
+    out = tmp_path / "ctl.npz"
+    assert main(["synthesize", "--level", "run", "--spec", str(shared), "--out", str(out)]) == 0
+    meta = PerRunController.load(out).meta
+    assert meta["share"] == [3, 3] and meta["anchors"] < meta["live_cells"]
+    assert "residual" in meta["lipschitz"] and re.search(r"p_cert\(x0", capsys.readouterr().out)
+    for line, msg in (("share = 3\ninvariant = [\"theta\"]\n", "exclude each other"), ("share = 0\n", "share"),
+                      ("share = [2, 2, 2]\n", "share")):
+        bad = tmp_path / "bad.toml"
+        bad.write_text(text.replace("[perrun]\n", "[perrun]\n" + line))
+        dest = tmp_path / "bad.npz"
+        assert main(["synthesize", "--level", "run", "--spec", str(bad), "--out", str(dest)]) == 2
+        assert msg in capsys.readouterr().err and not dest.exists()

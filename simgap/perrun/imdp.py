@@ -265,6 +265,79 @@ def trajectory_lipschitz(sim, hold: int, h: np.ndarray, rng: np.random.Generator
     return L, how
 
 
+def trajectories(sim, x: np.ndarray, u: np.ndarray, k: int, rng, tick=lambda: None) -> np.ndarray:
+    """(B, k, n) states of ``sim`` after each of the k periods with u held (``tick()`` after each period)."""
+    out = np.empty((x.shape[0], k, x.shape[1]))
+    y = x
+    for t in range(k):
+        y = out[:, t] = sim.step(y, u, rng)
+        tick()
+    return out
+
+
+def nominal_trajectory(system, x: np.ndarray, u: np.ndarray, hold: int) -> np.ndarray:
+    """(B, k, n) nominal states y_t(x) = f^t(x, u), t = 1..k, with u held."""
+    out = np.empty((x.shape[0], hold, x.shape[1]))
+    y = x
+    for t in range(hold):
+        y = out[:, t] = system.f(y, u)
+    return out
+
+
+def shared_box(system, x_cells: np.ndarray, x_anchor: np.ndarray, u: np.ndarray, hold: int, Ln: np.ndarray,
+               Lr: np.ndarray, half: np.ndarray):
+    """(shift (B, k, n), rho (B, n)): the run from ANY x in the cell of center x_c stays in
+    y_t(x_s, w) + shift_t +- rho for the run from the anchor x_s with the same noise, t = 1..k.
+
+    shift_t = ynom_t(x_c) - ynom_t(x_s) and rho = Ln eta/2 + Lr (|x_c - x_s| + eta/2), because
+    y_t(x, w) = ynom_t(x) + z_t(x, w) with |ynom_t(x) - ynom_t(x_c)| <= Ln |x - x_c| and
+    |z_t(x, w) - z_t(x_s, w)| <= Lr |x - x_s| (coordinate-wise; :func:`residual_lipschitz`)."""
+    shift = system.diff(nominal_trajectory(system, x_cells, u, hold), nominal_trajectory(system, x_anchor, u, hold))
+    rho = half @ np.asarray(Ln).T + (np.abs(system.diff(x_cells, x_anchor)) + half) @ np.asarray(Lr).T
+    return shift, rho
+
+
+def residual_lipschitz(sim, hold: int, h: np.ndarray, rng: np.random.Generator, n_pairs: int = 300,
+                       runs: int = 20) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Per-coordinate constants (Ln, Lr) of the nominal k-period map and of the residual, common random numbers.
+
+    Ln[i, j] bounds |ynom_t,i(x) - ynom_t,i(x + s e_j)| / |s| and Lr[i, j] the same for the residual
+    z_t(x, w) = y_t(x, u, w) - ynom_t(x, u) (the simulator's run minus the nominal model's), for every
+    period t <= k and noise draw: pairs (x, x + h_j e_j), u uniform from U, the same noise per
+    period at both ends; Wood-Zhang estimate per (i, j). The residual is what sharing runs between
+    cells needs: it is small where the model is good, whatever the dynamics (docs/per-run.md).
+    """
+    s = sim.system
+    n = s.n
+    Ln, Lr = np.zeros((n, n)), np.zeros((n, n))
+    how = {}
+    B = n_pairs * runs
+    for j in range(n):
+        lo, hi = s.x_lo.copy(), s.x_hi.copy()
+        hi[j] -= h[j]
+        x = lo + rng.random((n_pairs, n)) * (hi - lo)
+        x2 = x.copy()
+        x2[:, j] += h[j]
+        u = s.inputs[rng.integers(0, len(s.inputs), n_pairs)]
+        X = np.repeat(np.concatenate([x, x2]), runs, axis=0)
+        U = np.repeat(np.concatenate([u, u]), runs, axis=0)
+        Xn = X.copy()
+        sl_n, sl_r = np.zeros((B, n)), np.zeros((B, n))
+        for _ in range(hold):
+            noise = {k: np.concatenate([v, v]) for k, v in sim.draw_noise(B, rng).items()}
+            X = sim.step_with_noise(X, U, noise)
+            Xn = s.f(Xn, U)
+            Z = s.diff(X, Xn)
+            sl_n = np.maximum(sl_n, np.abs(s.diff(Xn[:B], Xn[B:])) / h[j])
+            sl_r = np.maximum(sl_r, np.abs(s.diff(Z[:B], Z[B:])) / h[j])
+        for i in range(n):
+            for L, sl, tag in ((Ln, sl_n, "nominal"), (Lr, sl_r, "residual")):
+                wz = wood_zhang(sl[:, i], np.random.default_rng([7, i, j, tag == "residual"]))
+                L[i, j] = wz.estimate
+                how[f"{tag} d{s.state_names[i]}/d{s.state_names[j]}"] = wz.to_dict()
+    return Ln, Lr, how
+
+
 def _hits(grid: UniformGrid, y: np.ndarray, rho: np.ndarray):
     """Cells touched by the boxes y +- rho: (sample index, cell id or -1 outside the grid, single) arrays.
 
@@ -307,7 +380,10 @@ class IMDPOptions:
     eta : cell widths (state units); hold : k periods per abstract step; n_runs : N main runs per
     (cell, input); pilot_runs : N0 support runs; beta : failure probability of all intervals;
     lipschitz : (n, n) per-coordinate L_ij of the k-period map (None: estimated, see trajectory_lipschitz);
-    split : shares of beta for the (sink, lo, hi) bound families, summing to <= 1 (see :class:`Allocation`).
+    split : shares of beta for the (sink, lo, hi) bound families, summing to <= 1 (see :class:`Allocation`);
+    share : cells per block along each dimension (an int or one per dimension) whose cells share the
+    runs of one anchor cell, shifted by the nominal model and widened by the residual's Lipschitz
+    constant (module docstring, "Shared runs"); None or 1: runs per cell.
     """
 
     eta: object
@@ -319,6 +395,7 @@ class IMDPOptions:
     seed: int = 0
     batch_runs: int = 1 << 19
     split: tuple = (0.9, 0.05, 0.05)
+    share: Optional[object] = None
 
     def validate(self, n: int):
         if int(self.hold) < 1:
@@ -327,10 +404,25 @@ class IMDPOptions:
             raise SimgapError(f"need n_runs >= 10 and pilot_runs >= 1, got {self.n_runs}, {self.pilot_runs}")
         if not 0.0 < float(self.beta) < 1.0:
             raise SimgapError(f"beta must be in (0, 1), got {self.beta}")
+        shared = False
+        if self.share is not None:
+            try:
+                b = np.broadcast_to(np.asarray(self.share, float), (n,))
+            except (TypeError, ValueError):
+                b = np.zeros(n)
+            if not np.all(np.isfinite(b)) or not np.all(np.mod(b, 1) == 0) or np.any(b < 1):
+                raise SimgapError(f"share must be whole numbers of cells >= 1 (one, or one per state dimension: {n}), "
+                                  f"got {self.share!r}")
+            shared = bool(np.any(b > 1))
         if self.lipschitz is not None:
-            L = np.broadcast_to(np.asarray(self.lipschitz, float), (n, n))
+            shape = (2, n, n) if shared else (n, n)
+            try:
+                L = np.broadcast_to(np.asarray(self.lipschitz, float), shape)
+            except (TypeError, ValueError):
+                L = np.full(shape, np.nan)
             if not np.all(np.isfinite(L)) or np.any(L < 0):
-                raise SimgapError(f"lipschitz must be >= 0 and finite, got {self.lipschitz!r}")
+                raise SimgapError(f"lipschitz must be >= 0 and finite{' ((nominal, residual) with share)' if shared else ''}, "
+                                  f"got {self.lipschitz!r}")
         Allocation.of(self.split)
 
 
@@ -347,11 +439,20 @@ def build_imdp(sim, spec: Spec, options: IMDPOptions, log=None, on_progress=None
     k, N, N0 = int(o.hold), int(o.n_runs), int(o.pilot_runs)
     rng = np.random.default_rng([o.seed, 0])
     half = grid.eta / 2
-    if o.lipschitz is None:
-        L, how = trajectory_lipschitz(sim, k, half, np.random.default_rng([o.seed, 1]))
+    share = None if o.share is None else np.broadcast_to(np.asarray(o.share), (s.n,)).astype(np.int64)
+    if share is not None and np.all(share == 1):
+        share = None
+    if share is None:
+        if o.lipschitz is None:
+            L, how = trajectory_lipschitz(sim, k, half, np.random.default_rng([o.seed, 1]))
+        else:
+            L, how = np.broadcast_to(np.asarray(o.lipschitz, float), (s.n, s.n)).copy(), "given"
+        rho = L @ half                                   # |y_i(x) - y_i(x_c)| <= sum_j L_ij |x_j - c_j|
+    elif o.lipschitz is None:
+        Ln, Lr, how = residual_lipschitz(sim, k, half, np.random.default_rng([o.seed, 1]))
     else:
-        L, how = np.broadcast_to(np.asarray(o.lipschitz, float), (s.n, s.n)).copy(), "given"
-    rho = L @ half                                       # |y_i(x) - y_i(x_c)| <= sum_j L_ij |x_j - c_j|
+        Ln, Lr = np.broadcast_to(np.asarray(o.lipschitz, float), (2, s.n, s.n)).copy()
+        how = "given"
     live, target = cell_labels(grid, spec, s.x_lo, s.x_hi, ad)
     C, M = grid.size, s.inputs.shape[0]
     cells = np.flatnonzero(live)
@@ -359,25 +460,55 @@ def build_imdp(sim, spec: Spec, options: IMDPOptions, log=None, on_progress=None
     centers = grid.points(cells)
     good = live | target                                 # successors kept as columns; others go to the sink
     t_lip = time.perf_counter() - t0
+    simulated = [0]                                      # runs simulated (k periods each)
 
-    def run_pairs(pp, runs, rng):
+    def run_cells(pp, runs, rng):  # runs from every pair's own cell center
         x = np.repeat(centers[pp // M], runs, axis=0)
         u = np.repeat(s.inputs[pp % M], runs, axis=0)
         y, bad = _simulate(sim, spec, x, u, k, rho, rng, s.x_lo, s.x_hi, ad)
+        simulated[0] += len(x)
         b, ids, single = _hits(grid, y, rho)
         return b, ids, single, bad
+
+    order = np.arange(P)
+    if share is not None:
+        # anchors: the middle cell of each block of share cells; the pairs go group-major (anchor,
+        # input) so that one batch simulates each of its anchors once for all the block's cells
+        mi = grid.ids_to_multi(cells)
+        start = mi // share * share
+        anchor = grid.multi_to_ids(start + np.minimum(share, np.asarray(grid.shape) - start) // 2)
+        x_anchor = grid.points(anchor)
+        group = anchor.repeat(M) * M + np.tile(np.arange(M), cells.size)
+        order = np.argsort(group, kind="stable")
+
+        def run_shared(pp, runs, rng):  # runs from the anchors, shifted to every pair's cell
+            ug, inv = np.unique(group[pp], return_inverse=True)
+            xa, ua = grid.points(ug // M), s.inputs[ug % M]
+            traj = trajectories(sim, np.repeat(xa, runs, axis=0), np.repeat(ua, runs, axis=0), k, rng)
+            simulated[0] += len(ug) * runs
+            shift, r = shared_box(s, centers[pp // M], x_anchor[pp // M], s.inputs[pp % M], k, Ln, Lr, half)
+            Y = traj.reshape(len(ug), runs, k, s.n)[inv] + shift[:, None]        # (B, runs, k, n)
+            r = np.repeat(r, runs, axis=0)
+            bad = np.zeros(len(pp) * runs, dtype=bool)
+            for t in range(k):
+                y = s.wrap(Y[:, :, t].reshape(-1, s.n))
+                bad |= box_unsafe(spec, y - r, y + r, s.x_lo, s.x_hi, ad)
+            b, ids, single = _hits(grid, y, r)
+            return b, ids, single, bad
+
+    run_pairs = run_cells if share is None else run_shared
 
     # ----- pass 1: pilot support T(c, a) (sorted keys pair * (C+1) + cell) -------------------------
     per = max(1, o.batch_runs // N0)
     sup, single_seen = [], False
     for a in range(0, P, per):
-        pp = np.arange(a, min(P, a + per))
+        pp = order[a:a + per]
         b, ids, single, bad = run_pairs(pp, N0, rng)
         keep = (ids >= 0) & good[np.maximum(ids, 0)] & ~bad[b]
         single_seen |= bool(np.any(single & ~bad))
         sup.append(np.unique(pp[b[keep] // N0] * (C + 1) + ids[keep]))
         if on_progress:
-            on_progress(int(pp[-1]) + 1, 2 * P)
+            on_progress(min(P, a + per), 2 * P)
     support = np.concatenate(sup) if sup else np.zeros(0, np.int64)
     alloc = Allocation.of(o.split).after_pilot(single_seen)
     levels = alloc.levels(float(o.beta), P, support.size)   # fixed by the pilot, before the main runs
@@ -393,7 +524,7 @@ def build_imdp(sim, spec: Spec, options: IMDPOptions, log=None, on_progress=None
     n_sink = np.zeros(P, np.int64)
     per = max(1, o.batch_runs // N)
     for a in range(0, P, per):
-        pp = np.arange(a, min(P, a + per))
+        pp = order[a:a + per]
         b, ids, single, bad = run_pairs(pp, N, rng)
         key = pp[b // N] * (C + 1) + np.maximum(ids, 0)
         posc = np.minimum(np.searchsorted(support, key), max(support.size - 1, 0))
@@ -406,7 +537,7 @@ def build_imdp(sim, spec: Spec, options: IMDPOptions, log=None, on_progress=None
         inn = ok & single[b] & ~sink_run[b]
         np.add.at(n_in, posc[inn], 1)
         if on_progress:
-            on_progress(P + int(pp[-1]) + 1, 2 * P)
+            on_progress(P + min(P, a + per), 2 * P)
     t_main = time.perf_counter() - t0 - t_lip - t_pilot
 
     # ----- intervals, CSR ------------------------------------------------------------------------
@@ -415,10 +546,20 @@ def build_imdp(sim, spec: Spec, options: IMDPOptions, log=None, on_progress=None
     col = np.concatenate([support % (C + 1), np.full(P, C)])
     k_lo = np.concatenate([n_in, np.full(P, -1)])
     k_hi = np.concatenate([n_hit, n_sink])
-    meta = {"pilot_runs": N0, "lipschitz": L.tolist(), "lipschitz_how": how, "rho": rho.tolist(),
-            "live_cells": int(cells.size), "seed": int(o.seed), "simulator": sim.config.to_dict(), "spec": spec.to_dict(),
-            "assumption": "per realization: the k-period trajectory map is L-Lipschitz (common random numbers)",
+    meta = {"pilot_runs": N0, "lipschitz_how": how, "live_cells": int(cells.size), "seed": int(o.seed),
+            "simulator": sim.config.to_dict(), "spec": spec.to_dict(),
             "seconds": {"lipschitz": t_lip, "pilot": t_pilot, "main": t_main,
                         "intervals": time.perf_counter() - t0 - t_lip - t_pilot - t_main},
-            "samples": int(P * (N + N0) * k)}
+            "samples": int(simulated[0] * k)}
+    if share is None:
+        meta.update(lipschitz=L.tolist(), rho=rho.tolist(),
+                    assumption="per realization: the k-period trajectory map is L-Lipschitz (common random numbers)")
+    else:
+        rho_max = half @ Ln.T + (np.abs(s.diff(centers, x_anchor)).max(axis=0) + half) @ Lr.T
+        meta.update(lipschitz={"nominal": Ln.tolist(), "residual": Lr.tolist()}, rho=rho_max.tolist(),
+                    share=share.tolist(), anchors=int(np.unique(anchor).size),
+                    assumption="per realization: the residual y_t(x, w) - ynom_t(x) of the k-period run is "
+                               "Lr-Lipschitz and the nominal k-period map Ln-Lipschitz (coordinate-wise, common "
+                               "random numbers); the runs of one anchor cell per block serve every cell of the "
+                               "block, shifted by the nominal model and widened by Ln eta/2 + Lr (|x_c - x_s| + eta/2)")
     return assemble(grid, s.inputs, k, live, target, rows, col, k_lo, k_hi, alloc, N, o.beta, meta)

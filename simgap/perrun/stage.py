@@ -27,7 +27,7 @@ from ..errors import SimgapError
 from .orderstats import alpha_min
 
 KEYS = {"alpha", "beta", "eta", "hold", "n_runs", "pilot_runs", "horizon", "n_rollouts", "n_states", "seed",
-        "baseline_eta", "baseline_hold", "split", "invariant"}
+        "baseline_eta", "baseline_hold", "split", "invariant", "share"}
 
 
 def check_section(sec: dict, system, n_pairs: int, n_runs: int, horizon) -> dict:
@@ -64,6 +64,11 @@ def check_section(sec: dict, system, n_pairs: int, n_runs: int, horizon) -> dict
     o["split"] = o.get("split", IMDPOptions.split)
     try:
         Allocation.of(o["split"])
+        if o.get("share") is not None:
+            if inv:
+                raise SimgapError("share and invariant exclude each other: with invariant the runs of one cell "
+                                  "per class already serve every cell of the class")
+            IMDPOptions(eta=o["eta"], share=o["share"]).validate(system.n)
     except SimgapError as e:
         raise SimgapError(f"[perrun] {e}") from None
     return o
@@ -76,7 +81,7 @@ def build(sim, spec, o: dict, log, on_progress=None):
     from .translation import build_imdp_translation
 
     opts = IMDPOptions(eta=o["eta"], hold=int(o["hold"]), n_runs=int(o["n_runs"]), pilot_runs=int(o["pilot_runs"]),
-                       beta=float(o["beta"]), seed=int(o["seed"]), split=o["split"])
+                       beta=float(o["beta"]), seed=int(o["seed"]), split=o["split"], share=o.get("share"))
     if o.get("invariant"):
         names = list(sim.system.state_names)
         return build_imdp_translation(sim, spec, opts, [names.index(v) for v in o["invariant"]], log=log,
@@ -183,7 +188,8 @@ def run_stage(exp, out: Path, data, controllers: Dict[str, object], spec, x0, o:
                        "nnz": imdp.nnz, "bytes": imdp.nbytes(), "hold": imdp.hold, "steps": ctl.steps,
                        "seconds_build": round(t_build, 3), "seconds_vi": round(ctl.meta["seconds_vi"], 3),
                        **{k: imdp.meta[k] for k in ("n_runs", "pilot_runs", "bounds", "split", "levels", "rho",
-                                                    "samples", "union_bound", "assumption")}}
+                                                    "samples", "union_bound", "assumption", "share", "anchors")
+                          if k in imdp.meta}}
         log(f"[perrun] interval MDP {imdp.nnz} entries in {t_build:.1f} s; value iteration "
             f"{ctl.meta['seconds_vi']:.1f} s; p_cert(x0) = {float(ctl.certified(np.atleast_2d(x0))[0]):.4f}")
 

@@ -41,17 +41,8 @@ import numpy as np
 from ..errors import SimgapError
 from ..synthesis.grid import UniformGrid
 from ..synthesis.spec import Spec
-from .imdp import IMDP, Allocation, IMDPOptions, assemble, box_unsafe, cell_labels, trajectory_lipschitz
-
-
-def _runs(sim, x: np.ndarray, u: np.ndarray, k: int, rng, tick=lambda: None) -> np.ndarray:
-    """(B, k, n) states after each of the k periods with u held (``tick()`` after each period)."""
-    out = np.empty((x.shape[0], k, x.shape[1]))
-    y = x
-    for t in range(k):
-        y = out[:, t] = sim.step(y, u, rng)
-        tick()
-    return out
+from .imdp import (IMDP, Allocation, IMDPOptions, assemble, box_unsafe, cell_labels, trajectories,
+                   trajectory_lipschitz)
 
 
 def build_imdp_translation(sim, spec: Spec, options: IMDPOptions, invariant: Sequence[int] = (0, 1),
@@ -108,9 +99,9 @@ def build_imdp_translation(sim, spec: Spec, options: IMDPOptions, invariant: Seq
         if on_progress:
             on_progress(done[0], 2 * k + P)
 
-    pilot = _runs(sim, np.repeat(xs, N0, axis=0), np.repeat(us, N0, axis=0), k, rng, tick)
+    pilot = trajectories(sim, np.repeat(xs, N0, axis=0), np.repeat(us, N0, axis=0), k, rng, tick)
     t_pilot = time.perf_counter() - t0 - t_lip
-    main = _runs(sim, np.repeat(xs, N, axis=0), np.repeat(us, N, axis=0), k, rng, tick)
+    main = trajectories(sim, np.repeat(xs, N, axis=0), np.repeat(us, N, axis=0), k, rng, tick)
     t_sim = time.perf_counter() - t0 - t_lip - t_pilot
     if log:
         log(f"imdp (translation): {n_cls} classes x {M} inputs x ({N} + {N0}) runs x {k} periods simulated in "

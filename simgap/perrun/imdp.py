@@ -30,6 +30,15 @@ Construction (per (c, a), all vectorized over pairs x runs):
    its bounds are the trivial lo = 0 / hi = 1, true with probability 1, at no cost in beta.
    Clopper-Pearson is exact, so at zero counts hi = 1 - (beta w_f / n_f)^(1/N) ~ ln(n_f / (beta w_f)) / N.
 
+Shared runs (``share``): the k-period runs from one anchor cell x_s per block of cells serve every
+cell c of the block. ASSUMPTION (per realization, coordinate-wise): the residual
+z_t(x, w) = y_t(x, u, w) - ynom_t(x, u) of the run against the nominal model is Lr-Lipschitz, and the
+nominal k-period map Ln-Lipschitz (:func:`residual_lipschitz`, common random numbers). Then the run
+from any x in cell c stays in y_t(x_s, w) + ynom_t(x_c) - ynom_t(x_s) +- (Ln eta/2 + Lr (|x_c - x_s| +
+eta/2)) (:func:`shared_box`), and steps 2-4 use these boxes. Each row still rests on N i.i.d. runs
+(Bonferroni needs no independence between rows); the simulator cost drops by the block size, the
+bookkeeping (pairs x runs x periods) stays.
+
 Memory: entries (col int32, lo/hi float32 rounded outward, the int32 counts behind them) in CSR
 over rows c*M + a.
 """

@@ -239,6 +239,18 @@ def cell_labels(grid: UniformGrid, spec: Spec, x_lo, x_hi, angle_dims=()):
 # Sampling
 # ----------------------------------------------------------------------------------------------
 
+def _crn_pairs(s, j: int, h: float, n_pairs: int, runs: int, rng: np.random.Generator):
+    """Start states and inputs (2 B, n), (2 B, m), B = n_pairs runs: the pairs' first ends (x, u
+    uniform in X x U, runs times each) and then their second ends (x + h e_j, the same u)."""
+    lo, hi = s.x_lo.copy(), s.x_hi.copy()
+    hi[j] -= h
+    x = lo + rng.random((n_pairs, s.n)) * (hi - lo)
+    x2 = x.copy()
+    x2[:, j] += h
+    u = s.inputs[rng.integers(0, len(s.inputs), n_pairs)]
+    return np.repeat(np.concatenate([x, x2]), runs, axis=0), np.repeat(np.concatenate([u, u]), runs, axis=0)
+
+
 def trajectory_lipschitz(sim, hold: int, h: np.ndarray, rng: np.random.Generator, n_pairs: int = 300,
                          runs: int = 20, dims=None) -> tuple[np.ndarray, dict]:
     """Per-coordinate constants L (n, n) of the k-period trajectory map, common random numbers.
@@ -254,14 +266,7 @@ def trajectory_lipschitz(sim, hold: int, h: np.ndarray, rng: np.random.Generator
     how = {}
     B = n_pairs * runs
     for j in range(n) if dims is None else dims:
-        lo, hi = s.x_lo.copy(), s.x_hi.copy()
-        hi[j] -= h[j]
-        x = lo + rng.random((n_pairs, n)) * (hi - lo)
-        x2 = x.copy()
-        x2[:, j] += h[j]
-        u = s.inputs[rng.integers(0, len(s.inputs), n_pairs)]
-        X = np.repeat(np.concatenate([x, x2]), runs, axis=0)
-        U = np.repeat(np.concatenate([u, u]), runs, axis=0)
+        X, U = _crn_pairs(s, j, h[j], n_pairs, runs, rng)
         slope = np.zeros((B, n))
         for _ in range(hold):
             noise = {k: np.concatenate([v, v]) for k, v in sim.draw_noise(B, rng).items()}
@@ -322,14 +327,7 @@ def residual_lipschitz(sim, hold: int, h: np.ndarray, rng: np.random.Generator, 
     how = {}
     B = n_pairs * runs
     for j in range(n):
-        lo, hi = s.x_lo.copy(), s.x_hi.copy()
-        hi[j] -= h[j]
-        x = lo + rng.random((n_pairs, n)) * (hi - lo)
-        x2 = x.copy()
-        x2[:, j] += h[j]
-        u = s.inputs[rng.integers(0, len(s.inputs), n_pairs)]
-        X = np.repeat(np.concatenate([x, x2]), runs, axis=0)
-        U = np.repeat(np.concatenate([u, u]), runs, axis=0)
+        X, U = _crn_pairs(s, j, h[j], n_pairs, runs, rng)
         Xn = X.copy()
         sl_n, sl_r = np.zeros((B, n)), np.zeros((B, n))
         for _ in range(hold):

@@ -219,3 +219,38 @@ def test_share_is_checked():
         IMDPOptions(eta=[0.1], share=[2, 2]).validate(1)
     with pytest.raises(SimgapError, match="lipschitz"):
         IMDPOptions(eta=[0.1], share=2, lipschitz=-1.0).validate(1)
+
+
+@pytest.mark.parametrize("share", [20, None])
+def test_rows_hold_every_true_successor(share):
+    """The construction as wired in build_imdp (shared runs, and per cell): on a noise-free walk whose simulator pushes
+    outward (x += 0.6 x dt, not in the nominal model), the true k-period run from every sampled x of
+    every cell ends in a successor its row admits (hi > 0), unless the row sends every run to the
+    sink (count N: the widened boxes were unsafe or left the support); a run that leaves the safe set
+    needs that. Fails if the runs are not shifted to the cell, or widened without the residual's
+    |x_c - x_s| term (both checked)."""
+    sim = NumpySimulator(SimulatorConfig("numpy", "walk", effects={"linear": [[0.6]]}), system=WALK)
+    k = 5
+    im = build_imdp(sim, SPEC, IMDPOptions(eta=[0.02], hold=k, n_runs=10, pilot_runs=10, seed=1, share=share))
+    C, M = im.C, im.M
+    rows = np.repeat(np.arange(C * M), np.diff(im.row_ptr))
+    succ = (im.col < C) & (im.hi > 0)
+    admitted = rows[succ] * (C + 1) + im.col[succ]
+    all_sink = np.zeros(C * M, dtype=bool)
+    all_sink[rows[(im.col == C) & (im.k_hi == 10)]] = True
+    cells = np.flatnonzero(im.live)
+    S = 50
+    rng = np.random.default_rng(2)
+    c = np.repeat(cells, M * S)
+    a = np.tile(np.repeat(np.arange(M), S), cells.size)
+    x = im.grid.points(c) + rng.uniform(-0.01, 0.01, (c.size, 1))
+    left = np.zeros(c.size, dtype=bool)
+    for _ in range(k):
+        x = sim.step(x, WALK.inputs[a], rng)
+        left |= SPEC.violated(x, WALK.x_lo, WALK.x_hi)
+    end = im.grid.x_to_ids(x)
+    col = np.where(left | (end < 0) | ~(im.live | im.target)[np.maximum(end, 0)], C, end)
+    r = c * M + a
+    ok = all_sink[r] | ((col < C) & np.isin(r * (C + 1) + col, admitted))
+    assert ok.all(), f"{int((~ok).sum())} of {ok.size} true runs not admitted"
+    assert not all_sink[r].all()                 # not vacuous: most rows have real successors

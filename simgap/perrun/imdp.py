@@ -387,6 +387,7 @@ class IMDPOptions:
     eta : cell widths (state units); hold : k periods per abstract step; n_runs : N main runs per
     (cell, input); pilot_runs : N0 support runs; beta : failure probability of all intervals;
     lipschitz : (n, n) per-coordinate L_ij of the k-period map (None: estimated, see trajectory_lipschitz);
+    with ``share``, the pair (Ln, Lr) of the nominal map and the residual (see residual_lipschitz);
     split : shares of beta for the (sink, lo, hi) bound families, summing to <= 1 (see :class:`Allocation`);
     share : cells per block along each dimension (an int or one per dimension) whose cells share the
     runs of one anchor cell, shifted by the nominal model and widened by the residual's Lipschitz

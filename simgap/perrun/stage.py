@@ -145,7 +145,6 @@ def run_stage(exp, out: Path, data, controllers: Dict[str, object], spec, x0, o:
     ``sim``: the experiment's stochastic simulator (default: built from the experiment).
     ``progress(name, unit)``, if given, returns an ``on_progress(done, total)`` callback for the
     interval-MDP sampling ("pairs") and for each controller's rollouts ("periods")."""
-    bar = (lambda name, unit: progress(name, unit)) if progress else (lambda name, unit: None)
     import contextlib
 
     from ..simulators import make_simulator
@@ -155,6 +154,7 @@ def run_stage(exp, out: Path, data, controllers: Dict[str, object], spec, x0, o:
     from .validation import sample_in_cells
     from .value_iteration import synthesize_imdp
 
+    bar = progress or (lambda name, unit: None)
     system = exp.system
     H, n = int(o["horizon"]), system.n
     rng = np.random.default_rng([int(o["seed"]), 3])

@@ -94,8 +94,8 @@ def build_imdp_translation(sim, spec: Spec, options: IMDPOptions, invariant: Seq
     us = s.inputs[np.arange(P) % M]
     done = [0]
 
-    def tick(by: int = 1):
-        done[0] += by
+    def tick():
+        done[0] += 1
         if on_progress:
             on_progress(done[0], 2 * k + P)
 

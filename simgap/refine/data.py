@@ -3,12 +3,15 @@
 Accepted inputs (see :func:`load_transitions`):
 
 * ``.npz`` with arrays ``x`` (K,n), ``u`` (K,m), ``x_next`` (K,n) and scalar ``tau`` [s];
-  optional ``t`` (K,) time stamps [s]. When ``t`` is present the rows are a time series and
-  held-out data are contiguous time segments (neighbouring samples are correlated).
+  optional ``t`` (K,) time stamps [s] and ``episode`` (K,) integer episode ids. When ``t`` is
+  present the rows are a time series and held-out data are contiguous time segments
+  (neighbouring samples are correlated). Several episodes whose clocks each start at 0 are kept
+  apart (:func:`time_order`): by ``episode`` when given, otherwise as the runs of rows in file
+  order along which ``t`` increases.
 * ``.csv`` (comma separated, one header line) or ``.parquet`` with named columns: for each
   state ``i = 1..n`` a column ``x{i}`` (or the system's state name, e.g. ``theta``) and
   ``x{i}_next`` (or ``theta_next``), for each input ``u{j}`` (or its name, e.g. ``torque``),
-  a column ``tau`` (constant) and optionally ``t``.
+  a column ``tau`` (constant) and optionally ``t`` and ``episode``.
 * A collected simgap data set (``.npz`` written by :meth:`simgap.dataset.Dataset.save_npz` or a
   store directory): one transition per (x_r, u) row with x_next = the empirical mean of the
   N1hat simulator runs, tau = the system's sampling time. Rows are independent.
@@ -41,6 +44,9 @@ class Transitions:
         Time between x and x_next [s].
     t : (K,) array or None
         Time stamps [s] for a time series (contiguous hold-out), None for independent rows.
+    episode : (K,) int array or None
+        Episode id of each row (time series of several episodes); None: inferred by
+        :func:`time_order`.
     source : str
         Where the data came from (file name, "dataset", ...).
     n_dropped : int
@@ -57,6 +63,7 @@ class Transitions:
     source: str = ""
     n_dropped: int = 0
     meta: dict = field(default_factory=dict)
+    episode: Optional[np.ndarray] = None
 
     @property
     def K(self) -> int:
@@ -74,29 +81,65 @@ class Transitions:
                   "meta": np.array(json.dumps(self.meta))}
         if self.t is not None:
             arrays["t"] = self.t
+        if self.episode is not None:
+            arrays["episode"] = self.episode
         np.savez(tmp, **arrays)
         tmp.replace(path)
         return path
 
 
+def episodes(data: Transitions) -> Optional[np.ndarray]:
+    """Episode id (K,) of each row of a time series (None for independent rows).
+
+    ``data.episode`` when given. Otherwise one clock is assumed unless the time stamps repeat:
+    rows in file order with non-decreasing ``t``, or (shuffled rows) ``t`` without repeats, are one
+    episode; with repeated time stamps (several episodes whose clocks each start at 0) an episode is
+    a run of rows in file order along which ``t`` increases, and a new one starts where it does not.
+    """
+    if data.t is None:
+        return None
+    if data.episode is not None:
+        return np.asarray(data.episode)
+    t = data.t
+    dt = np.diff(t)
+    if np.all(dt >= 0) or np.unique(t).size == t.size:
+        return np.zeros(t.size, dtype=np.int64)
+    return np.concatenate([[0], np.cumsum(dt <= 0)]).astype(np.int64)
+
+
+def time_order(data: Transitions) -> Optional[np.ndarray]:
+    """Row indices in time order, episode by episode (:func:`episodes`); None for independent rows.
+
+    Every function that looks along time (history, contiguous hold-out, multi-step predictions,
+    time-chunked noise floor) walks the rows in this order, so rows of different episodes with the
+    same time stamps never become each other's neighbours.
+    """
+    ep = episodes(data)
+    if ep is None:
+        return None
+    return np.lexsort((data.t, ep))
+
+
 def history(data: Transitions, lags: int) -> tuple:
     """Lagged values of a time series: (hist (K, lags (n + m)), valid (K,) bool).
 
-    Row k's history is [x_{k-1}, u_{k-1}, x_{k-2}, u_{k-2}, ...]: the rows before it in time order,
-    as long as they continue one trajectory (x_next of the earlier row is the later row's x, and
-    the time step is tau). ``valid`` is False where fewer than ``lags`` such rows exist (the
-    start of each record segment); those rows hold NaN. Independent rows have no history.
+    Row k's history is [x_{k-1}, u_{k-1}, x_{k-2}, u_{k-2}, ...]: the rows before it in time order
+    (:func:`time_order`, episodes apart), as long as they continue one trajectory (x_next of the
+    earlier row is the later row's x, and the time step is tau). ``valid`` is False where fewer than
+    ``lags`` such rows exist (the start of each record segment); those rows hold NaN. Independent
+    rows have no history.
     """
     K, w = data.K, data.x.shape[1] + data.u.shape[1]
     hist = np.full((K, lags * w), np.nan)
     valid = np.zeros(K, dtype=bool)
     if data.t is None or lags < 1:
         return hist, valid if lags >= 1 else np.ones(K, dtype=bool)
-    order = np.argsort(data.t, kind="stable")
+    order = time_order(data)
+    ep = episodes(data)[order]
     x, u, xn, t = data.x[order], data.u[order], data.x_next[order], data.t[order]
     cont = np.zeros(K, dtype=bool)            # row j continues from row j - 1
     cont[1:] = np.all(np.isclose(xn[:-1], x[1:], rtol=0, atol=1e-9 * (1 + np.abs(x[1:]))), axis=1) \
-        & np.isclose(np.diff(t), data.tau, rtol=1e-3, atol=0)
+        & np.isclose(np.diff(t), data.tau, rtol=1e-3, atol=0) & (ep[1:] == ep[:-1])
     z = np.concatenate([x, u], axis=1)
     idx = np.arange(K)
     run = idx - np.maximum.accumulate(np.where(cont, 0, idx))     # continuing rows before j
@@ -111,18 +154,20 @@ def history(data: Transitions, lags: int) -> tuple:
 
 def subset(data: Transitions, rows: np.ndarray) -> Transitions:
     """The transitions of ``rows`` (a boolean mask or indices), provenance kept."""
+    ep = episodes(data)            # made explicit: a subset may no longer show where episodes start
     return Transitions(x=data.x[rows], u=data.u[rows], x_next=data.x_next[rows], tau=data.tau,
                        t=None if data.t is None else data.t[rows], source=data.source,
-                       n_dropped=data.n_dropped, meta=dict(data.meta))
+                       n_dropped=data.n_dropped, meta=dict(data.meta),
+                       episode=None if ep is None else ep[rows])
 
 
 def make_transitions(x, u, x_next, tau, t=None, *, system: Optional[System] = None,
-                     drop_nonfinite: bool = False, source: str = "", meta: Optional[dict] = None
-                     ) -> Transitions:
+                     drop_nonfinite: bool = False, source: str = "", meta: Optional[dict] = None,
+                     episode=None) -> Transitions:
     """Validate arrays and build :class:`Transitions`.
 
-    Checks shapes (x and x_next (K,n), u (K,m), t (K,)), that tau is a finite positive scalar,
-    that the dimensions match ``system`` when given, and counts rows with NaN/inf in any of
+    Checks shapes (x and x_next (K,n), u (K,m), t (K,), episode (K,) integers, only with t), that
+    tau is a finite positive scalar, that the dimensions match ``system`` when given, and counts rows with NaN/inf in any of
     x, u, x_next (and t): refused with a SimgapError unless ``drop_nonfinite``.
     """
     x = np.asarray(x, dtype=float)
@@ -159,6 +204,13 @@ def make_transitions(x, u, x_next, tau, t=None, *, system: Optional[System] = No
         if t.shape[0] != K:
             raise SimgapError(f"transitions: t has {t.shape[0]} entries for {K} rows")
         cols.append(t[:, None])
+    if episode is not None:
+        if t is None:
+            raise SimgapError("transitions: episode ids need time stamps t")
+        ep = np.asarray(episode, dtype=float).reshape(-1)
+        if ep.shape[0] != K or not np.all(np.isfinite(ep)) or np.any(ep != np.round(ep)):
+            raise SimgapError(f"transitions: episode must hold {K} integer ids, one per row")
+        episode = ep.astype(np.int64)
     bad = ~np.all(np.isfinite(np.concatenate(cols, axis=1)), axis=1)
     n_bad = int(bad.sum())
     if n_bad:
@@ -168,10 +220,11 @@ def make_transitions(x, u, x_next, tau, t=None, *, system: Optional[System] = No
         keep = ~bad
         x, u, x_next = x[keep], u[keep], x_next[keep]
         t = t[keep] if t is not None else None
+        episode = episode[keep] if episode is not None else None
     if x.shape[0] == 0:
         raise SimgapError("transitions: no rows")
     return Transitions(x=x, u=u, x_next=x_next, tau=tau, t=t, source=source, n_dropped=n_bad,
-                       meta=dict(meta or {}))
+                       meta=dict(meta or {}), episode=episode)
 
 
 def from_dataset(ds) -> Transitions:
@@ -208,7 +261,8 @@ def _columns_lookup(cols: dict, system: Optional[System], path: str):
     if finite.size == 0 or np.ptp(finite) > 1e-12 * max(1.0, abs(finite[0])):
         raise SimgapError(f"{path}: column tau must hold one constant value")
     t = np.asarray(cols["t"], dtype=float) if "t" in cols else None
-    return x, u, xn, float(finite[0]), t
+    ep = np.asarray(cols["episode"], dtype=float) if "episode" in cols else None
+    return x, u, xn, float(finite[0]), t, ep
 
 
 def _load_collected(path: Path, system: Optional[System]):
@@ -249,6 +303,7 @@ def load_transitions(path: str | Path, system: Optional[System] = None,
                                           f"(found: {sorted(keys)})")
                     arr = {k: z[k] for k in ("x", "u", "x_next", "tau")}
                     t = z["t"] if "t" in keys else None
+                    ep = z["episode"] if "episode" in keys else None
                     meta = json.loads(str(z["meta"])) if "meta" in keys else {}
         except BAD_FILE_ERRORS as e:
             if isinstance(e, SimgapError):
@@ -257,7 +312,7 @@ def load_transitions(path: str | Path, system: Optional[System] = None,
         if is_dataset:
             return _load_collected(path, system)
         return make_transitions(arr["x"], arr["u"], arr["x_next"], arr["tau"], t, system=system,
-                                drop_nonfinite=drop_nonfinite, source=str(path), meta=meta)
+                                drop_nonfinite=drop_nonfinite, source=str(path), meta=meta, episode=ep)
     if suffix == ".csv":
         try:
             with open(path, newline="") as fh:
@@ -282,6 +337,6 @@ def load_transitions(path: str | Path, system: Optional[System] = None,
     else:
         raise SimgapError(f"{path}: unknown data format {suffix!r}; use .npz, .csv, .parquet "
                           f"or a collected data set")
-    x, u, xn, tau, t = _columns_lookup(cols, system, str(path))
+    x, u, xn, tau, t, ep = _columns_lookup(cols, system, str(path))
     return make_transitions(x, u, xn, tau, t, system=system, drop_nonfinite=drop_nonfinite,
-                            source=str(path))
+                            source=str(path), episode=ep)

@@ -33,7 +33,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from ..systems import System
-from .data import Transitions, history, subset
+from .data import Transitions, episodes, history, subset, time_order
 from ..errors import SimgapError
 from .effects import (Effect, candidate_effects, coefficient_units, integration_effect, physical,
                       velocity_dims)
@@ -78,6 +78,8 @@ def refine(system, data: Transitions, effects: Optional[Sequence[str]] = None,
     opts = options or SelectionOptions()
     sysobj = match_tau(load_system(system), data.tau)
     rng = np.random.default_rng(opts.seed)
+    if data.is_time_series:           # rows in time order, episode by episode: blocks, segments, lags
+        data = subset(data, time_order(data))
     data, hist, lags, hist_info = _with_history(data, opts.max_lag)
     if effects is not None and "input_delay" in effects and not lags:
         raise SimgapError(f"input_delay needs time-ordered data (time stamps t and x_next equal to the next "
@@ -89,13 +91,14 @@ def refine(system, data: Transitions, effects: Optional[Sequence[str]] = None,
                              "the data carry no time order (transitions with time stamps t)"))
     before = residuals(sysobj, data)
     cands = candidate_effects(sysobj, effects, user_terms, max_lag=lags)
-    held = split_heldout(data.K, data.t, opts)
+    torder = time_order(data)
+    held = split_heldout(data.K, data.t, opts, torder)
     # the structure test also sees the lagged inputs, so an unnamed delay still shows as structure
     w = sysobj.n + sysobj.m
     lagged_u = [hist[:, d * w + sysobj.n: (d + 1) * w] for d in range(lags)]
     V = np.concatenate([data.x, data.u] + lagged_u, axis=1)
     angle_cols = np.concatenate([sysobj.angle_mask, np.zeros(V.shape[1] - sysobj.n, dtype=bool)])
-    probe = Probe(V, angle_cols, held, data.t, rng)
+    probe = Probe(V, angle_cols, held, torder, rng)
     # velocity states first: the integration term of a position uses the refined velocity update
     vd = velocity_dims(sysobj)
     order = list(vd) + [i for i in range(sysobj.n) if i not in vd]
@@ -266,11 +269,13 @@ def multistep_rms(system: System, data: Transitions, held: np.ndarray, k: int,
     if data.t is None:
         return None
     K = data.K
-    order = np.argsort(data.t, kind="stable")
+    order = time_order(data)
+    ep = episodes(data)[order]
     x, u, xn, h = data.x[order], data.u[order], data.x_next[order], held[order]
-    # a step j -> j+1 continues the trajectory when x_next[j] is x[j+1]
+    # a step j -> j+1 continues the trajectory when x_next[j] is x[j+1] (within one episode)
     cont = np.zeros(K, dtype=bool)
-    cont[:-1] = np.all(np.isclose(xn[:-1], x[1:], rtol=0, atol=1e-12 * (1 + np.abs(x[1:]))), axis=1)
+    cont[:-1] = np.all(np.isclose(xn[:-1], x[1:], rtol=0, atol=1e-12 * (1 + np.abs(x[1:]))), axis=1) \
+        & (ep[:-1] == ep[1:])
     # good[s] = h[s..s+k-1] all True and cont[s..s+k-2] all True (cumulative sums)
     bad = (~h).astype(int)
     brk = (~cont).astype(int)

@@ -91,12 +91,14 @@ class StateFit:
         return 0.0 if self.rss0_heldout <= 0 else self.rss_heldout / self.rss0_heldout
 
 
-def split_heldout(K: int, t: Optional[np.ndarray], opts: SelectionOptions) -> np.ndarray:
+def split_heldout(K: int, t: Optional[np.ndarray], opts: SelectionOptions,
+                  order: Optional[np.ndarray] = None) -> np.ndarray:
     """Boolean mask of held-out samples.
 
     Independent rows: a seeded random ``holdout`` fraction. Time series (``t`` given): order by
-    time, cut into ``n_segments`` equal chunks and hold out the last ``holdout`` part of each,
-    so held-out data are contiguous segments spread over the record.
+    time (``order``, the rows in time order episode by episode, default argsort of t), cut into
+    ``n_segments`` equal chunks and hold out the last ``holdout`` part of each, so held-out data
+    are contiguous segments spread over the record.
     """
     if not 0.05 <= opts.holdout <= 0.8:
         raise SimgapError(f"holdout fraction must be in [0.05, 0.8], got {opts.holdout}")
@@ -105,7 +107,8 @@ def split_heldout(K: int, t: Optional[np.ndarray], opts: SelectionOptions) -> np
         rng = np.random.default_rng(opts.seed)
         mask[rng.permutation(K)[: int(round(opts.holdout * K))]] = True
         return mask
-    order = np.argsort(t, kind="stable")
+    if order is None:
+        order = np.argsort(t, kind="stable")
     pos = np.empty(K, dtype=int)
     pos[order] = np.arange(K)
     chunk = np.minimum(pos * opts.n_segments // K, opts.n_segments - 1)

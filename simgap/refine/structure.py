@@ -51,12 +51,13 @@ def features(V: np.ndarray, angle_cols: np.ndarray, train: np.ndarray) -> np.nda
 class Probe:
     """Neighbour structure of the variables, computed once and reused for every state's residual.
 
-    ``held`` marks held-out rows; ``t`` (time series) enables the chunked floor neighbours.
+    ``held`` marks held-out rows; ``order`` (time series: the rows in time order, episode by
+    episode, :func:`simgap.refine.data.time_order`) enables the chunked floor neighbours.
     """
 
-    def __init__(self, V: np.ndarray, angle_cols: np.ndarray, held: np.ndarray, t: Optional[np.ndarray],
+    def __init__(self, V: np.ndarray, angle_cols: np.ndarray, held: np.ndarray, order: Optional[np.ndarray],
                  rng: np.random.Generator):
-        self.held, self.t = held, t
+        self.held, self.order = held, order
         tr = ~held
         self.F = F = features(V, angle_cols, tr)
         self.train_rows = np.flatnonzero(tr)
@@ -78,14 +79,13 @@ class Probe:
         """(rows, their nearest neighbours) for the noise floor (module docstring)."""
         if corr_len not in self._pairs:
             F, K = self.F, self.F.shape[0]
-            if self.t is None or corr_len <= 1:
+            if self.order is None or corr_len <= 1:
                 src = np.sort(self._rng.choice(K, min(2 * MAX_ROWS, K), replace=False))
                 _, idx = cKDTree(F).query(F[src], k=2)
                 self._pairs[corr_len] = (src, idx[:, 1])
             else:
-                order = np.argsort(self.t, kind="stable")
                 cls = np.empty(K, dtype=int)
-                cls[order] = (np.arange(K) // corr_len) % 4
+                cls[self.order] = (np.arange(K) // corr_len) % 4
                 src_all, dst_all = [], []
                 for a in range(4):
                     src, dst = np.flatnonzero(cls == a), np.flatnonzero(cls == (a + 2) % 4)

@@ -46,11 +46,13 @@ def _rows(sysname: str, K: int, rng, extra: Callable, noise: Callable) -> Transi
 
 
 def _series(sysname: str, K: int, rng, extra: Callable, noise: Callable, delay: int = 0,
-            runs: int = 40) -> Transitions:
+            runs: int = 40, lag: float = 0.0) -> Transitions:
     """``runs`` trajectories of K / runs transitions with random held inputs.
 
-    The truth applies the input ``delay`` periods late: x+ = f(x, u[k - delay]) + tau extra + noise.
-    Time stamps continue across runs with a gap, so runs are separate segments of one record.
+    The truth applies the input ``delay`` periods late: x+ = f(x, u[k - delay]) + tau extra + noise,
+    and, with ``lag`` = T_a / tau > 0, through a first-order actuator a+ = a + (u - a) / lag (the
+    acting input a starts at the first command). Time stamps continue across runs with a gap, so
+    runs are separate segments of one record.
     """
     s = get_system(sysname)
     T = K // runs
@@ -60,10 +62,16 @@ def _series(sysname: str, K: int, rng, extra: Callable, noise: Callable, delay: 
     for k in range(1, T + delay):
         idx[:, k] = np.where(hold[:, k], idx[:, k - 1], idx[:, k])
     useq = U[idx]                                          # (runs, T + delay, m)
+    if lag > 0:
+        act = useq.copy()
+        for k in range(1, T + delay):
+            act[:, k] = act[:, k - 1] + (useq[:, k - 1] - act[:, k - 1]) / lag
+    else:
+        act = useq
     x = s.x_lo + (0.25 + 0.5 * rng.random((runs, s.n))) * (s.x_hi - s.x_lo)
     X, Uk, XN = [], [], []
     for k in range(T):
-        u_now, u_act = useq[:, k + delay], useq[:, k]
+        u_now, u_act = useq[:, k + delay], act[:, k]
         xn = s.f(x, u_act) + s.tau * extra(x, u_now) + noise(x, u_now, rng)
         X.append(x), Uk.append(u_now), XN.append(xn)
         x = xn
@@ -135,6 +143,13 @@ CASES = {
                    expect={"delay": 1}, shape="input delay 1 period"),
     "delay2": dict(system="pendulum", kind="series", delay=2, extra=_zero, std=1e-4,
                    expect={"delay": 2}, shape="input delay 2 periods"),
+    # memory outside the library: a first-order actuator lag of 5 periods
+    "actuator_lag": dict(system="pendulum", kind="series", lag=5.0, extra=_zero, std=1e-4,
+                         expect={"flag": "omega"}, shape="outside: first-order actuator lag (5 periods)"),
+    # an input saturation at |u| = 0.6: a dead zone would need a negative width
+    "saturation": dict(system="pendulum", kind="rows",
+                       extra=_on(1, lambda x, u: -_pend_B() * (u[:, 0] - np.clip(u[:, 0], -0.6, 0.6))),
+                       std=1e-4, expect={"flag": "omega"}, shape="outside: input saturation at |u| = 0.6"),
     # noise only
     "noise": dict(system="pendulum", kind="rows", extra=_zero, std=1e-3, expect={"effects": []},
                   shape="pure noise"),
@@ -155,7 +170,7 @@ def make_case(name: str, K: int = 20000, seed: int = 0) -> Case:
     if c["kind"] == "rows":
         data = _rows(c["system"], K, rng, c["extra"], noise)
     else:
-        data = _series(c["system"], K, rng, c["extra"], noise, delay=c.get("delay", 0))
+        data = _series(c["system"], K, rng, c["extra"], noise, delay=c.get("delay", 0), lag=c.get("lag", 0.0))
     return Case(name=name, system=c["system"], data=data, expect=c["expect"], truth=c.get("truth", {}),
                 shape=c.get("shape", ""))
 

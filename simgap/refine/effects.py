@@ -438,3 +438,103 @@ def physical(system: System, e: Effect, coef: float, stderr: float) -> Optional[
         return None
     q, unit = table[e.name]
     return {"quantity": q, "value": I * coef, "stderr": I * stderr, "unit": unit}
+
+
+# ---------------------------------------------------------------------------------------
+# physical signs
+# ---------------------------------------------------------------------------------------
+
+FRICTION = ("viscous_friction", "coulomb_friction", "drag")
+#: bounds on a coefficient (lo, hi, what it means) where the truth may sit at the bound itself:
+#: refused only beyond two standard errors
+SOFT_BOUNDS = {"input_gain": (-1.0, np.inf, "an effective input gain 1 + c <= 0 (the input would act backwards)"),
+               "gravity": (-1.0, np.inf, "a drift term reversed (1 + c < 0)"),
+               "input_delay": (-np.inf, 1.0, "more than the whole input delayed (fraction > 1)")}
+
+
+def _nominal_friction(system: System, v: int, count: int = 512) -> np.ndarray:
+    """The model's own friction in the library's shapes: (a_visc, a_coul, a_drag) of velocity x_v.
+
+    Least squares of the velocity-dependent part of its update rate, rate_v(x, u) - rate_v(x|v=0, u),
+    on (v, sign v, v|v|) over random samples of X x U (zero for a model without friction).
+    """
+    x, u = _sample_domain(system, count, seed=2)
+    x0 = x.copy()
+    x0[:, v] = 0.0
+    g = _rate(system, v)
+    d = g(x, u) - g(x0, u)
+    w = x[:, v]
+    A = np.stack([w, np.sign(w), w * np.abs(w)], axis=1)
+    a = np.linalg.lstsq(A, d, rcond=None)[0]
+    scale = np.sqrt(np.mean(d ** 2)) + np.sqrt(np.mean(g(x, u) ** 2))
+    return np.where(np.abs(a) * np.sqrt(np.mean(A ** 2, axis=0)) > 1e-9 * max(scale, 1e-300), a, 0.0)
+
+
+def sign_check(system: System, effects: Sequence[Effect], x: np.ndarray) -> Callable:
+    """A check of physical signs for the candidates ``effects`` of one state on data states ``x``.
+
+    Returns ``check(keys, coef, se) -> None | (key, reason, beyond)``: the first selected term
+    whose coefficient is impossible, why, and whether it is impossible beyond two standard
+    errors (``beyond``: the state is then flagged; a term merely on the wrong side of zero is
+    refused without a flag). Rules:
+
+    * friction (viscous, Coulomb, drag on velocity v, together with the model's own friction in
+      those shapes, :func:`_nominal_friction`) must dissipate: phi(v) v <= 0 for every v in the
+      data's range, phi = total friction rate; otherwise the term adding most power at the worst
+      v is refused ("would inject energy");
+    * deadband: width w = -c >= 0;
+    * input_delay: fraction c >= 0 (and <= 1 within two standard errors);
+    * input_gain: 1 + c > 0, gravity: 1 + c >= 0 (within two standard errors).
+    """
+    by_key = {e.key(system): e for e in effects}
+    vgrid = {}
+    nominal = {}
+    for e in effects:
+        if e.name in FRICTION and e.state not in vgrid:
+            v = system.state_names.index(e.variable)
+            vmax = float(np.max(np.abs(x[:, v]))) if x.size else 0.0
+            vgrid[e.state] = np.linspace(-vmax, vmax, 401)
+            nominal[e.state] = _nominal_friction(system, v)
+
+    def shapes(w):
+        return {"viscous_friction": w, "coulomb_friction": np.sign(w), "drag": w * np.abs(w)}
+
+    def check(keys, coef, se):
+        se = np.where(np.isfinite(se), se, 0.0)
+        for k, c, s in zip(keys, coef, se):
+            e = by_key.get(k)
+            if e is None:
+                continue
+            if e.name == "deadband" and c > 0:
+                return k, (f"a dead zone of negative width w = {-c:.4g} {coefficient_units(system, e)} "
+                           f"(a saturation or a gain that falls with the input reads this way)"), bool(c > 2 * s)
+            if e.name == "input_delay" and c < 0:
+                return k, f"a negative fraction delayed ({c:.4g})", bool(c < -2 * s)
+            if e.name in SOFT_BOUNDS:
+                lo, hi, what = SOFT_BOUNDS[e.name]
+                if c < lo - 2 * s or c > hi + 2 * s:
+                    return k, f"{what}: c = {c:.4g} +- {s:.2g}", True
+        for st, w in vgrid.items():
+            terms = [(k, c, s) for k, c, s in zip(keys, coef, se)
+                     if k in by_key and by_key[k].name in FRICTION and by_key[k].state == st]
+            if not terms:
+                continue
+            shp = shapes(w)
+            a = nominal[st]
+            phi = a[0] * shp["viscous_friction"] + a[1] * shp["coulomb_friction"] + a[2] * shp["drag"]
+            contrib = {k: c * shp[by_key[k].name] for k, c, _ in terms}
+            power = (phi + sum(contrib.values())) * w
+            scale = float(np.max(np.abs(phi * w)) + sum(np.max(np.abs(g * w)) for g in contrib.values()))
+            if np.max(power) <= 1e-9 * scale:
+                continue
+            at = int(np.argmax(power))
+            k = max(contrib, key=lambda k: contrib[k][at] * w[at])
+            c, s = [(c, s) for kk, c, s in terms if kk == k][0]
+            # still injecting energy with this term 2 standard errors towards zero?
+            shrunk = c - np.sign(c) * min(abs(c), 2 * s)
+            power2 = power - (c - shrunk) * shp[by_key[k].name] * w
+            return k, (f"{k} = {c:.4g} would inject energy: the total friction force pushes along the "
+                       f"motion at v = {w[at]:.4g} (phi(v) v = {power[at]:.3g} > 0)"), bool(np.max(power2) > 1e-9 * scale)
+        return None
+
+    return check

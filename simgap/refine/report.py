@@ -15,6 +15,9 @@ transition data, and returns a :class:`RefineResult` whose ``report`` is the JSO
   the measured inputs from held-out states, for f and f';
 * ``withdrawn``: effects the multi-step gate removed (f' predicted ``gate_steps`` steps ahead
   worse than f on held-out data), each with the reason; their states are flagged unexplained;
+* ``refused``: selected terms with an impossible sign (friction that injects energy, a dead zone of
+  negative width, a negative fraction delayed, ...), each with the reason; selection ran again
+  without them, and a term impossible beyond two standard errors flags its state;
 * ``history``: lags used (time series: ``input_delay`` candidates and lagged user terms);
   history effects are reported (``in_refined_system`` false) and counted in rms_after and the
   multi-step errors, but a memoryless f' cannot hold them;
@@ -36,7 +39,7 @@ from ..systems import System
 from .data import Transitions, episodes, history, subset, time_order
 from ..errors import SimgapError
 from .effects import (Effect, candidate_effects, coefficient_units, integration_effect, physical,
-                      velocity_dims)
+                      sign_check, velocity_dims)
 from .refined import build_refined, load_system, refined_system
 from .residual import Residuals, match_tau, residuals
 from .selection import SelectionOptions, StateFit, select_state, split_heldout
@@ -116,7 +119,7 @@ def refine(system, data: Transitions, effects: Optional[Sequence[str]] = None,
             raise SimgapError(f"candidate terms {bad} are not finite on the data")
         y = before.r[:, i] / data.tau
         fit = select_state(y, Theta, [e.key(sysobj) for e in ci], held, probe, i,
-                           data.is_time_series, opts, rng)
+                           data.is_time_series, opts, rng, sign_check(sysobj, ci, data.x))
         fits[i] = fit
         for k, j in enumerate(fit.selected):
             chosen.append((ci[j], float(fit.coef[k]), float(fit.stderr[k]), float(fit.explained[k]),
@@ -363,6 +366,7 @@ def _report(s: System, refined: System, data: Transitions, held, fits: Sequence[
         "states": states,
         "multistep": multistep,
         "withdrawn": withdrawn,
+        "refused": [dict(r, state=int(f.state), state_name=s.state_names[f.state]) for f in fits for r in f.refused],
         "history": hist_info,
         "options": {"holdout": opts.holdout, "n_segments": opts.n_segments,
                     "min_explained": opts.min_explained, "n_boot": opts.n_boot,
@@ -397,6 +401,8 @@ def format_table(report: dict) -> str:
                          f"{100 * e['explained_fraction']:>8.1f}%  {phs}")
     else:
         lines.append("no effect selected")
+    for r in report.get("refused", []):
+        lines.append(f"refused {r['key']} (coefficient {r['coefficient']:.4g}): {r['reason']}")
     for w in report.get("withdrawn", []):
         lines.append(f"withdrawn {w['key']} (coefficient {w['coefficient']:.4g}): {w['reason']}")
     hist = report.get("history", {})

@@ -81,6 +81,7 @@ class StateFit:
     unexplained_fraction: float = 0.0   # remaining variance above the floor / nominal
     lag1_autocorr: Optional[float] = None
     notes: list = field(default_factory=list)
+    refused: list = field(default_factory=list)     # terms with impossible signs: {key, coefficient, reason, flagged}
 
     @property
     def explained_total(self) -> float:
@@ -269,11 +270,13 @@ def misfit_stderr(Z: np.ndarray, y: np.ndarray, F: np.ndarray, se_stat: np.ndarr
 
 def select_state(y: np.ndarray, Theta: np.ndarray, keys: list, held: np.ndarray,
                  probe: Probe, state: int, time_series: bool, opts: SelectionOptions,
-                 rng: np.random.Generator) -> StateFit:
+                 rng: np.random.Generator, check=None) -> StateFit:
     """Select effects for one state: y (K,) residual rate, Theta (K, p) candidate terms.
 
     ``probe`` holds the variables' neighbour structure for the structure test (built on the same
-    ``held`` mask).
+    ``held`` mask). ``check(keys, coef, se)`` (:func:`simgap.refine.effects.sign_check`) names a
+    selected term with an impossible coefficient; it is refused (``StateFit.refused``) and the
+    selection repeated without it; one impossible beyond two standard errors flags the state.
     Returns coefficients in the units of y per unit of each term (see module docstring).
     """
     K, p = Theta.shape
@@ -293,7 +296,7 @@ def select_state(y: np.ndarray, Theta: np.ndarray, keys: list, held: np.ndarray,
     if len(cols) < p:
         all_keys = keys
         fit = select_state(y, Theta[:, cols], [keys[j] for j in cols], held, probe, state, time_series,
-                           opts, rng)
+                           opts, rng, check)
         fit.selected = [cols[j] for j in fit.selected]
         fit.candidate_keys = all_keys
         fit.notes = dropped + fit.notes
@@ -311,22 +314,6 @@ def select_state(y: np.ndarray, Theta: np.ndarray, keys: list, held: np.ndarray,
     def rss_h(S):
         return _rss(rss0_h, Gh, bh, S, _solve(Gt, bt, S))
 
-    # 3. forward selection then backward elimination by BIC on train
-    S: list = []
-    best = bic(S)
-    while len(S) < p:
-        trials = [(bic(S + [j]), j) for j in range(p) if j not in S]
-        val, j = min(trials)
-        if val >= best:
-            break
-        S, best = S + [j], val
-    changed = True
-    while changed and S:
-        changed = False
-        trials = [(bic([k for k in S if k != j]), j) for j in S]
-        val, j = min(trials)
-        if val < best:
-            S, best, changed = [k for k in S if k != j], val, True
     # 4. held-out pruning: drop the weakest term while it explains too little or not significantly
     #    (paired test on the per-sample held-out loss differences, block means for a time series)
     blk = _block_length(yh) if time_series else 1
@@ -341,12 +328,55 @@ def select_state(y: np.ndarray, Theta: np.ndarray, keys: list, held: np.ndarray,
         stat = float(means.mean() / (sd / np.sqrt(means.size))) if sd > 0 else np.inf * np.sign(means.mean())
         return float(dl.sum()), stat
 
-    while S:
-        tests = [(heldout_test(S, [k for k in S if k != j]), j) for j in S]
-        (gain, stat), j = min(tests, key=lambda t: (t[0][1] >= opts.min_z, t[0][0]))
-        if gain >= opts.min_explained * rss0_h and stat >= opts.min_z:
+    def choose(allowed):
+        # 3. forward selection then backward elimination by BIC on train
+        S: list = []
+        best = bic(S)
+        while len(S) < len(allowed):
+            trials = [(bic(S + [j]), j) for j in allowed if j not in S]
+            val, j = min(trials)
+            if val >= best:
+                break
+            S, best = S + [j], val
+        changed = True
+        while changed and S:
+            changed = False
+            trials = [(bic([k for k in S if k != j]), j) for j in S]
+            val, j = min(trials)
+            if val < best:
+                S, best, changed = [k for k in S if k != j], val, True
+        # 4. held-out pruning
+        while S:
+            tests = [(heldout_test(S, [k for k in S if k != j]), j) for j in S]
+            (gain, stat), j = min(tests, key=lambda t: (t[0][1] >= opts.min_z, t[0][0]))
+            if gain >= opts.min_explained * rss0_h and stat >= opts.min_z:
+                break
+            S = [k for k in S if k != j]
+        return S
+
+    # 4b. physical signs: a selected term with an impossible coefficient is refused and selection
+    #     runs again without it (a friction that injects energy is not friction)
+    allowed = list(range(p))
+    S = choose(allowed)
+    refused, flag_refused = [], False
+    while S and check is not None:
+        c = _solve(Gt, bt, S)
+        r = yt - Zt[:, S] @ c
+        s2 = float(r @ r) / max(Kt - len(S), 1) * (_block_length(r) if time_series else 1)
+        try:
+            se_ols = np.sqrt(s2 * np.clip(np.diag(np.linalg.inv(Gt[np.ix_(S, S)])), 0, None)) / scale[S]
+        except np.linalg.LinAlgError:
+            se_ols = np.full(len(S), np.nan)
+        bad = check([keys[j] for j in S], c / scale[S], se_ols)
+        if bad is None:
             break
-        S = [k for k in S if k != j]
+        key, reason, beyond = bad
+        j = keys.index(key)
+        refused.append({"key": key, "coefficient": float(c[S.index(j)] / scale[j]), "reason": reason,
+                        "flagged": bool(beyond)})
+        flag_refused |= bool(beyond)
+        allowed = [a for a in allowed if a != j]
+        S = choose(allowed)
     # 5. coefficients and bootstrap standard errors (original units: divide by the column scale)
     c = _solve(Gt, bt, S)
     coef = c / scale[S] if S else np.zeros(0)
@@ -377,5 +407,8 @@ def select_state(y: np.ndarray, Theta: np.ndarray, keys: list, held: np.ndarray,
                     stderr=np.asarray(se), stderr_statistical=np.asarray(se_stat), stderr_misfit=misfit, explained=np.asarray(expl), rss0_heldout=rss0_h,
                     rss_heldout=rss_after_h, structure_r2=float(r2s), noise_floor_fraction=floor_frac,
                     unexplained_fraction=above,
-                    unexplained=bool(r2s >= opts.structure_threshold and above >= opts.min_unexplained),
-                    lag1_autocorr=lag1)
+                    unexplained=bool((r2s >= opts.structure_threshold and above >= opts.min_unexplained)
+                                     or flag_refused),
+                    lag1_autocorr=lag1, refused=refused,
+                    notes=[f"refused {r['key']} (coefficient {r['coefficient']:.4g}): {r['reason']}"
+                           for r in refused])

@@ -10,7 +10,7 @@ The types and functions a new user needs::
 See docs/synthesis.md.
 """
 
-from .abstraction import Abstraction, ConstantGap, build_abstraction
+from .abstraction import Abstraction, ConstantGap, build_abstraction, state_independent
 from .controller import Controller, SynthesisResult, label_cells, synthesize
 from .games import GameResult, solve_invariance, solve_reach
 from .grid import UniformGrid
@@ -20,5 +20,5 @@ from .spec import Box, Spec
 __all__ = [
     "Abstraction", "Box", "ConstantGap", "Controller", "GameResult", "Spec", "SynthesisResult",
     "UniformGrid", "build_abstraction", "label_cells", "rk4_growth", "rk4_integrate", "rk4_step",
-    "solve_invariance", "solve_reach", "synthesize",
+    "solve_invariance", "solve_reach", "state_independent", "synthesize",
 ]

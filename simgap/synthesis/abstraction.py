@@ -356,20 +356,50 @@ class Abstraction:
         return b
 
 
+def state_independent(growth: GrowthFn) -> GrowthFn:
+    """Declare that ``growth(r, x, u, tau)`` does not depend on x (returns ``growth``, marked).
+
+    :func:`build_abstraction` then evaluates it once per distinct (r, u) instead of once per
+    (cell, input) pair: once per input when the radius is the same for every cell (no gap or a
+    constant gap). :func:`~simgap.synthesis.runge_kutta.rk4_growth` and the system's Jacobian
+    bound are state-independent already. Declaring it for a growth that does depend on x is
+    wrong (the boxes would be those of an arbitrary cell)."""
+    growth.state_independent = True
+    return growth
+
+
 def growth_function(system: System, growth: Optional[GrowthFn]) -> GrowthFn:
-    """The growth bound to use: ``growth`` checked to take (r, x, u, tau), else the system's."""
+    """The growth bound to use: ``growth`` checked to take (r, x, u, tau), else the system's.
+
+    A growth written for the earlier signature ``growth(r, x, u)`` (before tau was passed) is
+    still accepted, with a DeprecationWarning, when tau is the system's base period (steps = 1,
+    the only period such a function can have been written for); at other periods it is refused.
+    """
     if growth is None:
         if system.jacobian_bound is None:
             raise SimgapError(f"system {system.name!r} has no jacobian_bound; pass a growth function")
-        return lambda r, x, u, tau: system.growth_bound(r, u)  # growth_bound uses system.tau
+        return state_independent(lambda r, x, u, tau: system.growth_bound(r, u))  # uses system.tau
     if not callable(growth):
         raise SimgapError("growth must be a callable growth(r, x, u, tau)")
     try:
         inspect.signature(growth).bind(0, 0, 0, 0)
     except TypeError:
-        raise SimgapError("growth must accept (r, x, u, tau): it is called with the sampling period "
-                          f"tau = system.tau ({system.tau:g} s for {system.name!r}), which changes with "
-                          "with_steps(k)") from None
+        try:
+            inspect.signature(growth).bind(0, 0, 0)
+        except TypeError:
+            old = False
+        else:
+            old = system.steps == 1
+        if not old:
+            raise SimgapError("growth must accept (r, x, u, tau): it is called with the sampling period "
+                              f"tau = system.tau ({system.tau:g} s for {system.name!r}), which changes with "
+                              "with_steps(k)") from None
+        import warnings
+        warnings.warn("growth(r, x, u) without tau is deprecated: write growth(r, x, u, tau), tau the sampling "
+                      "period system.tau (it changes with system.with_steps(k))", DeprecationWarning, stacklevel=3)
+        wrapped = lambda r, x, u, tau: growth(r, x, u)  # noqa: E731
+        wrapped.state_independent = getattr(growth, "state_independent", False)
+        return wrapped
     except ValueError:  # builtins without a signature: trust the call
         pass
     return growth
@@ -451,30 +481,48 @@ def build_abstraction(system: System, grid: UniformGrid, *, growth: Optional[Gro
     inv_mask[list(inv)] = True
     dom_lo, dom_hi = grid.domain_lo, grid.domain_hi
 
-    total = K * M
-    for s in range(0, total, block):  # blocks of (class, input) pairs bound the memory
-        idx = np.arange(s, min(total, s + block))
-        k, j = idx // M, idx % M
-        mi = rep_mi(k)
+    # blocks of whole classes, all inputs each (pairs in (class, input) order, as stored)
+    cb = max(1, block // M)
+    j_full = np.tile(np.arange(M), cb)
+    u_full = U[j_full]
+    # radii r_0 .. r_hold per input, when they are the same for every cell: a growth declared
+    # state-independent and a gap that does not depend on the box (one evaluation per input)
+    radii = None
+    if getattr(growth, "state_independent", False) and (gap is None or isinstance(gap, ConstantGap)):
+        radii = [np.broadcast_to(eta / 2 + z, (M, n)).copy()]
+        x_any = np.broadcast_to(grid.first, (M, n)).copy()  # not used by the growth (declared)
+        with np.errstate(all="ignore"):
+            for step in range(hold):
+                g = gap.gamma_upper_box(x_any, x_any, U) if gap is not None else 0.0
+                radii.append(np.asarray(growth(radii[-1], x_any, U, system.tau), dtype=float) + g)
+        radii = [np.tile(rr, (cb, 1)) for rr in radii]
+
+    for s in range(0, K, cb):  # blocks bound the memory
+        e = min(K, s + cb)
+        P = (e - s) * M
+        j, u = j_full[:P], u_full[:P]
+        mi = np.repeat(rep_mi(np.arange(s, e)), M, axis=0)
         x0 = grid.multi_to_points(mi)
-        u = U[j]
-        x = x0.copy()
-        r = np.broadcast_to(eta / 2 + z, x.shape).copy()
+        x = x0
+        r = radii[0][:P] if radii is not None else np.broadcast_to(eta / 2 + z, x.shape).copy()
         disp = np.zeros_like(x)
         if hold > 1:
             mlo = np.full(x.shape, np.inf)
             mhi = np.full(x.shape, -np.inf)
         with np.errstate(all="ignore"):
             for step in range(hold):
-                if gap is not None:
-                    blo, bhi = x - r, x + r
-                    if inv:  # bound gamma over the whole extent of the shared dimensions (sound)
-                        blo[:, inv_mask] = dom_lo[inv_mask]
-                        bhi[:, inv_mask] = dom_hi[inv_mask]
-                    g = gamma_upper_wrapped(gap, blo, bhi, u, grid)
+                if radii is not None:
+                    r_new = radii[step + 1][:P]
                 else:
-                    g = 0.0
-                r_new = np.asarray(growth(r, x, u, system.tau), dtype=float) + g
+                    if gap is not None:
+                        blo, bhi = x - r, x + r
+                        if inv:  # bound gamma over the whole extent of the shared dimensions (sound)
+                            blo[:, inv_mask] = dom_lo[inv_mask]
+                            bhi[:, inv_mask] = dom_hi[inv_mask]
+                        g = gamma_upper_wrapped(gap, blo, bhi, u, grid)
+                    else:
+                        g = 0.0
+                    r_new = np.asarray(growth(r, x, u, system.tau), dtype=float) + g
                 x_new = system.f(x, u)
                 disp = disp + system.diff(x_new, x) if pmask.any() else x_new - x0
                 x, r = x_new, r_new
@@ -482,25 +530,27 @@ def build_abstraction(system: System, grid: UniformGrid, *, growth: Optional[Gro
                     mlo = np.minimum(mlo, disp - r)
                     mhi = np.maximum(mhi, disp + r)
             good = np.all(np.isfinite(x) & np.isfinite(r), axis=1)
-            # SCOTS's formula in absolute coordinates for bounded dims (bit-for-bit parity),
-            # relative displacement for periodic dims (the image may have wrapped)
-            left, right = x - r - z, x + r + z
-            vlo = np.where(pmask, (disp - r - z) / eta + 0.5, (left - grid.first + eta / 2) / eta)
-            vhi = np.where(pmask, (disp + r + z) / eta + 0.5, (right - grid.first + eta / 2) / eta)
-            base = np.where(pmask, 0, mi)
-            lo_i = np.clip(np.floor(np.nan_to_num(vlo)), -_OFF_LIMIT, _OFF_LIMIT) - base
-            hi_i = np.clip(np.floor(np.nan_to_num(vhi)), -_OFF_LIMIT, _OFF_LIMIT) - base
-            # SCOTS's out-of-domain test, exact in the class dimensions
-            cls_bounded = ~pmask & ~inv_mask
-            out = np.any(cls_bounded & ((left <= dom_lo) | (right >= dom_hi)), axis=1)
-            ok.reshape(-1)[idx] = good & ~out
-            off_lo.reshape(-1, n)[idx] = np.clip(lo_i, -_OFF_LIMIT, _OFF_LIMIT)
-            off_hi.reshape(-1, n)[idx] = np.clip(hi_i, -_OFF_LIMIT, _OFF_LIMIT)
+            out = np.zeros(P, dtype=bool)
+            olo, ohi = off_lo[s:e].reshape(P, n), off_hi[s:e].reshape(P, n)
+            for d in range(n):  # column by column, in place (n is 2-3)
+                xd, rd, zd, ed = x[:, d], r[:, d], z[d], eta[d]
+                if pmask[d]:  # relative displacement (the image may have wrapped)
+                    olo[:, d] = _cell_offset((disp[:, d] - rd - zd) / ed + 0.5, 0)
+                    ohi[:, d] = _cell_offset((disp[:, d] + rd + zd) / ed + 0.5, 0)
+                    continue
+                # SCOTS's formula in absolute coordinates (bit-for-bit parity)
+                left, right = xd - rd - zd, xd + rd + zd
+                if not inv_mask[d]:  # SCOTS's out-of-domain test, exact in the class dimensions
+                    out |= left <= dom_lo[d]
+                    out |= right >= dom_hi[d]
+                olo[:, d] = _cell_offset((left - grid.first[d] + ed / 2) / ed, mi[:, d])
+                ohi[:, d] = _cell_offset((right - grid.first[d] + ed / 2) / ed, mi[:, d])
+            ok[s:e] = (good & ~out).reshape(e - s, M)
             if hold > 1:
                 ml = np.floor(np.nan_to_num((mlo - z) / eta + 0.5))
                 mh = np.floor(np.nan_to_num((mhi + z) / eta + 0.5))
-                mid_lo.reshape(-1, n)[idx] = np.clip(ml, -_OFF_LIMIT, _OFF_LIMIT)
-                mid_hi.reshape(-1, n)[idx] = np.clip(mh, -_OFF_LIMIT, _OFF_LIMIT)
+                mid_lo[s:e] = np.clip(ml, -_OFF_LIMIT, _OFF_LIMIT).reshape(e - s, M, n)
+                mid_hi[s:e] = np.clip(mh, -_OFF_LIMIT, _OFF_LIMIT).reshape(e - s, M, n)
 
     def small(a):
         if a is None:
@@ -519,6 +569,15 @@ def build_abstraction(system: System, grid: UniformGrid, *, growth: Optional[Gro
     ab.info = {"invariant_dims": list(inv), "classes": K, "guard": guard, "hold": hold,
                "seconds_index": time.perf_counter() - t1}
     return ab
+
+
+def _cell_offset(v: np.ndarray, base) -> np.ndarray:
+    """floor(v) - base, clipped to +-_OFF_LIMIT (NaN -> 0 - base), in place in ``v``."""
+    np.floor(v, out=v)
+    v[np.isnan(v)] = 0.0
+    np.clip(v, -_OFF_LIMIT, _OFF_LIMIT, out=v)
+    v -= base
+    return np.clip(v, -_OFF_LIMIT, _OFF_LIMIT, out=v)
 
 
 def _check_invariance(system, grid, growth, U, rep_mi, K, inv, hold, samples: int = 64):

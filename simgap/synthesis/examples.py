@@ -19,6 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..systems import System, input_grid
+from .abstraction import state_independent
 from .grid import UniformGrid
 from .runge_kutta import rk4_growth, rk4_integrate, rk4_step
 from .spec import Box, Spec
@@ -52,6 +53,7 @@ def vehicle_step(x: np.ndarray, u: np.ndarray, tau: float) -> np.ndarray:
     return rk4_integrate(_vehicle_rhs, x, u, tau, VEHICLE_NINT)
 
 
+@state_independent
 def vehicle_growth(r: np.ndarray, x: np.ndarray, u: np.ndarray, tau: float = VEHICLE_TAU) -> np.ndarray:
     """SCOTS vehicle ``radius_post``: r (B,3) -> r+ over the sampling period tau (0.3 in SCOTS)."""
     c = np.abs(u[:, 0]) * np.sqrt(np.tan(u[:, 1]) * np.tan(u[:, 1]) / 4.0 + 1)

@@ -40,6 +40,7 @@ import dataclasses
 import hashlib
 import json
 import os
+import shutil
 import time
 import zipfile
 from dataclasses import dataclass
@@ -549,6 +550,8 @@ def collect(plan: CollectionPlan, store: str | Path, executor: str | Executor = 
     h = config_hash(cfg)
     # the executor first: one that cannot start (e.g. an unreachable Ray cluster) leaves no store
     ex = executor if isinstance(executor, Executor) else make_executor(executor, workers, address)
+    # the simulator next (an unknown kind or key, a bad value): a config that cannot build one leaves no store
+    make_simulator(cfg["simulator"], plan.system).close()
     if store.exists() and not store.is_dir():
         raise SimgapError(f"store {str(store)!r} exists and is not a directory")
     if not (store / MANIFEST).exists() and store.is_dir() and any(p.name != LOCK for p in store.iterdir()):
@@ -556,9 +559,26 @@ def collect(plan: CollectionPlan, store: str | Path, executor: str | Executor = 
             with store_lock(store):  # a collector that has not written its manifest yet is refused here
                 pass
         raise SimgapError(f"{str(store)!r} is a non-empty directory without {MANIFEST}; refusing to write into it")
+    top = store.absolute()  # the outermost folder this call creates (removed again if nothing is stored)
+    while not top.parent.exists():
+        top = top.parent
+    created = not store.exists()
+    fresh = not (store / MANIFEST).exists()
     store.mkdir(parents=True, exist_ok=True)
     with store_lock(store):
-        return _collect_locked(plan, store, ex, cfg, h, on_progress, stop, chunk_ids, resume)
+        try:
+            return _collect_locked(plan, store, ex, cfg, h, on_progress, stop, chunk_ids, resume)
+        except BaseException:
+            # a store this call started that holds no finished chunk is no resumable data: remove what
+            # this call made while the lock is held (a store with finished chunks stays, to be resumed)
+            if fresh and not _done_chunks(store, plan.n_chunks):
+                if created:
+                    shutil.rmtree(top, ignore_errors=True)
+                else:
+                    shutil.rmtree(store / CHUNK_DIR, ignore_errors=True)
+                    for name in (MANIFEST, LOCK):
+                        (store / name).unlink(missing_ok=True)
+            raise
 
 
 def _collect_locked(plan, store, ex, cfg, h, on_progress, stop, chunk_ids, resume) -> CollectResult:

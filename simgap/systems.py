@@ -260,7 +260,7 @@ class System:
 
 def pendulum(m: float = 1.0, l: float = 1.0, g: float = 9.81, tau: float = 0.005,
              inputs: Optional[np.ndarray] = None) -> System:
-    """Inverted pendulum (paper, Sec. V): x1 angle [rad], x2 angular velocity [rad/s], u torque [N m].
+    """Pendulum (paper, Sec. V; theta = 0 hangs straight down, gravity restoring): x1 angle [rad], x2 angular velocity [rad/s], u torque [N m].
 
     x1+ = x1 + tau x2;  x2+ = -(3 g tau / 2 l) sin x1 + x2 + 3 tau u / (m l^2).
     X = [-0.2, 0.2] x [-0.5, 0.5], U = {-1, -0.9, ..., 1}.

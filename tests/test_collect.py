@@ -352,3 +352,29 @@ def test_progress_bar_and_stop_checks():
     assert as_stop_check(lambda: 1)() is True and as_stop_check(None)() is False
     with pytest.raises(TypeError):
         as_stop_check(3)
+
+
+class NanEverywhereSim(NumpySimulator):
+    """A numpy simulator whose every run blows up: the first chunk fails."""
+
+    def step_with_noise(self, x, u, noise):
+        return np.full_like(super().step_with_noise(x, u, noise), np.nan)
+
+
+@pytest.mark.parametrize("sim,match", [
+    (SimulatorConfig("nosuch", "pendulum"), "unknown simulator kind 'nosuch'"),
+    (SimulatorConfig("numpy", "pendulum", noise={"actuaton_std": 0.1}), "unknown noise keys"),
+    (SimulatorConfig("nan_all", "pendulum"), r"chunk 0 .*NaN")])
+def test_failed_collection_leaves_no_store(tmp_path, monkeypatch, sim, match):
+    """A collection that fails before its first chunk is stored leaves no folder behind (it is checked
+    before anything is created, or removed with its manifest); an existing folder is never removed."""
+    monkeypatch.setitem(sim_base._BACKENDS, "nan_all", f"{__name__}:NanEverywhereSim")
+    store = tmp_path / "deep" / "store"
+    with pytest.raises(SimgapError, match=match):
+        collect(pend_plan(sim=sim, chunk_size=20), store, executor="serial")
+    assert list(tmp_path.iterdir()) == []  # neither the store nor the parent it would have created
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(SimgapError, match=match):
+        collect(pend_plan(sim=sim, chunk_size=20), empty, executor="serial")
+    assert empty.is_dir() and list(empty.iterdir()) == []  # the user's folder stays, as empty as it was

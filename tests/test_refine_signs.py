@@ -63,3 +63,20 @@ def test_sign_rules_one_by_one():
     assert check(["input_gain:omega:torque"], [-0.4], [ok]) is None
     # a term merely on the wrong side of zero within its error bar is refused without a flag
     assert check(["deadband:omega:torque"], [0.01], [0.02])[2] is False
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_small_effect_next_to_a_large_one_is_named_in_a_second_round(seed):
+    """Coulomb friction 20x below an input-gain error (2x the noise): 0.2 % of the nominal residual."""
+    from simgap.refine.selection import SelectionOptions
+    c = make_case("small_coulomb", 20000, seed)
+    rep = refine(c.system, c.data, options=SelectionOptions(n_boot=20)).report
+    assert verdict(c, rep)[0], verdict(c, rep)[1]
+    (cf,) = [e for e in rep["effects"] if e["name"] == "coulomb_friction"]
+    assert abs(cf["coefficient"] - c.truth["coulomb"]) < max(3 * cf["stderr"], 0.002)
+    assert rep["states"][1]["rounds"] == 2 and rep["states"][0]["rounds"] == 1
+    # one round with thresholds relative to the nominal residual misses it, but the flag (relative
+    # to what is left) still says that structure remains
+    one = refine(c.system, c.data, options=SelectionOptions(n_boot=5, max_rounds=1)).report
+    assert [e["name"] for e in one["effects"]] == ["input_gain"]
+    assert one["states"][1]["unexplained"] is True

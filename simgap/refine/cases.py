@@ -143,6 +143,11 @@ CASES = {
                    expect={"delay": 1}, shape="input delay 1 period"),
     "delay2": dict(system="pendulum", kind="series", delay=2, extra=_zero, std=1e-4,
                    expect={"delay": 2}, shape="input delay 2 periods"),
+    # a small effect next to a large one: Coulomb friction 2x the noise, 20x below an input-gain error
+    "small_coulomb": dict(system="pendulum", kind="rows",
+                          extra=_on(1, lambda x, u: -0.3 * _pend_B() * u[:, 0] - 0.027 * np.sign(x[:, 1])),
+                          std=6.75e-5, expect={"effects": [("coulomb_friction", "omega"), ("input_gain", "omega")]},
+                          truth={"coulomb": -0.027}, shape="in library: small Coulomb next to a large gain error"),
     # memory outside the library: a first-order actuator lag of 5 periods
     "actuator_lag": dict(system="pendulum", kind="series", lag=5.0, extra=_zero, std=1e-4,
                          expect={"flag": "omega"}, shape="outside: first-order actuator lag (5 periods)"),

@@ -339,6 +339,7 @@ def _report(s: System, refined: System, data: Transitions, held, fits: Sequence[
             "unexplained_fraction": fit.unexplained_fraction,
             "unexplained": fit.unexplained,
             "lag1_autocorr": fit.lag1_autocorr,
+            "rounds": fit.rounds,
             "notes": list(fit.notes),
         })
     outside = int(np.any((data.x < s.x_lo) | (data.x > s.x_hi), axis=1).sum())
@@ -372,7 +373,8 @@ def _report(s: System, refined: System, data: Transitions, held, fits: Sequence[
                     "min_explained": opts.min_explained, "n_boot": opts.n_boot,
                     "structure_threshold": opts.structure_threshold,
                     "min_unexplained": opts.min_unexplained, "seed": opts.seed, "max_lag": opts.max_lag,
-                    "gate_steps": opts.gate_steps, "gate_tolerance": opts.gate_tolerance},
+                    "gate_steps": opts.gate_steps, "gate_tolerance": opts.gate_tolerance,
+                    "max_rounds": opts.max_rounds},
         "data_meta": data.meta,
     }
 
@@ -426,6 +428,8 @@ def format_table(report: dict) -> str:
                f"structure left R^2 = {st['structure_r2']:.3f}")
         if st["lag1_autocorr"] is not None:
             msg += f", lag-1 autocorrelation {st['lag1_autocorr']:.2f}"
+        if st.get("rounds", 1) > 1:
+            msg += f", {st['rounds']} selection rounds"
         if st["unexplained"]:
             msg += (f"  -> UNEXPLAINED: {100 * st['remaining_fraction']:.1f}% of the residual variance remains, "
                     f"{100 * st['unexplained_fraction']:.1f}% above the noise floor")

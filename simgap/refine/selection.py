@@ -59,6 +59,7 @@ class SelectionOptions:
     max_lag: int = 3                # periods of history (time series): input delays, lagged user terms
     gate_steps: int = 10            # multi-step gate horizon on held-out data (time series; 0: off)
     gate_tolerance: float = 0.01    # allowed mean squared ratio of k-step RMS f' / f above 1
+    max_rounds: int = 5             # selection rounds on what is left (1: a single round)
 
 
 @dataclass
@@ -82,6 +83,7 @@ class StateFit:
     lag1_autocorr: Optional[float] = None
     notes: list = field(default_factory=list)
     refused: list = field(default_factory=list)     # terms with impossible signs: {key, coefficient, reason, flagged}
+    rounds: int = 1                 # selection rounds run (each on what the previous ones left)
 
     @property
     def explained_total(self) -> float:
@@ -328,55 +330,83 @@ def select_state(y: np.ndarray, Theta: np.ndarray, keys: list, held: np.ndarray,
         stat = float(means.mean() / (sd / np.sqrt(means.size))) if sd > 0 else np.inf * np.sign(means.mean())
         return float(dl.sum()), stat
 
-    def choose(allowed):
-        # 3. forward selection then backward elimination by BIC on train
-        S: list = []
+    def choose(allowed, base, ref):
+        """Steps 3-4 adding to the terms ``base`` of earlier rounds; ``ref``: held-out RSS they leave."""
+        # 3. forward selection then backward elimination (of new terms) by BIC on train
+        S = list(base)
         best = bic(S)
-        while len(S) < len(allowed):
+        while True:
             trials = [(bic(S + [j]), j) for j in allowed if j not in S]
+            if not trials:
+                break
             val, j = min(trials)
             if val >= best:
                 break
             S, best = S + [j], val
         changed = True
-        while changed and S:
+        while changed and len(S) > len(base):
             changed = False
-            trials = [(bic([k for k in S if k != j]), j) for j in S]
+            trials = [(bic([k for k in S if k != j]), j) for j in S if j not in base]
             val, j = min(trials)
             if val < best:
                 S, best, changed = [k for k in S if k != j], val, True
-        # 4. held-out pruning
-        while S:
-            tests = [(heldout_test(S, [k for k in S if k != j]), j) for j in S]
+        # 4. held-out pruning of the new terms, relative to what the earlier rounds left
+        while len(S) > len(base):
+            tests = [(heldout_test(S, [k for k in S if k != j]), j) for j in S if j not in base]
             (gain, stat), j = min(tests, key=lambda t: (t[0][1] >= opts.min_z, t[0][0]))
-            if gain >= opts.min_explained * rss0_h and stat >= opts.min_z:
+            if gain >= opts.min_explained * ref and stat >= opts.min_z:
                 break
             S = [k for k in S if k != j]
         return S
 
-    # 4b. physical signs: a selected term with an impossible coefficient is refused and selection
-    #     runs again without it (a friction that injects energy is not friction)
-    allowed = list(range(p))
-    S = choose(allowed)
-    refused, flag_refused = [], False
-    while S and check is not None:
+    def signs(S, allowed):
+        """4b. physical signs: refuse a term with an impossible coefficient, select again without it."""
+        nonlocal flag_refused
+        while S and check is not None:
+            c = _solve(Gt, bt, S)
+            r = yt - Zt[:, S] @ c
+            s2 = float(r @ r) / max(Kt - len(S), 1) * (_block_length(r) if time_series else 1)
+            try:
+                se_ols = np.sqrt(s2 * np.clip(np.diag(np.linalg.inv(Gt[np.ix_(S, S)])), 0, None)) / scale[S]
+            except np.linalg.LinAlgError:
+                se_ols = np.full(len(S), np.nan)
+            bad = check([keys[j] for j in S], c / scale[S], se_ols)
+            if bad is None:
+                break
+            key, reason, beyond = bad
+            j = keys.index(key)
+            refused.append({"key": key, "coefficient": float(c[S.index(j)] / scale[j]), "reason": reason,
+                            "flagged": bool(beyond)})
+            flag_refused |= bool(beyond)
+            allowed = [a for a in allowed if a != j]
+            base = [k for k in rounds_base if k in allowed]
+            S = choose(allowed, base, rss_h(base))
+        return S, allowed
+
+    def structure(S):
+        """7. structure left in the remaining residual: (residual, R^2, floor as held-out RSS)."""
         c = _solve(Gt, bt, S)
-        r = yt - Zt[:, S] @ c
-        s2 = float(r @ r) / max(Kt - len(S), 1) * (_block_length(r) if time_series else 1)
-        try:
-            se_ols = np.sqrt(s2 * np.clip(np.diag(np.linalg.inv(Gt[np.ix_(S, S)])), 0, None)) / scale[S]
-        except np.linalg.LinAlgError:
-            se_ols = np.full(len(S), np.nan)
-        bad = check([keys[j] for j in S], c / scale[S], se_ols)
-        if bad is None:
+        e = y - ((Theta[:, S] / scale[S]) @ c if S else 0.0)
+        r2 = max(probe.knn_r2(e)[0], probe.poly2_r2(e))
+        floor = probe.noise_floor(e, _block_length(e) // 2 if time_series else 1)
+        return e, float(r2), floor * Kh
+
+    # rounds: while a round named something and structure above the noise floor remains, select
+    # again on what is left, with the thresholds relative to the remaining residual (a small effect
+    # next to a large one explains little of the nominal residual but much of what is left)
+    allowed, S, refused, flag_refused, rounds_base = list(range(p)), [], [], False, []
+    ref, n_rounds = rss0_h, 0
+    while True:
+        n_rounds += 1
+        rounds_base = list(S)
+        S, allowed = signs(choose(allowed, S, ref), allowed)
+        e, r2s, floor_rss = structure(S)
+        cur = rss_h(S)
+        new = [j for j in S if j not in rounds_base]
+        left = r2s >= opts.structure_threshold and cur - floor_rss >= opts.min_unexplained * cur
+        if not new or not left or n_rounds >= opts.max_rounds:
             break
-        key, reason, beyond = bad
-        j = keys.index(key)
-        refused.append({"key": key, "coefficient": float(c[S.index(j)] / scale[j]), "reason": reason,
-                        "flagged": bool(beyond)})
-        flag_refused |= bool(beyond)
-        allowed = [a for a in allowed if a != j]
-        S = choose(allowed)
+        ref = cur
     # 5. coefficients and bootstrap standard errors (original units: divide by the column scale)
     c = _solve(Gt, bt, S)
     coef = c / scale[S] if S else np.zeros(0)
@@ -392,12 +422,12 @@ def select_state(y: np.ndarray, Theta: np.ndarray, keys: list, held: np.ndarray,
         expl.append((prev - cur) / rss0_h if rss0_h > 0 else 0.0)
         prev = cur
     rss_after_h = rss_h(S)
-    # 7. structure left in the remaining residual, against a model-free noise floor
-    e = y - ((Theta[:, S] / scale[S]) @ c if S else 0.0)
-    r2s = max(probe.knn_r2(e)[0], probe.poly2_r2(e))
-    floor = probe.noise_floor(e, _block_length(e) // 2 if time_series else 1)
-    floor_frac = floor * Kh / rss0_h if rss0_h > 0 else 0.0
+    # 7. structure left (computed in the last round), against the model-free noise floor
+    floor_frac = floor_rss / rss0_h if rss0_h > 0 else 0.0
     above = max(0.0, rss_after_h / rss0_h - floor_frac) if rss0_h > 0 else 0.0
+    # flagged relative to what is left, like the rounds (a structured residual under a large
+    # explained one is still a residual the library has not named)
+    left = r2s >= opts.structure_threshold and rss_after_h - floor_rss >= opts.min_unexplained * rss_after_h
     lag1 = None
     if time_series:
         eh = e[held] - e[held].mean()
@@ -407,8 +437,7 @@ def select_state(y: np.ndarray, Theta: np.ndarray, keys: list, held: np.ndarray,
                     stderr=np.asarray(se), stderr_statistical=np.asarray(se_stat), stderr_misfit=misfit, explained=np.asarray(expl), rss0_heldout=rss0_h,
                     rss_heldout=rss_after_h, structure_r2=float(r2s), noise_floor_fraction=floor_frac,
                     unexplained_fraction=above,
-                    unexplained=bool((r2s >= opts.structure_threshold and above >= opts.min_unexplained)
-                                     or flag_refused),
+                    unexplained=bool(left or flag_refused), rounds=n_rounds,
                     lag1_autocorr=lag1, refused=refused,
                     notes=[f"refused {r['key']} (coefficient {r['coefficient']:.4g}): {r['reason']}"
                            for r in refused])

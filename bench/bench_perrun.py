@@ -70,7 +70,7 @@ def bench_vi(a) -> dict:
     del cols, p, lo, hi
     t_build = time.perf_counter() - t0
     c0 = time.process_time()
-    ctl = synthesize_imdp(im, 400)
+    ctl = synthesize_imdp(im, 400, "invariance")
     cpu = time.process_time() - c0
     return {"cpu_seconds_vi": round(cpu, 2), "cells": C, "inputs": M, "nnz": im.nnz, "bytes_imdp": im.nbytes(), "steps": ctl.steps,
             "seconds_synthetic_build": round(t_build, 2), "seconds_vi": round(ctl.meta["seconds_vi"], 2),
@@ -97,12 +97,12 @@ def bench_validate(a) -> dict:
     im = build_imdp(sim, spec, opts, log=print)
     cpu_build = time.process_time() - c0
     t_build = time.perf_counter() - t0
-    ctl = synthesize_imdp(im, a.horizon)
+    ctl = synthesize_imdp(im, a.horizon, spec.kind)
     # ablation on the same counts: the uniform Bonferroni split (every bound at beta / all bounds)
     n_sink = int((im.col == im.C).sum())
     n_sup = im.nnz - n_sink
     uniform = reallocate(im, im.meta["beta"], np.array([n_sink, n_sup, n_sup]) / (n_sink + 2 * n_sup))
-    p_uniform = float(synthesize_imdp(uniform, a.horizon).certified(x0[None])[0])
+    p_uniform = float(synthesize_imdp(uniform, a.horizon, spec.kind).certified(x0[None])[0])
     rng = np.random.default_rng(5)
     xs = np.concatenate([x0[None], sample_in_cells(im.grid, np.flatnonzero(ctl.p_cert > 0), a.states, rng)])
     t1, c1 = time.perf_counter(), time.process_time()

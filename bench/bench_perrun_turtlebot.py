@@ -83,7 +83,7 @@ def main():
         im = build_imdp_translation(sim, spec, opts, log=print)
     w_build, c_build = time.perf_counter() - w0, cpu_now() - c0
     w1, c1 = time.perf_counter(), cpu_now()
-    ctl = synthesize_imdp(im, a.horizon)
+    ctl = synthesize_imdp(im, a.horizon, spec.kind)
     w_vi, c_vi = time.perf_counter() - w1, cpu_now() - c1
     lip_steps = 100 * 20 * 2 * a.hold             # the heading column's common-random-number pairs
     steps = im.meta["samples"] + lip_steps

@@ -52,7 +52,7 @@ def grid(eta, horizon: int) -> dict:
     sink = im.col == im.C
     im.hi[:] = np.where(im.k_hi > 0, 1.0, 0.0)     # noise-free: what a run touched is possible, nothing else
     im.lo[:] = 0
-    ctl = synthesize_imdp(im, horizon)
+    ctl = synthesize_imdp(im, horizon, im.meta["spec"]["kind"])
     won = ctl.p_cert >= 1 - 1e-9
     return {"eta": list(eta), "x0_won": bool(ctl.certified(X0)[0] >= 1 - 1e-9), "won_cells": int(won.sum()),
             "live_cells": int(im.live.sum()), "rows": int(im.live.sum()) * len(INPUTS), "entries": im.nnz,

@@ -78,13 +78,13 @@ def _check(sim, ctl, seed=4, R=2000):
 
 def test_p_cert_is_sound_and_not_vacuous(walk):
     sim, im = walk
-    ctl = vi.synthesize_imdp(im, H)
+    ctl = vi.synthesize_imdp(im, H, "invariance")
     assert ctl.steps == 6 and ctl.policy.shape == (6, im.C)
     p_cert, p_emp, se = _check(sim, ctl)
     assert np.all(p_emp >= p_cert - 3 * se), (p_cert, p_emp)
     assert p_cert[0] > 0.3 and p_emp[1] < 0.99            # non-vacuous; a state with real failures
     # a longer horizon never certifies more
-    assert np.all(vi.synthesize_imdp(im, 2 * H).p_cert <= ctl.p_cert + 1e-12)
+    assert np.all(vi.synthesize_imdp(im, 2 * H, "invariance").p_cert <= ctl.p_cert + 1e-12)
 
 
 def test_an_optimistic_adversary_is_caught(walk, monkeypatch):
@@ -92,7 +92,7 @@ def test_an_optimistic_adversary_is_caught(walk, monkeypatch):
     sim, im = walk
     real = vi.pessimistic_q
     monkeypatch.setattr(vi, "pessimistic_q", lambda imdp, V, rows: real(imdp, 1.0 - V, rows) * -1 + 1.0)
-    ctl = vi.synthesize_imdp(im, H)
+    ctl = vi.synthesize_imdp(im, H, "invariance")
     p_cert, p_emp, se = _check(sim, ctl)
     assert np.any(p_emp < p_cert - 3 * se)
 
@@ -100,7 +100,7 @@ def test_an_optimistic_adversary_is_caught(walk, monkeypatch):
 def test_bad_input(walk):
     sim, im = walk
     with pytest.raises(SimgapError, match="horizon must be >= 1"):
-        vi.synthesize_imdp(im, 0)
+        vi.synthesize_imdp(im, 0, "invariance")
     with pytest.raises(SimgapError, match="hold must be >= 1"):
         build_imdp(sim, SPEC, IMDPOptions(eta=[0.1], hold=0))
     with pytest.raises(SimgapError, match="beta must be in"):
@@ -166,7 +166,7 @@ def test_progress_is_reported_and_changes_nothing(walk):
     assert seen[-1] == (2 * P, 2 * P) and len(seen) > 2
     assert all(a[0] <= b[0] for a, b in zip(seen, seen[1:])) and {t for _, t in seen} == {2 * P}
     np.testing.assert_array_equal(im2.k_hi, build_imdp(sim, SPEC, opts).k_hi)
-    ctl = vi.synthesize_imdp(im, H)
+    ctl = vi.synthesize_imdp(im, H, "invariance")
     ticks = []
     x0s = np.array([[0.0], [0.3]])
     k1 = success_counts(lambda x, t: ctl.input_index(x, t), ctl.hold, sim, SPEC, x0s, 300, H, seed=2, max_batch=300,
@@ -205,7 +205,7 @@ def test_shared_runs_are_sound_cheap_and_need_the_residual_term():
     opts = IMDPOptions(eta=[0.02], hold=k, n_runs=1000, pilot_runs=100, seed=1, share=20)
     im = build_imdp(sim, SPEC, opts)
     assert im.meta["anchors"] == 5 and im.meta["samples"] == 5 * 3 * 1100 * k     # 5 anchors x 3 inputs
-    pc, pe, se = _check(sim, vi.synthesize_imdp(im, H))
+    pc, pe, se = _check(sim, vi.synthesize_imdp(im, H, "invariance"))
     assert np.all(pe >= pc - 3 * se), (pc, pe)
     assert pc.max() > 0.3
     per_cell = build_imdp(sim, SPEC, dataclasses.replace(opts, share=None))

@@ -207,24 +207,45 @@ def assemble(grid: UniformGrid, inputs: np.ndarray, hold: int, live: np.ndarray,
 # Labels
 # ----------------------------------------------------------------------------------------------
 
+def _circle(lo, hi, a, b, period, meet: bool):
+    """Along one angle dimension of period P: does [lo, hi] + P m meet (``meet``) or lie inside [a, b]
+    for some integer m? Closed form, any widths and infinite a, b allowed."""
+    with np.errstate(invalid="ignore"):
+        if meet:   # lo + P m <= b and hi + P m >= a
+            return np.ceil((a - hi) / period) <= np.floor((b - lo) / period)
+        # a <= lo + P m, hi + P m <= b; a range of a whole period or more is the circle
+        return (np.ceil((a - lo) / period) <= np.floor((b - hi) / period)) | (b - a >= period)
+
+
 def box_unsafe(spec: Spec, lo: np.ndarray, hi: np.ndarray, x_lo: np.ndarray, x_hi: np.ndarray,
                angle_dims=()) -> np.ndarray:
     """(B,) bool: the box [lo, hi] is not entirely allowed (leaves X or the safe set, meets an obstacle).
 
-    Angle dimensions are never bounded by X (they wrap)."""
-    bounded = np.ones(lo.shape[1], dtype=bool)
-    bounded[list(angle_dims)] = False
-    bad = np.any(((lo < x_lo) | (hi > x_hi))[:, bounded], axis=1)
+    Angle dimensions are never bounded by X and are compared with the safe set and the obstacles
+    modulo their period x_hi - x_lo (the simulators wrap them): a heading box [3.0, 3.2] meets an
+    obstacle's heading range [-pi, -3.0]."""
+    n = lo.shape[1]
+    ang = np.zeros(n, dtype=bool)
+    ang[list(angle_dims)] = True
+    period = np.where(ang, np.asarray(x_hi, float) - np.asarray(x_lo, float), 1.0)
+
+    def along(a, b, meet):  # (B, n) per-dimension meet / inside, angle dims on the circle
+        flat = ((hi >= a) & (lo <= b)) if meet else ((lo >= a) & (hi <= b))
+        return np.where(ang, _circle(lo, hi, a, b, period, meet), flat)
+
+    bad = np.any(((lo < x_lo) | (hi > x_hi)) & ~ang, axis=1)
     if spec.kind == "invariance":
-        s_lo, s_hi = spec.safe.lo, spec.safe.hi
-        bad |= np.any((lo < s_lo) | (hi > s_hi), axis=1)
+        bad |= ~np.all(along(spec.safe.lo, spec.safe.hi, False), axis=1)
     for b in spec.obstacles:
-        bad |= np.all((hi >= b.lo) & (lo <= b.hi), axis=1)
+        bad |= np.all(along(b.lo, b.hi, True), axis=1)
     return bad
 
 
 def cell_labels(grid: UniformGrid, spec: Spec, x_lo, x_hi, angle_dims=()):
-    """(live, target) (C,) bool: live = the whole cell is allowed and not target; target = inside the target box."""
+    """(live, target) (C,) bool: live = the whole cell is allowed and not target; target = inside the target box.
+
+    A reach-avoid target that holds no whole allowed cell is refused (value iteration would have
+    nothing to reach), with the cell size in the message."""
     ids = np.arange(grid.size)
     c = grid.points(ids)
     h = grid.eta / 2
@@ -232,6 +253,11 @@ def cell_labels(grid: UniformGrid, spec: Spec, x_lo, x_hi, angle_dims=()):
     target = np.zeros(grid.size, dtype=bool)
     if spec.kind == "reach_avoid":
         target = allowed & grid.cells_inside(spec.target.lo, spec.target.hi)
+        if not target.any():
+            raise SimgapError(f"reach-avoid target [{', '.join(f'{v:g}' for v in spec.target.lo)}] .. "
+                              f"[{', '.join(f'{v:g}' for v in spec.target.hi)}] holds no whole allowed cell of the "
+                              f"interval-MDP grid (cell size eta = {[float(f'{e:.6g}') for e in grid.eta]}): a run "
+                              f"could never be certified to reach it; use a smaller eta or a larger target")
     return allowed & ~target, target
 
 
@@ -517,7 +543,8 @@ def build_imdp(sim, spec: Spec, options: IMDPOptions, log=None, on_progress=None
         sup.append(np.unique(pp[b[keep] // N0] * (C + 1) + ids[keep]))
         if on_progress:
             on_progress(min(P, a + per), 2 * P)
-    support = np.concatenate(sup) if sup else np.zeros(0, np.int64)
+    # sorted: with shared runs the pairs go anchor-major, so batches are not in key order (searchsorted needs it)
+    support = np.sort(np.concatenate(sup)) if sup else np.zeros(0, np.int64)
     alloc = Allocation.of(o.split).after_pilot(single_seen)
     levels = alloc.levels(float(o.beta), P, support.size)   # fixed by the pilot, before the main runs
     n_bounds = _bound_count(alloc, P, support.size)

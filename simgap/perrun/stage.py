@@ -110,12 +110,13 @@ def synthesize_experiment(exp, horizon=None, x0=None, eta=None, hold=None, log=p
         exp.system.check_states(np.atleast_2d(x0), "x0")
     with make_simulator(exp.simulator.to_dict(), system=exp.system) as sim:
         imdp = build(sim, spec, o, log, on_progress)
-    ctl = synthesize_imdp(imdp, int(o["horizon"]))
+    ctl = synthesize_imdp(imdp, int(o["horizon"]), spec.kind)
     lines = [f"interval MDP: {imdp.C} cells ({int(imdp.live.sum())} live) x {imdp.M} inputs, hold {imdp.hold}, "
              f"{imdp.nnz} interval entries ({imdp.nbytes() / 2**20:.1f} MiB), {imdp.meta['bounds']} one-sided "
              f"Clopper-Pearson bounds, levels " + ", ".join(f"{f} {v:.3g}" for f, v in imdp.meta["levels"].items())
              + f" (total beta {o['beta']:g})",
-             f"horizon {o['horizon']} periods = {ctl.steps} abstract steps; cells with p_cert > 0: "
+             f"horizon {o['horizon']} periods = {ctl.steps} abstract steps of {imdp.hold} "
+             f"({ctl.meta['horizon_rule']}); cells with p_cert > 0: "
              f"{int((ctl.p_cert > 0).sum())}; max p_cert {ctl.p_cert.max():.4f}"]
     if x0 is not None:
         lines.append(f"p_cert(x0 = {np.round(x0, 6).tolist()}) = {float(ctl.certified(np.atleast_2d(x0))[0]):.4f}")
@@ -182,10 +183,11 @@ def run_stage(exp, out: Path, data, controllers: Dict[str, object], spec, x0, o:
         t0 = time.perf_counter()
         imdp = build(sim, spec, o, lambda m: log(f"[perrun] {m}"), bar("perrun/imdp", "pairs"))
         t_build = time.perf_counter() - t0
-        ctl = synthesize_imdp(imdp, H)
+        ctl = synthesize_imdp(imdp, H, spec.kind)
         ctl.save(out / "controller_perrun.npz")
         res["imdp"] = {"cells": int(imdp.C), "live_cells": int(imdp.live.sum()), "inputs": int(imdp.M),
                        "nnz": imdp.nnz, "bytes": imdp.nbytes(), "hold": imdp.hold, "steps": ctl.steps,
+                       "certified_periods": ctl.meta["certified_periods"], "horizon_rule": ctl.meta["horizon_rule"],
                        "seconds_build": round(t_build, 3), "seconds_vi": round(ctl.meta["seconds_vi"], 3),
                        **{k: imdp.meta[k] for k in ("n_runs", "pilot_runs", "bounds", "split", "levels", "rho",
                                                     "samples", "union_bound", "assumption", "share", "anchors")

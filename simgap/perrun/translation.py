@@ -20,8 +20,11 @@ boxes touching the reference offsets o (cells x_ref + o):
   blocked cell at some period (a cell, along I, that is not wholly allowed for some index of the
   other dimensions, or outside the grid: a summed-area table, no loop over cells; the touched
   cells cover the box, so this is a superset of the unsafe boxes, sound and at most a cell more
-  conservative than the exact box test), or it touches an offset outside the pilot's, or c + o is
-  not live/target for one of its offsets o;
+  conservative than the exact box test), or, at some period, its widened box leaves X or the
+  grid along one of the other (non-angle) dimensions (the same for every cell of the class: the
+  runs are not shifted there; within the grid, the blocked columns cover the safe set and the
+  obstacles), or it touches an offset outside the pilot's, or c + o is not live/target for one
+  of its offsets o;
 * n_hit(c, c + o) = #runs touching o (the same for every c), n_in(c, c + o) = #runs touching o
   only and not a sink run for c, n_sink(c) = #sink runs for c;
 * intervals and the union bound's split exactly as :func:`simgap.perrun.imdp.build_imdp` (each
@@ -118,6 +121,11 @@ def build_imdp_translation(sim, spec: Spec, options: IMDPOptions, invariant: Seq
     for d in range(len(inv)):
         np.cumsum(sat, axis=d, out=sat)
     corners = [np.array(c) for c in np.ndindex(*(2,) * len(inv))]
+    # along the other, non-angle dimensions a widened box must stay inside X and inside the grid
+    # (whose columns the blocked test covers) at every period of the hold
+    bounded = [d for d in other if not per_mask[d]]
+    in_lo = np.maximum(s.x_lo, grid.first - half)[bounded]
+    in_hi = np.minimum(s.x_hi, grid.first + (shape - 1) * grid.eta + half)[bounded]
     inv_shape = shape[inv]
 
     def blocked_in(lo, hi):
@@ -184,7 +192,9 @@ def build_imdp_translation(sim, spec: Spec, options: IMDPOptions, invariant: Seq
         unsafe = blocked_in(ci_[:, None, :] + ubox[None, :, :len(inv)], ci_[:, None, :] + ubox[None, :, len(inv):])
         runs_box = np.zeros((N, len(ubox)), np.float32)
         runs_box[np.repeat(np.arange(N), k), inv_b.ravel()] = 1.0
-        bad = (bad_w + runs_box @ unsafe.T.astype(np.float32)) > 0           # (N, Cc)
+        Yo = main[p * N:(p + 1) * N][:, :, bounded]                          # (N, k, |bounded|)
+        out = np.any((Yo - rho[bounded] < in_lo) | (Yo + rho[bounded] > in_hi), axis=(1, 2))
+        bad = ((bad_w + runs_box @ unsafe.T.astype(np.float32)) > 0) | out[:, None]   # (N, Cc)
         one = np.zeros((N, len(keys)), np.float32)
         one[rb[single[rb]], km[single[rb]]] = 1.0
         n_in = one.T @ (~bad).astype(np.float32)                             # (K, Cc)

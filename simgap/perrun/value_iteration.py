@@ -7,16 +7,23 @@ minimizes sum_j p_j V_j. The minimizer is greedy: start from p = lo and pour the
 the true transition probabilities inside the intervals (probability >= 1 - beta over the
 samples), the pessimistic value is a lower bound of the true one.
 
-Finite horizon H sampling periods = Ha = ceil(H / k) abstract steps:
+Finite horizon of H sampling periods, and the specification's kind given explicitly (never
+inferred from the labels):
 
-* invariance: V_0 = 1 on live cells; reach-avoid: V_0 = 1 on target cells, 0 elsewhere, and
-  target cells stay at 1 (absorbing: reaching counts);
+* invariance: Ha = ceil(H / k) abstract steps (staying safe for Ha k >= H periods implies H);
+  V_0 = 1 on live cells;
+* reach-avoid: Ha = floor(H / k) abstract steps (the target is only credited at the end of a
+  hold, so reaching it within Ha k <= H periods implies reaching it within H; rounding up would
+  credit runs that arrive after period H); V_0 = 1 on target cells, 0 elsewhere, and target cells
+  stay at 1 (absorbing: reaching counts). A horizon shorter than one hold, or an interval MDP
+  without target cells, is refused;
 * V_{h+1}(c) = max_a Qpess_h(c, a) on live cells, 0 on the others; policy_h(c) = argmax.
 
 p_cert(c) = V_Ha(c) lower-bounds, for every x in cell c, the probability that one run under the
-time-varying policy (policy_{Ha-1-t} at abstract step t) satisfies the specification for
-Ha * k >= H periods. Everything is vectorized: rows padded to their block's longest row (ELL),
-one row-wise argsort per step.
+time-varying policy (policy_{Ha-1-t} at abstract step t) satisfies the specification within H
+periods (invariance: for Ha k >= H periods; reach-avoid: reaching within Ha k <= H periods).
+Everything is vectorized: rows padded to their block's longest row (ELL), one row-wise argsort
+per step.
 """
 
 from __future__ import annotations
@@ -153,19 +160,41 @@ class PerRunController:
                    policy=arrays["policy"], p_cert=arrays["p_cert"], target=arrays["target"], meta=meta)
 
 
-def synthesize_imdp(imdp: IMDP, horizon: int, policy: Optional[np.ndarray] = None) -> PerRunController:
+KINDS = ("invariance", "reach_avoid")
+
+
+def abstract_steps(kind: str, horizon: int, hold: int) -> int:
+    """Ha: abstract steps of ``hold`` periods that certify a horizon of H periods (module docstring):
+    ceil(H / k) for invariance, floor(H / k) for reach-avoid."""
+    return -(-int(horizon) // int(hold)) if kind == "invariance" else int(horizon) // int(hold)
+
+
+def synthesize_imdp(imdp: IMDP, horizon: int, kind: str, policy: Optional[np.ndarray] = None) -> PerRunController:
     """Interval value iteration over ``horizon`` sampling periods (see module docstring).
 
-    ``policy`` (C,) fixed input indices (-1: none) evaluates that stationary controller instead of
-    maximizing (its pessimistic success probability)."""
+    ``kind`` is the specification's kind, "invariance" or "reach_avoid" (the interval MDP's
+    ``meta["spec"]``, if recorded, must agree). ``policy`` (C,) fixed input indices (-1: none)
+    evaluates that stationary controller instead of maximizing (its pessimistic success probability)."""
+    if kind not in KINDS:
+        raise SimgapError(f"specification kind must be one of {KINDS}, got {kind!r}")
+    recorded = (imdp.meta.get("spec") or {}).get("kind")
+    if recorded is not None and recorded != kind:
+        raise SimgapError(f"the interval MDP was built for a {recorded} specification, not {kind}")
     if int(horizon) < 1:
         raise SimgapError(f"horizon must be >= 1 sampling period, got {horizon}")
     t0 = time.perf_counter()
     C, M = imdp.C, imdp.M
-    Ha = -(-int(horizon) // imdp.hold)
+    Ha = abstract_steps(kind, horizon, imdp.hold)
+    if kind == "reach_avoid":
+        if Ha < 1:
+            raise SimgapError(f"reach-avoid horizon of {horizon} periods is shorter than one hold of {imdp.hold} "
+                              f"periods: the target is credited only at the end of a hold, so nothing can be "
+                              f"certified (use a horizon >= {imdp.hold} or a shorter hold)")
+        if not imdp.target.any():
+            raise SimgapError("reach-avoid: the interval MDP has no target cell (no cell lies wholly in the target)")
     layout = ell_layout(imdp)
     live, target = imdp.live, imdp.target
-    V = (live | target).astype(float) if not target.any() else target.astype(float)
+    V = (live | target).astype(float) if kind == "invariance" else target.astype(float)
     pol = np.full((Ha, C), -1, np.int16)
     for h in range(Ha):
         Q = pessimistic_q(imdp, V, layout).reshape(C, M)
@@ -178,7 +207,10 @@ def synthesize_imdp(imdp: IMDP, horizon: int, policy: Optional[np.ndarray] = Non
         Vn[target] = 1.0
         pol[h] = np.where(live, a, -1)
         V = np.clip(Vn, 0.0, 1.0)
-    meta = dict(imdp.meta, steps=Ha, seconds_vi=time.perf_counter() - t0,
+    meta = dict(imdp.meta, steps=Ha, kind=kind, certified_periods=Ha * imdp.hold,
+                horizon_rule=("invariance: ceil(H / k) holds, safe for Ha k >= H periods" if kind == "invariance"
+                              else "reach-avoid: floor(H / k) holds, the target reached within Ha k <= H periods"),
+                seconds_vi=time.perf_counter() - t0,
                 evaluated="fixed policy" if policy is not None else "maximized")
     return PerRunController(grid=imdp.grid, inputs=imdp.inputs, hold=imdp.hold, horizon=int(horizon), policy=pol,
                             p_cert=V, target=target.copy(), meta=meta)

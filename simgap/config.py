@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import hashlib
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -33,7 +34,7 @@ from .collect import DEFAULT_BATCH_RUNS, CollectionPlan
 from .cover import Cover, CoverSpec, make_cover
 from .errors import SimgapError
 from .paths import ASSETS_DIR
-from .simulators.base import SimulatorConfig
+from .simulators.base import SimulatorConfig, backend_class
 from .systems import BUILTIN, System, get_system, input_grid, resolve_system
 
 EXPERIMENTS_DIR = ASSETS_DIR / "experiments"
@@ -172,7 +173,7 @@ def load_experiment(path_or_name: str | Path, profile: Optional[str] = "small",
     if syn_map is not None and ("/" in syn_map or "\\" in syn_map or syn_map.endswith(".toml")):
         merged["synthesis"]["map"] = str(confined(syn_map, folder, f"{where}: synthesis.map"))
     system = _system(model.system, where, folder)
-    simulator = _simulator(model.simulator, merged["simulator"], system, where)
+    simulator = _simulator(model.simulator, merged["simulator"], system, where, folder)
     collect = _collect(model.collect, out)
     return ExperimentConfig(name=path.stem, profile=profile, path=path, system=system, simulator=simulator,
                             collect=collect, sections=merged, description=model.description)
@@ -228,13 +229,31 @@ def _system(d: schema.SystemSection, where: str, folder: Path) -> System:
     return s
 
 
-def _simulator(d: schema.SimulatorSection, raw: dict, system: System, where: str) -> SimulatorConfig:
+def _simulator(d: schema.SimulatorSection, raw: dict, system: System, where: str, folder: Path) -> SimulatorConfig:
     if d.system not in (None, system.name, system.params.get("base_system")):
         raise SimgapError(f"{where}: simulator.system {d.system!r} differs from system.name {system.name!r}")
     if d.steps not in (None, system.steps):
         raise SimgapError(f"{where}: simulator.steps {d.steps!r} differs from system.steps {system.steps}")
+    options = _model_files(d.kind, dict(raw.get("options", {})), folder, where)
     return SimulatorConfig(kind=d.kind, system=system.name, steps=system.steps, noise=dict(d.noise),
-                           randomize=dict(d.randomize), effects=dict(d.effects), options=dict(raw.get("options", {})))
+                           randomize=dict(d.randomize), effects=dict(d.effects), options=options)
+
+
+def _model_files(kind: str, options: dict, folder: Path, where: str) -> dict:
+    """The simulator's model-file options (its ``PATH_OPTIONS``) resolved inside the experiment's
+    folder, each with the file's sha256 (``<key>_sha256``) so that a later command that rebuilds
+    the simulator from a manifest notices a changed file."""
+    for key in backend_class(kind).PATH_OPTIONS:
+        if key not in options:
+            continue
+        if not isinstance(options[key], str) or not options[key]:
+            raise SimgapError(f"{where}: simulator.options.{key} must be a file name, got {options[key]!r}")
+        p = confined(options[key], folder, f"{where}: simulator.options.{key}")
+        if not p.is_file():
+            raise SimgapError(f"{where}: simulator.options.{key}: model file {str(p)!r} does not exist")
+        options[key] = str(p)
+        options[f"{key}_sha256"] = hashlib.sha256(p.read_bytes()).hexdigest()
+    return options
 
 
 def _collect(d: schema.CollectSection, out: Optional[str]) -> CollectSettings:

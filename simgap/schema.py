@@ -72,10 +72,11 @@ class SystemSection(Section):
 
 
 class SimulatorOptions(BaseModel):
-    """``[simulator.options]``: simulator-specific (each simulator checks its own); the URDF is
-    a file name under ``assets/urdf``, never a path elsewhere."""
+    """``[simulator.options]``: simulator-specific (each simulator checks its own); the built-in
+    robots' URDF is a file name under ``assets/urdf``, never a path elsewhere (the generic
+    backends' model files are paths confined to the experiment's folder, checked on loading)."""
     model_config = ConfigDict(extra="allow", strict=True)
-    urdf: Optional[Annotated[str, AfterValidator(urdf_name)]] = None
+    urdf: Optional[str] = None
 
 
 class SimulatorSection(Section):
@@ -87,6 +88,12 @@ class SimulatorSection(Section):
     options: SimulatorOptions = SimulatorOptions()
     system: Optional[str] = None
     steps: Optional[Int1] = None
+
+    @model_validator(mode="after")
+    def _builtin_urdf(self):
+        if self.options.urdf is not None and self.kind in ("pybullet_pendulum", "pybullet_turtlebot"):
+            urdf_name(self.options.urdf)
+        return self
 
 
 class CollectSection(Section):

@@ -31,7 +31,7 @@ class SimulatorConfig:
     Attributes
     ----------
     kind : str
-        Backend: ``numpy``, ``pybullet_pendulum``, ``pybullet_turtlebot``.
+        Backend: ``numpy``, ``pybullet_pendulum``, ``pybullet_turtlebot``, ``pybullet_urdf``, ``mujoco``.
     system : str
         Name of the nominal system it simulates (its X, U, base_tau, names).
     steps : int
@@ -75,6 +75,9 @@ class Simulator(ABC):
     RANDOMIZE_KEYS: tuple = ()
     EFFECT_KEYS: tuple = ()
     OPTION_KEYS: tuple = ()
+    #: options naming a model file: an experiment file's value is resolved against its folder (and
+    #: must stay inside it); the file's sha256 is recorded as option ``<key>_sha256`` and checked
+    PATH_OPTIONS: tuple = ()
 
     def __init__(self, config: SimulatorConfig, system: System | None = None):
         self.config = config
@@ -121,6 +124,8 @@ _BACKENDS = {
     "numpy": "simgap.simulators.numpy_sim:NumpySimulator",
     "pybullet_pendulum": "simgap.simulators.pybullet_pendulum:PendulumSimulator",
     "pybullet_turtlebot": "simgap.simulators.pybullet_turtlebot:TurtlebotSimulator",
+    "pybullet_urdf": "simgap.simulators.pybullet_urdf:UrdfSimulator",
+    "mujoco": "simgap.simulators.mujoco_sim:MujocoSimulator",
 }
 
 
@@ -140,12 +145,17 @@ def make_simulator(config: SimulatorConfig | dict, system: System | None = None,
         return ParallelSimulator(inner, n, system) if n > 1 else inner
     if isinstance(config, dict):
         config = SimulatorConfig.from_dict(config)
+    return backend_class(config.kind)(config, system)
+
+
+def backend_class(kind: str) -> type:
+    """The simulator class registered for ``kind`` (imported now; SimgapError listing the known kinds)."""
     try:
-        target = _BACKENDS[config.kind]
+        target = _BACKENDS[kind]
     except KeyError:
-        raise SimgapError(f"unknown simulator kind {config.kind!r}; known: {', '.join(sorted(_BACKENDS))}") from None
+        raise SimgapError(f"unknown simulator kind {kind!r}; known: {', '.join(sorted(_BACKENDS))}") from None
     mod, cls = target.split(":")
-    return getattr(importlib.import_module(mod), cls)(config, system)
+    return getattr(importlib.import_module(mod), cls)
 
 
 def as_vector(value, size: int, name: str) -> np.ndarray:

@@ -1,0 +1,321 @@
+"""A stochastic PyBullet simulator for any URDF: chosen joints are the state, chosen joints the input.
+
+The experiment names the robot file (``options.urdf``, a path confined to the experiment's
+folder, see :func:`simgap.config.load_experiment`) and which of its joints make the state and
+the input. The state vector x is, in this order,
+
+* the planar base pose (x [m], y [m], yaw [rad]) when ``options.base_pose = true`` (a mobile
+  base; the base is then not fixed),
+* the positions of the joints named in ``options.positions`` [rad or m],
+* the velocities of the joints named in ``options.velocities`` [rad/s or m/s];
+
+the input u drives the joints named in ``options.inputs``: by torque/force
+(``input_mode = "torque"``, N m or N, re-applied every physics step) or by velocity target
+(``input_mode = "velocity"``, rad/s or m/s, a velocity motor of maximum force
+``options.max_force``).
+
+One sampling period: every movable joint is reset (state joints to x, the others to 0 at rest),
+a mobile base is placed at (x, y, yaw) at ``options.base_height`` at rest, the input is held for
+``steps * substeps`` Bullet steps of dt = base_tau / substeps, and the state is read back (and
+wrapped where the system says a dimension is an angle). Degrees of freedom that are not in the
+state (base velocity, other joints) start at rest in every period: a URDF whose behaviour over
+one period depends on them needs them in the state.
+
+Batching: ``options.copies`` copies of the robot share one world, all at the same place, with
+collisions between copies filtered out (with ``options.ground`` they still touch the ground
+plane); a batch runs ``copies`` rows at a time. Copies do not interact and every row is reset
+completely (contact caches dropped by re-inserting the collision objects), so each row's result
+depends on its own (x, u, noise) only: batched and one-at-a-time are bit-identical (tested).
+
+Randomness (all drawn by :meth:`draw_noise` from the caller's generator, once per run):
+
+* ``noise.actuation_std``: scalar or one per input, u -> u + a, held for tau;
+* ``noise.sensor_std``: scalar or one per state dimension, added to the read-back state;
+* ``noise.process_std``: scalar or one per state dimension, added to the state after every base
+  period (the state is read, perturbed and reset; joints not in the state keep their motion);
+* ``randomize.mass`` (relative std): each link's mass and inertia times 1 + s z (z ~ N(0,1)
+  clipped to +-3, a factor per link and run);
+* ``randomize.joint_damping`` (relative std): each movable joint's damping times 1 + s z;
+* ``randomize.friction`` (relative std): each link's lateral friction times 1 + s z.
+
+Undeclared effects: ``effects.joint_damping`` [N m s/rad] adds viscous damping to every movable
+joint (Bullet's joint damping: the explicit torque -c qdot in each physics step);
+``effects.actuator_gain`` k scales the applied input: k (u + a).
+"""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+from typing import Dict, List
+
+import numpy as np
+
+from ..errors import SimgapError
+from ._bullet import BulletSimulator, bullet_client, check_std, int_option, pybullet_module, relative_factors
+from .base import as_vector
+
+MAX_COPIES = 256
+
+
+def model_file(value, digest, what: str) -> Path:
+    """The model file an option names (absolute after :func:`simgap.config.load_experiment`);
+    SimgapError if it is missing or its sha256 differs from the recorded ``digest``."""
+    if not isinstance(value, str) or not value:
+        raise SimgapError(f"{what}: need the path of a model file, got {value!r}")
+    path = Path(value).resolve()
+    if not path.is_file():
+        raise SimgapError(f"{what}: model file not found: {path}")
+    if digest is not None:
+        got = hashlib.sha256(path.read_bytes()).hexdigest()
+        if got != digest:
+            raise SimgapError(f"{what}: {path} changed since it was recorded (sha256 {got[:12]}..., "
+                              f"recorded {str(digest)[:12]}...)")
+    return path
+
+
+def name_list(value, what: str) -> List[str]:
+    """A list of names from a config value (a string is one name)."""
+    if isinstance(value, str):
+        value = [value]
+    if not isinstance(value, (list, tuple)) or not all(isinstance(v, str) and v for v in value):
+        raise SimgapError(f"{what}: need a list of names, got {value!r}")
+    return list(value)
+
+
+class UrdfSimulator(BulletSimulator):
+    """Batched stochastic PyBullet simulator of a URDF (see module docstring for the keys)."""
+
+    NOISE_KEYS = ("actuation_std", "sensor_std", "process_std")
+    RANDOMIZE_KEYS = ("mass", "joint_damping", "friction")
+    EFFECT_KEYS = ("joint_damping", "actuator_gain")
+    OPTION_KEYS = ("urdf", "urdf_sha256", "positions", "velocities", "inputs", "input_mode", "max_force",
+                   "base_pose", "base_height", "fixed_base", "ground", "substeps", "copies", "gravity")
+    #: options naming a file: resolved against (and confined to) the experiment's folder
+    PATH_OPTIONS = ("urdf",)
+
+    def __init__(self, config, system=None):
+        super().__init__(config, system)
+        s = self.system
+        nz, rz, ef, op = config.noise, config.randomize, config.effects, config.options
+        if "urdf" not in op:
+            raise SimgapError("pybullet_urdf: options.urdf (the robot file) is required")
+        self.path = model_file(op["urdf"], op.get("urdf_sha256"), "pybullet_urdf options.urdf")
+        self.pos_names = name_list(op.get("positions", []), "options.positions")
+        self.vel_names = name_list(op.get("velocities", []), "options.velocities")
+        self.in_names = name_list(op.get("inputs", []), "options.inputs")
+        self.base_pose = bool(op.get("base_pose", False))
+        self.fixed_base = bool(op.get("fixed_base", not self.base_pose))
+        if self.base_pose and self.fixed_base:
+            raise SimgapError("pybullet_urdf: base_pose needs a mobile base (fixed_base = false)")
+        n = 3 * self.base_pose + len(self.pos_names) + len(self.vel_names)
+        if n != s.n:
+            raise SimgapError(f"pybullet_urdf: the state has {n} components (base pose {3 * self.base_pose}, "
+                              f"{len(self.pos_names)} positions, {len(self.vel_names)} velocities) but system "
+                              f"{s.name!r} has n={s.n}")
+        if len(self.in_names) != s.m:
+            raise SimgapError(f"pybullet_urdf: options.inputs names {len(self.in_names)} joints but system "
+                              f"{s.name!r} has m={s.m} inputs")
+        self.mode = op.get("input_mode", "torque")
+        if self.mode not in ("torque", "velocity"):
+            raise SimgapError(f"pybullet_urdf: options.input_mode must be 'torque' or 'velocity', got {self.mode!r}")
+        self.max_force = check_std(op.get("max_force", 10.0), "options.max_force")
+        self.act_std = as_vector(nz.get("actuation_std", 0.0), s.m, "noise.actuation_std")
+        self.sens_std = as_vector(nz.get("sensor_std", 0.0), s.n, "noise.sensor_std")
+        self.proc_std = as_vector(nz.get("process_std", 0.0), s.n, "noise.process_std")
+        self.mass_std = check_std(rz.get("mass", 0.0), "randomize.mass", 0.3)
+        self.damp_std = check_std(rz.get("joint_damping", 0.0), "randomize.joint_damping", 0.3)
+        self.fric_std = check_std(rz.get("friction", 0.0), "randomize.friction", 0.3)
+        self.extra_damping = check_std(ef.get("joint_damping", 0.0), "effects.joint_damping")
+        self.gain = check_std(ef.get("actuator_gain", 1.0), "effects.actuator_gain")
+        self.substeps = int_option(op.get("substeps", 1), "options.substeps", 1, 1000)
+        self.copies = int_option(op.get("copies", 16), "options.copies", 1, MAX_COPIES)
+        self.base_height = float(op.get("base_height", 0.0))
+        self.g = check_std(op.get("gravity", s.params.get("g", 9.81)), "options.gravity")
+        self.dt = s.base_tau / self.substeps
+        self._build(bool(op.get("ground", False)))
+
+    # ----- construction ------------------------------------------------------------------
+    def _build(self, ground: bool) -> None:
+        pb = pybullet_module()
+        c = self._client = bullet_client(self.dt, self.g, deterministic_pairs=ground)
+        self._pb, self._cid = pb, c._client
+        flags = pb.URDF_USE_INERTIA_FROM_FILE
+        try:
+            bodies = [c.loadURDF(str(self.path), basePosition=[0, 0, self.base_height],
+                                 useFixedBase=self.fixed_base, flags=flags) for _ in range(self.copies)]
+        except pb.error as e:
+            raise SimgapError(f"pybullet_urdf: cannot load {self.path}: {e}") from None
+        self.bodies = bodies
+        b0 = bodies[0]
+        nj = c.getNumJoints(b0)
+        infos = [c.getJointInfo(b0, j) for j in range(nj)]
+        by_name = {i[1].decode(): i for i in infos}
+        movable = [i for i in infos if i[2] in (pb.JOINT_REVOLUTE, pb.JOINT_PRISMATIC)]
+        self.movable = [i[0] for i in movable]
+        names = sorted(i[1].decode() for i in movable)
+
+        def index(name, what):
+            i = by_name.get(name)
+            if i is None or i[0] not in self.movable:
+                raise SimgapError(f"pybullet_urdf: {self.path.name} has no revolute/prismatic joint {name!r} "
+                                  f"(named in options.{what}); its movable joints: {', '.join(names) or 'none'}")
+            return i[0]
+
+        self.pos_idx = [index(nm, "positions") for nm in self.pos_names]
+        self.vel_idx = [index(nm, "velocities") for nm in self.vel_names]
+        self.in_idx = [index(nm, "inputs") for nm in self.in_names]
+        # per-joint slots in the reset lists (every movable joint is reset each period)
+        slot = {j: k for k, j in enumerate(self.movable)}
+        self._pos_slot, self._vel_slot = [slot[j] for j in self.pos_idx], [slot[j] for j in self.vel_idx]
+        self.links = ([-1] if not self.fixed_base else []) + list(range(nj))
+        self.mass0 = np.array([c.getDynamicsInfo(b0, l)[0] for l in self.links])
+        self.inertia0 = np.array([c.getDynamicsInfo(b0, l)[2] for l in self.links])
+        self.friction0 = np.array([c.getDynamicsInfo(b0, l)[1] for l in self.links])
+        self.damping0 = np.array([infos[j][6] for j in self.movable]) + self.extra_damping
+        self._base0 = c.getBasePositionAndOrientation(b0)
+        if ground:
+            plane = c.createCollisionShape(pb.GEOM_PLANE)
+            self.ground = c.createMultiBody(0, plane)
+            c.setCollisionFilterGroupMask(self.ground, -1, 1, 2)
+        for b in bodies:
+            c.changeDynamics(b, -1, linearDamping=0.0, angularDamping=0.0,
+                             activationState=pb.ACTIVATION_STATE_DISABLE_SLEEPING)
+            for k, j in enumerate(self.movable):
+                c.changeDynamics(b, j, linearDamping=0.0, angularDamping=0.0, jointDamping=float(self.damping0[k]))
+            for l in [-1] + list(range(nj)):  # copies touch the ground (group 1) only, never each other
+                c.setCollisionFilterGroupMask(b, l, 2, 1 if ground else 0)
+            # the default velocity motors would act as stiff friction: off on every movable joint
+            c.setJointMotorControlArray(b, self.movable, pb.VELOCITY_CONTROL,
+                                        targetVelocities=[0.0] * len(self.movable), forces=[0.0] * len(self.movable))
+        self._ground = ground
+        self._per_row_dynamics = self.mass_std > 0 or self.damp_std > 0 or self.fric_std > 0
+        self._process = bool(np.any(self.proc_std > 0))
+
+    # ----- randomness ----------------------------------------------------------------------
+    def draw_noise(self, B: int, rng: np.random.Generator) -> Dict[str, np.ndarray]:
+        """Per-run draws: ``act`` (B,m), ``sens`` (B,n), ``proc`` (B,steps,n) additive noise;
+        ``mass``, ``friction`` (B, links) and ``damping`` (B, movable joints) relative factors.
+        The same numbers are drawn whatever the configuration, in a fixed order."""
+        s = self.system
+        act = rng.standard_normal((B, s.m)) * self.act_std
+        sens = rng.standard_normal((B, s.n)) * self.sens_std
+        proc = rng.standard_normal((B, s.steps, s.n)) * self.proc_std
+        L, J = len(self.links), len(self.movable)
+        mass = relative_factors(rng, B * L, self.mass_std).reshape(B, L)
+        damping = relative_factors(rng, B * J, self.damp_std).reshape(B, J)
+        friction = relative_factors(rng, B * L, self.fric_std).reshape(B, L)
+        return {"act": act, "sens": sens, "proc": proc, "mass": mass, "damping": damping, "friction": friction}
+
+    # ----- the batch step --------------------------------------------------------------------
+    def step_with_noise(self, x, u, noise):
+        """Next states (B,n) after tau from x (B,n) with u (B,m) held, for drawn noise.
+
+        Rows run ``copies`` at a time on independent copies of the robot, each reset completely.
+        """
+        s = self.system
+        x = np.atleast_2d(np.asarray(x, dtype=float))
+        u = np.atleast_2d(np.asarray(u, dtype=float))
+        B = x.shape[0]
+        if x.shape != (B, s.n) or u.shape != (B, s.m):
+            raise SimgapError(f"pybullet_urdf: need x (B,{s.n}) and u (B,{s.m}), got {x.shape} and {u.shape}")
+        drive = self.gain * (u + noise["act"])
+        out = np.empty((B, s.n))
+        for r0 in range(0, B, self.copies):
+            r1 = min(B, r0 + self.copies)
+            out[r0:r1] = self._run_round(x[r0:r1], drive[r0:r1], {k: v[r0:r1] for k, v in noise.items()})
+        return s.wrap(out + noise["sens"])
+
+    def _set_state(self, bodies, x):
+        """Reset each body's state dofs to a row of x; other movable joints to 0 at rest."""
+        pb, cid = self._pb, self._cid
+        nb, npos = 3 * self.base_pose, len(self.pos_idx)
+        J = len(self.movable)
+        for b, row in zip(bodies, x.tolist()):
+            q, qd = [[0.0] for _ in range(J)], [[0.0] for _ in range(J)]
+            for k, v in zip(self._pos_slot, row[nb:nb + npos]):
+                q[k] = [v]
+            for k, v in zip(self._vel_slot, row[nb + npos:]):
+                qd[k] = [v]
+            if self.base_pose:
+                pos = [row[0], row[1], self._base0[0][2]]
+                pb.resetBasePositionAndOrientation(b, pos, pb.getQuaternionFromEuler([0, 0, row[2]]),
+                                                   physicsClientId=cid)
+                pb.resetBaseVelocity(b, [0, 0, 0], [0, 0, 0], physicsClientId=cid)
+            elif not self.fixed_base:
+                pb.resetBasePositionAndOrientation(b, *self._base0, physicsClientId=cid)
+                pb.resetBaseVelocity(b, [0, 0, 0], [0, 0, 0], physicsClientId=cid)
+            pb.resetJointStatesMultiDof(b, self.movable, q, targetVelocities=qd, physicsClientId=cid)
+            if self._ground:  # drop cached contact manifolds: the row must not remember earlier rows
+                for l in [-1] + list(range(pb.getNumJoints(b, physicsClientId=cid))):
+                    pb.setCollisionFilterGroupMask(b, l, 2, 1, physicsClientId=cid)
+
+    def _get_state(self, bodies) -> np.ndarray:
+        pb, cid = self._pb, self._cid
+        rows = []
+        for b in bodies:
+            row = []
+            if self.base_pose:
+                pos, orn = pb.getBasePositionAndOrientation(b, physicsClientId=cid)
+                row += [pos[0], pos[1], pb.getEulerFromQuaternion(orn)[2]]
+            st = pb.getJointStates(b, self.movable, physicsClientId=cid)
+            slot = {j: k for k, j in enumerate(self.movable)}
+            row += [st[slot[j]][0] for j in self.pos_idx] + [st[slot[j]][1] for j in self.vel_idx]
+            rows.append(row)
+        return np.array(rows, dtype=float)
+
+    def _run_round(self, x, drive, noise):
+        """Rows x (b,n), b <= copies, on the first b copies; (b,n) next states before sensor noise."""
+        pb, cid, s = self._pb, self._cid, self.system
+        bodies = self.bodies[:x.shape[0]]
+        if self._per_row_dynamics:
+            for i, b in enumerate(bodies):
+                for k, l in enumerate(self.links):
+                    f = float(noise["mass"][i, k])
+                    pb.changeDynamics(b, l, mass=float(self.mass0[k]) * f,
+                                      localInertiaDiagonal=(self.inertia0[k] * f).tolist(),
+                                      lateralFriction=float(self.friction0[k] * noise["friction"][i, k]),
+                                      physicsClientId=cid)
+                for k, j in enumerate(self.movable):
+                    pb.changeDynamics(b, j, jointDamping=float(self.damping0[k] * noise["damping"][i, k]),
+                                      physicsClientId=cid)
+        self._set_state(bodies, x)
+        targets = drive.tolist()
+        if self.mode == "velocity":
+            for b, t in zip(bodies, targets):
+                pb.setJointMotorControlArray(b, self.in_idx, pb.VELOCITY_CONTROL, targetVelocities=t,
+                                             forces=[self.max_force] * len(t), physicsClientId=cid)
+        for k in range(s.steps):
+            for _ in range(self.substeps):
+                if self.mode == "torque":  # applied torques are cleared by every step: re-apply
+                    for b, t in zip(bodies, targets):
+                        pb.setJointMotorControlArray(b, self.in_idx, pb.TORQUE_CONTROL, forces=t,
+                                                     physicsClientId=cid)
+                pb.stepSimulation(physicsClientId=cid)
+            if self._process and k < s.steps - 1:
+                self._set_state_keep_rest(bodies, self._get_state(bodies) + noise["proc"][:, k])
+        y = self._get_state(bodies)
+        return y + noise["proc"][:, s.steps - 1] if self._process else y
+
+    def _set_state_keep_rest(self, bodies, x):
+        """Reset only the state dofs to x (process noise between base periods)."""
+        pb, cid = self._pb, self._cid
+        nb, npos = 3 * self.base_pose, len(self.pos_idx)
+        for b, row in zip(bodies, x.tolist()):
+            if self.base_pose:
+                pos, orn = pb.getBasePositionAndOrientation(b, physicsClientId=cid)
+                rpy = pb.getEulerFromQuaternion(orn)
+                lin, ang = pb.getBaseVelocity(b, physicsClientId=cid)
+                pb.resetBasePositionAndOrientation(b, [row[0], row[1], pos[2]],
+                                                   pb.getQuaternionFromEuler([rpy[0], rpy[1], row[2]]),
+                                                   physicsClientId=cid)
+                pb.resetBaseVelocity(b, lin, ang, physicsClientId=cid)
+            st = pb.getJointStates(b, self.movable, physicsClientId=cid)
+            q = {j: st[k][0] for k, j in enumerate(self.movable)}
+            qd = {j: st[k][1] for k, j in enumerate(self.movable)}
+            for j, v in zip(self.pos_idx, row[nb:nb + npos]):
+                q[j] = v
+            for j, v in zip(self.vel_idx, row[nb + npos:]):
+                qd[j] = v
+            pb.resetJointStatesMultiDof(b, self.movable, [[q[j]] for j in self.movable],
+                                        targetVelocities=[[qd[j]] for j in self.movable], physicsClientId=cid)

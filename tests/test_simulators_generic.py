@@ -1,0 +1,308 @@
+"""Generic simulator backends (any URDF through PyBullet, any MJCF through MuJoCo): agreement with
+the built-in pendulum, batched == one-at-a-time (bit-identical), randomization against the
+formula, model files confined to the experiment's folder, bad input and a missing extra."""
+
+import builtins
+import copy
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from simgap.errors import SimgapError
+from simgap.simulators import make_simulator
+from simgap.systems import get_system
+
+pytest.importorskip("pybullet")
+
+REPO = Path(__file__).resolve().parents[1]
+URDF = str(REPO / "assets" / "urdf" / "pendulum.urdf")
+MJCF = str(REPO / "assets" / "urdf" / "pendulum.xml")
+CARTPOLE = REPO / "assets" / "experiments" / "inverted_pendulum.xml"
+PEND = {"kind": "pybullet_pendulum", "system": "pendulum"}
+PEND_URDF = {"kind": "pybullet_urdf", "system": "pendulum",
+             "options": {"urdf": URDF, "positions": ["hinge"], "velocities": ["hinge"], "inputs": ["hinge"]}}
+PEND_MJ = {"kind": "mujoco", "system": "pendulum",
+           "options": {"model": MJCF, "positions": ["hinge"], "velocities": ["hinge"], "inputs": ["torque"]}}
+G, M, L = 9.81, 1.0, 1.0
+I_PIVOT = M * L * L / 3.0
+
+
+def cfg(base, **sections):
+    out = copy.deepcopy(base)
+    for k, v in sections.items():
+        out[k] = {**out.get(k, {}), **v} if isinstance(v, dict) else v
+    return out
+
+
+def rows(noise, i, j):
+    return {k: v[i:j] for k, v in noise.items()}
+
+
+def samples(rng, B, system="pendulum"):
+    s = get_system(system)
+    return rng.uniform(s.x_lo, s.x_hi, (B, s.n)), s.inputs[rng.integers(0, len(s.inputs), B)]
+
+
+def one_at_a_time(sim, x, u, noise):
+    return np.concatenate([sim.step_with_noise(x[i:i + 1], u[i:i + 1], rows(noise, i, i + 1))
+                           for i in range(len(x))])
+
+
+# ----------------------------------------------------------------------------------------
+# pybullet_urdf
+# ----------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("steps", [1, 3])
+def test_urdf_pendulum_agrees_with_pybullet_pendulum(rng, steps):
+    """The built-in pendulum written as a pybullet_urdf config gives the pybullet_pendulum
+    simulator's numbers (same actuation noise, same joint damping) to 1e-12."""
+    x, u = samples(rng, 120)
+    act = 0.3 * rng.standard_normal((120, 1))
+    with make_simulator(cfg(PEND, steps=steps, effects={"joint_damping": 0.2})) as a, \
+            make_simulator(cfg(PEND_URDF, steps=steps, effects={"joint_damping": 0.2})) as b:
+        na, nb = a.draw_noise(120, rng), b.draw_noise(120, rng)
+        na["act"], nb["act"] = act, act
+        ya, yb = a.step_with_noise(x, u, na), b.step_with_noise(x, u, nb)
+    assert np.max(np.abs(ya - yb)) <= 1e-12
+    assert np.max(np.abs(yb - x)) > 1e-4  # it moved
+    if steps == 1:  # and it is the pendulum: the nominal omega+ at u + a, less the damping's tau c omega / I
+        nominal = get_system("pendulum").f(x, u + act)[:, 1] - 0.005 * 0.2 * x[:, 1] / I_PIVOT
+        assert np.max(np.abs(yb[:, 1] - nominal)) < 1e-12
+
+
+def test_urdf_batched_equals_one_at_a_time_all_keys(rng):
+    """Every noise and randomization key on, copies fewer than rows: bit-identical rows."""
+    c = cfg(PEND_URDF, steps=3, noise={"actuation_std": 0.2, "sensor_std": 1e-3, "process_std": [1e-3, 1e-2]},
+            randomize={"mass": 0.2, "joint_damping": 0.2, "friction": 0.1}, effects={"joint_damping": 0.1},
+            options={"copies": 4})
+    x, u = samples(rng, 11)
+    with make_simulator(c) as sim:
+        noise = sim.draw_noise(11, np.random.default_rng(3))
+        y = sim.step_with_noise(x, u, noise)
+        rev = {k: v[::-1] for k, v in noise.items()}
+        assert np.array_equal(y, one_at_a_time(sim, x[::-1], u[::-1], rev)[::-1])
+        assert np.array_equal(y, sim.step(x, u, np.random.default_rng(3)))  # seeded: same draws
+        assert not np.array_equal(y, sim.step(x, u, np.random.default_rng(4)))
+
+
+def test_urdf_randomized_mass_and_damping_follow_the_model(rng):
+    """Mass (and inertia) times f leaves the gravity term and divides the torque term by f; damping
+    c times f_d: omega+ = omega + tau (-(3g/2l) sin th + 3 u / (f m l^2) - f_d c omega / (f I))."""
+    c0, tau = 0.3, 0.005
+    c = cfg(PEND_URDF, randomize={"mass": 0.2, "joint_damping": 0.2}, effects={"joint_damping": c0},
+            options={"copies": 7})
+    x, u = samples(rng, 40)
+    with make_simulator(c) as sim:
+        noise = sim.draw_noise(40, rng)
+        y = sim.step_with_noise(x, u, noise)
+        f = noise["mass"][:, sim.links.index(0)]
+        fd = noise["damping"][:, 0]
+    assert np.std(f) > 0.05 and np.std(fd) > 0.05
+    th, om, uu = x[:, 0], x[:, 1], u[:, 0]
+    om_next = om + tau * (-(3 * G / (2 * L)) * np.sin(th) + 3 * uu / (f * M * L * L) - fd * c0 * om / (f * I_PIVOT))
+    assert np.max(np.abs(y[:, 1] - om_next)) < 1e-12
+    assert np.max(np.abs(y[:, 0] - (th + tau * om_next))) < 1e-12
+
+
+def test_urdf_mobile_base_drives_and_is_batch_independent(rng):
+    """A differential drive (the TurtleBot URDF) with its planar pose as the state and wheel velocity
+    targets as inputs: equal wheel speeds drive it along its heading; rows are bit-identical alone."""
+    tb = get_system("turtlebot")
+    c = {"kind": "pybullet_urdf", "system": "turtlebot", "steps": 10,
+         "noise": {"actuation_std": 0.5}, "randomize": {"friction": 0.1},
+         "options": {"urdf": str(REPO / "assets" / "urdf" / "diffbot.urdf"), "base_pose": True, "ground": True,
+                     "inputs": ["wheel_left_joint", "wheel_right_joint"], "input_mode": "velocity",
+                     "base_height": 0.034, "substeps": 2, "copies": 3}}
+    import dataclasses
+    s = dataclasses.replace(tb, inputs=np.array([[10.0, 10.0], [5.0, -5.0]]), input_names=("wl", "wr"))
+    x = np.array([[0.5, 0.5, 0.0], [0.5, 0.5, np.pi / 2], [1.0, 1.0, 0.3], [1.0, 1.0, -2.0]])
+    u = np.array([[10.0, 10.0], [10.0, 10.0], [5.0, -5.0], [10.0, 10.0]])
+    with make_simulator(c, s) as sim:
+        noise = sim.draw_noise(4, rng)
+        y = sim.step_with_noise(x, u, noise)
+        assert np.array_equal(y, one_at_a_time(sim, x, u, noise))
+        quiet = {k: (np.ones_like(v) if k in ("mass", "damping", "friction") else np.zeros_like(v))
+                 for k, v in noise.items()}
+        y0 = sim.step_with_noise(x, u, quiet)
+    d = y0[:, :2] - x[:, :2]
+    assert d[0, 0] > 0.01 and abs(d[0, 1]) < 0.2 * d[0, 0]      # heading 0: along +x
+    assert d[1, 1] > 0.01 and abs(d[1, 0]) < 0.2 * d[1, 1]      # heading pi/2: along +y
+    assert abs(y0[2, 2] - x[2, 2]) > 0.05                        # opposite wheels turn it
+
+
+# ----------------------------------------------------------------------------------------
+# mujoco
+# ----------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("steps", [1, 3])
+def test_mujoco_pendulum_agrees_with_pybullet_pendulum(rng, steps):
+    """The same rod as MJCF: MuJoCo's semi-implicit Euler gives Bullet's numbers to 1e-12."""
+    pytest.importorskip("mujoco")
+    x, u = samples(rng, 200)
+    act = 0.3 * rng.standard_normal((200, 1))
+    with make_simulator(cfg(PEND, steps=steps)) as a, make_simulator(cfg(PEND_MJ, steps=steps)) as b:
+        na, nb = a.draw_noise(200, rng), b.draw_noise(200, rng)
+        na["act"], nb["act"] = act, act
+        ya, yb = a.step_with_noise(x, u, na), b.step_with_noise(x, u, nb)
+    assert np.max(np.abs(ya - yb)) <= 1e-12
+    assert np.max(np.abs(yb - x)) > 1e-4
+
+
+def test_mujoco_batched_equals_one_at_a_time_randomized_threads(rng):
+    """Noise and per-run models on, 2 threads, model pool smaller than the batch: rows bit-identical
+    alone, in another order, and seeded."""
+    pytest.importorskip("mujoco")
+    c = cfg(PEND_MJ, steps=2, noise={"actuation_std": 0.2, "force_std": 0.1, "sensor_std": 1e-3},
+            randomize={"mass": 0.2, "damping": 0.2}, options={"threads": 2, "models_per_batch": 5})
+    x, u = samples(rng, 23)
+    with make_simulator(c) as sim:
+        noise = sim.draw_noise(23, np.random.default_rng(5))
+        y = sim.step_with_noise(x, u, noise)
+        assert np.array_equal(y, one_at_a_time(sim, x, u, noise))
+        p = rng.permutation(23)
+        assert np.array_equal(y[p], sim.step_with_noise(x[p], u[p], {k: v[p] for k, v in noise.items()}))
+        assert np.array_equal(y, sim.step(x, u, np.random.default_rng(5)))
+
+
+def test_mujoco_mass_randomization_and_force_noise_follow_the_model(rng):
+    """Mass factor f: omega+ = omega + tau (-(3g/2l) sin th + 3 (u + F) / (f m l^2)) with F the
+    per-run generalized force on the hinge (force_std)."""
+    pytest.importorskip("mujoco")
+    tau = 0.005
+    c = cfg(PEND_MJ, noise={"force_std": 0.5}, randomize={"mass": 0.2}, options={"models_per_batch": 7})
+    x, u = samples(rng, 30)
+    with make_simulator(c) as sim:
+        noise = sim.draw_noise(30, rng)
+        y = sim.step_with_noise(x, u, noise)
+        f, F = noise["mass"][:, sim.model.body("rod").id], noise["force"][:, 0]
+    assert np.std(f) > 0.05 and np.std(F) > 0.2
+    om_next = x[:, 1] + tau * (-(3 * G / (2 * L)) * np.sin(x[:, 0]) + 3 * (u[:, 0] + F) / (f * M * L * L))
+    assert np.max(np.abs(y[:, 1] - om_next)) < 1e-12
+
+
+def test_mujoco_damping_randomization_per_row_on_the_cartpole(rng):
+    """Each row runs with its own dof damping: the row equals a direct MuJoCo run of a model whose
+    damping is that row's factors times the MJCF's (catches factors applied to the wrong row)."""
+    mujoco = pytest.importorskip("mujoco")
+    import dataclasses
+    s = dataclasses.replace(get_system("pendulum"), name="cp", x_lo=np.full(4, -0.1), x_hi=np.full(4, 0.1),
+                            state_names=("p", "th", "pd", "thd"), base_tau=0.04, inputs=np.array([[1.0]]))
+    c = {"kind": "mujoco", "system": "pendulum", "randomize": {"damping": 0.3},
+         "options": {"model": str(CARTPOLE), "positions": ["slider", "hinge"], "velocities": ["slider", "hinge"],
+                     "inputs": ["slide"], "models_per_batch": 3}}
+    x = rng.uniform(-0.1, 0.1, (8, 4))
+    u = rng.uniform(-1, 1, (8, 1))
+    with make_simulator(c, s) as sim:
+        noise = sim.draw_noise(8, rng)
+        y = sim.step_with_noise(x, u, noise)
+        assert sim.substeps == 2
+    m = mujoco.MjModel.from_xml_path(str(CARTPOLE))
+    m.opt.timestep = 0.02
+    d = mujoco.MjData(m)
+    for i in range(8):
+        m.dof_damping[:] = np.array([1.0, 1.0]) * noise["damping"][i]
+        mujoco.mj_resetData(m, d)
+        d.qpos[:], d.qvel[:], d.ctrl[:] = x[i, :2], x[i, 2:], u[i]
+        for _ in range(2):
+            mujoco.mj_step(m, d)
+        assert np.array_equal(y[i], np.r_[d.qpos, d.qvel]), i
+
+
+def test_mujoco_missing_extra_names_it(monkeypatch):
+    """Without the mujoco package the backend says which extra to install."""
+    real = builtins.__import__
+
+    def no_mujoco(name, *a, **k):
+        if name == "mujoco" or name.startswith("mujoco."):
+            raise ImportError("No module named 'mujoco'")
+        return real(name, *a, **k)
+
+    monkeypatch.setattr(builtins, "__import__", no_mujoco)
+    with pytest.raises(SimgapError, match=r"simgap\[mujoco\]"):
+        make_simulator(PEND_MJ)
+
+
+@pytest.mark.parametrize("base,section,value,match", [
+    (PEND_URDF, "options", {"positions": ["elbow"]}, r"no revolute/prismatic joint 'elbow'.*hinge"),
+    (PEND_URDF, "options", {"inputs": ["hinge", "hinge"]}, "names 2 joints"),
+    (PEND_URDF, "options", {"input_mode": "position"}, "input_mode"),
+    (PEND_URDF, "options", {"urdf": "/nonexistent/robot.urdf"}, "not found"),
+    (PEND_URDF, "options", {"urdf_sha256": "0" * 64}, "changed since it was recorded"),
+    (PEND_URDF, "randomize", {"length": 0.1}, "unknown randomize keys"),
+    (PEND_MJ, "options", {"inputs": ["motor"]}, r"no actuator 'motor'.*torque"),
+    (PEND_MJ, "options", {"velocities": ["knee"]}, r"no joint 'knee'.*hinge"),
+    (PEND_MJ, "options", {"substeps": 0}, "substeps"),
+    (PEND_MJ, "noise", {"force_std": -1}, "force_std"),
+])
+def test_generic_bad_config(base, section, value, match):
+    if base is PEND_MJ:
+        pytest.importorskip("mujoco")
+    with pytest.raises(SimgapError, match=match):
+        make_simulator(cfg(base, **{section: value}))
+
+
+EXP = """
+[system]
+name = "pendulum"
+[simulator]
+kind = "{kind}"
+options = {{ {model} = "{path}", positions = ["hinge"], velocities = ["hinge"], inputs = ["{inp}"] }}
+[collect]
+epsilon = 0.1
+n_runs = 4
+seed = 1
+executor = "serial"
+"""
+
+
+def run_cli(*args, cwd):
+    import os
+    env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    return subprocess.run([sys.executable, "-m", "simgap", *map(str, args)], cwd=cwd, env=env,
+                          capture_output=True, text=True, timeout=120)
+
+
+@pytest.mark.parametrize("kind,model,inp,path,words", [
+    ("pybullet_urdf", "urdf", "hinge", "../pendulum.urdf", ["leads outside the experiment's folder", "options.urdf"]),
+    ("mujoco", "model", "torque", "../pendulum.xml", ["leads outside the experiment's folder", "options.model"]),
+    ("mujoco", "model", "motor", "pendulum.xml", ["no actuator 'motor'"]),
+    ("pybullet_urdf", "urdf", "elbow", "pendulum.urdf", ["no revolute/prismatic joint 'elbow'"]),
+    ("mujoco", "model", "torque", "missing.xml", ["does not exist"]),
+])
+def test_model_file_bad_input_through_the_cli(tmp_path, kind, model, inp, path, words):
+    """Through the real command line: non-zero exit, the problem named, no traceback, nothing written."""
+    if kind == "mujoco":
+        pytest.importorskip("mujoco")
+    exp_dir = tmp_path / "exp"
+    exp_dir.mkdir()
+    for f in (URDF, MJCF):
+        shutil.copy(f, tmp_path)
+        shutil.copy(f, exp_dir)
+    (exp_dir / "e.toml").write_text(EXP.format(kind=kind, model=model, path=path, inp=inp))
+    before = sorted(p.name for p in tmp_path.rglob("*"))
+    r = run_cli("collect", "e.toml", "--profile", "base", "--out", "data", cwd=exp_dir)
+    assert r.returncode != 0 and "Traceback" not in r.stderr, r.stdout + r.stderr
+    for w in words:
+        assert w in r.stdout + r.stderr, r.stdout + r.stderr
+    assert sorted(p.name for p in tmp_path.rglob("*")) == before
+
+
+def test_experiment_resolves_and_pins_the_model_file(tmp_path):
+    """A model named in an experiment is resolved in its folder and its sha256 recorded; a changed
+    file is then refused when the simulator is rebuilt from that configuration."""
+    from simgap.config import load_experiment
+    shutil.copy(URDF, tmp_path)
+    (tmp_path / "e.toml").write_text(EXP.format(kind="pybullet_urdf", model="urdf", path="pendulum.urdf",
+                                                inp="hinge"))
+    exp = load_experiment(tmp_path / "e.toml", profile=None)
+    op = exp.simulator.options
+    assert op["urdf"] == str((tmp_path / "pendulum.urdf").resolve()) and len(op["urdf_sha256"]) == 64
+    make_simulator(exp.simulator).close()
+    with open(tmp_path / "pendulum.urdf", "a") as fh:
+        fh.write("<!-- edited -->\n")
+    with pytest.raises(SimgapError, match="changed since it was recorded"):
+        make_simulator(exp.simulator)

@@ -40,9 +40,11 @@ def relative_path(value: str) -> str:
 
 
 def urdf_name(value: str) -> str:
-    """A URDF file under ``assets/urdf`` (no absolute path, no ``..``)."""
+    """A URDF file under ``assets/urdf`` (built-in robots) or in the experiment's folder
+    (``pybullet_urdf``): no absolute path, no ``..``."""
     if _escapes(value):
-        raise ValueError(f"must name a file under assets/urdf (no absolute path, no ..), got {value!r}")
+        raise ValueError("must name a file under assets/urdf (built-in robots) or in the experiment's folder "
+                         f"(pybullet_urdf): no absolute path, no .., got {value!r}")
     return value
 
 
@@ -72,11 +74,11 @@ class SystemSection(Section):
 
 
 class SimulatorOptions(BaseModel):
-    """``[simulator.options]``: simulator-specific (each simulator checks its own); the built-in
-    robots' URDF is a file name under ``assets/urdf``, never a path elsewhere (the generic
-    backends' model files are paths confined to the experiment's folder, checked on loading)."""
+    """``[simulator.options]``: simulator-specific (each simulator checks its own); the URDF is
+    a file name under ``assets/urdf`` (built-in robots) or in the experiment's folder
+    (``pybullet_urdf``, confined on loading), never a path elsewhere."""
     model_config = ConfigDict(extra="allow", strict=True)
-    urdf: Optional[str] = None
+    urdf: Optional[Annotated[str, AfterValidator(urdf_name)]] = None
 
 
 class SimulatorSection(Section):
@@ -88,12 +90,6 @@ class SimulatorSection(Section):
     options: SimulatorOptions = SimulatorOptions()
     system: Optional[str] = None
     steps: Optional[Int1] = None
-
-    @model_validator(mode="after")
-    def _builtin_urdf(self):
-        if self.options.urdf is not None and self.kind in ("pybullet_pendulum", "pybullet_turtlebot"):
-            urdf_name(self.options.urdf)
-        return self
 
 
 class CollectSection(Section):

@@ -102,7 +102,7 @@ def test_cli_dry_run_writes_nothing(tmp_path, capsys):
     ([], {"text": "[system\nname="}, "not valid TOML"),
     ([], {"text": BASE.format(system_extra="", collect_extra="").replace('"pendulum"', '"segway"')},
      "unknown system 'segway'"),
-    ([], {"text": BASE.format(system_extra="", collect_extra="").replace('"numpy"', '"mujoco"')},
+    ([], {"text": BASE.format(system_extra="", collect_extra="").replace('"numpy"', '"gazebo"')},
      "unknown simulator kind"),
 ])
 def test_cli_bad_input_exits_2(tmp_path, capsys, args, toml_kw, match):

@@ -267,7 +267,7 @@ def run_cli(*args, cwd):
 
 
 @pytest.mark.parametrize("kind,model,inp,path,words", [
-    ("pybullet_urdf", "urdf", "hinge", "../pendulum.urdf", ["leads outside the experiment's folder", "options.urdf"]),
+    ("pybullet_urdf", "urdf", "hinge", "../pendulum.urdf", ["options.urdf", "no .."]),
     ("mujoco", "model", "torque", "../pendulum.xml", ["leads outside the experiment's folder", "options.model"]),
     ("mujoco", "model", "motor", "pendulum.xml", ["no actuator 'motor'"]),
     ("pybullet_urdf", "urdf", "elbow", "pendulum.urdf", ["no revolute/prismatic joint 'elbow'"]),

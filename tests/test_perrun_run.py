@@ -38,6 +38,15 @@ def test_summary_has_p_cert_and_p_emp_per_controller_and_state(run):
     ctl = PerRunController.load(out / "controller_perrun.npz")
     assert ctl.certified(np.array([[0.0, 0.0]]))[0] == pytest.approx(per[0]["p_cert"])
     assert (out / "cert_run.json").stat().st_size > 0
+    # p_cert says what it rests on, in the summary, the controller file and the printed table
+    assert "estimated Lipschitz constants" in pr["p_cert_conditional_on"]
+    assert ctl.meta["p_cert_conditional_on"] == pr["p_cert_conditional_on"]
+    c = pr["imdp"]["containment"]
+    assert c["passed"] is True and c["runs"] == c["rows_checked"] * c["states_per_row"] > 0
+    assert ctl.meta["containment"]["passed"] is True
+    from simgap.perrun.stage import table
+    assert "conditional on the estimated Lipschitz constants" in table(pr).splitlines()[1]
+    assert "containment check: passed" in table(pr).splitlines()[1]
 
 
 def test_table_judges_only_stated_probabilities(run):
@@ -46,13 +55,13 @@ def test_table_judges_only_stated_probabilities(run):
     from simgap.perrun.stage import table
     _, s = run
     pr = json.loads(json.dumps(s["per_run"]))
-    rows = {line.split()[0]: line.split() for line in table(pr).splitlines()[2:]}
+    rows = {line.split()[0]: line.split() for line in table(pr).splitlines()[3:]}
     assert rows["deterministic"][-1] == "-" and rows["stochastic"][-1] == "-"
     n = len(pr["controllers"]["perrun"]["states"])
     assert rows["perrun"][-1] == f"{n}/{n}"
     worst = pr["controllers"]["perrun"]["states"][-1]
     worst.update(p_cert=1.0, p_emp=0.5, se=0.02)
-    rows = {line.split()[0]: line.split() for line in table(pr).splitlines()[2:]}
+    rows = {line.split()[0]: line.split() for line in table(pr).splitlines()[3:]}
     assert rows["perrun"][-1] == f"{n - 1}/{n}" and float(rows["perrun"][-2]) == 0.5
 
 

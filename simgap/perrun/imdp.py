@@ -173,6 +173,12 @@ def _bound_count(a: Allocation, n_rows: int, n_support: int) -> int:
     return n_rows * (a.sink > 0) + n_support * ((a.lo > 0) + (a.hi > 0))
 
 
+P_CERT_CONDITION = ("conditional on the estimated Lipschitz constants: Wood-Zhang estimates from common-random-number "
+                    "secants at several distances, not proven bounds (a feature narrower than the secants and the "
+                    "containment check sample can break p_cert; docs/per-run.md, assumptions table), and on the "
+                    "Markov assumption: the simulator's randomness, per-run parameters included, is drawn afresh "
+                    "every sampling period")
+
 UNION_BOUND = ("Bonferroni over all one-sided Clopper-Pearson bounds; family f (sink, lo, hi) gets the "
                "share split[f] of beta, each of its bounds level beta split[f] / (its count)")
 
@@ -196,7 +202,8 @@ def assemble(grid: UniformGrid, inputs: np.ndarray, hold: int, live: np.ndarray,
     levels = alloc.levels(float(beta), n_rows, n_support)
     lo32, hi32 = float32_outward(*intervals(k_lo, k_hi, is_sink, int(n_runs), levels))
     meta = dict(meta, n_runs=int(n_runs), beta=float(beta), split=dataclasses.asdict(alloc), levels=levels,
-                bounds=_bound_count(alloc, n_rows, n_support), union_bound=UNION_BOUND)
+                bounds=_bound_count(alloc, n_rows, n_support), union_bound=UNION_BOUND,
+                p_cert_conditional_on=meta.get("p_cert_conditional_on", P_CERT_CONDITION))
     if "seconds" in meta:  # the CSR and the bounds count as the intervals phase
         meta["seconds"] = dict(meta["seconds"], intervals=meta["seconds"].get("intervals", 0.0) + time.perf_counter() - t0)
     return IMDP(grid=grid, inputs=inputs.copy(), hold=int(hold), live=live, target=target, row_ptr=row_ptr, col=col,
@@ -265,16 +272,26 @@ def cell_labels(grid: UniformGrid, spec: Spec, x_lo, x_hi, angle_dims=()):
 # Sampling
 # ----------------------------------------------------------------------------------------------
 
+#: secant distances are drawn log-uniformly in [h / SECANT_SPREAD, h] (h = eta / 2): a single
+#: distance is blind to a ripple whose period divides it (docs/per-run.md, "What the checks catch")
+SECANT_SPREAD = 64.0
+
+
 def _crn_pairs(s, j: int, h: float, n_pairs: int, runs: int, rng: np.random.Generator):
-    """Start states and inputs (2 B, n), (2 B, m), B = n_pairs runs: the pairs' first ends (x, u
-    uniform in X x U, runs times each) and then their second ends (x + h e_j, the same u)."""
+    """Start states, inputs and distances of B = n_pairs x runs common-random-number pairs.
+
+    Returns (X (2 B, n), U (2 B, m), d (B,)): the pairs' first ends (x, u uniform in X x U, runs
+    times each), then their second ends (x + d e_j, the same u); the distance d of each pair is
+    log-uniform in [h / SECANT_SPREAD, h] (several distances, not only h)."""
     lo, hi = s.x_lo.copy(), s.x_hi.copy()
     hi[j] -= h
     x = lo + rng.random((n_pairs, s.n)) * (hi - lo)
+    d = h * SECANT_SPREAD ** -rng.random(n_pairs)
     x2 = x.copy()
-    x2[:, j] += h
+    x2[:, j] += d
     u = s.inputs[rng.integers(0, len(s.inputs), n_pairs)]
-    return np.repeat(np.concatenate([x, x2]), runs, axis=0), np.repeat(np.concatenate([u, u]), runs, axis=0)
+    return (np.repeat(np.concatenate([x, x2]), runs, axis=0), np.repeat(np.concatenate([u, u]), runs, axis=0),
+            np.repeat(d, runs))
 
 
 def trajectory_lipschitz(sim, hold: int, h: np.ndarray, rng: np.random.Generator, n_pairs: int = 300,
@@ -282,8 +299,9 @@ def trajectory_lipschitz(sim, hold: int, h: np.ndarray, rng: np.random.Generator
     """Per-coordinate constants L (n, n) of the k-period trajectory map, common random numbers.
 
     L[i, j] bounds |y_t,i(x) - y_t,i(x + s e_j)| / |s| for every period t <= k and every noise draw:
-    pairs (x, x + h_j e_j), u uniform from U, the same noise per period at both ends; slopes
-    max_t |y_t,i(x) - y_t,i(x')| / h_j; Wood-Zhang estimate per (i, j). ``dims``: estimate only
+    pairs (x, x + d e_j), d log-uniform in [h_j / SECANT_SPREAD, h_j], u uniform from U, the same
+    noise per period at both ends; slopes max_t |y_t,i(x) - y_t,i(x')| / d; Wood-Zhang estimate per
+    (i, j). ``dims``: estimate only
     these columns j (the others are left at the identity's).
     """
     s = sim.system
@@ -292,12 +310,12 @@ def trajectory_lipschitz(sim, hold: int, h: np.ndarray, rng: np.random.Generator
     how = {}
     B = n_pairs * runs
     for j in range(n) if dims is None else dims:
-        X, U = _crn_pairs(s, j, h[j], n_pairs, runs, rng)
+        X, U, d = _crn_pairs(s, j, h[j], n_pairs, runs, rng)
         slope = np.zeros((B, n))
         for _ in range(hold):
             noise = {k: np.concatenate([v, v]) for k, v in sim.draw_noise(B, rng).items()}
             X = sim.step_with_noise(X, U, noise)
-            slope = np.maximum(slope, np.abs(s.diff(X[:B], X[B:])) / h[j])
+            slope = np.maximum(slope, np.abs(s.diff(X[:B], X[B:])) / d[:, None])
         for i in range(n):
             wz = wood_zhang(slope[:, i], np.random.default_rng([7, i, j]))
             L[i, j] = wz.estimate
@@ -343,8 +361,8 @@ def residual_lipschitz(sim, hold: int, h: np.ndarray, rng: np.random.Generator, 
 
     Ln[i, j] bounds |ynom_t,i(x) - ynom_t,i(x + s e_j)| / |s| and Lr[i, j] the same for the residual
     z_t(x, w) = y_t(x, u, w) - ynom_t(x, u) (the simulator's run minus the nominal model's), for every
-    period t <= k and noise draw: pairs (x, x + h_j e_j), u uniform from U, the same noise per
-    period at both ends; Wood-Zhang estimate per (i, j). The residual is what sharing runs between
+    period t <= k and noise draw: pairs (x, x + d e_j), d log-uniform in [h_j / SECANT_SPREAD, h_j],
+    u uniform from U, the same noise per period at both ends; Wood-Zhang estimate per (i, j). The residual is what sharing runs between
     cells needs: it is small where the model is good, whatever the dynamics (docs/per-run.md).
     """
     s = sim.system
@@ -353,7 +371,7 @@ def residual_lipschitz(sim, hold: int, h: np.ndarray, rng: np.random.Generator, 
     how = {}
     B = n_pairs * runs
     for j in range(n):
-        X, U = _crn_pairs(s, j, h[j], n_pairs, runs, rng)
+        X, U, d = _crn_pairs(s, j, h[j], n_pairs, runs, rng)
         Xn = X.copy()
         sl_n, sl_r = np.zeros((B, n)), np.zeros((B, n))
         for _ in range(hold):
@@ -361,8 +379,8 @@ def residual_lipschitz(sim, hold: int, h: np.ndarray, rng: np.random.Generator, 
             X = sim.step_with_noise(X, U, noise)
             Xn = s.f(Xn, U)
             Z = s.diff(X, Xn)
-            sl_n = np.maximum(sl_n, np.abs(s.diff(Xn[:B], Xn[B:])) / h[j])
-            sl_r = np.maximum(sl_r, np.abs(s.diff(Z[:B], Z[B:])) / h[j])
+            sl_n = np.maximum(sl_n, np.abs(s.diff(Xn[:B], Xn[B:])) / d[:, None])
+            sl_r = np.maximum(sl_r, np.abs(s.diff(Z[:B], Z[B:])) / d[:, None])
         for i in range(n):
             for L, sl, tag in ((Ln, sl_n, "nominal"), (Lr, sl_r, "residual")):
                 wz = wood_zhang(sl[:, i], np.random.default_rng([7, i, j, tag == "residual"]))
@@ -371,20 +389,32 @@ def residual_lipschitz(sim, hold: int, h: np.ndarray, rng: np.random.Generator, 
     return Ln, Lr, how
 
 
+def block_anchors(grid: UniformGrid, cells: np.ndarray, share: np.ndarray) -> np.ndarray:
+    """(len(cells),) the anchor cell of each cell's block of ``share`` cells per dimension: the block's middle cell."""
+    mi = grid.ids_to_multi(cells)
+    start = mi // share * share
+    return grid.multi_to_ids(start + np.minimum(share, np.asarray(grid.shape) - start) // 2)
+
+
 def _hits(grid: UniformGrid, y: np.ndarray, rho: np.ndarray):
     """Cells touched by the boxes y +- rho: (sample index, cell id or -1 outside the grid, single) arrays.
 
     ``single`` (B,) bool: the box touches exactly one cell.
     """
     B, n = y.shape
-    lo_mi = np.floor((y - rho - grid.first) / grid.eta + 0.5).astype(np.int64)
-    hi_mi = np.floor((y + rho - grid.first) / grid.eta + 0.5).astype(np.int64)
-    span = hi_mi - lo_mi + 1
+    shape = np.asarray(grid.shape)
+    # clipped to one index beyond the grid on each side (that one stands for "outside"), and a
+    # periodic span to one turn: a huge widening costs no more memory than the grid
+    per = grid.periodic_mask
+    lo_mi = np.floor((y - rho - grid.first) / grid.eta + 0.5)
+    hi_mi = np.floor((y + rho - grid.first) / grid.eta + 0.5)
+    lo_mi = np.where(per, lo_mi, np.clip(lo_mi, -1, shape)).astype(np.int64)
+    hi_mi = np.where(per, hi_mi, np.clip(hi_mi, -1, shape)).astype(np.int64)
+    span = np.where(per, np.minimum(hi_mi - lo_mi + 1, shape), hi_mi - lo_mi + 1)
     W = span.max(axis=0)
     offs = np.stack(np.meshgrid(*[np.arange(w) for w in W], indexing="ij"), axis=-1).reshape(-1, n)
     mi = lo_mi[:, None, :] + offs[None, :, :]                      # (B, P, n)
     valid = np.all(offs[None, :, :] < span[:, None, :], axis=2)    # (B, P)
-    shape = np.asarray(grid.shape)
     inside = np.ones(valid.shape, dtype=bool)
     for d in range(n):
         if grid.periodic_mask[d]:
@@ -508,9 +538,7 @@ def build_imdp(sim, spec: Spec, options: IMDPOptions, log=None, on_progress=None
     if share is not None:
         # anchors: the middle cell of each block of share cells; the pairs go group-major (anchor,
         # input) so that one batch simulates each of its anchors once for all the block's cells
-        mi = grid.ids_to_multi(cells)
-        start = mi // share * share
-        anchor = grid.multi_to_ids(start + np.minimum(share, np.asarray(grid.shape) - start) // 2)
+        anchor = block_anchors(grid, cells, share)
         x_anchor = grid.points(anchor)
         group = anchor.repeat(M) * M + np.tile(np.arange(M), cells.size)
         order = np.argsort(group, kind="stable")

@@ -27,7 +27,7 @@ from ..errors import SimgapError
 from .orderstats import alpha_min
 
 KEYS = {"alpha", "beta", "eta", "hold", "n_runs", "pilot_runs", "horizon", "n_rollouts", "n_states", "seed",
-        "baseline_eta", "baseline_hold", "split", "invariant", "share"}
+        "baseline_eta", "baseline_hold", "split", "invariant", "share", "check_states"}
 
 
 def check_section(sec: dict, system, n_pairs: int, n_runs: int, horizon) -> dict:
@@ -36,7 +36,7 @@ def check_section(sec: dict, system, n_pairs: int, n_runs: int, horizon) -> dict
     if bad:
         raise SimgapError(f"experiment section [perrun]: unknown keys {sorted(bad)}; allowed: {sorted(KEYS)}")
     o = {"alpha": 0.05, "beta": 0.01, "hold": 20, "n_runs": 2000, "pilot_runs": 200, "n_rollouts": 10000,
-         "n_states": 20, "seed": 0, **sec}
+         "n_states": 20, "seed": 0, "check_states": 64, **sec}
     a = o["alpha"]
     if not (isinstance(a, (int, float)) and 0.0 < float(a) < 1.0):
         raise SimgapError(f"[perrun] alpha must be in (0, 1), got {a!r}")
@@ -60,6 +60,10 @@ def check_section(sec: dict, system, n_pairs: int, n_runs: int, horizon) -> dict
     for k in ("hold", "n_runs", "pilot_runs", "n_rollouts", "n_states"):
         if int(o[k]) < 1:
             raise SimgapError(f"[perrun] {k} must be >= 1, got {o[k]}")
+    c = o["check_states"]
+    if isinstance(c, bool) or not isinstance(c, int) or c < 0:
+        raise SimgapError(f"[perrun] check_states (fresh states per interval-MDP row for the containment check; "
+                          f"0 = no check) must be a whole number >= 0, got {c!r}")
     from .imdp import Allocation, IMDPOptions
     o["split"] = o.get("split", IMDPOptions.split)
     try:
@@ -76,7 +80,11 @@ def check_section(sec: dict, system, n_pairs: int, n_runs: int, horizon) -> dict
 
 def build(sim, spec, o: dict, log, on_progress=None):
     """The interval MDP of checked ``[perrun]`` options ``o``: sampled per cell, or with ``invariant``
-    (state names) once per class of cells and shifted (:mod:`simgap.perrun.translation`)."""
+    (state names) once per class of cells and shifted (:mod:`simgap.perrun.translation`); then the
+    containment check (``check_states`` fresh states per row, :mod:`simgap.perrun.containment`),
+    recorded in the meta as ``containment`` (``passed`` None when not run) and logged, with a
+    warning when it fails."""
+    from .containment import check_containment
     from .imdp import IMDPOptions, build_imdp
     from .translation import build_imdp_translation
 
@@ -84,9 +92,19 @@ def build(sim, spec, o: dict, log, on_progress=None):
                        beta=float(o["beta"]), seed=int(o["seed"]), split=o["split"], share=o.get("share"))
     if o.get("invariant"):
         names = list(sim.system.state_names)
-        return build_imdp_translation(sim, spec, opts, [names.index(v) for v in o["invariant"]], log=log,
+        imdp = build_imdp_translation(sim, spec, opts, [names.index(v) for v in o["invariant"]], log=log,
                                       on_progress=on_progress)
-    return build_imdp(sim, spec, opts, log=log, on_progress=on_progress)
+    else:
+        imdp = build_imdp(sim, spec, opts, log=log, on_progress=on_progress)
+    n_check = int(o.get("check_states", 64))
+    if n_check > 0:
+        rep = check_containment(sim, spec, imdp, n_check, seed=int(o["seed"]))
+        imdp.meta["containment"] = rep.to_dict()
+        log(rep.summary())
+    else:
+        imdp.meta["containment"] = {"passed": None, "what": "not run ([perrun] check_states = 0)"}
+        log("containment check not run ([perrun] check_states = 0)")
+    return imdp
 
 
 def synthesize_experiment(exp, horizon=None, x0=None, eta=None, hold=None, log=print, on_progress=None):
@@ -111,7 +129,8 @@ def synthesize_experiment(exp, horizon=None, x0=None, eta=None, hold=None, log=p
     with make_simulator(exp.simulator.to_dict(), system=exp.system) as sim:
         imdp = build(sim, spec, o, log, on_progress)
     ctl = synthesize_imdp(imdp, int(o["horizon"]), spec.kind)
-    lines = [f"interval MDP: {imdp.C} cells ({int(imdp.live.sum())} live) x {imdp.M} inputs, hold {imdp.hold}, "
+    lines = [f"p_cert is {imdp.meta['p_cert_conditional_on']}", containment_line(imdp.meta["containment"]),
+             f"interval MDP: {imdp.C} cells ({int(imdp.live.sum())} live) x {imdp.M} inputs, hold {imdp.hold}, "
              f"{imdp.nnz} interval entries ({imdp.nbytes() / 2**20:.1f} MiB), {imdp.meta['bounds']} one-sided "
              f"Clopper-Pearson bounds, levels " + ", ".join(f"{f} {v:.3g}" for f, v in imdp.meta["levels"].items())
              + f" (total beta {o['beta']:g})",
@@ -190,8 +209,9 @@ def run_stage(exp, out: Path, data, controllers: Dict[str, object], spec, x0, o:
                        "certified_periods": ctl.meta["certified_periods"], "horizon_rule": ctl.meta["horizon_rule"],
                        "seconds_build": round(t_build, 3), "seconds_vi": round(ctl.meta["seconds_vi"], 3),
                        **{k: imdp.meta[k] for k in ("n_runs", "pilot_runs", "bounds", "split", "levels", "rho",
-                                                    "samples", "union_bound", "assumption", "share", "anchors")
-                          if k in imdp.meta}}
+                                                    "lipschitz", "samples", "union_bound", "assumption", "share",
+                                                    "anchors", "containment") if k in imdp.meta}}
+        res["p_cert_conditional_on"] = imdp.meta["p_cert_conditional_on"]
         log(f"[perrun] interval MDP {imdp.nnz} entries in {t_build:.1f} s; value iteration "
             f"{ctl.meta['seconds_vi']:.1f} s; p_cert(x0) = {float(ctl.certified(np.atleast_2d(x0))[0]):.4f}")
 
@@ -220,10 +240,23 @@ def sound(p_cert, p_emp: float, se: float, n_rollouts: int) -> bool:
     return p_cert is None or p_emp >= p_cert - 3 * max(se, 1 / n_rollouts)
 
 
+def containment_line(c: Optional[dict]) -> str:
+    """One line on the containment check recorded in a per-run certificate's meta (or its absence)."""
+    if not c or c.get("passed") is None:
+        return "containment check: not run"
+    if c["passed"]:
+        return f"containment check: passed ({c['runs']} fresh runs in {c['rows_checked']} rows)"
+    return (f"containment check: FAILED in {c['cells_failed']} cell(s) ({c['outside_box']} of {c['runs']} fresh runs "
+            f"outside their widened box, {c['unaccounted']} unaccounted): p_cert is not supported there")
+
+
 def table(res: dict) -> str:
     """Per controller: p_cert and p_emp (95 % CI) at x0, the lowest p_emp over its initial states, and
-    the share of states with p_emp >= p_cert - 3 SE ("-" for a controller that states no p_cert)."""
+    the share of states with p_emp >= p_cert - 3 SE ("-" for a controller that states no p_cert).
+    The header says what p_cert is conditional on and how the containment check went."""
     lines = [f"per-run guarantees: horizon {res['horizon']} periods, {res['n_rollouts']} rollouts per initial state",
+             "p_cert: conditional on the estimated Lipschitz constants and the Markov assumption "
+             "(summary.json per_run.p_cert_conditional_on); " + containment_line(res.get("imdp", {}).get("containment")),
              f"{'controller':<15}{'p_cert(x0)':>11}{'p_emp(x0)':>11}{'95% CI':>19}{'states':>8}{'min p_emp':>11}"
              f"{'sound':>7}"]
     for name, c in res["controllers"].items():

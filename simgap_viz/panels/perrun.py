@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from simgap.perrun.stage import sound
+from simgap.perrun.stage import containment_line, sound
 
 from ..layers import perrun as layer
 from . import plots
@@ -151,7 +151,8 @@ class PerRunPanel(Panel):
         self.legend.content = (
             f"0 (red) .. 0.5 (yellow) .. 1 (green), for both layers.  \n**map**: p_cert of the per-run controller, "
             f"a certified lower bound on P(one run satisfies the spec for {pr.horizon} periods) from every state of "
-            f"the cell{red}; 0 where nothing is certified (also every cell outside the safe set).  \n"
+            f"the cell{red}; 0 where nothing is certified (also every cell outside the safe set). "
+            f"{conditional_note(pr.controller.meta)}  \n"
             f"**markers** (ringed, numbered as the table): p_emp of {label(st.name)} from {st.n_rollouts} "
             f"rollouts per state.")
         pd = plot_data(pr)
@@ -166,6 +167,13 @@ class PerRunPanel(Panel):
         self.overview.content = overview_markdown(pr)
         self.states.content = f"**{label(st.name)}**, per initial state:\n\n" + states_markdown(st)
         return drawn
+
+
+def conditional_note(meta: dict) -> str:
+    """What p_cert rests on (from the controller file's digest-checked meta): the estimated Lipschitz
+    constants and the Markov assumption, and the containment check's outcome."""
+    return ("*Conditional on the estimated Lipschitz constants and the Markov assumption* (not proven; "
+            f"{containment_line(meta.get('containment'))}).")
 
 
 def build(app) -> PerRunPanel:

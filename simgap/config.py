@@ -34,7 +34,7 @@ from .collect import DEFAULT_BATCH_RUNS, CollectionPlan
 from .cover import Cover, CoverSpec, make_cover
 from .errors import SimgapError
 from .paths import ASSETS_DIR
-from .simulators.base import SimulatorConfig, backend_class
+from .simulators.base import SimulatorConfig, simulator_class
 from .systems import BUILTIN, System, get_system, input_grid, resolve_system
 
 EXPERIMENTS_DIR = ASSETS_DIR / "experiments"
@@ -243,7 +243,7 @@ def _model_files(kind: str, options: dict, folder: Path, where: str) -> dict:
     """The simulator's model-file options (its ``PATH_OPTIONS``) resolved inside the experiment's
     folder, each with the file's sha256 (``<key>_sha256``) so that a later command that rebuilds
     the simulator from a manifest notices a changed file."""
-    for key in backend_class(kind).PATH_OPTIONS:
+    for key in simulator_class(kind).PATH_OPTIONS:
         if key not in options:
             continue
         if not isinstance(options[key], str) or not options[key]:

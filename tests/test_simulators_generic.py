@@ -21,7 +21,7 @@ pytest.importorskip("pybullet")
 REPO = Path(__file__).resolve().parents[1]
 URDF = str(REPO / "assets" / "urdf" / "pendulum.urdf")
 MJCF = str(REPO / "assets" / "urdf" / "pendulum.xml")
-CARTPOLE = REPO / "assets" / "experiments" / "inverted_pendulum.xml"
+CARTPOLE = REPO / "assets" / "experiments" / "cartpole" / "inverted_pendulum.xml"
 PEND = {"kind": "pybullet_pendulum", "system": "pendulum"}
 PEND_URDF = {"kind": "pybullet_urdf", "system": "pendulum",
              "options": {"urdf": URDF, "positions": ["hinge"], "velocities": ["hinge"], "inputs": ["hinge"]}}

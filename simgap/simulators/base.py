@@ -145,11 +145,11 @@ def make_simulator(config: SimulatorConfig | dict, system: System | None = None,
         return ParallelSimulator(inner, n, system) if n > 1 else inner
     if isinstance(config, dict):
         config = SimulatorConfig.from_dict(config)
-    return backend_class(config.kind)(config, system)
+    return simulator_class(config.kind)(config, system)
 
 
-def backend_class(kind: str) -> type:
-    """The simulator class registered for ``kind`` (imported now; SimgapError listing the known kinds)."""
+def simulator_class(kind: str) -> type:
+    """The Simulator class of a built-in kind (imported lazily); SimgapError listing the known kinds."""
     try:
         target = _BACKENDS[kind]
     except KeyError:

@@ -200,9 +200,17 @@ class MujocoSimulator(Simulator):
         if self._rollout is None:
             from mujoco import rollout
             self._rollout = rollout.Rollout(nthread=self.threads)
-        B = state.shape[0]
-        res, _ = self._rollout.rollout(models, self._datas, state, control, control_spec=self.control_spec,
-                                       nstep=self.nstep, initial_warmstart=np.zeros((B, self.model.nv)))
+        B, m = state.shape[0], self.model
+        if not isinstance(models, list):
+            models = [models] * B
+        # every array is built here with its exact shape (C-contiguous float64), so MuJoCo's per-call
+        # checks (an mj_stateSize per model) are skipped; outputs must then be allocated by the caller
+        res = np.empty((B, self.nstep, state.shape[1]))
+        sensors = np.empty((B, self.nstep, m.nsensordata))
+        self._rollout.rollout(models, self._datas, np.ascontiguousarray(state), np.ascontiguousarray(control),
+                              control_spec=self.control_spec, nstep=self.nstep,
+                              initial_warmstart=np.zeros((B, m.nv)), state=res, sensordata=sensors,
+                              skip_checks=True)
         return res[:, -1, :][:, self.x_cols]
 
     def _row_models(self, mass, damping):

@@ -6,6 +6,7 @@ import pytest
 from simgap.refine.cases import make_case, verdict
 from simgap.refine.data import episodes, history, load_transitions, make_transitions, time_order
 from simgap.refine.report import refine
+from simgap.refine.selection import SelectionOptions
 from simgap.errors import SimgapError
 
 
@@ -63,3 +64,58 @@ def test_one_clock_in_shuffled_rows_is_still_one_record():
     s = make_transitions(d.x[perm], d.u[perm], d.x_next[perm], d.tau, d.t[perm])
     assert np.all(episodes(s) == 0)
     np.testing.assert_array_equal(perm[time_order(s)], np.argsort(d.t, kind="stable"))
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_periodic_disturbance_in_time_is_flagged_with_its_period_and_size(seed):
+    c = make_case("periodic", 12000, seed)
+    rep = refine(c.system, c.data, options=SelectionOptions(n_boot=10)).report
+    assert rep["effects"] == [] and verdict(c, rep)[0], verdict(c, rep)[1]
+    tm = rep["states"][1]["time"]
+    assert tm["r2_gain"] > 0.8
+    assert tm["periodic"]["period"] == pytest.approx(c.truth["period"], rel=0.02)
+    assert tm["periodic"]["amplitude"] == pytest.approx(0.5, rel=0.1)
+    assert any("periodic in t" in n for n in rep["states"][1]["notes"])
+    assert rep["states"][0]["unexplained"] is False and rep["states"][0]["time"]["r2_gain"] < 0.05
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_drifting_gain_is_reported_as_varying_not_as_one_tight_number(seed):
+    c = make_case("drift", 12000, seed)
+    rep = refine(c.system, c.data, options=SelectionOptions(n_boot=20)).report
+    (g,) = [e for e in rep["effects"] if e["name"] == "input_gain"]
+    seg = g["segments"]
+    assert seg["varying"] is True
+    # the planted gain error is -0.4 p over the record: quarters average -0.05, -0.15, -0.25, -0.35
+    np.testing.assert_allclose(seg["coefficient"], [-0.05, -0.15, -0.25, -0.35], atol=0.03)
+    # the one-number summary carries the spread over the record in its error bar
+    assert g["stderr"] > 0.08
+    assert rep["states"][1]["unexplained"] is True
+    assert any("varies over the record" in n for n in rep["states"][1]["notes"])
+
+
+@pytest.mark.parametrize("seed", [3, 4])
+def test_time_checks_stay_quiet_on_noise_and_on_constant_effects(seed):
+    for name in ("noise_series", "delay1"):
+        c = make_case(name, 12000, seed)
+        rep = refine(c.system, c.data, options=SelectionOptions(n_boot=5)).report
+        assert verdict(c, rep)[0], (name, verdict(c, rep)[1])
+        assert all(s["time"]["r2_gain"] < 0.02 for s in rep["states"])
+        assert not any(e.get("segments", {}).get("varying") for e in rep["effects"])
+
+
+def test_user_terms_may_read_the_clock_t():
+    from simgap.refine.effects import user_effect
+    from simgap.systems import get_system
+    c = make_case("periodic", 12000, 0)
+    s = get_system("pendulum")
+    terms = [user_effect(s, "hum_sin", "omega", "sin(2*pi*t/0.37)", max_lag=3),
+             user_effect(s, "hum_cos", "omega", "cos(2*pi*t/0.37)", max_lag=3)]
+    rep = refine(s, c.data, user_terms=terms, options=SelectionOptions(n_boot=10)).report
+    (e,) = rep["effects"]
+    assert e["name"] == "hum_sin" and e["coefficient"] == pytest.approx(0.5, rel=0.01)
+    assert e["in_refined_system"] is False               # a time-dependent term is not part of f'
+    assert rep["unexplained"] is False and rep["states"][1]["time"]["r2_gain"] < 0.05
+    assert rep["rms_after"][1] < 1.1e-4                  # the noise (1e-4) is what is left
+    with pytest.raises(SimgapError, match="time-ordered data"):
+        user_effect(s, "hum", "omega", "sin(t)")

@@ -46,13 +46,14 @@ def _rows(sysname: str, K: int, rng, extra: Callable, noise: Callable) -> Transi
 
 
 def _series(sysname: str, K: int, rng, extra: Callable, noise: Callable, delay: int = 0,
-            runs: int = 40, lag: float = 0.0) -> Transitions:
+            runs: int = 40, lag: float = 0.0, timed: Callable = None) -> Transitions:
     """``runs`` trajectories of K / runs transitions with random held inputs.
 
     The truth applies the input ``delay`` periods late: x+ = f(x, u[k - delay]) + tau extra + noise,
     and, with ``lag`` = T_a / tau > 0, through a first-order actuator a+ = a + (u - a) / lag (the
-    acting input a starts at the first command). Time stamps continue across runs with a gap, so
-    runs are separate segments of one record.
+    acting input a starts at the first command). ``timed(x, u, t, p)`` adds a time-dependent rate
+    (t the record's clock [s], p in [0, 1) the position in the record). Time stamps continue across
+    runs with a gap, so runs are separate segments of one record.
     """
     s = get_system(sysname)
     T = K // runs
@@ -70,13 +71,17 @@ def _series(sysname: str, K: int, rng, extra: Callable, noise: Callable, delay: 
         act = useq
     x = s.x_lo + (0.25 + 0.5 * rng.random((runs, s.n))) * (s.x_hi - s.x_lo)
     X, Uk, XN = [], [], []
+    tt = (np.arange(runs)[:, None] * (T + 10) + np.arange(T)[None, :]) * s.tau
+    pos = (np.arange(runs)[:, None] * T + np.arange(T)[None, :]) / (runs * T)
     for k in range(T):
         u_now, u_act = useq[:, k + delay], act[:, k]
         xn = s.f(x, u_act) + s.tau * extra(x, u_now) + noise(x, u_now, rng)
+        if timed is not None:
+            xn = xn + s.tau * timed(x, u_now, tt[:, k], pos[:, k])
         X.append(x), Uk.append(u_now), XN.append(xn)
         x = xn
     X, Uk, XN = (np.stack(a, axis=1).reshape(runs * T, -1) for a in (X, Uk, XN))
-    t = (np.arange(runs)[:, None] * (T + 10) + np.arange(T)[None, :]).reshape(-1) * s.tau
+    t = tt.reshape(-1)
     return make_transitions(X, Uk, XN, s.tau, t, system=s, source=f"generated:{sysname}:series")
 
 
@@ -148,6 +153,14 @@ CASES = {
                           extra=_on(1, lambda x, u: -0.3 * _pend_B() * u[:, 0] - 0.027 * np.sign(x[:, 1])),
                           std=6.75e-5, expect={"effects": [("coulomb_friction", "omega"), ("input_gain", "omega")]},
                           truth={"coulomb": -0.027}, shape="in library: small Coulomb next to a large gain error"),
+    # time: a periodic disturbance (period 0.37 s, 99.7 % of the residual) and an actuator gain
+    # drifting from 1.0 to 0.6 over the record
+    "periodic": dict(system="pendulum", kind="series", extra=_zero, std=1e-4,
+                     timed=lambda x, u, t, p: np.stack([0 * t, 0.5 * np.sin(2 * np.pi * t / 0.37)], 1),
+                     expect={"flag": "omega"}, truth={"period": 0.37}, shape="outside: periodic disturbance in time"),
+    "drift": dict(system="pendulum", kind="series", extra=_zero, std=1e-4,
+                  timed=lambda x, u, t, p: np.stack([0 * t, -0.4 * p * _pend_B() * u[:, 0]], 1),
+                  expect={"flag": "omega"}, shape="outside: input gain drifting 1.0 -> 0.6 over the record"),
     # memory outside the library: a first-order actuator lag of 5 periods
     "actuator_lag": dict(system="pendulum", kind="series", lag=5.0, extra=_zero, std=1e-4,
                          expect={"flag": "omega"}, shape="outside: first-order actuator lag (5 periods)"),
@@ -175,7 +188,8 @@ def make_case(name: str, K: int = 20000, seed: int = 0) -> Case:
     if c["kind"] == "rows":
         data = _rows(c["system"], K, rng, c["extra"], noise)
     else:
-        data = _series(c["system"], K, rng, c["extra"], noise, delay=c.get("delay", 0), lag=c.get("lag", 0.0))
+        data = _series(c["system"], K, rng, c["extra"], noise, delay=c.get("delay", 0), lag=c.get("lag", 0.0),
+                       timed=c.get("timed"))
     return Case(name=name, system=c["system"], data=data, expect=c["expect"], truth=c.get("truth", {}),
                 shape=c.get("shape", ""))
 

@@ -222,32 +222,51 @@ def user_effect(system: System, name: str, state, expr: str, max_lag: int = 0) -
     ``x1..xn``, ``u1..um``, ``pi``, ``+ - * / **``, comparisons for ``where`` and the functions of
     :data:`simgap.expr.FUNCTIONS` (sin, cos, tanh, exp, log, sqrt, abs, sign, clip, minimum,
     maximum, where, arctan, arctan2, ...). Example: ``"sin(2*pi*q/0.01)"``. With ``max_lag`` L > 0
-    (time-ordered data) ``torque[k-1]`` .. ``torque[k-L]`` are the values 1..L periods earlier.
+    (time-ordered data) ``torque[k-1]`` .. ``torque[k-L]`` are the values 1..L periods earlier, and
+    ``t`` is the row's time stamp [s] (e.g. ``"sin(2*pi*t/0.37)"``; the clock is the record's, read
+    from the last column of the history). A term that reads lagged values or ``t`` is a history
+    effect: reported, not put into the memoryless refined system.
     """
     if not isinstance(name, str) or not name or not name.replace("_", "").isalnum() or not name.isascii():
         raise SimgapError(f"user effect name {name!r}: use letters, digits and underscores")
     if name in LIBRARY:
         raise SimgapError(f"user effect name {name!r} clashes with the library effect of that name")
     i = _state_index(system, state)
-    parsed = parse(expr, VarSpace.of_system(system, max_lag), what=f"user effect {name!r}:",
-                   comparisons=True)
-    lag = max((c // (system.n + system.m) for c in parsed.columns), default=0)
+    space = VarSpace.of_system(system, max_lag)
+    w = system.n + system.m
+    tcol = w * (1 + max_lag)                 # after every lag: [z_k, z_{k-1}, .., z_{k-L}, t_k]
+    if max_lag > 0 and "t" not in space.columns:
+        space = VarSpace({**space.columns, "t": tcol}, space.width, space.max_lag)
+    try:
+        parsed = parse(expr, space, what=f"user effect {name!r}:", comparisons=True)
+    except SimgapError as e:
+        if max_lag == 0 and "'t'" in str(e):
+            raise SimgapError(f"{e} (the time t needs time-ordered data: transitions with time stamps)") from None
+        raise
+    uses_t = max_lag > 0 and tcol in parsed.columns
+    lag = max((c // w for c in parsed.columns if c != tcol or not uses_t), default=0)
 
     def term(x, u, hist=None):
         z = np.concatenate([x, u], axis=1)
-        if lag:
+        if lag or uses_t:
             if hist is None:
-                raise SimgapError(f"user effect {name!r} reads values {lag} period(s) back: needs history")
-            z = np.concatenate([z, hist[:, : lag * z.shape[1]]], axis=1)
+                raise SimgapError(f"user effect {name!r} reads values {lag} period(s) back or the time t: "
+                                  f"needs history")
+            full = np.zeros((x.shape[0], tcol + 1))
+            full[:, :w] = z
+            full[:, w: w * (1 + lag)] = hist[:, : lag * w]
+            if uses_t:
+                full[:, tcol] = hist[:, -1]
+            z = full
         return parsed.eval(z)
 
     x, u = _sample_domain(system, 8)
     try:
-        term(x, u, np.zeros((8, lag * (system.n + system.m))))
+        term(x, u, np.zeros((8, max(lag, 1) * w + 1)))
     except Exception as e:  # report any evaluation failure as bad input
         raise SimgapError(f"user effect {name!r}: evaluating {expr!r} failed: {e}") from None
     return Effect(name=name, state=i, variable=None, expr=parsed.text, term=term, smooth=parsed.smooth,
-                  params={"expr": parsed.text}, lag=lag)
+                  params={"expr": parsed.text}, lag=max(lag, 1) if uses_t else lag)
 
 
 def _state_index(system: System, state) -> int:

@@ -96,6 +96,8 @@ def refine(system, data: Transitions, effects: Optional[Sequence[str]] = None,
     cands = candidate_effects(sysobj, effects, user_terms, max_lag=lags)
     torder = time_order(data)
     held = split_heldout(data.K, data.t, opts, torder)
+    # rows are in time order here: the clock lets selection look along time
+    clock = (data.t, episodes(data), data.tau) if data.is_time_series else None
     # the structure test also sees the lagged inputs, so an unnamed delay still shows as structure
     w = sysobj.n + sysobj.m
     lagged_u = [hist[:, d * w + sysobj.n: (d + 1) * w] for d in range(lags)]
@@ -119,7 +121,7 @@ def refine(system, data: Transitions, effects: Optional[Sequence[str]] = None,
             raise SimgapError(f"candidate terms {bad} are not finite on the data")
         y = before.r[:, i] / data.tau
         fit = select_state(y, Theta, [e.key(sysobj) for e in ci], held, probe, i,
-                           data.is_time_series, opts, rng, sign_check(sysobj, ci, data.x))
+                           data.is_time_series, opts, rng, sign_check(sysobj, ci, data.x), clock)
         fits[i] = fit
         for k, j in enumerate(fit.selected):
             chosen.append((ci[j], float(fit.coef[k]), float(fit.stderr[k]), float(fit.explained[k]),
@@ -192,6 +194,7 @@ def _with_history(data: Transitions, max_lag: int) -> tuple:
         return data, np.zeros((data.K, 0)), 0, {
             "lags": 0, "reason": "fewer than half of the rows continue a trajectory (x_next = next x)"}
     info = {"lags": int(max_lag), "rows_without_history": int((~valid).sum())}
+    hist = np.concatenate([hist, data.t[:, None]], axis=1)     # the clock last: user terms may read t
     if not valid.all():
         data, hist = subset(data, valid), hist[valid]
     return data, hist, int(max_lag), info
@@ -325,6 +328,13 @@ def _report(s: System, refined: System, data: Transitions, held, fits: Sequence[
         if d["physical"] is not None:
             d["physical"] = {k: (_f(v) if isinstance(v, (float, np.floating)) else v)
                              for k, v in d["physical"].items()}
+        fit = fits[e.state]
+        sel = [fit.candidate_keys[j] for j in fit.selected]
+        if fit.segments is not None and e.key(s) in sel:
+            k = sel.index(e.key(s))
+            d["segments"] = {"coefficient": [row[k] for row in fit.segments["coef"]],
+                             "stderr": [row[k] for row in fit.segments["stderr"]],
+                             "varying": bool(fit.segments["varying"][k])}
         eff.append(d)
     states = []
     for fit in fits:
@@ -340,6 +350,7 @@ def _report(s: System, refined: System, data: Transitions, held, fits: Sequence[
             "unexplained": fit.unexplained,
             "lag1_autocorr": fit.lag1_autocorr,
             "rounds": fit.rounds,
+            "time": fit.time,
             "notes": list(fit.notes),
         })
     outside = int(np.any((data.x < s.x_lo) | (data.x > s.x_hi), axis=1).sum())
@@ -397,6 +408,8 @@ def format_table(report: dict) -> str:
             phs = f"{ph['value']:.4g} {ph['unit']} ({ph['quantity']})" if ph else ""
             if not e.get("in_refined_system", True):
                 phs += " [needs memory: not in the saved f']"
+            if e.get("segments", {}).get("varying"):
+                phs += " [VARIES over the record: " + ", ".join(f"{v:.3g}" for v in e["segments"]["coefficient"]) + "]"
             se = e["stderr"]
             lines.append(f"{e['name']:<18}{e['state_name']:<8}{var:<8}{e['coefficient']:>13.5g}"
                          f"{(se if se is not None else float('nan')):>11.2g}  {e['unit']:<16}"
@@ -430,10 +443,14 @@ def format_table(report: dict) -> str:
             msg += f", lag-1 autocorrelation {st['lag1_autocorr']:.2f}"
         if st.get("rounds", 1) > 1:
             msg += f", {st['rounds']} selection rounds"
+        tm = st.get("time")
+        if tm and tm["r2_gain"] >= 0.01:
+            msg += f", time explains {100 * tm['r2_gain']:.0f}% of what is left"
         if st["unexplained"]:
             msg += (f"  -> UNEXPLAINED: {100 * st['remaining_fraction']:.1f}% of the residual variance remains, "
                     f"{100 * st['unexplained_fraction']:.1f}% above the noise floor")
         lines.append(msg)
+        lines += [f"  {n}" for n in st["notes"] if "varies with time" in n or "varies over the record" in n]
     lines.append(f"unexplained: {'true' if report['unexplained'] else 'false'}")
     return "\n".join(lines)
 

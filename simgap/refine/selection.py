@@ -41,6 +41,7 @@ import numpy as np
 
 from ..errors import SimgapError
 from .structure import Probe
+from .timecheck import describe_time, segment_coefficients, time_structure
 
 
 @dataclass
@@ -83,6 +84,8 @@ class StateFit:
     lag1_autocorr: Optional[float] = None
     notes: list = field(default_factory=list)
     refused: list = field(default_factory=list)     # terms with impossible signs: {key, coefficient, reason, flagged}
+    time: Optional[dict] = None     # time in the remaining residual (timecheck.time_structure)
+    segments: Optional[dict] = None     # per-segment coefficients over the record (timecheck.segment_coefficients)
     rounds: int = 1                 # selection rounds run (each on what the previous ones left)
 
     @property
@@ -272,13 +275,15 @@ def misfit_stderr(Z: np.ndarray, y: np.ndarray, F: np.ndarray, se_stat: np.ndarr
 
 def select_state(y: np.ndarray, Theta: np.ndarray, keys: list, held: np.ndarray,
                  probe: Probe, state: int, time_series: bool, opts: SelectionOptions,
-                 rng: np.random.Generator, check=None) -> StateFit:
+                 rng: np.random.Generator, check=None, clock: Optional[tuple] = None) -> StateFit:
     """Select effects for one state: y (K,) residual rate, Theta (K, p) candidate terms.
 
     ``probe`` holds the variables' neighbour structure for the structure test (built on the same
     ``held`` mask). ``check(keys, coef, se)`` (:func:`simgap.refine.effects.sign_check`) names a
     selected term with an impossible coefficient; it is refused (``StateFit.refused``) and the
     selection repeated without it; one impossible beyond two standard errors flags the state.
+    ``clock`` = (t, episode, tau) for rows in time order: the remaining residual and the selected
+    coefficients are also checked along time (:mod:`simgap.refine.timecheck`).
     Returns coefficients in the units of y per unit of each term (see module docstring).
     """
     K, p = Theta.shape
@@ -298,7 +303,7 @@ def select_state(y: np.ndarray, Theta: np.ndarray, keys: list, held: np.ndarray,
     if len(cols) < p:
         all_keys = keys
         fit = select_state(y, Theta[:, cols], [keys[j] for j in cols], held, probe, state, time_series,
-                           opts, rng, check)
+                           opts, rng, check, clock)
         fit.selected = [cols[j] for j in fit.selected]
         fit.candidate_keys = all_keys
         fit.notes = dropped + fit.notes
@@ -413,7 +418,9 @@ def select_state(y: np.ndarray, Theta: np.ndarray, keys: list, held: np.ndarray,
     resid_t = yt - (Zt[:, S] @ c if S else 0.0)
     se_stat = bootstrap_stderr(Zt[:, S], yt, time_series, opts.n_boot, rng, resid_t) / scale[S] if S \
         else np.zeros(0)
-    misfit = misfit_stderr(Zt[:, S], yt, probe.F[tr], se_stat * scale[S]) / scale[S] if S else np.zeros(0)
+    # regions of every variable and, for a time series, of the record (a drifting coefficient)
+    Fm = np.column_stack([probe.F, np.arange(K)]) if clock is not None else probe.F
+    misfit = misfit_stderr(Zt[:, S], yt, Fm[tr], se_stat * scale[S]) / scale[S] if S else np.zeros(0)
     se = np.sqrt(se_stat ** 2 + misfit ** 2)
     # 6. explained fractions in forward order on held-out data
     expl, prev = [], rss0_h
@@ -428,6 +435,28 @@ def select_state(y: np.ndarray, Theta: np.ndarray, keys: list, held: np.ndarray,
     # flagged relative to what is left, like the rounds (a structured residual under a large
     # explained one is still a residual the library has not named)
     left = r2s >= opts.structure_threshold and rss_after_h - floor_rss >= opts.min_unexplained * rss_after_h
+    floor_frac = min(floor_frac, rss_after_h / rss0_h) if rss0_h > 0 else floor_frac
+    notes = [f"refused {r['key']} (coefficient {r['coefficient']:.4g}): {r['reason']}" for r in refused]
+    tstruct, segs, time_flag = None, None, False
+    if clock is not None:
+        t, ep, tau = clock
+        tstruct = time_structure(e, t, ep, tau, held, probe.poly2_resid)
+        if tstruct["r2_gain"] >= opts.structure_threshold:
+            time_flag = True
+            notes.append("the residual left varies with time beyond a degree-2 polynomial in the variables "
+                         "(a time-dependent disturbance, or state dependence that repeats with the motion): "
+                         + describe_time(tstruct))
+        if S:
+            sg = segment_coefficients(Zt[:, S], yt, _block_length(resid_t))
+            if sg is not None:
+                segs = {"coef": (sg["coef"] / scale[S]).tolist(), "stderr": (sg["stderr"] / scale[S]).tolist(),
+                        "q": sg["q"].tolist(), "varying": sg["varying"].tolist()}
+                for k, j in enumerate(S):
+                    if sg["varying"][k]:
+                        time_flag = True
+                        vals = ", ".join(f"{v:.4g}" for v in sg["coef"][:, k] / scale[j])
+                        notes.append(f"{keys[j]} varies over the record: {vals} in {sg['coef'].shape[0]} "
+                                     f"consecutive segments (Q = {sg['q'][k]:.3g})")
     lag1 = None
     if time_series:
         eh = e[held] - e[held].mean()
@@ -437,7 +466,5 @@ def select_state(y: np.ndarray, Theta: np.ndarray, keys: list, held: np.ndarray,
                     stderr=np.asarray(se), stderr_statistical=np.asarray(se_stat), stderr_misfit=misfit, explained=np.asarray(expl), rss0_heldout=rss0_h,
                     rss_heldout=rss_after_h, structure_r2=float(r2s), noise_floor_fraction=floor_frac,
                     unexplained_fraction=above,
-                    unexplained=bool(left or flag_refused), rounds=n_rounds,
-                    lag1_autocorr=lag1, refused=refused,
-                    notes=[f"refused {r['key']} (coefficient {r['coefficient']:.4g}): {r['reason']}"
-                           for r in refused])
+                    unexplained=bool(left or flag_refused or time_flag), rounds=n_rounds,
+                    lag1_autocorr=lag1, refused=refused, notes=notes, time=tstruct, segments=segs)

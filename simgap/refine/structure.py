@@ -112,6 +112,12 @@ class Probe:
         ss = float(eh @ eh)
         return (1.0 - float(np.sum((eh - pred) ** 2)) / ss if ss > 0 else 0.0), k
 
+    def poly2_resid(self, M: np.ndarray) -> np.ndarray:
+        """M (K,) or (K, b) minus its degree-2 polynomial fit in the variables (fitted on train rows)."""
+        self.poly2_r2(np.zeros(self.F.shape[0]))
+        tr = ~self.held
+        return M - self._P @ np.linalg.solve(self._G, self._P[tr].T @ M[tr])
+
     def poly2_r2(self, e: np.ndarray) -> float:
         """Held-out R^2 of a full degree-2 polynomial (with interactions) of e."""
         F, held = self.F, self.held

@@ -76,3 +76,50 @@ def test_mean_map_has_its_own_stream_and_round_trips(tmp_path):
     assert q.mean_map == b.to_dict()["mean_map"]
     with pytest.raises(SimgapError, match="mean_map_runs"):
         rollout(c, sim, [1.0, 1.0, 0.0], n_rollouts=2, horizon=5, mean_map_runs=1)
+
+
+def test_mean_map_standard_error_covers_the_propagated_spread():
+    """Across independent repetitions the mean map's m_t spreads by the error every step inherits (a random
+    walk here: sqrt(t) times the one-step error). The reported (propagated) standard error must match that
+    spread; the one-step conditional standard error, the number reported before, is ~sqrt(40) too small."""
+    from simgap.rollout.mean_map import mean_map
+
+    sys_ = turtlebot()
+    sim = make_simulator({"kind": "numpy", "system": "turtlebot", "noise": {"process_std": [0.01, 0.01, 0.0]}})
+    c = Const(sys_, OPEN, [0.5, 0.0])
+    x0, T, reps = np.array([1.0, 2.0, 0.7]), 40, 120
+    ends, se, se1 = [], [], []
+    for r in range(reps):
+        mm = mean_map(c, sim, OPEN, x0, 100, T, 1, np.random.default_rng([r, 9]))
+        ends.append(mm.trajectory[T, :2])
+        se.append(mm.std_error[T, :2])
+        se1.append(mm.step_std_error[T, :2])
+        assert mm.groups == 10
+    ends, se, se1 = np.array(ends), np.array(se), np.array(se1)
+    spread = ends.std(axis=0, ddof=1)
+    rms = np.sqrt((se ** 2).mean(axis=0))
+    assert np.all((rms > 0.75 * spread) & (rms < 1.33 * spread)), (rms, spread)
+    # per repetition: within 3 reported standard errors of the repetitions' mean in >= 90 % of them
+    cover = np.abs(ends - ends.mean(axis=0)) <= 3 * se
+    assert cover.mean(axis=0).min() >= 0.9
+    # the one-step conditional SE does not cover the spread (what the mean map reported before)
+    assert np.all(np.sqrt((se1 ** 2).mean(axis=0)) < 0.3 * spread)
+    assert (np.abs(ends - ends.mean(axis=0)) <= 3 * se1).mean() < 0.6
+
+
+def test_mean_map_says_which_rows_theorem_1_is_about():
+    from simgap.rollout.mean_map import mean_map
+    from simgap.synthesis.abstraction import COMPOSED_HOLD_LABEL
+
+    sys_ = turtlebot()
+    sim = make_simulator({"kind": "numpy", "system": "turtlebot", "noise": {"process_std": [0.01, 0.01, 0.0]}})
+    c = Const(sys_, OPEN, [0.5, 0.0])
+    one = mean_map(c, sim, OPEN, [1.0, 2.0, 0.7], 8, 6, 1, np.random.default_rng(0)).to_dict()
+    assert one["theorem1_rows"].startswith("every row") and one["groups"] == 4
+    held = mean_map(c, sim, OPEN, [1.0, 2.0, 0.7], 8, 6, 3, np.random.default_rng(0)).to_dict()
+    assert "multiples of the hold (3" in held["theorem1_rows"] and "outside Theorem 1" in held["theorem1_rows"]
+    c.meta = {"hold_mode": COMPOSED_HOLD_LABEL}
+    comp = mean_map(c, sim, OPEN, [1.0, 2.0, 0.7], 8, 6, 3, np.random.default_rng(0)).to_dict()
+    assert comp["theorem1_rows"].startswith("none") and "compose_hold" in comp["theorem1_rows"]
+    with pytest.raises(SimgapError, match=">= 4"):
+        mean_map(c, sim, OPEN, [1.0, 2.0, 0.7], 3, 6, 1, np.random.default_rng(0))

@@ -242,7 +242,7 @@ def rollout(controller, simulator, x0=None, n_rollouts: int = 1000, horizon: Opt
     progress : callable, optional
         ``progress(t, T)`` after every simulator step (GUI progress bars; raise to cancel).
     mean_map_runs : int, optional
-        Simulator runs per step for the mean map m+ = E fhat(m, u(m)) (>= 2; 0 skips it).
+        Simulator runs per step for the mean map m+ = E fhat(m, u(m)) (>= 4; 0 skips it).
         Default: n_rollouts clipped to [100, 1000], so it costs about as much as the rollouts.
 
     Returns
@@ -289,8 +289,9 @@ def rollout(controller, simulator, x0=None, n_rollouts: int = 1000, horizon: Opt
                  "use fewer rollouts (--n) or a shorter --horizon")
     if mean_map_runs is None:
         mean_map_runs = int(np.clip(n_rollouts, 100, 1000))
-    if int(mean_map_runs) != mean_map_runs or mean_map_runs == 1 or mean_map_runs < 0:
-        raise SimgapError(f"rollout: mean_map_runs must be 0 (skip) or an integer >= 2, got {mean_map_runs!r}")
+    if int(mean_map_runs) != mean_map_runs or 0 < mean_map_runs < 4 or mean_map_runs < 0:
+        raise SimgapError(f"rollout: mean_map_runs must be 0 (skip) or an integer >= 4 (two groups of two: the "
+                          f"propagated standard error), got {mean_map_runs!r}")
     if rng is None:
         rng = np.random.default_rng(seed)
     else:

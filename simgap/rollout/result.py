@@ -152,7 +152,12 @@ class RolloutResult:
             lines.append(f"  mean map        {mm['outcome']}" + (f", reach step {mm['reach_time']}" if mm["reach_time"] >= 0 else "")
                          + (f", violation step {mm['violation_time']} ({mm['violation_kind']})" if mm["violation_time"] >= 0 else "")
                          + f": m+ = E fhat(m, u(m)), {mm['runs_per_step']} runs per step, std. error <= ["
-                         + ", ".join(f"{v:.2g}" for v in mm["max_std_error"]) + "] (the sequence the guarantee is about)")
+                         + ", ".join(f"{v:.2g}" for v in mm["max_std_error"])
+                         + ("] propagated over " + f"{mm['groups']} groups (one-step: <= ["
+                            + ", ".join(f"{v:.2g}" for v in mm["max_step_std_error"]) + "])"
+                            if "groups" in mm else "] (one step, conditional)")
+                         + " (the sequence the guarantee is about; Theorem 1 rows: "
+                         + mm.get("theorem1_rows", "not recorded") + ")")
         mv = d["rollout_average"]
         lines.append(f"  rollout average {'satisfies' if mv['satisfied'] else 'violates'} the spec"
                      + (f" (reach step {mv['reach_time']})" if mv["reach_time"] >= 0 else "")

@@ -7,7 +7,8 @@
 1. ``vi``: value iteration alone on an interval MDP of the pendulum target size (201 x 201 cells,
    21 inputs, horizon 400 periods at hold k = 20: 20 abstract steps) with a synthetic sparse
    structure (``--succ`` successor cells per row + the sink, random valid intervals); wall time
-   per step and in total, peak RSS. Sampling the simulator is not part of this number (see 2).
+   per step and in total, peak RSS (after the synthetic build and in all). Sampling the simulator
+   is not part of this number (see 2). The synthetic interval MDP: ``bench/synthetic_imdp.py``.
    The noisy pendulum's real support at this grid and hold is about 150 cells per row (measured,
    docs/per-run.md): ``--succ 150`` is the honest size, the default 18 a small-support case.
 2. ``validate``: the noisy pendulum (actuation std 0.5 N m, joint damping as an undeclared
@@ -33,14 +34,15 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(1, str(Path(__file__).resolve().parent))
 
-from simgap.perrun.imdp import IMDP, IMDPOptions, build_imdp, reallocate  # noqa: E402
+from simgap.perrun.imdp import IMDPOptions, build_imdp, reallocate  # noqa: E402
 from simgap.perrun.validation import empirical, sample_in_cells, success_counts  # noqa: E402
 from simgap.perrun.value_iteration import synthesize_imdp  # noqa: E402
 from simgap.simulators.base import make_simulator  # noqa: E402
-from simgap.synthesis.grid import UniformGrid  # noqa: E402
 from simgap.synthesis.spec import Box, Spec  # noqa: E402
 from simgap.systems import get_system, input_grid  # noqa: E402
+from synthetic_imdp import synthetic_imdp  # noqa: E402
 
 
 def peak_rss_mb() -> float:
@@ -48,33 +50,21 @@ def peak_rss_mb() -> float:
 
 
 def bench_vi(a) -> dict:
-    s = get_system("pendulum")
-    grid = UniformGrid(s.x_lo, s.x_hi, [0.4 / 200, 1.0 / 200])
-    C, M, S = grid.size, 21, int(a.succ)
-    rng = np.random.default_rng(0)
-    rows = C * M
-    mi = grid.ids_to_multi(np.arange(C))
-    off = np.stack(np.meshgrid(np.arange(-1, 2), np.arange(-(S // 6), S // 6 + 1), indexing="ij"), -1).reshape(-1, 2)[:S]
     t0 = time.perf_counter()
-    cols = np.empty((rows, S + 1), np.int32)
-    for j, o in enumerate(off):  # neighbours of each cell (clipped at the border), same for every input
-        cols[:, j] = np.repeat(grid.multi_to_ids(np.clip(mi + o, 0, np.array(grid.shape) - 1)), M)
-    cols[:, S] = C
-    p = rng.dirichlet(np.ones(S + 1), size=rows)
-    lo = np.maximum(p - 0.02, 0).astype(np.float32)
-    hi = np.minimum(p + 0.02, 1).astype(np.float32)
-    live = np.ones(C, bool)
-    live[mi[:, 0] == 0] = live[mi[:, 0] == grid.shape[0] - 1] = False
-    im = IMDP(grid=grid, inputs=input_grid([-1], [1], [M]), hold=20, live=live, target=np.zeros(C, bool),
-              row_ptr=np.arange(rows + 1, dtype=np.int64) * (S + 1), col=cols.ravel(), lo=lo.ravel(), hi=hi.ravel())
-    del cols, p, lo, hi
+    im = synthetic_imdp(a.succ)
     t_build = time.perf_counter() - t0
+    rss_build = peak_rss_mb()
     c0 = time.process_time()
     ctl = synthesize_imdp(im, 400, "invariance")
     cpu = time.process_time() - c0
-    return {"cpu_seconds_vi": round(cpu, 2), "cells": C, "inputs": M, "nnz": im.nnz, "bytes_imdp": im.nbytes(), "steps": ctl.steps,
-            "seconds_synthetic_build": round(t_build, 2), "seconds_vi": round(ctl.meta["seconds_vi"], 2),
-            "seconds_per_step": round(ctl.meta["seconds_vi"] / ctl.steps, 3), "peak_rss_mb": round(peak_rss_mb())}
+    out = {"cpu_seconds_vi": round(cpu, 2), "cells": im.C, "inputs": im.M, "nnz": im.nnz, "bytes_imdp": im.nbytes(),
+           "steps": ctl.steps, "seconds_synthetic_build": round(t_build, 2), "seconds_vi": round(ctl.meta["seconds_vi"], 2),
+           "seconds_per_step": round(ctl.meta["seconds_vi"] / ctl.steps, 3), "peak_rss_mb_build": round(rss_build),
+           "peak_rss_mb": round(peak_rss_mb()), "cpu_seconds_process": round(time.process_time(), 2),
+           "p_cert_mean": float(ctl.p_cert.mean()), "p_cert_max": float(ctl.p_cert.max())}
+    if a.save:
+        np.savez(a.save, p_cert=ctl.p_cert, policy=ctl.policy)
+    return out
 
 
 def bench_validate(a) -> dict:
@@ -148,6 +138,7 @@ def main():
                     help="validate: shares of beta for the three bound families (default: IMDPOptions.split)")
     ap.add_argument("--share", type=int, nargs="+", default=None,
                     help="validate: cells per block sharing one anchor's runs (one, or one per dimension)")
+    ap.add_argument("--save", default=None, help="vi: write p_cert and the policy to this .npz (to compare runs)")
     ap.add_argument("--json", default=None)
     a = ap.parse_args()
     rep = bench_vi(a) if a.what == "vi" else bench_validate(a)

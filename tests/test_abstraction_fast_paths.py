@@ -91,3 +91,16 @@ def test_dcdc_winning_domain():
     res = synthesize(ex.dcdc_system(), ex.dcdc_spec(), ex.DCDC_ETA, growth=ex.dcdc_growth(), invariant_dims=())
     assert res.stats["cells"] == 641_601
     assert res.stats["winning"] == 593_089 and res.stats["transitions"] == 3_788_008
+
+
+def test_synthesis_does_not_load_value_iterations_compiler():
+    """numba (about 0.2 s and 55 MB to import) is for value iteration's kernel only."""
+    import subprocess
+    import sys
+    code = ("import sys\n"
+            "from simgap.synthesis import synthesize, examples as ex\n"
+            "synthesize(ex.dcdc_system(), ex.dcdc_spec(), (0.004, 0.004), growth=ex.dcdc_growth(), invariant_dims=())\n"
+            "import simgap.perrun.value_iteration\n"
+            "assert 'numba' not in sys.modules, 'numba was loaded'\n")
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr

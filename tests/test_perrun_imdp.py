@@ -40,7 +40,7 @@ def _tiny(rows):
 def test_pessimistic_expectation_by_hand_and_by_lp():
     # by hand: V = (0.2, 0.9), sink 0; lo = (0.1, 0.3, 0), hi = (0.6, 0.8, 0.2): free 0.6 -> sink 0.2, cell0 0.4
     im = _tiny([([0, 1, 2], [0.1, 0.3, 0.0], [0.6, 0.8, 0.2]), ([1], [1.0], [1.0])])
-    q = vi.pessimistic_q(im, np.array([0.2, 0.9]), vi.ell_layout(im))
+    q = vi.pessimistic_q(im, np.array([0.2, 0.9]))
     assert q[0] == pytest.approx(0.5 * 0.2 + 0.3 * 0.9, abs=1e-6) and q[1] == pytest.approx(0.9, abs=1e-6)
     # random rows against the LP min sum p V s.t. lo <= p <= hi, sum p = 1
     rng = np.random.default_rng(0)
@@ -52,7 +52,7 @@ def test_pessimistic_expectation_by_hand_and_by_lp():
         rows.append((cols, np.maximum(p - rng.random(k + 1) * 0.2, 0), np.minimum(p + rng.random(k + 1) * 0.2, 1)))
     im = _tiny(rows)
     V = rng.random(C)
-    q = vi.pessimistic_q(im, V, vi.ell_layout(im, rows_per_block=7))   # several blocks
+    q = vi.pessimistic_q(im, V)
     for r, (cols, lo, hi) in enumerate(rows):
         v = np.append(V, 0.0)[cols]
         lp = linprog(v, A_eq=np.ones((1, len(cols))), b_eq=[1.0],

@@ -22,8 +22,8 @@ inferred from the labels):
 p_cert(c) = V_Ha(c) lower-bounds, for every x in cell c, the probability that one run under the
 time-varying policy (policy_{Ha-1-t} at abstract step t) satisfies the specification within H
 periods (invariance: for Ha k >= H periods; reach-avoid: reaching within Ha k <= H periods).
-Everything is vectorized: rows padded to their block's longest row (ELL), one row-wise argsort
-per step.
+Each step is one pass of a compiled kernel over the interval MDP's CSR arrays
+(:mod:`.vi_kernel`: a weighted quickselect per row, no sort, no copy of the entries).
 """
 
 from __future__ import annotations
@@ -43,48 +43,16 @@ from .imdp import IMDP
 FORMAT = "simgap-perrun-controller"
 
 
-def ell_layout(imdp: IMDP, rows_per_block: int = 1 << 17) -> list:
-    """Row blocks of the intervals padded to the block's longest row (ELL): [(r0, col, lo, cap)] per block.
+def pessimistic_q(imdp: IMDP, V: np.ndarray, out: Optional[np.ndarray] = None) -> np.ndarray:
+    """Qpess (C*M,) = min over interval distributions of sum_j p_j V_j, per row (module docstring).
 
-    col (B, W) int32 (padding: the sink, with lo = cap = 0), lo and cap = hi - lo (B, W) float64.
-    Sorting each padded row is far faster than one global sort of all entries.
-    """
-    ptr, R = imdp.row_ptr, imdp.row_ptr.size - 1
-    out = []
-    for r0 in range(0, R, rows_per_block):
-        r1 = min(R, r0 + rows_per_block)
-        length = np.diff(ptr[r0:r1 + 1])
-        W = max(int(length.max(initial=0)), 1)
-        pos = ptr[r0:r1, None] + np.arange(W)[None, :]
-        pad = np.arange(W)[None, :] >= length[:, None]
-        pos = np.where(pad, 0, pos)
-        if imdp.col.size == 0:
-            pad[:] = True
-            pos[:] = 0
-            col = np.full(pos.shape, imdp.C, np.int32)
-            lo = np.zeros(pos.shape)
-            hi = np.zeros(pos.shape)
-        else:
-            col = np.where(pad, imdp.C, imdp.col[pos]).astype(np.int32)
-            lo = np.where(pad, 0.0, imdp.lo[pos].astype(np.float64))
-            hi = np.where(pad, 0.0, imdp.hi[pos].astype(np.float64))
-        out.append((r0, col, lo, hi - lo))
-    return out
-
-
-def pessimistic_q(imdp: IMDP, V: np.ndarray, layout: list) -> np.ndarray:
-    """Qpess (C*M,) = min over interval distributions of sum_j p_j V_j, per row (see module docstring)."""
-    Vx = np.append(V, 0.0)
-    Q = np.empty(imdp.row_ptr.size - 1)
-    for r0, col, lo, cap in layout:
-        v = Vx[col]
-        order = np.argsort(v, axis=1, kind="stable")       # ascending V inside each row
-        v = np.take_along_axis(v, order, axis=1)
-        c = np.take_along_axis(cap, order, axis=1)
-        free = 1.0 - lo.sum(axis=1, keepdims=True)
-        before = np.cumsum(c, axis=1) - c                  # mass already poured into lower values
-        add = np.clip(free - before, 0.0, c)
-        Q[r0:r0 + len(v)] = (lo * Vx[col]).sum(axis=1) + (add * v).sum(axis=1)
+    Computed on the interval MDP's own CSR arrays by a compiled row kernel
+    (:mod:`.vi_kernel`: no copy of the entries, no sort); ``out`` (C*M,) float64 is filled in
+    place when given."""
+    from .vi_kernel import pessimistic_rows  # numba: loaded only by value iteration
+    Vx = np.append(np.asarray(V, dtype=np.float64), 0.0)  # the sink's value
+    Q = np.empty(imdp.row_ptr.size - 1) if out is None else out
+    pessimistic_rows(imdp.row_ptr, imdp.col, imdp.lo, imdp.hi, Vx, Q)
     return Q
 
 
@@ -192,12 +160,12 @@ def synthesize_imdp(imdp: IMDP, horizon: int, kind: str, policy: Optional[np.nda
                               f"certified (use a horizon >= {imdp.hold} or a shorter hold)")
         if not imdp.target.any():
             raise SimgapError("reach-avoid: the interval MDP has no target cell (no cell lies wholly in the target)")
-    layout = ell_layout(imdp)
+    Q = np.empty(C * M)  # reused by every sweep
     live, target = imdp.live, imdp.target
     V = (live | target).astype(float) if kind == "invariance" else target.astype(float)
     pol = np.full((Ha, C), -1, np.int16)
     for h in range(Ha):
-        Q = pessimistic_q(imdp, V, layout).reshape(C, M)
+        Q = pessimistic_q(imdp, V, Q.ravel()).reshape(C, M)
         if policy is None:
             a = np.argmax(Q, axis=1)
         else:

@@ -56,7 +56,7 @@ from .errors import SimgapError
 from .executors import Executor, make_executor
 from .progress import StopCheck, as_stop_check
 from .simulators.base import SimulatorConfig, make_simulator
-from .systems import System, resolve_system, wrap_angle
+from .systems import System, ref_of_description, resolve_system, wrap_angle
 
 STORE_FORMAT = "simgap-store/1"
 MANIFEST = "manifest.json"
@@ -240,8 +240,9 @@ _WORKER_PID = None
 
 
 def _system_from_config(desc: dict, steps: int) -> System:
-    """Rebuild a built-in or refined system (with its recorded input set) from a manifest description."""
-    s = resolve_system(desc.get("params", {}).get("_refined_json") or desc["name"], steps=steps, paths=False)
+    """Rebuild a built-in, plugin, system-file or refined system (with its recorded input set) from a
+    manifest description."""
+    s = resolve_system(ref_of_description(desc), steps=steps, paths=False)
     U = np.asarray(desc["inputs"], dtype=float)
     if U.shape != s.inputs.shape or not np.array_equal(U, s.inputs):
         s = dataclasses.replace(s, inputs=U)

@@ -5,6 +5,9 @@ its type and range is in :mod:`simgap.schema`)::
 
     description = "..."                      # optional
     [system]      name, steps, inputs (list of input vectors) or input_grid = {lo, hi, counts}
+                  (name: a built-in, a plugin system, a system file .toml or a refined-system .json
+                  in the experiment's folder; ``system = "my_model.toml"`` is short for
+                  ``[system] name = "my_model.toml"``)
     [simulator]   kind, noise, randomize, effects, options      (see simgap.simulators)
     [collect]     epsilon, spacing, invariant_dims, fixed, n_runs, seed, chunk_size, batch_runs,
                   keep_samples, executor, workers, address, out
@@ -35,7 +38,7 @@ from .cover import Cover, CoverSpec, make_cover
 from .errors import SimgapError
 from .paths import ASSETS_DIR
 from .simulators.base import SimulatorConfig, simulator_class
-from .systems import BUILTIN, System, get_system, input_grid, resolve_system
+from .systems import BUILTIN, System, get_system, input_grid, is_named, resolve_system
 
 EXPERIMENTS_DIR = ASSETS_DIR / "experiments"
 
@@ -147,6 +150,8 @@ def load_experiment(path_or_name: str | Path, profile: Optional[str] = "small",
     except (OSError, UnicodeDecodeError) as e:
         raise SimgapError(f"experiment {str(path)!r} is unreadable: {e}") from None
     profiles = raw.pop("profiles", {})
+    for table in [raw] + [p for p in (profiles.values() if isinstance(profiles, dict) else ()) if isinstance(p, dict)]:
+        _system_shorthand(table)
     schema.check_profiles(profiles, f"experiment {path.name}")
     if profile == "base":  # the top-level configuration without any profile
         profile = None
@@ -179,6 +184,12 @@ def load_experiment(path_or_name: str | Path, profile: Optional[str] = "small",
                             collect=collect, sections=merged, description=model.description)
 
 
+def _system_shorthand(table: dict) -> None:
+    """``system = "file.toml"`` (top level or in a profile) means ``[system] name = "file.toml"``."""
+    if isinstance(table.get("system"), str):
+        table["system"] = {"name": table["system"]}
+
+
 def _validate(table: dict, path: Path, profile: Optional[str], ptable: dict) -> schema.Experiment:
     """Schema-check one merged configuration; errors name the table a key was written in."""
     def origin(loc: tuple) -> str:  # (section, key, ...) -> the table it was written in
@@ -202,15 +213,25 @@ def confined(value: str, folder: Path, what: str) -> Path:
 
 
 def _system(d: schema.SystemSection, where: str, folder: Path) -> System:
-    """A built-in by name, or a refined-system JSON (in the experiment's folder), read once here:
-    its content travels embedded in manifests, data sets and controllers from now on."""
-    if d.name in BUILTIN:
+    """A built-in or plugin system by name, or a system file (.toml) or refined-system JSON (in the
+    experiment's folder), read once here: its content travels embedded in manifests, data sets,
+    certificates and controllers from now on."""
+    if is_named(d.name):
         s = get_system(d.name, steps=d.steps)
-    elif d.name.endswith(".json"):
-        s = resolve_system(confined(d.name, folder, f"{where}: system.name"), steps=d.steps)
+    elif d.name.endswith((".json", ".toml")):
+        p = confined(d.name, folder, f"{where}: system.name")
+        if not p.is_file():
+            raise SimgapError(f"{where}: system file {d.name!r} does not exist in the experiment's folder "
+                              f"{str(folder)!r}")
+        try:
+            s = resolve_system(p, steps=d.steps)
+        except SimgapError as e:
+            raise SimgapError(f"{where}: system.name: {e}") from None
     else:
+        from . import plugins
         raise SimgapError(f"{where}: unknown system {d.name!r} in system.name; built-in systems: "
-                          f"{', '.join(sorted(BUILTIN))}, or a refined-system .json file")
+                          f"{', '.join(sorted(BUILTIN))}, a system file .toml or a refined-system .json"
+                          + plugins.installed_note(plugins.SYSTEM_GROUP))
     if d.inputs is not None:
         U = np.array(d.inputs, dtype=float)
         if U.ndim == 1 and U.size and s.m == 1:
@@ -234,6 +255,10 @@ def _simulator(d: schema.SimulatorSection, raw: dict, system: System, where: str
         raise SimgapError(f"{where}: simulator.system {d.system!r} differs from system.name {system.name!r}")
     if d.steps not in (None, system.steps):
         raise SimgapError(f"{where}: simulator.steps {d.steps!r} differs from system.steps {system.steps}")
+    try:
+        simulator_class(d.kind)
+    except SimgapError as e:
+        raise SimgapError(f"{where}: simulator.kind: {e}") from None
     options = _model_files(d.kind, dict(raw.get("options", {})), folder, where)
     return SimulatorConfig(kind=d.kind, system=system.name, steps=system.steps, noise=dict(d.noise),
                            randomize=dict(d.randomize), effects=dict(d.effects), options=options)

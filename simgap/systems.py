@@ -345,28 +345,50 @@ BUILTIN = {"pendulum": pendulum, "turtlebot": turtlebot, "emps": emps}
 
 
 def get_system(name: str, steps: int = 1) -> System:
-    """A built-in system by name, optionally at k = ``steps`` base periods per sampling period."""
-    try:
-        factory = BUILTIN[name]
-    except KeyError:
-        raise SimgapError(f"unknown system {name!r}; built-in systems: {', '.join(sorted(BUILTIN))}") from None
-    return factory().with_steps(steps)
+    """A built-in or plugin-registered system by name (:mod:`simgap.plugins`), optionally at
+    k = ``steps`` base periods per sampling period."""
+    factory = BUILTIN.get(name)
+    if factory is not None:
+        return factory().with_steps(steps)
+    from . import plugins
+    s = plugins.load_system(name) if isinstance(name, str) else None
+    if s is None:
+        raise SimgapError(f"unknown system {name!r}; built-in systems: {', '.join(sorted(BUILTIN))}"
+                          + plugins.installed_note(plugins.SYSTEM_GROUP))
+    return s.with_steps(steps)
+
+
+def is_named(name) -> bool:
+    """True for a built-in or an installed plugin system's name."""
+    if not isinstance(name, str):
+        return False
+    if name in BUILTIN:
+        return True
+    from . import plugins
+    return name in plugins.system_plugins()
 
 
 def resolve_system(ref, steps: Optional[int] = None, paths: bool = True) -> System:
     """The one way to turn a system reference into a :class:`System`.
 
-    ``ref`` is a built-in name (``pendulum``, ``turtlebot``, ``emps``), a refined system's JSON
-    object (``format: simgap-refined-system``, as embedded in manifests, data sets and
-    controllers), the path of a refined-system JSON file (command line, experiment TOML), or a
-    System (returned as is). The refined JSON is parsed with the expression allow-list, never
-    executed. ``steps`` (k base periods per sampling period) overrides the reference's own.
-    ``paths=False`` for references read from a file: data never make simgap open another file.
+    ``ref`` is a built-in or plugin name (``pendulum``, ``turtlebot``, ``emps``, see ``simgap
+    plugins``), an embedded system file or refined system (the JSON objects with ``format:
+    simgap-system`` / ``simgap-refined-system`` recorded in manifests, data sets, certificates
+    and controllers), the path of a system file (``.toml``) or refined-system JSON (command line,
+    experiment TOML), or a System (returned as is). Files are parsed with the expression
+    allow-list, never executed. ``steps`` (k base periods per sampling period) overrides the
+    reference's own. ``paths=False`` for references read from a file: data never make simgap
+    open another file.
     """
+    from . import system_file
     if isinstance(ref, System):
         s = ref
-    elif isinstance(ref, str) and ref in BUILTIN:
+    elif is_named(ref):
         s = get_system(ref)
+    elif system_file.is_spec(ref):
+        s = system_file.system_from_spec(ref).with_steps(int(ref.get("steps", 1)))
+    elif paths and isinstance(ref, (str, os.PathLike)) and str(ref).endswith(".toml") and os.path.isfile(ref):
+        s = system_file.load_system_file(ref)
     else:
         from .refine.refined import load_refined, system_from_dict  # refine builds on this module
         if isinstance(ref, dict):
@@ -374,28 +396,50 @@ def resolve_system(ref, steps: Optional[int] = None, paths: bool = True) -> Syst
         elif paths and isinstance(ref, (str, os.PathLike)) and os.path.isfile(ref):
             s = load_refined(ref)
         else:
+            from . import plugins
             raise SimgapError(f"unknown system {str(ref)[:200]!r}: not a built-in ({', '.join(sorted(BUILTIN))})"
-                              + (" and no such refined-system JSON file" if paths else
-                                 " or an embedded refined system"))
+                              + (", no such system file (.toml) or refined-system JSON file" if paths else
+                                 " or an embedded system") + plugins.installed_note(plugins.SYSTEM_GROUP))
     return s.with_steps(steps) if steps is not None else s
 
 
 def system_ref(system: System):
-    """What :func:`resolve_system` rebuilds ``system`` from: the refined system's JSON object
-    (self-contained, not tied to a file) or a built-in name; ``None`` for a user-defined system."""
+    """What :func:`resolve_system` rebuilds ``system`` from: the refined system's JSON object or
+    the system file's table (self-contained, not tied to a file), or a built-in or plugin name;
+    ``None`` for a system defined in Python only."""
     d = system.params.get("_refined_json")
     if d is not None:
         return dict(d, steps=int(system.steps), name=system.name)
-    return system.name if system.name in BUILTIN else None
+    f = system.params.get("_system_file")
+    if f is not None:
+        return dict(f, steps=int(system.steps))
+    return system.name if is_named(system.name) else None
+
+
+def embedded_ref(system: System) -> Optional[dict]:
+    """:func:`system_ref` when it is an embedded object (system file or refined system), else None:
+    what certificates carry so that later commands rebuild the model without its file."""
+    ref = system_ref(system)
+    return ref if isinstance(ref, dict) else None
+
+
+def ref_of_description(desc: dict):
+    """The reference a manifest's system description (:meth:`System.describe`) rebuilds from."""
+    params = desc.get("params") or {}
+    return params.get("_refined_json") or params.get("_system_file") or desc.get("name")
 
 
 def system_digest(system: System) -> Optional[str]:
-    """sha256 of what the model computes: the built-in's name or the refined system's JSON
-    (base and effects with coefficients; name and steps are compared separately). Certificates
-    record it, so a certificate is never used with a different model of the same name.
-    ``None`` for a user-defined system."""
+    """sha256 of what the model computes: the built-in's (or plugin's) name, the system file's
+    table (:func:`simgap.system_file.spec_digest`) or the refined system's JSON (base and effects
+    with coefficients; name and steps are compared separately). Certificates record it, so a
+    certificate is never used with a different model of the same name. ``None`` for a system
+    defined in Python only."""
     from .fileio import content_digest
+    from .system_file import is_spec, spec_digest
     ref = system_ref(system)
+    if is_spec(ref):
+        return spec_digest(ref)
     if isinstance(ref, dict):
         ref = {"base": ref.get("base"), "effects": ref.get("effects")}
     return None if ref is None else content_digest({"system": ref})

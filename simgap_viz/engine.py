@@ -19,8 +19,18 @@ import numpy as np
 from simgap.errors import SimgapError
 from simgap.systems import System, get_system
 
-SYSTEMS = ["pendulum", "turtlebot"]
-SIMULATORS = ["numpy", "pybullet_pendulum", "pybullet_turtlebot"]
+
+def _plugin_names(kind: str) -> list:
+    """Names installed plugins register (simgap.plugins), offered next to the built-ins."""
+    from simgap import plugins
+    try:
+        return sorted(plugins.system_plugins() if kind == "systems" else plugins.simulator_plugins())
+    except Exception:  # a broken plugin package must not keep the app from starting
+        return []
+
+
+SYSTEMS = ["pendulum", "turtlebot"] + _plugin_names("systems")
+SIMULATORS = ["numpy", "pybullet_pendulum", "pybullet_turtlebot"] + _plugin_names("simulators")
 
 # stage -> modules that must import for the stage to be offered
 _NEEDS = {
@@ -68,6 +78,25 @@ def unavailable_note(stage: str) -> str:
 # ----- systems, specs ----------------------------------------------------------------------
 # refined models the user switched to: name -> (refined System, the base System the simulator runs)
 REFINED: dict = {}
+# systems from a system file (or a Python System) the app was given: name -> System
+USER: dict = {}
+
+
+def register_user(system: System) -> str:
+    """Make a system-file model selectable by name (the simulator runs it as it is)."""
+    USER[system.name] = system.with_steps(1)
+    if system.name not in SYSTEMS:
+        SYSTEMS.append(system.name)
+    return system.name
+
+
+def system_by_name(name: str, steps: int = 1) -> System:
+    """A selectable system by name: a registered refined or system-file model, else a built-in or plugin."""
+    if name in REFINED:
+        return REFINED[name][0].with_steps(int(steps))
+    if name in USER:
+        return USER[name].with_steps(int(steps))
+    return get_system(name, steps=int(steps))
 
 
 def register_refined(refined: System, base: System) -> str:
@@ -94,11 +123,9 @@ def rebase(dataset, system: System):
 
 def make_system(settings, experiment=None) -> System:
     """The nominal system of the settings; the experiment's own (e.g. its input set) if it names the same."""
-    if settings.system in REFINED:
-        return REFINED[settings.system][0].with_steps(int(settings.steps))
-    if experiment is not None and experiment.system.name == settings.system:
+    if experiment is not None and experiment.system.name == settings.system and settings.system not in REFINED:
         return experiment.system.with_steps(int(settings.steps))
-    return get_system(settings.system, steps=int(settings.steps))
+    return system_by_name(settings.system, int(settings.steps))
 
 
 def default_simulator(system_name: str, current: str) -> str:
@@ -146,7 +173,9 @@ def default_spec(system: System, arena=None):
     """The specification used when the experiment gives none: the paper's.
 
     Pendulum: invariance of the safe set [0, 0.2] x [-0.5, 0.5] (paper, Sec. V). TurtleBot:
-    reach-avoid in the ``arena`` map (target, obstacles grown by the robot radius).
+    reach-avoid in the ``arena`` map (target, obstacles grown by the robot radius). A system file
+    or plugin system: invariance of its whole state set X (give the experiment's [synthesis]
+    section for another specification).
     """
     from simgap.synthesis.spec import Box, Spec
     name = base_system(system).name
@@ -157,6 +186,9 @@ def default_spec(system: System, arena=None):
         return arena.spec(system)
     if name == "pendulum":
         return Spec("invariance", safe=Box([0.0, -0.5], [0.2, 0.5]))
+    from simgap.systems import BUILTIN
+    if name not in BUILTIN:
+        return Spec("invariance", safe=Box(system.x_lo, system.x_hi))
     raise SimgapError(f"no specification for system {system.name!r}: start the app with --experiment")
 
 

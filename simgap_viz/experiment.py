@@ -35,16 +35,21 @@ def app_inputs(experiment: Optional[str] = None, profile: Optional[str] = None, 
 
 
 def _selectable(system) -> str:
-    """The app's name of a system given by name, refined-system JSON or System: a refined model
-    is registered (its simulator runs the base system), so the app can select it by name."""
-    from simgap.systems import BUILTIN, get_system, resolve_system
+    """The app's name of a system given by name, system file, refined-system JSON or System: a
+    refined model is registered with its base (the simulator runs the base system), a system-file
+    model as it is, so the app can select it by name."""
+    from simgap.systems import is_named, resolve_system
 
-    if isinstance(system, str) and system in BUILTIN:
+    if is_named(system):
         return system
     s = resolve_system(system)
-    base = s.params.get("base_system")
-    if s.name not in BUILTIN and base in BUILTIN:
-        engine.register_refined(s, get_system(base, s.steps))
+    if is_named(s.name):
+        return s.name
+    refined = s.params.get("_refined_json")
+    if refined is not None:
+        engine.register_refined(s, resolve_system(refined["base"], s.steps, paths=False))
+    else:
+        engine.register_user(s)
     return s.name
 
 

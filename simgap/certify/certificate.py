@@ -120,6 +120,7 @@ class Certificate:
     provenance: dict
     inputs: Optional[np.ndarray] = None   # (M, m) the inputs the data covered: gamma is certified for these
     system_digest: Optional[str] = None   # simgap.systems.system_digest of the nominal model
+    system_ref: Optional[dict] = None     # embedded system file / refined system (simgap.systems.system_ref)
 
     # ----- shape -----------------------------------------------------------------------
     @property
@@ -225,6 +226,21 @@ class Certificate:
                               f"is {self.system_digest[:16]}..., this system's is {str(have)[:16]}... (a refined "
                               f"system with other effects or coefficients?)")
 
+    def nominal_system(self):
+        """The nominal model the certificate was made for, rebuilt from what it records (a built-in
+        or plugin name, or the embedded system file / refined system; never a file path), checked
+        against the recorded digest; None for a system defined in Python only."""
+        from ..systems import is_named, resolve_system
+        ref = self.system_ref if self.system_ref is not None else self.system_name
+        if not (isinstance(ref, dict) or is_named(ref)):
+            return None
+        s = resolve_system(ref, self.steps, paths=False)
+        if self.inputs is not None and self.inputs.shape[1] == s.m:
+            import dataclasses
+            s = dataclasses.replace(s, inputs=self.inputs)
+        self.check_system(s)
+        return s
+
     # ----- JSON ------------------------------------------------------------------------
     def to_dict(self) -> dict:
         """The JSON content, ``digest`` included."""
@@ -235,7 +251,8 @@ class Certificate:
                        "input_names": list(self.input_names), "x_lo": self.x_lo.tolist(),
                        "x_hi": self.x_hi.tolist(), "angle_dims": list(self.angle_dims),
                        "inputs": None if self.inputs is None else self.inputs.tolist(),
-                       **({} if self.system_digest is None else {"digest": self.system_digest})},
+                       **({} if self.system_digest is None else {"digest": self.system_digest}),
+                       **({} if self.system_ref is None else {"ref": self.system_ref})},
             "epsilon": self.epsilon, "n_runs": self.n_runs, "K": self.K, "method": self.method,
             "options": self.options, "dims": [d.to_dict() for d in self.dims],
             "per_dim_confidence": self.per_dim_confidence, "joint_confidence": self.joint_confidence,
@@ -301,7 +318,8 @@ class Certificate:
                        epsilon=float(d["epsilon"]), n_runs=int(d["n_runs"]), K=int(d["K"]), method=d["method"],
                        options=d["options"], dims=dims, provenance=d["provenance"],
                        inputs=None if s.get("inputs") is None else np.asarray(s["inputs"], float).reshape(-1, names.m),
-                       system_digest=s.get("digest"))
+                       system_digest=s.get("digest"),
+                       system_ref=s.get("ref") if isinstance(s.get("ref"), dict) else None)
         except SimgapError:
             raise
         except KeyError as e:

@@ -21,7 +21,7 @@ from typing import Dict, List, Optional, Sequence, Union
 import numpy as np
 
 from ..errors import SimgapError
-from ..systems import system_digest
+from ..systems import embedded_ref, system_digest
 from .basis import Basis
 from .bounds import BoundOptions, beta_from_delta, delta_from_beta, required_runs
 from .certificate import Certificate, DimCertificate
@@ -309,7 +309,7 @@ def certify(dataset, options: Optional[CertifyOptions] = None, simulator=None, *
                        input_names=tuple(s.input_names), x_lo=s.x_lo.copy(), x_hi=s.x_hi.copy(),
                        angle_dims=tuple(s.angle_dims), epsilon=float(ds.epsilon), n_runs=N, K=K,
                        method=o.method, options=opts, dims=dims, provenance=prov, inputs=U_data,
-                       system_digest=system_digest(s))
+                       system_digest=system_digest(s), system_ref=embedded_ref(s))
 
 
 

@@ -23,9 +23,10 @@ def add_parser(subparsers) -> None:
     p.add_argument("--against", metavar="DATA2",
                    help="audit against the simulator of another data set (e.g. a deterministic-baseline "
                         "certificate made with a noise-free simulator, against the noisy one)")
-    p.add_argument("--system", metavar="NAME|JSON",
+    p.add_argument("--system", metavar="NAME|FILE",
                    help="the nominal model the certificate is for, when it was certified with `simgap certify "
-                        "--system` (a refined-system JSON); the simulator stays the data set's")
+                        "--system` (a name, a system file .toml or a refined-system JSON); the simulator stays the "
+                        "data set's")
     p.add_argument("--points", type=int, default=200, help="fresh (x,u) points (default 200)")
     p.add_argument("--runs", type=int, default=2000, help="simulator runs per point (default 2000)")
     p.add_argument("--seed", type=int, default=12345)

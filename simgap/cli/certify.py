@@ -52,8 +52,9 @@ def add_parser(subparsers) -> None:
     p = subparsers.add_parser("certify", help="compute the stochastic simulation-gap certificate of a data set",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("data", help="data set (.npz or collection store directory)")
-    p.add_argument("--system", metavar="NAME|JSON",
-                   help="certify the gap of this nominal model (e.g. a refined-system JSON) on the data's simulator "
+    p.add_argument("--system", metavar="NAME|FILE",
+                   help="certify the gap of this nominal model (a built-in or plugin name, a system file .toml or a "
+                        "refined-system JSON) on the data's simulator "
                         "runs: f_nom is recomputed, the empirical means are the data's (default: the data's model)")
     p.add_argument("--method", choices=["stochastic", "deterministic"], default="stochastic",
                    help="stochastic (paper) or the deterministic baseline (no delta, no confidence)")

@@ -30,7 +30,8 @@ from ..errors import SimgapError
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser("refine", help="trace the residual of a model to named effects and refine it",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--system", required=True, help="built-in system name or refined-system JSON file")
+    p.add_argument("--system", required=True,
+                   help="built-in or plugin system name, a system file (.toml) or a refined-system JSON file")
     p.add_argument("--data", required=True, help="transition data (.npz, .csv, .parquet) or a collected data set")
     p.add_argument("--out", help="write the report JSON here")
     p.add_argument("--save-system", metavar="FILE", help="write the refined system JSON here")

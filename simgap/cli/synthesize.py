@@ -42,8 +42,9 @@ def add_parser(subparsers) -> None:
         description="Abstraction on a uniform grid (SCOTS conventions) and a reach-avoid or invariance game; "
                     "writes the controller (.npz) and prints grid size, boxes/transitions, winning domain and times.")
     p.add_argument("--system", default=None,
-                   help="built-in system name (pendulum, turtlebot, emps) or refined-system JSON; "
-                        "default: the experiment's")
+                   help="built-in or plugin system name (pendulum, turtlebot, emps; see simgap plugins), a system "
+                        "file (.toml) or a refined-system JSON; default: the experiment's, else the one the "
+                        "certificate records")
     p.add_argument("--steps", type=int, default=None,
                    help="base periods per sampling period (default: the certificate's, else 1)")
     p.add_argument("--hold", type=int, default=None,
@@ -154,13 +155,14 @@ def run(args) -> int:
             system = system.with_steps(args.steps)
         spec, x0, _ = experiment_spec(e)
     else:
-        if args.system is None:
+        recorded = cert.nominal_system() if cert is not None and args.system is None else None
+        if args.system is None and recorded is None:
             if args.spec and Path(args.spec).suffix != ".json":
                 from ..maps import load_map
                 load_map(args.spec)  # names an unknown map or experiment before asking for --system
             raise SimgapError("give --system (or an experiment as --spec)")
         steps = args.steps if args.steps is not None else (getattr(cert, "steps", 1) if cert is not None else 1)
-        system = resolve_system(args.system, steps)
+        system = resolve_system(args.system, steps) if recorded is None else recorded.with_steps(steps)
     if cert is not None:
         cert.check_system(system)
         gap = cert

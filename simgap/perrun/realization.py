@@ -40,7 +40,7 @@ from ..certify.lipschitz import l2_analytic, neighbour_pairs, slopes_of, wood_zh
 from ..certify.pipeline import _versions, bases_for, check_dataset, invariant_dims
 from ..certify.scp import solve_scp
 from ..errors import SimgapError
-from ..systems import system_digest
+from ..systems import embedded_ref, system_digest
 from .orderstats import alpha_min, order_index
 
 ASSUMPTION = ("per realization: for every noise draw w, x -> fhat(x,u,w) - x is Lhat-Lipschitz (common random "
@@ -184,7 +184,7 @@ def certify_run(dataset, options: Optional[RunCertifyOptions] = None, simulator=
                        input_names=tuple(s.input_names), x_lo=s.x_lo.copy(), x_hi=s.x_hi.copy(),
                        angle_dims=tuple(s.angle_dims), epsilon=float(ds.epsilon), n_runs=N, K=K, method="run",
                        options=opts, dims=dims, provenance=prov, inputs=U_data,
-                       system_digest=system_digest(s))
+                       system_digest=system_digest(s), system_ref=embedded_ref(s))
 
 
 def run_alpha(cert: Certificate) -> float:

@@ -17,7 +17,8 @@ Saved as JSON (``format: simgap-refined-system``)::
      "effects": [{"name": "viscous_friction", "state": 1, "variable": "omega",
                   "coefficient": -0.4987, "stderr": 0.003}]}
 
-``base`` is a built-in name or, for a refinement of a refinement, the nested JSON object.
+``base`` is a built-in or plugin name, an embedded system file (``format: simgap-system``,
+:mod:`simgap.system_file`) or, for a refinement of a refinement, the nested JSON object.
 :func:`load_system` accepts a built-in name or the path of such a file wherever a system is
 expected.
 
@@ -37,7 +38,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from ..errors import SimgapError
-from ..systems import BUILTIN, System, get_system, resolve_system
+from ..systems import BUILTIN, System, get_system, is_named, resolve_system
 from .effects import Effect, effect_from_spec, integration_effect
 
 FORMAT = "simgap-refined-system"
@@ -129,9 +130,10 @@ def save_refined(system: System, path: str | Path) -> Path:
     if d is None:
         raise SimgapError(f"system {system.name!r} is not a refined system built by simgap.refine")
     base = d["base"]
-    if not (isinstance(base, dict) or base in BUILTIN):
-        raise SimgapError(f"cannot save refined system: its base {base!r} is a user system, not a "
-                          f"built-in; rebuild it in Python with refined_system()")
+    if not (isinstance(base, dict) or is_named(base)):
+        raise SimgapError(f"cannot save refined system: its base {base!r} is a system defined in Python only; "
+                          f"write it as a system file (docs/system-files.md) or register it as a plugin, or "
+                          f"rebuild it in Python with refined_system()")
     d = dict(d, steps=int(system.steps), name=system.name)
     path = Path(path)
     tmp = path.with_name(path.name + ".tmp")
@@ -163,15 +165,19 @@ def system_from_dict(d: dict, _depth: int = 0) -> System:
     except (KeyError, TypeError, ValueError):
         raise SimgapError("refined system: needs 'base' and 'effects'") from None
     name = d.get("name")
-    if name is not None and (not isinstance(name, str) or name in BUILTIN):
-        raise SimgapError(f"refined system: name {name!r} must be a string other than a built-in's")
-    if isinstance(base_spec, dict):
+    if name is not None and (not isinstance(name, str) or is_named(name)):
+        raise SimgapError(f"refined system: name {name!r} must be a string other than a built-in's or plugin's")
+    from ..system_file import is_spec, system_from_spec
+    if is_spec(base_spec):
+        base = system_from_spec(base_spec, "refined system: its base system file").with_steps(1)
+    elif isinstance(base_spec, dict):
         base = system_from_dict(base_spec, _depth + 1).with_steps(1)
-    elif isinstance(base_spec, str) and base_spec in BUILTIN:
+    elif is_named(base_spec):
         base = get_system(base_spec)
     else:
         raise SimgapError(f"refined system: base {base_spec!r} is not a built-in system "
-                          f"({', '.join(sorted(BUILTIN))}) or a nested refined system")
+                          f"({', '.join(sorted(BUILTIN))}), an installed plugin system, an embedded system file "
+                          f"or a nested refined system")
     if not isinstance(effs, list):
         raise SimgapError("refined system: 'effects' must be a list")
     effects, coefs, ses = [], [], []

@@ -129,7 +129,7 @@ def refine(system, data: Transitions, effects: Optional[Sequence[str]] = None,
     fits = [fits[i] for i in range(sysobj.n)]
     chosen.sort(key=lambda c: c[0].state)
     chosen, withdrawn = _multistep_gate(sysobj, data, held, hist, chosen, fits, opts)
-    base_spec = sysobj.params.get("_refined_json", sysobj.name)
+    base_spec = sysobj.params.get("_refined_json") or sysobj.params.get("_system_file") or sysobj.name
     now = [c for c in chosen if c[0].lag == 0]
     refined = build_refined(sysobj, base_spec, [c[0] for c in now], [c[1] for c in now],
                             [c[2] for c in now], name=name)

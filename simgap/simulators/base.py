@@ -31,7 +31,9 @@ class SimulatorConfig:
     Attributes
     ----------
     kind : str
-        Backend: ``numpy``, ``pybullet_pendulum``, ``pybullet_turtlebot``, ``pybullet_urdf``, ``mujoco``.
+        Backend: ``numpy``, ``pybullet_pendulum``, ``pybullet_turtlebot``, ``pybullet_urdf``, ``mujoco``,
+        or a kind an installed plugin registers (entry-point group ``simgap.simulators``, see
+        :mod:`simgap.plugins`).
     system : str
         Name of the nominal system it simulates (its X, U, base_tau, names).
     steps : int
@@ -149,13 +151,23 @@ def make_simulator(config: SimulatorConfig | dict, system: System | None = None,
 
 
 def simulator_class(kind: str) -> type:
-    """The Simulator class of a built-in kind (imported lazily); SimgapError listing the known kinds."""
-    try:
-        target = _BACKENDS[kind]
-    except KeyError:
-        raise SimgapError(f"unknown simulator kind {kind!r}; known: {', '.join(sorted(_BACKENDS))}") from None
-    mod, cls = target.split(":")
-    return getattr(importlib.import_module(mod), cls)
+    """The Simulator class of a built-in kind (imported lazily) or of an installed plugin."""
+    target = _BACKENDS.get(kind) if isinstance(kind, str) else None
+    if target is not None:
+        mod, cls = target.split(":")
+        return getattr(importlib.import_module(mod), cls)
+    from .. import plugins
+    cls = plugins.load_simulator(kind) if isinstance(kind, str) else None
+    if cls is None:
+        raise SimgapError(f"unknown simulator kind {kind!r}; built-in: {', '.join(sorted(_BACKENDS))}"
+                          + plugins.installed_note(plugins.SIMULATOR_GROUP))
+    return cls
+
+
+def simulator_kinds() -> list:
+    """Every simulator kind this installation offers: built-ins, then plugins."""
+    from .. import plugins
+    return sorted(_BACKENDS) + sorted(plugins.simulator_plugins())
 
 
 def as_vector(value, size: int, name: str) -> np.ndarray:

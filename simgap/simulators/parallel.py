@@ -64,7 +64,7 @@ class ParallelSimulator(Simulator):
         self.system = inner.system
         self.workers = max(1, int(workers))
         # what the helpers rebuild the system from: a System's step is a closure that does not
-        # pickle (forkserver/spawn), so a built-in name or the embedded refined system travels instead
+        # pickle (forkserver/spawn), so a built-in or plugin name or the embedded system file / refined system travels instead
         self._system_arg = system if system is None else (system_ref(system) or system)
         self._pool = None
         self._memo: OrderedDict = OrderedDict()

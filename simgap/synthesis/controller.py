@@ -224,16 +224,16 @@ def _json_default(o):
 
 
 def _rebuild_system(d: dict, inputs: np.ndarray) -> Optional[System]:
-    from ..systems import BUILTIN, resolve_system
+    from ..systems import is_named, ref_of_description, resolve_system
     name = d.get("name")
-    refined = (d.get("params") or {}).get("_refined_json")
+    ref = ref_of_description(d)
     if name == "scots_vehicle":
         from .examples import vehicle_system
         sysm = vehicle_system()
-    elif name in BUILTIN or refined is not None:
-        sysm = resolve_system(refined or name, int(d.get("steps", 1)), paths=False)
+    elif isinstance(ref, dict) or is_named(ref):
+        sysm = resolve_system(ref, int(d.get("steps", 1)), paths=False)
     else:
-        return None  # a user-defined system: pass it to Controller.load(system=...)
+        return None  # a system defined in Python only: pass it to Controller.load(system=...)
     if sysm.inputs.shape != inputs.shape or not np.allclose(sysm.inputs, inputs):
         sysm = dataclasses.replace(sysm, inputs=np.asarray(inputs, dtype=float))
     return sysm
@@ -375,7 +375,8 @@ def synthesize(system: System, spec: Spec, eta, gap=None, hold: int = 1, *, grow
                        f"(the system has {keep.size}; gamma is not certified for the other {int((~keep).sum())})")
         system = dataclasses.replace(system, inputs=system.inputs[keep])
     if invariant_dims is None:
-        invariant_dims = TRANSLATION_INVARIANT.get(system.name, ())
+        from ..system_file import translation_invariant_dims
+        invariant_dims = TRANSLATION_INVARIANT.get(system.name, ()) or translation_invariant_dims(system)
     if periodic is None:
         periodic = system.angle_dims
     growth = growth_function(system, growth)

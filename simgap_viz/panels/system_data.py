@@ -38,7 +38,7 @@ class SystemDataPanel(Panel):
         self.info = gui.add_markdown("")
         on = self.on
         on(self.system, lambda v: app.update_settings(system=v, simulator=engine.default_simulator(v, app.settings.simulator),
-                                                    eta=engine.default_eta(engine.get_system(v))))
+                                                    eta=engine.default_eta(engine.system_by_name(v))))
         on(self.simulator, lambda v: app.update_settings(simulator=v))
         on(self.noise, lambda v: app.update_settings(noise_std=float(v)))
         on(self.epsilon, lambda v: app.update_settings(epsilon=float(v)))

@@ -119,3 +119,54 @@ def test_user_terms_may_read_the_clock_t():
     assert rep["rms_after"][1] < 1.1e-4                  # the noise (1e-4) is what is left
     with pytest.raises(SimgapError, match="time-ordered data"):
         user_effect(s, "hum", "omega", "sin(t)")
+
+
+def test_first_order_actuator_lag_is_named_with_its_time_constant():
+    c = make_case("actuator_lag", 12000, 0)
+    rep = refine(c.system, c.data, options=SelectionOptions(n_boot=10)).report
+    assert verdict(c, rep)[0], verdict(c, rep)[1]
+    (e,) = rep["effects"]
+    assert e["periods"] == c.truth["lag_periods"] and e["coefficient"] == pytest.approx(1.0, abs=0.02)
+    assert e["physical"]["value"] == pytest.approx(-0.005 / np.log(1 - 1 / 5.0))     # T_a [s]
+    assert e["in_refined_system"] is False
+    ms = rep["multistep"]["100"]
+    assert np.all(np.asarray(ms["rms_after"]) < 0.3 * np.asarray(ms["rms_before"]))
+
+
+def test_without_the_lag_candidate_no_refinement_is_worse_over_100_steps_and_the_state_is_flagged():
+    """The lag read as delays plus an input gain: the gain made 100-step predictions worse (issue)."""
+    c = make_case("actuator_lag", 12000, 0)
+    lib = ["bias", "viscous_friction", "coulomb_friction", "drag", "input_gain", "deadband", "gravity",
+           "integration", "input_delay"]
+    rep = refine(c.system, c.data, effects=lib, options=SelectionOptions(n_boot=5)).report
+    for k in ("10", "100"):
+        ms = rep["multistep"][k]
+        assert np.all(np.asarray(ms["rms_after"]) <= np.asarray(ms["rms_before"]) * 1.01), (k, ms)
+    assert rep["states"][1]["unexplained"] is True
+    assert not any(e["name"] in ("viscous_friction", "drag") and e["coefficient"] > 0 for e in rep["effects"])
+    # the gate at 10 steps only lets the input gain through: the 100-step horizon is what catches it
+    short = refine(c.system, c.data, effects=lib, options=SelectionOptions(n_boot=5, gate_steps=10)).report
+    ms = short["multistep"]["100"]
+    assert any(a > b for a, b in zip(ms["rms_after"], ms["rms_before"]))
+
+
+def test_lagged_inputs_follow_the_discrete_first_order_lag_and_restart_per_episode():
+    from simgap.refine.data import lagged_inputs
+    c = make_case("actuator_lag", 2000, 0)
+    d = _restart_clocks(c.data)
+    A = lagged_inputs(d, [5.0])[:, 0]
+    u = d.u[:, 0]
+    a = np.empty_like(u)
+    for k in range(d.K):
+        a[k] = u[k] if k % 50 == 0 else a[k - 1] + (u[k - 1] - a[k - 1]) / 5.0
+    np.testing.assert_allclose(A, a, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("name", ["actuator_lag_offgrid", "actuator_lag_long"])
+def test_lags_off_the_library_grid_are_named_as_lags_or_flagged(name):
+    c = make_case(name, 12000, 0)
+    rep = refine(c.system, c.data, options=SelectionOptions(n_boot=5)).report
+    assert verdict(c, rep)[0], verdict(c, rep)[1]
+    assert not rep["refused"] or rep["states"][1]["unexplained"]
+    ms = rep["multistep"]["100"]
+    assert np.all(np.asarray(ms["rms_after"]) <= np.asarray(ms["rms_before"]) * 1.01)

@@ -10,6 +10,8 @@ random inputs held for a random number of periods). Every draw comes from a seed
 * ``{"effects": [(name, state_name), ...]}``: exactly these effects, no flag;
 * ``{"flag": state_name}``: that state flagged unexplained (a residual the library cannot explain);
 * ``{"delay": periods}``: an ``input_delay`` effect of that length;
+* ``{"lag": state_name}``: on that state only ``actuator_lag`` effects (any of the library's time
+  constants), or the state flagged;
 * ``{"effects": []}``: nothing (noise only), no flag.
 
 ``truth`` holds the planted numbers (e.g. the dead-zone width) for error-bar checks.
@@ -161,9 +163,16 @@ CASES = {
     "drift": dict(system="pendulum", kind="series", extra=_zero, std=1e-4,
                   timed=lambda x, u, t, p: np.stack([0 * t, -0.4 * p * _pend_B() * u[:, 0]], 1),
                   expect={"flag": "omega"}, shape="outside: input gain drifting 1.0 -> 0.6 over the record"),
-    # memory outside the library: a first-order actuator lag of 5 periods
+    # memory: a first-order actuator lag of 5 periods (a library time constant) and of 6.5 (between two)
     "actuator_lag": dict(system="pendulum", kind="series", lag=5.0, extra=_zero, std=1e-4,
-                         expect={"flag": "omega"}, shape="outside: first-order actuator lag (5 periods)"),
+                         expect={"effects": [("actuator_lag", "omega")]}, truth={"lag_periods": 5.0},
+                         shape="memory: first-order actuator lag (5 periods)"),
+    "actuator_lag_offgrid": dict(system="pendulum", kind="series", lag=6.5, extra=_zero, std=1e-4,
+                                 expect={"lag": "omega"}, truth={"lag_periods": 6.5},
+                                 shape="memory: first-order actuator lag (6.5 periods, between library values)"),
+    "actuator_lag_long": dict(system="pendulum", kind="series", lag=40.0, extra=_zero, std=1e-4,
+                              expect={"lag": "omega"}, truth={"lag_periods": 40.0},
+                              shape="memory: first-order actuator lag (40 periods, beyond the library's 20)"),
     # an input saturation at |u| = 0.6: a dead zone would need a negative width
     "saturation": dict(system="pendulum", kind="rows",
                        extra=_on(1, lambda x, u: -_pend_B() * (u[:, 0] - np.clip(u[:, 0], -0.6, 0.6))),
@@ -209,6 +218,9 @@ def verdict(case: Case, report: dict) -> tuple:
         return bool(d) and (covers or bool(flagged)), desc
     if "flag" in ex:
         return ex["flag"] in flagged, desc
+    if "lag" in ex:
+        on = [e["name"] for e in report["effects"] if e["state_name"] == ex["lag"]]
+        return (bool(on) and set(on) == {"actuator_lag"}) or ex["lag"] in flagged, desc
     if "delay" in ex:
         d = [e for e in report["effects"] if e["name"] == "input_delay"]
         ok = bool(d) and all(e.get("periods") == ex["delay"] for e in d) and not flagged

@@ -120,6 +120,43 @@ def time_order(data: Transitions) -> Optional[np.ndarray]:
     return np.lexsort((data.t, ep))
 
 
+def _continues(data: Transitions, order: np.ndarray) -> np.ndarray:
+    """cont (K,) over the rows in ``order``: row j continues the trajectory of row j - 1 (x_next of the
+    earlier row is the later row's x, the time step is tau, the same episode)."""
+    ep = episodes(data)[order]
+    x, xn, t = data.x[order], data.x_next[order], data.t[order]
+    cont = np.zeros(data.K, dtype=bool)
+    cont[1:] = np.all(np.isclose(xn[:-1], x[1:], rtol=0, atol=1e-9 * (1 + np.abs(x[1:]))), axis=1) \
+        & np.isclose(np.diff(t), data.tau, rtol=1e-3, atol=0) & (ep[1:] == ep[:-1])
+    return cont
+
+
+def lagged_inputs(data: Transitions, periods) -> np.ndarray:
+    """Inputs through first-order lags: (K, len(periods) m), column g m + j for lag periods[g], input j.
+
+    a_k = a_{k-1} + (u_{k-1} - a_{k-1}) / L along time order (:func:`time_order`), restarted at
+    a = u where a row does not continue the previous one: the exact discretisation of
+    T_a a' = u - a with a held input, 1 / L = 1 - exp(-tau / T_a). Time series only.
+    """
+    order = time_order(data)
+    cont = _continues(data, order)
+    u = data.u[order]
+    from scipy.signal import lfilter, lfilter_zi
+    alpha = 1.0 / np.repeat(np.asarray(periods, dtype=float), u.shape[1])
+    U = np.tile(u, (1, len(periods)))
+    A = np.empty_like(U)
+    starts = np.flatnonzero(~cont)
+    ends = np.r_[starts[1:], data.K]
+    for c, a in enumerate(alpha):             # per column and continuous segment, the recursion in C
+        b, den = [0.0, a], [1.0, a - 1.0]
+        zi = lfilter_zi(b, den)
+        for s0, s1 in zip(starts, ends):
+            A[s0:s1, c] = lfilter(b, den, U[s0:s1, c], zi=zi * U[s0, c])[0]
+    out = np.empty_like(A)
+    out[order] = A
+    return out
+
+
 def history(data: Transitions, lags: int) -> tuple:
     """Lagged values of a time series: (hist (K, lags (n + m)), valid (K,) bool).
 
@@ -135,11 +172,8 @@ def history(data: Transitions, lags: int) -> tuple:
     if data.t is None or lags < 1:
         return hist, valid if lags >= 1 else np.ones(K, dtype=bool)
     order = time_order(data)
-    ep = episodes(data)[order]
-    x, u, xn, t = data.x[order], data.u[order], data.x_next[order], data.t[order]
-    cont = np.zeros(K, dtype=bool)            # row j continues from row j - 1
-    cont[1:] = np.all(np.isclose(xn[:-1], x[1:], rtol=0, atol=1e-9 * (1 + np.abs(x[1:]))), axis=1) \
-        & np.isclose(np.diff(t), data.tau, rtol=1e-3, atol=0) & (ep[1:] == ep[:-1])
+    cont = _continues(data, order)
+    x, u = data.x[order], data.u[order]
     z = np.concatenate([x, u], axis=1)
     idx = np.arange(K)
     run = idx - np.maximum.accumulate(np.where(cont, 0, idx))     # continuing rows before j

@@ -27,6 +27,9 @@ integration    a_j(x, u) = (f'_j(x, u) - x_j) / tau  for a position x_i integrat
 input_delay    B_ij(x) (u_j[k-d] - u_j[k]),        c = 1: input j acts d periods late (time-ordered
                d = 1 .. MAX_DELAY periods          data only; a model with memory, reported with its
                                                    length, not put into the memoryless f')
+actuator_lag   B_ij(x) (a_j^L[k] - u_j[k]), a^L    c = 1: input j acts through a first-order lag of
+               the input through a first-order     L periods (time constant T_a = -tau / ln(1 - 1/L));
+               lag of L in LAG_PERIODS periods     time-ordered data only, not in the memoryless f')
 <user name>    any expression in the variables     user-defined (lagged values name[k-1] on
                                                    time-ordered data)
 ============== =================================== ===========================================
@@ -60,9 +63,11 @@ from ..expr import VarSpace, parse
 from ..systems import System
 
 LIBRARY = ("bias", "viscous_friction", "coulomb_friction", "drag", "input_gain", "deadband", "gravity",
-           "integration", "input_delay")
+           "integration", "input_delay", "actuator_lag")
 #: deepest history the library's delay candidates look at (periods), for time-ordered data
 MAX_DELAY = 3
+#: time constants (in periods L, 1 / L = 1 - exp(-tau / T_a)) of the first-order actuator-lag candidates
+LAG_PERIODS = (2.0, 3.0, 5.0, 8.0, 13.0, 20.0)
 
 #: built-in velocity-state declarations (0-based dims); extended by :func:`declare_velocity`
 VELOCITY_DIMS: Dict[str, tuple] = {"pendulum": (1,), "emps": (1,), "turtlebot": ()}
@@ -357,6 +362,17 @@ def library_candidates(system: System, names: Optional[Iterable[str]] = None,
                         out.append(Effect(nm, i, un, f"B_{i + 1}{j + 1}(x) ({un}[k-{d}] - {un})",
                                           lambda x, u, h, B=B, j=j, col=col: B(x, u) * (h[:, col] - u[:, j]),
                                           lag=d, params={"periods": d}))
+        elif nm == "actuator_lag" and max_lag > 0:
+            # the history holds, after the lagged [x, u], the inputs through each lag of LAG_PERIODS
+            for i in range(s.n):
+                for j in range(s.m):
+                    B = _input_rate(s, i, j)
+                    un = s.input_names[j]
+                    for g, L in enumerate(LAG_PERIODS):
+                        col = max_lag * (s.n + s.m) + g * s.m + j
+                        out.append(Effect(nm, i, un, f"B_{i + 1}{j + 1}(x) (lag{L:g}({un}) - {un})",
+                                          lambda x, u, h, B=B, j=j, col=col: B(x, u) * (h[:, col] - u[:, j]),
+                                          lag=1, params={"periods": L}))
         elif nm == "integration":
             out += [integration_effect(s, i, j) for i, j in integrator_pairs(s)]
         elif nm == "gravity":
@@ -366,6 +382,7 @@ def library_candidates(system: System, names: Optional[Iterable[str]] = None,
         x, u = _sample_domain(s)
         xh, uh = _sample_domain(s, seed=1)
         hist = np.tile(np.concatenate([xh, uh], axis=1), (1, max(max_lag, 1)))
+        hist = np.concatenate([hist, np.tile(uh, (1, len(LAG_PERIODS))), np.ones((xh.shape[0], 1))], axis=1)
         keep = []
         for e in out:
             g = e(x, u, hist)
@@ -419,6 +436,8 @@ def coefficient_units(system: System, e: Effect) -> str:
         return "s"
     if e.name == "input_delay":
         return "1 (fraction delayed)"
+    if e.name == "actuator_lag":
+        return "1 (fraction lagged)"
     if e.name == "deadband":
         return iu[system.input_names.index(e.variable)]
     return ""
@@ -441,6 +460,10 @@ def physical(system: System, e: Effect, coef: float, stderr: float) -> Optional[
         d = int(e.params["periods"])
         return {"quantity": f"input delay ({d} period{'s' if d > 1 else ''})", "value": d * system.tau,
                 "stderr": None, "unit": "s"}
+    if e.name == "actuator_lag":
+        L = float(e.params["periods"])
+        return {"quantity": f"actuator lag time constant ({L:g} periods)",
+                "value": -system.tau / np.log(1.0 - 1.0 / L), "stderr": None, "unit": "s"}
     if e.name in ("input_gain", "gravity"):
         return {"quantity": "effective gain factor 1 + c", "value": 1.0 + coef, "stderr": stderr, "unit": ""}
     inert = _inertia(system)
@@ -468,7 +491,8 @@ FRICTION = ("viscous_friction", "coulomb_friction", "drag")
 #: refused only beyond two standard errors
 SOFT_BOUNDS = {"input_gain": (-1.0, np.inf, "an effective input gain 1 + c <= 0 (the input would act backwards)"),
                "gravity": (-1.0, np.inf, "a drift term reversed (1 + c < 0)"),
-               "input_delay": (-np.inf, 1.0, "more than the whole input delayed (fraction > 1)")}
+               "input_delay": (-np.inf, 1.0, "more than the whole input delayed (fraction > 1)"),
+               "actuator_lag": (-np.inf, 1.0, "more than the whole input lagged (fraction > 1)")}
 
 
 def _nominal_friction(system: System, v: int, count: int = 512) -> np.ndarray:
@@ -527,7 +551,7 @@ def sign_check(system: System, effects: Sequence[Effect], x: np.ndarray) -> Call
             if e.name == "deadband" and c > 0:
                 return k, (f"a dead zone of negative width w = {-c:.4g} {coefficient_units(system, e)} "
                            f"(a saturation or a gain that falls with the input reads this way)"), bool(c > 2 * s)
-            if e.name == "input_delay" and c < 0:
+            if e.name in ("input_delay", "actuator_lag") and c < 0:
                 return k, f"a negative fraction delayed ({c:.4g})", bool(c < -2 * s)
             if e.name in SOFT_BOUNDS:
                 lo, hi, what = SOFT_BOUNDS[e.name]

@@ -36,10 +36,10 @@ from typing import Optional, Sequence
 import numpy as np
 
 from ..systems import System
-from .data import Transitions, episodes, history, subset, time_order
+from .data import Transitions, episodes, history, lagged_inputs, subset, time_order
 from ..errors import SimgapError
-from .effects import (Effect, candidate_effects, coefficient_units, integration_effect, physical,
-                      sign_check, velocity_dims)
+from .effects import (LAG_PERIODS, Effect, candidate_effects, coefficient_units, integration_effect,
+                      physical, sign_check, velocity_dims)
 from .refined import build_refined, load_system, refined_system
 from .residual import Residuals, match_tau, residuals
 from .selection import SelectionOptions, StateFit, select_state, split_heldout
@@ -98,9 +98,12 @@ def refine(system, data: Transitions, effects: Optional[Sequence[str]] = None,
     held = split_heldout(data.K, data.t, opts, torder)
     # rows are in time order here: the clock lets selection look along time
     clock = (data.t, episodes(data), data.tau) if data.is_time_series else None
-    # the structure test also sees the lagged inputs, so an unnamed delay still shows as structure
+    # the structure test also sees the lagged inputs, so an unnamed delay or lag still shows as structure
     w = sysobj.n + sysobj.m
     lagged_u = [hist[:, d * w + sysobj.n: (d + 1) * w] for d in range(lags)]
+    if lags:      # and the inputs through the longest library lag: memory beyond the lags shows too
+        g = len(LAG_PERIODS) - 1
+        lagged_u.append(hist[:, lags * w + g * sysobj.m: lags * w + (g + 1) * sysobj.m])
     V = np.concatenate([data.x, data.u] + lagged_u, axis=1)
     angle_cols = np.concatenate([sysobj.angle_mask, np.zeros(V.shape[1] - sysobj.n, dtype=bool)])
     probe = Probe(V, angle_cols, held, torder, rng)
@@ -194,7 +197,9 @@ def _with_history(data: Transitions, max_lag: int) -> tuple:
         return data, np.zeros((data.K, 0)), 0, {
             "lags": 0, "reason": "fewer than half of the rows continue a trajectory (x_next = next x)"}
     info = {"lags": int(max_lag), "rows_without_history": int((~valid).sum())}
-    hist = np.concatenate([hist, data.t[:, None]], axis=1)     # the clock last: user terms may read t
+    # then the inputs through first-order lags (actuator_lag candidates) and the clock last (user terms
+    # may read t): [x_{k-1}, u_{k-1}, .., x_{k-L}, u_{k-L}, lagged inputs, t]
+    hist = np.concatenate([hist, lagged_inputs(data, LAG_PERIODS), data.t[:, None]], axis=1)
     if not valid.all():
         data, hist = subset(data, valid), hist[valid]
     return data, hist, int(max_lag), info
@@ -220,42 +225,46 @@ def _after(refined: System, data: Transitions, hist, chosen) -> Residuals:
 
 
 def _multistep_gate(s: System, data: Transitions, held, hist, chosen, fits, opts) -> tuple:
-    """Withdraw effects while f' predicts ``opts.gate_steps`` steps ahead worse than f (held-out).
+    """Withdraw effects while f' predicts worse than f over 10 or ``opts.gate_steps`` steps (held-out).
 
-    Worse means mean_i (rms'_i / rms_i)^2 > 1 + ``opts.gate_tolerance`` over the states. The effect
-    whose removal helps most goes first; each withdrawn effect is reported with the numbers, and
-    its state is flagged unexplained (the residual it seemed to fix is still there).
+    Worse means mean_i (rms'_i / rms_i)^2 > 1 + ``opts.gate_tolerance`` over the states, at either
+    horizon. The effect whose removal helps most goes first; each withdrawn effect is reported with
+    the numbers, and its state is flagged unexplained (the residual it seemed to fix is still there).
     """
-    k = opts.gate_steps
-    if not data.is_time_series or not chosen or k < 2:
+    horizons = sorted({k for k in (10, opts.gate_steps) if k >= 2})
+    if not data.is_time_series or not chosen or not horizons:
         return chosen, []
+    base = {k: multistep_rms(s, data, held, k) for k in horizons}
+    horizons = [k for k in horizons if base[k] is not None]
+    if not horizons:
+        return chosen, []
+    b = {k: np.where(base[k] > 0, base[k], 1.0) for k in horizons}
 
     def score(ch):
         f1 = refined_system(s, [c[0] for c in ch if c[0].lag == 0], [c[1] for c in ch if c[0].lag == 0])
-        return multistep_rms(f1, data, held, k, hist, ch)
+        return {k: multistep_rms(f1, data, held, k, hist, ch) for k in horizons}
 
-    base = multistep_rms(s, data, held, k)
-    if base is None:
-        return chosen, []
-    b = np.where(base > 0, base, 1.0)
+    def ratios(sc):
+        return {k: float(np.mean((sc[k] / b[k]) ** 2)) for k in horizons}
 
-    def worse(rms):
-        return float(np.mean((rms / b) ** 2)) > 1.0 + opts.gate_tolerance
+    def worse(sc):
+        return max(ratios(sc).values()) > 1.0 + opts.gate_tolerance
 
     withdrawn = []
     cur = score(chosen)
     while chosen and worse(cur):
-        trials = [(float(np.mean((score(chosen[:j] + chosen[j + 1:]) / b) ** 2)), j) for j in range(len(chosen))]
+        trials = [(max(ratios(score(chosen[:j] + chosen[j + 1:])).values()), j) for j in range(len(chosen))]
         _, j = min(trials)
         e, c = chosen[j][0], chosen[j][1]
         before_rms = cur
         chosen = chosen[:j] + chosen[j + 1:]
         cur = score(chosen)
-        reason = (f"{k}-step held-out RMS with it {np.array2string(before_rms, precision=3)} is worse than the "
-                  f"nominal model's {np.array2string(base, precision=3)}; without it "
-                  f"{np.array2string(cur, precision=3)}")
+        k = max(horizons, key=lambda k: ratios(before_rms)[k])
+        reason = (f"{k}-step held-out RMS with it {np.array2string(before_rms[k], precision=3)} is worse than the "
+                  f"nominal model's {np.array2string(base[k], precision=3)}; without it "
+                  f"{np.array2string(cur[k], precision=3)}")
         withdrawn.append({"name": e.name, "state": int(e.state), "state_name": s.state_names[e.state],
-                          "key": e.key(s), "coefficient": c, "reason": reason})
+                          "key": e.key(s), "coefficient": c, "reason": reason, "horizon": int(k)})
         fit = fits[e.state]
         fit.selected = [i for i in fit.selected if fit.candidate_keys[i] != e.key(s)]
         fit.unexplained = True
@@ -320,7 +329,7 @@ def _report(s: System, refined: System, data: Transitions, held, fits: Sequence[
         elif e.variable is not None:
             d["variable"] = e.variable
         if "periods" in e.params:
-            d["periods"] = int(e.params["periods"])
+            d["periods"] = float(e.params["periods"]) if e.name == "actuator_lag" else int(e.params["periods"])
         d["in_refined_system"] = e.lag == 0
         d.update({"expr": e.expr, "coefficient": c, "stderr": _f(se), "stderr_statistical": _f(se_stat),
                   "stderr_misfit": _f(se_mis), "unit": coefficient_units(s, e),

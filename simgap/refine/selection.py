@@ -58,7 +58,7 @@ class SelectionOptions:
     min_unexplained: float = 0.01       # ... and that structured part as a fraction of the nominal residual
     seed: int = 0
     max_lag: int = 3                # periods of history (time series): input delays, lagged user terms
-    gate_steps: int = 10            # multi-step gate horizon on held-out data (time series; 0: off)
+    gate_steps: int = 100           # multi-step gate: horizons 10 and this on held-out data (time series; 0: 10 only)
     gate_tolerance: float = 0.01    # allowed mean squared ratio of k-step RMS f' / f above 1
     max_rounds: int = 5             # selection rounds on what is left (1: a single round)
 
@@ -142,7 +142,7 @@ def _rss(yy: float, G: np.ndarray, b: np.ndarray, S: list, c: np.ndarray) -> flo
 
 #: which of several collinear candidates is kept: the simplest physical reading first
 PRIORITY = ("bias", "viscous_friction", "coulomb_friction", "drag", "input_gain", "deadband", None,
-            "integration", "input_delay", "gravity")
+            "integration", "input_delay", "actuator_lag", "gravity")
 
 
 def _priority(key: str) -> int:

@@ -216,6 +216,7 @@ def _system(d: schema.SystemSection, where: str, folder: Path) -> System:
     """A built-in or plugin system by name, or a system file (.toml) or refined-system JSON (in the
     experiment's folder), read once here: its content travels embedded in manifests, data sets,
     certificates and controllers from now on."""
+    steps = d.steps if "steps" in d.model_fields_set else None  # unset: a system file's own steps (else 1)
     if is_named(d.name):
         s = get_system(d.name, steps=d.steps)
     elif d.name.endswith((".json", ".toml")):
@@ -224,7 +225,7 @@ def _system(d: schema.SystemSection, where: str, folder: Path) -> System:
             raise SimgapError(f"{where}: system file {d.name!r} does not exist in the experiment's folder "
                               f"{str(folder)!r}")
         try:
-            s = resolve_system(p, steps=d.steps)
+            s = resolve_system(p, steps=steps)
         except SimgapError as e:
             raise SimgapError(f"{where}: system.name: {e}") from None
     else:

@@ -19,7 +19,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output .rrd file")
     p.add_argument("--experiment", default=None, help="experiment name or TOML file (e.g. pendulum)")
     p.add_argument("--profile", default=None, help="experiment profile (e.g. small)")
-    p.add_argument("--system", default=None, help="built-in system when no experiment is given")
+    p.add_argument("--system", default=None,
+                   help="system when no experiment is given: a built-in or plugin name, a system file (.toml) "
+                        "or a refined-system JSON")
     p.add_argument("--dataset", default=None, help="collected data (.npz or store directory)")
     p.add_argument("--certificate", default=None, help="certificate JSON (simgap certify --out)")
     p.add_argument("--controller", default=None, help="controller .npz (simgap synthesize --out)")

@@ -224,3 +224,22 @@ def test_refining_a_file_system_gives_a_refined_system_on_top(collected, tmp_pat
     base = tmp_path / "b.json"
     assert main(["certify", str(store), "--degree", "1", "--out", str(base)]) == 0
     assert c.dims[1].gap_max < load_cert(base).dims[1].gap_max
+
+
+def test_experiment_steps_and_the_app_given_a_file(tmp_path):
+    """The file's own steps hold unless the experiment sets [system] steps; `simgap gui --system
+    FILE` selects the model by name (engine-side loading of simgap_viz)."""
+    from simgap.config import load_experiment
+    (tmp_path / "duffing.toml").write_text(DUFFING.replace("tau = 0.1", "tau = 0.1\nsteps = 3"))
+    (tmp_path / "exp.toml").write_text(EXP)
+    assert load_experiment(tmp_path / "exp.toml", None).system.steps == 3
+    (tmp_path / "exp2.toml").write_text(EXP.replace('system = "duffing.toml"', '[system]\nname = "duffing.toml"\nsteps = 2'))
+    assert load_experiment(tmp_path / "exp2.toml", None).system.steps == 2
+    from simgap_viz import engine
+    from simgap_viz.experiment import app_inputs
+    settings, *_ = app_inputs(system=str(tmp_path / "duffing.toml"))
+    assert settings.system == "duffing" and settings.simulator == "numpy"
+    s = engine.make_system(settings)
+    assert s.name == "duffing" and s.n == 2 and len(settings.eta) == 2
+    x, u = np.array([[0.3, 0.2]]), np.array([[1.0]])
+    assert np.array_equal(s.with_steps(1).f(x, u), load_system_file(tmp_path / "duffing.toml").with_steps(1).f(x, u))

@@ -1,5 +1,6 @@
-"""Rerun recordings, read back with rerun.chunk.RrdReader (rerun-sdk 0.41)."""
+"""Rerun recordings, read back with rerun.chunk.RrdReader (rerun-sdk 0.41); `simgap view`."""
 
+import os
 import subprocess
 import sys
 
@@ -118,3 +119,93 @@ def test_cli_record(tmp_path):
                           "--experiment", "pendulum", "--profile", "small", "--epsilon", "-1"],
                          capture_output=True, text=True, timeout=300, cwd=tmp_path)
     assert bad.returncode == 2 and "epsilon" in bad.stderr
+
+
+def _port_free(port: int) -> bool:
+    import socket
+    with socket.socket() as s:
+        try:
+            s.bind(("127.0.0.1", port))
+            return True
+        except OSError:
+            return False
+
+
+def _start_view(args, cwd):
+    """`simgap view ARGS` in the background; (process, URL) once it printed the address."""
+    import re
+    import time
+    p = subprocess.Popen([sys.executable, "-m", "simgap", "view", *map(str, args)], stdout=subprocess.PIPE,
+                         stderr=subprocess.STDOUT, text=True, cwd=cwd)
+    lines, deadline = [], time.time() + 90
+    while time.time() < deadline:
+        line = p.stdout.readline()
+        if not line:
+            break
+        lines.append(line)
+        m = re.search(r"open (http://\S+) in a browser", line)
+        if m:
+            return p, m.group(1)
+    p.kill()
+    raise AssertionError("simgap view printed no address: " + "".join(lines))
+
+
+def test_view_refuses_bad_input(tmp_path):
+    (tmp_path / "notes.txt").write_text("x")
+    (tmp_path / "fake.rrd").write_text("not a recording")
+    (tmp_path / "empty").mkdir()
+    for arg, msg in (("missing", "does not exist"), ("notes.txt", "not a Rerun recording"),
+                     ("fake.rrd", "not a readable Rerun recording"), ("empty", "holds no run.rrd")):
+        r = subprocess.run([sys.executable, "-m", "simgap", "view", arg], capture_output=True, text=True,
+                           cwd=tmp_path, timeout=120)
+        assert r.returncode == 2 and msg in r.stderr and "Traceback" not in r.stderr, (arg, r.stderr)
+
+
+@pytest.mark.browser
+def test_view_serves_the_recording_and_stops_everything(tmp_path, run_results):
+    """`simgap view RUN` prints an address whose page shows the recording (not rerun's welcome page):
+    the gamma surfaces' colors fill the canvas; on SIGTERM both ports are free again (the native
+    viewer process is stopped with its launcher)."""
+    import io
+    import re
+    import signal
+    import time
+
+    from PIL import Image
+    from test_browser_app import ARGS, CHROMIUM, _need_browser
+
+    from simgap_viz.layers.geometry import DIM_COLORS
+    from simgap_viz.record import record_run
+    _need_browser()
+    from playwright.sync_api import sync_playwright
+
+    ds, cert, spec, syn, ro = run_results
+    run = tmp_path / "run"
+    run.mkdir()
+    record_run(run / "run.rrd", ds.system, dataset=ds, certificate=cert, spec=spec, synthesis=syn, rollouts=ro)
+    proc, url = _start_view([run, "--web-port", 0, "--grpc-port", 0], tmp_path)
+    from urllib.parse import parse_qs, unquote, urlparse
+    grpc = parse_qs(urlparse(url).query)["url"][0]
+    assert re.fullmatch(r"rerun\+http://127\.0\.0\.1:\d+/proxy", grpc) and "%2B" in url, url
+    ports = [urlparse(url).port, urlparse(grpc.replace("rerun+", "")).port]
+    assert not any(_port_free(p) for p in ports), url
+    if os.environ.get("SIMGAP_MUTATE_VIEW"):  # check of the check: the bare address shows the welcome page
+        url = unquote(url).split("?")[0]
+    try:
+        with sync_playwright() as pw:
+            b = pw.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+            page = b.new_page(viewport={"width": 1280, "height": 800})
+            page.goto(url)
+            orange, deadline = 0, time.time() + 150
+            while orange < 2000 and time.time() < deadline:  # the wasm viewer loads slowly under SwiftShader
+                time.sleep(3)
+                png = page.screenshot(path=str(tmp_path / "view.png"))
+                img = np.asarray(Image.open(io.BytesIO(png)).convert("RGB")).astype(int)
+                orange = int(np.count_nonzero(np.all(np.abs(img - np.array(DIM_COLORS[1])) <= 40, axis=-1)))
+            b.close()
+        assert orange >= 2000, f"the page does not show the recording's gamma_omega surface ({orange} px)"
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(30)
+    time.sleep(0.5)
+    assert all(_port_free(p) for p in ports), "a port is still held after simgap view ended"

@@ -44,8 +44,7 @@ def run(args) -> int:
     if not args.no_record:
         rrd = _record(exp, out)
         if rrd:
-            print(f"recording: {rrd}   (open with: rerun {rrd}; without a display: "
-                  f"rerun --web-viewer --bind 127.0.0.1 {rrd})")
+            print(f"recording: {rrd}   (open with: rerun {rrd}; without a display: simgap view {out})")
         if rrd and "per_run" in summary:
             from simgap_viz.record_perrun import record_per_run
 

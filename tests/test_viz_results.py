@@ -4,8 +4,6 @@ The folder is made by the real pipeline (simgap.pipeline.run_experiment) on a ti
 experiment with the numpy simulator (about 10 s).
 """
 
-import os
-import signal
 import subprocess
 import sys
 

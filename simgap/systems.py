@@ -343,6 +343,39 @@ def emps(M: float = 95.1, gtau: float = 35.15, tau: float = 0.001) -> System:
 
 BUILTIN = {"pendulum": pendulum, "turtlebot": turtlebot, "emps": emps}
 
+# units of the built-ins' (states, inputs); plots, the app and recordings label axes with them
+BUILTIN_UNITS = {
+    "pendulum": (("rad", "rad/s"), ("N m",)),
+    "turtlebot": (("m", "m", "rad"), ("m/s", "rad/s")),
+    "emps": (("m", "m/s"), ("V",)),
+}
+
+
+def units(system: System) -> tuple:
+    """(state units, input units) of ``system``, one string per variable ("" where unknown).
+
+    From ``params["units"]`` (a table variable name -> unit, e.g. ``{"p": "m", "F": "N"}``),
+    else the table a system file gives (``params["_system_file"]["units"]``), else the
+    built-in's (:data:`BUILTIN_UNITS`, also for a refined built-in through ``base_system``).
+    """
+    p = system.params or {}
+    table = p.get("units")
+    if not isinstance(table, dict):
+        spec = p.get("_system_file")
+        table = spec.get("units") if isinstance(spec, dict) else None
+    if isinstance(table, dict):
+        return (tuple(str(table.get(n, "")) for n in system.state_names),
+                tuple(str(table.get(n, "")) for n in system.input_names))
+    su, iu = BUILTIN_UNITS.get(str(p.get("base_system", system.name)), ((), ()))
+    if len(su) != system.n or len(iu) != system.m:
+        return ("",) * system.n, ("",) * system.m
+    return tuple(su), tuple(iu)
+
+
+def labelled(name: str, unit: str) -> str:
+    """``name [unit]`` (just the name when the unit is unknown)."""
+    return f"{name} [{unit}]" if unit else name
+
 
 def get_system(name: str, steps: int = 1) -> System:
     """A built-in or plugin-registered system by name (:mod:`simgap.plugins`), optionally at

@@ -1,20 +1,26 @@
 """Headless Rerun recordings (.rrd) of a simgap run, laid out by a default blueprint.
 
-Entities (state-space layers in state units: x = x1, y = x2, z = 0; a third state, e.g. the
-TurtleBot heading, is projected away):
+A recording holds one or more *methods* (``simgap run`` records ``deterministic`` beside
+``stochastic``; ``simgap record`` one, named by its certificate). State-space layers are in state
+units (x = x1, y = x2, z = 0; a third state, e.g. the TurtleBot heading, is projected away).
+Entities (``<m>`` a method, ``<s>`` a state name; :func:`entity_paths` lists them for a run):
 
-* ``world/obstacles``, ``world/target``, ``world/safe`` -- Boxes3D of the specification;
-* ``world/winning`` -- Boxes3D of the winning cells (merged over the projected dimensions,
+* ``world/X``, ``world/obstacles``, ``world/target``, ``world/safe`` -- Boxes3D of X and the specification;
+* ``world/<m>/winning`` -- Boxes3D of the winning cells (merged over the projected dimensions,
   colored red -> green by the fraction of winning cells);
-* ``world/rollouts/paths`` -- every rollout as one LineStrips3D (failures red), static;
-* ``world/rollouts/mean``, ``world/rollouts/nominal`` -- the mean trajectory and the nominal model's;
-* ``world/rollouts/state`` -- the R current states over the time axes ``step`` (sequence) and
+* ``world/<m>/rollouts/paths`` -- every rollout as one LineStrips3D (failures red), static;
+* ``world/<m>/rollouts/mean_map`` -- the mean map m+ = E fhat(m, u(m)), the sequence the
+  guarantee is about (magenta); ``.../mean`` the average of the rollouts (yellow) and
+  ``.../nominal`` the nominal model's trajectory (black);
+* ``world/<m>/rollouts/state`` -- the R current states over the time axes ``step`` (sequence) and
   ``time`` (duration, t * tau), logged column-wise with ``send_columns`` (one call);
-* ``gamma/<state>/surface`` -- Mesh3D of gamma_i over the first two variables (others at the
-  centre of their range), coordinates normalized to [-1, 1]^2 and z = gamma_i / max(gamma_i);
-  ``gamma/<state>/data`` -- the observed gaps g_i(x_r, u) of the data near that slice, same scale
-  (green: covered by gamma, red: not); ``gamma/<state>/scale`` -- the z scale (AnyValues);
-* ``summary`` -- TextDocument (markdown): certificate table and rollout summary.
+* ``timeseries/<s>/<m>/mean_map``, ``.../mean``, ``.../nominal`` -- each state over time (Scalars);
+* ``gamma/<m>/<s>/surface`` -- Mesh3D of gamma_s over the first two variables (others at the
+  centre of their range), coordinates normalized to [-1, 1]^2 and z = gamma_s / top_s, with top_s
+  the largest gamma_s or data gap over ALL methods (so the methods' surfaces compare by height);
+  ``gamma/<m>/<s>/data`` -- the observed gaps g_s(x_r, u) of the data near that slice, same scale
+  (green: covered by gamma, red: not); ``gamma/<m>/<s>/scale`` -- the z scale and units (AnyValues);
+* ``summary`` -- TextDocument (markdown): per method the synthesis, certificate and rollout summaries.
 """
 
 from __future__ import annotations
@@ -23,14 +29,24 @@ import os
 import time
 import uuid
 from pathlib import Path
-from typing import Optional
+from typing import Mapping, Optional
 
 import numpy as np
 
 from simgap.errors import SimgapError
+from simgap.systems import labelled, units
 
 from . import engine
 from .layers import geometry as G
+
+# surface color per method (other names cycle through the dimension colors)
+METHOD_COLORS = {"stochastic": (230, 120, 40), "deterministic": (70, 130, 230)}
+MAGENTA = (220, 40, 200)
+STAGES = ("dataset", "certificate", "synthesis", "rollouts")
+
+
+def method_color(name: str, i: int = 0):
+    return METHOD_COLORS.get(name, G.DIM_COLORS[i % len(G.DIM_COLORS)])
 
 
 def _boxes2(lo: np.ndarray, hi: np.ndarray, x_lo: np.ndarray, x_hi: np.ndarray, z: float = 0.05):
@@ -54,159 +70,225 @@ def _xy0(x: np.ndarray) -> np.ndarray:
     return out
 
 
-def blueprint(state_names) -> "object":
-    """Default layout: the state-space view left; gamma views and the summary right; time panel."""
+def blueprint(state_names, methods=("stochastic",), state_units=None) -> "object":
+    """Default layout: one state-space view per method over the time series per state (left);
+    one gamma view per state with every method's surface, and the summary (right)."""
     import rerun.blueprint as rrb
 
-    gamma_views = [rrb.Spatial3DView(origin=f"/gamma/{name}", name=f"gamma_{name}") for name in state_names]
+    methods = list(methods)
+    su = list(state_units or [""] * len(state_names))
+    worlds = [rrb.Spatial3DView(origin="/world", name=f"state space: {m}",
+                                contents=["+ /world/**", *[f"- /world/{o}/**" for o in methods if o != m]])
+              for m in methods]
+    series = [rrb.TimeSeriesView(origin=f"/timeseries/{s}", name=f"{labelled(s, u)}: mean map, mean, nominal")
+              for s, u in zip(state_names, su)]
+    gammas = [rrb.Spatial3DView(origin="/gamma", name=f"gamma_{s} [{u}/step]" if u else f"gamma_{s}",
+                                contents=[f"+ /gamma/{m}/{s}/**" for m in methods])
+              for s, u in zip(state_names, su)]
     return rrb.Blueprint(
         rrb.Horizontal(
-            rrb.Vertical(rrb.Spatial3DView(origin="/world", name="state space"),
-                         rrb.TimeSeriesView(origin="/timeseries", name="mean and nominal trajectories"),
-                         row_shares=[3, 1]),
-            rrb.Vertical(*gamma_views, rrb.TextDocumentView(origin="/summary", name="summary")),
+            rrb.Vertical(rrb.Horizontal(*worlds), rrb.Horizontal(*series), row_shares=[3, 2]),
+            rrb.Vertical(*gammas, rrb.TextDocumentView(origin="/summary", name="summary")),
             column_shares=[3, 2]),
         rrb.TimePanel(expanded=False),
         collapse_panels=False)
 
 
+def entity_paths(state_names, methods=("stochastic", "deterministic"), spec_parts=("safe",), rollouts=True) -> list:
+    """The entities :func:`record_run` writes for a run with every stage. docs/app.md's list is
+    ``entity_paths(["<s>"], ["<m>"], ("obstacles", "target", "safe"))``, checked by
+    ``tests/test_docs.py``; ``tests/test_record.py`` checks it against a recording read back."""
+    out = ["world/X", *[f"world/{p}" for p in spec_parts]]
+    for m in methods:
+        out.append(f"world/{m}/winning")
+        if rollouts:
+            out += [f"world/{m}/rollouts/{k}" for k in ("paths", "mean", "nominal", "mean_map", "state")]
+            out += [f"timeseries/{s}/{m}/{k}" for s in state_names for k in ("mean", "nominal", "mean_map")]
+        out += [f"gamma/{m}/{s}/{k}" for s in state_names for k in ("surface", "data", "scale")]
+    return out + ["summary"]
+
+
+def _stages(obj) -> dict:
+    """A method's stage results from a dict or an object with those attributes (e.g. MethodResults)."""
+    get = obj.get if isinstance(obj, Mapping) else (lambda k, d=None: getattr(obj, k, d))
+    return {k: get(k, None) for k in STAGES}
+
+
 def record_run(out: str | Path, system, *, dataset=None, certificate=None, spec=None, synthesis=None,
-               rollouts=None, res: int = 41, max_data_points: int = 20000, application_id: str = "simgap",
+               rollouts=None, methods: Optional[Mapping] = None, method: Optional[str] = None, res: int = 41,
+               max_data_points: int = 20000, application_id: str = "simgap",
                recording_id: Optional[str] = None) -> dict:
     """Write a .rrd recording of one run (see module docstring) and return what was logged.
 
     Parameters
     ----------
     out : path of the .rrd file (written to a temporary name, then renamed: never half-written).
-    system : the nominal System (axes, names, tau).
-    dataset, certificate, spec, synthesis, rollouts : engine results; each is optional.
+    system : the nominal System (axes, names, units, tau).
+    methods : {name: stages}, each a dict or object with ``dataset``, ``certificate``, ``synthesis``,
+        ``rollouts`` (each optional), e.g. ``{"deterministic": ..., "stochastic": ...}``.
+    dataset, certificate, synthesis, rollouts : one method's results instead of ``methods``,
+        recorded under the name ``method`` (default: the certificate's method, else ``run``).
+    spec : the specification (obstacles, target, safe set), shared by the methods.
     res : vertices per axis of the gamma meshes (res^2 vertices, 2 (res-1)^2 triangles).
 
     Returns
     -------
-    dict with the entity paths, ``n_rollouts``, ``n_steps`` (T+1), ``gamma_vertices``,
-    ``gamma_triangles``, ``seconds`` (logging time) and ``bytes`` (file size).
+    dict with the entity paths, ``methods``, ``n_rollouts`` and ``n_steps`` (T+1) of the last method
+    with rollouts, ``gamma_vertices``, ``gamma_triangles``, ``winning_cells`` (per method),
+    ``seconds`` (logging time) and ``bytes`` (file size).
     """
     import rerun as rr
 
+    if methods is None:
+        name = method or getattr(certificate, "method", None) or "run"
+        methods = {str(name): dict(dataset=dataset, certificate=certificate, synthesis=synthesis, rollouts=rollouts)}
+    methods = {str(k): _stages(v) for k, v in methods.items()}
     out = Path(out)
     if out.suffix != ".rrd":
         raise SimgapError(f"recording: the output file must end in .rrd, got {str(out)!r}")
     if not out.parent.exists():
         raise SimgapError(f"recording: folder {str(out.parent)!r} does not exist")
+    su, _ = units(system)
     t0 = time.perf_counter()
     tmp = out.with_name(f".{out.name}.{os.getpid()}.tmp.rrd")
     rec = rr.RecordingStream(application_id, recording_id=recording_id or str(uuid.uuid4()))
-    rec.save(str(tmp), default_blueprint=blueprint(system.state_names))
-    info = {"entities": [], "n_rollouts": 0, "n_steps": 0, "gamma_vertices": 0, "gamma_triangles": 0}
+    rec.save(str(tmp), default_blueprint=blueprint(system.state_names, list(methods), su))
+    info = {"entities": [], "methods": list(methods), "n_rollouts": 0, "n_steps": 0, "gamma_vertices": 0,
+            "gamma_triangles": 0, "winning_cells": {}}
 
     def log(path, obj, static=True):
         rec.log(path, obj, static=static)
         info["entities"].append(path)
 
-    x_lo, x_hi = system.x_lo, system.x_hi
-    rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
-    # state box X as a flat outline
-    c, h = _boxes2(x_lo[None], x_hi[None], x_lo, x_hi, z=0.0)
-    log("world/X", rr.Boxes3D(centers=c, half_sizes=h, colors=[(120, 120, 120)], labels=["X"]))
-    md = [f"# simgap run: {system.name}", ""]
+    try:
+        x_lo, x_hi = system.x_lo, system.x_hi
+        rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        c, h = _boxes2(x_lo[None], x_hi[None], x_lo, x_hi, z=0.0)  # state box X as a flat outline
+        log("world/X", rr.Boxes3D(centers=c, half_sizes=h, colors=[(120, 120, 120)],
+                                  labels=[" x ".join(labelled(s, u) for s, u in zip(system.state_names[:2], su))]))
+        md = [f"# simgap run: {system.name}", ""]
+        _log_spec(log, rr, spec, x_lo, x_hi)
+        # one height scale per state over every method: the surfaces compare by height
+        gamma = {m: engine.gamma_function(st["certificate"]) if st["certificate"] is not None else None
+                 for m, st in methods.items()}
+        fixed = list(G.variable_ranges(system).mean(axis=1))
+        layers = {m: [_gamma_layers(system, gamma[m], st["dataset"], i, fixed, res, max_data_points)
+                      for i in range(system.n)] for m, st in methods.items()}
+        tops = [max([L[i]["top"] for L in layers.values()] + [0.0]) for i in range(system.n)]
+        for k, (m, st) in enumerate(methods.items()):
+            md += [f"## {m}", ""]
+            if st["synthesis"] is not None:
+                info["winning_cells"][m] = _log_winning(log, rr, system, m, st["synthesis"])
+                md += [engine.synthesis_markdown(st["synthesis"]), ""]
+            for i, name in enumerate(system.state_names):
+                _log_gamma(log, rr, info, f"gamma/{m}/{name}", layers[m][i], tops[i], method_color(m, k),
+                           G.variable_names(system), fixed, su[i])
+            if st["certificate"] is not None:
+                md += [engine.certificate_markdown(st["certificate"]), ""]
+            if st["rollouts"] is not None:
+                _log_rollouts(rec, log, rr, info, system, m, st["rollouts"])
+                md += [engine.rollout_markdown(st["rollouts"]), ""]
+        log("summary", rr.TextDocument("\n".join(md), media_type=rr.MediaType.MARKDOWN))
+        return finish_recording(rec, tmp, out, info, t0)
+    except BaseException:
+        rec.disconnect()
+        tmp.unlink(missing_ok=True)
+        raise
 
-    # ----- specification (obstacle map, target) ------------------------------------------
-    if spec is not None:
-        obs = list(getattr(spec, "obstacles", ()) or ())
-        if obs:
-            c, h = _boxes2(np.array([b.lo for b in obs]), np.array([b.hi for b in obs]), x_lo, x_hi, 0.1)
-            log("world/obstacles", rr.Boxes3D(centers=c, half_sizes=h, colors=[G.GREY], fill_mode="solid"))
-        if getattr(spec, "target", None) is not None:
-            c, h = _boxes2(spec.target.lo[None], spec.target.hi[None], x_lo, x_hi, 0.01)
-            log("world/target", rr.Boxes3D(centers=c, half_sizes=h, colors=[G.GREEN], fill_mode="solid",
-                                           labels=["target"]))
-        if getattr(spec, "safe", None) is not None:
-            c, h = _boxes2(spec.safe.lo[None], spec.safe.hi[None], x_lo, x_hi, 0.0)
-            log("world/safe", rr.Boxes3D(centers=c, half_sizes=h, colors=[G.BLUE], labels=["safe"]))
 
-    # ----- winning domain ----------------------------------------------------------------
-    if synthesis is not None:
-        centers, widths, values = engine.winning_cells(synthesis)
-        if centers.shape[0]:
-            cells = G.box_cells(G.Frame(system), centers, widths, values)
-            frame = G.Frame(system)
-            cxy = cells["positions"][:, :2] * frame.half + frame.center
-            hxy = 0.5 * cells["scales"][:, :2] * frame.half
-            C = cxy.shape[0]
-            cen = np.zeros((C, 3), np.float32)
-            cen[:, :2] = cxy
-            half = np.zeros((C, 3), np.float32)
-            half[:, :2] = hxy * 0.95
-            log("world/winning", rr.Boxes3D(centers=cen, half_sizes=half, colors=cells["colors"], fill_mode="solid"))
-            info["winning_cells"] = int(C)
-        md.append(engine.synthesis_markdown(synthesis))
-        md.append("")
+def _log_spec(log, rr, spec, x_lo, x_hi) -> None:
+    if spec is None:
+        return
+    obs = list(getattr(spec, "obstacles", ()) or ())
+    if obs:
+        c, h = _boxes2(np.array([b.lo for b in obs]), np.array([b.hi for b in obs]), x_lo, x_hi, 0.1)
+        log("world/obstacles", rr.Boxes3D(centers=c, half_sizes=h, colors=[G.GREY], fill_mode="solid"))
+    if getattr(spec, "target", None) is not None:
+        c, h = _boxes2(spec.target.lo[None], spec.target.hi[None], x_lo, x_hi, 0.01)
+        log("world/target", rr.Boxes3D(centers=c, half_sizes=h, colors=[G.GREEN], fill_mode="solid",
+                                       labels=["target"]))
+    if getattr(spec, "safe", None) is not None:
+        c, h = _boxes2(spec.safe.lo[None], spec.safe.hi[None], x_lo, x_hi, 0.0)
+        log("world/safe", rr.Boxes3D(centers=c, half_sizes=h, colors=[G.BLUE], labels=["safe"]))
 
-    # ----- gamma surfaces and data residuals ------------------------------------------------
-    gamma = engine.gamma_function(certificate) if certificate is not None else None
-    fixed = list(G.variable_ranges(system).mean(axis=1))
-    for i, name in enumerate(system.state_names):
-        surf = G.gamma_surface(system, gamma, i, 0, 1, fixed, res=res) if gamma is not None else None
-        pts = G.data_points(dataset, system, i, 0, 1, fixed, gamma=gamma, max_points=max_data_points) \
-            if dataset is not None else None
-        top = max(float(surf["values"].max()) if surf is not None else 0.0,
-                  float(pts["gap"].max()) if pts is not None and pts["gap"].size else 0.0)
-        z = 1.0 / top if top > 0 and np.isfinite(top) else 1.0
-        if surf is not None:
-            v = surf["vertices"].copy()
-            v[:, 2] *= z
-            log(f"gamma/{name}/surface", rr.Mesh3D(vertex_positions=v, triangle_indices=surf["faces"],
-                                                  albedo_factor=G.DIM_COLORS[i % len(G.DIM_COLORS)]))
-            info["gamma_vertices"] = int(v.shape[0])
-            info["gamma_triangles"] = int(surf["faces"].shape[0])
-        if pts is not None and pts["points"].shape[0]:
-            p = pts["points"].copy()
-            p[:, 2] *= z
-            log(f"gamma/{name}/data", rr.Points3D(p, colors=pts["colors"], radii=0.01))
-        if surf is not None or pts is not None:
-            names = G.variable_names(system)
-            log(f"gamma/{name}/scale", rr.AnyValues(z_per_state_unit=z, axis_x=names[0], axis_y=names[1],
-                                                   fixed=np.asarray(fixed, float)))
-    if certificate is not None:
-        md.append(engine.certificate_markdown(certificate))
-        md.append("")
 
-    # ----- rollouts -------------------------------------------------------------------------
-    if rollouts is not None:
-        traj, failed, mean, nominal = engine.rollout_arrays(rollouts)
-        R, T1, _ = traj.shape
-        P = _xy0(traj)  # (R, T+1, 3)
-        colors = np.where(np.asarray(failed, bool)[:, None], np.array(G.RED, np.uint8), np.array(G.BLUE, np.uint8))
-        log("world/rollouts/paths", rr.LineStrips3D(P, colors=colors, radii=rr.Radius.ui_points(1.0)))
-        if mean is not None:
-            log("world/rollouts/mean", rr.LineStrips3D([_xy0(mean)], colors=[G.YELLOW], radii=rr.Radius.ui_points(4.0)))
-        if nominal is not None:
-            log("world/rollouts/nominal", rr.LineStrips3D([_xy0(nominal)], colors=[(0, 0, 0)],
-                                                          radii=rr.Radius.ui_points(2.5)))
-        steps = np.arange(T1)
-        tau = float(getattr(rollouts, "tau", system.tau))
-        rec.send_columns(
-            "world/rollouts/state",
-            indexes=[rr.TimeColumn("step", sequence=steps), rr.TimeColumn("time", duration=steps * tau)],
-            columns=[*rr.Points3D.columns(positions=P.transpose(1, 0, 2).reshape(-1, 3),
-                                          colors=np.tile(colors, (T1, 1))).partition(np.full(T1, R))])
-        info["entities"].append("world/rollouts/state")
-        # each state's mean and nominal trajectory over time: the blueprint's time-series view
-        for name, path in (("mean", mean), ("nominal", nominal)):
-            if path is None:
-                continue
-            for d, sname in enumerate(system.state_names):
-                rec.send_columns(f"timeseries/{sname}/{name}",
-                                 indexes=[rr.TimeColumn("step", sequence=steps),
-                                          rr.TimeColumn("time", duration=steps * tau)],
-                                 columns=rr.Scalars.columns(scalars=np.asarray(path, float)[:, d]))
-                info["entities"].append(f"timeseries/{sname}/{name}")
-        info["n_rollouts"], info["n_steps"] = int(R), int(T1)
-        md.append(engine.rollout_markdown(rollouts))
+def _log_winning(log, rr, system, m: str, synthesis) -> int:
+    centers, widths, values = engine.winning_cells(synthesis)
+    if not centers.shape[0]:
+        return 0
+    frame = G.Frame(system)
+    cells = G.box_cells(frame, centers, widths, values)
+    cxy = cells["positions"][:, :2] * frame.half + frame.center
+    hxy = 0.5 * cells["scales"][:, :2] * frame.half
+    C = cxy.shape[0]
+    cen = np.zeros((C, 3), np.float32)
+    cen[:, :2] = cxy
+    half = np.zeros((C, 3), np.float32)
+    half[:, :2] = hxy * 0.95
+    log(f"world/{m}/winning", rr.Boxes3D(centers=cen, half_sizes=half, colors=cells["colors"], fill_mode="solid"))
+    return int(C)
 
-    log("summary", rr.TextDocument("\n".join(md), media_type=rr.MediaType.MARKDOWN))
-    return finish_recording(rec, tmp, out, info, t0)
+
+def _gamma_layers(system, gamma, dataset, i, fixed, res, max_points) -> dict:
+    surf = G.gamma_surface(system, gamma, i, 0, 1, fixed, res=res) if gamma is not None else None
+    pts = G.data_points(dataset, system, i, 0, 1, fixed, gamma=gamma, max_points=max_points) \
+        if dataset is not None else None
+    top = max(float(surf["values"].max()) if surf is not None else 0.0,
+              float(pts["gap"].max()) if pts is not None and pts["gap"].size else 0.0)
+    return {"surf": surf, "pts": pts, "top": top if np.isfinite(top) else 0.0}
+
+
+def _log_gamma(log, rr, info, path, layer, top, color, names, fixed, unit) -> None:
+    surf, pts = layer["surf"], layer["pts"]
+    z = 1.0 / top if top > 0 else 1.0
+    if surf is not None:
+        v = surf["vertices"].copy()
+        v[:, 2] *= z
+        log(f"{path}/surface", rr.Mesh3D(vertex_positions=v, triangle_indices=surf["faces"], albedo_factor=color))
+        info["gamma_vertices"] = int(v.shape[0])
+        info["gamma_triangles"] = int(surf["faces"].shape[0])
+    if pts is not None and pts["points"].shape[0]:
+        p = pts["points"].copy()
+        p[:, 2] *= z
+        log(f"{path}/data", rr.Points3D(p, colors=pts["colors"], radii=0.01))
+    if surf is not None or pts is not None:
+        log(f"{path}/scale", rr.AnyValues(z_per_state_unit=z, top=top, unit=f"{unit}/step" if unit else "",
+                                          axis_x=names[0], axis_y=names[1], fixed=np.asarray(fixed, float)))
+
+
+def _log_rollouts(rec, log, rr, info, system, m: str, rollouts) -> None:
+    traj, failed, mean, nominal = engine.rollout_arrays(rollouts)
+    mean_map = getattr(rollouts, "mean_map_trajectory", None)
+    R, T1, _ = traj.shape
+    P = _xy0(traj)  # (R, T+1, 3)
+    colors = np.where(np.asarray(failed, bool)[:, None], np.array(G.RED, np.uint8), np.array(G.BLUE, np.uint8))
+    base = f"world/{m}/rollouts"
+    log(f"{base}/paths", rr.LineStrips3D(P, colors=colors, radii=rr.Radius.ui_points(1.0)))
+    lines = (("mean", mean, G.YELLOW, 3.0), ("nominal", nominal, (0, 0, 0), 2.0), ("mean_map", mean_map, MAGENTA, 2.5))
+    for key, path, color, width in lines:
+        if path is not None:
+            log(f"{base}/{key}", rr.LineStrips3D([_xy0(path)], colors=[color], radii=rr.Radius.ui_points(width)))
+    steps = np.arange(T1)
+    tau = float(getattr(rollouts, "tau", system.tau))
+    times = [rr.TimeColumn("step", sequence=steps), rr.TimeColumn("time", duration=steps * tau)]
+    rec.send_columns(f"{base}/state", indexes=times,
+                     columns=[*rr.Points3D.columns(positions=P.transpose(1, 0, 2).reshape(-1, 3),
+                                                   colors=np.tile(colors, (T1, 1))).partition(np.full(T1, R))])
+    info["entities"].append(f"{base}/state")
+    # each state's trajectories over time (the time-series views show every method): the mean map
+    # in the method's color, the rollout average lighter, the nominal model's darker
+    mc = np.array(method_color(m, list(info["methods"]).index(m)), float)
+    shade = {"mean_map": mc, "mean": 0.5 * mc + 127.5, "nominal": 0.5 * mc}
+    for key, path, _, _ in lines:
+        if path is None or len(path) != T1:
+            continue
+        for d, sname in enumerate(system.state_names):
+            ent = f"timeseries/{sname}/{m}/{key}"
+            rec.log(ent, rr.SeriesLines(colors=[tuple(int(c) for c in shade[key])],
+                                        names=[f"{m}: {key.replace('_', ' ')}"]), static=True)
+            rec.send_columns(ent, indexes=times, columns=rr.Scalars.columns(scalars=np.asarray(path, float)[:, d]))
+            info["entities"].append(ent)
+    info["n_rollouts"], info["n_steps"] = int(R), int(T1)
 
 
 def finish_recording(rec, tmp: Path, out: Path, info: dict, t0: float) -> dict:

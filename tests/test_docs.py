@@ -39,3 +39,13 @@ def test_pendulum_hangs_down_as_the_texts_say():
     assert acc[0] < 0 < acc[1]  # pulled back towards 0
     for p in (ROOT / "assets" / "experiments" / "pendulum.toml", ROOT / "simgap" / "systems.py"):
         assert "inverted pendulum" not in p.read_text().lower(), p
+
+
+def test_app_doc_lists_the_recorded_entities():
+    """docs/app.md's entity list is entity_paths()'s output (test_record.py checks that against a file)."""
+    from simgap_viz.record import entity_paths
+
+    text = (ROOT / "docs" / "app.md").read_text()
+    block = text.split("<!-- entities:begin -->")[1].split("<!-- entities:end -->")[0]
+    listed = re.findall(r"`([^`]+)`", block)
+    assert listed == entity_paths(["<s>"], ["<m>"], ("obstacles", "target", "safe"))

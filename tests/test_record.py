@@ -15,7 +15,8 @@ PENDULUM_NUMPY = {"kind": "numpy", "system": "pendulum", "noise": {"actuation_st
 
 @pytest.fixture(scope="module")
 def run_results():
-    """A tiny but real run: data, certificate, a controller for the nominal model, 60 rollouts."""
+    """A tiny but real run: data, certificate, a controller for the nominal model, 60 rollouts
+    (and 30 more from another seed, recorded as a second method)."""
     from simgap.certify.synthetic import synthetic_dataset
     from simgap_viz import engine
     from simgap_viz.jobs import JobContext
@@ -28,76 +29,115 @@ def run_results():
     spec = engine.default_spec(ds.system)
     syn = engine.synthesize(ds.system, spec, None, s, ctx)
     ro = engine.rollout(ds.system, spec, syn, s, ctx)
-    return ds, cert, spec, syn, ro
+    ro2 = engine.rollout(ds.system, spec, syn, s.replace(n_rollouts=30, rollout_seed=5), ctx)
+    return ds, cert, spec, syn, ro, ro2
 
 
 def _positions_per_row(rb, col):
     return [len(v) for v in rb.column(col).to_pylist()]
 
 
-def test_record_read_back(tmp_path, run_results):
-    from simgap_viz.record import read_back, record_run
+def _strip(rb, path):
+    return np.asarray(rb[path]["chunks"][0].column("LineStrips3D:strips").to_pylist()[0][0])
 
-    ds, cert, spec, syn, ro = run_results
+
+def test_record_read_back(tmp_path, run_results):
+    """Two methods in one recording: every entity entity_paths() names (and docs/app.md lists) is
+    in the file and nothing else; each method's entities hold that method's results."""
+    from simgap_viz.record import entity_paths, read_back, record_run
+
+    ds, cert, spec, syn, ro, ro2 = run_results
     out = tmp_path / "run.rrd"
-    info = record_run(out, ds.system, dataset=ds, certificate=cert, spec=spec, synthesis=syn, rollouts=ro, res=31)
+    methods = {"deterministic": dict(dataset=ds, certificate=cert, synthesis=syn, rollouts=ro2),
+               "stochastic": dict(dataset=ds, certificate=cert, synthesis=syn, rollouts=ro)}
+    info = record_run(out, ds.system, spec=spec, methods=methods, res=31)
     assert out.exists() and info["bytes"] == out.stat().st_size
     assert not list(tmp_path.glob(".*tmp*")), "temporary file left behind"
     rb = read_back(out)
-    want = {"/world/X", "/world/safe", "/world/winning", "/world/rollouts/paths", "/world/rollouts/mean",
-            "/world/rollouts/nominal", "/world/rollouts/state", "/gamma/theta/surface", "/gamma/omega/surface",
-            "/gamma/theta/data", "/gamma/omega/data", "/summary"}
-    assert want <= set(rb), want - set(rb)
+    got = {k.lstrip("/") for k in rb} - {"__properties", "world"}  # the recording's own, the view coordinates
+    assert got == set(entity_paths(ds.system.state_names, ("deterministic", "stochastic"))) == set(info["entities"])
 
     # rollouts: R strips; the animated state has T+1 time rows of R points each, on two timelines
-    R, T1 = ro.trajectories.shape[:2]
-    assert (R, T1) == (60, 81) and info["n_rollouts"] == R and info["n_steps"] == T1
-    paths = rb["/world/rollouts/paths"]["chunks"][0]
-    assert len(paths.column("LineStrips3D:strips").to_pylist()[0]) == R
-    assert len(paths.column("LineStrips3D:strips").to_pylist()[0][0]) == T1
-    st = rb["/world/rollouts/state"]
-    assert st["rows"] == T1 and {"step", "time"} <= st["columns"] and not st["static"]
-    counts = sum((_positions_per_row(c, "Points3D:positions") for c in st["chunks"]), [])
-    assert counts == [R] * T1
-    steps = np.concatenate([np.asarray(c.column("step").to_pylist()) for c in st["chunks"]])
-    assert np.array_equal(np.sort(steps), np.arange(T1))
-    # the time-series view's mean and nominal trajectories: T+1 scalars on the step timeline
-    ts = rb["/timeseries/omega/mean"]
-    assert ts["rows"] == T1 and "step" in ts["columns"]
-    vals = np.concatenate([np.asarray(c.column("Scalars:scalars").to_pylist(), float).ravel() for c in ts["chunks"]])
-    assert np.allclose(np.sort(vals), np.sort(np.asarray(ro.mean_trajectory)[:, 1]))
-    assert "/timeseries/theta/nominal" in rb
-    # first time row = x0 for every rollout (x1, x2, 0)
-    first = np.asarray(st["chunks"][0].column("Points3D:positions").to_pylist()[0])
-    assert np.allclose(first[:, :2], ro.x0[None, :2], atol=1e-6) and np.allclose(first[:, 2], 0)
+    for m, r in (("stochastic", ro), ("deterministic", ro2)):
+        R, T1 = r.trajectories.shape[:2]
+        paths = rb[f"/world/{m}/rollouts/paths"]["chunks"][0]
+        assert len(paths.column("LineStrips3D:strips").to_pylist()[0]) == R
+        assert len(paths.column("LineStrips3D:strips").to_pylist()[0][0]) == T1
+        st = rb[f"/world/{m}/rollouts/state"]
+        assert st["rows"] == T1 and {"step", "time"} <= st["columns"] and not st["static"]
+        counts = sum((_positions_per_row(c, "Points3D:positions") for c in st["chunks"]), [])
+        assert counts == [R] * T1
+        steps = np.concatenate([np.asarray(c.column("step").to_pylist()) for c in st["chunks"]])
+        assert np.array_equal(np.sort(steps), np.arange(T1))
+        # the mean map (what the guarantee is about) and the rollout average, each its own entity
+        assert np.allclose(_strip(rb, f"/world/{m}/rollouts/mean_map")[:, :2], r.mean_map_trajectory[:, :2], atol=1e-6)
+        assert np.allclose(_strip(rb, f"/world/{m}/rollouts/mean")[:, :2], r.mean_trajectory[:, :2], atol=1e-6)
+        # the time-series views: T+1 scalars on the step timeline
+        for key, want in (("mean", r.mean_trajectory), ("mean_map", r.mean_map_trajectory)):
+            ts = rb[f"/timeseries/omega/{m}/{key}"]
+            assert "step" in ts["columns"]
+            vals = np.concatenate([np.asarray(c.column("Scalars:scalars").to_pylist(), float).ravel()
+                                   for c in ts["chunks"] if "Scalars:scalars" in c.schema.names])
+            assert vals.shape == (T1,) and np.allclose(vals, np.asarray(want)[:, 1])
+        first = np.asarray(st["chunks"][0].column("Points3D:positions").to_pylist()[0])
+        assert np.allclose(first[:, :2], r.x0[None, :2], atol=1e-6) and np.allclose(first[:, 2], 0)
+    assert not np.allclose(ro.mean_map_trajectory, ro2.mean_map_trajectory)  # the methods' data differ
+    assert (info["n_rollouts"], info["n_steps"]) == (60, 81)
 
     # gamma meshes: res^2 vertices and 2 (res-1)^2 triangles per dimension
     for name in ("theta", "omega"):
-        mesh = rb[f"/gamma/{name}/surface"]["chunks"][0]
+        mesh = rb[f"/gamma/stochastic/{name}/surface"]["chunks"][0]
         assert len(mesh.column("Mesh3D:vertex_positions").to_pylist()[0]) == 31 * 31
         assert len(mesh.column("Mesh3D:triangle_indices").to_pylist()[0]) == 2 * 30 * 30
     assert info["gamma_vertices"] == 31 * 31 and info["gamma_triangles"] == 2 * 30 * 30
 
     # winning domain: one box per winning cell of the 2-D grid
-    boxes = rb["/world/winning"]["chunks"][0]
-    assert len(boxes.column("Boxes3D:centers").to_pylist()[0]) == syn.stats["winning"] == info["winning_cells"]
+    boxes = rb["/world/stochastic/winning"]["chunks"][0]
+    assert len(boxes.column("Boxes3D:centers").to_pylist()[0]) == syn.stats["winning"] == info["winning_cells"]["stochastic"]
     text = rb["/summary"]["chunks"][0].column("TextDocument:text").to_pylist()[0]
     text = "".join(text) if isinstance(text, list) else text
     assert "joint confidence" in text and "rollouts of pendulum" in text
+    assert "## deterministic" in text and "## stochastic" in text
 
     # a default blueprint is in the file
     from rerun.chunk import RrdReader
     assert len(RrdReader(str(out)).blueprints()) == 1
 
 
+def test_gamma_heights_share_one_scale_across_methods(tmp_path, run_results):
+    """The methods' surfaces are drawn at one height scale per state (not each stretched to 1):
+    a certificate with twice the gamma stands twice as high."""
+    from simgap_viz.record import read_back, record_run
+
+    ds, cert, spec, syn, ro, ro2 = run_results
+
+    class Doubled:  # the same certificate with gamma doubled (engine.gamma_function reads .gamma)
+        def __init__(self, c):
+            self._c = c
+
+        def __getattr__(self, k):
+            return getattr(self._c, k)
+
+        def gamma(self, x, u):
+            return 2 * self._c.gamma(x, u)
+
+    out = tmp_path / "two.rrd"
+    record_run(out, ds.system, methods={"a": dict(certificate=cert), "b": dict(certificate=Doubled(cert))})
+    rb = read_back(out)
+    z = {m: np.asarray(rb[f"/gamma/{m}/omega/surface"]["chunks"][0].column("Mesh3D:vertex_positions")
+                       .to_pylist()[0])[:, 2] for m in ("a", "b")}
+    assert np.isclose(z["b"].max(), 1.0) and np.allclose(z["b"], 2 * z["a"], rtol=1e-5)
+
+
 def test_record_partial_and_bad_paths(tmp_path, run_results):
     from simgap_viz.record import read_back, record_run
 
-    ds, cert, spec, syn, ro = run_results
+    ds, cert, spec, syn, ro, _ = run_results
     out = tmp_path / "cert_only.rrd"
     info = record_run(out, ds.system, certificate=cert)
     rb = read_back(out)
-    assert "/gamma/omega/surface" in rb and "/world/rollouts/state" not in rb and info["n_rollouts"] == 0
+    m = cert.method
+    assert f"/gamma/{m}/omega/surface" in rb and f"/world/{m}/rollouts/state" not in rb and info["n_rollouts"] == 0
     with pytest.raises(SimgapError, match=".rrd"):
         record_run(tmp_path / "x.txt", ds.system)
     with pytest.raises(SimgapError, match="does not exist"):
@@ -114,7 +154,7 @@ def test_cli_record(tmp_path):
     assert "rerun " + str(out) in p.stdout
     from simgap_viz.record import read_back
     rb = read_back(out)
-    assert rb["/world/rollouts/state"]["rows"] == 31
+    assert sum(v["rows"] for k, v in rb.items() if k.endswith("/rollouts/state")) == 31
     bad = subprocess.run([sys.executable, "-m", "simgap", "record", "--out", str(tmp_path / "b.rrd"),
                           "--experiment", "pendulum", "--profile", "small", "--epsilon", "-1"],
                          capture_output=True, text=True, timeout=300, cwd=tmp_path)
@@ -174,15 +214,15 @@ def test_view_serves_the_recording_and_stops_everything(tmp_path, run_results):
     from PIL import Image
     from test_browser_app import ARGS, CHROMIUM, _need_browser
 
-    from simgap_viz.layers.geometry import DIM_COLORS
-    from simgap_viz.record import record_run
+    from simgap_viz.record import METHOD_COLORS, record_run
     _need_browser()
     from playwright.sync_api import sync_playwright
 
-    ds, cert, spec, syn, ro = run_results
+    ds, cert, spec, syn, ro, _ = run_results
     run = tmp_path / "run"
     run.mkdir()
-    record_run(run / "run.rrd", ds.system, dataset=ds, certificate=cert, spec=spec, synthesis=syn, rollouts=ro)
+    record_run(run / "run.rrd", ds.system, dataset=ds, certificate=cert, spec=spec, synthesis=syn, rollouts=ro,
+               method="stochastic")
     proc, url = _start_view([run, "--web-port", 0, "--grpc-port", 0], tmp_path)
     from urllib.parse import parse_qs, unquote, urlparse
     grpc = parse_qs(urlparse(url).query)["url"][0]
@@ -201,7 +241,7 @@ def test_view_serves_the_recording_and_stops_everything(tmp_path, run_results):
                 time.sleep(3)
                 png = page.screenshot(path=str(tmp_path / "view.png"))
                 img = np.asarray(Image.open(io.BytesIO(png)).convert("RGB")).astype(int)
-                orange = int(np.count_nonzero(np.all(np.abs(img - np.array(DIM_COLORS[1])) <= 40, axis=-1)))
+                orange = int(np.count_nonzero(np.all(np.abs(img - np.array(METHOD_COLORS["stochastic"])) <= 40, axis=-1)))
             b.close()
         assert orange >= 2000, f"the page does not show the recording's gamma_omega surface ({orange} px)"
     finally:

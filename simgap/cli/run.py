@@ -56,23 +56,17 @@ def run(args) -> int:
 
 
 def _record(exp, out: Path):
-    """Write out/run.rrd from the saved stage outputs (stochastic method)."""
+    """Write out/run.rrd from the saved stage outputs: the deterministic method beside the stochastic one."""
     try:
         from simgap_viz.record import record_run
+        from simgap_viz.results import load_run
     except ImportError:
         print("(simgap_viz not installed: no recording)", file=sys.stderr)
         return None
-    from ..certify.certificate import load as load_certificate
-    from ..collect import load_store
     from ..pipeline import experiment_spec
-    from ..synthesis.controller import Controller, SynthesisResult
-    from ..rollout import load_rollout
 
-    ds = load_store(out / "data", system=exp.system)
-    cert = load_certificate(out / "cert_stochastic.json")
-    ctrl = Controller.load(out / "controller_stochastic.npz", system=exp.system)
-    syn = SynthesisResult(ctrl, dict(ctrl.meta.get("stats", {})))
-    ro = load_rollout(out / "rollouts_stochastic.npz") if (out / "rollouts_stochastic.npz").exists() else None
+    run = load_run(out)
     spec, _, _ = experiment_spec(exp)
-    record_run(out / "run.rrd", exp.system, dataset=ds, certificate=cert, spec=spec, synthesis=syn, rollouts=ro)
+    methods = {m: run.methods[m] for m in ("deterministic", "stochastic") if m in run.methods}
+    record_run(out / "run.rrd", exp.system, spec=spec, methods=methods)
     return out / "run.rrd"

@@ -60,7 +60,7 @@ import numpy as np
 
 from ..errors import SimgapError
 from ..expr import VarSpace, parse
-from ..systems import System
+from ..systems import BUILTIN_UNITS, System
 
 LIBRARY = ("bias", "viscous_friction", "coulomb_friction", "drag", "input_gain", "deadband", "gravity",
            "integration", "input_delay", "actuator_lag")
@@ -73,11 +73,7 @@ LAG_PERIODS = (2.0, 3.0, 5.0, 8.0, 13.0, 20.0)
 VELOCITY_DIMS: Dict[str, tuple] = {"pendulum": (1,), "emps": (1,), "turtlebot": ()}
 
 #: (state units, input units) for reports
-UNITS: Dict[str, tuple] = {
-    "pendulum": (("rad", "rad/s"), ("N m",)),
-    "turtlebot": (("m", "m", "rad"), ("m/s", "rad/s")),
-    "emps": (("m", "m/s"), ("V",)),
-}
+UNITS: Dict[str, tuple] = BUILTIN_UNITS
 
 
 def _inertia(system: System) -> Optional[tuple]:

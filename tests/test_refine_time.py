@@ -170,3 +170,14 @@ def test_lags_off_the_library_grid_are_named_as_lags_or_flagged(name):
     assert not rep["refused"] or rep["states"][1]["unexplained"]
     ms = rep["multistep"]["100"]
     assert np.all(np.asarray(ms["rms_after"]) <= np.asarray(ms["rms_before"]) * 1.01)
+
+
+def test_delay_deeper_than_the_default_is_found_by_choosing_the_depth_from_the_data():
+    c = make_case("delay7", 12000, 0)
+    rep = refine(c.system, c.data, options=SelectionOptions(n_boot=5)).report
+    assert verdict(c, rep)[0], verdict(c, rep)[1]
+    assert rep["history"]["lags"] == 7 and "chosen by the data" in rep["history"]["chosen"]
+    # with the depth fixed at the old cap of 3 the delay cannot be named, and the state says so
+    capped = refine(c.system, c.data, options=SelectionOptions(n_boot=5, max_lag=3)).report
+    assert not any(e["name"] == "input_delay" and e.get("periods") == 7 for e in capped["effects"])
+    assert capped["states"][1]["unexplained"] is True

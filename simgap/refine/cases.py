@@ -150,6 +150,8 @@ CASES = {
                    expect={"delay": 1}, shape="input delay 1 period"),
     "delay2": dict(system="pendulum", kind="series", delay=2, extra=_zero, std=1e-4,
                    expect={"delay": 2}, shape="input delay 2 periods"),
+    "delay7": dict(system="pendulum", kind="series", delay=7, extra=_zero, std=1e-4,
+                   expect={"delay": 7}, shape="input delay 7 periods (deeper than the default 3)"),
     # a small effect next to a large one: Coulomb friction 2x the noise, 20x below an input-gain error
     "small_coulomb": dict(system="pendulum", kind="rows",
                           extra=_on(1, lambda x, u: -0.3 * _pend_B() * u[:, 0] - 0.027 * np.sign(x[:, 1])),

@@ -83,7 +83,10 @@ def refine(system, data: Transitions, effects: Optional[Sequence[str]] = None,
     rng = np.random.default_rng(opts.seed)
     if data.is_time_series:           # rows in time order, episode by episode: blocks, segments, lags
         data = subset(data, time_order(data))
-    data, hist, lags, hist_info = _with_history(data, opts.max_lag)
+    max_lag, lag_note = (opts.max_lag, None) if opts.max_lag is not None else _choose_lags(sysobj, data)
+    data, hist, lags, hist_info = _with_history(data, max_lag)
+    if lag_note and lags:
+        hist_info["chosen"] = lag_note
     if effects is not None and "input_delay" in effects and not lags:
         raise SimgapError(f"input_delay needs time-ordered data (time stamps t and x_next equal to the next "
                           f"row's x); {hist_info['reason']}")
@@ -186,6 +189,75 @@ def format_validation(v: dict, names) -> str:
     if "note" in v:
         lines.append(v["note"])
     return "\n".join(lines)
+
+
+#: the deepest input delay the data may ask for (periods), and the least used
+MAX_LAG_AUTO, MIN_LAG = 16, 3
+
+
+def _choose_lags(s: System, data: Transitions, z_min: float = 5.0) -> tuple:
+    """(lags, note): history depth chosen by the data, between MIN_LAG and MAX_LAG_AUTO periods.
+
+    For every state i and input j the input enters, the nominal residual rate is regressed (rows
+    with 16 periods of history) on 1, x and B_ij u, and then, by forward selection while the added
+    term's |t| >= ``z_min`` (standard errors inflated by the residual's block length), on the
+    library's first-order lag terms (memory they hold needs no deeper delays) and the delay terms
+    B_ij (u_{k-d} - u_k), d = 1..16; the deepest delay selected sets the depth, at least MIN_LAG
+    (the library's default).
+    """
+    if not data.is_time_series:
+        return 0, None
+    H, valid = history(data, MAX_LAG_AUTO)
+    if valid.mean() < 0.5 or valid.sum() < 20 * (MAX_LAG_AUTO + s.n + 3):
+        return MIN_LAG, None
+    from .effects import _input_rate
+    from .selection import _block_length
+    lagged = lagged_inputs(data, LAG_PERIODS)[valid]
+    x, u, H = data.x[valid], data.u[valid], H[valid]
+    r = s.diff(data.x_next[valid], s.f(x, u)) / data.tau
+    w = s.n + s.m
+    deepest, where = 0, ""
+    for i in range(s.n):
+        for j in range(s.m):
+            B = _input_rate(s, i, j)(x, u)
+            if not np.any(np.abs(B) > 0):
+                continue
+            D = np.stack([B * (H[:, (d - 1) * w + s.n + j] - u[:, j]) for d in range(1, MAX_LAG_AUTO + 1)], axis=1)
+            Lg = B[:, None] * (lagged[:, j::s.m] - u[:, [j]])       # first-order lags: memory they hold
+            A = np.column_stack([np.ones(len(x)), x, B * u[:, j], Lg, D])
+            sc = np.sqrt(np.mean(A ** 2, axis=0))
+            A = A / np.where(sc > 0, sc, 1.0)
+            y = r[:, i]
+            G, b = A.T @ A, A.T @ y
+            n_ctrl = A.shape[1] - MAX_LAG_AUTO - len(LAG_PERIODS)
+            S = list(range(n_ctrl))                                            # controls, always in
+            blk = _block_length(y - A[:, S] @ np.linalg.lstsq(A[:, S], y, rcond=None)[0])
+            # forward selection among the lag and delay terms while the added term has |t| >= z_min
+            while True:
+                best = None
+                for j2 in range(n_ctrl, A.shape[1]):
+                    if j2 in S:
+                        continue
+                    T = S + [j2]
+                    c = np.linalg.lstsq(G[np.ix_(T, T)], b[T], rcond=None)[0]
+                    rss = float(y @ y - 2 * c @ b[T] + c @ G[np.ix_(T, T)] @ c)
+                    if best is None or rss < best[0]:
+                        best = (rss, j2, c, T)
+                if best is None:
+                    break
+                rss, j2, c, T = best
+                s2 = max(rss, 0.0) / max(len(y) - len(T), 1) * blk
+                se = np.sqrt(s2 * max(float(np.linalg.pinv(G[np.ix_(T, T)])[-1, -1]), 0.0))
+                if se <= 0 or abs(c[-1]) / se < z_min:
+                    break
+                S = T
+            dsel = [j2 - (A.shape[1] - MAX_LAG_AUTO) + 1 for j2 in S if j2 >= A.shape[1] - MAX_LAG_AUTO]
+            if dsel and max(dsel) > deepest:
+                deepest, where = int(max(dsel)), f"{s.state_names[i]} / {s.input_names[j]}"
+    lags = max(MIN_LAG, deepest)
+    note = (f"chosen by the data: delayed-input terms significant up to {deepest} period(s) ({where})"
+            if deepest > MIN_LAG else f"the default {MIN_LAG} (no delayed-input term significant deeper)")
+    return lags, note
 
 
 def _with_history(data: Transitions, max_lag: int) -> tuple:

@@ -57,7 +57,8 @@ class SelectionOptions:
     structure_threshold: float = 0.05   # held-out R^2 of the structure fit of what remains
     min_unexplained: float = 0.01       # ... and that structured part as a fraction of the nominal residual
     seed: int = 0
-    max_lag: int = 3                # periods of history (time series): input delays, lagged user terms
+    max_lag: Optional[int] = None   # periods of history (time series): input delays, lagged user terms
+                                    # (None: chosen by the data, 3..16; report history.chosen)
     gate_steps: int = 100           # multi-step gate: horizons 10 and this on held-out data (time series; 0: 10 only)
     gate_tolerance: float = 0.01    # allowed mean squared ratio of k-step RMS f' / f above 1
     max_rounds: int = 5             # selection rounds on what is left (1: a single round)

@@ -44,6 +44,7 @@ def test_summary_has_p_cert_and_p_emp_per_controller_and_state(run):
     c = pr["imdp"]["containment"]
     assert c["passed"] is True and c["runs"] == c["rows_checked"] * c["states_per_row"] > 0
     assert ctl.meta["containment"]["passed"] is True
+    assert pr["randomization"].startswith("per period") and ctl.meta["randomization"] == pr["randomization"]
     from simgap.perrun.stage import table
     assert "conditional on the estimated Lipschitz constants" in table(pr).splitlines()[1]
     assert "containment check: passed" in table(pr).splitlines()[1]

@@ -96,6 +96,7 @@ def build(sim, spec, o: dict, log, on_progress=None):
                                       on_progress=on_progress)
     else:
         imdp = build_imdp(sim, spec, opts, log=log, on_progress=on_progress)
+    imdp.meta["randomization"] = randomization_note(sim)
     n_check = int(o.get("check_states", 64))
     if n_check > 0:
         rep = check_containment(sim, spec, imdp, n_check, seed=int(o["seed"]))
@@ -212,6 +213,7 @@ def run_stage(exp, out: Path, data, controllers: Dict[str, object], spec, x0, o:
                                                     "lipschitz", "samples", "union_bound", "assumption", "share",
                                                     "anchors", "containment") if k in imdp.meta}}
         res["p_cert_conditional_on"] = imdp.meta["p_cert_conditional_on"]
+        res["randomization"] = imdp.meta["randomization"]
         log(f"[perrun] interval MDP {imdp.nnz} entries in {t_build:.1f} s; value iteration "
             f"{ctl.meta['seconds_vi']:.1f} s; p_cert(x0) = {float(ctl.certified(np.atleast_2d(x0))[0]):.4f}")
 
@@ -240,6 +242,16 @@ def sound(p_cert, p_emp: float, se: float, n_rollouts: int) -> bool:
     return p_cert is None or p_emp >= p_cert - 3 * max(se, 1 / n_rollouts)
 
 
+def randomization_note(sim) -> str:
+    """How the simulator draws its per-run parameters, against the interval MDP's Markov assumption."""
+    if getattr(sim, "per_episode", False):
+        return ("per episode (randomize.per = 'episode'): rollouts keep their per-run parameters for the whole run, "
+                "while the interval MDP was sampled with them redrawn every period (its Markov assumption): p_cert "
+                "does not cover these runs")
+    return ("per period: per-run parameters redrawn every sampling period, as the interval MDP's Markov assumption "
+            "needs (a real robot keeps its parameters for a whole run: randomize.per = 'episode' validates that)")
+
+
 def containment_line(c: Optional[dict]) -> str:
     """One line on the containment check recorded in a per-run certificate's meta (or its absence)."""
     if not c or c.get("passed") is None:
@@ -256,7 +268,9 @@ def table(res: dict) -> str:
     The header says what p_cert is conditional on and how the containment check went."""
     lines = [f"per-run guarantees: horizon {res['horizon']} periods, {res['n_rollouts']} rollouts per initial state",
              "p_cert: conditional on the estimated Lipschitz constants and the Markov assumption "
-             "(summary.json per_run.p_cert_conditional_on); " + containment_line(res.get("imdp", {}).get("containment")),
+             "(summary.json per_run.p_cert_conditional_on); " + containment_line(res.get("imdp", {}).get("containment"))
+             + ("; RANDOMIZATION PER EPISODE: outside the Markov assumption" if str(res.get("randomization", ""))
+                .startswith("per episode") else ""),
              f"{'controller':<15}{'p_cert(x0)':>11}{'p_emp(x0)':>11}{'95% CI':>19}{'states':>8}{'min p_emp':>11}"
              f"{'sound':>7}"]
     for name, c in res["controllers"].items():

@@ -1,6 +1,7 @@
 """Empirical success of a controller from many initial states, next to its certified p_cert.
 
-R batched closed-loop runs per initial state in the simulator (fresh noise every period),
+R batched closed-loop runs per initial state in the simulator (fresh noise every period; with
+``randomize.per = "episode"`` each run keeps its per-run parameters for the whole horizon),
 each judged on the continuous states at every sampling period: invariance fails on the first
 state outside the safe set / X; reach-avoid succeeds on the first state in the target and fails
 on an obstacle or leaving X (a run that does neither within the horizon fails). p_emp = k / R
@@ -37,10 +38,13 @@ def success_counts(input_fn: InputFn, hold: int, sim, spec: Spec, x0s: np.ndarra
     out = np.zeros(S, np.int64)
     per = max(1, max_batch // R)
     rng = np.random.default_rng([seed, 5])
+    ep_rng = np.random.default_rng([seed, 6])
     H, n_batches = int(horizon), -(-S // per)
     for a in range(0, S, per):  # batches of whole initial states: bounded memory, vectorized runs
         b = min(S, a + per)
         x = np.repeat(x0s[a:b], R, axis=0)
+        # randomize.per = "episode": each run keeps its per-run parameters (its own stream)
+        ep = sim.draw_episode(len(x), ep_rng) if getattr(sim, "per_episode", False) else {}
         alive = np.ones(len(x), bool)       # still running (neither failed nor reached)
         ok = np.zeros(len(x), bool)
         cur = np.full(len(x), len(U) // 2)
@@ -59,7 +63,7 @@ def success_counts(input_fn: InputFn, hold: int, sim, spec: Spec, x0s: np.ndarra
                 idx = np.asarray(input_fn(x[alive], t))
                 cur[alive] = np.where(idx >= 0, idx, cur[alive])
                 t += 1
-            x[alive] = sim.step(x[alive], U[cur[alive]], rng)
+            x[alive] = sim.step(x[alive], U[cur[alive]], rng, {k: v[alive] for k, v in ep.items()})
             bad = alive & spec.violated(x, s.x_lo, s.x_hi)
             alive &= ~bad
             if spec.kind == "reach_avoid":

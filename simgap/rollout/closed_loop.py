@@ -26,7 +26,8 @@ at the current state (its abstract step) and its input is held in between:
 
 Randomness: one ``numpy.random.Generator`` (from ``seed``); at every simulator step the noise for
 all R rollouts is drawn with ``simulator.draw_noise(R, rng)`` and the still-active rows are
-passed to ``simulator.step_with_noise``. Rollout i's noise therefore does not depend on which
+passed to ``simulator.step_with_noise`` (with ``randomize.per = "episode"`` the per-run parameters
+are replaced by each rollout's, drawn once from a child generator: persistent randomization). Rollout i's noise therefore does not depend on which
 other rollouts are still running, and the one-at-a-time mode (``batched=False``, for the
 benchmark) reproduces the batched results exactly.
 
@@ -107,6 +108,8 @@ def _run(controller, sim, spec: Spec, x0: np.ndarray, R: int, T: int, hold: int,
     cur = np.full(R, -1, dtype=np.int64)
     x = np.repeat(x0[None], R, axis=0)
     alive = np.ones(R, dtype=bool)
+    # randomize.per = "episode": per-run parameters drawn once per rollout, from a child stream
+    episode = sim.draw_episode(R, rng.spawn(1)[0]) if getattr(sim, "per_episode", False) else None
     if reach_avoid and spec.reached(x0[None])[0]:
         rtime[:] = 0
         outcome[:] = SUCCESS
@@ -140,6 +143,8 @@ def _run(controller, sim, spec: Spec, x0: np.ndarray, R: int, T: int, hold: int,
             cur[act] = q
         # noise for all R rows, so rollout i's draws do not depend on the others
         noise = sim.draw_noise(R, rng)
+        if episode:
+            noise = sim.with_episode(noise, episode)
         u = U[cur[act]]
         s0 = time.perf_counter()
         if batched:

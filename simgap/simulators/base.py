@@ -7,6 +7,15 @@ time tau with the input held constant. All randomness w is drawn from that gener
 batched call gives exactly the rows a one-at-a-time call gives for the same draws (PyBullet
 itself is deterministic).
 
+Per-run parameters (``randomize``: masses, lengths, wheel radius, friction) are drawn by
+:meth:`Simulator.draw_noise` like every other draw, i.e. afresh at every sampling period: the
+Markov assumption the per-run interval MDP needs, but not how a real robot behaves, which keeps
+its parameters for a whole run. ``randomize.per = "episode"`` selects persistent randomization:
+rollouts draw the parameters once per episode (:meth:`Simulator.draw_episode`, the same draws
+in the same order, only the parameter keys kept) and every step uses them in place of the
+period's fresh draws (:meth:`Simulator.with_episode`); rows stay independent, so batched and
+one-at-a-time runs give the same results for the same draws.
+
 Simulators are built from a :class:`SimulatorConfig`, a plain JSON-able description, so worker
 processes (local pool or Ray) can rebuild the same simulator and manifests can record it.
 """
@@ -41,7 +50,9 @@ class SimulatorConfig:
     noise : dict
         Per-run noise, e.g. ``actuation_std``, ``sensor_std``, ``process_std`` (backend keys).
     randomize : dict
-        Per-run parameter randomization, e.g. ``{"mass": 0.05}`` (relative std; backend keys).
+        Per-run parameter randomization, e.g. ``{"mass": 0.05}`` (relative std; backend keys), and
+        ``per``: ``"period"`` (default: redrawn every sampling period) or ``"episode"`` (drawn once
+        per rollout; module docstring).
     effects : dict
         Undeclared effects the nominal model lacks, e.g. ``{"joint_damping": 0.05}``.
     options : dict
@@ -80,16 +91,43 @@ class Simulator(ABC):
     #: options naming a model file: an experiment file's value is resolved against its folder (and
     #: must stay inside it); the file's sha256 is recorded as option ``<key>_sha256`` and checked
     PATH_OPTIONS: tuple = ()
+    #: keys of :meth:`draw_noise` that are per-run physical parameters (held for an episode with
+    #: ``randomize.per = "episode"``); subclasses with ``randomize`` keys override
+    PARAMETER_DRAWS: tuple = ()
 
     def __init__(self, config: SimulatorConfig, system: System | None = None):
         self.config = config
         self.system = (system or get_system(config.system)).with_steps(config.steps)
-        for section, allowed in (("noise", self.NOISE_KEYS), ("randomize", self.RANDOMIZE_KEYS),
+        self.randomize_per = config.randomize.get("per", "period")
+        if self.randomize_per not in RANDOMIZE_PER:
+            raise SimgapError(f"simulator {config.kind!r}: randomize.per must be one of {list(RANDOMIZE_PER)}, "
+                              f"got {self.randomize_per!r}")
+        if self.randomize_per == "episode" and not self.PARAMETER_DRAWS:
+            raise SimgapError(f"simulator {config.kind!r}: randomize.per = 'episode' but this backend has no per-run "
+                              f"parameters to hold")
+        for section, allowed in (("noise", self.NOISE_KEYS), ("randomize", self.RANDOMIZE_KEYS + ("per",)),
                                  ("effects", self.EFFECT_KEYS), ("options", self.OPTION_KEYS)):
             bad = set(getattr(config, section)) - set(allowed)
             if bad:
                 raise SimgapError(
                     f"simulator {config.kind!r}: unknown {section} keys {sorted(bad)}; allowed: {sorted(allowed)}")
+
+    @property
+    def per_episode(self) -> bool:
+        """True if per-run parameters are held for a whole rollout (``randomize.per = "episode"``)."""
+        return self.randomize_per == "episode"
+
+    def draw_episode(self, B: int, rng: np.random.Generator) -> Dict[str, np.ndarray]:
+        """Per-run parameters of B episodes: :meth:`draw_noise` (same draws, same order) with only
+        the :attr:`PARAMETER_DRAWS` keys kept; empty unless ``randomize.per = "episode"``."""
+        if not self.per_episode:
+            return {}
+        noise = self.draw_noise(B, rng)
+        return {k: noise[k] for k in self.PARAMETER_DRAWS if k in noise}
+
+    def with_episode(self, noise: Dict[str, np.ndarray], episode: Dict[str, np.ndarray] | None) -> Dict[str, np.ndarray]:
+        """``noise`` (B rows) with its per-run parameters replaced by the episode's (B rows, aligned)."""
+        return {**noise, **episode} if episode else noise
 
     @abstractmethod
     def draw_noise(self, B: int, rng: np.random.Generator) -> Dict[str, np.ndarray]:
@@ -99,13 +137,17 @@ class Simulator(ABC):
     def step_with_noise(self, x: np.ndarray, u: np.ndarray, noise: Dict[str, np.ndarray]) -> np.ndarray:
         """Deterministic next states (B,n) for states x (B,n), inputs u (B,m) and drawn noise."""
 
-    def step(self, x: np.ndarray, u: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        """B independent runs: next states (B,n) after tau from x (B,n) with u (B,m) held."""
+    def step(self, x: np.ndarray, u: np.ndarray, rng: np.random.Generator,
+             episode: Dict[str, np.ndarray] | None = None) -> np.ndarray:
+        """B independent runs: next states (B,n) after tau from x (B,n) with u (B,m) held.
+
+        ``episode``: per-run parameters (B rows, from :meth:`draw_episode`) used instead of this
+        period's draws (which are still drawn, so the other draws do not depend on the mode)."""
         x = np.atleast_2d(np.asarray(x, dtype=float))
         u = np.atleast_2d(np.asarray(u, dtype=float))
         if x.shape[0] != u.shape[0]:
             raise SimgapError(f"simulator: {x.shape[0]} states but {u.shape[0]} inputs")
-        out = self.step_with_noise(x, u, self.draw_noise(x.shape[0], rng))
+        out = self.step_with_noise(x, u, self.with_episode(self.draw_noise(x.shape[0], rng), episode))
         if not np.all(np.isfinite(out)):
             bad = int((~np.isfinite(out)).any(axis=1).sum())
             raise SimgapError(f"simulator {self.config.kind!r} returned NaN/inf for {bad} of {len(out)} runs")
@@ -120,6 +162,8 @@ class Simulator(ABC):
     def __exit__(self, *exc):
         self.close()
 
+
+RANDOMIZE_PER = ("period", "episode")
 
 # kind -> "module:Class", imported lazily so that numpy-only users never import pybullet
 _BACKENDS = {

@@ -64,6 +64,7 @@ class MujocoSimulator(Simulator):
 
     NOISE_KEYS = ("actuation_std", "force_std", "sensor_std")
     RANDOMIZE_KEYS = ("mass", "damping")
+    PARAMETER_DRAWS = ("mass", "damping")  # draw_noise keys held for an episode (randomize.per)
     EFFECT_KEYS = ()
     OPTION_KEYS = ("model", "model_sha256", "positions", "velocities", "inputs", "substeps", "threads",
                    "models_per_batch")

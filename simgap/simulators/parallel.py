@@ -62,6 +62,8 @@ class ParallelSimulator(Simulator):
         self.inner = inner
         self.config: SimulatorConfig = inner.config
         self.system = inner.system
+        self.PARAMETER_DRAWS = inner.PARAMETER_DRAWS
+        self.randomize_per = inner.randomize_per
         self.workers = max(1, int(workers))
         # what the helpers rebuild the system from: a System's step is a closure that does not
         # pickle (forkserver/spawn), so a built-in or plugin name or the embedded system file / refined system travels instead

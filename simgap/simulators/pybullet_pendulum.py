@@ -73,6 +73,7 @@ class PendulumSimulator(BulletSimulator):
 
     NOISE_KEYS = ("actuation_std", "sensor_std")
     RANDOMIZE_KEYS = ("mass", "length")
+    PARAMETER_DRAWS = ("mass", "length")  # draw_noise keys held for an episode (randomize.per)
     EFFECT_KEYS = ("joint_damping", "coulomb_friction", "actuator_gain")
     OPTION_KEYS = ("branches", "substeps", "urdf")
 

@@ -107,6 +107,7 @@ class TurtlebotSimulator(BulletSimulator):
 
     NOISE_KEYS = ("actuation_std", "sensor_std", "wheel_slip", "actuation_jitter")
     RANDOMIZE_KEYS = ("wheel_radius", "mass", "friction")
+    PARAMETER_DRAWS = ("radius", "mass", "friction")  # draw_noise keys held for an episode (randomize.per)
     EFFECT_KEYS = ("actuator_gain", "wheel_radius_error")
     _PHYSICS_DRAWS = ("act", "radius", "mass", "friction", "slip", "jitter")  # what the physics sees (not "sens")
     OPTION_KEYS = ("substeps", "robots", "obstacles", "motor_force", "friction", "solver_iterations", "urdf")

@@ -88,6 +88,7 @@ class UrdfSimulator(BulletSimulator):
 
     NOISE_KEYS = ("actuation_std", "sensor_std", "process_std")
     RANDOMIZE_KEYS = ("mass", "joint_damping", "friction")
+    PARAMETER_DRAWS = ("mass", "damping", "friction")  # draw_noise keys held for an episode (randomize.per)
     EFFECT_KEYS = ("joint_damping", "actuator_gain")
     OPTION_KEYS = ("urdf", "urdf_sha256", "positions", "velocities", "inputs", "input_mode", "max_force",
                    "base_pose", "base_height", "fixed_base", "ground", "substeps", "copies", "gravity")

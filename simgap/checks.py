@@ -76,15 +76,54 @@ def output_dir(path, what: str = "--out") -> Path:
 
 
 def check_outputs(args) -> None:
-    """Check every output a parsed command declares (``set_defaults(outputs=..., output_dirs=...)``)."""
+    """Check every output a parsed command declares (``set_defaults(outputs=..., output_dirs=...)``):
+    writable (:func:`output_file`, :func:`output_dir`) and not over any input (:func:`not_over_inputs`)."""
+    outs = []
     for name in getattr(args, "outputs", ()):
         v = getattr(args, name, None)
         if v is not None:
-            output_file(v, "--" + name.replace("_", "-"))
+            outs.append(("--" + name.replace("_", "-"), output_file(v, "--" + name.replace("_", "-"))))
     for name in getattr(args, "output_dirs", ()):
         v = getattr(args, name, None)
         if v is not None:
-            output_dir(v, "--" + name.replace("_", "-"))
+            outs.append(("--" + name.replace("_", "-"), output_dir(v, "--" + name.replace("_", "-"))))
+    not_over_inputs(outs, _input_paths(args))
+
+
+def _input_paths(args) -> list:
+    """(option, path) of every other argument value that names an existing file or folder: a
+    command's inputs, found without each command listing them (a new option is covered too)."""
+    skip = set(getattr(args, "outputs", ())) | set(getattr(args, "output_dirs", ())) | {"func", "command"}
+    found = []
+    for key, value in vars(args).items():
+        if key in skip:
+            continue
+        for v in value if isinstance(value, (list, tuple)) else [value]:
+            if isinstance(v, (str, os.PathLike)) and str(v) and os.path.lexists(v):
+                found.append(("--" + key.replace("_", "-"), Path(v)))
+    return found
+
+
+def _same_or_inside(out: Path, inp: Path) -> bool:
+    """True if ``out`` is ``inp`` (also through symlinks or hard links) or lies inside folder ``inp``."""
+    o, i = out.resolve(), inp.resolve()
+    if o == i or (i.is_dir() and i in o.parents):
+        return True
+    try:
+        return out.exists() and os.path.samefile(out, inp)
+    except OSError:
+        return False
+
+
+def not_over_inputs(outputs, inputs) -> None:
+    """Refuse an output that is, or lies inside, an input: writing it would destroy what the
+    command reads (e.g. ``certify STORE --out STORE/manifest.json``). Both are (option, path) lists."""
+    for what, out in outputs:
+        for src, inp in inputs:
+            if _same_or_inside(Path(out), Path(inp)):
+                where = "is" if Path(out).resolve() == Path(inp).resolve() or not Path(inp).is_dir() else "is inside"
+                raise SimgapError(f"{what} {str(out)!r} {where} the input {str(inp)!r} ({src}): writing it would "
+                                  "destroy the input; choose another output path")
 
 
 # ----------------------------------------------------------------------------------------

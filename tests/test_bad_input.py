@@ -579,3 +579,52 @@ def test_more_bad_values_are_named(work, capsys, args, words):
     for w in words:
         assert w in err, (w, err)
     assert files(work) == before
+
+
+# ----- outputs over inputs (one shared check, simgap.checks.not_over_inputs) ----------------------
+
+def _digests(folder: Path) -> dict:
+    import hashlib
+    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+OVER_INPUTS = {
+    "certify-store-manifest": ["certify", "data", "--out", "data/manifest.json"],
+    "certify-run-store": ["certify", "data", "--level", "run", "--alpha", "0.1", "--out", "data/manifest.json"],
+    "refine-data": ["refine", "--system", "pendulum", "--data", "data.npz", "--bootstrap", "2", "--out", "data.npz"],
+    "refine-record": ["refine", "--system", "pendulum", "--data", "data", "--bootstrap", "2",
+                      "--record", "data/x.rrd"],
+    "synthesize-cert": ["synthesize", "--cert", "cert.json", "--system", "pendulum", "--safe=-0.2,0.2,-0.5,0.5",
+                        "--eta", "0.004,0.01", "--out", "cert.json"],
+    "synthesize-json": ["synthesize", "--cert", "cert.json", "--system", "pendulum", "--safe=-0.2,0.2,-0.5,0.5",
+                        "--eta", "0.004,0.01", "--out", "c.npz", "--json", "cert.json"],
+    "audit-cert": ["audit", "cert.json", "--data", "data", "--points", "5", "--runs", "20", "--out", "cert.json"],
+    "rollout-controller": ["rollout", "--controller", "ctrl.npz", "--simulator", "exp.toml", "--profile", "base",
+                           "--x0", "0.05,0.1", "--n", "5", "--out", "ctrl.npz"],
+    "rollout-simulator": ["rollout", "--controller", "ctrl.npz", "--simulator", "exp.toml", "--profile", "base",
+                          "--x0", "0.05,0.1", "--n", "5", "--out", "r.json", "--trajectories", "exp.toml"],
+    "record-dataset": ["record", "--experiment", "exp.toml", "--dataset", "data", "--upto", "collect",
+                       "--out", "data/chunks/x.rrd"],
+    "collect-into-toml-folder": ["collect", "exp.toml", "--out", "exp.toml"],
+}
+
+
+@pytest.mark.parametrize("case", sorted(OVER_INPUTS))
+def test_output_over_an_input_is_refused(work, case):
+    before = _digests(work)
+    r = simgap(*OVER_INPUTS[case], cwd=work)
+    refused(r)
+    assert "destroy the input" in r.stderr or "not a folder" in r.stderr, r.stderr
+    assert _digests(work) == before  # every input intact, nothing new
+
+
+def test_output_over_an_input_through_a_link(work, tmp_path):
+    (tmp_path / "link.json").symlink_to(work / "cert.json")
+    os.link(work / "data.npz", tmp_path / "hard.npz")
+    refused(simgap("audit", work / "cert.json", "--data", work / "data", "--points", "5", "--runs", "20",
+                   "--out", tmp_path / "link.json", cwd=tmp_path), "destroy the input")
+    refused(simgap("refine", "--system", "pendulum", "--data", work / "data.npz", "--out", tmp_path / "hard.npz",
+                   cwd=tmp_path), "destroy the input", "hard.npz")
+    # a sibling of an input is fine
+    assert checks.not_over_inputs([("--out", work / "cert2.json")], [("--cert", work / "cert.json")]) is None

@@ -38,6 +38,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import hashlib
+import io
 import json
 import os
 import shutil
@@ -336,13 +337,29 @@ def _chunk_path(store: Path, c: int) -> Path:
     return store / CHUNK_DIR / f"c{c:06d}.npz"
 
 
-def _atomic_write_bytes(path: Path, data: bytes) -> None:
+@contextlib.contextmanager
+def _pid_tmp(path: Path, need: Optional[float] = None):
+    """A temporary ``.<name>.<pid>.tmp`` beside ``path`` (the pid lets a later collector delete
+    the leftovers of a killed one), fsynced and renamed into place; on failure it is removed
+    and a failed write (e.g. a full disk) is a SimgapError naming ``path``."""
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with open(tmp, "wb") as f:
+    try:
+        with open(tmp, "wb") as f:
+            yield f
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException as e:
+        written = tmp.stat().st_size if tmp.exists() else None
+        tmp.unlink(missing_ok=True)
+        if isinstance(e, OSError):
+            raise fileio.write_error(path, e, need, written) from None
+        raise
+
+
+def _atomic_write_bytes(path: Path, data: bytes) -> None:
+    with _pid_tmp(path, len(data)) as f:
         f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
 
 
 def _chunk_digests(c: int, h: str, arrays: dict) -> tuple:
@@ -354,13 +371,11 @@ def _chunk_digests(c: int, h: str, arrays: dict) -> tuple:
 def _write_chunk(store: Path, c: int, h: str, arrays: dict) -> None:
     path = _chunk_path(store, c)
     per, dig = _chunk_digests(c, h, arrays)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with open(tmp, "wb") as f:
-        np.savez(f, chunk=np.int64(c), hash=np.array(h), digests=np.array(json.dumps(per)), digest=np.array(dig),
-                 **arrays)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    buf = io.BytesIO()  # a chunk is small: its exact size is known before the disk is touched
+    np.savez(buf, chunk=np.int64(c), hash=np.array(h), digests=np.array(json.dumps(per)), digest=np.array(dig),
+             **arrays)
+    with _pid_tmp(path, buf.tell()) as f:
+        f.write(buf.getbuffer())
 
 
 @contextlib.contextmanager

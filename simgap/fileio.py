@@ -4,13 +4,20 @@ renamed into place, so a crash never leaves a half-written file under the final 
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import os
+import shutil
 import tempfile
 from pathlib import Path
 from typing import Iterator
 
 import numpy as np
+
+from .errors import SimgapError
+
+#: what a write fails with when the disk (or a quota, or a file-size limit) has no room
+NO_ROOM = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
 
 
 def _umask() -> int:
@@ -27,16 +34,52 @@ def _umask() -> int:
     return mask
 
 
+def write_error(path, err: OSError, need: float | None = None, written: float | None = None) -> SimgapError:
+    """A SimgapError for a failed write of ``path``: the path, the system's reason, and for a
+    full disk the bytes needed (``need``, where known) or written before the failure, and the
+    bytes free in the folder."""
+    from .checks import human_bytes
+
+    msg = f"cannot write {str(path)!r}: {err.strerror or err}"
+    if getattr(err, "errno", None) in NO_ROOM:
+        msg += f" ({room_note(path, need, written)}); " + (
+            "a file-size limit is in force (ulimit -f): raise it or write elsewhere" if err.errno == errno.EFBIG
+            else "free some space or write elsewhere")
+    return SimgapError(msg)
+
+
+def room_note(path, need: float | None = None, written: float | None = None) -> str:
+    """``it needs about X; Y free in 'folder'`` (or the bytes written before a failure)."""
+    from .checks import human_bytes
+
+    folder = Path(path).absolute().parent
+    try:
+        free = human_bytes(shutil.disk_usage(folder).free)
+    except OSError:
+        free = "unknown"
+    size = (f"it needs about {human_bytes(need)}" if need else
+            f"{human_bytes(written)} were written before the write failed" if written else "")
+    return f"{size + '; ' if size else ''}{free} free in {str(folder)!r}"
+
+
 @contextlib.contextmanager
-def atomic_file(path: str | os.PathLike, mode: str = "w", fsync: bool = False) -> Iterator:
+def atomic_file(path: str | os.PathLike, mode: str = "w", fsync: bool = False,
+                need: float | None = None, verify=None) -> Iterator:
     """Open a temporary file beside ``path``; on success rename it to ``path``, else delete it.
 
     The file gets the permissions an ordinary ``open`` would give (0666 less the umask), not
-    the 0600 of the private temporary file.
+    the 0600 of the private temporary file. A write that fails (full disk, file-size limit,
+    I/O error) leaves no temporary file and raises a SimgapError naming ``path`` and, for a full
+    disk, ``need`` (the bytes to be written, where the caller knows them) and the free space.
+    ``verify(tmp_path)``, if given, reads the closed file back before it takes the final name
+    and raises if it is not whole.
     """
     path = Path(path)
     folder = path.parent if str(path.parent) else Path(".")
-    fd, tmp = tempfile.mkstemp(dir=folder, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        fd, tmp = tempfile.mkstemp(dir=folder, prefix=f".{path.name}.", suffix=".tmp")
+    except OSError as e:
+        raise write_error(path, e, need) from None
     try:
         os.fchmod(fd, 0o666 & ~_umask())
         with os.fdopen(fd, mode) as fh:
@@ -44,15 +87,29 @@ def atomic_file(path: str | os.PathLike, mode: str = "w", fsync: bool = False) -
             if fsync:
                 fh.flush()
                 os.fsync(fh.fileno())
+        if verify is not None:
+            verify(Path(tmp))
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as e:
+        written = None
+        with contextlib.suppress(OSError):
+            written = os.stat(tmp).st_size
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
+        if isinstance(e, OSError):
+            raise write_error(path, e, need, written) from None
         raise
 
 
+def write_bytes(path, data: bytes, fsync: bool = False) -> Path:
+    """``data`` to ``path`` atomically (:func:`atomic_file`)."""
+    with atomic_file(path, "wb", fsync=fsync, need=len(data)) as fh:
+        fh.write(data)
+    return Path(path)
+
+
 def write_text(path, text: str) -> Path:
-    with atomic_file(path) as fh:
+    with atomic_file(path, need=len(text.encode())) as fh:
         fh.write(text)
     return Path(path)
 
@@ -64,9 +121,18 @@ def write_json(path, obj, **kw) -> Path:
 
 
 def savez(path, compressed: bool = False, **arrays) -> Path:
-    """``np.savez`` (or ``savez_compressed``) atomically; the name is used as given."""
-    with atomic_file(path, "wb") as fh:
-        (np.savez_compressed if compressed else np.savez)(fh, **arrays)
+    """``np.savez`` (or ``savez_compressed``) atomically; the name is used as given.
+
+    A compressed file is built in memory first (it is the smaller one), so a full disk is
+    reported with its exact size; an uncompressed one is streamed, its size estimated."""
+    if compressed:
+        import io
+        buf = io.BytesIO()
+        np.savez_compressed(buf, **arrays)
+        return write_bytes(path, buf.getbuffer())
+    need = sum(np.asarray(a).nbytes + 256 for a in arrays.values())  # + zip and .npy headers
+    with atomic_file(path, "wb", need=need) as fh:
+        np.savez(fh, **arrays)
     return Path(path)
 
 

@@ -25,7 +25,6 @@ Entities (``<m>`` a method, ``<s>`` a state name; :func:`entity_paths` lists the
 
 from __future__ import annotations
 
-import os
 import time
 import uuid
 from pathlib import Path
@@ -150,9 +149,7 @@ def record_run(out: str | Path, system, *, dataset=None, certificate=None, spec=
         raise SimgapError(f"recording: folder {str(out.parent)!r} does not exist")
     su, _ = units(system)
     t0 = time.perf_counter()
-    tmp = out.with_name(f".{out.name}.{os.getpid()}.tmp.rrd")
-    rec = rr.RecordingStream(application_id, recording_id=recording_id or str(uuid.uuid4()))
-    rec.save(str(tmp), default_blueprint=blueprint(system.state_names, list(methods), su))
+    rec, mem = open_recording(blueprint(system.state_names, list(methods), su), application_id, recording_id)
     info = {"entities": [], "methods": list(methods), "n_rollouts": 0, "n_steps": 0, "gamma_vertices": 0,
             "gamma_triangles": 0, "winning_cells": {}}
 
@@ -189,11 +186,10 @@ def record_run(out: str | Path, system, *, dataset=None, certificate=None, spec=
                 _log_rollouts(rec, log, rr, info, system, m, st["rollouts"])
                 md += [engine.rollout_markdown(st["rollouts"]), ""]
         log("summary", rr.TextDocument("\n".join(md), media_type=rr.MediaType.MARKDOWN))
-        return finish_recording(rec, tmp, out, info, t0)
     except BaseException:
-        rec.disconnect()
-        tmp.unlink(missing_ok=True)
+        rec.disconnect()  # nothing was written yet: the recording is in memory
         raise
+    return finish_recording(rec, mem, out, info, t0)
 
 
 def _log_spec(log, rr, spec, x_lo, x_hi) -> None:
@@ -291,11 +287,41 @@ def _log_rollouts(rec, log, rr, info, system, m: str, rollouts) -> None:
     info["n_rollouts"], info["n_steps"] = int(R), int(T1)
 
 
-def finish_recording(rec, tmp: Path, out: Path, info: dict, t0: float) -> dict:
-    """Close ``rec``'s file sink, rename ``tmp`` into place as ``out``; add seconds and bytes to ``info``."""
+def open_recording(blueprint, application_id: str = "simgap", recording_id: Optional[str] = None):
+    """(stream, memory sink) of a new recording held in memory with ``blueprint`` as its default.
+
+    Recordings are written by :func:`finish_recording`, never by Rerun's own file sink: that
+    sink writes from a thread of its own, and on a full disk it truncates the file silently or
+    deadlocks ``flush``/``disconnect`` (seen with rerun 0.41). Held in memory, the recording's
+    exact size is known and it is written like every other result (:func:`simgap.fileio.atomic_file`).
+    """
+    import rerun as rr
+
+    rec = rr.RecordingStream(application_id, recording_id=recording_id or str(uuid.uuid4()))
+    mem = rec.memory_recording()
+    rec.send_blueprint(blueprint, make_active=True, make_default=True)
+    return rec, mem
+
+
+def finish_recording(rec, mem, out: Path, info: dict, t0: float) -> dict:
+    """Write the recording in ``mem`` to ``out`` atomically, read it back whole before it takes
+    the final name (a truncated file is never announced), and add seconds and bytes to ``info``.
+    A failed write (full disk, file-size limit) is a SimgapError naming ``out`` and the bytes
+    needed; no temporary file is left."""
+    from simgap import fileio
+
     rec.flush()
-    rec.disconnect()  # closes the file sink before the rename
-    tmp.replace(out)
+    data = mem.drain_as_bytes()
+    rec.disconnect()
+
+    def whole(tmp: Path) -> None:
+        try:
+            read_back(tmp)
+        except Exception as e:  # noqa: BLE001 - rerun's reader raises several types for a bad file
+            raise SimgapError(f"cannot write {str(out)!r}: the recording does not read back whole ({e})") from None
+
+    with fileio.atomic_file(out, "wb", need=len(data), verify=whole) as fh:
+        fh.write(data)
     info["seconds"] = time.perf_counter() - t0
     info["bytes"] = out.stat().st_size
     return info
@@ -344,10 +370,8 @@ def record_refinement(out: str | Path, result, against: Optional[str] = None, bi
     K = v.shape[0]
     keep = np.sort(np.random.default_rng(seed).choice(K, size=min(K, max_points), replace=False))
     names = list(s.state_names)
-    tmp = out.with_name(f".{out.name}.{os.getpid()}.tmp.rrd")
-    rec = rr.RecordingStream("simgap", recording_id=str(uuid.uuid4()))
     views = [rrb.Spatial2DView(origin=f"/refine/{nm}", name=f"residual {nm} vs {against}") for nm in names]
-    rec.save(str(tmp), default_blueprint=rrb.Blueprint(
+    rec, mem = open_recording(rrb.Blueprint(
         rrb.Horizontal(rrb.Vertical(*views), rrb.TextDocumentView(origin="/refine/report", name="report"),
                        column_shares=[3, 1]), collapse_panels=True))
     info = {"entities": [], "against": against, "points": int(keep.size)}
@@ -378,4 +402,4 @@ def record_refinement(out: str | Path, result, against: Optional[str] = None, bi
            f"unexplained: {rep['unexplained']}"]
     rec.log("refine/report", rr.TextDocument("\n".join(md), media_type=rr.MediaType.MARKDOWN), static=True)
     info["entities"].append("refine/report")
-    return finish_recording(rec, tmp, out, info, t0)
+    return finish_recording(rec, mem, out, info, t0)

@@ -12,9 +12,7 @@ Entities (state units, first two state dimensions; further dimensions are projec
 
 from __future__ import annotations
 
-import os
 import time
-import uuid
 from pathlib import Path
 
 import numpy as np
@@ -22,7 +20,7 @@ import numpy as np
 from simgap.errors import SimgapError
 
 from .layers.perrun import pcolormap
-from .record import finish_recording
+from .record import finish_recording, open_recording
 
 
 def record_per_run(out: str | Path, controller, per_run: dict) -> dict:
@@ -34,9 +32,7 @@ def record_per_run(out: str | Path, controller, per_run: dict) -> dict:
     if out.suffix != ".rrd":
         raise SimgapError(f"recording: the output file must end in .rrd, got {str(out)!r}")
     t0 = time.perf_counter()
-    tmp = out.with_name(f".{out.name}.{os.getpid()}.tmp.rrd")
-    rec = rr.RecordingStream("simgap", recording_id=str(uuid.uuid4()))
-    rec.save(str(tmp), default_blueprint=rrb.Blueprint(rrb.Horizontal(
+    rec, mem = open_recording(rrb.Blueprint(rrb.Horizontal(
         rrb.Spatial2DView(origin="/perrun", name="p_cert map and p_emp markers"),
         rrb.TextDocumentView(origin="/perrun/summary", name="per-run summary"), column_shares=[3, 1])))
     g = controller.grid
@@ -66,4 +62,4 @@ def record_per_run(out: str | Path, controller, per_run: dict) -> dict:
                       f"[{s['ci95'][0]:.4f}, {s['ci95'][1]:.4f}] |")
     rec.log("perrun/summary", rr.TextDocument("\n".join(md), media_type=rr.MediaType.MARKDOWN), static=True)
     info["entities"].append("perrun/summary")
-    return finish_recording(rec, tmp, out, info, t0)
+    return finish_recording(rec, mem, out, info, t0)

@@ -75,17 +75,14 @@ class Transitions:
 
     def save_npz(self, path: str | Path) -> Path:
         """Write ``x``, ``u``, ``x_next``, ``tau`` (and ``t``, ``meta`` as JSON) atomically."""
-        path = Path(path)
-        tmp = path.with_name(path.name + ".tmp.npz")
+        from .. import fileio
         arrays = {"x": self.x, "u": self.u, "x_next": self.x_next, "tau": np.float64(self.tau),
                   "meta": np.array(json.dumps(self.meta))}
         if self.t is not None:
             arrays["t"] = self.t
         if self.episode is not None:
             arrays["episode"] = self.episode
-        np.savez(tmp, **arrays)
-        tmp.replace(path)
-        return path
+        return fileio.savez(path, **arrays)
 
 
 def episodes(data: Transitions) -> Optional[np.ndarray]:

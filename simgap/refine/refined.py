@@ -135,11 +135,8 @@ def save_refined(system: System, path: str | Path) -> Path:
                           f"write it as a system file (docs/system-files.md) or register it as a plugin, or "
                           f"rebuild it in Python with refined_system()")
     d = dict(d, steps=int(system.steps), name=system.name)
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(d, indent=2, allow_nan=False))
-    tmp.replace(path)
-    return path
+    from .. import fileio
+    return fileio.write_text(Path(path), json.dumps(d, indent=2, allow_nan=False))
 
 
 def build_refined(base: System, base_spec, effects: Sequence[Effect], coefficients,

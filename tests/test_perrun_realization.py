@@ -67,6 +67,30 @@ def test_run_certificate_covers_fresh_points_and_mean_gap_does_not(data):
     assert not bad["passed"] and bad["n_violated"] > 20, bad["per_dim"]
 
 
+def test_run_certificate_follows_its_stated_construction(data):
+    """gamma^alpha recomputed here from the kept order statistics: the index j from the exact binomial
+    at beta / (n K) (Bonferroni over pairs AND dimensions), the fit above D_(N - j) at every cover
+    pair, and a Lipschitz term at least the largest per-run slope seen here (common random numbers)
+    times eps. Fails for Bonferroni over K only, an order statistic one too low, or no extension."""
+    from scipy import stats
+
+    from simgap.perrun.realization import per_run_slopes
+
+    alpha, beta = 0.1, 0.01
+    cert = certify_run(data, alpha=alpha, beta=beta, lhat_pairs=300, lhat_runs=10)
+    N, K, n = int(data.n_runs), data.K, data.system.n
+    b1 = beta / (n * K)
+    j = int(np.flatnonzero(stats.binom.cdf(np.arange(N), N, alpha) <= b1)[-1])
+    assert cert.options["per_pair_beta"] == pytest.approx(b1, rel=1e-12) and cert.options["order_index"] == j
+    assert cert.options["alpha_min"] == pytest.approx(1 - b1 ** (1 / N), rel=1e-9)
+    D = data.absdev_top[:, min(j, data.absdev_top.shape[1] - 1), :]
+    fit = cert.fit(data.x, data.u) + np.array([d.repair for d in cert.dims])
+    assert np.all(fit >= D - 1e-7), float((D - fit).max())
+    slope = per_run_slopes(make_simulator(CFG), np.random.default_rng(5), data.epsilon, 50, 5).max(axis=0)
+    lip = cert.constant() - np.array([d.repair for d in cert.dims])
+    assert np.all(lip >= slope * data.epsilon), (lip, slope * data.epsilon)
+
+
 def test_audit_catches_a_bound_forty_percent_too_small(data):
     """The audit has power: the run certificate with fit scaled by 0.6 and no Lipschitz term is refused."""
     cert = certify_run(data, alpha=0.1, lhat_pairs=300, lhat_runs=10)

@@ -7,6 +7,8 @@ claim to hold for EVERY x in the cell). bench/mutations.py (group "perrun") appl
 implementations these tests are meant to catch.
 """
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -222,3 +224,107 @@ def test_shared_runs_over_several_batches_keep_their_successors():
     assert sink(one).sum() < sink(one).size * 10          # some rows have real successors
     np.testing.assert_array_equal(sink(many), sink(one))
     np.testing.assert_array_equal(many.col, one.col)
+
+
+# ----------------------------------------------------------------------------------------------
+# The rows themselves: every interval holds for runs from the corners of its cell
+# ----------------------------------------------------------------------------------------------
+
+def _row_violations(im, sim, spec, rows, runs, seed=0, z=4.5):
+    """Monte-Carlo check of the interval MDP's claim for every x in a cell: from each corner of the
+    cell of each row (cell c, input a), ``runs`` runs of k periods with a held; a run goes to the
+    sink if a state along the way violates the spec or it ends outside the row's successors, else to
+    its end cell j. Returns the entries whose bound is off by more than z SE (SE >= 1 / runs):
+    p_j < lo_j, p_j > hi_j, p_sink > hi_sink. ``z`` = 4.5 keeps the false-alarm rate small over
+    thousands of comparisons (a correct bound also has its Clopper-Pearson slack)."""
+    g, C, M, k, n = im.grid, im.C, im.M, im.hold, im.grid.n
+    cell, a = rows // M, rows % M
+    corners = np.array(list(np.ndindex(*(2,) * n))) - 0.5              # (2^n, n) in units of eta
+    x0 = (g.points(cell)[:, None, :] + corners[None] * g.eta).reshape(-1, n)   # (rows * 2^n, n)
+    ri = np.repeat(np.arange(len(rows)), len(corners))
+    x = np.repeat(x0, runs, axis=0)
+    u = np.repeat(im.inputs[np.repeat(a, len(corners))], runs, axis=0)
+    rng = np.random.default_rng(seed)
+    sink = np.zeros(len(x), bool)
+    for _ in range(k):
+        x = sim.step(x, u, rng)
+        sink |= spec.violated(x, sim.system.x_lo, sim.system.x_hi)
+    end = g.x_to_ids(x)
+    bad = []
+    for i, r in enumerate(rows):        # a few hundred rows; each row's runs are one vectorized block
+        sl = slice(im.row_ptr[r], im.row_ptr[r + 1])
+        col, lo, hi = im.col[sl], im.lo[sl].astype(float), im.hi[sl].astype(float)
+        for q in np.flatnonzero(ri == i):
+            e = end[q * runs:(q + 1) * runs]
+            s = sink[q * runs:(q + 1) * runs] | ~np.isin(e, col[col < C])
+            p = np.array([np.mean((e == j) & ~s) if j < C else np.mean(s) for j in col])
+            se = np.maximum(np.sqrt(p * (1 - p) / runs), 1 / runs)
+            off = (p > hi + z * se) | ((col < C) & (p < lo - z * se))
+            bad += [(int(r), x0[q].tolist(), int(j), float(lo[m]), float(p[m]), float(hi[m])) for m, j in
+                    zip(np.flatnonzero(off), col[off])]
+    return bad
+
+
+def _some_rows(im, count, seed=0):
+    rows = np.flatnonzero(np.repeat(im.live, im.M))
+    return np.sort(np.random.default_rng(seed).choice(rows, min(count, rows.size), replace=False))
+
+
+CONTRACT_SPEC = Spec("invariance", safe=Box([-1, -0.5], [1, 1.0]))
+
+
+@pytest.fixture(scope="module")
+def contract():
+    """(p, q), p+ = 0.6 p + 0.1 u, q+ = -0.6 q, noise 0.02 / 0.01, hold 2: the widened end box (0.6 of a
+    cell) often fits in one cell, so the successor lower bounds are estimated and used; from q ~ 0.8
+    part of the runs leave X at the first period (q ~ -0.48 against -0.5) and are back at the end."""
+    sim = _sim(CONTRACT, process_std=[0.02, 0.01])
+    im = build_imdp(sim, CONTRACT_SPEC, IMDPOptions(eta=[0.1, 0.1], hold=2, n_runs=1000, pilot_runs=100, seed=1))
+    return sim, im
+
+
+def test_lower_bound_family_is_active_and_sound(contract):
+    sim, im = contract
+    assert im.meta["split"]["lo"] > 0 and (im.lo > 0.2).sum() > 100      # the family is estimated and used
+    ctl = vi.synthesize_imdp(im, 9, "invariance")                         # 5 holds, H not a multiple of k
+    x0s = np.concatenate([[[0.0, 0.8], [0.0, 0.3]], _domain(ctl, 20)])
+    pc, pe, se = _mc(sim, CONTRACT_SPEC, ctl, x0s, 9)
+    _assert_sound(pc, pe, se)
+    assert pc[1] > 0.9 and 0.0 < pe[0] < 0.99                             # non-vacuous; real failures at q = 0.8
+    # the value iteration uses them: with lo = 0 p_cert is nowhere higher and somewhere lower (on this
+    # system by < 0.001: the successors of a row have nearly equal values, so the adversary gains little)
+    im0 = dataclasses.replace(im, lo=np.zeros_like(im.lo))
+    d = ctl.p_cert - vi.synthesize_imdp(im0, 9, "invariance").p_cert
+    assert d.min() >= -1e-12 and d.max() > 0
+
+
+def test_every_interval_holds_at_the_corners_of_its_cell(contract):
+    """Lower, upper and sink bounds of 150 rows against 2000 runs from each corner of the row's cell."""
+    sim, im = contract
+    rows = _some_rows(im, 150)
+    bad = _row_violations(im, sim, CONTRACT_SPEC, rows, 2000)
+    assert not bad, f"{len(bad)} bounds violated, e.g. (row, x, col, lo, p_mc, hi) {bad[:4]}"
+
+
+@pytest.mark.parametrize("construction", ["per_cell", "translation"])
+def test_every_interval_holds_when_runs_leave_x_mid_hold(construction):
+    sim = _sim(FLIP, process_std=[0.01, 0.0])
+    o = IMDPOptions(eta=[0.1, 0.1], hold=2, n_runs=400, pilot_runs=40, seed=1)
+    im = build_imdp(sim, FLIP_SPEC, o) if construction == "per_cell" else build_imdp_translation(sim, FLIP_SPEC, o, (0,))
+    bad = _row_violations(im, sim, FLIP_SPEC, _some_rows(im, 150), 1000)
+    assert not bad, f"{len(bad)} bounds violated, e.g. (row, x, col, lo, p_mc, hi) {bad[:4]}"
+
+
+def test_support_and_split_come_from_the_pilot_alone(contract):
+    """The support T(c, a) and the union bound's split must be fixed before the main runs (the bounds
+    are valid only then): with the same pilot, a different number of main runs changes neither."""
+    sim, im = contract
+    other = build_imdp(sim, CONTRACT_SPEC, IMDPOptions(eta=[0.1, 0.1], hold=2, n_runs=100, pilot_runs=100, seed=1))
+    np.testing.assert_array_equal(other.row_ptr, im.row_ptr)
+    np.testing.assert_array_equal(other.col, im.col)
+    assert other.meta["split"] == im.meta["split"] and other.meta["n_runs"] == 100
+    # and main runs outside the pilot's support are sink runs: with one pilot run, interior rows have some
+    one = build_imdp(sim, CONTRACT_SPEC, IMDPOptions(eta=[0.1, 0.1], hold=2, n_runs=100, pilot_runs=1, seed=1))
+    r = one.grid.x_to_ids(np.array([[0.0, 0.3]]))[0] * one.M + 1
+    sink = one.k_hi[one.row_ptr[r]:one.row_ptr[r + 1]][-1]
+    assert one.col[one.row_ptr[r + 1] - 1] == one.C and 0 < sink < 100

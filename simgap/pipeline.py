@@ -170,6 +170,9 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
     syn, ro, au = exp.section("synthesis"), exp.section("rollout"), exp.section("audit")
     cert_section = exp.section("certify")
     spec, x0, hold, R = checked["spec"], checked["x0"], checked["hold"], checked["n_rollouts"]
+    if per_run:  # a reach-avoid horizon shorter than one hold certifies nothing: refused before any work
+        from .perrun.value_iteration import check_horizon
+        check_horizon(spec.kind, int(per_run["horizon"]), int(per_run["hold"]))
     out.mkdir(parents=True, exist_ok=True)  # after validation: bad input leaves no folder behind
     ex = executor or exp.collect.executor
     wk = workers if workers is not None else exp.collect.workers

@@ -328,3 +328,20 @@ def test_support_and_split_come_from_the_pilot_alone(contract):
     r = one.grid.x_to_ids(np.array([[0.0, 0.3]]))[0] * one.M + 1
     sink = one.k_hi[one.row_ptr[r]:one.row_ptr[r + 1]][-1]
     assert one.col[one.row_ptr[r + 1] - 1] == one.C and 0 < sink < 100
+
+
+def test_a_reach_avoid_horizon_shorter_than_a_hold_is_refused_before_sampling(tmp_path, capsys):
+    """`simgap synthesize --level run` on a reach-avoid experiment with horizon < hold: refused with the
+    reason before the interval MDP is sampled (exit 2, no output file)."""
+    from pathlib import Path
+
+    from simgap.cli import main
+
+    toml = Path(__file__).parent / "data" / "perrun_turtle_tiny.toml"
+    bad = tmp_path / "short.toml"
+    text = toml.read_text()
+    assert "hold = 1" in text
+    bad.write_text(text.replace("hold = 1", "hold = 3"))
+    out = tmp_path / "c.npz"
+    assert main(["synthesize", "--level", "run", "--spec", str(bad), "--horizon", "2", "--out", str(out)]) == 2
+    assert "shorter than one hold of 3 periods" in capsys.readouterr().err and not out.exists()

@@ -114,7 +114,7 @@ def synthesize_experiment(exp, horizon=None, x0=None, eta=None, hold=None, log=p
     Bad input (no [perrun] section, horizon < 1, x0 outside X) raises before any sampling."""
     from ..pipeline import experiment_spec
     from ..simulators import make_simulator
-    from .value_iteration import synthesize_imdp
+    from .value_iteration import check_horizon, synthesize_imdp
 
     sec = exp.section("perrun")
     if not sec:
@@ -127,6 +127,7 @@ def synthesize_experiment(exp, horizon=None, x0=None, eta=None, hold=None, log=p
         if (x0 is not None or exp.section("rollout").get("x0") is not None or map_x0 is not None) else None
     if x0 is not None:
         exp.system.check_states(np.atleast_2d(x0), "x0")
+    check_horizon(spec.kind, int(o["horizon"]), int(o["hold"]))
     with make_simulator(exp.simulator.to_dict(), system=exp.system) as sim:
         imdp = build(sim, spec, o, log, on_progress)
     ctl = synthesize_imdp(imdp, int(o["horizon"]), spec.kind)

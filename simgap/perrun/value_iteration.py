@@ -137,6 +137,19 @@ def abstract_steps(kind: str, horizon: int, hold: int) -> int:
     return -(-int(horizon) // int(hold)) if kind == "invariance" else int(horizon) // int(hold)
 
 
+def check_horizon(kind: str, horizon: int, hold: int) -> int:
+    """Ha for a horizon of H periods (:func:`abstract_steps`); refuses H < 1 and a reach-avoid H shorter
+    than one hold (call it before sampling: bad input is refused before any work)."""
+    if int(horizon) < 1:
+        raise SimgapError(f"horizon must be >= 1 sampling period, got {horizon}")
+    Ha = abstract_steps(kind, horizon, hold)
+    if Ha < 1:
+        raise SimgapError(f"reach-avoid horizon of {horizon} periods is shorter than one hold of {hold} "
+                          f"periods: the target is credited only at the end of a hold, so nothing can be "
+                          f"certified (use a horizon >= {hold} or a shorter hold)")
+    return Ha
+
+
 def synthesize_imdp(imdp: IMDP, horizon: int, kind: str, policy: Optional[np.ndarray] = None) -> PerRunController:
     """Interval value iteration over ``horizon`` sampling periods (see module docstring).
 
@@ -148,18 +161,11 @@ def synthesize_imdp(imdp: IMDP, horizon: int, kind: str, policy: Optional[np.nda
     recorded = (imdp.meta.get("spec") or {}).get("kind")
     if recorded is not None and recorded != kind:
         raise SimgapError(f"the interval MDP was built for a {recorded} specification, not {kind}")
-    if int(horizon) < 1:
-        raise SimgapError(f"horizon must be >= 1 sampling period, got {horizon}")
+    Ha = check_horizon(kind, horizon, imdp.hold)
     t0 = time.perf_counter()
     C, M = imdp.C, imdp.M
-    Ha = abstract_steps(kind, horizon, imdp.hold)
-    if kind == "reach_avoid":
-        if Ha < 1:
-            raise SimgapError(f"reach-avoid horizon of {horizon} periods is shorter than one hold of {imdp.hold} "
-                              f"periods: the target is credited only at the end of a hold, so nothing can be "
-                              f"certified (use a horizon >= {imdp.hold} or a shorter hold)")
-        if not imdp.target.any():
-            raise SimgapError("reach-avoid: the interval MDP has no target cell (no cell lies wholly in the target)")
+    if kind == "reach_avoid" and not imdp.target.any():
+        raise SimgapError("reach-avoid: the interval MDP has no target cell (no cell lies wholly in the target)")
     Q = np.empty(C * M)  # reused by every sweep
     live, target = imdp.live, imdp.target
     V = (live | target).astype(float) if kind == "invariance" else target.astype(float)

@@ -18,7 +18,7 @@ from ..errors import SimgapError
 
 # subcommand module names under simgap.cli (and simgap_viz.cli for the app)
 SUBCOMMANDS = ["collect", "certify", "audit", "synthesize", "rollout", "refine", "data", "run", "plugins"]
-VIZ_SUBCOMMANDS = ["gui", "record", "view"]
+VIZ_SUBCOMMANDS = ["gui", "record", "view", "plot"]
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -14,6 +14,8 @@ bias           1                                   constant rate offset [state u
 viscous_frict. v (a velocity state)                c = -b/I for a viscous force -b v  [1/s]
 coulomb_frict. sign(v)                             c = -F_c/I for a Coulomb force -F_c sign v
 drag           v |v|                               c = -d/I for a quadratic drag -d v|v|
+cubic_stiffn.  p^3, p the position integrating v   c = -k3/I for a cubic spring force -k3 p^3
+                                                   (hardening: c < 0; softening: c > 0)
 input_gain     B_ij(x) u_j ("as u_j enters f_i")   relative gain error: the input acts (1 + c) u_j
 deadband       B_ij(x) sign(u_j)                   c = -w: a dead zone of width w [input unit]
                                                    (exact for |u_j| >= w)
@@ -62,8 +64,8 @@ from ..errors import SimgapError
 from ..expr import VarSpace, parse
 from ..systems import BUILTIN_UNITS, System
 
-LIBRARY = ("bias", "viscous_friction", "coulomb_friction", "drag", "input_gain", "deadband", "gravity",
-           "integration", "input_delay", "actuator_lag")
+LIBRARY = ("bias", "viscous_friction", "coulomb_friction", "drag", "cubic_stiffness", "input_gain", "deadband",
+           "gravity", "integration", "input_delay", "actuator_lag")
 #: deepest history the library's delay candidates look at (periods), for time-ordered data
 MAX_DELAY = 3
 #: time constants (in periods L, 1 / L = 1 - exp(-tau / T_a)) of the first-order actuator-lag candidates
@@ -334,6 +336,11 @@ def library_candidates(system: System, names: Optional[Iterable[str]] = None,
                                       smooth=False))
                 else:
                     out.append(Effect(nm, v, vn, f"{vn}|{vn}|", lambda x, u, v=v: x[:, v] * np.abs(x[:, v])))
+        elif nm == "cubic_stiffness":
+            for v in vdims:
+                for p in positions_of(s, v):
+                    pn = s.state_names[p]
+                    out.append(Effect(nm, v, pn, f"{pn}^3", lambda x, u, p=p: x[:, p] ** 3))
         elif nm in ("input_gain", "deadband"):
             for i in range(s.n):
                 for j in range(s.m):
@@ -426,6 +433,8 @@ def coefficient_units(system: System, e: Effect) -> str:
     if e.name == "drag":
         vu = su[system.state_names.index(e.variable)]
         return f"{rate} per ({vu})^2"
+    if e.name == "cubic_stiffness":
+        return f"{rate} per ({su[system.state_names.index(e.variable)]})^3"
     if e.name in ("input_gain", "gravity"):
         return "1 (relative)"
     if e.name == "integration":
@@ -577,3 +586,49 @@ def sign_check(system: System, effects: Sequence[Effect], x: np.ndarray) -> Call
         return None
 
     return check
+
+
+# ---------------------------------------------------------------------------------------
+# corrections carried into the states that integrate a velocity
+# ---------------------------------------------------------------------------------------
+
+def positions_of(system: System, v: int) -> list:
+    """States x_p that integrate velocity x_v: d step_p / d x_v within 50 % of the base period on X x U
+    (explicit, semi-implicit and exact discretisations alike)."""
+    x, u = _sample_domain(system, 128, seed=3)
+    dt = system.base_tau
+    h = 1e-6 * max(1.0, float(system.x_hi[v] - system.x_lo[v]))
+    xp, xm = x.copy(), x.copy()
+    xp[:, v] += h
+    xm[:, v] -= h
+    Jv = (system.step(xp, u, dt) - system.step(xm, u, dt)) / (2 * h)
+    return [p for p in range(system.n) if p != v and np.all(np.abs(Jv[:, p] - dt) < 0.5 * dt)]
+
+
+def carry_matrix(system: System) -> np.ndarray:
+    """K (n, n): a correction delta of velocity x_v's update moves position x_p's update by K[p, v] delta.
+
+    A force-like correction acts in the model as an input does. For every velocity v
+    (:func:`velocity_dims`) and input j that enters it, K[p, v] = (d step_p / d u_j) /
+    (d step_v / d u_j) over random samples of X x U, for the positions p that integrate v
+    (d step_p / d x_v within 50 % of the base period): 0 for explicit Euler (x_p+ = x_p + dt x_v), dt
+    for semi-implicit Euler (x_p+ = x_p + dt x_v+, physics engines), dt / 2 for an exact
+    (zero-order-hold) discretisation. Without an input entering v, K[:, v] = 0.
+    """
+    n = system.n
+    K = np.zeros((n, n))
+    vd = velocity_dims(system)
+    if not vd:
+        return K
+    x, u = _sample_domain(system, 128, seed=3)
+    dt = system.base_tau
+    for v in vd:
+        for j in range(system.m):
+            Bv = _input_rate(system, v, j)(x, u)
+            if not np.all(np.abs(Bv) > 1e-12 * max(1.0, float(np.abs(Bv).max()))):
+                continue
+            for p in positions_of(system, v):
+                kappa = float(np.median(_input_rate(system, p, j)(x, u) / Bv))
+                K[p, v] = kappa if abs(kappa) > 1e-9 * dt else 0.0
+            break
+    return K

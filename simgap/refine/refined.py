@@ -3,9 +3,11 @@
 A refined system is an ordinary :class:`simgap.systems.System` (same X, U, base_tau, names,
 angle dims) whose one-base-step map is
 
-    step'(x, u, dt) = step(x, u, dt) + dt * sum_k c_k g_k(x, u) e_{i_k}
+    step'(x, u, dt) = step(x, u, dt) + (I + K) dt * sum_k c_k g_k(x, u) e_{i_k}
 
-(effect k enters state i_k). With ``steps`` = k > 1 the effects act in every base step, so
+(effect k enters state i_k; K = :func:`simgap.refine.effects.carry_matrix` carries a correction of a
+velocity's update into the positions that integrate it as the model's own discretisation does:
+zero for the explicit-Euler built-ins, dt for a semi-implicit model). With ``steps`` = k > 1 the effects act in every base step, so
 f' is the k-fold composition as for any system. Its ``params`` carry ``base_system`` (the
 built-in it started from) and ``refinement`` (the effects with coefficients), so reports and
 manifests show what was added.
@@ -39,7 +41,7 @@ import numpy as np
 
 from ..errors import SimgapError
 from ..systems import BUILTIN, System, get_system, is_named, resolve_system
-from .effects import Effect, effect_from_spec, integration_effect
+from .effects import Effect, carry_matrix, effect_from_spec, integration_effect
 
 FORMAT = "simgap-refined-system"
 
@@ -62,11 +64,19 @@ def refined_system(base: System, effects: Sequence[Effect], coefficients: Sequen
         effects = [integration_effect(inner, e.state, inner.state_names.index(e.variable))
                    if e.name == "integration" else e for e in effects]
 
+    # a correction of a velocity's update also moves the positions that integrate it, as the
+    # model's own discretisation does (carry_matrix: 0 for explicit Euler, dt semi-implicit)
+    K = carry_matrix(base) if effects else np.zeros((base.n, base.n))
+    carried = bool(np.any(K))
+
     def step(x, u, dt):
         out = np.array(base_step(x, u, dt), dtype=float, copy=True)
+        add = np.zeros_like(out)
         for e, ck in zip(effects, c):
-            out[:, e.state] += dt * ck * e(x, u)
-        return out
+            add[:, e.state] += dt * ck * e(x, u)
+        if carried:
+            add += (dt / base.base_tau) * add @ K.T
+        return out + add
 
     jac = None
     if base.jacobian_bound is not None and all(e.smooth for e in effects):
@@ -88,6 +98,8 @@ def refined_system(base: System, effects: Sequence[Effect], coefficients: Sequen
                 dsum = np.zeros((B * S, n))
                 for e, ck in zip(effects, c):
                     dsum[:, e.state] += ck * (e(Xp, U) - e(Xm, U)) / (2 * h)
+                if carried:
+                    dsum += dsum @ K.T
                 D[:, :, j] = np.abs(dsum).reshape(B, S, n).max(axis=1)
             return D
 

@@ -38,8 +38,8 @@ import numpy as np
 from ..systems import System
 from .data import Transitions, episodes, history, lagged_inputs, subset, time_order
 from ..errors import SimgapError
-from .effects import (LAG_PERIODS, Effect, candidate_effects, coefficient_units, integration_effect,
-                      physical, sign_check, velocity_dims)
+from .effects import (LAG_PERIODS, Effect, candidate_effects, carry_matrix, coefficient_units,
+                      integration_effect, physical, sign_check, velocity_dims)
 from .refined import build_refined, load_system, refined_system
 from .residual import Residuals, match_tau, residuals
 from .selection import SelectionOptions, StateFit, select_state, split_heldout
@@ -113,6 +113,7 @@ def refine(system, data: Transitions, effects: Optional[Sequence[str]] = None,
     # velocity states first: the integration term of a position uses the refined velocity update
     vd = velocity_dims(sysobj)
     order = list(vd) + [i for i in range(sysobj.n) if i not in vd]
+    K_carry = carry_matrix(sysobj)
     fits, chosen = {}, []
     for i in order:
         ci = [e for e in cands if e.state == i]
@@ -126,6 +127,11 @@ def refine(system, data: Transitions, effects: Optional[Sequence[str]] = None,
             bad = [e.key(sysobj) for e, col in zip(ci, Theta.T) if not np.all(np.isfinite(col))]
             raise SimgapError(f"candidate terms {bad} are not finite on the data")
         y = before.r[:, i] / data.tau
+        if chosen and np.any(K_carry[i]):
+            # a position that integrates a corrected velocity: what is left after the carried corrections
+            interim = refined_system(sysobj, [c[0] for c in chosen if c[0].lag == 0],
+                                     [c[1] for c in chosen if c[0].lag == 0])
+            y = _after(interim, data, hist, chosen).r[:, i] / data.tau
         fit = select_state(y, Theta, [e.key(sysobj) for e in ci], held, probe, i,
                            data.is_time_series, opts, rng, sign_check(sysobj, ci, data.x), clock)
         fits[i] = fit
@@ -277,22 +283,24 @@ def _with_history(data: Transitions, max_lag: int) -> tuple:
     return data, hist, int(max_lag), info
 
 
-def _extra_rate(data: Transitions, hist: np.ndarray, chosen, x=None, rows=None) -> np.ndarray:
-    """sum_k c_k g_k of the history effects (lag > 0) on rows (x default: the data's)."""
+def _extra_rate(data: Transitions, hist: np.ndarray, chosen, x=None, rows=None, K=None) -> np.ndarray:
+    """sum_k c_k g_k of the history effects (lag > 0) on rows (x default: the data's), carried into
+    the positions by K (:func:`simgap.refine.effects.carry_matrix`) as the refined system does."""
     rows = slice(None) if rows is None else rows
     x = data.x[rows] if x is None else x
     out = np.zeros_like(x)
     for e, c, *_ in chosen:
         if e.lag:
             out[:, e.state] += c * e(x, data.u[rows], hist[rows])
-    return out
+    return out if K is None or not np.any(K) else out + out @ K.T
 
 
 def _after(refined: System, data: Transitions, hist, chosen) -> Residuals:
     """Residuals of f' including the history effects (which the memoryless f' cannot hold)."""
     r = residuals(refined, data)
     if any(e.lag for e, *_ in chosen):
-        r = Residuals(refined, data, r.r - data.tau * _extra_rate(data, hist, chosen))
+        K = carry_matrix(refined)
+        r = Residuals(refined, data, r.r - data.tau * _extra_rate(data, hist, chosen, K=K))
     return r
 
 
@@ -376,11 +384,14 @@ def multistep_rms(system: System, data: Transitions, held: np.ndarray, k: int,
     z = x[starts]
     extra = [c for c in chosen if c[0].lag]
     hs = hist[order] if extra else None
+    K = carry_matrix(system) if extra else None
+    carried = K is not None and bool(np.any(K))
     for j in range(k):
         zn = system.f(z, u[starts + j])
+        add = np.zeros_like(zn)
         for e, c, *_ in extra:
-            zn[:, e.state] += data.tau * c * e(z, u[starts + j], hs[starts + j])
-        z = zn
+            add[:, e.state] += data.tau * c * e(z, u[starts + j], hs[starts + j])
+        z = zn + (add + add @ K.T if carried else add)
     e = system.diff(z, xn[starts + k - 1])
     return np.sqrt(np.mean(e ** 2, axis=0))
 

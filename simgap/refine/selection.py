@@ -142,7 +142,7 @@ def _rss(yy: float, G: np.ndarray, b: np.ndarray, S: list, c: np.ndarray) -> flo
 
 
 #: which of several collinear candidates is kept: the simplest physical reading first
-PRIORITY = ("bias", "viscous_friction", "coulomb_friction", "drag", "input_gain", "deadband", None,
+PRIORITY = ("bias", "viscous_friction", "coulomb_friction", "drag", "cubic_stiffness", "input_gain", "deadband", None,
             "integration", "input_delay", "actuator_lag", "gravity")
 
 

@@ -127,8 +127,11 @@ def resolve_experiment(path_or_name: str | Path) -> Path:
 
 
 def load_experiment(path_or_name: str | Path, profile: Optional[str] = "small",
-                    overrides: Optional[dict] = None) -> ExperimentConfig:
+                    overrides: Optional[dict] = None, system: Optional[System] = None) -> ExperimentConfig:
     """Load an experiment TOML, apply ``profile`` and ``overrides`` ({section: {key: value}}).
+
+    ``system`` replaces what ``[system]`` names (its file is then not read): a results folder
+    reopened after its system file is gone passes the model its data embed.
 
     ``profile`` None or ``"base"`` uses the top-level configuration as is.
 
@@ -177,7 +180,8 @@ def load_experiment(path_or_name: str | Path, profile: Optional[str] = "small",
     syn_map = model.synthesis.map
     if syn_map is not None and ("/" in syn_map or "\\" in syn_map or syn_map.endswith(".toml")):
         merged["synthesis"]["map"] = str(confined(syn_map, folder, f"{where}: synthesis.map"))
-    system = _system(model.system, where, folder)
+    if system is None:
+        system = _system(model.system, where, folder)
     simulator = _simulator(model.simulator, merged["simulator"], system, where, folder)
     collect = _collect(model.collect, out)
     return ExperimentConfig(name=path.stem, profile=profile, path=path, system=system, simulator=simulator,

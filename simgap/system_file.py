@@ -73,6 +73,10 @@ BOUND_KEYS = ("jacobian", "growth")
 #: names a variable or parameter may not take (the expression language's own words)
 RESERVED = frozenset(expr.FUNCTIONS) | frozenset(expr.CONSTANTS) | {"dt", "t"}
 MAX_SUBSTEPS = 10_000
+#: sizes a file may ask for (a file is data: it must not make simgap allocate without bound)
+MAX_STATES, MAX_INPUT_DIMS, MAX_INPUTS = 32, 16, 100_000
+#: rows per block when the model is checked on X x U and its Jacobian estimated
+BLOCK_ROWS = 200_000
 #: states of X per input on which the map is checked finite and its Jacobian estimated
 CHECK_STATES = 256
 
@@ -235,6 +239,9 @@ def _names(spec, key, where) -> list:
     v = spec.get(key)
     if not isinstance(v, list) or not v:
         raise SimgapError(f"{where}: {key} must be a non-empty list of names, got {v!r}")
+    cap = MAX_STATES if key == "states" else MAX_INPUT_DIMS
+    if len(v) > cap:
+        raise SimgapError(f"{where}: {len(v)} {key}; at most {cap}")
     for s in v:
         _name_ok(s, f"{key} entry", where)
     if len(set(v)) != len(v):
@@ -292,7 +299,12 @@ def _input_set(spec, m, where) -> np.ndarray:
         if not np.all(np.isfinite(lo + hi)) or any(not (isinstance(c, int) and c >= 1) for c in counts) \
                 or any(h < l for l, h in zip(lo, hi)):
             raise SimgapError(f"{where}: input_grid needs finite lo <= hi and integer counts >= 1")
+        if np.prod([float(c) for c in counts]) > MAX_INPUTS:
+            raise SimgapError(f"{where}: input_grid has {np.prod([float(c) for c in counts]):.3g} inputs; at most "
+                              f"{MAX_INPUTS:,}")
         return input_grid(lo, hi, counts)
+    if isinstance(sset, list) and len(sset) > MAX_INPUTS:
+        raise SimgapError(f"{where}: input_set has {len(sset):,} inputs; at most {MAX_INPUTS:,}")
     rows = [r if isinstance(r, list) else [r] for r in sset] if isinstance(sset, list) else None
     if not rows or any(len(r) != m or any(isinstance(a, bool) or not isinstance(a, (int, float)) for a in r)
                        for r in rows):
@@ -370,16 +382,19 @@ def _check_states(lo, hi) -> np.ndarray:
 
 
 def _check_finite(step, xs, U, tau, states, where, what) -> None:
-    X = np.repeat(xs, U.shape[0], axis=0)
-    Uu = np.tile(U, (xs.shape[0], 1))
-    with np.errstate(all="ignore"):
-        out = step(X, Uu, tau)
-    bad = ~np.isfinite(out)
-    if bad.any():
-        r, c = np.argwhere(bad)[0]
-        raise SimgapError(f"{where}: {what} is not finite on X: {states[c]} is {out[r, c]} after one period from "
-                          f"x = {X[r].tolist()}, u = {Uu[r].tolist()} ({int(bad.any(axis=1).sum())} of {len(out)} "
-                          f"checked (x, u) pairs)")
+    per = max(1, BLOCK_ROWS // xs.shape[0])  # inputs per block: every state of xs with each
+    for j in range(0, U.shape[0], per):
+        Ub = U[j:j + per]
+        X = np.repeat(xs, Ub.shape[0], axis=0)
+        Uu = np.tile(Ub, (xs.shape[0], 1))
+        with np.errstate(all="ignore"):
+            out = step(X, Uu, tau)
+        bad = ~np.isfinite(out)
+        if bad.any():
+            r, c = np.argwhere(bad)[0]
+            raise SimgapError(f"{where}: {what} is not finite on X: {states[c]} is {out[r, c]} after one period "
+                              f"from x = {X[r].tolist()}, u = {Uu[r].tolist()} ({int(bad.any(axis=1).sum())} of "
+                              f"{len(out)} checked (x, u) pairs)")
 
 
 def _jacobian(bounds, variables, consts, continuous, tau, n, m, where, step, xs, smooth):
@@ -450,8 +465,9 @@ def _estimated_jacobian(step, xs, tau, n):
         u = np.atleast_2d(np.asarray(u, dtype=float))
         uu, inv = np.unique(u, axis=0, return_inverse=True)
         new = [r for r in map(tuple, uu) if r not in cache]
-        if new:
-            for r, D in zip(new, bound_for(np.array(new, dtype=float))):
+        per = max(1, BLOCK_ROWS // xs.shape[0])
+        for j in range(0, len(new), per):  # blocks bound the memory for large input sets
+            for r, D in zip(new[j:j + per], bound_for(np.array(new[j:j + per], dtype=float))):
                 cache[r] = D
         return np.stack([cache[r] for r in map(tuple, uu)])[inv.reshape(-1)]
     return jac

@@ -55,7 +55,8 @@ def _inside(root: Path, name: str) -> Path:
 
 
 def _experiment(summary: dict, root: Path):
-    """The run's experiment config: its TOML file if it still loads, else the built-in of that name."""
+    """The run's experiment config: its TOML file if it still loads, else the built-in of that name.
+    A system file the TOML names that is gone is replaced by the model the run's data embed."""
     from simgap.config import load_experiment
     name, profile = summary.get("experiment"), summary.get("profile") or "base"
     errors = []
@@ -66,6 +67,13 @@ def _experiment(summary: dict, root: Path):
             return load_experiment(src, profile)
         except SimgapError as e:
             errors.append(str(e))
+            if "system file" in str(e) and (root / DATA_DIRS["stochastic"]).is_dir():
+                from simgap.collect import load_store
+                try:
+                    embedded = load_store(_inside(root, DATA_DIRS["stochastic"])).system
+                    return load_experiment(src, profile, system=embedded)
+                except SimgapError as e2:
+                    errors.append(str(e2))
     raise SimgapError(f"results folder {root}: cannot load its experiment {name!r} (profile {profile}): "
                       + "; ".join(errors))
 

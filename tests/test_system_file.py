@@ -243,3 +243,22 @@ def test_experiment_steps_and_the_app_given_a_file(tmp_path):
     assert s.name == "duffing" and s.n == 2 and len(settings.eta) == 2
     x, u = np.array([[0.3, 0.2]]), np.array([[1.0]])
     assert np.array_equal(s.with_steps(1).f(x, u), load_system_file(tmp_path / "duffing.toml").with_steps(1).f(x, u))
+
+
+def test_run_folder_reopens_without_its_system_file(tmp_path):
+    """`simgap run` on a system file; `simgap gui RESULTS` after the file is gone uses the model
+    the run's data embed (and a changed file is refused, not used)."""
+    (tmp_path / "duffing.toml").write_text(DUFFING)
+    (tmp_path / "exp.toml").write_text(EXP.replace("epsilon = 0.04", "epsilon = 0.15").replace("n_runs = 30", "n_runs = 8")
+                                       + "[synthesis]\neta = [0.1, 0.1]\n[rollout]\nn = 10\nhorizon = 5\n"
+                                         "x0 = [0.0, 0.0]\n[audit]\npoints = 5\nruns = 20\n")
+    res = tmp_path / "res"
+    assert main(["run", str(tmp_path / "exp.toml"), "--profile", "base", "--out", str(res), "--no-record"]) == 0
+    (tmp_path / "duffing.toml").unlink()
+    from simgap_viz.results import load_run
+    run = load_run(res)
+    assert run.experiment.system.name == "duffing" and set(run.methods) == {"stochastic", "deterministic"}
+    assert main(["gui", str(res), "--port", "0", "--exit-after", "0.3"]) == 0
+    (tmp_path / "duffing.toml").write_text(DUFFING.replace("k3 = 0.5", "k3 = 0.9"))
+    with pytest.raises(SimgapError, match="different system"):
+        load_run(res)

@@ -71,6 +71,8 @@ BAD_FILES = {
     "bad jacobian": (GOOD.replace("[dynamics]", "[bounds]\njacobian = [[1, 0.1]]\n[dynamics]"),
                      ["bounds.jacobian must be an 2 x 2 matrix"]),
     "reserved name": (GOOD.replace('states = ["x", "v"]', 'states = ["x", "sin"]'), ["'sin' is reserved"]),
+    "huge input grid": (GOOD.replace("counts = [3]", "counts = [1000000000]"), ["input_grid has 1e+09 inputs",
+                                                                           "at most 100,000"]),
 }
 
 HOSTILE = {

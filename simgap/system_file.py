@@ -67,7 +67,7 @@ FORMAT = "simgap-system"
 VERSION = 1
 #: keys of the top level and of the sub-tables (anything else is an error naming the nearest)
 KEYS = ("format", "version", "name", "description", "states", "inputs", "units", "x_lo", "x_hi", "tau",
-        "steps", "angles", "velocities", "translation_invariant", "input_grid", "input_set", "params", "dynamics", "bounds")
+        "steps", "angles", "velocities", "translation_invariant", "input_grid", "input_set", "params", "definitions", "dynamics", "bounds")
 DYNAMICS_KINDS = ("discrete", "continuous")
 BOUND_KEYS = ("jacobian", "growth")
 #: names a variable or parameter may not take (the expression language's own words)
@@ -143,11 +143,22 @@ def system_from_spec(spec: dict, where: str = "embedded system file") -> System:
     if "description" in spec and not isinstance(spec["description"], str):
         raise SimgapError(f"{where}: description must be a string")
 
-    # columns of z: x (n), u (m), dt; parameters get columns after z and are folded into constants
+    defs = spec.get("definitions", {})
+    if not isinstance(defs, dict):
+        raise SimgapError(f"{where}: [definitions] must be a table name = \"formula\"")
+    for d in defs:
+        _name_ok(d, "definition", where)
+        if d in states or d in inputs or d in params:
+            raise SimgapError(f"{where}: definition {d!r} has the name of a state, input or parameter")
+    K = len(defs)
+    # columns of z: x (n), u (m), dt, definitions (K); parameters get columns after z and are
+    # folded into constants
+    wz = n + m + 1 + K
     variables = expr.VarSpace(dict({s: i for i, s in enumerate(states)},
                                    **{s: n + j for j, s in enumerate(inputs)}, dt=n + m,
-                                   **{p: n + m + 1 + j for j, p in enumerate(params)}), n + m + 1)
-    consts = {n + m + 1 + j: v for j, v in enumerate(params.values())}
+                                   **{d: n + m + 1 + k for k, d in enumerate(defs)},
+                                   **{p: wz + j for j, p in enumerate(params)}), wz)
+    consts = {wz + j: v for j, v in enumerate(params.values())}
     dyn = spec.get("dynamics")
     if not isinstance(dyn, dict):
         raise SimgapError(f"{where}: needs a [dynamics] table with kind and one formula per state")
@@ -166,9 +177,13 @@ def system_from_spec(spec: dict, where: str = "embedded system file") -> System:
     if isinstance(substeps, bool) or not isinstance(substeps, int) or not 1 <= substeps <= MAX_SUBSTEPS:
         raise SimgapError(f"{where}: dynamics.substeps must be an integer in 1..{MAX_SUBSTEPS}, got {substeps!r}")
     # a right-hand side does not depend on the step length; a discrete map may use dt
+    def_forms = {n + m + 1 + k: _formula(text, variables, consts, f"{where}: definitions.{d}",
+                                         allow_dt=not continuous, uses=range(wz))
+                 for k, (d, text) in enumerate(defs.items())}
+    order = _evaluation_order(def_forms, list(defs), n + m + 1, where)
     forms = [_formula(dyn[s], variables, consts, f"{where}: dynamics.{s}", allow_dt=not continuous,
-                      uses=range(n + m)) for s in states]
-    rhs_or_map = _vector_field(forms, n, m)
+                      uses=range(wz)) for s in states]
+    rhs_or_map = _vector_field(forms, [(c, def_forms[c]) for c in order], n, m, wz)
     if continuous:
         from .synthesis.runge_kutta import rk4_integrate
 
@@ -180,7 +195,7 @@ def system_from_spec(spec: dict, where: str = "embedded system file") -> System:
 
     xs = _check_states(x_lo, x_hi)
     _check_finite(step, xs, U, float(tau), states, where, "the model")
-    smooth = all(f.smooth for f in forms)
+    smooth = all(f.smooth for f in forms) and all(f.smooth for f in def_forms.values())
     jac, how = _jacobian(spec.get("bounds", {}), variables, consts, continuous, float(tau), n, m, where,
                          step, xs, smooth)
     # embedded without steps: the System carries them (system_ref adds them back)
@@ -342,7 +357,7 @@ def _formula(text, variables, consts, what, allow_dt, uses) -> expr.Expr:
         raise SimgapError(f"{what} {text!r}: dt (the step length) is not available here")
     cols = e.columns - set(consts) - {dt_col}
     if not cols <= set(uses):
-        raise SimgapError(f"{what} {text!r}: may not use the states here")
+        raise SimgapError(f"{what} {text!r}: may use only the inputs, parameters and dt here")
     return expr.Expr(e.text, _fold(e.tree, consts))
 
 
@@ -356,16 +371,37 @@ def _fold(tree: tuple, consts: dict) -> tuple:
 def _columns(x, u, dt, width) -> np.ndarray:
     z = np.zeros((x.shape[0], width))
     n, m = x.shape[1], u.shape[1]
-    z[:, :n], z[:, n:n + m], z[:, -1] = x, u, dt
+    z[:, :n], z[:, n:n + m], z[:, n + m] = x, u, dt
     return z
 
 
-def _vector_field(forms, n, m):
-    """(x (B,n), u (B,m), dt) -> (B,n): the formulas evaluated row-wise (vectorized over B)."""
+def _evaluation_order(def_forms: dict, names: list, first: int, where: str) -> list:
+    """Columns of the definitions in an order where each comes after those it uses (a cycle is
+    an error naming it); independent of the table's key order, which JSON does not keep."""
+    deps = {c: {d for d in e.columns if d in def_forms and d != c} for c, e in def_forms.items()}
+    for c, e in def_forms.items():
+        if c in e.columns:
+            raise SimgapError(f"{where}: definition {names[c - first]!r} uses itself")
+    order, done = [], set()
+    while len(order) < len(def_forms):
+        ready = sorted(c for c in def_forms if c not in done and deps[c] <= done)
+        if not ready:
+            cyc = sorted(names[c - first] for c in def_forms if c not in done)
+            raise SimgapError(f"{where}: definitions {cyc} use each other in a cycle")
+        order += ready
+        done.update(ready)
+    return order
+
+
+def _vector_field(forms, defs, n, m, width):
+    """(x (B,n), u (B,m), dt) -> (B,n): the definitions (column, Expr) in order, then the formulas,
+    evaluated row-wise (vectorized over B)."""
     def field(x, u, dt):
         x = np.atleast_2d(x)
         u = np.broadcast_to(np.atleast_2d(u), (x.shape[0], m))
-        z = _columns(x, u, dt, n + m + 1)
+        z = _columns(x, u, dt, width)
+        for col, e in defs:
+            z[:, col] = e.eval(z)
         return np.stack([f.eval(z) for f in forms], axis=1)
     return field
 

@@ -262,3 +262,65 @@ def test_run_folder_reopens_without_its_system_file(tmp_path):
     (tmp_path / "duffing.toml").write_text(DUFFING.replace("k3 = 0.5", "k3 = 0.9"))
     with pytest.raises(SimgapError, match="different system"):
         load_run(res)
+
+
+CARTPOLE = """
+name = "cartpole_textbook"
+states = ["x", "theta", "xd", "thetad"]
+inputs = ["F"]
+x_lo = [-1.0, -0.5, -2.0, -2.0]
+x_hi = [1.0, 0.5, 2.0, 2.0]
+tau = 0.02
+angles = ["theta"]
+translation_invariant = ["x"]
+velocities = ["xd", "thetad"]
+input_set = [[-10.0], [0.0], [10.0]]
+[params]
+g = 9.8
+mc = 1.0
+mp = 0.1
+l = 0.5
+[definitions]   # in an order where each uses a later one: evaluated by dependency, not by position
+xacc = "temp - mp*l*thetaacc*cos(theta)/(mc + mp)"
+thetaacc = "(g*sin(theta) - cos(theta)*temp) / (l*(4/3 - mp*cos(theta)^2/(mc + mp)))"
+temp = "(F + mp*l*thetad^2*sin(theta))/(mc + mp)"
+[dynamics]
+kind = "continuous"
+substeps = 2
+x = "xd"
+theta = "thetad"
+xd = "xacc"
+thetad = "thetaacc"
+"""
+
+
+def cartpole_rhs(z, u, g=9.8, mc=1.0, mp=0.1, l=0.5):
+    th, xd, thd, F = z[:, 1], z[:, 2], z[:, 3], u[:, 0]
+    temp = (F + mp * l * thd ** 2 * np.sin(th)) / (mc + mp)
+    thacc = (g * np.sin(th) - np.cos(th) * temp) / (l * (4.0 / 3.0 - mp * np.cos(th) ** 2 / (mc + mp)))
+    xacc = temp - mp * l * thacc * np.cos(th) / (mc + mp)
+    return np.stack([xd, thd, xacc, thacc], axis=1)
+
+
+def test_definitions_give_the_textbook_cartpole(tmp_path):
+    (tmp_path / "cp.toml").write_text(CARTPOLE)
+    s = load_system_file(tmp_path / "cp.toml")
+    rng = np.random.default_rng(3)
+    x = s.x_lo + rng.random((40, 4)) * (s.x_hi - s.x_lo)
+    u = s.inputs[rng.integers(0, 3, 40)]
+    want = rk4_integrate(cartpole_rhs, x, u, 0.02, 2)
+    want[:, 1] = (want[:, 1] + np.pi) % (2 * np.pi) - np.pi
+    np.testing.assert_allclose(s.f(x, u), want, rtol=0, atol=1e-14)
+    from simgap.system_file import translation_invariant_dims
+    assert translation_invariant_dims(s) == (0,) and s.params["velocity_dims"] == [2, 3]
+    # embedded in JSON with sorted keys (as manifests are): the same model
+    ref = json.loads(json.dumps(system_ref(s), sort_keys=True))
+    assert list(ref["definitions"]) == ["temp", "thetaacc", "xacc"]
+    np.testing.assert_array_equal(resolve_system(ref, paths=False).f(x, u), s.f(x, u))
+    # cycles and self-reference are refused by name
+    cyc = CARTPOLE.replace('temp = "(F + mp*l*thetad^2*sin(theta))/(mc + mp)"', 'temp = "xacc + F"')
+    with pytest.raises(SimgapError, match=r"definitions \['temp', 'thetaacc', 'xacc'\] use each other in a cycle"):
+        system_from_spec(dict(__import__("tomllib").loads(cyc), format="simgap-system"))
+    selfref = CARTPOLE.replace('temp = "(F + mp*l*thetad^2*sin(theta))/(mc + mp)"', 'temp = "2*temp"')
+    with pytest.raises(SimgapError, match="definition 'temp' uses itself"):
+        system_from_spec(dict(__import__("tomllib").loads(selfref), format="simgap-system"))

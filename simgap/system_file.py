@@ -27,7 +27,8 @@ continuous-time right-hand side x' = F(x, u) that is integrated with classical R
     v = "-k*x - k3*x^3 - d*v + F"
 
 Every formula goes through :mod:`simgap.expr`'s allow-list (numbers, the variables, ``pi``,
-``e``, + - * / ^, the listed functions); parameters are folded in as constants. A file that
+``e``, + - * / ^, the listed functions); parameters are folded in as constants, and
+``[definitions]`` (named intermediate formulas) are computed first, in dependency order. A file that
 refers to an unknown name, has the wrong number of entries, empty or non-finite bounds, or a
 map that is not finite on X (checked on the corners of X and seeded random states, with every
 input) is refused with a message naming the problem.

@@ -267,7 +267,9 @@ def table(res: dict) -> str:
     """Per controller: p_cert and p_emp (95 % CI) at x0, the lowest p_emp over its initial states, and
     the share of states with p_emp >= p_cert - 3 SE ("-" for a controller that states no p_cert).
     The header says what p_cert is conditional on and how the containment check went."""
-    lines = [f"per-run guarantees: horizon {res['horizon']} periods, {res['n_rollouts']} rollouts per initial state",
+    rule = (res.get("imdp") or {}).get("horizon_rule")
+    lines = [f"per-run guarantees: horizon {res['horizon']} periods, {res['n_rollouts']} rollouts per initial state"
+             + (f"; p_cert: {rule}" if rule else ""),
              "p_cert: conditional on the estimated Lipschitz constants and the Markov assumption "
              "(summary.json per_run.p_cert_conditional_on); " + containment_line(res.get("imdp", {}).get("containment"))
              + ("; RANDOMIZATION PER EPISODE: outside the Markov assumption" if str(res.get("randomization", ""))

@@ -34,7 +34,7 @@ from simgap.perrun.containment import check_containment  # noqa: E402
 from simgap.perrun.imdp import IMDPOptions  # noqa: E402
 from simgap.perrun.translation import build_imdp_translation  # noqa: E402
 from simgap.perrun.validation import empirical, sample_in_cells, success_counts  # noqa: E402
-from simgap.perrun.value_iteration import synthesize_imdp  # noqa: E402
+from simgap.perrun.value_iteration import PerRunController, synthesize_imdp  # noqa: E402
 from simgap.simulators import make_simulator  # noqa: E402
 from simgap.synthesis.spec import Box, Spec  # noqa: E402
 
@@ -53,6 +53,8 @@ def main():
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--out", default=None)
+    ap.add_argument("--controller", default=None, help="save the per-run controller here, or load it if it exists "
+                                                       "(skips the build: same seeds, same controller)")
     a = ap.parse_args()
 
     exp = load_experiment(ROOT / "assets/experiments/turtlebot.toml", "perrun")
@@ -63,17 +65,26 @@ def main():
     load0 = os.getloadavg()
 
     t0 = time.perf_counter()
-    opts = IMDPOptions(eta=a.eta, hold=1, n_runs=a.n_runs, pilot_runs=a.pilot, seed=a.seed)
-    with make_simulator(cfg, system=system, workers=a.workers) as sim:
-        im = build_imdp_translation(sim, spec, opts, log=print)
-        rep = check_containment(sim, spec, im, a.check_states, seed=a.seed)
-    ctl = synthesize_imdp(im, a.horizon, spec.kind)
+    if a.controller and Path(a.controller).exists():
+        ctl = PerRunController.load(a.controller)
+        info = {k: ctl.meta[k] for k in ("nnz", "lipschitz", "containment")}
+    else:
+        opts = IMDPOptions(eta=a.eta, hold=1, n_runs=a.n_runs, pilot_runs=a.pilot, seed=a.seed)
+        with make_simulator(cfg, system=system, workers=a.workers) as sim:
+            im = build_imdp_translation(sim, spec, opts, log=print)
+            rep = check_containment(sim, spec, im, a.check_states, seed=a.seed)
+        ctl = synthesize_imdp(im, a.horizon, spec.kind)
+        info = {"nnz": im.nnz, "lipschitz": np.round(im.meta["lipschitz"], 4).tolist(), "containment": rep.to_dict()}
+        ctl.meta.update(info)
+        if a.controller:
+            ctl.save(a.controller)
     t_build = time.perf_counter() - t0
-    print(f"interval MDP {im.nnz} entries, {t_build:.0f} s; {rep.summary()}; p_cert(x0) = "
-          f"{float(ctl.certified(x0[None])[0]):.4f}", flush=True)
+    print(f"interval MDP {info['nnz']} entries, {t_build:.0f} s; containment passed: {info['containment']['passed']}; "
+          f"p_cert(x0) = {float(ctl.certified(x0[None])[0]):.4f}", flush=True)
 
     rng = np.random.default_rng([a.seed, 5])
-    xs = np.concatenate([x0[None], sample_in_cells(im.grid, np.flatnonzero((ctl.p_cert > 0) & im.live), a.states, rng)])
+    live = (ctl.p_cert > 0) & ~ctl.target
+    xs = np.concatenate([x0[None], sample_in_cells(ctl.grid, np.flatnonzero(live), a.states, rng)])
     pc = ctl.certified(xs)
     modes = {}
     for per in ("period", "episode"):
@@ -89,7 +100,7 @@ def main():
         print(per, modes[per], flush=True)
     out = {"x0s": np.round(xs, 4).tolist(), "p_cert": pc.round(4).tolist(), "modes": modes,
            "eta": list(a.eta), "n_runs": a.n_runs, "pilot": a.pilot, "horizon": a.horizon, "rollouts": a.rollouts,
-           "containment": rep.to_dict(), "nnz": im.nnz, "lipschitz": np.round(im.meta["lipschitz"], 4).tolist(),
+           **info,
            "build_s": round(t_build, 1), "loadavg_start": load0, "loadavg_end": os.getloadavg()}
     text = json.dumps(out, indent=1)
     print(text)

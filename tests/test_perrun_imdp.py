@@ -254,3 +254,13 @@ def test_rows_hold_every_true_successor(share):
     ok = all_sink[r] | ((col < C) & np.isin(r * (C + 1) + col, admitted))
     assert ok.all(), f"{int((~ok).sum())} of {ok.size} true runs not admitted"
     assert not all_sink[r].all()                 # not vacuous: most rows have real successors
+
+
+def test_validation_states_in_a_seam_cell_are_inside_x():
+    """A heading cell centered on -pi straddles the seam: its sampled states must be wrapped into X, or the
+    validation counts them as runs that failed at t = 0 (seen on the TurtleBot: p_emp 0 against p_cert 0.63)."""
+    g = UniformGrid([0.0, -np.pi], [1.0, np.pi], [0.5, np.pi / 8], periodic=(1,))
+    seam = np.flatnonzero(np.isclose(g.points(np.arange(g.size))[:, 1], -np.pi))
+    x = sample_in_cells(g, seam, 2000, np.random.default_rng(0))
+    assert np.all((x[:, 1] >= -np.pi) & (x[:, 1] < np.pi)) and (x[:, 1] > 3.0).mean() > 0.3
+    np.testing.assert_array_equal(g.x_to_ids(x) >= 0, True)

@@ -88,8 +88,13 @@ def empirical(successes: np.ndarray, n_rollouts: int) -> dict:
 
 
 def sample_in_cells(grid, cells: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:
-    """``count`` states uniform in randomly chosen cells of ``cells`` (ids), (count, n)."""
+    """``count`` states uniform in randomly chosen cells of ``cells`` (ids), (count, n); angle
+    (periodic) dimensions wrapped into X."""
     if cells.size == 0:
         return np.zeros((0, grid.n))
     pick = cells[rng.integers(0, cells.size, count)]
-    return grid.points(pick) + (rng.random((count, grid.n)) - 0.5) * grid.eta
+    x = grid.points(pick) + (rng.random((count, grid.n)) - 0.5) * grid.eta
+    # a periodic (angle) cell may straddle the seam: wrap into [lo, hi), or the state starts outside X
+    per = np.flatnonzero(grid.periodic_mask)
+    x[:, per] = grid.lo[per] + np.mod(x[:, per] - grid.lo[per], grid.hi[per] - grid.lo[per])
+    return x

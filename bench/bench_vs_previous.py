@@ -20,7 +20,12 @@ Cases (each a user script through the public API):
   checks 48,018 winning cells and 35,772,302 transitions.
 * ``vehicle``: the SCOTS vehicle with shared boxes (simgap's default); same checks.
 * ``pendulum801``: pendulum invariance at 801 x 801 cells, 21 inputs, constant gap.
-* ``vi150``: ``bench/bench_perrun.py vi --succ 150`` (value iteration at 1.3e8 entries; minutes).
+* ``turtlebot_gap``: TurtleBot arena reach-avoid, eta 0.08 (205k cells), 441 inputs, hold 10,
+  a constant gap (5e-4, 5e-4, 1e-3) per period composed (``bench_synthesis_cases.py``'s case).
+* ``vi150``: value iteration on the interval MDP of ``bench_perrun.py vi --succ 150`` (1.28e8
+  entries, ``bench/synthetic_imdp.py`` of this checkout, built the same way for both trees), each
+  tree's ``synthesize_imdp``; also prints the largest p_cert difference and the policy entries
+  that differ (minutes; the earlier version needs about 5 GB).
 """
 
 from __future__ import annotations
@@ -67,19 +72,37 @@ spec = Spec(kind="invariance", safe=Box([0.0, -0.5], [0.2, 0.5]))
 res = synthesize(s, spec, eta=(0.4 / 800, 1.0 / 800), gap=[1e-4, 1e-3])
 print(res.stats["winning"])
 """,
+    # the interval MDP of bench/synthetic_imdp.py (this checkout's) solved by each tree's value
+    # iteration; p_cert and the policy are saved, the last line is their digest-free summary
+    "vi150": f"""
+import inspect, time, numpy as np
+sys.path.insert(1, {HERE!r})
+from synthetic_imdp import synthetic_imdp
+from simgap.perrun.value_iteration import synthesize_imdp
+im = synthetic_imdp(150)
+kw = ["invariance"] if "kind" in inspect.signature(synthesize_imdp).parameters else []
+ctl = synthesize_imdp(im, 400, *kw)
+np.savez(sys.argv[1], p_cert=ctl.p_cert, policy=ctl.policy)
+print("saved")
+""",
+    "turtlebot_gap": """
+from simgap.maps import load_map
+from simgap.synthesis import synthesize
+from simgap.systems import get_system
+s = get_system("turtlebot")
+res = synthesize(s, load_map("arena").spec(s), 0.08, gap=[5e-4, 5e-4, 1e-3], hold=10, compose_hold=True)
+print(res.stats["winning"], res.stats["transitions"])
+""",
 }
 
 
-def run(tree: str, case: str) -> tuple[float, float, str]:
+def run(tree: str, case: str, save: str = "") -> tuple[float, float, str]:
     """(CPU seconds user + system, peak RSS MB, last output line) of one fresh process."""
     env = dict(os.environ, PYTHONPATH=tree)
     # compiled bytecode cached as after a regular install (a warm-up run writes it): without the
     # cache every process compiles simgap's modules again (about 40-60 ms)
     env.pop("PYTHONDONTWRITEBYTECODE", None)
-    if case == "vi150":
-        argv = [sys.executable, os.path.join(tree, "bench", "bench_perrun.py"), "vi", "--succ", "150"]
-    else:
-        argv = [sys.executable, "-c", f"import sys; sys.path.insert(0, {tree!r})\n" + SCRIPTS[case]]
+    argv = [sys.executable, "-c", f"import sys; sys.path.insert(0, {tree!r})\n" + SCRIPTS[case], save]
     with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err:
         p = subprocess.Popen(argv, stdout=out, stderr=err, env=env, cwd=tree)
         _, status, ru = os.wait4(p.pid, 0)
@@ -101,7 +124,7 @@ def main() -> int:
     ap.add_argument("--previous", required=True, help="a checkout of the earlier simgap")
     ap.add_argument("--current", default=ROOT, help="the tree under test (default: this checkout)")
     ap.add_argument("--repeat", type=int, default=5)
-    ap.add_argument("--only", default="import,dcdc,vehicle_cells,vehicle,pendulum801",
+    ap.add_argument("--only", default="import,dcdc,vehicle_cells,vehicle,pendulum801,turtlebot_gap",
                     help="comma-separated cases (vi150 only when named)")
     a = ap.parse_args()
     trees = {"previous": os.path.abspath(a.previous), "current": os.path.abspath(a.current)}
@@ -112,15 +135,23 @@ def main() -> int:
             for tree in trees.values():
                 run(tree, case)  # warm-up: bytecode caches, file cache
         res = {k: [] for k in trees}
+        saved = {k: os.path.join(tempfile.gettempdir(), f"bench_vs_previous_{os.getpid()}_{k}.npz") for k in trees}
         for _ in range(a.repeat):
             for k, tree in trees.items():
-                res[k].append(run(tree, case))
+                res[k].append(run(tree, case, saved[k]))
         outs = {k: {r[2] for r in v} for k, v in res.items()}
         cp, cn = _med([r[0] for r in res["previous"]]), _med([r[0] for r in res["current"]])
         mp, mn = _med([r[1] for r in res["previous"]]), _med([r[1] for r in res["current"]])
         same = "" if outs["previous"] == outs["current"] else f"  OUTPUT DIFFERS {outs}"
         print(f"{case:<14} {cp:>10.3f} {cn:>10.3f} {cn / cp:>9.2f} {mp:>8.1f} {mn:>8.1f} {mn / mp:>8.2f}{same}",
               flush=True)
+        if case == "vi150":
+            import numpy as np
+            p, n = np.load(saved["previous"]), np.load(saved["current"])
+            print(f"{'':<14} p_cert max |difference| {np.abs(p['p_cert'] - n['p_cert']).max():.2e}, policy entries "
+                  f"that differ: {int((p['policy'] != n['policy']).sum())} of {p['policy'].size}", flush=True)
+            for f in saved.values():
+                os.remove(f)
     return 0
 
 

@@ -172,6 +172,10 @@ def test_collect_to_gui_with_the_command_line_only(collected, tmp_path, capsys):
     assert main(["certify", str(store), "--degree", "1", "--out", str(cert)]) == 0
     c = load_cert(cert)
     assert c.system_name == "duffing" and c.system_digest == digest and c.system_ref["format"] == "simgap-system"
+    # with L_f from the Jacobian bound (state mode), a file without [bounds] says it is estimated
+    from simgap.certify import CertifyOptions, certify
+    c_state = certify(ds, CertifyOptions(degree=1, lipschitz_mode="state"))
+    assert c_state.dims[0].lipschitz_how["L_f"].startswith("estimated: ")
     # synthesize with the certificate alone: the model comes from what the certificate embeds
     ctrl = tmp_path / "ctrl.npz"
     capsys.readouterr()

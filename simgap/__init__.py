@@ -4,7 +4,7 @@ Pipeline: System -> Dataset -> Certificate -> Abstraction -> Controller -> Rollo
 """
 
 from .errors import SimgapError
-from .systems import System, get_system, input_grid
+from .systems import System, get_system, input_grid, resolve_system
 
 __version__ = "0.1.0"
-__all__ = ["SimgapError", "System", "get_system", "input_grid", "__version__"]
+__all__ = ["SimgapError", "System", "get_system", "input_grid", "resolve_system", "__version__"]

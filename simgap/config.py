@@ -273,7 +273,7 @@ def _model_files(kind: str, options: dict, folder: Path, where: str) -> dict:
     """The simulator's model-file options (its ``PATH_OPTIONS``) resolved inside the experiment's
     folder, each with the file's sha256 (``<key>_sha256``) so that a later command that rebuilds
     the simulator from a manifest notices a changed file."""
-    for key in simulator_class(kind).PATH_OPTIONS:
+    for key in getattr(simulator_class(kind), "PATH_OPTIONS", ()):
         if key not in options:
             continue
         if not isinstance(options[key], str) or not options[key]:

@@ -1,0 +1,85 @@
+"""Why the cart-pole's invariance winning domain is empty: the nominal model alone (no gap), on
+several grids, and its two halves (pole only, cart only) on the same grids.
+
+    python bench/cartpole_synthesis_probe.py              # the table of docs/case-studies.md (minutes)
+    python bench/cartpole_synthesis_probe.py --only 4d    # one part: 4d, pole or cart
+
+Every row synthesizes an invariance controller (stay in the box X given on the row) for the model
+of assets/experiments/cartpole/cartpole.toml with ``gap=None``: if the nominal model wins no cell,
+no certified gap can. ``k`` is the number of 0.02 s periods per abstraction step (input held),
+``U`` the number of ctrl values in [-3, 3]. The pole-only model is the (theta, omega) part of the
+same right-hand side (it does not depend on p or v); the cart-only model is the double integrator
+p'' = 100 u / (M + m) (the pole's reaction left out).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import time
+
+import numpy as np
+from scipy.linalg import expm
+
+from simgap.config import load_experiment
+from simgap.synthesis.controller import synthesize
+from simgap.synthesis.spec import Box, Spec
+from simgap.systems import System, input_grid
+
+# SCOTS growth matrix of the system file (its [bounds] growth), for the sub-models' Jacobian bounds
+L4 = np.array([[0, 0, 1, 0], [0, 0, 0, 1], [0, 4.4, 0, 0.03], [0, 39.5, 0, 0.06]])
+
+ROWS_4D = [  # (k, inputs, half-widths of X (p, theta, v, omega), eta)
+    (1, 13, (0.5, 0.1, 1.0, 1.0), (0.1, 0.01, 0.1, 0.05)),
+    (1, 25, (0.3, 0.1, 0.5, 1.0), (0.05, 0.005, 0.05, 0.025)),
+    (5, 25, (0.3, 0.1, 0.5, 1.0), (0.005, 0.01, 0.05, 0.05)),
+    (5, 49, (0.3, 0.1, 0.5, 1.0), (0.02, 0.01, 0.1, 0.05)),
+    (10, 49, (0.3, 0.1, 0.5, 1.0), (0.02, 0.01, 0.1, 0.05)),
+    (5, 25, (2.0, 0.1, 2.0, 1.0), (0.1, 0.01, 0.1, 0.05)),
+]
+ROWS_POLE = [(1, 13, (0.1, 1.0), (0.01, 0.05)), (5, 25, (0.1, 1.0), (0.01, 0.05)),
+             (5, 49, (0.1, 1.0), (0.005, 0.025))]
+ROWS_CART = [(1, 13, (0.5, 1.0), (0.1, 0.1)), (1, 13, (0.5, 1.0), (0.01, 0.1))]
+
+
+def run(system: System, k: int, nu: int, half, eta) -> tuple:
+    half = np.asarray(half, float)
+    s = dataclasses.replace(system.with_steps(k), x_lo=-half, x_hi=half, inputs=input_grid([-3], [3], [nu]))
+    t = time.process_time()
+    r = synthesize(s, Spec(kind="invariance", safe=Box(s.x_lo, s.x_hi)), list(eta), gap=None)
+    cells = int(np.prod(np.ceil(2 * half / np.asarray(eta) - 1e-9)))
+    return r.controller.size, cells, time.process_time() - t
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--only", choices=["4d", "pole", "cart"])
+    a = ap.parse_args(argv)
+    cp = load_experiment("cartpole", profile=None).system
+    tau = cp.base_tau
+
+    def pole_step(x, u, dt):  # (theta, omega) through the 4-state model with p = v = 0
+        X = np.zeros((x.shape[0], 4))
+        X[:, 1], X[:, 3] = x[:, 0], x[:, 1]
+        return cp.step(X, u, dt)[:, [1, 3]]
+
+    pole = System(name="cartpole_pole", state_names=("theta", "omega"), input_names=("u",), x_lo=(-1, -1),
+                  x_hi=(1, 1), inputs=cp.inputs, base_tau=tau, step=pole_step,
+                  jacobian_bound=lambda u: np.broadcast_to(expm(L4[np.ix_([1, 3], [1, 3])] * tau), (u.shape[0], 2, 2)))
+    a_cart = 100.0 / (cp.params["M"] + cp.params["m"])
+    cart = System(name="cartpole_cart", state_names=("p", "v"), input_names=("u",), x_lo=(-1, -1), x_hi=(1, 1),
+                  inputs=cp.inputs, base_tau=tau,
+                  step=lambda x, u, dt: np.stack([x[:, 0] + dt * x[:, 1] + 0.5 * dt * dt * a_cart * u[:, 0],
+                                                  x[:, 1] + dt * a_cart * u[:, 0]], axis=1),
+                  jacobian_bound=lambda u: np.broadcast_to(np.array([[1.0, tau], [0.0, 1.0]]), (u.shape[0], 2, 2)))
+    print(f"{'model':6s} {'k':>3s} {'U':>3s} {'X half-widths':28s} {'eta':28s} {'winning':>9s} {'cells':>9s} {'CPU s':>6s}")
+    for name, system, rows in (("4d", cp, ROWS_4D), ("pole", pole, ROWS_POLE), ("cart", cart, ROWS_CART)):
+        if a.only not in (None, name):
+            continue
+        for k, nu, half, eta in rows:
+            won, cells, cpu = run(system, k, nu, half, eta)
+            print(f"{name:6s} {k:3d} {nu:3d} {str(half):28s} {str(eta):28s} {won:9,d} {cells:9,d} {cpu:6.1f}", flush=True)
+
+
+if __name__ == "__main__":
+    main()

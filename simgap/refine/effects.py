@@ -557,7 +557,8 @@ def sign_check(system: System, effects: Sequence[Effect], x: np.ndarray) -> Call
                 return k, (f"a dead zone of negative width w = {-c:.4g} {coefficient_units(system, e)} "
                            f"(a saturation or a gain that falls with the input reads this way)"), bool(c > 2 * s)
             if e.name in ("input_delay", "actuator_lag") and c < 0:
-                return k, f"a negative fraction delayed ({c:.4g})", bool(c < -2 * s)
+                what = "delayed" if e.name == "input_delay" else "lagged"
+                return k, f"a negative fraction {what} ({c:.4g})", bool(c < -2 * s)
             if e.name in SOFT_BOUNDS:
                 lo, hi, what = SOFT_BOUNDS[e.name]
                 if c < lo - 2 * s or c > hi + 2 * s:

@@ -117,6 +117,37 @@ def check_uniform_time(t: np.ndarray, rtol: float = 1e-3) -> float:
     return float((t[-1] - t[0]) / (t.size - 1))
 
 
+def backward_transitions(t, positions, inputs, source: str = "", meta: Optional[dict] = None) -> Transitions:
+    """Transitions with causal velocities, for fast lightly damped records: no filter, no trim.
+
+    v_k = (q_k - q_{k-1}) / tau (backward differences of the raw positions), x_k = (q_k, v_k) for
+    k = 1 .. T-2, x_next = x_{k+1}, u_k raw. A model whose position update uses the new velocity
+    (semi-implicit Euler, q+ = q + tau v+) reproduces q exactly through this state; nothing is
+    non-causal, so no filter phase is misread as input delays (the zero-phase path of
+    :func:`trajectory_to_transitions` diverges on the Silverbox with an explicit-Euler model and its
+    velocity reads as delays). Differentiation noise is not filtered.
+    """
+    t = np.asarray(t, dtype=float).reshape(-1)
+    q = np.asarray(positions, dtype=float)
+    u = np.asarray(inputs, dtype=float)
+    q = q[:, None] if q.ndim == 1 else q
+    u = u[:, None] if u.ndim == 1 else u
+    if q.shape[0] != t.size or u.shape[0] != t.size:
+        raise SimgapError(f"trajectory: {t.size} time stamps but {q.shape[0]} position and {u.shape[0]} input samples")
+    if not (np.all(np.isfinite(q)) and np.all(np.isfinite(u))):
+        raise SimgapError("trajectory: positions or inputs contain NaN or inf")
+    if t.size < 4:
+        raise SimgapError(f"record too short: {t.size} samples")
+    tau = check_uniform_time(t)
+    v = np.vstack([np.full((1, q.shape[1]), np.nan), np.diff(q, axis=0) / tau])
+    x = np.concatenate([q, v], axis=1)
+    k = np.arange(1, t.size - 1)
+    info = {"kind": "trajectory", "velocity": "backward differences", "fs_hz": 1.0 / tau,
+            "samples_in": int(t.size)}
+    info.update(meta or {})
+    return make_transitions(x[k], u[k], x[k + 1], tau, t[k], source=source, meta=info)
+
+
 def trajectory_to_transitions(t, positions, inputs, cutoff_hz: float, order: int = 4,
                               trim: Optional[int] = None, filter_input: bool = True,
                               source: str = "", meta: Optional[dict] = None) -> Transitions:

@@ -106,15 +106,15 @@ def test_synthesis_does_not_load_value_iterations_compiler():
     assert p.returncode == 0, p.stderr
 
 
-@pytest.mark.parametrize("kw", [dict(hold=4), dict(hold=1, gap=[2e-3, 2e-3, 4e-3])])
+@pytest.mark.parametrize("kw", [dict(hold=3), dict(hold=2, gap=[2e-4, 2e-4, 4e-4])])
 def test_live_pairs_on_distinct_boxes_equal_the_pass_over_all_inputs(kw, monkeypatch):
     """Inputs that share a box share every test: the pass over distinct boxes changes nothing."""
     from simgap.maps import load_map
-    from simgap.synthesis import games, label_cells, solve_reach
+    from simgap.synthesis import games, label_cells, solve_invariance, solve_reach
     from simgap.systems import get_system
-    s = get_system("turtlebot")
+    s = get_system("turtlebot").with_steps(10)
     spec = load_map("arena").spec(s)
-    grid = UniformGrid(s.x_lo, s.x_hi, 0.25, periodic=s.angle_dims)
+    grid = UniformGrid(s.x_lo, s.x_hi, 0.2, periodic=s.angle_dims)
     blocked, cells = label_cells(grid, spec, s.x_lo, s.x_hi)
     ab = build_abstraction(s, grid, invariant_dims=(0, 1), compose_hold=True, **kw)
     dist = games.DistinctBoxes.of(ab)
@@ -122,9 +122,15 @@ def test_live_pairs_on_distinct_boxes_equal_the_pass_over_all_inputs(kw, monkeyp
     assert np.array_equal(dist.mult.sum(axis=1), np.full(ab.n_classes, ab.n_inputs))
     fast = games.live_pairs(ab, blocked, ~blocked, ~blocked)
     res = solve_reach(ab, cells, blocked, method="sat")
+    inv = solve_invariance(ab, ~blocked, blocked, method="sat")
     monkeypatch.setattr(games.DistinctBoxes, "of", classmethod(lambda cls, ab: None))
     plain = games.live_pairs(ab, blocked, ~blocked, ~blocked)
     assert np.array_equal(fast[0], plain[0]) and fast[1:] == plain[1:]
     assert fast[1] > 0 and fast[0].any() and not fast[0].all()
     ref = solve_reach(ab, cells, blocked, method="sat")
     assert np.array_equal(res.steps, ref.steps) and np.array_equal(res.valid_packed, ref.valid_packed)
+    assert res.info["pairs_tested"] == ref.info["pairs_tested"]
+    assert res.winning.sum() > cells.sum() or "gap" in kw  # (with the gap nothing is won beyond the target)
+    ref_inv = solve_invariance(ab, ~blocked, blocked, method="sat")
+    assert np.array_equal(inv.winning, ref_inv.winning) and np.array_equal(inv.valid_packed, ref_inv.valid_packed)
+    assert np.array_equal(inv.chosen, ref_inv.chosen) and 0 < inv.winning.sum() < (~blocked).sum()

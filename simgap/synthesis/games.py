@@ -234,6 +234,8 @@ class PairEvaluator:
         for d in range(g.n):
             self.base_all += self.mi_all[:, d] * np.int32(self.counter.tstrides[d])
         self.hull = None
+        self.dist = DistinctBoxes.of(ab)
+        self.dfam = None if self.dist is None else BoxFamily(ab, self.dist.lo, self.dist.hi, self.counter)
 
     def build_hulls(self, group: int = 8) -> BoxCounter:
         """Hull boxes of groups of ``group`` consecutive inputs (the bytes of the packed rows).
@@ -268,6 +270,23 @@ class PairEvaluator:
         k = self.cls_all[ids]
         q = k[:, None] * self.hull_G + np.arange(self.hull_G)
         return self.hull.count(hc.table, self.hull_base[ids][:, None], q, k=k) > 0
+
+    def test_rows(self, ids: np.ndarray, rows: np.ndarray, counter: BoxCounter) -> int:
+        """rows (B, M) bool, the pairs of cells ``ids`` to test (assumed valid), is replaced in
+        place by "box(c, u) lies in the counter's mask"; returns the number of pairs tested.
+
+        When the block's pairs outnumber its (cell, distinct box) tests (:class:`DistinctBoxes`),
+        each distinct box is tested once per cell and the results mapped to the inputs."""
+        ci, uj = np.nonzero(rows)
+        if self.dist is None or ci.size <= ids.size * self.dist.D:
+            rows[ci, uj] = self.test_pairs(ids, ci, uj, counter)
+            return ci.size
+        k = self.cls_all[ids]
+        D = self.dist.D
+        q = k[:, None] * D + np.arange(D, dtype=k.dtype)
+        ok_d = self.dfam.count(counter.table, self.base_all[ids][:, None], q, k=k) == self.dfam.vol_flat[q]
+        rows &= np.take_along_axis(ok_d, self.dist.index[k], axis=1)
+        return ci.size
 
     def test_pairs(self, ids: np.ndarray, ci: np.ndarray, uj: np.ndarray, counter: BoxCounter) -> np.ndarray:
         """(P,) bool: box(ids[ci], uj) lies in the counter's mask (pairs assumed valid)."""
@@ -908,9 +927,7 @@ def _reach_sat(ab: Abstraction, ev: PairEvaluator, target, blocked, live, group_
                 else:
                     lv = lv & np.packbits(np.repeat(gm, ev.group, axis=1)[:, :M], axis=1)
             rows = np.unpackbits(lv, axis=1, count=M).view(bool)
-            ci, uj = np.nonzero(rows)
-            tested += ci.size
-            rows[ci, uj] = ev.test_pairs(ids, ci, uj, Wc)
+            tested += ev.test_rows(ids, rows, Wc)
             win = rows.any(axis=1)
             if win.any():
                 new_ids.append(ids[win])
@@ -1099,9 +1116,7 @@ def _invariance_sat(ab: Abstraction, ev: PairEvaluator, S: np.ndarray, live: np.
         for s in range(0, cand.size, B):
             ids = cand[s:s + B]
             rows = np.unpackbits(live[ids], axis=1, count=M).view(bool)
-            ci, uj = np.nonzero(rows)
-            tested += ci.size
-            rows[ci, uj] = ev.test_pairs(ids, ci, uj, Wc)
+            tested += ev.test_rows(ids, rows, Wc)
             bad = ~rows.any(axis=1)
             if bad.any():
                 lose.append(ids[bad])

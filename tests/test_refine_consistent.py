@@ -71,3 +71,17 @@ def test_cubic_spring_is_named_and_carried_into_the_position(tmp_path):
     p = save_refined(res.refined, tmp_path / "sb.json")
     back = load_system(str(p))
     np.testing.assert_allclose(back.f(x, data.u[:50]), res.refined.f(x, data.u[:50]), rtol=1e-12)
+
+
+def test_free_run_check_says_when_the_refined_model_diverges_where_the_nominal_does_not():
+    from simgap.refine.cases import make_case
+    from simgap.refine.report import free_run_check
+    from simgap.refine.selection import split_heldout
+    c = make_case("noise_series", 4000, 0)
+    s = get_system("pendulum")
+    held = split_heldout(c.data.K, c.data.t, SelectionOptions())
+    (visc,) = candidate_effects(s, ["viscous_friction"])
+    fine = free_run_check(s, refined_system(s, [visc], [-0.5]), c.data, held)
+    assert fine["diverged_before"] == 0 and fine["diverged_after"] == 0 and fine["stretches"] >= 5
+    bad = free_run_check(s, refined_system(s, [visc], [400.0]), c.data, held)     # anti-damping, 2 1/tau
+    assert bad["diverged_before"] == 0 and bad["diverged_after"] == bad["stretches"]

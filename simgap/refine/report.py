@@ -396,6 +396,54 @@ def multistep_rms(system: System, data: Transitions, held: np.ndarray, k: int,
     return np.sqrt(np.mean(e ** 2, axis=0))
 
 
+def free_run_check(system: System, refined: System, data: Transitions, held: np.ndarray,
+                   max_steps: int = 5000) -> Optional[dict]:
+    """Free simulation of f and f' (memoryless) along every contiguous held-out stretch of a time series.
+
+    From the first state of each stretch (consecutive rows, x_next = next x), both models are
+    iterated with the recorded inputs for the stretch's length (at most ``max_steps``). A model
+    diverges on a stretch when a state becomes non-finite or leaves X by more than 10 times its
+    width. Returns {"stretches", "steps", "diverged_before", "diverged_after", "rms_before",
+    "rms_after"} (RMS over the steps where both stay finite), None without time order.
+    """
+    if data.t is None:
+        return None
+    K = data.K
+    order = time_order(data)
+    ep = episodes(data)[order]
+    x, u, xn, h = data.x[order], data.u[order], data.x_next[order], held[order]
+    cont = np.zeros(K, dtype=bool)
+    cont[1:] = np.all(np.isclose(xn[:-1], x[1:], rtol=0, atol=1e-12 * (1 + np.abs(x[1:]))), axis=1) \
+        & (ep[1:] == ep[:-1]) & h[1:] & h[:-1]
+    starts = np.flatnonzero(h & ~cont)
+    if starts.size == 0:
+        return None
+    ends = np.r_[starts[1:], K]
+    ends = np.array([s0 + int(np.argmin(np.r_[cont[s0 + 1:e0], False])) + 1 for s0, e0 in zip(starts, ends)])
+    lengths = np.minimum(ends - starts, max_steps)
+    span = system.x_hi - system.x_lo
+    out = {"stretches": int(starts.size), "steps": int(lengths.sum())}
+    for key, m in (("before", system), ("after", refined)):
+        z = x[starts].copy()
+        alive = np.ones(starts.size, dtype=bool)
+        se, cnt = np.zeros(system.n), 0
+        for j in range(int(lengths.max())):
+            act = alive & (j < lengths)
+            if not act.any():
+                break
+            zn = m.f(z[act], u[starts[act] + j])
+            ok = np.all(np.isfinite(zn), axis=1) & np.all(np.abs(zn - system.x_lo - span / 2) <= 10.5 * span, axis=1)
+            idx = np.flatnonzero(act)
+            alive[idx[~ok]] = False
+            z[idx[ok]] = zn[ok]
+            good = idx[ok]
+            se += np.sum(system.diff(z[good], xn[starts[good] + j]) ** 2, axis=0)
+            cnt += good.size
+        out[f"diverged_{key}"] = int((~alive).sum())
+        out[f"rms_{key}"] = np.sqrt(se / max(cnt, 1)).tolist()
+    return out
+
+
 def _f(v) -> Optional[float]:
     v = float(v)
     return v if np.isfinite(v) else None
@@ -404,6 +452,14 @@ def _f(v) -> Optional[float]:
 def _report(s: System, refined: System, data: Transitions, held, fits: Sequence[StateFit], chosen,
             before: Residuals, after: Residuals, opts: SelectionOptions, hist, withdrawn, hist_info) -> dict:
     rb, ra = before.r[held], after.r[held]
+    free = free_run_check(s, refined, data, held) if data.is_time_series else None
+    if free and free["diverged_after"] > free["diverged_before"]:
+        msg = (f"the refined model diverges in free simulation on {free['diverged_after']} of "
+               f"{free['stretches']} held-out stretches (the nominal on {free['diverged_before']})")
+        for fit in fits:
+            fit.unexplained = True
+            fit.notes.append(msg)
+        free["note"] = msg
     eff = []
     for e, c, se, ex, se_stat, se_mis in chosen:
         d = {"name": e.name, "state": int(e.state), "state_name": s.state_names[e.state]}
@@ -469,6 +525,7 @@ def _report(s: System, refined: System, data: Transitions, held, fits: Sequence[
         "unexplained": bool(any(f.unexplained for f in fits)),
         "states": states,
         "multistep": multistep,
+        "free_run": free,
         "withdrawn": withdrawn,
         "refused": [dict(r, state=int(f.state), state_name=s.state_names[f.state]) for f in fits for r in f.refused],
         "history": hist_info,
@@ -543,6 +600,10 @@ def format_table(report: dict) -> str:
                     f"{100 * st['unexplained_fraction']:.1f}% above the noise floor")
         lines.append(msg)
         lines += [f"  {n}" for n in st["notes"] if "varies with time" in n or "varies over the record" in n]
+    fr = report.get("free_run")
+    if fr:
+        lines.append(f"free run on {fr['stretches']} held-out stretches ({fr['steps']} steps): diverged f "
+                     f"{fr['diverged_before']}, f' {fr['diverged_after']}" + (f"  -> {fr['note']}" if "note" in fr else ""))
     lines.append(f"unexplained: {'true' if report['unexplained'] else 'false'}")
     return "\n".join(lines)
 

@@ -28,6 +28,11 @@ from . import engine, origin
 from .jobs import JobContext, JobRunner
 from .settings import STAGES, Settings
 
+# results kept (marked stale) when an upstream stage changes, and what the mark says
+KEEP_STALE = ("synthesize", "rollout")
+STALE_ACTION = {"synthesize": "re-synthesize", "rollout": "roll out again"}
+STALE_WHAT = {"synthesize": "winning domain", "rollout": "rollouts"}
+
 
 class SimgapApp:
     """The interactive app (see module docstring).
@@ -56,6 +61,9 @@ class SimgapApp:
         self.cache: dict = {}
         self.results: dict = {s: None for s in STAGES}
         self.result_keys: dict = {s: None for s in STAGES}
+        # stages whose shown result was computed from earlier upstream results (e.g. the winning
+        # domain after a re-certification): kept on screen, marked "stale" until recomputed
+        self.stale: set = set()
         self.notifications: list = []  # (title, body, color) in order, also for tests
         self.timings: dict = {}  # stage -> seconds of the last run (or cache hit)
         self.auto_certify = True
@@ -210,6 +218,22 @@ class SimgapApp:
 
         threading.Thread(target=waiter, name="simgap-pending", daemon=True).start()
 
+    def stale_status(self) -> str:
+        """What the status line adds while shown results are stale ("" if none)."""
+        stale = [st for st in KEEP_STALE if st in self.stale]
+        if not stale:
+            return ""
+        return ("; **stale: " + ", ".join(STALE_ACTION[st] for st in stale) + "** (the "
+                + " and the ".join(STALE_WHAT[st] for st in stale) + " shown are from earlier settings)")
+
+    def stale_note(self, stage: str) -> str:
+        """Markdown warning for a panel whose shown result is stale ("" if it is current)."""
+        if stage not in self.stale:
+            return ""
+        return (f"**stale: {STALE_ACTION[stage]}**: the {STALE_WHAT[stage]} below were computed with the previous "
+                f"{'certificate' if stage == 'synthesize' else 'controller or certificate'}; press "
+                f"{'Synthesize' if stage == 'synthesize' else 'Roll out'} for the current settings.\n\n")
+
     def _on_system_changed(self) -> None:
         self.view["fixed"] = None
         self.view["zscale"] = None
@@ -217,6 +241,7 @@ class SimgapApp:
         for s in STAGES:
             self.results[s] = None
             self.result_keys[s] = None
+        self.stale.clear()
         self.panels["view"].rebuild_sliders()
         self.refresh_system_layers()
         self.refresh_result_layers()
@@ -312,7 +337,7 @@ class SimgapApp:
             t0 = time.perf_counter()
             self._accept(stage, key, hit)
             self.timings[stage] = time.perf_counter() - t0
-            self.set_status(f"{stage}: from cache ({key})")
+            self.set_status(f"{stage}: from cache ({key})" + self.stale_status())
             return
         engine.require(stage)
         compute = lambda ctx: self._result_for(stage, s, ctx)  # noqa: E731
@@ -362,10 +387,16 @@ class SimgapApp:
             downstream = {"collect": ("certify", "synthesize", "rollout", "refine"),
                           "certify": ("synthesize", "rollout", "refine"),
                           "synthesize": ("rollout",), "rollout": (), "refine": ()}[stage]
+            self.stale.discard(stage)
             for st in downstream:
                 k = self.settings.stage_key(st)
-                self.results[st] = self.cache.get((st, k))
-                self.result_keys[st] = k if self.results[st] is not None else None
+                hit = self.cache.get((st, k))
+                if hit is None and st in KEEP_STALE and self.results[st] is not None and stage != "collect":
+                    self.stale.add(st)  # keep it on screen, marked, until it is recomputed
+                    continue
+                self.results[st] = hit
+                self.result_keys[st] = k if hit is not None else None
+                self.stale.discard(st)
         if stage == "collect":
             self.panels["system"].sync_from_settings()
         self._show_results()
@@ -454,7 +485,8 @@ class SimgapApp:
         self.progress.animated = False
         self.timings[out.name] = out.seconds
         if out.ok:
-            self.set_status(f"{out.name}: done in {out.seconds:.2f} s ({self.result_keys.get(out.name)})")
+            self.set_status(f"{out.name}: done in {out.seconds:.2f} s ({self.result_keys.get(out.name)})"
+                            + self.stale_status())
         elif out.cancelled:
             if not out.superseded:
                 self.notify("Cancelled", f"{out.name} was cancelled", color="yellow")

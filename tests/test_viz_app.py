@@ -333,7 +333,14 @@ def test_synthesize_and_rollout_layers(app):
     img = G.rollout_image(G.Frame(app.system), ro.trajectories[:1], np.zeros(1, bool), px=64, width=1)
     P = (G.Frame(app.system).xy(ro.trajectories[0])[:, :2] + 1) * 32
     rows, cols = np.clip(63 - P[:, 1].astype(int), 0, 63), np.clip(P[:, 0].astype(int), 0, 63)
-    assert np.all(img[rows, cols] == (*G.BLUE, 255)) and (img[..., 3] > 0).sum() < 0.5 * 64 * 64
+    one = round(255 * G.RUN_ALPHA)
+    assert np.all(img[rows, cols, :3] == G.BLUE) and np.all(img[rows, cols, 3] >= one)
+    assert (img[..., 3] > 0).sum() < 0.5 * 64 * 64 and np.median(img[rows, cols, 3]) < 2 * one  # one run: faint
+    # translucent runs add up: ten runs along the same path are much denser than one (100 vs 1000 differ)
+    img10 = G.rollout_image(G.Frame(app.system), np.repeat(ro.trajectories[:1], 10, axis=0), np.zeros(10, bool),
+                            px=64, width=1)
+    want = 255 * (1 - (1 - G.RUN_ALPHA) ** 10)
+    assert np.all(img10[rows, cols, 3] >= want - 1) and np.all(img10[..., 3][img[..., 3] == 0] == 0)
     sent = []
     add_image = app.server.scene.add_image
     app.server.scene.add_image = lambda name, *a, **k: (sent.append(name), add_image(name, *a, **k))[1]
@@ -467,11 +474,22 @@ def test_gamma_layer_height_scale_and_colors(app):
     m = d1["margin"]
     col = G.margin_colors(m, 1.0)
     assert np.array_equal(np.all(col == G.RED, axis=1), m < 0)
-    # a looser certificate: the scale is recomputed, the surface stays inside [0, 1]
+    # a looser certificate: the scale widens, the surface stays inside [0, 1]
+    conf = app.settings.confidence
     app.update_settings(confidence=0.999)
     assert app.wait(60).ok
     d2 = app.set_view(dim=1)
     assert d2["top"] > top1 and d2["vertices"][:, 2].max() <= 1.0 + 1e-6
+    # back to the tighter one: the session's scale stays, so its surface stands visibly lower than the
+    # looser one's (a per-certificate scale would stretch both to height 1 and the same colors)
+    app.update_settings(confidence=conf)
+    assert app.wait(60).ok
+    d3 = app.set_view(dim=1)
+    assert d3["top"] == d2["top"]
+    np.testing.assert_allclose(d3["vertices"][:, 2], d1["vertices"][:, 2] * top1 / d2["top"], rtol=1e-5)
+    assert d3["vertices"][:, 2].max() < 0.99 * d2["vertices"][:, 2].max()
+    legend = app.panels["view"].legend.content
+    assert f"{d2['top']:.4g} rad/s/step" in legend and "on this slice" in legend and "constant" not in legend
     assert np.all(G.nice_ticks(0.0, 0.0058, 4) <= 0.0058) and G.nice_ticks(-0.2, 0.2, 5).tolist() == \
         pytest.approx([-0.2, -0.1, 0.0, 0.1, 0.2])
 

@@ -74,6 +74,7 @@ def test_run_folder_opens_with_every_stage(loaded):
     assert app.results["synthesize"] is m.synthesis and app.results["rollout"] is m.rollouts
     assert app.audit is m.audit and m.audit["certificate_method"] == "stochastic"
     assert app.settings.eta == (0.005, 0.01) and app.settings.x0 == (0.05, 0.1)
+    assert app.settings.rollout_seed == 11 and app.panels["rollouts"].seed.value == 11  # the run's seed, shown
     # summaries are tables that wrap in the panel, not clipped code blocks
     for text in (app.panels["synthesis"].stats.content, app.panels["rollouts"].stats.content):
         assert "```" not in text and "|---|---|" in text
@@ -124,6 +125,19 @@ def test_mode_switch_keeps_the_certificate(loaded):
     x, u = app.results["collect"].x[::97], app.results["collect"].u[::97]
     np.testing.assert_allclose(new.gamma(x, u), cert.gamma(x, u), rtol=1e-9)
     assert not cp.delta1.disabled and cp.confidence.disabled
+    # the winning domain and the rollouts stay on screen, marked stale, until recomputed
+    m = run.methods[app.run_method]
+    assert app.results["synthesize"] is m.synthesis and app.results["rollout"] is m.rollouts
+    assert app.stale == {"synthesize", "rollout"}
+    assert "stale: re-synthesize" in app.panels["synthesis"].stats.content
+    assert "stale: roll out again" in app.panels["rollouts"].stats.content
+    assert "stale: re-synthesize, roll out again" in app.status.content
+    app.synthesize()
+    out = app.wait(120)
+    assert out.ok, out.error
+    assert app.results["synthesize"] is not m.synthesis and app.stale == {"rollout"}
+    assert "stale" not in app.panels["synthesis"].stats.content
+    assert "stale: roll out again" in app.panels["rollouts"].stats.content
 
 
 def test_cli_gui_opens_a_results_folder(run_dir, tmp_path):

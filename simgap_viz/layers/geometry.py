@@ -22,6 +22,7 @@ RED = (220, 50, 50)
 GREEN = (40, 170, 80)
 YELLOW = (250, 200, 20)
 GREY = (150, 150, 150)
+RUN_ALPHA = 0.12  # opacity of one drawn rollout (rollout_image): 100 and 1000 rollouts look different
 DIM_COLORS = ((70, 130, 230), (230, 120, 40), (120, 180, 60), (170, 90, 200))
 # viser draws an image's row 0 at the plane's -y (camera-image convention); this orientation
 # (a half turn about x) puts row 0 at +x2, as the top-down maps here lay their images out
@@ -297,15 +298,20 @@ def rollout_segments(frame: Frame, traj: np.ndarray, failed: np.ndarray | None =
 
 
 def rollout_image(frame: Frame, traj: np.ndarray, failed: np.ndarray | None = None, px: int = 1024,
-                  width: int = 2, max_samples: int = 20_000_000) -> np.ndarray:
+                  width: int = 2, max_samples: int = 20_000_000, alpha: float = RUN_ALPHA) -> np.ndarray:
     """The rollouts as an RGBA image of the display square [-1, 1]^2 (row 0 at +x2): every step
     of every trajectory rasterized as a ``width``-pixel line, blue, failures red on top; transparent
     elsewhere.
 
-    Drawn as one textured plane, 1000 rollouts cost a frame no more than the winning map does,
-    while as geometry even 1-pixel GL lines cost several ms per 10k segments in software WebGL.
-    Each segment is sampled one pixel apart (the ``width`` covers the gaps; fewer samples if the
-    total would exceed ``max_samples``). Returns (px, px, 4) uint8.
+    Each rollout is translucent (opacity ``alpha``): a pixel crossed by k rollouts has opacity
+    1 - (1 - alpha)^k, so the picture is a density -- 1000 rollouts look denser than 100, a lone
+    run stays faint, and the bold mean/nominal lines above do not hide the spread. Drawn as one
+    textured plane, 1000 rollouts cost a frame no more than the winning map does, while as
+    geometry even 1-pixel GL lines cost several ms per 10k segments in software WebGL. Each
+    segment is sampled one pixel apart (the ``width`` covers the gaps; fewer samples if the total
+    would exceed ``max_samples``); k counts the visits of rollouts per pixel (the consecutive samples
+    of one visit count once; a run that comes back counts again, as time spent there). Failures are drawn at opacity >= 0.6. Returns
+    (px, px, 4) uint8.
     """
     traj = np.asarray(traj, dtype=float)
     R = traj.shape[0]
@@ -323,15 +329,24 @@ def rollout_image(frame: Frame, traj: np.ndarray, failed: np.ndarray | None = No
         / np.repeat(n.astype(np.float32), n)
     ix = np.clip((np.repeat(a[:, 0], n) + t * np.repeat(d[:, 0], n)).astype(np.int64), 0, px - 1)
     iy = np.clip(px - 1 - (np.repeat(a[:, 1], n) + t * np.repeat(d[:, 1], n)).astype(np.int64), 0, px - 1)
-    bad = np.repeat(np.repeat(failed, traj.shape[1] - 1), n)
-    for mask, rgb in ((~bad, BLUE), (bad, RED)):
-        hit = np.zeros((px, px), bool)
-        hit[iy[mask], ix[mask]] = True
-        wide = hit.copy()
-        for k in range(1, width):  # thicken right and down
-            wide[:, k:] |= hit[:, :-k]
-            wide[k:, :] |= hit[:-k, :]
-        img[wide] = (*rgb, 255)
+    run = np.repeat(np.repeat(np.arange(R), traj.shape[1] - 1), n)
+    for mask, rgb, a_run in ((~failed[run], BLUE, alpha), (failed[run], RED, max(alpha, 0.6))):
+        if not mask.any():
+            continue
+        # one count per visit: consecutive samples of a run in one pixel collapse
+        pix = iy[mask] * px + ix[mask]
+        r = run[mask]
+        keep = np.ones(pix.size, bool)
+        keep[1:] = (pix[1:] != pix[:-1]) | (r[1:] != r[:-1])
+        k = np.bincount(pix[keep], minlength=px * px).reshape(px, px)
+        wide = k.copy()
+        for j in range(1, width):  # thicken right and down (the densest neighbour counts)
+            wide[:, j:] = np.maximum(wide[:, j:], k[:, :-j])
+            wide[j:, :] = np.maximum(wide[j:, :], k[:-j, :])
+        hit = wide > 0
+        op = 1.0 - (1.0 - a_run) ** wide[hit]
+        img[hit] = np.column_stack([np.broadcast_to(np.array(rgb, np.uint8), (int(hit.sum()), 3)),
+                                    np.round(255 * op).astype(np.uint8)])
     return img
 
 

@@ -23,6 +23,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from simgap.systems import labelled, units
+
 from .. import engine
 from . import geometry as G
 
@@ -75,7 +77,7 @@ def draw_axes(app) -> None:
     sc = app.server.scene
     _remove(app, "/axes")
     s = app.system
-    names = list(s.state_names) + ([""] if s.n < 2 else [])
+    names = [labelled(n, u) for n, u in zip(s.state_names, units(s)[0])] + ([""] if s.n < 2 else [])
     frame = G.Frame(s)
     for d, axis in ((0, "x"), (1, "y")):
         lo, hi = float(frame.lo[d]), float(frame.hi[d])
@@ -203,26 +205,34 @@ def draw_gamma(app) -> dict:
     surf = G.gamma_surface(s, gamma, v["dim"], v["a"], v["b"], fixed, res=SURFACE_RES) if gamma is not None else None
     pts = G.data_points(data, s, v["dim"], v["a"], v["b"], fixed, gamma=gamma, max_points=20000) \
         if data is not None else None
-    scale_key = (id(cert), id(data), v["dim"], v["a"], v["b"])
-    if v.get("zscale") is None or v.get("zscale_key") != scale_key:
-        top = max([float(np.max(surf["values"])) if surf is not None else 0.0,
+    # one height and color scale per (data, slice) for the whole session: it only grows, so a tighter
+    # certificate's surface stands lower and darker than a looser one's instead of being stretched
+    # to the same picture (the legend prints the scale and the slice's own range)
+    top_now = max([float(np.max(surf["values"])) if surf is not None else 0.0,
                    float(np.max(pts["gap"])) if pts is not None and pts["gap"].size else 0.0])
-        v["zscale"] = 1.0 / top if top > 0 and np.isfinite(top) else 1.0
-        v["zscale_key"] = scale_key
-    z = v["zscale"]
-    legend = {"dim": s.state_names[v["dim"]], "top": 1.0 / z}
+    tops = v.setdefault("tops", {})
+    key = (id(data), s.name, v["dim"], v["a"], v["b"])
+    top = max(tops.get(key, 0.0), top_now if np.isfinite(top_now) else 0.0)
+    top = top if top > 0 else 1.0
+    tops[key] = top
+    v["zscale"] = z = 1.0 / top
+    su = units(s)[0][v["dim"]]
+    legend = {"dim": s.state_names[v["dim"]], "top": top, "unit": f"{su}/step" if su else ""}
     if surf is not None:
         verts = surf["vertices"].copy()
         verts[:, 2] *= z
         vals = surf["values"]
         lo, hi = float(vals.min()), float(vals.max())
-        t = (vals - lo) / (hi - lo) if hi > lo else np.full(vals.shape, 0.5)
-        # unlit vertex colors: the legend's colors exactly, and the map shows through
-        sc.add_glb("/gamma/surface", G.glb(verts, G.colormap(t), surf["faces"], unlit=True, opacity=0.85),
+        constant = hi - lo <= 1e-9 * max(abs(hi), 1e-300)
+        # unlit vertex colors on the session scale (the legend's colors exactly); a constant gamma
+        # (e.g. the TurtleBot's over (x, y)) is a flat plane: nearly clear, so the map stays readable
+        sc.add_glb("/gamma/surface", G.glb(verts, G.colormap(vals / top), surf["faces"], unlit=True,
+                                           opacity=0.3 if constant else 0.85),
                    cast_shadow=False, receive_shadow=False, visible=app.layers_visible["gamma"])
         out["vertices"], out["faces"] = verts, surf["faces"]
         out["range"] = legend["range"] = (lo, hi)
-        out["top"] = 1.0 / z
+        out["constant"] = legend["constant"] = constant
+        out["top"] = top
     else:
         _remove(app, "/gamma/surface")
     if pts is not None and pts["points"].shape[0]:
@@ -244,7 +254,8 @@ def draw_gamma(app) -> dict:
         app.last_data_covered = pts["covered"]
     else:
         _remove(app, "/gamma/data")
-    _draw_zaxis(app, 1.0 / z, legend["dim"], visible=app.layers_visible["gamma"])
+    _draw_zaxis(app, top, legend["dim"] + (f" [{legend['unit']}]" if legend["unit"] else ""),
+                visible=app.layers_visible["gamma"])
     app.legend = legend
     return out
 
@@ -315,8 +326,9 @@ def draw_rollouts(app) -> int:
     else:
         _remove(app, "/rollouts/all")
         nseg = 0
-    for name, path, color, width in (("mean", mean, G.YELLOW, 6.0), ("nominal", nominal, (20, 20, 20), 4.0),
-                                     ("mean_map", engine.mean_map_trajectory(res), (200, 40, 200), 4.0)):
+    # thin enough that the rollouts' spread shows beside them
+    for name, path, color, width in (("mean", mean, G.YELLOW, 2.5), ("nominal", nominal, (20, 20, 20), 1.5),
+                                     ("mean_map", engine.mean_map_trajectory(res), (200, 40, 200), 2.0)):
         if path is None:
             _remove(app, f"/rollouts/{name}")
             continue
@@ -360,8 +372,10 @@ def scene_bounds(app) -> tuple:
     if base.name == "pendulum" and app.layers_visible.get("bodies", True):
         hi[0] = max(hi[0], PENDULUM_PIVOT[0] + 0.2)
         hi[2] = max(hi[2], PENDULUM_PIVOT[2] + 0.1)
-    if app.results.get("refine") is not None:
+    if app.results.get("refine") is not None:  # the residual plane: points at z in [-0.3, 1.3], label at 1.45
         lo[1] = min(lo[1], RESIDUAL_PLANE_Y)
+        lo[2] = min(lo[2], RESIDUAL_Z[0])
+        hi[2] = max(hi[2], RESIDUAL_Z[1])
     return lo, hi
 
 
@@ -392,6 +406,7 @@ def fit_camera(app, clients=None) -> None:
 
 # ----- refinement residuals ----------------------------------------------------------------------
 RESIDUAL_PLANE_Y = -1.6
+RESIDUAL_Z = (-0.35, 1.55)  # heights the residual plane's points and label can take (scene_bounds)
 
 
 def draw_residuals(app, state: int = None, var: str = None, max_points: int = 20000) -> int:
@@ -432,6 +447,7 @@ def draw_residuals(app, state: int = None, var: str = None, max_points: int = 20
     sc.add_label("/refine/label", text=f"residual of {s.state_names[state]} vs {var} (red: f, green: f')",
                  position=(-1.0, RESIDUAL_PLANE_Y, 1.45))
     app._drawn_residuals = int(idx.size)
+    fit_camera(app)  # the plane lies in front of the square: bring it into the frame
     return int(idx.size)
 
 

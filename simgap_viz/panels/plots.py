@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from simgap.systems import labelled, units
+
 from ..layers import geometry as G
 
 ORANGE, BLUE, RED, GREEN = "#f07800", "#2850c8", "#d23232", "#28a050"
@@ -60,7 +62,10 @@ def gamma_slice(app, plot, res: int = 161) -> int:
     k = k if (k < -2 or k > 3) else 0
     unit = f" [x 1e{k}]" if k else ""
     plot.data = (xs, gam / 10.0 ** k, gap / 10.0 ** k)
-    plot.axes = _axes(names[a], f"gamma_{s.state_names[dim]}, gap{unit}")
+    su, iu = units(s)
+    vu = (list(su) + list(iu))[a]
+    plot.axes = _axes(labelled(names[a], vu), f"gamma_{s.state_names[dim]}, gap{unit}"
+                      + (f" [{su[dim]} per step]" if su[dim] else ""))
     # from 0: gamma and gaps are >= 0, and a flat gamma (a constant certificate) has no range of
     # its own for uPlot to scale to
     plot.scales = {"x": {"time": False}, "y": {"range": (0.0, 1.1 * top / 10.0 ** k if top > 0 else 1.0)}}

@@ -33,10 +33,11 @@ class RolloutsPanel(Panel):
         self.set_quiet(self.count, s.n_rollouts)
         self.set_quiet(self.horizon, s.horizon)
         self.set_quiet(self.x0, fmt_vec(s.x0))
+        self.set_quiet(self.seed, s.rollout_seed)
 
     def show_stats(self) -> None:
         res = self.app.results.get("rollout")
-        self.stats.content = "" if res is None else engine.rollout_markdown(res)
+        self.stats.content = "" if res is None else self.app.stale_note("rollout") + engine.rollout_markdown(res)
 
 
 def build(app) -> RolloutsPanel:

@@ -34,7 +34,7 @@ class SynthesisPanel(Panel):
 
     def show_stats(self) -> None:
         res = self.app.results.get("synthesize")
-        self.stats.content = "" if res is None else engine.synthesis_markdown(res)
+        self.stats.content = "" if res is None else self.app.stale_note("synthesize") + engine.synthesis_markdown(res)
 
 
 def build(app) -> SynthesisPanel:

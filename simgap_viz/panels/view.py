@@ -46,10 +46,15 @@ class ViewPanel(Panel):
         lg = app.legend
         rows = []
         if lg is not None:
-            d = lg["dim"]
+            d, u = lg["dim"], (f" {lg['unit']}" if lg.get("unit") else "")
+            rows.append(f"| color and height | gamma_{d} = 0 (dark blue, 0) .. {lg['top']:.4g}{u} (yellow, 1): "
+                        "one scale for the session, widened only when a larger gamma comes |")
             if "range" in lg:
-                rows.append(f"| color: gamma_{d} | {lg['range'][0]:.4g} (blue) .. {lg['range'][1]:.4g} (yellow) |")
-            rows.append(f"| height 0 .. 1 | gamma_{d} = 0 .. {lg['top']:.4g} |")
+                lo, hi = lg["range"]
+                rows.append(f"| gamma_{d} on this slice | **constant: {hi:.4g}{u}** (a flat plane, drawn translucent) |"
+                            if lg.get("constant") else
+                            f"| gamma_{d} on this slice | {lo:.4g} .. {hi:.4g}{u} (varies by "
+                            f"{100 * (hi - lo) / hi:.2g} % of its largest value) |")
             if "margin_scale" in lg:
                 rows.append(f"| data gaps ({lg['points']}) | margin gamma - gap: orange 0 .. grey-blue "
                             f">= {lg['margin_scale']:.3g}; red < 0: {lg['uncovered']} |")

@@ -89,3 +89,22 @@ def test_noisy_profile_shows_the_papers_claim(tmp_path):
     assert det["failures"] >= 50 and det["n_rollouts"] == 1000           # 122 / 1000 measured
     assert sto["n_rollouts"] == 1000 and sto["failures"] == 0
     assert sto["audit_pass_rate_joint"] >= sto["confidence_joint"]
+
+
+def test_readme_numbers_match_the_run(small_run):
+    """The README's printed `simgap run pendulum` table and its Results row for the small profile are
+    what this run gives (bench/readme_numbers.py regenerates both; a stale number fails here)."""
+    import importlib.util
+    from pathlib import Path
+    root = Path(__file__).resolve().parents[1]
+    spec = importlib.util.spec_from_file_location("readme_numbers", root / "bench" / "readme_numbers.py")
+    rn = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(rn)
+    _, s = small_run
+    readme = (root / "README.md").read_text()
+    new, diffs = rn.apply(readme, [s])
+    assert diffs == [] and new == readme, "\n".join(diffs)
+    # the check can fail: a changed number is reported and rewritten
+    bad = readme.replace("| 0.000253, 0.00223 |", "| 0.000254, 0.00223 |", 1)
+    fixed, diffs = rn.apply(bad, [s])
+    assert len(diffs) == 1 and "pendulum, small" in diffs[0] and fixed == readme

@@ -213,12 +213,14 @@ def test_run_in_browser_every_layer_in_frame(run_dir, tmp_path):
     assert background < 0.9 * scene.shape[0] * scene.shape[1], "the scene is nearly empty"
     # the surface's color map (its blue and its yellow end, lit and translucent), the winning
     # map's green, the mean trajectory's yellow
+    # (the surface is colored on the session's scale 0 .. top, so a gamma that varies by a few
+    # percent is yellow all over: its blue end no longer appears, by design)
     cert = shots["Certificate"][:, : int(w * 0.68)]
     r, g, bl = (cert[..., k].astype(int) for k in range(3))
-    assert np.count_nonzero((bl - r > 60) & (bl > 150)) > 2000
-    assert np.count_nonzero((r > 190) & (g > 190) & (bl < 170)) > 2000
+    yellow_cert = np.count_nonzero((r > 190) & (g > 190) & (bl < 170))
+    assert yellow_cert > 2000
     assert _near(scene, G.WIN_NEAR, 35) > 500
     r, g, bl = (scene[..., k].astype(int) for k in range(3))
     assert np.count_nonzero((r > 180) & (g > 150) & (bl < 120)) > 30  # the mean's yellow (lines are lit)
     # hiding the surface removes its colors
-    assert np.count_nonzero((bl - r > 60) & (bl > 150)) < 500
+    assert np.count_nonzero((r > 190) & (g > 190) & (bl < 170)) < 0.25 * yellow_cert

@@ -127,7 +127,8 @@ def resolve_experiment(path_or_name: str | Path) -> Path:
 
 
 def load_experiment(path_or_name: str | Path, profile: Optional[str] = "small",
-                    overrides: Optional[dict] = None, system: Optional[System] = None) -> ExperimentConfig:
+                    overrides: Optional[dict] = None, system: Optional[System] = None, *,
+                    text: Optional[str] = None) -> ExperimentConfig:
     """Load an experiment TOML, apply ``profile`` and ``overrides`` ({section: {key: value}}).
 
     ``system`` replaces what ``[system]`` names (its file is then not read): a results folder
@@ -144,10 +145,13 @@ def load_experiment(path_or_name: str | Path, profile: Optional[str] = "small",
     Raises SimgapError for a missing/unparsable file, an unknown profile, an unknown section or
     key (naming the nearest valid one), a badly typed value, an unknown system, a bad input set,
     or a path that leaves the experiment's folder.
+
+    ``text``, if given, is the file's content (e.g. embedded in a results folder's summary.json):
+    ``path_or_name`` is then only where it was (its name and folder), and need not exist.
     """
-    path = resolve_experiment(path_or_name)
+    path = Path(path_or_name) if text is not None else resolve_experiment(path_or_name)
     try:
-        raw = tomllib.loads(path.read_text())
+        raw = tomllib.loads(text if text is not None else path.read_text())
     except tomllib.TOMLDecodeError as e:
         raise SimgapError(f"experiment {str(path)!r} is not valid TOML: {e}") from None
     except (OSError, UnicodeDecodeError) as e:

@@ -27,7 +27,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from . import fileio
+from . import fileio, results_folder
 from .collect import collect, load_store
 from .config import ExperimentConfig
 from .errors import SimgapError
@@ -174,88 +174,96 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
         from .perrun.value_iteration import check_horizon
         check_horizon(spec.kind, int(per_run["horizon"]), int(per_run["hold"]))
     out.mkdir(parents=True, exist_ok=True)  # after validation: bad input leaves no folder behind
-    ex = executor or exp.collect.executor
-    wk = workers if workers is not None else exp.collect.workers
-    times: dict = {}
-    summary: dict = {"experiment": exp.name, "profile": exp.profile, "description": exp.description,
-                     "config_file": str(exp.path), "sections": {k: exp.section(k) for k in
-                                                                ("certify", "audit", "synthesis", "rollout")},
-                     "simulator": exp.simulator.to_dict(), "system": exp.system.describe(),
-                     "x0": x0.tolist(), "methods": {}}
+    run_id = results_folder.new_run_id()
+    try:  # embedded: the folder opens without the file, from anywhere (simgap gui RESULTS)
+        toml_text = exp.path.read_text()
+    except OSError:
+        toml_text = None
+    with results_folder.run_lock(out):
+        results_folder.remove_stale(out, log)  # nothing of an earlier run stands beside this one
+        ex = executor or exp.collect.executor
+        wk = workers if workers is not None else exp.collect.workers
+        times: dict = {}
+        summary: dict = {"experiment": exp.name, "profile": exp.profile, "description": exp.description,
+                         "run_id": run_id, "config_file": str(exp.path.resolve()), "experiment_toml": toml_text,
+                         "sections": {k: exp.section(k) for k in ("certify", "audit", "synthesis", "rollout")},
+                         "simulator": exp.simulator.to_dict(), "system": exp.system.describe(),
+                         "x0": x0.tolist(), "methods": {}}
 
-    def stage(name, fn):
-        log(f"[{name}] ...")
-        t0 = time.perf_counter()
-        r = fn()
-        times[name] = round(time.perf_counter() - t0, 3)
-        log(f"[{name}] done in {times[name]:.1f} s")
-        return r
+        def stage(name, fn):
+            log(f"[{name}] ...")
+            t0 = time.perf_counter()
+            r = fn()
+            times[name] = round(time.perf_counter() - t0, 3)
+            log(f"[{name}] done in {times[name]:.1f} s")
+            return r
 
-    data = {}
-    for method, e, sub in (("stochastic", exp, "data"), ("deterministic", baseline_experiment(exp),
-                                                          "data_deterministic")):
-        plan = e.plan()
-        res = stage(f"collect/{method}", lambda: collect(plan, out / sub, executor=ex, workers=wk or None,
-                                                         on_progress=progress and progress(method, "pairs")))
-        if not res.complete:
-            raise SimgapError(f"collection of {out / sub} did not finish (cancelled); run again to resume")
-        data[method] = load_store(out / sub, system=e.system)
+        data = {}
+        for method, e, sub in (("stochastic", exp, "data"), ("deterministic", baseline_experiment(exp),
+                                                              "data_deterministic")):
+            plan = e.plan()
+            res = stage(f"collect/{method}", lambda: collect(plan, out / sub, executor=ex, workers=wk or None,
+                                                             on_progress=progress and progress(method, "pairs")))
+            if not res.complete:
+                raise SimgapError(f"collection of {out / sub} did not finish (cancelled); run again to resume")
+            data[method] = load_store(out / sub, system=e.system)
 
-    # one simulator per data set for the stages that call it directly (Lhat_fhat, audit, rollouts),
-    # each batch spread over the collection's cores (the same results as in one process)
-    sims = {m: make_simulator(e.simulator.to_dict(), e.system, workers=wk or 0)
-            for m, e in (("stochastic", exp), ("deterministic", baseline_experiment(exp)))}
-    sim = sims["stochastic"]  # audits and rollouts run against the stochastic simulator
-    controllers = {}
-    for method in METHODS:
-        ds = data[method]
-        opts = certify_options(cert_section, method)
-        cert = stage(f"certify/{method}", lambda: certify(ds, opts, simulator=sims[method]))
-        cert.save(out / f"cert_{method}.json")
-        rep = stage(f"audit/{method}", lambda: audit(cert, sim, points=int(au.get("points", 200)),
-                                                     runs=int(au.get("runs", 2000)), seed=int(au.get("seed", 7)),
-                                                     dataset=data["stochastic"]))
-        fileio.write_json(out / f"audit_{method}.json", rep)
-        sres = stage(f"synthesize/{method}", lambda: synthesize(exp.system, spec, syn["eta"], gap=cert, hold=hold,
-                                                                x0=x0))
-        sres.controller.save(out / f"controller_{method}.npz")
-        if not sres.empty:
-            controllers[method] = sres.controller
-        entry = {
-            "gamma": _gamma_stats(cert, data["stochastic"]),
-            "confidence_per_dim": cert.per_dim_confidence, "confidence_joint": cert.joint_confidence,
-            "confidence_scope": cert.scope, "confidence_joint_pointwise": cert.scope_confidences()["pointwise"],
-            "confidence_joint_simultaneous": cert.scope_confidences()["simultaneous"],
-            "audit_pass_rate_per_dim": {k: v["fraction_holds"] for k, v in rep["per_dim"].items()},
-            "audit_pass_rate_joint": rep["joint"]["fraction_holds"],
-            "audit_violated_joint": rep["joint"]["fraction_violated"],
-            "winning_cells": int(sres.stats["winning"]), "synthesis": sres.stats,
-            "dataset_hash": ds.hash, "warnings": list(cert.options.get("warnings") or []),
-        }
-        if sres.empty or not bool(sres.controller.winning(x0[None, :])[0]):
-            why = "empty winning domain" if sres.empty else "x0 is outside the winning domain"
-            entry["rollouts"] = {"skipped": why}
-            log(f"[rollout/{method}] skipped: {why}")
-        else:
-            rr = stage(f"rollout/{method}", lambda: rollout(sres.controller, sim, x0, n_rollouts=R,
-                                                            horizon=ro.get("horizon"), seed=int(ro.get("seed", 11)),
-                                                            on_exit=ro.get("on_exit", "hold")))
-            rr.save_npz(out / f"rollouts_{method}.npz")
-            entry["rollouts"] = rr.to_dict(per_rollout=False)
-            entry["failures"] = int(rr.n_failures)
-            entry["n_rollouts"] = int(rr.n_rollouts)
-            entry["mean_map_satisfies"] = None if rr.mean_map is None else rr.mean_map["satisfied"]
-            entry["rollout_average_satisfies"] = rr.rollout_average_verdict["satisfied"]
-        summary["methods"][method] = entry
-    if per_run:
-        from .perrun.stage import run_stage
-        summary["per_run"] = stage("perrun", lambda: run_stage(exp, out, data["stochastic"], controllers, spec, x0,
-                                                               per_run, sim=sim, log=log, progress=progress))
-    for each in sims.values():
-        each.close()
-    summary["seconds"] = times
-    fileio.write_json(out / "summary.json", summary, default=_json_default)
-    return summary
+        # one simulator per data set for the stages that call it directly (Lhat_fhat, audit, rollouts),
+        # each batch spread over the collection's cores (the same results as in one process)
+        sims = {m: make_simulator(e.simulator.to_dict(), e.system, workers=wk or 0)
+                for m, e in (("stochastic", exp), ("deterministic", baseline_experiment(exp)))}
+        sim = sims["stochastic"]  # audits and rollouts run against the stochastic simulator
+        controllers = {}
+        for method in METHODS:
+            ds = data[method]
+            opts = certify_options(cert_section, method)
+            cert = stage(f"certify/{method}", lambda: certify(ds, opts, simulator=sims[method]))
+            cert.save(out / f"cert_{method}.json")
+            rep = stage(f"audit/{method}", lambda: audit(cert, sim, points=int(au.get("points", 200)),
+                                                         runs=int(au.get("runs", 2000)), seed=int(au.get("seed", 7)),
+                                                         dataset=data["stochastic"]))
+            fileio.write_json(out / f"audit_{method}.json", rep)
+            sres = stage(f"synthesize/{method}", lambda: synthesize(exp.system, spec, syn["eta"], gap=cert, hold=hold,
+                                                                    x0=x0))
+            sres.controller.save(out / f"controller_{method}.npz")
+            if not sres.empty:
+                controllers[method] = sres.controller
+            entry = {
+                "gamma": _gamma_stats(cert, data["stochastic"]),
+                "confidence_per_dim": cert.per_dim_confidence, "confidence_joint": cert.joint_confidence,
+                "confidence_scope": cert.scope, "confidence_joint_pointwise": cert.scope_confidences()["pointwise"],
+                "confidence_joint_simultaneous": cert.scope_confidences()["simultaneous"],
+                "audit_pass_rate_per_dim": {k: v["fraction_holds"] for k, v in rep["per_dim"].items()},
+                "audit_pass_rate_joint": rep["joint"]["fraction_holds"],
+                "audit_violated_joint": rep["joint"]["fraction_violated"],
+                "winning_cells": int(sres.stats["winning"]), "synthesis": sres.stats,
+                "dataset_hash": ds.hash, "warnings": list(cert.options.get("warnings") or []),
+            }
+            if sres.empty or not bool(sres.controller.winning(x0[None, :])[0]):
+                why = "empty winning domain" if sres.empty else "x0 is outside the winning domain"
+                entry["rollouts"] = {"skipped": why}
+                log(f"[rollout/{method}] skipped: {why}")
+            else:
+                rr = stage(f"rollout/{method}", lambda: rollout(sres.controller, sim, x0, n_rollouts=R,
+                                                                horizon=ro.get("horizon"), seed=int(ro.get("seed", 11)),
+                                                                on_exit=ro.get("on_exit", "hold")))
+                rr.save_npz(out / f"rollouts_{method}.npz")
+                entry["rollouts"] = rr.to_dict(per_rollout=False)
+                entry["failures"] = int(rr.n_failures)
+                entry["n_rollouts"] = int(rr.n_rollouts)
+                entry["mean_map_satisfies"] = None if rr.mean_map is None else rr.mean_map["satisfied"]
+                entry["rollout_average_satisfies"] = rr.rollout_average_verdict["satisfied"]
+            summary["methods"][method] = entry
+        if per_run:
+            from .perrun.stage import run_stage
+            summary["per_run"] = stage("perrun", lambda: run_stage(exp, out, data["stochastic"], controllers, spec, x0,
+                                                                   per_run, sim=sim, log=log, progress=progress))
+        for each in sims.values():
+            each.close()
+        summary["seconds"] = times
+        summary["files"] = results_folder.list_files(out, run_id)
+        fileio.write_json(out / "summary.json", summary, default=_json_default)
+        return summary
 
 
 def _json_default(o):

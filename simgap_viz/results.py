@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Optional
 
 from simgap.errors import SimgapError
+from simgap.results_folder import check_listed
 
 METHODS = ("stochastic", "deterministic")
 DATA_DIRS = {"stochastic": "data", "deterministic": "data_deterministic"}
@@ -55,23 +56,26 @@ def _inside(root: Path, name: str) -> Path:
 
 
 def _experiment(summary: dict, root: Path):
-    """The run's experiment config: its TOML file if it still loads, else the built-in of that name.
-    A system file the TOML names that is gone is replaced by the model the run's data embed."""
+    """The run's experiment config: the TOML text embedded in its summary (what the run used; the
+    folder then opens from anywhere, moved, with the file deleted or edited since), else its TOML
+    file if it still loads, else the built-in of that name. A system file the TOML names that is
+    gone is replaced by the model the run's data embed."""
     from simgap.config import load_experiment
     name, profile = summary.get("experiment"), summary.get("profile") or "base"
     errors = []
-    for src in (summary.get("config_file"), name):
-        if not src:
-            continue
+    text = summary.get("experiment_toml")
+    sources = [(summary.get("config_file") or f"{name}.toml", text)] if isinstance(text, str) else []
+    sources += [(src, None) for src in (summary.get("config_file"), name) if src]
+    for src, txt in sources:
         try:
-            return load_experiment(src, profile)
+            return load_experiment(src, profile, text=txt)
         except SimgapError as e:
-            errors.append(str(e))
+            errors.append(("embedded configuration: " if txt is not None else "") + str(e))
             if "system file" in str(e) and (root / DATA_DIRS["stochastic"]).is_dir():
                 from simgap.collect import load_store
                 try:
                     embedded = load_store(_inside(root, DATA_DIRS["stochastic"])).system
-                    return load_experiment(src, profile, system=embedded)
+                    return load_experiment(src, profile, system=embedded, text=txt)
                 except SimgapError as e2:
                     errors.append(str(e2))
     raise SimgapError(f"results folder {root}: cannot load its experiment {name!r} (profile {profile}): "
@@ -107,7 +111,14 @@ def load_run(path) -> RunResults:
     for m in METHODS:
         if m not in summary["methods"]:
             continue
+        for name in (f"cert_{m}.json", f"audit_{m}.json", f"controller_{m}.npz", f"rollouts_{m}.npz"):
+            if (root / name).is_file():
+                check_listed(root, summary, name, digest=False)  # a stray of another run: refused first
         ds = load_store(_inside(root, DATA_DIRS[m]), system=exp.system)
+        want = summary["methods"][m].get("dataset_hash") if isinstance(summary["methods"][m], dict) else None
+        if want is not None and ds.hash != want:
+            raise SimgapError(f"results folder {root}: the data in {DATA_DIRS[m]} are not the ones this run certified "
+                              f"(dataset hash {ds.hash[:12]}..., summary.json says {str(want)[:12]}...; refused)")
         cert = load_certificate(_inside(root, f"cert_{m}.json"))
         audit = None
         ap = _inside(root, f"audit_{m}.json")
@@ -123,6 +134,11 @@ def load_run(path) -> RunResults:
         syn = SynthesisResult(ctrl, dict(ctrl.meta.get("stats", {})))
         rp = _inside(root, f"rollouts_{m}.npz")
         ro = load_rollout(rp) if rp.is_file() else None
+        # each file's own checks ran first (their messages are the more specific); then: is it
+        # the file this run wrote, not one of another run's?
+        for name in (f"cert_{m}.json", f"audit_{m}.json", f"controller_{m}.npz", f"rollouts_{m}.npz"):
+            if (root / name).is_file():
+                check_listed(root, summary, name)
         run.methods[m] = MethodResults(dataset=ds, certificate=cert, audit=audit, synthesis=syn, rollouts=ro)
     if not run.methods:
         raise SimgapError(f"{root / 'summary.json'} lists no method results")

@@ -115,6 +115,8 @@ def load_per_run(root: Path, summary: dict, system) -> PerRunResults | None:
     if not path.is_file():
         raise SimgapError(f"results folder {root}: the summary has per-run results but {CONTROLLER_FILE} is missing")
     ctl = PerRunController.load(path)
+    from simgap.results_folder import check_listed
+    check_listed(root, summary, CONTROLLER_FILE)  # after the file's own digest check (the more specific)
     if ctl.grid.n != system.n:
         raise SimgapError(f"{path}: its grid has {ctl.grid.n} dimensions, the run's system {system.n}")
     controllers = {str(k): _states(str(k), c, system) for k, c in pr["controllers"].items()}

@@ -684,3 +684,83 @@ def test_full_disk_run_never_announces_a_truncated_recording(work, tmp_path):
     assert "recording:" not in r.stdout
     assert not (tmp_path / "res" / "run.rrd").exists()
     no_temp_files(tmp_path)
+
+
+# ----- results folders: their own list of files; self-contained -------------------------------
+
+@pytest.fixture(scope="module")
+def run_folder(work, tmp_path_factory):
+    """A finished `simgap run` of the work experiment, made from a copy of its TOML."""
+    d = tmp_path_factory.mktemp("runs")
+    (d / "exp").mkdir()
+    (d / "exp" / "exp.toml").write_text(EXP)
+    (d / "res").mkdir()
+    (d / "res" / "rollouts_stochastic.npz").write_bytes((work / "ctrl.npz").read_bytes())  # an earlier run's
+    (d / "res" / "audit_old.json").write_text("{}")
+    r = simgap("run", "exp/exp.toml", "--profile", "base", "--out", "res", cwd=d, timeout=300)
+    assert r.returncode == 0, r.stderr
+    return d, r
+
+
+def test_a_reused_results_folder_keeps_nothing_stale(run_folder):
+    import json
+    d, r = run_folder
+    res = d / "res"
+    assert "removed 2 result file(s) of an earlier run" in r.stderr
+    assert not (res / "audit_old.json").exists() and not (res / "rollouts_stochastic.npz").exists()
+    s = json.loads((res / "summary.json").read_text())
+    assert len(s["run_id"]) == 32
+    on_disk = {p.name for p in res.iterdir() if p.is_file() and not p.name.startswith(".")} - {"summary.json"}
+    assert set(s["files"]) == on_disk and "run.rrd" in on_disk  # every file listed, the recording too
+    from simgap.results_folder import file_digest
+    for name, e in s["files"].items():
+        assert e["sha256"] == file_digest(res / name) and e["run_id"] == s["run_id"]
+
+
+def test_results_readers_refuse_files_of_another_run(run_folder, tmp_path, work):
+    import shutil
+
+    from simgap_viz.results import load_run
+    d, _ = run_folder
+    res = tmp_path / "res"
+    shutil.copytree(d / "res", res)
+    load_run(res)  # as written: loads
+    (res / "rollouts_stochastic.npz").write_bytes((work / "ctrl.npz").read_bytes())  # copied in
+    with pytest.raises(SimgapError, match="rollouts_stochastic.npz is not part of this run"):
+        load_run(res)
+    refused(simgap("gui", res, "--port", "0", "--exit-after", "0", cwd=tmp_path), "not part of this run")
+    (res / "rollouts_stochastic.npz").unlink()
+    shutil.copy(work / "cert.json", res / "cert_stochastic.json")  # a valid certificate, another run's
+    with pytest.raises(SimgapError, match="cert_stochastic.json differs from the file this run wrote"):
+        load_run(res)
+
+
+def test_results_folder_opens_anywhere_without_its_toml(run_folder, tmp_path):
+    """Moved, its TOML deleted, opened from another folder: the summary's embedded configuration."""
+    import shutil
+    d, _ = run_folder
+    moved = tmp_path / "moved" / "res"
+    shutil.copytree(d / "res", moved)
+    shutil.copytree(d / "exp", tmp_path / "exp_copy")
+    toml = d / "exp" / "exp.toml"
+    saved = toml.read_text()
+    toml.unlink()
+    try:
+        elsewhere = tmp_path / "elsewhere"
+        elsewhere.mkdir()
+        r = simgap("gui", moved, "--port", "0", "--exit-after", "0", cwd=elsewhere, timeout=120)
+        assert r.returncode == 0, r.stderr
+        assert "open http" in r.stdout
+    finally:
+        toml.write_text(saved)
+
+
+def test_a_second_run_into_one_folder_is_refused(run_folder, tmp_path):
+    d, _ = run_folder
+    res = tmp_path / "res"
+    res.mkdir()
+    with open(res / ".run.lock", "a") as fh:  # a run writing into the folder holds this lock
+        fcntl.lockf(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        r = simgap("run", d / "exp" / "exp.toml", "--profile", "base", "--out", res, cwd=tmp_path, timeout=300)
+    refused(r, "another simgap run is writing into")
+    assert not (res / "summary.json").exists()

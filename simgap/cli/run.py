@@ -45,12 +45,16 @@ def run(args) -> int:
         rrd = _record(exp, out)
         if rrd:
             print(f"recording: {rrd}   (open with: rerun {rrd}; without a display: simgap view {out})")
+        written = ["run.rrd"] if rrd else []
         if rrd and "per_run" in summary:
             from simgap_viz.record_perrun import record_per_run
 
             from ..perrun.value_iteration import PerRunController
             record_per_run(out / "perrun.rrd", PerRunController.load(out / "controller_perrun.npz"), summary["per_run"])
+            written.append("perrun.rrd")
             print(f"per-run recording: {out / 'perrun.rrd'}")
+        from ..results_folder import add_files
+        add_files(out, written)  # the recordings belong to this summary too
     print(f"GUI: simgap gui {out}")
     return 0
 

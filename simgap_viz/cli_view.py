@@ -112,6 +112,16 @@ def _check_free(bind: str, port: int, what: str) -> None:
                               f"--{what}-port, or 0 for a free one") from None
 
 
+def _die_with_parent() -> None:
+    """In the viewer's child process before exec (Linux): SIGTERM when `simgap view` dies, even by
+    SIGKILL, so no orphaned viewer keeps the ports (elsewhere only the normal exit path stops it)."""
+    try:
+        import ctypes
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG = 1
+    except (OSError, AttributeError):
+        pass
+
+
 class WebViewer:
     """The running viewer process (its own session) and the address that shows the recording."""
 
@@ -130,7 +140,7 @@ class WebViewer:
             [viewer_binary(), "--web-viewer", "--bind", bind, "--port", str(grpc_port),
              "--web-viewer-port", str(web_port), *map(str, files)],
             stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env,
-            start_new_session=True)
+            start_new_session=True, preexec_fn=_die_with_parent)
         ready = threading.Event()
 
         def drain():  # keep reading so the pipe never fills; note when the web server is up

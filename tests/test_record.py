@@ -249,3 +249,24 @@ def test_view_serves_the_recording_and_stops_everything(tmp_path, run_results):
         proc.wait(30)
     time.sleep(0.5)
     assert all(_port_free(p) for p in ports), "a port is still held after simgap view ended"
+
+
+def test_view_killed_leaves_no_viewer(tmp_path, run_results):
+    """SIGKILL of `simgap view` (no cleanup code runs) still stops the native viewer: both ports free."""
+    import signal
+    import time
+    from urllib.parse import parse_qs, urlparse
+
+    from simgap_viz.record import record_run
+    ds, cert, spec, syn, ro, _ = run_results
+    record_run(tmp_path / "c.rrd", ds.system, certificate=cert)
+    proc, url = _start_view([tmp_path / "c.rrd", "--web-port", 0, "--grpc-port", 0], tmp_path)
+    grpc = parse_qs(urlparse(url).query)["url"][0]
+    ports = [urlparse(url).port, urlparse(grpc.replace("rerun+", "")).port]
+    assert not any(_port_free(p) for p in ports)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(30)
+    deadline = time.time() + 20
+    while time.time() < deadline and not all(_port_free(p) for p in ports):
+        time.sleep(0.5)
+    assert all(_port_free(p) for p in ports), "the viewer outlived a killed `simgap view`"

@@ -98,7 +98,7 @@ def run(args) -> int:
                       synthesis=res.synthesis, rollouts=res.rollouts)
     print(f"wrote {args.out}: {info['bytes'] / 1e6:.1f} MB, {len(info['entities'])} entities, "
           f"{info['n_rollouts']} rollouts x {info['n_steps']} steps, logging {info['seconds']:.2f} s")
-    print(f"open it with: rerun {args.out}")
+    print(f"open it with: rerun {args.out}   (without a display: simgap view {args.out})")
     if res.synthesis is not None and res.synthesis.empty:
         print("note: the winning domain is empty (no rollouts recorded)", file=sys.stderr)
     return 0

@@ -61,6 +61,14 @@ def test_state_independent_growth_is_evaluated_once_per_input():
     fast = build_abstraction(s, grid, growth=state_independent(counted), block=4096)
     assert rows == [2]  # one call, one row per input
     assert _same(plain, fast)
+
+    class Model:  # a bound method cannot carry the mark itself
+        def growth(self, r, x, u, tau):
+            rows.append(len(r))
+            return base(r, x, u, tau)
+    rows.clear()
+    assert _same(build_abstraction(s, grid, growth=state_independent(Model().growth), block=4096), plain)
+    assert rows == [2]
     # with a box-dependent gap the radius differs per cell: evaluated per pair again
     rows.clear()
 

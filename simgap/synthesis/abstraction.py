@@ -364,7 +364,14 @@ def state_independent(growth: GrowthFn) -> GrowthFn:
     constant gap). :func:`~simgap.synthesis.runge_kutta.rk4_growth` and the system's Jacobian
     bound are state-independent already. Declaring it for a growth that does depend on x is
     wrong (the boxes would be those of an arbitrary cell)."""
-    growth.state_independent = True
+    try:
+        growth.state_independent = True
+    except AttributeError:  # a bound method or a builtin: marked through a wrapper
+        inner = growth
+
+        def growth(r, x, u, tau):
+            return inner(r, x, u, tau)
+        growth.state_independent = True
     return growth
 
 

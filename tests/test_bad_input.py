@@ -764,3 +764,63 @@ def test_a_second_run_into_one_folder_is_refused(run_folder, tmp_path):
         r = simgap("run", d / "exp" / "exp.toml", "--profile", "base", "--out", res, cwd=tmp_path, timeout=300)
     refused(r, "another simgap run is writing into")
     assert not (res / "summary.json").exists()
+
+
+# ----- run-level certificates and options -------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def run_cert(work):
+    r = simgap("certify", "data", "--level", "run", "--alpha", "0.8", "--out", "cert_run.json", cwd=work)
+    assert r.returncode == 0, r.stderr
+    return work / "cert_run.json"
+
+
+def test_run_level_certificate_is_not_a_mean_gap(work, run_cert, tmp_path):
+    r = simgap("synthesize", "--cert", run_cert, "--system", "pendulum", "--safe=-0.2,0.2,-0.5,0.5",
+               "--eta", "0.004,0.01", "--out", tmp_path / "c.npz", cwd=tmp_path)
+    refused(r, "run-level certificate", "gamma^alpha", "mean-map guarantee")
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("extra,words", [
+    (["--degree", "1.7"], ["--degree '1.7'", "one integer"]),
+    (["--degree", "1,2"], ["--degree '1,2'", "one integer"]),
+    (["--method", "deterministic"], ["--method", "not used at --level run"]),
+    (["--delta", "0.1"], ["--delta", "not used at --level run"]),
+    (["--uniform"], ["--uniform", "not used at --level run"]),
+    (["--compare"], ["--compare", "not used at --level run"]),
+])
+def test_run_level_refuses_options_it_would_ignore(work, extra, words):
+    before = files(work)
+    refused(simgap("certify", "data", "--level", "run", "--alpha", "0.8", *extra, "--out", "never.json", cwd=work),
+            *words)
+    assert files(work) == before
+
+
+def _forge(top):
+    t = top.copy()
+    return {"negative": lambda: t.__setitem__((0, 0, 0), -t[0, 0, 0] - 1.0) or t,
+            "unsorted": lambda: t[:, ::-1, :].copy(),
+            "nan": lambda: t.__setitem__((3, 1, 1), np.nan) or t,
+            "zero": lambda: np.zeros_like(t),
+            "inflated": lambda: t * 3.0}
+
+
+@pytest.mark.parametrize("how,words", [("negative", "negative"), ("unsorted", "not sorted"), ("nan", "NaN"),
+                                       ("zero", "own extreme"), ("inflated", "own extreme")])
+def test_forged_per_run_deviations_are_refused(work, tmp_path, how, words):
+    """A data set whose deviations were forged and its digest recomputed (save_npz does that)."""
+    import dataclasses
+
+    from simgap.dataset import load_dataset
+    ds = load_dataset(work / "data")
+    forged = dataclasses.replace(ds, absdev_top=_forge(ds.absdev_top)[how]())
+    forged.save_npz(tmp_path / "forged.npz")
+    refused(simgap("certify", tmp_path / "forged.npz", "--level", "run", "--alpha", "0.8", cwd=tmp_path),
+            "per-run deviations", words, "refused")
+
+
+def test_genuine_per_run_deviations_pass_the_plausibility_check(work):
+    from simgap.dataset import load_dataset
+    from simgap.perrun.realization import check_deviations
+    check_deviations(load_dataset(work / "data"))

@@ -168,11 +168,23 @@ def _run_level(args) -> int:
 
     if args.alpha is None:
         raise SimgapError("--level run needs --alpha (per-dimension miss probability of one run, in (0, 1))")
+    ignored = [opt for opt, given in (("--method", args.method != "stochastic"), ("--delta", args.delta),
+                                      ("--delta1", args.delta1), ("--delta2", args.delta2),
+                                      ("--beta1", args.beta1), ("--beta2", args.beta2),
+                                      ("--uniform", args.uniform), ("--compare", args.compare),
+                                      ("--term", args.term)) if given]
+    if ignored:
+        raise SimgapError(f"{', '.join(ignored)}: not used at --level run (the run level bounds an order statistic of "
+                          "the kept deviations with a Bonferroni union over all pairs; its options are --alpha, "
+                          "--beta and --degree)")
+    deg = _floats(args.degree, "degree")
+    if isinstance(deg, list) or deg != int(deg) or deg < 0:
+        raise SimgapError(f"--degree {args.degree!r}: --level run takes one integer degree >= 0")
     beta = 0.01 if args.beta is None else _floats(args.beta, "beta")
     if isinstance(beta, list):
         raise SimgapError("--beta: the run level takes one value (the whole certificate's failure probability)")
     opts = RunCertifyOptions(alpha=args.alpha, beta=beta, seed=args.seed, solver=args.solver,
-                             degree=int(_floats(args.degree, "degree")))
+                             degree=int(deg))
     opts.validate()  # before the data are loaded: bad input costs nothing
     if args.system is not None:
         raise SimgapError("--level run takes no --system: the per-run deviations were kept against the data's own "

@@ -140,6 +140,12 @@ def run(args) -> int:
     if args.cert:
         from ..certify.certificate import load as load_cert
         cert = load_cert(args.cert)
+        if cert.method == "run":
+            raise SimgapError(
+                f"--cert {args.cert!r} is a run-level certificate (gamma^alpha, alpha = "
+                f"{cert.options.get('alpha')}): it bounds one run's deviation with probability 1 - alpha, not the "
+                "gap of the mean, so a mean-level controller built on it would claim a mean-map guarantee it does "
+                "not give. Use a mean-level certificate (simgap certify without --level run), or --level run")
     exp = _experiment_path(args.spec) if args.spec else None
     syn = {}
     x0 = None

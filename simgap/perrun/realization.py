@@ -90,10 +90,40 @@ def quantile_bounds(dataset, alpha: float, beta: float):
     if dataset.absdev_top is None:
         raise SimgapError("the data set has no per-run order statistics (collected before they were kept); "
                           "collect it again with this version to certify at the run level")
+    check_deviations(dataset)
     N = int(dataset.n_runs)
     j = order_index(N, alpha, per_pair_beta(beta, dataset.K, dataset.system.n))
     j_used = min(j, dataset.absdev_top.shape[1] - 1)
     return dataset.absdev_top[:, j_used, :], j, j_used
+
+
+def check_deviations(dataset) -> None:
+    """Refuse per-run deviations that cannot come from the data's own runs (forged or corrupt
+    with a recomputed digest): each pair's top |d| must be finite, >= 0 and descending; the
+    largest must equal max(hi - f_nom, f_nom - lo) (the runs' own extremes, kept beside them);
+    and their squares cannot add up to more than all N1hat squared deviations,
+    (N1hat - 1) var + N1hat (mean - f_nom)^2. A plausibility check, not a proof (README)."""
+    top = np.asarray(dataset.absdev_top, dtype=float)
+    where = "the data set's per-run deviations (absdev_top)"
+    if not np.all(np.isfinite(top)):
+        raise SimgapError(f"{where} contain NaN or inf: refused")
+    if np.any(top < 0):
+        raise SimgapError(f"{where} contain negative absolute deviations: refused")
+    if np.any(np.diff(top, axis=1) > 0):
+        raise SimgapError(f"{where} are not sorted largest first: refused")
+    f = dataset.f_nom
+    ext = np.maximum(dataset.hi - f, f - dataset.lo)
+    tol = 1e-9 * (1.0 + np.abs(f) + np.abs(dataset.hi) + np.abs(dataset.lo))
+    bad = np.abs(top[:, 0, :] - ext) > tol
+    if np.any(bad):
+        k, i = np.argwhere(bad)[0]
+        raise SimgapError(f"{where}: pair {k}, dimension {i}: the largest deviation {top[k, 0, i]:.6g} is not the runs' "
+                          f"own extreme max(hi - f_nom, f_nom - lo) = {ext[k, i]:.6g}: refused")
+    N = int(dataset.n_runs)
+    d_mean = dataset.system.diff(dataset.mean, f)  # wrapped for angles, as the deviations are
+    total = (N - 1) * dataset.var + N * d_mean ** 2
+    if np.any((top ** 2).sum(axis=1) > total * (1 + 1e-6) + tol):
+        raise SimgapError(f"{where} add up to more than the runs' own variance and mean allow: refused")
 
 
 def per_run_slopes(sim, rng: np.random.Generator, h: float, n_pairs: int, runs: int) -> np.ndarray:

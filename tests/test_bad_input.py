@@ -824,3 +824,50 @@ def test_genuine_per_run_deviations_pass_the_plausibility_check(work):
     from simgap.dataset import load_dataset
     from simgap.perrun.realization import check_deviations
     check_deviations(load_dataset(work / "data"))
+
+
+# ----- signatures: forgery, not only accidents (simgap[sign]) ---------------------------------------
+
+def _forge_zero_gap(src: Path, dst: Path) -> None:
+    """The forgery a digest cannot stop: gamma's coefficients set to 0, derived fields and the
+    digest recomputed exactly as simgap does (whoever has the code can do it)."""
+    import json
+
+    from simgap import fileio
+    from simgap.certify.certificate import Certificate
+    d = json.loads(src.read_text())
+    for e in d["dims"]:
+        e["q"] = [0.0] * len(e["q"])
+    d.pop("signature", None)
+    body = Certificate._from_dict(d).to_dict()  # derived fields and digest from the forged parts
+    body["signature"] = json.loads(src.read_text()).get("signature")  # the genuine signature, reused
+    dst.write_text(json.dumps(body))
+
+
+def test_signed_certificates_refuse_forgery(work, tmp_path):
+    pytest.importorskip("cryptography")
+    r = simgap("key", "new", "--out", tmp_path / "me", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "me").stat().st_mode & 0o077 == 0 and (tmp_path / "me.pub").is_file()
+    refused(simgap("key", "new", "--out", tmp_path / "me", cwd=tmp_path), "never overwritten")
+    simgap("key", "new", "--out", tmp_path / "other", cwd=tmp_path)
+    r = simgap("certify", work / "data", "--sign-key", tmp_path / "me", "--out", tmp_path / "signed.json", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    _forge_zero_gap(tmp_path / "signed.json", tmp_path / "forged.json")
+    synth = ["synthesize", "--system", "pendulum", "--safe=-0.2,0.2,-0.5,0.5", "--eta", "0.004,0.01",
+             "--out", tmp_path / "c.npz", "--cert"]
+
+    def run(cert, trusted):
+        env = dict(os.environ, PYTHONPATH=str(REPO))
+        if trusted:
+            env["SIMGAP_TRUSTED_KEYS"] = os.pathsep.join(str(tmp_path / k) for k in trusted)
+        return subprocess.run([sys.executable, "-m", "simgap", *map(str, synth), cert], cwd=tmp_path, env=env,
+                              capture_output=True, text=True, timeout=120)
+
+    r = run(tmp_path / "forged.json", None)  # without a trusted key the forgery passes its digest check
+    assert "modified" not in r.stderr and "digest" not in r.stderr, r.stderr
+    refused(run(tmp_path / "forged.json", ["me.pub"]), "signature does not match its content", "forged")
+    refused(run(work / "cert.json", ["me.pub"]), "is not signed")
+    refused(run(tmp_path / "signed.json", ["other.pub"]), "not among SIMGAP_TRUSTED_KEYS")
+    r = run(tmp_path / "signed.json", ["other.pub", "me.pub"])
+    assert r.returncode in (0, 1) and "error" not in r.stderr, r.stderr  # genuine: accepted (1 = empty domain)

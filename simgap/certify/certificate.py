@@ -268,9 +268,16 @@ class Certificate:
         """sha256 of the certificate's content (what its file records as ``digest``)."""
         return self.to_dict()["digest"]
 
-    def save(self, path) -> Path:
-        """Write JSON atomically (temp file in the same folder, then rename)."""
-        return fileio.write_json(path, self.to_dict())
+    def save(self, path, sign_key: Optional[str] = None) -> Path:
+        """Write JSON atomically (temp file in the same folder, then rename); signed over its digest
+        with ``sign_key`` or $SIMGAP_SIGNING_KEY when one is given (:mod:`simgap.signing`)."""
+        from .. import signing
+
+        d = self.to_dict()
+        key = signing.signing_key(sign_key)
+        if key:
+            d["signature"] = signing.sign(d["digest"], key)
+        return fileio.write_json(path, d)
 
     @classmethod
     def from_dict(cls, d: dict, source: str = "certificate") -> "Certificate":
@@ -282,6 +289,8 @@ class Certificate:
                               f"files without a content digest are refused; certify the data again)")
         cert = cls._from_dict(d)
         verify(d, cert, source)
+        from .. import signing
+        signing.check(d, source)  # a signature by a trusted key, when $SIMGAP_TRUSTED_KEYS is set
         return cert
 
     @classmethod
@@ -372,7 +381,7 @@ def verify(d: dict, cert: Certificate, source: str = "certificate") -> None:
         if not _same(d.get(k), derived[k]):
             bad.append(f"{k} is {d.get(k)!r} in the file but {derived[k]!r} from its parts")
     want = d.get("digest")
-    have = fileio.content_digest({k: v for k, v in d.items() if k != "digest"})
+    have = fileio.content_digest({k: v for k, v in d.items() if k not in ("digest", "signature")})
     if not isinstance(want, str):
         bad.append("it has no content digest")
     elif want != have:

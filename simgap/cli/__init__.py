@@ -17,7 +17,7 @@ import sys
 from ..errors import SimgapError
 
 # subcommand module names under simgap.cli (and simgap_viz.cli for the app)
-SUBCOMMANDS = ["collect", "certify", "audit", "synthesize", "rollout", "refine", "data", "run", "plugins"]
+SUBCOMMANDS = ["collect", "certify", "audit", "synthesize", "rollout", "refine", "data", "run", "key", "plugins"]
 VIZ_SUBCOMMANDS = ["gui", "record", "view", "plot"]
 
 

@@ -95,6 +95,8 @@ def add_parser(subparsers) -> None:
     p.add_argument("--compare", action="store_true",
                    help="certify under each bound option and print delta and gamma side by side")
     p.add_argument("--out", help="write the certificate JSON here")
+    p.add_argument("--sign-key", metavar="KEY", help="sign the certificate with this private key (simgap key new; "
+                                                     "default: $SIMGAP_SIGNING_KEY, if set)")
     p.set_defaults(func=run, outputs=("out",))
 
 
@@ -149,7 +151,7 @@ def run(args) -> int:
     cert = certify(ds, opts)
     print(cert.summary())
     if args.out:
-        cert.save(args.out)
+        cert.save(args.out, sign_key=args.sign_key)
         print(f"wrote {args.out}")
     return 0
 
@@ -196,6 +198,6 @@ def _run_level(args) -> int:
     print(f"alpha = {cert.options['alpha']:g} per dimension and run (smallest alpha these data support: "
           f"{cert.options['alpha_min']:.4g}); order statistic {cert.options['order_statistic']}")
     if args.out:
-        cert.save(args.out)
+        cert.save(args.out, sign_key=args.sign_key)
         print(f"wrote {args.out}")
     return 0

@@ -3,7 +3,7 @@
     python bench/bench_perrun_turtlebot.py                                   # the small grid (defaults)
     python bench/bench_perrun_turtlebot.py --n-runs 2000 --pilot 200 --rollouts 10000
 
-The simulator is the experiment's ``gazebo`` profile (assets/experiments/turtlebot.toml: per-run
+The simulator is the experiment's ``gazebo_stress`` profile (assets/experiments/turtlebot.toml: per-run
 wheel radius and friction randomization, wheel slip, actuation jitter; 30 periods of 0.01 s per
 0.3 s step, 2 physics substeps), the specification the arena's reach-avoid task from
 x0 = (3.5, 2, 1.5). The interval MDP is sampled once per (heading cell, input) and shifted to every
@@ -52,7 +52,7 @@ def cpu_now() -> float:
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--profile", default="gazebo")
+    ap.add_argument("--profile", default="gazebo_stress")
     ap.add_argument("--eta", type=float, nargs=3, default=[0.1, 0.1, np.pi / 16])
     ap.add_argument("--v", type=float, nargs="+", default=[0.5, 1.0], help="speeds of the input set [m/s]")
     ap.add_argument("--omega", type=float, nargs="+", default=[-1.0, -0.5, 0.0, 0.5, 1.0], help="turn rates [rad/s]")

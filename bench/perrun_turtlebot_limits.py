@@ -9,7 +9,7 @@
    (hi = 1 where a run touched the cell, sink bound 1 or 0): the robust game over the widened
    support, the best any sampling could give on that grid. Prints whether x0 = (3.5, 2, 1.5) is won,
    the entries, the build and value-iteration times and the peak RSS.
-2. ``spread``: 2000 PyBullet runs of one 0.3 s step from (2, 2, 0) under the experiment's gazebo
+2. ``spread``: 2000 PyBullet runs of one 0.3 s step from (2, 2, 0) under the experiment's gazebo_stress
    profile, per input: quantiles of the end state and the 90 % / 99 % ranges in cells of
    0.05 m x 0.05 m x pi/32 (the grid of 1. that wins x0), i.e. how many successor cells a row of
    that grid's interval MDP has under this noise.
@@ -62,7 +62,7 @@ def grid(eta, horizon: int) -> dict:
 
 
 def spread(runs: int) -> dict:
-    exp = load_experiment(ROOT / "assets/experiments/turtlebot.toml", "gazebo")
+    exp = load_experiment(ROOT / "assets/experiments/turtlebot.toml", "gazebo_stress")
     s = dataclasses.replace(exp.system, inputs=INPUTS)
     cells = np.array([0.05, 0.05, np.pi / 32])
     out = {}

@@ -148,6 +148,18 @@ class ArenaMap:
         r = self.robot_radius
         return self.obstacles + np.array([-r, r, -r, r])
 
+    def clearance(self, xy: np.ndarray) -> np.ndarray:
+        """Signed distance [m] from robot centres ``xy`` (..., >= 2; only x, y used) to the nearest
+        grown obstacle (:attr:`inflated_obstacles`, what the specification avoids): the Euclidean
+        distance outside, minus the depth inside (negative = the spec is violated there)."""
+        p = np.asarray(xy, dtype=float)[..., None, :2]           # (..., 1, 2)
+        g = self.inflated_obstacles                              # (K, 4)
+        lo, hi = g[:, [0, 2]], g[:, [1, 3]]
+        out = np.maximum(np.maximum(lo - p, p - hi), 0.0)        # per-axis distance outside
+        inside = np.minimum(p - lo, hi - p).min(axis=-1)         # depth, > 0 only inside
+        d = np.where(inside > 0, -inside, np.linalg.norm(out, axis=-1))
+        return d.min(axis=-1) if g.shape[0] else np.full(p.shape[:-2], np.inf)
+
     @property
     def obstacle_boxes(self) -> List[List[float]]:
         """Physical obstacle boxes as plain lists [x_lo, x_hi, y_lo, y_hi] (PyBullet world)."""

@@ -139,6 +139,18 @@ def check_experiment(exp: ExperimentConfig, out: Optional[str | Path] = None, *,
     return {"spec": spec, "x0": x0, "eta": syn["eta"], "hold": int(syn.get("hold", 1)), "n_rollouts": R}
 
 
+def closest_approach(arena, rr) -> dict:
+    """Closest approach [m] of the robot centre to the grown obstacles (signed, negative inside;
+    :meth:`simgap.maps.ArenaMap.clearance`): per rollout the minimum over its trajectory, then
+    the minimum, 5 % quantile and median over the rollouts, and the mean-map trajectory's."""
+    per_run = arena.clearance(rr.trajectories).min(axis=1)  # padding repeats real states
+    out = {"min": float(per_run.min()), "q05": float(np.quantile(per_run, 0.05)),
+           "median": float(np.median(per_run))}
+    if rr.mean_map_trajectory is not None:
+        out["mean_map"] = float(arena.clearance(np.asarray(rr.mean_map_trajectory)).min())
+    return out
+
+
 def _gamma_stats(cert, ds) -> dict:
     g = cert.gamma(ds.x, ds.u)
     return {"max": g.max(axis=0).tolist(), "mean": g.mean(axis=0).tolist()}
@@ -170,6 +182,7 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
     syn, ro, au = exp.section("synthesis"), exp.section("rollout"), exp.section("audit")
     cert_section = exp.section("certify")
     spec, x0, hold, R = checked["spec"], checked["x0"], checked["hold"], checked["n_rollouts"]
+    arena = experiment_spec(exp)[2]
     if per_run:  # a reach-avoid horizon shorter than one hold certifies nothing: refused before any work
         from .perrun.value_iteration import check_horizon
         check_horizon(spec.kind, int(per_run["horizon"]), int(per_run["hold"]))
@@ -253,6 +266,8 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
                 entry["n_rollouts"] = int(rr.n_rollouts)
                 entry["mean_map_satisfies"] = None if rr.mean_map is None else rr.mean_map["satisfied"]
                 entry["rollout_average_satisfies"] = rr.rollout_average_verdict["satisfied"]
+                if arena is not None:
+                    entry["closest_approach"] = closest_approach(arena, rr)
             summary["methods"][method] = entry
         if per_run:
             from .perrun.stage import run_stage
@@ -305,6 +320,12 @@ def comparison_table(summary: dict) -> str:
                                    else e["rollouts"].get("skipped", "-"))))
     rows.append(("mean map satisfies (guarantee)", *both(lambda e: str(e.get("mean_map_satisfies", "-")))))
     rows.append(("rollout average satisfies", *both(lambda e: str(e.get("rollout_average_satisfies", "-")))))
+    if any("closest_approach" in summary["methods"][m] for m in METHODS):
+        def ca(key):
+            return lambda e: fmt(e.get("closest_approach", {}).get(key), "{:.3f}")
+        rows.append(("closest approach min [m]", *both(ca("min"))))
+        rows.append(("closest approach 5 % quantile [m]", *both(ca("q05"))))
+        rows.append(("closest approach, mean map [m]", *both(ca("mean_map"))))
     w = [max(len(str(r[c])) for r in rows) for c in range(3)]
     lines = ["  ".join(str(r[c]).ljust(w[c]) if c == 0 else str(r[c]).rjust(w[c]) for c in range(3)) for r in rows]
     lines.insert(1, "-" * len(lines[0]))

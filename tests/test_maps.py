@@ -149,3 +149,22 @@ def test_spec_against_a_system():
     # a 2-D system: the heading component is dropped by refusing extra components
     with pytest.raises(SimgapError, match="3 components"):
         load_map("arena").x0(pendulum())
+
+
+def test_clearance_is_the_signed_distance_to_the_grown_obstacles():
+    """Outside: Euclidean distance to the nearest grown box (also past a corner); inside: minus
+    the depth; the spec's obstacle test agrees with the sign; points broadcast over (..., n)."""
+    from simgap.systems import get_system
+
+    m = load_map("arena")                   # grown boxes: robot_radius 0.1 on every side
+    sysm = get_system("turtlebot")
+    wall = m.inflated_obstacles[0]          # [1.6, 2.3, -0.1, 2.7]
+    pts = np.array([[wall[0] - 0.25, 1.0, 0.3],         # left of the wall: 0.25
+                    [wall[1] + 0.05, 2.7 + 0.05, 0.0],  # past the top-right corner: 0.05 sqrt 2
+                    [wall[0] + 0.1, 1.0, 0.0],          # inside, 0.1 from the left face
+                    [(wall[0] + wall[1]) / 2, 1.0, 0.0]])  # inside at the centre line: half the width
+    d = m.clearance(pts)
+    half = (wall[1] - wall[0]) / 2
+    assert np.allclose(d, [0.25, 0.05 * np.sqrt(2), -0.1, -half])
+    assert np.array_equal(d < 0, m.spec(sysm).in_obstacle(pts))
+    assert m.clearance(np.stack([pts, pts])).shape == (2, 4)

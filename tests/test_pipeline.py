@@ -108,3 +108,34 @@ def test_readme_numbers_match_the_run(small_run):
     bad = readme.replace("| 0.000253, 0.00223 |", "| 0.000254, 0.00223 |", 1)
     fixed, diffs = rn.apply(bad, [s])
     assert len(diffs) == 1 and "pendulum, small" in diffs[0] and fixed == readme
+
+
+def test_closest_approach_over_rollouts_and_the_mean_map():
+    """Per rollout the minimum clearance along the whole trajectory (not the last state), then
+    min / 5 % quantile / median over rollouts; the mean map's own minimum; the table shows them."""
+    from types import SimpleNamespace
+
+    from simgap.maps import load_map
+    from simgap.pipeline import closest_approach, comparison_table
+
+    m = load_map("arena")
+    x_left = m.inflated_obstacles[0][0]                     # left face of the grown wall
+    dist = np.linspace(0.0, 0.6, 100)                       # rollout i passes dist[i] from the wall
+    traj = np.zeros((100, 3, 3))
+    traj[:, :, 1] = 0.5                                     # far from the other obstacles
+    traj[:, 0, 0] = x_left - 0.5                            # start and end far from the wall ...
+    traj[:, 1, 0] = x_left - dist                           # ... closest in the middle
+    traj[:, 2, 0] = x_left - 0.5
+    traj[0, 1, 0] = x_left + 0.05                           # rollout 0 goes 0.05 m inside
+    mm = traj[50]
+    ca = closest_approach(m, SimpleNamespace(trajectories=traj, mean_map_trajectory=mm))
+    assert ca["min"] == pytest.approx(-0.05) and ca["mean_map"] == pytest.approx(dist[50])
+    per = np.r_[-0.05, dist[1:]]
+    assert ca["q05"] == pytest.approx(np.quantile(per, 0.05)) and ca["median"] == pytest.approx(np.median(per))
+    e = {"gamma": {"max": [0.1] * 3}, "confidence_per_dim": [0.9] * 3, "audit_pass_rate_joint": 1.0,
+         "audit_violated_joint": 0.0, "winning_cells": 1, "rollouts": {"skipped": "x0 is outside the winning domain"}}
+    s = {"system": {"state_names": ["x", "y", "theta"]},
+         "methods": {"deterministic": {**e, "failures": 1, "n_rollouts": 100, "closest_approach": ca},
+                     "stochastic": e}}
+    table = comparison_table(s)
+    assert "closest approach min [m]" in table and "-0.050" in table and f"{dist[50]:.3f}" in table

@@ -466,13 +466,13 @@ def test_turtlebot_gazebo_keys_bad_values(noise, match):
 
 
 def test_turtlebot_gazebo_profile_simulator_and_its_noise_free_baseline(rng):
-    """The experiment's `gazebo` profile builds; its baseline (the deterministic method's data)
+    """The experiment's `gazebo_stress` profile builds; its baseline (the deterministic method's data)
     drops slip and jitter with the rest of the noise; slip makes single runs far off while the
     mean moves little."""
     from simgap.config import load_experiment
     from simgap.pipeline import baseline_experiment
 
-    exp = load_experiment("turtlebot", "gazebo")
+    exp = load_experiment("turtlebot", "gazebo_stress")
     assert {"wheel_slip", "actuation_jitter"} <= set(exp.simulator.noise)
     base = baseline_experiment(exp).simulator
     assert base.noise == {} and base.randomize == {}

@@ -34,7 +34,8 @@ said otherwise):
 * ``randomize.friction`` (relative std): wheel-ground friction coefficient mu (1 + s z).
   All factors use z ~ N(0,1) clipped to +-3.
 
-Gazebo-like stochasticity (drawn only when configured; the experiment's ``gazebo`` profile):
+Stress stochasticity (drawn only when configured; the experiment's ``gazebo_stress`` profile;
+Gazebo's own models have neither, docs/simulators.md):
 
 * ``noise.wheel_slip`` [p, s] (0 <= p <= 1, 0 <= s <= 1): intermittent loss of traction. In each
   run each wheel, independently, slips with probability p and then covers only (1 - s V) of the

@@ -73,3 +73,23 @@ def test_numpy_simulator_batched_equals_unbatched():
     single = np.vstack([sim.step_with_noise(x[i:i + 1], u[i:i + 1], {k: v[i:i + 1] for k, v in noise.items()})
                         for i in range(50)])
     np.testing.assert_array_equal(batched, single)
+
+
+def test_units_of_builtins_params_and_system_files():
+    """Axis labels take units from the system: the built-ins' table, params['units'], a system file's."""
+    from pathlib import Path
+
+    from simgap.systems import get_system, labelled, resolve_system, units
+    assert units(get_system("pendulum")) == (("rad", "rad/s"), ("N m",))
+    assert units(get_system("turtlebot"))[0] == ("m", "m", "rad")
+    cart = System(name="cart", state_names=("p", "v"), input_names=("F",), x_lo=(-1, -1), x_hi=(1, 1),
+                  inputs=input_grid([-1], [1], [3]), base_tau=0.01, step=lambda x, u, t: x,
+                  params={"units": {"p": "m", "F": "N"}})
+    assert units(cart) == (("m", ""), ("N",))
+    assert labelled("p", "m") == "p [m]" and labelled("v", "") == "v"
+    bare = System(name="bare", state_names=("a",), input_names=("b",), x_lo=(0,), x_hi=(1,),
+                  inputs=input_grid([0], [1], [2]), base_tau=0.1, step=lambda x, u, t: x)
+    assert units(bare) == (("",), ("",))
+    duffing = Path(__file__).resolve().parents[1] / "examples" / "duffing" / "duffing.toml"
+    if duffing.is_file():
+        assert units(resolve_system(str(duffing))) == (("m", "m/s"), ("N",))

@@ -17,6 +17,8 @@ import tempfile
 from pathlib import Path
 from typing import Optional, Sequence
 
+import numpy as np
+
 from .errors import SimgapError
 
 #: work estimated to take longer than this is refused (the numbers are printed)
@@ -331,3 +333,72 @@ def check_basis(n_pairs: int, n_vars: int, degrees: Sequence[int], extra_terms: 
         raise SimgapError(f"{head}; with {n_pairs:,} pairs the rank check and linear program need about "
                           f"{flops:.2g} floating-point operations (hours on this machine); use a smaller "
                           "degree (the paper uses 1 or 2) or name the terms you need")
+
+
+def perrun_size(o: dict, system, rate_per_worker: Optional[float] = None, workers: int = 1,
+                n_controllers: int = 3) -> dict:
+    """Estimated peak memory and time of the per-run stage for checked ``[perrun]`` options ``o``.
+
+    Grid: C = prod ceil((x_hi - x_lo) / eta) cells (invariant dimensions collapse to one class),
+    M inputs. The interval MDP samples n_runs runs of ``hold`` periods per (cell, input) and keeps
+    about min(n_runs, C, 32) successor intervals per pair (two float64 and an int32 index); value
+    iteration keeps a policy and a value per cell and abstract step (horizon / hold); validation
+    rolls ``n_rollouts`` runs of ``horizon`` periods out from ``n_states`` states per controller.
+    """
+    eta = np.broadcast_to(np.asarray(o["eta"], dtype=float), (system.n,))
+    counts = np.ceil((system.x_hi - system.x_lo) / eta).astype(float)
+    inv = [system.state_names.index(v) for v in (o.get("invariant") or [])]
+    C = float(np.prod(counts))
+    C_sampled = float(np.prod(np.delete(counts, inv))) if inv else C
+    M = float(len(system.inputs))
+    hold, horizon = int(o["hold"]), int(o["horizon"])
+    steps = max(1, -(-horizon // hold))
+    S = min(float(o["n_runs"]), C, 32.0)  # successors per pair: a run lands in a few cells (not all n_runs apart)
+    memory = C * M * S * 20 + C * steps * 12 + float(o["n_rollouts"]) * (horizon + 1) * system.n * 8 * 2
+    runs = C_sampled * M * (float(o["n_runs"]) + float(o["pilot_runs"])) * hold \
+        + n_controllers * float(o["n_states"]) * float(o["n_rollouts"]) * horizon
+    secs = runs / (rate_per_worker * max(1, workers)) if rate_per_worker else None
+    return {"cells": C, "inputs": M, "memory": memory, "runs": runs, "seconds": secs}
+
+
+#: the per-run stage estimated to take longer than this is refused (override: SIMGAP_NO_SIZE_CHECK=1)
+MAX_PERRUN_SECONDS = 6 * 3600.0
+
+
+def check_perrun(o: dict, system, rate_per_worker: Optional[float] = None, workers: int = 1) -> dict:
+    """Refuse a per-run stage that cannot fit in memory or would take over 6 hours, with the numbers.
+    ``SIMGAP_NO_SIZE_CHECK=1`` skips the time limit for users who know (never the memory one)."""
+    e = perrun_size(o, system, rate_per_worker, workers)
+    what = (f"the per-run stage ({e['cells']:,.0f} cells x {e['inputs']:,.0f} inputs, n_runs {int(o['n_runs']):,}, "
+            f"hold {int(o['hold'])}, horizon {int(o['horizon'])}, {int(o['n_states'])} states x "
+            f"{int(o['n_rollouts']):,} rollouts: {e['runs']:.3g} simulator periods)")
+    hint = "use a coarser [perrun] eta, fewer n_runs / n_rollouts / n_states or a shorter horizon"
+    check_memory(e["memory"], what, hint)
+    if e["seconds"] is not None and e["seconds"] > MAX_PERRUN_SECONDS and not os.environ.get("SIMGAP_NO_SIZE_CHECK"):
+        raise SimgapError(f"{what} would take about {human_seconds(e['seconds'])} on {workers} worker(s); {hint} "
+                          "(or set SIMGAP_NO_SIZE_CHECK=1 to run it anyway)")
+    return e
+
+
+def calibrated_rate(sim_config, system) -> Optional[float]:
+    """Simulator runs per second of one worker, measured in about 0.5 s (as collection does)."""
+    from .cover import calibrate_rate
+    from .simulators import make_simulator
+    with make_simulator(sim_config, system) as sim:
+        return calibrate_rate(sim, n_runs=65536, budget=0.3)  # per-run batches are large
+
+
+#: a single command's simulator work estimated above this is refused (override: SIMGAP_NO_SIZE_CHECK=1)
+MAX_COMMAND_SECONDS = 6 * 3600.0
+
+
+def check_sim_work(runs: float, memory: float, what: str, hint: str, rate_per_worker: Optional[float] = None,
+                   workers: int = 1) -> None:
+    """Refuse ``runs`` simulator periods that need more than the available memory, or (at the
+    calibrated ``rate_per_worker``) more than :data:`MAX_COMMAND_SECONDS`, naming the numbers."""
+    check_memory(memory, what, hint)
+    if rate_per_worker and not os.environ.get("SIMGAP_NO_SIZE_CHECK"):
+        secs = runs / (rate_per_worker * max(1, workers))
+        if secs > MAX_COMMAND_SECONDS:
+            raise SimgapError(f"{what} ({runs:.3g} simulator periods) would take about {human_seconds(secs)}; {hint} "
+                              "(or set SIMGAP_NO_SIZE_CHECK=1 to run it anyway)")

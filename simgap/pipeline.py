@@ -178,6 +178,9 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
         from .perrun.stage import check_section
         per_run = check_section(per_run, exp.system, exp.plan().n_pairs, exp.collect.n_runs,
                                 exp.section("rollout").get("horizon"))
+        from . import checks
+        wk0 = workers if workers is not None else (exp.collect.workers or os.cpu_count() or 1)
+        checks.check_perrun(per_run, exp.system, checks.calibrated_rate(exp.simulator, exp.system), wk0)
     checked = check_experiment(exp, out, n_rollouts=n_rollouts, workers=workers)
     syn, ro, au = exp.section("synthesis"), exp.section("rollout"), exp.section("audit")
     cert_section = exp.section("certify")

@@ -871,3 +871,58 @@ def test_signed_certificates_refuse_forgery(work, tmp_path):
     refused(run(tmp_path / "signed.json", ["other.pub"]), "not among SIMGAP_TRUSTED_KEYS")
     r = run(tmp_path / "signed.json", ["other.pub", "me.pub"])
     assert r.returncode in (0, 1) and "error" not in r.stderr, r.stderr  # genuine: accepted (1 = empty domain)
+
+
+# ----- sizes and times checked before work: per-run stage, audit, mean map, fine grids ------------
+
+PERRUN_HUGE = EXP + """
+[perrun]
+alpha = 0.9
+eta = [0.0004, 0.001]
+hold = 20
+horizon = 2000
+n_runs = 4000
+pilot_runs = 400
+n_rollouts = 10000
+n_states = 20
+"""
+
+
+def test_run_with_a_huge_perrun_section_is_refused_before_any_work(tmp_path):
+    (tmp_path / "exp.toml").write_text(PERRUN_HUGE)
+    r = simgap("run", "exp.toml", "--profile", "base", "--out", tmp_path / "res", cwd=tmp_path)
+    refused(r, "the per-run stage", "1,000,000 cells", "[perrun] eta")
+    assert "of memory" in r.stderr or "would take about" in r.stderr
+    assert not (tmp_path / "res").exists()
+
+
+@pytest.mark.parametrize("args,words", [
+    (["synthesize", "--level", "run", "--spec", "pendulum", "--profile", "perrun", "--eta", "2e-3,5e-3",
+      "--out", "never.npz"], ["the per-run stage", "40,000 cells", "would take about", "SIMGAP_NO_SIZE_CHECK"]),
+    (["synthesize", "--no-gap", "--system", "pendulum", "--safe=-0.2,0.2,-0.5,0.5", "--eta", "1e-5,1e-5",
+      "--out", "never.npz"], ["4,000,000,000 cells", "of memory", "--eta"]),
+    (["audit", "cert.json", "--data", "data", "--points", "1e6", "--runs", "1e6"],
+     ["auditing 1,000,000 points x 1,000,000 runs", "would take about"]),
+    (["rollout", "--controller", "ctrl.npz", "--simulator", "exp.toml", "--profile", "base", "--x0", "0.05,0.1",
+      "--n", "5", "--horizon", "100", "--mean-map-runs", "1e9", "--out", "never.json"],
+     ["mean map with 1,000,000,000 runs per step", "of memory"]),
+])
+def test_long_or_large_work_is_refused_with_numbers(work, args, words):
+    import time
+    before = files(work)
+    t0 = time.monotonic()
+    refused(simgap(*args, cwd=work), *words)
+    assert time.monotonic() - t0 < 60  # refused up front, not after the work
+    assert files(work) == before
+
+
+def test_perrun_estimate_counts_the_work():
+    from simgap.systems import get_system
+    s = get_system("pendulum")
+    o = {"eta": [0.04, 0.1], "hold": 20, "horizon": 400, "n_runs": 4000, "pilot_runs": 400, "n_rollouts": 10000,
+         "n_states": 20}
+    e = checks.perrun_size(o, s, rate_per_worker=1e5, workers=2)
+    C = np.prod(np.ceil((s.x_hi - s.x_lo) / np.array([0.04, 0.1])))
+    assert e["cells"] == C
+    assert e["runs"] == C * len(s.inputs) * 4400 * 20 + 3 * 20 * 10000 * 400
+    assert e["seconds"] == pytest.approx(e["runs"] / 2e5)

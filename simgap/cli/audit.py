@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 
+from ..checks import count
 from ..errors import SimgapError
 
 
@@ -27,8 +28,8 @@ def add_parser(subparsers) -> None:
                    help="the nominal model the certificate is for, when it was certified with `simgap certify "
                         "--system` (a name, a system file .toml or a refined-system JSON); the simulator stays the "
                         "data set's")
-    p.add_argument("--points", type=int, default=200, help="fresh (x,u) points (default 200)")
-    p.add_argument("--runs", type=int, default=2000, help="simulator runs per point (default 2000)")
+    p.add_argument("--points", type=count(1), default=200, help="fresh (x,u) points (default 200)")
+    p.add_argument("--runs", type=count(2), default=2000, help="simulator runs per point (default 2000)")
     p.add_argument("--seed", type=int, default=12345)
     p.add_argument("--alpha", type=float, default=0.05,
                    help="family-wise false-alarm rate of the Holm-corrected tests (default 0.05)")
@@ -54,6 +55,13 @@ def run(args) -> int:
                           f"cannot audit")
     from ..simulators.base import make_simulator
     with make_simulator(sim_cfg, system=ds.system) as sim:
+        from ..checks import check_sim_work
+        from ..cover import calibrate_rate
+        n, m = ds.system.n, ds.system.m
+        # the points go in chunks, each point's runs at once: at least one point's runs in memory
+        check_sim_work(float(args.points) * args.runs, float(args.runs) * (3 * n + m) * 8 * 4 + args.points * n * 16.0,
+                       f"auditing {args.points:,} points x {args.runs:,} runs", "use fewer --points or --runs",
+                       calibrate_rate(sim, n_runs=65536, budget=0.3))
         if cert.method == "run":  # run-level certificate: coverage of gamma^alpha, not the mean gap
             from ..perrun.run_audit import audit_run, report_table
             rep = audit_run(cert, sim, points=args.points, runs=args.runs, seed=args.seed, system=nominal.system)

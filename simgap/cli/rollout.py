@@ -39,7 +39,7 @@ def add_parser(sub) -> None:
     p.add_argument("--on-exit", choices=("hold", "stop"), default="hold",
                    help="outside the winning domain: keep the last input (hold) or stop the rollout")
     p.add_argument("--one-at-a-time", action="store_true", help="step rollouts one by one (benchmarking)")
-    p.add_argument("--mean-map-runs", type=int, default=None,
+    p.add_argument("--mean-map-runs", type=count(0), default=None,
                    help="simulator runs per step for the mean map m+ = E fhat(m, u(m)), the sequence the "
                         "controller's guarantee is about (default: --n clipped to [100, 1000]; 0 skips it)")
     p.add_argument("--out", required=True, help="JSON report path")

@@ -17,6 +17,8 @@ experiment's simulator it
 
 from __future__ import annotations
 
+import os
+
 import time
 from pathlib import Path
 from typing import Callable, Dict, Optional
@@ -122,6 +124,8 @@ def synthesize_experiment(exp, horizon=None, x0=None, eta=None, hold=None, log=p
     sec.update({k: v for k, v in (("horizon", horizon), ("eta", eta), ("hold", hold)) if v is not None})
     plan = exp.plan()
     o = check_section(sec, exp.system, plan.n_pairs, exp.collect.n_runs, exp.section("rollout").get("horizon"))
+    from .. import checks
+    checks.check_perrun(o, exp.system, checks.calibrated_rate(exp.simulator, exp.system), os.cpu_count() or 1)
     spec, map_x0, _ = experiment_spec(exp)
     x0 = np.asarray(x0 if x0 is not None else exp.section("rollout").get("x0", map_x0), dtype=float) \
         if (x0 is not None or exp.section("rollout").get("x0") is not None or map_x0 is not None) else None

@@ -297,6 +297,16 @@ def rollout(controller, simulator, x0=None, n_rollouts: int = 1000, horizon: Opt
     if int(mean_map_runs) != mean_map_runs or 0 < mean_map_runs < 4 or mean_map_runs < 0:
         raise SimgapError(f"rollout: mean_map_runs must be 0 (skip) or an integer >= 4 (two groups of two: the "
                           f"propagated standard error), got {mean_map_runs!r}")
+    if mean_map_runs:
+        from ..checks import check_sim_work
+        from ..cover import calibrate_rate
+        work = float(mean_map_runs) * horizon
+        # each step simulates mean_map_runs runs from the mean: states, noise and next states at once;
+        # the simulator's rate is measured (0.5 s) only when the work could be long
+        check_sim_work(work, float(mean_map_runs) * (3 * system.n + system.m) * 8 * 4,
+                       f"the mean map with {int(mean_map_runs):,} runs per step x horizon {horizon:,}",
+                       "use fewer --mean-map-runs (the standard error falls as 1/sqrt(runs))",
+                       calibrate_rate(simulator, n_runs=65536, budget=0.3) if work > 1e9 else None)
     if rng is None:
         rng = np.random.default_rng(seed)
     else:

@@ -205,7 +205,13 @@ def exit_with_parent(pid: int, period: float = 1.0) -> None:
     A worker of a killed or crashed parent would otherwise finish its task and block for ever on a
     result pipe that nobody reads (it holds both ends). Its OS parent is the fork server, not the
     pool's owner, so this polls: once per ``period`` seconds, by the /proc start time (immune to pid
-    reuse) where there is /proc, else by ``os.kill(pid, 0)``."""
+    reuse) where there is /proc, else by ``os.kill(pid, 0)``.
+
+    Ctrl-C is ignored here: the terminal sends SIGINT to the whole process group, and the parent
+    alone turns it into a clean "interrupted" (the workers printed KeyboardInterrupt tracebacks)
+    and ends the pool; a worker whose parent is gone exits through the watch below."""
+    import signal
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     first = _process_token(pid)
 
     def gone() -> bool:

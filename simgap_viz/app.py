@@ -34,6 +34,28 @@ STALE_ACTION = {"synthesize": "re-synthesize", "rollout": "roll out again"}
 STALE_WHAT = {"synthesize": "winning domain", "rollout": "rollouts"}
 
 
+
+class _OneLineHandlerErrors:
+    """A logging filter for websockets' server logger: a connection whose handler failed (viser
+    cannot decode what the client sent: not MessagePack, a text frame, an unknown message) is
+    logged as one line naming the error, without the traceback; the connection is closed as before."""
+
+    def filter(self, record) -> bool:
+        if record.exc_info and record.getMessage() == "connection handler failed":
+            e = record.exc_info[1]
+            record.msg, record.args = "simgap gui: dropped a client connection after a malformed message (%s: %s)", (
+                type(e).__name__, e)
+            record.exc_info, record.exc_text = None, None
+        return True
+
+
+def quiet_bad_messages() -> None:
+    """Install :class:`_OneLineHandlerErrors` once (idempotent)."""
+    import logging
+    log = logging.getLogger("websockets.server")
+    if not any(isinstance(f, _OneLineHandlerErrors) for f in log.filters):
+        log.addFilter(_OneLineHandlerErrors())
+
 class SimgapApp:
     """The interactive app (see module docstring).
 
@@ -83,6 +105,7 @@ class SimgapApp:
         self.perrun_view = {"map": True, "markers": True, "controller": "perrun"}  # the per-run layer
 
         origin.install()  # refuse websockets from other pages before the server starts
+        quiet_bad_messages()  # a malformed client message: one line, not a traceback
         self.server = viser.ViserServer(host=host, port=port, verbose=False)
         self.server.gui.configure_theme(control_width="large", dark_mode=False, show_logo=False)
         self.server.scene.set_up_direction("+z")

@@ -952,3 +952,40 @@ def test_ctrl_c_during_collection_prints_no_worker_traceback(work, tmp_path):
     assert p.returncode == 130, err
     assert "interrupted" in err
     assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
+
+
+def test_gui_malformed_websocket_messages_print_one_line_each(tmp_path):
+    import asyncio
+    import re
+
+    import viser
+    import websockets
+    env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    p = subprocess.Popen([sys.executable, "-m", "simgap", "gui", "--port", "0", "--exit-after", "60", "--system",
+                          "pendulum"], cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        url = None
+        for line in p.stdout:
+            m = re.search(r"open (http://\S+)", line)
+            if m:
+                url = m.group(1).rstrip("/")
+                break
+        assert url, "the app did not start"
+
+        async def send_all():
+            for payload in (b"\x00\x01garbage", b"\xc1", "a text frame", b"\x81\xa4type\xa7Nothing"):
+                async with websockets.connect(url.replace("http", "ws"), origin=url,
+                                              subprotocols=[f"viser-v{viser.__version__}"]) as ws:
+                    await ws.send(payload)
+                    try:
+                        await asyncio.wait_for(ws.recv(), 5)
+                        while True:
+                            await asyncio.wait_for(ws.recv(), 5)
+                    except (websockets.exceptions.ConnectionClosed, asyncio.TimeoutError):
+                        pass
+        asyncio.run(send_all())
+    finally:
+        p.terminate()
+        _, err = p.communicate(timeout=30)
+    assert "Traceback" not in err, err
+    assert err.count("dropped a client connection after a malformed message") == 4, err

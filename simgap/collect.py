@@ -17,52 +17,38 @@ pairs*N1hat runs at once, in sub-batches of at most ``batch_runs`` runs (whole p
 bound memory; ``batch_runs`` is part of the configuration because it fixes how the chunk's
 random stream is consumed.
 
-The store is a directory::
-
-    manifest.json          full configuration (system, simulator, cover, N1hat, seed, chunking,
-                           simgap version) and "hash" = sha256 of its canonical JSON
-    chunks/c000000.npz     one file per chunk, written atomically (temp file + os.replace), no pickle;
-                           it carries its chunk id, the configuration hash, the sha256 of every
-                           array ("digests", JSON) and a digest over those ("digest")
-    .lock                  locked by the one process collecting into the store (a second is refused)
-
-A killed run leaves only complete chunk files; :func:`collect` on the same store verifies
-each one's digests, recomputes the broken ones and the missing rest, giving a data set
-bit-identical to an uninterrupted run. Loading verifies every chunk too: a chunk re-saved with
-other numbers is refused. A store with a
-different configuration hash is refused, naming the keys that differ.
+The store (:mod:`simgap.store`: a directory with a manifest and one verified file per chunk)
+is written chunk by chunk, atomically. A killed run leaves only complete chunk files; :func:`collect`
+on the same store verifies each one's digests, recomputes the broken ones and the missing rest,
+giving a data set bit-identical to an uninterrupted run. A store with a different configuration
+hash is refused, naming the keys that differ.
 """
 
 from __future__ import annotations
 
-import contextlib
-import dataclasses
-import hashlib
-import io
 import json
 import os
 import shutil
 import time
-import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterable, Optional, Sequence
 
 import numpy as np
 
-from . import fileio
 from .cover import Cover, CoverSpec, make_cover
-from .dataset import Dataset
+from .dataset import Dataset, load_store
 from .errors import SimgapError
 from .executors import Executor, make_executor
 from .progress import StopCheck, as_stop_check
-from .simulators.base import SimulatorConfig, make_simulator
-from .systems import System, ref_of_description, resolve_system, wrap_angle
+from .simulators import SimulatorConfig, make_simulator
+# the store's format, writer and reader live in simgap.store; re-exported here, their old home
+from .store import (CHUNK_DIR, LOCK, MANIFEST, STORE_FORMAT, _atomic_write_bytes, _chunk_digests,  # noqa: F401
+                    _chunk_path, _diff, _done_chunks, _pid_alive, _read_manifest, _write_chunk, canonical_json,
+                    config_hash, describe_system, load_samples, store_lock, store_status)
+from .store import system_from_config as _system_from_config
+from .systems import System, wrap_angle
 
-STORE_FORMAT = "simgap-store/1"
-MANIFEST = "manifest.json"
-LOCK = ".lock"  # held by the one process collecting into the store (see store_lock)
-CHUNK_DIR = "chunks"
 DEFAULT_BATCH_RUNS = 1 << 18  # simulator runs per step call: ~50 MB of float64 work arrays
 TOP_ORDER_STATS = 32  # largest |fhat_i - f_i| kept per pair and dimension (per-run quantile bounds)
 
@@ -70,23 +56,6 @@ TOP_ORDER_STATS = 32  # largest |fhat_i - f_i| kept per pair and dimension (per-
 # ----------------------------------------------------------------------------------------
 # Configuration
 # ----------------------------------------------------------------------------------------
-
-def canonical_json(obj) -> str:
-    """Canonical JSON (sorted keys, no whitespace, no NaN) used for configuration hashes."""
-    return fileio.canonical_json(obj)
-
-
-def config_hash(config: dict) -> str:
-    """sha256 hex digest of the canonical JSON of ``config``."""
-    return hashlib.sha256(canonical_json(config).encode()).hexdigest()
-
-
-def describe_system(system: System) -> dict:
-    """System description for manifests: :meth:`System.describe` plus the full input set."""
-    d = json.loads(canonical_json(system.describe()))
-    d["inputs"] = system.inputs.tolist()
-    return d
-
 
 @dataclass(eq=False)
 class CollectionPlan:
@@ -240,16 +209,6 @@ _WORKER_CACHE: dict = {}
 _WORKER_PID = None
 
 
-def _system_from_config(desc: dict, steps: int) -> System:
-    """Rebuild a built-in, plugin, system-file or refined system (with its recorded input set) from a
-    manifest description."""
-    s = resolve_system(ref_of_description(desc), steps=steps, paths=False)
-    U = np.asarray(desc["inputs"], dtype=float)
-    if U.shape != s.inputs.shape or not np.array_equal(U, s.inputs):
-        s = dataclasses.replace(s, inputs=U)
-    return s
-
-
 def _job(plan: CollectionPlan) -> dict:
     """Small picklable job description for workers; built-in systems are rebuilt by name."""
     cfg = plan.config()
@@ -330,186 +289,8 @@ def run_chunk(job: dict, c: int) -> dict:
 
 
 # ----------------------------------------------------------------------------------------
-# The store
+# Collecting into a store
 # ----------------------------------------------------------------------------------------
-
-def _chunk_path(store: Path, c: int) -> Path:
-    return store / CHUNK_DIR / f"c{c:06d}.npz"
-
-
-@contextlib.contextmanager
-def _pid_tmp(path: Path, need: Optional[float] = None):
-    """A temporary ``.<name>.<pid>.tmp`` beside ``path`` (the pid lets a later collector delete
-    the leftovers of a killed one), fsynced and renamed into place; on failure it is removed
-    and a failed write (e.g. a full disk) is a SimgapError naming ``path``."""
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with open(tmp, "wb") as f:
-            yield f
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException as e:
-        written = tmp.stat().st_size if tmp.exists() else None
-        tmp.unlink(missing_ok=True)
-        if isinstance(e, OSError):
-            raise fileio.write_error(path, e, need, written) from None
-        raise
-
-
-def _atomic_write_bytes(path: Path, data: bytes) -> None:
-    with _pid_tmp(path, len(data)) as f:
-        f.write(data)
-
-
-def _chunk_digests(c: int, h: str, arrays: dict) -> tuple:
-    """({name: sha256 of the array}, digest over the chunk id, configuration hash and those)."""
-    per = {k: fileio.content_digest(None, {k: v}) for k, v in arrays.items()}
-    return per, fileio.content_digest({"chunk": int(c), "config_hash": h, "digests": per})
-
-
-def _write_chunk(store: Path, c: int, h: str, arrays: dict) -> None:
-    path = _chunk_path(store, c)
-    per, dig = _chunk_digests(c, h, arrays)
-    buf = io.BytesIO()  # a chunk is small: its exact size is known before the disk is touched
-    np.savez(buf, chunk=np.int64(c), hash=np.array(h), digests=np.array(json.dumps(per)), digest=np.array(dig),
-             **arrays)
-    with _pid_tmp(path, buf.tell()) as f:
-        f.write(buf.getbuffer())
-
-
-@contextlib.contextmanager
-def store_lock(store: Path):
-    """Hold the store's exclusive lock (``.lock``) while collecting into it.
-
-    A second collector into the same store is refused at once instead of recomputing every
-    chunk the first one computes. It is a POSIX record lock (``lockf``): it belongs to this
-    process alone (forked pool workers do not inherit it) and the kernel drops it when the
-    process ends, even by kill -9, so a killed collection never blocks its resumption.
-    """
-    import fcntl
-
-    fh = open(store / LOCK, "a")
-    try:
-        fcntl.lockf(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:
-        fh.close()
-        raise SimgapError(f"store {str(store)!r} is being collected by another process; wait for it to finish "
-                          "(then run the same command to check it is complete) or collect into another "
-                          "folder") from None
-    try:
-        yield
-    finally:
-        fh.close()
-
-
-def _pid_alive(pid: str) -> bool:
-    try:
-        pid_i = int(pid)
-        if pid_i == os.getpid():
-            return False
-        os.kill(pid_i, 0)
-    except (ValueError, ProcessLookupError):
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
-def _read_manifest(store: Path) -> dict:
-    mpath = store / MANIFEST
-    if not store.is_dir():
-        raise SimgapError(f"store {str(store)!r} does not exist or is not a directory")
-    if not mpath.is_file():
-        raise SimgapError(f"{str(store)!r} is not a simgap store (no {MANIFEST})")
-    try:
-        man = json.loads(mpath.read_text())
-        cfg, h = man["config"], man["hash"]
-    except (OSError, ValueError, KeyError, TypeError) as e:
-        raise SimgapError(f"store {str(store)!r}: {MANIFEST} is unreadable: {e}") from None
-    if not isinstance(cfg, dict) or cfg.get("format") != STORE_FORMAT:
-        raise SimgapError(f"store {str(store)!r}: unknown format {cfg.get('format') if isinstance(cfg, dict) else cfg!r}"
-                          f" (expected {STORE_FORMAT})")
-    if config_hash(cfg) != h:
-        raise SimgapError(f"store {str(store)!r}: {MANIFEST} was modified (its hash does not match its configuration)")
-    return man
-
-
-def _done_chunks(store: Path, n_chunks: int, h: Optional[str] = None) -> set:
-    """Chunk ids with a file in the store; with the configuration hash ``h``, only files that verify."""
-    d = store / CHUNK_DIR
-    done = set()
-    if d.is_dir():
-        for p in d.glob("c*.npz"):
-            try:
-                c = int(p.stem[1:])
-            except ValueError:
-                continue
-            if 0 <= c < n_chunks:
-                done.add(c)
-    if h is not None:
-        done = {c for c in done if _chunk_problem(store, c, h)[0] is None}
-    return done
-
-
-def _chunk_problem(store: Path, c: int, h: str, names: Optional[Sequence[str]] = None, optional: Sequence[str] = ()):
-    """(None, arrays) if chunk ``c`` verifies, else (reason, None).
-
-    Returns (and verifies) the arrays ``names`` plus those of ``optional`` the chunk has; with
-    ``names`` None it verifies every array and returns none.
-    """
-    p = _chunk_path(store, c)
-    try:
-        with np.load(p, allow_pickle=False) as z:
-            if "digest" not in z.files or "digests" not in z.files:
-                return f"chunk file {p.name} carries no content digest (written by an older simgap)", None
-            if str(z["hash"]) != h or int(z["chunk"]) != c:
-                return f"chunk file {p.name} belongs to another collection", None
-            per = json.loads(str(z["digests"]))
-            want = str(z["digest"])
-            if not isinstance(per, dict) or fileio.content_digest(
-                    {"chunk": int(c), "config_hash": h, "digests": per}) != want:
-                return f"chunk file {p.name}: its digest list does not match its digest (modified)", None
-            out = {}
-            for k in (per if names is None else list(names) + [k for k in optional if k in per]):
-                if k not in per:
-                    return f"chunk file {p.name} has no digest for {k!r}", None
-                a = z[k]
-                if fileio.content_digest(None, {k: a}) != per[k]:
-                    return (f"chunk file {p.name}: the content of {k!r} does not match its digest "
-                            f"(modified or corrupted)"), None
-                if names is not None:
-                    out[k] = a
-    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as e:
-        return f"chunk file {p.name} is unreadable ({e})", None
-    return None, out
-
-
-def _diff(a, b, prefix="") -> list:
-    """Key paths where two JSON values differ, as 'key: store vs requested' strings."""
-    if isinstance(a, dict) and isinstance(b, dict):
-        out = []
-        for k in sorted(set(a) | set(b)):
-            out += _diff(a.get(k), b.get(k), f"{prefix}.{k}" if prefix else str(k))
-        return out
-    if a != b:
-        sa, sb = json.dumps(a), json.dumps(b)
-        if len(sa) > 60:
-            sa = sa[:57] + "..."
-        if len(sb) > 60:
-            sb = sb[:57] + "..."
-        return [f"{prefix}: {sa} (store) vs {sb} (requested)"]
-    return []
-
-
-def store_status(store: str | Path) -> dict:
-    """``{"hash", "n_chunks", "done", "complete", "config"}`` of an existing store."""
-    store = Path(store)
-    man = _read_manifest(store)
-    n = int(man["config"]["n_chunks"])
-    done = len(_done_chunks(store, n, man["hash"]))  # only chunks whose digests verify
-    return {"hash": man["hash"], "n_chunks": n, "done": done, "complete": done == n, "config": man["config"]}
-
 
 @dataclass
 class CollectResult:
@@ -654,83 +435,3 @@ def _collect_locked(plan, store, ex, cfg, h, on_progress, stop, chunk_ids, resum
     return CollectResult(store=store, hash=h, n_chunks=n_chunks, done=len(done), computed=state["computed"],
                          resumed_from=resumed_from, cancelled=not finished, seconds=time.perf_counter() - t0,
                          runs=state["runs"])
-
-
-def _load_chunk(store: Path, c: int, h: str, rows: int, names: Sequence[str], optional: Sequence[str] = ()) -> dict:
-    why, out = _chunk_problem(store, c, h, names, optional)
-    if why is not None:
-        raise SimgapError(f"store {str(store)!r}: {why}; run the same collection again to recompute it")
-    p = _chunk_path(store, c)
-    for k, a in out.items():
-        if a.shape[0] != rows:
-            raise SimgapError(f"store {str(store)!r}: chunk file {p.name} has {a.shape[0]} rows of {k}, expected {rows}")
-    return out
-
-
-def _check_store_complete(store: Path, cfg: dict) -> None:
-    n = int(cfg["n_chunks"])
-    done = _done_chunks(store, n)
-    if len(done) < n:
-        missing = sorted(set(range(n)) - done)
-        raise SimgapError(f"store {str(store)!r} is incomplete: {len(missing)} of {n} chunks missing "
-                          f"(first missing: {missing[0]}); resume the collection with the same configuration "
-                          "(e.g. run the same `simgap collect` command again)")
-
-
-def load_store(path: str | Path, system: System | None = None) -> Dataset:
-    """Load a complete collection store as a :class:`Dataset`.
-
-    ``system`` is needed for user-defined systems and must match the recorded description;
-    built-in systems are rebuilt from the manifest. The dataset's manifest holds the hashed
-    configuration (``system``, ``simulator``, ``cover``, ``seed``, ``n_runs``, ...) plus
-    ``hash`` and ``store``.
-
-    Raises SimgapError for a missing, unreadable, modified, mismatched or incomplete store.
-    """
-    store = Path(path)
-    man = _read_manifest(store)
-    cfg, h = man["config"], man["hash"]
-    steps = int(cfg["simulator"]["steps"])
-    if system is None:
-        try:
-            system = _system_from_config(cfg["system"], steps)
-        except SimgapError as e:
-            raise SimgapError(f"store {str(store)!r}: cannot rebuild its system ({e}); pass the System") from None
-    diffs = _diff(cfg["system"], describe_system(system))
-    if diffs:
-        raise SimgapError(f"store {str(store)!r} was collected for a different system: {'; '.join(diffs[:4])}")
-    _check_store_complete(store, cfg)
-    names = ["x", "u", "f_nom", "mean", "var", "lo", "hi", "cover_index", "input_index"]
-    K, S = int(cfg["n_pairs"]), int(cfg["chunk_size"])
-    arrays = {}
-    for c in range(int(cfg["n_chunks"])):  # fill preallocated arrays: peak memory = data set + one chunk
-        a, b = c * S, min((c + 1) * S, K)
-        # order statistics for the per-run gap: stores written before they existed lack them
-        part = _load_chunk(store, c, h, b - a, names, optional=("absdev_top",))
-        if not arrays:
-            arrays = {k: np.empty((K,) + v.shape[1:], dtype=v.dtype) for k, v in part.items()}
-        elif set(part) != set(arrays):
-            arrays.pop("absdev_top", None)
-            part.pop("absdev_top", None)
-        for k, v in part.items():
-            if v.shape[1:] != arrays[k].shape[1:]:
-                raise SimgapError(f"store {str(store)!r}: chunk {c} has {k} of shape {v.shape}, "
-                                  f"expected (.., {arrays[k].shape[1:]})")
-            arrays[k][a:b] = v
-    manifest = dict(cfg)
-    manifest.update({"hash": h, "store": str(store.resolve()), "created": man.get("created")})
-    return Dataset(system=system, n_runs=int(cfg["n_runs"]), epsilon=float(cfg["epsilon"]),
-                   manifest=manifest, **arrays)
-
-
-def load_samples(path: str | Path) -> np.ndarray:
-    """The raw next states (K, N1hat, n) of a store collected with ``keep_samples``."""
-    store = Path(path)
-    man = _read_manifest(store)
-    cfg, h = man["config"], man["hash"]
-    if not cfg["keep_samples"]:
-        raise SimgapError(f"store {str(store)!r} was collected without keep_samples; no raw samples stored")
-    _check_store_complete(store, cfg)
-    K, S = int(cfg["n_pairs"]), int(cfg["chunk_size"])
-    return np.concatenate([_load_chunk(store, c, h, min((c + 1) * S, K) - c * S, ["samples"])["samples"]
-                           for c in range(int(cfg["n_chunks"]))])

@@ -33,7 +33,7 @@ from typing import Optional
 
 import numpy as np
 
-from . import fileio
+from . import fileio, store
 from .errors import BAD_FILE_ERRORS, SimgapError
 from .systems import System, resolve_system, system_ref
 
@@ -133,7 +133,6 @@ def load_dataset(path: str | Path, system: System | None = None) -> Dataset:
     """
     path = Path(path)
     if path.is_dir():
-        from .collect import load_store  # the chunked store of the collection stage
         return load_store(path, system=system)
     if not path.exists():
         raise SimgapError(f"dataset {str(path)!r} does not exist")
@@ -159,3 +158,17 @@ def load_dataset(path: str | Path, system: System | None = None) -> Dataset:
         raise SimgapError(f"dataset {str(path)!r} was modified after it was written: its content hash is "
                           f"{ds.hash[:16]}... but the file records {str(want)[:16]}...")
     return ds
+
+
+def load_store(path: str | Path, system: System | None = None) -> Dataset:
+    """Load a complete collection store (:mod:`simgap.store`) as a :class:`Dataset`.
+
+    ``system`` is needed for user-defined systems and must match the recorded description;
+    built-in systems are rebuilt from the manifest. The dataset's manifest holds the hashed
+    configuration (``system``, ``simulator``, ``cover``, ``seed``, ``n_runs``, ...) plus
+    ``hash`` and ``store``.
+
+    Raises SimgapError for a missing, unreadable, modified, mismatched or incomplete store.
+    """
+    c = store.read_store(path, system)
+    return Dataset(system=c.system, n_runs=c.n_runs, epsilon=c.epsilon, manifest=c.manifest, **c.arrays)

@@ -31,8 +31,10 @@ from . import fileio, results_folder
 from .collect import collect, load_store
 from .config import ExperimentConfig
 from .errors import SimgapError
+# the specification of an experiment lives in simgap.experiment_spec (the per-run stage needs it too);
+# re-exported here, its old home
+from .experiment_spec import experiment_spec  # noqa: F401
 from .simulators import make_simulator
-from .synthesis.spec import Box, Spec
 
 METHODS = ("deterministic", "stochastic")
 
@@ -56,22 +58,6 @@ def certify_options(section: dict, method: str):
         for k in ("delta1", "delta2", "beta1", "beta2", "variance", "safety", "value_range"):
             s.pop(k, None)
     return CertifyOptions(method=method, bounds=BoundOptions(**bkw), **s)
-
-
-def experiment_spec(exp: ExperimentConfig) -> tuple[Spec, Optional[np.ndarray], object]:
-    """(spec, x0 from the map or None, arena map or None) from ``[synthesis]``."""
-    syn = exp.section("synthesis")
-    system = exp.system
-    kind = syn.get("spec", "invariance")
-    if kind == "invariance":
-        lo = np.asarray(syn.get("safe_lo", system.x_lo), dtype=float)
-        hi = np.asarray(syn.get("safe_hi", system.x_hi), dtype=float)
-        return Spec("invariance", safe=Box(lo, hi)), None, None
-    if kind == "reach_avoid":
-        from .maps import load_map
-        arena = load_map(syn.get("map", "arena"))
-        return arena.spec(system), arena.x0(system), arena
-    raise SimgapError(f"[synthesis] spec must be 'invariance' or 'reach_avoid', got {kind!r}")
 
 
 def check_experiment(exp: ExperimentConfig, out: Optional[str | Path] = None, *, n_rollouts: Optional[int] = None,

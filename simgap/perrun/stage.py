@@ -114,7 +114,7 @@ def synthesize_experiment(exp, horizon=None, x0=None, eta=None, hold=None, log=p
     """Interval-MDP controller of an experiment (``[perrun]`` options, overridable); returns (controller, summary text).
 
     Bad input (no [perrun] section, horizon < 1, x0 outside X) raises before any sampling."""
-    from ..pipeline import experiment_spec
+    from ..experiment_spec import experiment_spec
     from ..simulators import make_simulator
     from .value_iteration import check_horizon, synthesize_imdp
 

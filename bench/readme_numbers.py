@@ -21,7 +21,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 # Results-table label prefix per (experiment, profile)
 ROW_LABELS = {("pendulum", "small"): "pendulum, small", ("pendulum", "paper"): "pendulum, paper",
-              ("pendulum", "noisy"): "pendulum, noisy", ("turtlebot", "small"): "TurtleBot, small"}
+              ("pendulum", "noisy"): "pendulum, noisy", ("turtlebot", "small"): "TurtleBot, small",
+              ("turtlebot", "gazebo"): "TurtleBot, gazebo"}
 PRINTED_RUN = ("pendulum", "small")  # the run whose printed table the README shows
 
 

@@ -32,6 +32,7 @@ and differences between states must use :meth:`System.diff`.
 from __future__ import annotations
 
 import dataclasses
+import importlib
 import itertools
 import os
 from dataclasses import dataclass, field
@@ -401,6 +402,22 @@ def is_named(name) -> bool:
     return name in plugins.system_plugins()
 
 
+#: Builders of the systems other modules define on top of :class:`System`, named ("module:function")
+#: and imported only when a reference needs one, as the simulator backends are: the refined system
+#: (:mod:`simgap.refine.refined`) is built on this module, so this module names it instead of importing
+#: it (no import circle: tests/test_layout.py).
+SYSTEM_BUILDERS = {
+    "refined_object": "simgap.refine.refined:system_from_dict",  # an embedded refined-system JSON object
+    "refined_file": "simgap.refine.refined:load_refined",        # the path of a refined-system JSON file
+}
+
+
+def system_builder(kind: str) -> Callable:
+    """The builder :data:`SYSTEM_BUILDERS` names for ``kind``."""
+    mod, fn = SYSTEM_BUILDERS[kind].split(":")
+    return getattr(importlib.import_module(mod), fn)
+
+
 def resolve_system(ref, steps: Optional[int] = None, paths: bool = True) -> System:
     """The one way to turn a system reference into a :class:`System`.
 
@@ -423,11 +440,10 @@ def resolve_system(ref, steps: Optional[int] = None, paths: bool = True) -> Syst
     elif paths and isinstance(ref, (str, os.PathLike)) and str(ref).endswith(".toml") and os.path.isfile(ref):
         s = system_file.load_system_file(ref)
     else:
-        from .refine.refined import load_refined, system_from_dict  # refine builds on this module
         if isinstance(ref, dict):
-            s = system_from_dict(ref)
+            s = system_builder("refined_object")(ref)
         elif paths and isinstance(ref, (str, os.PathLike)) and os.path.isfile(ref):
-            s = load_refined(ref)
+            s = system_builder("refined_file")(ref)
         else:
             from . import plugins
             raise SimgapError(f"unknown system {str(ref)[:200]!r}: not a built-in ({', '.join(sorted(BUILTIN))})"

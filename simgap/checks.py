@@ -20,6 +20,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from .errors import SimgapError
+from .fileio import human_bytes  # noqa: F401  (in fileio, whose write errors use it: fileio imports no checks)
 
 #: work estimated to take longer than this is refused (the numbers are printed)
 MAX_SECONDS = 365 * 24 * 3600.0
@@ -234,14 +235,6 @@ def available_memory() -> int:
         return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
     except (ValueError, OSError, AttributeError):
         return 1 << 34
-
-
-def human_bytes(b: float) -> str:
-    for unit in ("B", "KB", "MB", "GB", "TB", "PB"):
-        if abs(b) < 1000 or unit == "PB":
-            return f"{b:.3g} {unit}"
-        b /= 1000.0
-    return f"{b:.3g} PB"
 
 
 def human_seconds(s: float) -> str:

@@ -34,12 +34,19 @@ def _umask() -> int:
     return mask
 
 
+def human_bytes(b: float) -> str:
+    """A byte count for messages: 3 significant digits and a decimal unit (B, KB, ..., PB)."""
+    for unit in ("B", "KB", "MB", "GB", "TB", "PB"):
+        if abs(b) < 1000 or unit == "PB":
+            return f"{b:.3g} {unit}"
+        b /= 1000.0
+    return f"{b:.3g} PB"
+
+
 def write_error(path, err: OSError, need: float | None = None, written: float | None = None) -> SimgapError:
     """A SimgapError for a failed write of ``path``: the path, the system's reason, and for a
     full disk the bytes needed (``need``, where known) or written before the failure, and the
     bytes free in the folder."""
-    from .checks import human_bytes
-
     msg = f"cannot write {str(path)!r}: {err.strerror or err}"
     if getattr(err, "errno", None) in NO_ROOM:
         msg += f" ({room_note(path, need, written)}); " + (
@@ -50,8 +57,6 @@ def write_error(path, err: OSError, need: float | None = None, written: float | 
 
 def room_note(path, need: float | None = None, written: float | None = None) -> str:
     """``it needs about X; Y free in 'folder'`` (or the bytes written before a failure)."""
-    from .checks import human_bytes
-
     folder = Path(path).absolute().parent
     try:
         free = human_bytes(shutil.disk_usage(folder).free)

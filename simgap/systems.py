@@ -40,6 +40,7 @@ from typing import Callable, Optional, Sequence
 
 import numpy as np
 
+from . import entry_points
 from .errors import SimgapError
 
 StepFn = Callable[[np.ndarray, np.ndarray, float], np.ndarray]
@@ -384,11 +385,10 @@ def get_system(name: str, steps: int = 1) -> System:
     factory = BUILTIN.get(name)
     if factory is not None:
         return factory().with_steps(steps)
-    from . import plugins
-    s = plugins.load_system(name) if isinstance(name, str) else None
+    s = load_plugin_system(name) if isinstance(name, str) else None
     if s is None:
         raise SimgapError(f"unknown system {name!r}; built-in systems: {', '.join(sorted(BUILTIN))}"
-                          + plugins.installed_note(plugins.SYSTEM_GROUP))
+                          + _plugins_note())
     return s.with_steps(steps)
 
 
@@ -398,8 +398,39 @@ def is_named(name) -> bool:
         return False
     if name in BUILTIN:
         return True
-    from . import plugins
-    return name in plugins.system_plugins()
+    return name in system_plugins()
+
+
+def system_plugins() -> dict:
+    """name -> :class:`simgap.entry_points.Plugin` of the installed system plugins (built-in names excluded)."""
+    return entry_points.registered(entry_points.SYSTEM_GROUP, BUILTIN)
+
+
+def _plugins_note() -> str:
+    return entry_points.installed_note(entry_points.SYSTEM_GROUP, system_plugins())
+
+
+def load_plugin_system(name: str):
+    """The System registered as ``name`` (the entry point is a System or a factory () -> System),
+    or None when no installed plugin registers it."""
+    if name not in system_plugins():
+        return None
+    obj, plugin = entry_points.load(entry_points.SYSTEM_GROUP, name)
+    if callable(obj) and not isinstance(obj, System):
+        try:
+            obj = obj()
+        except SimgapError:
+            raise
+        except Exception as e:
+            raise SimgapError(f"plugin system {name!r} ({plugin.origin()}) failed to build: "
+                              f"{type(e).__name__}: {e}") from None
+    if not isinstance(obj, System):
+        raise SimgapError(f"plugin system {name!r} ({plugin.origin()}) is not a simgap System or a function "
+                          f"returning one (got {type(obj).__name__})")
+    if obj.name != name:
+        raise SimgapError(f"plugin system {name!r} ({plugin.origin()}) builds a system named {obj.name!r}; "
+                          f"the entry-point name and System.name must agree")
+    return obj
 
 
 #: Builders of the systems other modules define on top of :class:`System`, named ("module:function")
@@ -445,10 +476,9 @@ def resolve_system(ref, steps: Optional[int] = None, paths: bool = True) -> Syst
         elif paths and isinstance(ref, (str, os.PathLike)) and os.path.isfile(ref):
             s = system_builder("refined_file")(ref)
         else:
-            from . import plugins
             raise SimgapError(f"unknown system {str(ref)[:200]!r}: not a built-in ({', '.join(sorted(BUILTIN))})"
                               + (", no such system file (.toml) or refined-system JSON file" if paths else
-                                 " or an embedded system") + plugins.installed_note(plugins.SYSTEM_GROUP))
+                                 " or an embedded system") + _plugins_note())
     return s.with_steps(steps) if steps is not None else s
 
 

@@ -299,7 +299,7 @@ def rollout_simulator(settings, system, experiment=None):
     """The simulator of the rollouts: the collection's (the experiment's config if it matches)."""
     import dataclasses
 
-    from simgap.simulators.base import make_simulator
+    from simgap.simulators import make_simulator
     system = base_system(system)
     if experiment is not None and experiment.system.name == system.name \
             and experiment.simulator.kind == settings.simulator:

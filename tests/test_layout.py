@@ -90,12 +90,7 @@ def test_the_graph_sees_function_level_imports():
     assert reaches({"a": {"b"}, "b": set()}, "b", "a") == []
 
 
-#: circles not mended yet (strict: the test fails once one is, so the mark is removed with it)
-OPEN = {("simgap.simulators.base", "simgap.simulators.parallel")}
-
-
-@pytest.mark.parametrize("a,b", [pytest.param(a, b, marks=pytest.mark.xfail(strict=True)) if (a, b) in OPEN
-                                 else (a, b) for a, b in CIRCLES], ids=[f"{a}<->{b}" for a, b in CIRCLES])
+@pytest.mark.parametrize("a,b", CIRCLES, ids=[f"{a}<->{b}" for a, b in CIRCLES])
 def test_no_import_circle(a, b):
     g = import_graph()
     there, back = reaches(g, a, b), reaches(g, b, a)

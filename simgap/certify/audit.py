@@ -42,7 +42,7 @@ import numpy as np
 
 from .. import fileio
 from ..errors import SimgapError
-from ..simulators.base import Simulator, make_simulator
+from ..simulators import Simulator, make_simulator
 
 QUANTILES = (0.0, 0.01, 0.05, 0.5, 0.95, 1.0)
 

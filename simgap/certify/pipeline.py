@@ -373,7 +373,7 @@ def _data_lipschitz(ds, o: CertifyOptions, simulator=None):
         sl_f = slopes_of(ds.f_nom, pairs, s)
         Lf_analytic = s.lipschitz_f()
     if o.lhat == "simulator":
-        from ..simulators.base import make_simulator
+        from ..simulators import make_simulator
         cov = [j for j in range(s.n) if j not in invariant_dims(ds)]  # pairs along covered dims only
         crn = dict(h=ds.epsilon, n_pairs=o.lhat_pairs, runs=o.lhat_runs, increment=o.lipschitz_mode == "increment",
                    dims=cov, inputs=np.unique(ds.u, axis=0))

@@ -15,7 +15,7 @@ import numpy as np
 from ..collect import TOP_ORDER_STATS, top_abs_deviations
 from ..dataset import Dataset
 from ..errors import SimgapError
-from ..simulators.base import Simulator, SimulatorConfig, make_simulator
+from ..simulators import Simulator, SimulatorConfig, make_simulator
 
 
 def grid_cover(x_lo, x_hi, epsilon: float) -> np.ndarray:

@@ -53,7 +53,7 @@ def run(args) -> int:
     if not sim_cfg:
         raise SimgapError(f"data set {args.against or args.data!r} has no simulator config in its manifest; "
                           f"cannot audit")
-    from ..simulators.base import make_simulator
+    from ..simulators import make_simulator
     with make_simulator(sim_cfg, system=ds.system) as sim:
         from ..checks import check_sim_work
         from ..cover import calibrate_rate

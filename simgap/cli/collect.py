@@ -43,7 +43,7 @@ def run(args) -> int:
     from ..cover import calibrate_rate, estimate_cost
     from ..executors import make_executor
     from ..progress import ProgressBar
-    from ..simulators.base import make_simulator
+    from ..simulators import make_simulator
 
     over = {"collect": {"seed": args.seed, "epsilon": args.epsilon, "n_runs": args.n_runs,
                         "chunk_size": args.chunk_size, "keep_samples": args.keep_samples,

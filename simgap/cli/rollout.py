@@ -106,7 +106,7 @@ def simulator_config(arg: str, profile=None) -> dict:
 
 def run(args) -> int:
     from ..maps import load_map
-    from ..simulators.base import make_simulator
+    from ..simulators import make_simulator
     from ..rollout import rollout
 
     ctrl = load_controller(args.controller)

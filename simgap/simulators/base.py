@@ -25,10 +25,11 @@ from __future__ import annotations
 import importlib
 from abc import ABC, abstractmethod
 from dataclasses import asdict, dataclass, field
-from typing import Dict
+from typing import Dict, Optional
 
 import numpy as np
 
+from .. import entry_points
 from ..errors import SimgapError
 from ..systems import System, get_system
 
@@ -175,20 +176,13 @@ _BACKENDS = {
 }
 
 
-def make_simulator(config: SimulatorConfig | dict, system: System | None = None, workers: int = 1) -> Simulator:
-    """Build a simulator from its config (a :class:`SimulatorConfig` or its dict).
+def build_simulator(config: SimulatorConfig | dict, system: System | None = None) -> Simulator:
+    """One simulator in this process from its config (a :class:`SimulatorConfig` or its dict).
 
-    ``workers`` > 1 (0 = all cores) serves each batch with that many processes
-    (:class:`simgap.simulators.parallel.ParallelSimulator`); results are the same.
+    :func:`simgap.simulators.make_simulator` (module :mod:`simgap.simulators.factory`) adds the
+    ``workers`` option on top; a helper process of :class:`simgap.simulators.parallel.ParallelSimulator`
+    builds its simulator here.
     """
-    if workers != 1:
-        import os
-        from .parallel import ParallelSimulator
-        n = (os.cpu_count() or 1) if workers in (0, None) else int(workers)
-        if n < 1:
-            raise SimgapError(f"simulator workers must be >= 1 (0 = all cores), got {workers!r}")
-        inner = make_simulator(config, system)
-        return ParallelSimulator(inner, n, system) if n > 1 else inner
     if isinstance(config, dict):
         config = SimulatorConfig.from_dict(config)
     return simulator_class(config.kind)(config, system)
@@ -200,18 +194,32 @@ def simulator_class(kind: str) -> type:
     if target is not None:
         mod, cls = target.split(":")
         return getattr(importlib.import_module(mod), cls)
-    from .. import plugins
-    cls = plugins.load_simulator(kind) if isinstance(kind, str) else None
+    cls = load_plugin_simulator(kind) if isinstance(kind, str) else None
     if cls is None:
         raise SimgapError(f"unknown simulator kind {kind!r}; built-in: {', '.join(sorted(_BACKENDS))}"
-                          + plugins.installed_note(plugins.SIMULATOR_GROUP))
+                          + entry_points.installed_note(entry_points.SIMULATOR_GROUP, simulator_plugins()))
     return cls
 
 
 def simulator_kinds() -> list:
     """Every simulator kind this installation offers: built-ins, then plugins."""
-    from .. import plugins
-    return sorted(_BACKENDS) + sorted(plugins.simulator_plugins())
+    return sorted(_BACKENDS) + sorted(simulator_plugins())
+
+
+def simulator_plugins() -> dict:
+    """kind -> :class:`simgap.entry_points.Plugin` of the installed simulator plugins (built-in kinds excluded)."""
+    return entry_points.registered(entry_points.SIMULATOR_GROUP, _BACKENDS)
+
+
+def load_plugin_simulator(kind: str) -> Optional[type]:
+    """The Simulator class registered as ``kind``, or None when no installed plugin registers it."""
+    if kind not in simulator_plugins():
+        return None
+    cls, plugin = entry_points.load(entry_points.SIMULATOR_GROUP, kind)
+    if not (isinstance(cls, type) and issubclass(cls, Simulator)):
+        raise SimgapError(f"plugin simulator {kind!r} ({plugin.origin()}) is not a subclass of "
+                          f"simgap.simulators.Simulator")
+    return cls
 
 
 def as_vector(value, size: int, name: str) -> np.ndarray:

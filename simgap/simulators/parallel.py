@@ -28,7 +28,7 @@ from typing import Dict, Optional
 import numpy as np
 
 from ..systems import system_ref
-from .base import Simulator, SimulatorConfig
+from .base import Simulator, SimulatorConfig, build_simulator
 
 #: batches smaller than this many rows per process run in the calling process only
 MIN_ROWS_PER_PROCESS = 8
@@ -42,9 +42,8 @@ def _start_helper(config: dict, system, parent: int) -> None:
     global _HELPER
     from ..executors import exit_with_parent
     from ..systems import resolve_system
-    from .base import make_simulator
     exit_with_parent(parent)
-    _HELPER = make_simulator(config, None if system is None else resolve_system(system, paths=False))
+    _HELPER = build_simulator(config, None if system is None else resolve_system(system, paths=False))
 
 
 def _helper_step(x, u, noise):

@@ -195,12 +195,12 @@ def run(args) -> int:
     if eta.size not in (1, system.n):
         raise SimgapError(f"--eta: need 1 or {system.n} values, got {eta.size}")
     hold = args.hold if args.hold is not None else int(syn.get("hold", 1))
-    from ..checks import check_memory
-    cells = float(np.prod(np.ceil((system.x_hi - system.x_lo) / np.broadcast_to(eta, (system.n,)))))
-    pairs = cells * len(system.inputs)
-    # a lower bound: the abstraction keeps at least one 4-byte entry per (cell, input) pair
-    check_memory(4.0 * pairs, f"synthesis on {cells:,.0f} cells x {len(system.inputs)} inputs (eta "
-                 f"{np.asarray(eta).tolist()})", "use a coarser --eta")
+    if np.all(np.isfinite(eta)) and np.all(eta > 0):  # else synthesize names the bad eta
+        from ..checks import check_memory
+        cells = float(np.prod(np.ceil((system.x_hi - system.x_lo) / np.broadcast_to(eta, (system.n,)))))
+        # a lower bound: the abstraction keeps at least one 4-byte entry per (cell, input) pair
+        check_memory(4.0 * cells * len(system.inputs), f"synthesis on {cells:,.0f} cells x {len(system.inputs)} "
+                     f"inputs (eta {np.asarray(eta).tolist()})", "use a coarser --eta")
 
     res = synthesize(system, spec, eta, gap=gap, hold=hold, strict_domain=not args.no_strict_domain,
                      x0=x0, compose_hold=args.compose_hold)

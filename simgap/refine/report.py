@@ -352,6 +352,17 @@ def _multistep_gate(s: System, data: Transitions, held, hist, chosen, fits, opts
     return chosen, withdrawn
 
 
+def _in_time_order(data: Transitions, held: np.ndarray) -> tuple:
+    """Rows in time order: (order, x, u, x_next, held, link), link[j] (K-1,) True when row j+1
+    continues row j's trajectory (x_next[j] is x[j+1], within one episode)."""
+    order = time_order(data)
+    ep = episodes(data)[order]
+    x, u, xn, h = data.x[order], data.u[order], data.x_next[order], held[order]
+    link = np.all(np.isclose(xn[:-1], x[1:], rtol=0, atol=1e-12 * (1 + np.abs(x[1:]))), axis=1) \
+        & (ep[:-1] == ep[1:])
+    return order, x, u, xn, h, link
+
+
 def multistep_rms(system: System, data: Transitions, held: np.ndarray, k: int,
                   hist: Optional[np.ndarray] = None, chosen=()) -> Optional[np.ndarray]:
     """RMS error (n,) of k-step open-loop predictions with the measured inputs (time series only).
@@ -364,13 +375,9 @@ def multistep_rms(system: System, data: Transitions, held: np.ndarray, k: int,
     if data.t is None:
         return None
     K = data.K
-    order = time_order(data)
-    ep = episodes(data)[order]
-    x, u, xn, h = data.x[order], data.u[order], data.x_next[order], held[order]
-    # a step j -> j+1 continues the trajectory when x_next[j] is x[j+1] (within one episode)
+    order, x, u, xn, h, link = _in_time_order(data, held)
     cont = np.zeros(K, dtype=bool)
-    cont[:-1] = np.all(np.isclose(xn[:-1], x[1:], rtol=0, atol=1e-12 * (1 + np.abs(x[1:]))), axis=1) \
-        & (ep[:-1] == ep[1:])
+    cont[:-1] = link
     # good[s] = h[s..s+k-1] all True and cont[s..s+k-2] all True (cumulative sums)
     bad = (~h).astype(int)
     brk = (~cont).astype(int)
@@ -409,12 +416,9 @@ def free_run_check(system: System, refined: System, data: Transitions, held: np.
     if data.t is None:
         return None
     K = data.K
-    order = time_order(data)
-    ep = episodes(data)[order]
-    x, u, xn, h = data.x[order], data.u[order], data.x_next[order], held[order]
+    _, x, u, xn, h, link = _in_time_order(data, held)
     cont = np.zeros(K, dtype=bool)
-    cont[1:] = np.all(np.isclose(xn[:-1], x[1:], rtol=0, atol=1e-12 * (1 + np.abs(x[1:]))), axis=1) \
-        & (ep[1:] == ep[:-1]) & h[1:] & h[:-1]
+    cont[1:] = link & h[1:] & h[:-1]
     starts = np.flatnonzero(h & ~cont)
     if starts.size == 0:
         return None

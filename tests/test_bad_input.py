@@ -989,3 +989,15 @@ def test_gui_malformed_websocket_messages_print_one_line_each(tmp_path):
         _, err = p.communicate(timeout=30)
     assert "Traceback" not in err, err
     assert err.count("dropped a client connection after a malformed message") == 4, err
+
+
+def test_a_reader_that_goes_away_gets_no_traceback(tmp_path):
+    """`simgap plugins | head`: the reader closes the pipe before the command writes; it stops
+    without a traceback (exit 141, as a tool killed by SIGPIPE)."""
+    env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    p = subprocess.Popen([sys.executable, "-m", "simgap", "plugins"], cwd=tmp_path, env=env,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    p.stdout.close()       # before the interpreter has started: every write meets a closed pipe
+    err = p.stderr.read()
+    assert p.wait(timeout=120) == 141, err
+    assert "Traceback" not in err, err

@@ -13,6 +13,8 @@ import pytest
 from simgap import checks
 from simgap.errors import SimgapError
 
+from cli_helpers import files, refused, simgap
+
 REPO = Path(__file__).resolve().parents[1]
 
 EXP = """
@@ -41,24 +43,6 @@ runs = 20
 [profiles.small.collect]
 n_runs = 4
 """
-
-
-def simgap(*args, cwd, timeout=120):
-    env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    return subprocess.run([sys.executable, "-m", "simgap", *map(str, args)], cwd=cwd, env=env,
-                          capture_output=True, text=True, timeout=timeout)
-
-
-def files(folder: Path) -> set:
-    return {str(p.relative_to(folder)) for p in folder.rglob("*")}
-
-
-def refused(r, *words):
-    """Non-zero exit, no traceback, and every word in the message."""
-    assert r.returncode != 0, r.stdout + r.stderr
-    assert "Traceback" not in r.stderr, r.stderr
-    for w in words:
-        assert w in r.stderr, (w, r.stderr)
 
 
 @pytest.fixture(scope="module")

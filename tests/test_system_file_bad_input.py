@@ -10,6 +10,8 @@ from pathlib import Path
 
 import pytest
 
+from cli_helpers import files, refused, simgap
+
 REPO = Path(__file__).resolve().parents[1]
 
 GOOD = """
@@ -38,23 +40,6 @@ epsilon = 0.2
 n_runs = 4
 executor = "serial"
 """
-
-
-def simgap(*args, cwd, timeout=120):
-    env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    return subprocess.run([sys.executable, "-m", "simgap", *map(str, args)], cwd=cwd, env=env,
-                          capture_output=True, text=True, timeout=timeout)
-
-
-def files(folder: Path) -> set:
-    return {str(p.relative_to(folder)) for p in folder.rglob("*")}
-
-
-def refused(r, *words):
-    assert r.returncode != 0, r.stdout + r.stderr
-    assert "Traceback" not in r.stderr, r.stderr
-    for w in words:
-        assert w in r.stderr, (w, r.stderr)
 
 
 BAD_FILES = {

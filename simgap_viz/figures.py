@@ -236,7 +236,9 @@ def p_cert(run, out_dir: Path) -> list:
     ax.set_xlabel(labels[0])
     ax.set_ylabel(labels[1])
     extra = f" (max over {pm['reduced_dims']} further dimension(s))" if pm["reduced_dims"] else ""
-    ax.set_title(f"{system.name}: per-run p_cert per cell{extra}, horizon {run.per_run.horizon}", fontsize=9)
+    # a drawn p_cert says what it rests on, as the table, summary and GUI legend do
+    ax.set_title(f"{system.name}: per-run p_cert per cell{extra}, horizon {run.per_run.horizon}\n"
+                 "conditional on the estimated Lipschitz constants and the Markov assumption", fontsize=9)
     ax.legend(fontsize=7, loc="best")
     return save(fig, out_dir, "p_cert")
 

@@ -285,3 +285,21 @@ def test_per_run_view_in_the_browser(run_dir, tmp_path):
     plot = np.asarray(Image.open(io.BytesIO(base64.b64decode(chart["png"].split(",", 1)[1]))).convert("RGB"))
     blue = tuple(int(COLORS["perrun"][i:i + 2], 16) for i in (1, 3, 5))
     assert _count(plot, blue, 30) > 40, "the per-run points are not drawn"
+
+
+def test_the_p_cert_figure_says_what_it_rests_on(run_dir, tmp_path, monkeypatch):
+    """simgap plot's p_cert map is drawn p_cert: like the table, summary and legend it says that it is
+    conditional on the estimated Lipschitz constants (issue: every drawn p_cert says so)."""
+    from simgap_viz import figures
+    from simgap_viz.results import load_run
+    seen, real = {}, figures.save
+
+    def capture(fig, out_dir, name):
+        seen[name] = " ".join(ax.get_title() for ax in fig.axes)
+        return real(fig, out_dir, name)
+
+    monkeypatch.setattr(figures, "save", capture)
+    paths = figures.p_cert(load_run(run_dir), tmp_path)
+    assert sorted(Path(p).suffix for p in paths) == [".pdf", ".png"]
+    assert all(Path(p).stat().st_size > 0 for p in paths)
+    assert "conditional on the estimated Lipschitz constants" in seen["p_cert"], seen

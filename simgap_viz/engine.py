@@ -30,7 +30,8 @@ def _plugin_names(kind: str) -> list:
 
 
 SYSTEMS = ["pendulum", "turtlebot"] + _plugin_names("systems")
-SIMULATORS = ["numpy", "pybullet_pendulum", "pybullet_turtlebot"] + _plugin_names("simulators")
+# the generic kinds need an experiment's [simulator.options] (a model file and its joints) to run
+SIMULATORS = ["numpy", "pybullet_pendulum", "pybullet_turtlebot", "pybullet_urdf", "mujoco"] + _plugin_names("simulators")
 
 # stage -> modules that must import for the stage to be offered
 _NEEDS = {
@@ -484,3 +485,14 @@ def body_meshes(app) -> list:
     """(name, trimesh, position) of the simulator's bodies (from their URDF geometry)."""
     from .layers.bodies import simulator_bodies
     return simulator_bodies(app.settings.simulator, base_system(app.system))
+
+
+def mjcf_bodies(app) -> tuple:
+    """(:class:`~simgap_viz.layers.bodies.MjcfBodies` or None, note) of the experiment's ``mujoco``
+    simulator when the app simulates with it (the note says why nothing is drawn)."""
+    from .layers.bodies import mjcf_bodies as bodies
+    exp = getattr(app, "experiment", None)
+    cfg = exp.simulator if exp is not None else None
+    if cfg is None or cfg.kind != "mujoco" or app.settings.simulator != "mujoco":
+        return None, ""
+    return bodies(cfg, base_system(app.system))

@@ -19,6 +19,7 @@ def app_inputs(experiment: Optional[str] = None, profile: Optional[str] = None, 
     spec = arena = data = exp = None
     if experiment:
         settings, spec, arena, exp = settings_from_experiment(experiment, profile)
+        _selectable(exp.system)  # a system-file or refined model: registered so the app can select it
     if system:
         system = _selectable(system)
         settings = settings.replace(system=system, simulator=engine.default_simulator(system, settings.simulator))

@@ -1,9 +1,16 @@
-"""The simulator's bodies as trimesh meshes, read from their URDF geometry through PyBullet.
+"""The simulator's bodies as trimesh meshes: URDF geometry through PyBullet, MJCF geometry through MuJoCo.
 
 A URDF is loaded into a private DIRECT client; every visual shape (box, sphere, cylinder,
 capsule; mesh files through trimesh) is built at its world pose, composed as
 link frame (``getLinkState`` [4], [5]; the base pose for link -1) times the shape's local
 visual frame. Units: metres.
+
+An MJCF (simulator kind ``mujoco``) is loaded by the simulator itself
+(:class:`simgap.simulators.mujoco_sim.MujocoSimulator`: the same path confinement, sha256 check
+and joint lookup), the state's joints are set in ``qpos`` (the rest at the model's ``qpos0``, as
+every simulated period starts) and ``mj_forward`` places every geom at ``geom_xpos``,
+``geom_xmat``: :class:`MjcfBodies` keeps one mesh per geom in the geom's own frame and gives
+their world poses for any state, so the GUI moves nodes instead of re-sending geometry.
 """
 
 from __future__ import annotations
@@ -81,6 +88,111 @@ def urdf_meshes(urdf: str | Path, base_position: Sequence[float] = (0.0, 0.0, 0.
         return out
     finally:
         c.disconnect()
+
+
+class MjcfBodies:
+    """The geoms of the MJCF a ``mujoco`` simulator config names, posed by the state x.
+
+    ``names`` and ``meshes`` (trimesh, in each geom's frame, metres, face colours from
+    ``geom_rgba``) are fixed; :meth:`poses` gives their world positions (K,3) and rotations
+    (K,4) as (w, x, y, z) for a state x (n,): the joints of ``options.positions`` set to
+    x[:len(positions)] (velocities do not move geometry). Planes become a 1 mm thin box of their
+    size (an infinite plane, size 0, is left out); geoms of an unknown type (height fields, SDFs)
+    are left out.
+    """
+
+    def __init__(self, config, system: System):
+        from simgap.simulators.mujoco_sim import MujocoSimulator
+        sim = MujocoSimulator(config, system)  # SimgapError without mujoco or with a bad model / name
+        try:
+            self._mj, self.model = sim._mj, sim.model
+            self.path = sim.path
+            self.pos_adr = np.asarray(sim.pos_adr, dtype=int)
+        finally:
+            sim.close()
+        self.data = self._mj.MjData(self.model)
+        self.geom_ids, self.names, self.meshes = [], [], []
+        m = self.model
+        for g in range(m.ngeom):
+            mesh = _geom_mesh(self._mj, m, g)
+            if mesh is None:
+                continue
+            mesh.visual.face_colors = (np.clip(m.geom_rgba[g], 0, 1) * 255).astype(np.uint8)
+            self.geom_ids.append(g)
+            self.names.append(m.geom(g).name or f"geom{g}")
+            self.meshes.append(mesh)
+        self.geom_ids = np.asarray(self.geom_ids, dtype=int)
+
+    def poses(self, x) -> tuple:
+        """(positions (K,3) [m], wxyz (K,4)) of the kept geoms at state x (n,)."""
+        mj, m, d = self._mj, self.model, self.data
+        x = np.asarray(x, dtype=float).ravel()
+        d.qpos[:] = m.qpos0
+        d.qvel[:] = 0.0
+        d.qpos[self.pos_adr] = x[:self.pos_adr.size]
+        mj.mj_kinematics(m, d)
+        pos = np.array(d.geom_xpos[self.geom_ids], dtype=float)
+        wxyz = np.empty((self.geom_ids.size, 4))
+        for k, g in enumerate(self.geom_ids):
+            mj.mju_mat2Quat(wxyz[k], d.geom_xmat[g])
+        return pos, wxyz
+
+    def meshes_at(self, x) -> list:
+        """(name, trimesh) of every kept geom at its world pose for state x (copies, metres)."""
+        pos, wxyz = self.poses(x)
+        out = []
+        for name, mesh, p, q in zip(self.names, self.meshes, pos, wxyz):
+            T = np.eye(4)
+            T[:3, :3] = _quat_matrix((q[1], q[2], q[3], q[0]))
+            T[:3, 3] = p
+            out.append((name, mesh.copy().apply_transform(T)))
+        return out
+
+
+def _geom_mesh(mj, m, g: int):
+    """A trimesh of geom ``g`` in its own frame (MuJoCo's sizes: half extents, radii, half lengths
+    along the geom's z), or None for a type not drawn."""
+    import trimesh
+
+    T = mj.mjtGeom
+    t, size = int(m.geom_type[g]), np.asarray(m.geom_size[g], dtype=float)
+    if t == int(T.mjGEOM_BOX):
+        return trimesh.creation.box(extents=np.maximum(2 * size, 1e-4))
+    if t == int(T.mjGEOM_SPHERE):
+        return trimesh.creation.icosphere(subdivisions=2, radius=max(size[0], 1e-4))
+    if t == int(T.mjGEOM_CAPSULE):
+        return trimesh.creation.capsule(radius=max(size[0], 1e-4), height=max(2 * size[1], 1e-4), count=[24, 12])
+    if t == int(T.mjGEOM_CYLINDER):
+        return trimesh.creation.cylinder(radius=max(size[0], 1e-4), height=max(2 * size[1], 1e-4), sections=24)
+    if t == int(T.mjGEOM_ELLIPSOID):
+        e = trimesh.creation.icosphere(subdivisions=2, radius=1.0)
+        e.apply_scale(np.maximum(size, 1e-4))
+        return e
+    if t == int(T.mjGEOM_PLANE):
+        if size[0] <= 0 or size[1] <= 0:  # infinite plane: nothing finite to draw
+            return None
+        b = trimesh.creation.box(extents=(2 * size[0], 2 * size[1], 1e-3))
+        b.apply_translation((0.0, 0.0, -5e-4))  # its top face is the plane
+        return b
+    if t == int(T.mjGEOM_MESH) and m.geom_dataid[g] >= 0:
+        i = int(m.geom_dataid[g])
+        v0, nv = int(m.mesh_vertadr[i]), int(m.mesh_vertnum[i])
+        f0, nf = int(m.mesh_faceadr[i]), int(m.mesh_facenum[i])
+        return trimesh.Trimesh(vertices=np.array(m.mesh_vert[v0:v0 + nv], dtype=float),
+                               faces=np.array(m.mesh_face[f0:f0 + nf], dtype=np.int64), process=False)
+    return None
+
+
+def mjcf_bodies(config, system: System):
+    """(:class:`MjcfBodies` or None, note): the MJCF geometry of a ``mujoco`` simulator config, or
+    None and why not (MuJoCo not installed, the model missing or changed, a joint not in it)."""
+    from simgap.errors import SimgapError
+    if config is None or getattr(config, "kind", None) != "mujoco":
+        return None, ""
+    try:
+        return MjcfBodies(config, system), ""
+    except SimgapError as e:
+        return None, f"MuJoCo bodies not drawn: {e}"
 
 
 def simulator_bodies(kind: str, system: System) -> list:

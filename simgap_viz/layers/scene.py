@@ -29,6 +29,8 @@ from .. import engine
 from . import geometry as G
 
 PENDULUM_PIVOT = (1.9, 0.0, 1.2)  # where the pendulum's pivot stands, beside the state square
+MJCF_LEFT = 1.5  # an MJCF model stands beside the square: its bounding box starts at this x
+MJCF_SIZE = 2.5  # ... and is scaled down to this largest extent (display units) if larger
 SURFACE_RES = 41
 
 
@@ -133,8 +135,12 @@ def draw_bodies(app) -> None:
     sc = app.server.scene
     _remove(app, "/bodies")
     app.body_frame = None
+    app.body_mjcf = None
     base = engine.base_system(app.system)
     vis = app.layers_visible["bodies"]
+    if app.settings.simulator == "mujoco":
+        draw_mjcf_bodies(app)
+        return
     bodies = engine.body_meshes(app)
     if not bodies:
         return
@@ -159,16 +165,78 @@ def draw_bodies(app) -> None:
     pose_bodies(app, None)
 
 
+def draw_mjcf_bodies(app) -> None:
+    """The MJCF's geoms (simulator kind ``mujoco``), one node per geom under ``/bodies/mjcf``: a frame
+    that stands the model beside the square (its bounding box at the resting pose from x =
+    ``MJCF_LEFT``, centred in y, on the ground; metres, scaled down if larger than ``MJCF_SIZE``).
+    :func:`pose_bodies` moves each geom to its pose for a state. Without MuJoCo (or with a model
+    that does not load) a label says why nothing is drawn."""
+    sc = app.server.scene
+    vis = app.layers_visible["bodies"]
+    bodies, note = _mjcf(app)
+    if bodies is None:
+        if note:
+            sc.add_label("/bodies/label", text=note, anchor="bottom-left", position=(MJCF_LEFT, 0.0, 0.1),
+                         visible=vis, font_screen_scale=0.7)
+        return
+    _, lo, hi, k = _mjcf_placement(app, bodies)
+    offset = np.array([MJCF_LEFT - k * lo[0], -0.5 * k * (lo[1] + hi[1]), -k * lo[2]])
+    frame = sc.add_frame("/bodies/mjcf", show_axes=False, position=tuple(offset), scale=k, visible=vis)
+    handles = [_add_mesh(sc, f"/bodies/mjcf/{i}_{name}", mesh) for i, (name, mesh) in
+               enumerate(zip(bodies.names, bodies.meshes))]
+    sc.add_label("/bodies/label", text=f"MuJoCo: {bodies.path.name}", anchor="bottom-center",
+                 position=(MJCF_LEFT + 0.5 * k * (hi[0] - lo[0]), 0.0, k * (hi[2] - lo[2]) + 0.1), visible=vis)
+    app.body_frame = frame
+    app.body_mjcf = (bodies, handles)
+    pose_bodies(app, None)
+
+
+def _mjcf(app) -> tuple:
+    """The app's MJCF bodies (built once per model file and system), and the note when there are none."""
+    exp = getattr(app, "experiment", None)
+    cfg = exp.simulator if exp is not None else None
+    key = (engine.base_system(app.system).name, None if cfg is None else (cfg.kind, str(cfg.options.get("model")),
+                                                                          cfg.options.get("model_sha256")))
+    cached = getattr(app, "_mjcf_cache", None)
+    if cached is None or cached[0] != key:
+        cached = app._mjcf_cache = (key, engine.mjcf_bodies(app))
+    return cached[1]
+
+
+def _mjcf_placement(app, bodies) -> tuple:
+    """(rest state, lo (3,), hi (3,) [m] of the geoms at it, display scale k)."""
+    base = engine.base_system(app.system)
+    x = _rest_state(app, base)
+    meshes = [m for _, m in bodies.meshes_at(x)]
+    if not meshes:
+        return x, np.zeros(3), np.zeros(3), 1.0
+    lo = np.min([m.bounds[0] for m in meshes], axis=0)
+    hi = np.max([m.bounds[1] for m in meshes], axis=0)
+    ext = float(np.max(hi - lo))
+    return x, lo, hi, min(1.0, MJCF_SIZE / ext) if ext > 0 else 1.0
+
+
+def _rest_state(app, base) -> np.ndarray:
+    """The rollouts' initial state: the settings', the map's, else the middle of X."""
+    x = app.settings.x0 if app.settings.x0 is not None else \
+        app.arena.x0(base) if getattr(app, "arena", None) is not None else 0.5 * (base.x_lo + base.x_hi)
+    return np.asarray(x, dtype=float)
+
+
 def pose_bodies(app, x) -> None:
     """Move the bodies to state ``x`` (n,) (None: the experiment's or a resting pose)."""
     fr = getattr(app, "body_frame", None)
     if fr is None:
         return
     base = engine.base_system(app.system)
-    if x is None:  # the rollouts' initial state: the settings', the map's, else the middle of X
-        x = app.settings.x0 if app.settings.x0 is not None else \
-            app.arena.x0(base) if getattr(app, "arena", None) is not None else 0.5 * (base.x_lo + base.x_hi)
-    x = np.asarray(x, dtype=float)
+    x = _rest_state(app, base) if x is None else np.asarray(x, dtype=float)
+    mj = getattr(app, "body_mjcf", None)
+    if mj is not None:
+        bodies, handles = mj
+        pos, wxyz = bodies.poses(x)
+        for h, p, q in zip(handles, pos, wxyz):
+            h.position, h.wxyz = tuple(float(v) for v in p), tuple(float(v) for v in q)
+        return
     if base.name == "pendulum":
         th = float(x[0])
         fr.wxyz = (np.cos(th / 2), 0.0, np.sin(th / 2), 0.0)  # the hinge turns about +y
@@ -372,6 +440,11 @@ def scene_bounds(app) -> tuple:
     if base.name == "pendulum" and app.layers_visible.get("bodies", True):
         hi[0] = max(hi[0], PENDULUM_PIVOT[0] + 0.2)
         hi[2] = max(hi[2], PENDULUM_PIVOT[2] + 0.1)
+    mj = getattr(app, "body_mjcf", None)
+    if mj is not None and app.layers_visible.get("bodies", True):
+        _, blo, bhi, k = _mjcf_placement(app, mj[0])
+        hi[0] = max(hi[0], MJCF_LEFT + k * (bhi[0] - blo[0]))
+        hi[2] = max(hi[2], k * (bhi[2] - blo[2]) + 0.2)
     if app.results.get("refine") is not None:  # the residual plane: points at z in [-0.3, 1.3], label at 1.45
         lo[1] = min(lo[1], RESIDUAL_PLANE_Y)
         lo[2] = min(lo[2], RESIDUAL_Z[0])

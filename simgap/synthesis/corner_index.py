@@ -7,8 +7,8 @@ the flat id of their box's lo corner (a CSR over the N cells). The pairs whose b
 have their lo corner at r - a for some a in [0, e_max) (per dimension, e_max the largest
 extent; wrapped in periodic dimensions), so a query visits prod(e_max) rows per cell and keeps
 the pairs with a < ext(q) in every dimension: exactly one entry per transition (r, q), as
-SCOTS's list, at a fraction of the memory and build time (a 1-D stable sort of the pairs'
-corner ids, which come in long ascending runs input by input).
+SCOTS's list, at a fraction of the memory and build time (a counting sort of the pairs by
+their corner ids, placed chunk by chunk: memory and time linear in the pairs).
 
 The index depends only on the abstraction (the pairs whose image is finite and whose box stays
 inside the grid), not on the specification, so :func:`~simgap.synthesis.abstraction.build_abstraction`
@@ -43,9 +43,10 @@ class CornerIndex:
 
     #: prod(e_max) above this: the per-transition index (games.Predecessors) answers queries cheaper
     MAX_ROWS = 64
-    #: more (cell, input) pairs: no index (its build holds about 20 bytes per pair; such games
-    #: run on summed-area tables, whose memory is bounded)
-    MAX_PAIRS = 1 << 24
+    #: more (cell, input) pairs: no index (its build holds about 4 + n bytes per pair, the index
+    #: 5 bytes per indexed pair; such games run on summed-area tables, whose memory is bounded).
+    #: The worklist game's own limit (``fixed_point._WORKLIST_MAX_PAIRS``).
+    MAX_PAIRS = 1 << 26
 
     def __init__(self, ab, indptr, q, code, emax, usable, cell_boxes, cell_transitions):
         self.indptr, self.q, self.code, self.emax = indptr, q, code, emax
@@ -63,16 +64,24 @@ class CornerIndex:
         self.size = q.size
 
     @classmethod
-    def build(cls, ab, block: int = 1 << 16) -> Optional["CornerIndex"]:
+    def build(cls, ab, block: int = 1 << 16, chunk: int = 1 << 16) -> Optional["CornerIndex"]:
         """Index the pairs of ``ab`` (one class per cell) that are finite and stay in the grid;
-        None when the boxes are too large for corner queries (prod(e_max) > MAX_ROWS)."""
+        None when the boxes are too large for corner queries (prod(e_max) > MAX_ROWS).
+
+        A counting sort: a first pass over blocks of cells computes every pair's corner key
+        (input-major, -1 for a pair not indexed), its box extents and the number of pairs per
+        key (the CSR's row pointers); a second pass places the pairs chunk by chunk, each pair at
+        its key's next free slot (a stable sort of the chunk ranks pairs of equal key). The
+        result equals a stable sort of all keys (pairs of one row in input-major order), in
+        about 4 + n bytes per pair while building and 5 bytes per indexed pair after."""
         g = ab.grid
         N, M, n = g.size, ab.n_inputs, g.n
         shape = np.array(g.shape, dtype=np.int32)
         strides = g.strides.astype(np.int32)
-        keys = np.empty((M, N), dtype=np.int32)  # input-major: long ascending runs for the sort
-        use = np.empty((M, N), dtype=bool)
-        exts = np.empty((n, M, N), dtype=np.uint8)
+        keys = np.empty((M, N), dtype=np.int32)  # input-major: long ascending runs for the chunk sorts
+        exts = [np.empty((M, N), dtype=np.uint8) for _ in range(n)]
+        counts = np.zeros(N, dtype=np.int64)
+        usable_bits = np.empty((N, (M + 7) // 8), dtype=np.uint8)
         cell_boxes = np.zeros(N, dtype=np.int32)
         cell_trans = np.zeros(N, dtype=np.int32)  # <= M * MAX_ROWS
         emax = np.zeros(n, dtype=np.int64)
@@ -92,39 +101,57 @@ class CornerIndex:
                     usable &= (lo >= 0) & (lo + ext <= shape[d])
                 key += lo * strides[d]
                 vol *= ext
-                exts[d, :, s:e] = np.minimum(ext, 255).T
+                exts[d][:, s:e] = np.minimum(ext, 255).T
             if usable.any():
-                emax = np.maximum(emax, [int(exts[d, :, s:e].T[usable].max()) for d in range(n)])
+                emax = np.maximum(emax, [int(exts[d][:, s:e].T[usable].max()) for d in range(n)])
+                k = key[usable]
+                k0 = int(k.min())
+                counts[k0:int(k.max()) + 1] += np.bincount(k - k0)
+            key[~usable] = -1
             keys[:, s:e] = key.T
-            use[:, s:e] = usable.T
             vol *= usable
-            for u in range(M):  # per column: a reduction along a short last axis is slow
+            bits = usable_bits[s:e]
+            bits[:] = 0
+            for u in range(M):  # per column: a reduction (or packbits) along a short last axis is slow
                 cell_boxes[s:e] += usable[:, u]
                 cell_trans[s:e] += vol[:, u]
+                bits[:, u >> 3] |= usable[:, u].view(np.uint8) << np.uint8(7 - (u & 7))
         if int(np.prod(emax)) > cls.MAX_ROWS:
             return None
         emax = np.maximum(emax, 1)
-        code = np.zeros((M, N), dtype=np.uint8)
-        for d in range(n):  # mixed radix over emax, the order of the offsets
+        code = exts[0]  # mixed radix over emax, the order of the offsets (in place)
+        np.maximum(code, 1, out=code)
+        code -= np.uint8(1)
+        for d in range(1, n):
             code *= np.uint8(emax[d])
             code += np.maximum(exts[d], 1) - np.uint8(1)
+            exts[d] = None
         del exts
-        usable = np.packbits(use.T, axis=1)
         it = np.int32 if N * M < 2 ** 31 else np.int64
-        use = use.ravel()
-        k = keys.ravel()[use]
-        del keys
-        pos = np.arange(use.size, dtype=it)[use]  # (an int32 arange: half the memory of flatnonzero)
-        del use
-        order = np.argsort(k, kind="stable")
         indptr = np.zeros(N + 1, dtype=np.int32)
-        np.cumsum(np.bincount(k, minlength=N), out=indptr[1:])
-        del k
-        pos = pos[order]
-        del order
-        code = code.ravel()[pos]
-        q = (pos % it(N)) * it(M) + pos // it(N)  # input-major position -> pair id c * M + u
-        return cls(ab, indptr, q, code, emax, usable, cell_boxes, cell_trans)
+        indptr[1:] = np.cumsum(counts)
+        del counts
+        nxt = indptr[:-1].astype(np.int64)  # the next free slot of every row
+        q = np.empty(int(indptr[-1]), dtype=it)
+        code_out = np.empty(q.size, dtype=np.uint8)
+        keys, code = keys.reshape(-1), code.reshape(-1)
+        for c0 in range(0, keys.size, chunk):
+            k = keys[c0:c0 + chunk]
+            sel = np.flatnonzero(k >= 0)
+            if sel.size == 0:
+                continue
+            k = k.take(sel)
+            o = np.argsort(k, kind="stable")  # pairs of equal key keep their input-major order
+            ks = k.take(o)
+            first = np.flatnonzero(np.concatenate(([True], ks[1:] != ks[:-1])))
+            run = np.diff(np.append(first, ks.size))
+            rank = np.arange(ks.size) - np.repeat(first, run)
+            dest = nxt.take(ks) + rank
+            pos = (sel.take(o) + c0).astype(it)  # input-major position u * N + c
+            q[dest] = (pos % it(N)) * it(M) + pos // it(N)  # -> pair id c * M + u
+            code_out[dest] = code.take(pos)
+            nxt[ks.take(first)] += run  # distinct keys: no repeated index
+        return cls(ab, indptr, q, code_out, emax, usable_bits, cell_boxes, cell_trans)
 
     def pairs(self, cells: np.ndarray) -> np.ndarray:
         """Pair ids q = c * M + u of all transitions (c, u) -> r, r in ``cells`` (one per transition)."""

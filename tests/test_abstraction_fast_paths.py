@@ -142,3 +142,82 @@ def test_live_pairs_on_distinct_boxes_equal_the_pass_over_all_inputs(kw, monkeyp
     ref_inv = solve_invariance(ab, ~blocked, blocked, method="sat")
     assert np.array_equal(inv.winning, ref_inv.winning) and np.array_equal(inv.valid_packed, ref_inv.valid_packed)
     assert np.array_equal(inv.chosen, ref_inv.chosen) and 0 < inv.winning.sum() < (~blocked).sum()
+
+
+def test_rk4_prepare_is_bit_identical_to_the_plain_right_hand_side(rng):
+    """Input-only terms computed once per step (``prepare``) give the bits of the plain rhs."""
+    from simgap.synthesis import rk4_step
+    x = rng.uniform([0, 0, -3.5], [10, 10, 3.5], size=(700, 3))
+    u = ex.vehicle_inputs()[rng.integers(0, 49, 700)]
+    want = _plain_rk4(ex._vehicle_rhs, x, u, 0.3, 10)  # SCOTS's rhs, every term per call
+    assert np.array_equal(ex.vehicle_step(x, u, 0.3), want)
+    assert np.array_equal(rk4_step(ex._vehicle_rhs_prepared, 10, prepare=ex._vehicle_input_terms)(x, u, 0.3), want)
+
+    def prep(uu):
+        return np.tan(uu[:, :1])
+
+    def rhs_p(xx, t):
+        return np.sin(xx) * t - 0.3 * xx
+
+    def rhs(xx, uu):
+        return rhs_p(xx, prep(uu))
+    assert np.array_equal(rk4_integrate(rhs_p, x, u, 0.2, 4, prepare=prep), _plain_rk4(rhs, x, u, 0.2, 4))
+    with pytest.raises(SimgapError, match="prepare"):
+        rk4_step(rhs, 4, prepare=1.0)
+
+
+def _reference_corner_index(ab):
+    """indptr, q, code of the corner index the plain way: a stable sort of all usable pairs by
+    their lo corner's flat id (pairs in input-major order)."""
+    g = ab.grid
+    N, M = g.size, ab.n_inputs
+    shape = np.array(g.shape)
+    lo = g.ids_to_multi(np.arange(N))[:, None, :] + ab.off_lo.astype(np.int64)
+    ext = ab.off_hi.astype(np.int64) - ab.off_lo + 1
+    usable = ab.ok.copy()
+    for d in range(g.n):
+        if g.periodic_mask[d]:
+            lo[..., d] %= shape[d]
+            ext[..., d] = np.minimum(ext[..., d], shape[d])
+        else:
+            usable &= (lo[..., d] >= 0) & (lo[..., d] + ext[..., d] <= shape[d])
+    key = (lo * g.strides).sum(axis=-1)
+    pos = np.flatnonzero(usable.T.ravel())  # input-major positions u * N + c
+    k = key.T.ravel()[pos]
+    order = np.argsort(k, kind="stable")
+    emax = ext[usable].max(axis=0)
+    code = np.zeros(usable.shape, dtype=np.int64)
+    for d in range(g.n):
+        code = code * emax[d] + ext[..., d] - 1
+    q = ((pos % N) * M + pos // N)[order]
+    indptr = np.concatenate([[0], np.cumsum(np.bincount(k, minlength=N))])
+    return indptr, q, code.reshape(-1)[q]
+
+
+@pytest.mark.parametrize("case", ["dcdc", "vortex"])
+def test_corner_index_counting_sort_equals_a_stable_sort_of_all_pairs(case):
+    """The chunked counting sort places every pair where one stable sort of all pairs does,
+    across block and chunk boundaries (and with a periodic heading: vortex)."""
+    from simgap.synthesis.corner_index import CornerIndex
+    if case == "dcdc":
+        s, grid = _dcdc_small()
+        ab = build_abstraction(s, grid, growth=ex.dcdc_growth())
+    else:
+        s = ex.vortex_system()
+        grid = UniformGrid(s.x_lo, s.x_hi, (0.5, 0.5, 2 * np.pi / 16), periodic=s.angle_dims)
+        ab = build_abstraction(s, grid, growth=ex.vortex_growth())
+    indptr, q, code = _reference_corner_index(ab)
+    assert q.size > 10_000 and np.any(np.diff(indptr) > 1)  # rows with several pairs to order
+    for kw in ({}, dict(block=97, chunk=1000)):
+        ci = CornerIndex.build(ab, **kw)
+        assert np.array_equal(ci.indptr, indptr)
+        assert np.array_equal(ci.q, q)  # same pairs, same order within every row
+        assert np.array_equal(ci.code, code)
+
+
+def test_corner_index_covers_the_worklist_games_pairs():
+    """The worklist game runs on the corner index wherever it runs at all (no second, slower
+    game past 2^24 pairs)."""
+    from simgap.synthesis.corner_index import CornerIndex
+    from simgap.synthesis.fixed_point import _WORKLIST_MAX_PAIRS
+    assert CornerIndex.MAX_PAIRS >= _WORKLIST_MAX_PAIRS

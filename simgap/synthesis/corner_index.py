@@ -88,34 +88,43 @@ class CornerIndex:
         for s in range(0, N, block):
             e = min(N, s + block)
             ids = np.arange(s, e, dtype=np.int32)
-            usable = ab.ok[s:e].copy()
-            key = np.zeros((e - s, M), dtype=np.int32)
-            vol = np.ones((e - s, M), dtype=np.int32)
-            for d in range(n):
-                lo = ab.off_lo[s:e, :, d] + ((ids // strides[d]) % shape[d])[:, None]
-                ext = ab.off_hi[s:e, :, d].astype(np.int32) - ab.off_lo[s:e, :, d] + 1
-                if g.periodic_mask[d]:
-                    lo %= shape[d]
-                    np.minimum(ext, shape[d], out=ext)
-                else:
-                    usable &= (lo >= 0) & (lo + ext <= shape[d])
-                key += lo * strides[d]
-                vol *= ext
-                exts[d][:, s:e] = np.minimum(ext, 255).T
-            if usable.any():
-                emax = np.maximum(emax, [int(exts[d][:, s:e].T[usable].max()) for d in range(n)])
+            coord = [(ids // strides[d]) % shape[d] for d in range(n)]  # the cells' multi-indices
+            bits = usable_bits[s:e]
+            bits[:] = 0
+            for u in range(M):  # input by input: contiguous columns of the input-major tables
+                usable = ab.ok[s:e, u].copy()
+                key = np.zeros(e - s, dtype=np.int32)
+                vol = np.ones(e - s, dtype=np.int32)
+                for d in range(n):
+                    ol = ab.off_lo[s:e, u, d]
+                    lo = ol + coord[d]
+                    ext = np.subtract(ab.off_hi[s:e, u, d], ol, dtype=np.int32)
+                    ext += 1
+                    if g.periodic_mask[d]:
+                        lo %= shape[d]
+                        np.minimum(ext, shape[d], out=ext)
+                    else:
+                        usable &= lo >= 0
+                        lo_ext = lo + ext
+                        usable &= lo_ext <= shape[d]
+                    lo *= strides[d]
+                    key += lo
+                    vol *= ext
+                    np.minimum(ext, 255, out=exts[d][u, s:e], casting="unsafe")
+                if not usable.any():
+                    keys[u, s:e] = -1
+                    continue
+                for d in range(n):
+                    emax[d] = max(emax[d], int(np.max(exts[d][u, s:e] * usable)))
                 k = key[usable]
                 k0 = int(k.min())
                 counts[k0:int(k.max()) + 1] += np.bincount(k - k0)
-            key[~usable] = -1
-            keys[:, s:e] = key.T
-            vol *= usable
-            bits = usable_bits[s:e]
-            bits[:] = 0
-            for u in range(M):  # per column: a reduction (or packbits) along a short last axis is slow
-                cell_boxes[s:e] += usable[:, u]
-                cell_trans[s:e] += vol[:, u]
-                bits[:, u >> 3] |= usable[:, u].view(np.uint8) << np.uint8(7 - (u & 7))
+                key[~usable] = -1
+                keys[u, s:e] = key
+                vol *= usable
+                cell_boxes[s:e] += usable
+                cell_trans[s:e] += vol
+                bits[:, u >> 3] |= usable.view(np.uint8) << np.uint8(7 - (u & 7))
         if int(np.prod(emax)) > cls.MAX_ROWS:
             return None
         emax = np.maximum(emax, 1)

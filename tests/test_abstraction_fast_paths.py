@@ -221,3 +221,26 @@ def test_corner_index_covers_the_worklist_games_pairs():
     from simgap.synthesis.corner_index import CornerIndex
     from simgap.synthesis.fixed_point import _WORKLIST_MAX_PAIRS
     assert CornerIndex.MAX_PAIRS >= _WORKLIST_MAX_PAIRS
+
+
+def test_offsets_stored_as_int8_until_one_does_not_fit():
+    """Offsets go to int8 tables that become int16 when a later block needs it: the values
+    written before the switch are kept (same tables as one block computed at once, and as the
+    plain formula)."""
+    from simgap.systems import System
+    s = System(name="doubling", state_names=("x",), input_names=("u",), x_lo=(0.0,), x_hi=(1.0,),
+               inputs=np.array([[0.0], [1.0]]), base_tau=1.0, step=lambda x, u, tau: x * (1.0 + u))
+    grid = UniformGrid(s.x_lo, s.x_hi, 0.001)  # x -> 2x moves cell i by i cells: > 127 from i = 128
+    growth = state_independent(lambda r, x, u, tau: r * (1.0 + u))
+    small_blocks = build_abstraction(s, grid, growth=growth, block=64)
+    one_block = build_abstraction(s, grid, growth=growth, block=1 << 20)
+    assert small_blocks.off_lo.dtype == np.int16 and _same(small_blocks, one_block)
+    i = np.arange(grid.size)
+    x = grid.first[0] + i * grid.eta[0]
+    r = grid.eta[0] / 2 + 1e-10 * grid.eta[0]
+    for j, k in ((0, 1.0), (1, 2.0)):
+        lo = np.floor((k * x - k * r - 1e-10 * grid.eta[0] - grid.first[0] + grid.eta[0] / 2) / grid.eta[0]) - i
+        use = small_blocks.ok[:, j]
+        assert use.sum() > 300 and np.array_equal(small_blocks.off_lo[use, j, 0], lo[use])
+    fits = build_abstraction(s, UniformGrid(s.x_lo, s.x_hi, 0.01), growth=growth, block=64)
+    assert fits.off_lo.dtype == np.int8

@@ -479,8 +479,8 @@ def build_abstraction(system: System, grid: UniformGrid, *, growth: Optional[Gro
     if inv and check_invariance:
         _check_invariance(system, grid, growth, U, rep_mi, K, inv, hold)
 
-    off_lo = np.empty((K, M, n), dtype=np.int16)
-    off_hi = np.empty((K, M, n), dtype=np.int16)
+    # int8 until an offset does not fit, then int16 (one copy; no int16 table converted at the end)
+    off = {"lo": np.empty((K, M, n), dtype=np.int8), "hi": np.empty((K, M, n), dtype=np.int8)}
     ok = np.empty((K, M), dtype=bool)
     mid_lo = np.empty((K, M, n), dtype=np.int16) if hold > 1 else None
     mid_hi = np.empty((K, M, n), dtype=np.int16) if hold > 1 else None
@@ -504,15 +504,17 @@ def build_abstraction(system: System, grid: UniformGrid, *, growth: Optional[Gro
                 radii.append(np.asarray(growth(radii[-1], x_any, U, system.tau), dtype=float) + g)
         radii = [np.tile(rr, (cb, 1)) for rr in radii]
 
+    disp_needed = bool(pmask.any()) or hold > 1
     for s in range(0, K, cb):  # blocks bound the memory
         e = min(K, s + cb)
         P = (e - s) * M
         j, u = j_full[:P], u_full[:P]
-        mi = np.repeat(rep_mi(np.arange(s, e)), M, axis=0)
-        x0 = grid.multi_to_points(mi)
+        mi_c = rep_mi(np.arange(s, e))
+        mi = np.repeat(mi_c, M, axis=0)
+        x0 = np.repeat(grid.multi_to_points(mi_c), M, axis=0)  # per cell, then per pair (same values)
         x = x0
         r = radii[0][:P] if radii is not None else np.broadcast_to(eta / 2 + z, x.shape).copy()
-        disp = np.zeros_like(x)
+        disp = np.zeros_like(x) if disp_needed else None
         if hold > 1:
             mlo = np.full(x.shape, np.inf)
             mhi = np.full(x.shape, -np.inf)
@@ -531,27 +533,29 @@ def build_abstraction(system: System, grid: UniformGrid, *, growth: Optional[Gro
                         g = 0.0
                     r_new = np.asarray(growth(r, x, u, system.tau), dtype=float) + g
                 x_new = system.f(x, u)
-                disp = disp + system.diff(x_new, x) if pmask.any() else x_new - x0
+                if disp_needed:
+                    disp = disp + system.diff(x_new, x) if pmask.any() else x_new - x0
                 x, r = x_new, r_new
                 if step < hold - 1:
                     mlo = np.minimum(mlo, disp - r)
                     mhi = np.maximum(mhi, disp + r)
-            good = np.all(np.isfinite(x) & np.isfinite(r), axis=1)
+            good = np.ones(P, dtype=bool)
             out = np.zeros(P, dtype=bool)
-            olo, ohi = off_lo[s:e].reshape(P, n), off_hi[s:e].reshape(P, n)
             for d in range(n):  # column by column, in place (n is 2-3)
                 xd, rd, zd, ed = x[:, d], r[:, d], z[d], eta[d]
+                good &= np.isfinite(xd)
+                good &= np.isfinite(rd)
                 if pmask[d]:  # relative displacement (the image may have wrapped)
-                    olo[:, d] = _cell_offset((disp[:, d] - rd - zd) / ed + 0.5, 0)
-                    ohi[:, d] = _cell_offset((disp[:, d] + rd + zd) / ed + 0.5, 0)
+                    _store(off, "lo", s, e, d, _cell_offset((disp[:, d] - rd - zd) / ed + 0.5, 0))
+                    _store(off, "hi", s, e, d, _cell_offset((disp[:, d] + rd + zd) / ed + 0.5, 0))
                     continue
                 # SCOTS's formula in absolute coordinates (bit-for-bit parity)
                 left, right = xd - rd - zd, xd + rd + zd
                 if not inv_mask[d]:  # SCOTS's out-of-domain test, exact in the class dimensions
                     out |= left <= dom_lo[d]
                     out |= right >= dom_hi[d]
-                olo[:, d] = _cell_offset((left - grid.first[d] + ed / 2) / ed, mi[:, d])
-                ohi[:, d] = _cell_offset((right - grid.first[d] + ed / 2) / ed, mi[:, d])
+                _store(off, "lo", s, e, d, _cell_offset((left - grid.first[d] + ed / 2) / ed, mi[:, d]))
+                _store(off, "hi", s, e, d, _cell_offset((right - grid.first[d] + ed / 2) / ed, mi[:, d]))
             ok[s:e] = (good & ~out).reshape(e - s, M)
             if hold > 1:
                 ml = np.floor(np.nan_to_num((mlo - z) / eta + 0.5))
@@ -566,8 +570,8 @@ def build_abstraction(system: System, grid: UniformGrid, *, growth: Optional[Gro
             return a.astype(np.int8)
         return a
 
-    ab = Abstraction(grid=grid, inputs=U, class_dims=class_dims, off_lo=small(off_lo),
-                     off_hi=small(off_hi), ok=ok, mid_lo=small(mid_lo), mid_hi=small(mid_hi),
+    ab = Abstraction(grid=grid, inputs=U, class_dims=class_dims, off_lo=off["lo"],
+                     off_hi=off["hi"], ok=ok, mid_lo=small(mid_lo), mid_hi=small(mid_hi),
                      hold=hold)
     t1 = time.perf_counter()
     if not inv and K * M <= CornerIndex.MAX_PAIRS:  # one class per cell: the predecessor index
@@ -576,6 +580,17 @@ def build_abstraction(system: System, grid: UniformGrid, *, growth: Optional[Gro
     ab.info = {"invariant_dims": list(inv), "classes": K, "guard": guard, "hold": hold,
                "seconds_index": time.perf_counter() - t1}
     return ab
+
+
+def _store(off: dict, side: str, s: int, e: int, d: int, v: np.ndarray) -> None:
+    """Write the offsets ``v`` (float, integral, within +-_OFF_LIMIT) of classes s..e, dimension d,
+    into ``off[side]``; an int8 table that cannot hold them becomes int16 (both sides alike)."""
+    tab = off[side]
+    if tab.dtype == np.int8 and v.size and (v.min() < -128 or v.max() > 127):
+        for k in off:
+            off[k] = off[k].astype(np.int16)
+        tab = off[side]
+    tab[s:e].reshape(-1, tab.shape[2])[:, d] = v  # tab[s:e] is contiguous: a view
 
 
 def _cell_offset(v: np.ndarray, base) -> np.ndarray:

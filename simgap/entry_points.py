@@ -10,7 +10,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import lru_cache
-from importlib import metadata
 from typing import Collection
 
 from .errors import SimgapError
@@ -34,6 +33,7 @@ class Plugin:
 
 @lru_cache(maxsize=None)
 def _registered(group: str) -> dict:
+    from importlib import metadata  # imported on first use: it loads email, zipfile, csv, ... (about 40 ms)
     out = {}
     for ep in metadata.entry_points(group=group):
         dist = getattr(ep, "dist", None)

@@ -102,12 +102,18 @@ def test_dcdc_winning_domain():
 
 
 def test_synthesis_does_not_load_value_iterations_compiler():
-    """numba (about 0.2 s and 55 MB to import) is for value iteration's kernel only."""
+    """numba (about 0.2 s and 55 MB to import) is for value iteration's kernel only; the plugin
+    registry's metadata scan is for plugin names only."""
     import subprocess
     import sys
     code = ("import sys\n"
             "from simgap.synthesis import synthesize, examples as ex\n"
             "synthesize(ex.dcdc_system(), ex.dcdc_spec(), (0.004, 0.004), growth=ex.dcdc_growth(), invariant_dims=())\n"
+            # the plugin registry's importlib.metadata (email, csv, zipfile, ...: about 40 ms per
+            # process) only when a name is looked up among the plugins
+            "from simgap.systems import get_system\n"
+            "get_system('pendulum')\n"
+            "assert 'importlib.metadata' not in sys.modules, 'importlib.metadata was loaded'\n"
             "import simgap.perrun.value_iteration\n"
             "assert 'numba' not in sys.modules, 'numba was loaded'\n")
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)

@@ -2,7 +2,8 @@
 several grids, and its two halves (pole only, cart only) on the same grids.
 
     python bench/cartpole_synthesis_probe.py              # the table of docs/case-studies.md (minutes)
-    python bench/cartpole_synthesis_probe.py --only 4d    # one part: 4d, pole or cart
+    python bench/cartpole_synthesis_probe.py --only 4d    # one part: 4d, pole, cart or loop
+    python bench/cartpole_synthesis_probe.py --only loop  # the inner-loop rows (about 3 min of CPU)
 
 Every row synthesizes an invariance controller (stay in the box X given on the row) for the model
 of assets/experiments/cartpole/cartpole.toml with ``gap=None``: if the nominal model wins no cell,
@@ -10,6 +11,16 @@ no certified gap can. ``k`` is the number of 0.02 s periods per abstraction step
 ``U`` the number of ctrl values in [-3, 3]. The pole-only model is the (theta, omega) part of the
 same right-hand side (it does not depend on p or v); the cart-only model is the double integrator
 p'' = 100 u / (M + m) (the pole's reaction left out).
+
+The ``loop`` rows put a fixed inner loop under the abstraction, as SCOTS users do with unstable
+plants: the actuator receives ctrl = clip(u + 2.034 theta + 2.297 omega, -3, 3), computed from the
+state at the start of each 0.02 s period and held, and the abstraction chooses the offset u from 5
+values in [-0.5, 0.5] (|ctrl| <= 3 on X, so the clip is never active). The gains make the pole's
+part (theta, omega) as contracting as a box can be (the optimum of max_i (|A_cl| h)_i / h_i over PD
+gains). Because f does not depend on p, the (theta, v, omega) model without p is exact for those
+three states; rows with a ``gap`` add that constant to every successor box (state units per period).
+The Jacobian bound of the closed loop is the largest |d f / d x| over 20,000 random states of X per
+input (central differences): an estimate, enough for a necessary condition on the nominal model.
 """
 
 from __future__ import annotations
@@ -43,6 +54,18 @@ ROWS_4D = [  # (k, inputs, half-widths of X (p, theta, v, omega), eta)
 ROWS_POLE = [(1, 13, (0.1, 1.0), (0.01, 0.05)), (5, 25, (0.1, 1.0), (0.01, 0.05)),
              (5, 49, (0.1, 1.0), (0.005, 0.025))]
 ROWS_CART = [(1, 13, (0.5, 1.0), (0.1, 0.1)), (1, 13, (0.5, 1.0), (0.01, 0.1))]
+# inner-loop rows: (states kept, half-widths of X (p, theta, v, omega), eta, constant gap per kept state)
+LOOP_GAINS = np.array([0.0, 2.034, 0.0, 2.297])  # ctrl = u + LOOP_GAINS . x
+ROWS_LOOP = [
+    ((1, 3), (0.5, 0.1, 1.0, 1.0), (0.1, 0.005, 0.1, 0.025), None),
+    ((1, 2, 3), (0.5, 0.1, 1.0, 1.0), (0.1, 0.005, 0.1, 0.025), None),
+    ((1, 2, 3), (0.5, 0.1, 2.0, 1.0), (0.1, 0.004, 0.1, 0.02), None),
+    ((1, 2, 3), (0.5, 0.1, 2.0, 1.0), (0.1, 0.002, 0.05, 0.01), None),
+    ((1, 2, 3), (0.5, 0.1, 2.0, 1.0), (0.1, 0.002, 0.05, 0.01), (0.0002, 0.0016, 0.01)),
+    ((1, 2, 3), (0.5, 0.1, 2.0, 1.0), (0.1, 0.002, 0.05, 0.01), (0.0005, 0.004, 0.023)),
+    ((0, 1, 2, 3), (0.5, 0.1, 1.0, 1.0), (0.1, 0.005, 0.1, 0.025), None),
+    ((0, 1, 2, 3), (0.5, 0.1, 2.0, 1.0), (0.05, 0.004, 0.1, 0.02), None),   # about a minute of CPU
+]
 
 
 def run(system: System, k: int, nu: int, half, eta) -> tuple:
@@ -54,9 +77,50 @@ def run(system: System, k: int, nu: int, half, eta) -> tuple:
     return r.controller.size, cells, time.process_time() - t
 
 
+def inner_loop_system(cp: System, dims, half, n_inputs: int = 5, offset: float = 0.5) -> System:
+    """The cart-pole under the fixed inner loop ctrl = clip(u + LOOP_GAINS . x, -3, 3) (held for one
+    period), restricted to the states ``dims`` (the others 0: exact when p is dropped, f does not
+    depend on p), with X = [-half, half] and the offsets u in [-offset, offset]."""
+    dims = list(dims)
+    half = np.asarray(half, float)
+    U = input_grid([-offset], [offset], [n_inputs])
+
+    def full(X, u):
+        return cp.step(X, np.clip(u + X @ LOOP_GAINS[:, None], -3.0, 3.0), cp.base_tau)
+
+    def step(x, u, dt):
+        X = np.zeros((x.shape[0], 4))
+        X[:, dims] = x
+        return full(X, u)[:, dims]
+
+    rng = np.random.default_rng(0)
+    xs = rng.uniform(-half, half, (20_000, 4))
+    J = np.zeros((4, 4))
+    for uu in U:
+        ur = np.broadcast_to(uu, (xs.shape[0], 1))
+        for j in range(4):
+            h = np.zeros(4)
+            h[j] = 1e-6
+            J[:, j] = np.maximum(J[:, j], (np.abs(full(xs + h, ur) - full(xs - h, ur)) / 2e-6).max(axis=0))
+    Jd = J[np.ix_(dims, dims)] + 1e-6
+    return System(name="cartpole_inner_loop", state_names=tuple(cp.state_names[i] for i in dims), input_names=("u",),
+                  x_lo=-half[dims], x_hi=half[dims], inputs=U, base_tau=cp.base_tau, step=step,
+                  jacobian_bound=lambda u: np.broadcast_to(Jd, (np.atleast_2d(u).shape[0],) + Jd.shape))
+
+
+def run_loop(cp: System, dims, half, eta, gap) -> tuple:
+    s = inner_loop_system(cp, dims, half)
+    e = np.asarray(eta, float)[list(dims)]
+    t = time.process_time()
+    inv = (0,) if 0 in dims else ()  # p is translation invariant (LOOP_GAINS[0] = 0)
+    r = synthesize(s, Spec(kind="invariance", safe=Box(s.x_lo, s.x_hi)), list(e), gap=gap, invariant_dims=inv)
+    cells = int(np.prod(np.ceil((s.x_hi - s.x_lo) / e - 1e-9)))
+    return r.controller.size, cells, time.process_time() - t
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--only", choices=["4d", "pole", "cart"])
+    ap.add_argument("--only", choices=["4d", "pole", "cart", "loop"])
     a = ap.parse_args(argv)
     cp = load_experiment("cartpole", profile=None).system
     tau = cp.base_tau
@@ -82,6 +146,13 @@ def main(argv=None):
         for k, nu, half, eta in rows:
             won, cells, cpu = run(system, k, nu, half, eta)
             print(f"{name:6s} {k:3d} {nu:3d} {str(half):28s} {str(eta):28s} {won:9,d} {cells:9,d} {cpu:6.1f}", flush=True)
+    if a.only in (None, "loop"):
+        print(f"\ninner loop ctrl = clip(u + {LOOP_GAINS[1]} theta + {LOOP_GAINS[3]} omega, -3, 3), 5 offsets u in [-0.5, 0.5]")
+        print(f"{'states':14s} {'X half-widths':22s} {'eta':26s} {'gap':22s} {'winning':>9s} {'cells':>9s} {'CPU s':>6s}")
+        for dims, half, eta, gap in ROWS_LOOP:
+            won, cells, cpu = run_loop(cp, dims, half, eta, gap)
+            names = ",".join(cp.state_names[i] for i in dims)
+            print(f"{names:14s} {str(half):22s} {str(eta):26s} {str(gap):22s} {won:9,d} {cells:9,d} {cpu:6.1f}", flush=True)
 
 
 if __name__ == "__main__":

@@ -487,12 +487,13 @@ def body_meshes(app) -> list:
     return simulator_bodies(app.settings.simulator, base_system(app.system))
 
 
-def mjcf_bodies(app) -> tuple:
-    """(:class:`~simgap_viz.layers.bodies.MjcfBodies` or None, note) of the experiment's ``mujoco``
-    simulator when the app simulates with it (the note says why nothing is drawn)."""
-    from .layers.bodies import mjcf_bodies as bodies
+def model_bodies(app) -> tuple:
+    """(:class:`~simgap_viz.layers.bodies.MjcfBodies` / ``UrdfBodies`` or None, note) of the
+    experiment's ``mujoco`` or ``pybullet_urdf`` simulator when the app simulates with it (the note
+    says why nothing is drawn)."""
+    from .layers.bodies import model_bodies as bodies
     exp = getattr(app, "experiment", None)
     cfg = exp.simulator if exp is not None else None
-    if cfg is None or cfg.kind != "mujoco" or app.settings.simulator != "mujoco":
+    if cfg is None or cfg.kind != app.settings.simulator:
         return None, ""
     return bodies(cfg, base_system(app.system))

@@ -11,6 +11,8 @@ and joint lookup), the state's joints are set in ``qpos`` (the rest at the model
 every simulated period starts) and ``mj_forward`` places every geom at ``geom_xpos``,
 ``geom_xmat``: :class:`MjcfBodies` keeps one mesh per geom in the geom's own frame and gives
 their world poses for any state, so the GUI moves nodes instead of re-sending geometry.
+:class:`UrdfBodies` does the same for the URDF of a ``pybullet_urdf`` simulator config (the state
+set by the simulator's own reset, the visual shapes posed by their links).
 """
 
 from __future__ import annotations
@@ -139,14 +141,87 @@ class MjcfBodies:
 
     def meshes_at(self, x) -> list:
         """(name, trimesh) of every kept geom at its world pose for state x (copies, metres)."""
-        pos, wxyz = self.poses(x)
-        out = []
-        for name, mesh, p, q in zip(self.names, self.meshes, pos, wxyz):
-            T = np.eye(4)
-            T[:3, :3] = _quat_matrix((q[1], q[2], q[3], q[0]))
-            T[:3, 3] = p
-            out.append((name, mesh.copy().apply_transform(T)))
-        return out
+        return _placed(self, x)
+
+
+class UrdfBodies:
+    """The visual shapes of the URDF a ``pybullet_urdf`` simulator config names, posed by the state x.
+
+    Same interface as :class:`MjcfBodies`. The simulator itself (one copy of the robot) loads the
+    file, looks up the joints and resets them to x (:meth:`UrdfSimulator._set_state`: state joints
+    to x, the other movable joints to 0, a mobile base to its planar pose); a shape's world pose
+    is its link's URDF frame (``getLinkState`` [4], [5]; for the base, the centre-of-mass pose
+    times the inverse of its local inertial frame) times the shape's local visual frame.
+    """
+
+    def __init__(self, config, system: System):
+        import dataclasses
+
+        from simgap.simulators.pybullet_urdf import UrdfSimulator
+        cfg = dataclasses.replace(config, options={**config.options, "copies": 1})
+        self._sim = sim = UrdfSimulator(cfg, system)  # SimgapError for a bad file or joint name
+        self.path = sim.path
+        c, b = sim._client, sim.bodies[0]
+        self.names, self.meshes, self._links, self._local = [], [], [], []
+        for k, v in enumerate(c.getVisualShapeData(b)):
+            link, geom, dims, mfile, lpos, lorn, rgba = v[1], v[2], v[3], v[4], v[5], v[6], v[7]
+            mesh = _shape_mesh(geom, dims, mfile)
+            if mesh is None:
+                continue
+            mesh.visual.face_colors = (np.clip(np.asarray(rgba), 0, 1) * 255).astype(np.uint8)
+            self.names.append(f"link{link}_shape{k}")
+            self.meshes.append(mesh)
+            self._links.append(int(link))
+            self._local.append(_frame(lpos, lorn))
+        ipos, iorn = c.getDynamicsInfo(b, -1)[3:5]
+        self._base_inertial_inv = np.linalg.inv(_frame(ipos, iorn))
+
+    def poses(self, x) -> tuple:
+        """(positions (K,3) [m], wxyz (K,4)) of the visual shapes at state x (n,)."""
+        sim = self._sim
+        c, b = sim._client, sim.bodies[0]
+        sim._set_state([b], np.asarray(x, dtype=float).reshape(1, -1))
+        frames = {}
+        for link in set(self._links):
+            if link == -1:
+                frames[-1] = _frame(*c.getBasePositionAndOrientation(b)) @ self._base_inertial_inv
+            else:
+                st = c.getLinkState(b, link, computeForwardKinematics=True)
+                frames[link] = _frame(st[4], st[5])
+        T = np.stack([frames[link] @ L for link, L in zip(self._links, self._local)]) if self._links \
+            else np.zeros((0, 4, 4))
+        return T[:, :3, 3].copy(), np.array([_wxyz(R) for R in T[:, :3, :3]]).reshape(-1, 4)
+
+    def meshes_at(self, x) -> list:
+        """(name, trimesh) of every visual shape at its world pose for state x (copies, metres)."""
+        return _placed(self, x)
+
+    def close(self) -> None:
+        self._sim.close()
+
+
+def _frame(pos, quat_xyzw) -> np.ndarray:
+    """4x4 transform of a position and a PyBullet quaternion (x, y, z, w)."""
+    T = np.eye(4)
+    T[:3, :3] = _quat_matrix(quat_xyzw)
+    T[:3, 3] = pos
+    return T
+
+
+def _wxyz(R) -> np.ndarray:
+    """Unit quaternion (w, x, y, z) of a rotation matrix."""
+    from scipy.spatial.transform import Rotation
+    x, y, z, w = Rotation.from_matrix(R).as_quat()
+    return np.array([w, x, y, z])
+
+
+def _placed(bodies, x) -> list:
+    """(name, mesh moved to its world pose at state x) for :class:`MjcfBodies` / :class:`UrdfBodies`."""
+    pos, wxyz = bodies.poses(x)
+    out = []
+    for name, mesh, p, q in zip(bodies.names, bodies.meshes, pos, wxyz):
+        out.append((name, mesh.copy().apply_transform(_frame(p, (q[1], q[2], q[3], q[0])))))
+    return out
 
 
 def _geom_mesh(mj, m, g: int):
@@ -183,16 +258,23 @@ def _geom_mesh(mj, m, g: int):
     return None
 
 
-def mjcf_bodies(config, system: System):
-    """(:class:`MjcfBodies` or None, note): the MJCF geometry of a ``mujoco`` simulator config, or
-    None and why not (MuJoCo not installed, the model missing or changed, a joint not in it)."""
+#: simulator kinds whose configuration names a robot file that can be drawn, and its reader
+MODEL_BODIES = {"mujoco": ("MuJoCo", MjcfBodies), "pybullet_urdf": ("PyBullet", UrdfBodies)}
+
+
+def model_bodies(config, system: System):
+    """(:class:`MjcfBodies` / :class:`UrdfBodies` or None, note): the geometry of the robot file a
+    ``mujoco`` or ``pybullet_urdf`` simulator config names, or None and why not (MuJoCo not
+    installed, the file missing or changed, a joint not in it); (None, "") for other kinds."""
     from simgap.errors import SimgapError
-    if config is None or getattr(config, "kind", None) != "mujoco":
+    kind = getattr(config, "kind", None)
+    if config is None or kind not in MODEL_BODIES:
         return None, ""
+    engine_name, cls = MODEL_BODIES[kind]
     try:
-        return MjcfBodies(config, system), ""
+        return cls(config, system), ""
     except SimgapError as e:
-        return None, f"MuJoCo bodies not drawn: {e}"
+        return None, f"{engine_name} bodies not drawn: {e}"
 
 
 def simulator_bodies(kind: str, system: System) -> list:

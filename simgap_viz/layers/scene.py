@@ -27,10 +27,11 @@ from simgap.systems import labelled, units
 
 from .. import engine
 from . import geometry as G
+from .bodies import MODEL_BODIES
 
 PENDULUM_PIVOT = (1.9, 0.0, 1.2)  # where the pendulum's pivot stands, beside the state square
-MJCF_LEFT = 1.5  # an MJCF model stands beside the square: its bounding box starts at this x
-MJCF_SIZE = 2.5  # ... and is scaled down to this largest extent (display units) if larger
+MODEL_LEFT = 1.5  # a robot file's model stands beside the square: its bounding box starts at this x
+MODEL_SIZE = 2.5  # ... and is scaled down to this largest extent (display units) if larger
 SURFACE_RES = 41
 
 
@@ -135,11 +136,11 @@ def draw_bodies(app) -> None:
     sc = app.server.scene
     _remove(app, "/bodies")
     app.body_frame = None
-    app.body_mjcf = None
+    app.body_model = None
     base = engine.base_system(app.system)
     vis = app.layers_visible["bodies"]
-    if app.settings.simulator == "mujoco":
-        draw_mjcf_bodies(app)
+    if app.settings.simulator in MODEL_BODIES:
+        draw_model_bodies(app)
         return
     bodies = engine.body_meshes(app)
     if not bodies:
@@ -165,45 +166,48 @@ def draw_bodies(app) -> None:
     pose_bodies(app, None)
 
 
-def draw_mjcf_bodies(app) -> None:
-    """The MJCF's geoms (simulator kind ``mujoco``), one node per geom under ``/bodies/mjcf``: a frame
-    that stands the model beside the square (its bounding box at the resting pose from x =
-    ``MJCF_LEFT``, centred in y, on the ground; metres, scaled down if larger than ``MJCF_SIZE``).
-    :func:`pose_bodies` moves each geom to its pose for a state. Without MuJoCo (or with a model
-    that does not load) a label says why nothing is drawn."""
+def draw_model_bodies(app) -> None:
+    """The robot file's geometry (simulator kind ``mujoco``: the MJCF's geoms; ``pybullet_urdf``: the
+    URDF's visual shapes), one node per shape under ``/bodies/model``: a frame that stands the
+    model beside the square (its bounding box at the resting pose from x = ``MODEL_LEFT``, centred
+    in y, on the ground; metres, scaled down if larger than ``MODEL_SIZE``). :func:`pose_bodies`
+    moves each shape to its pose for a state. Without MuJoCo (or with a file that does not load)
+    a label says why nothing is drawn."""
     sc = app.server.scene
     vis = app.layers_visible["bodies"]
-    bodies, note = _mjcf(app)
+    bodies, note = _model(app)
     if bodies is None:
         if note:
-            sc.add_label("/bodies/label", text=note, anchor="bottom-left", position=(MJCF_LEFT, 0.0, 0.1),
+            sc.add_label("/bodies/label", text=note, anchor="bottom-left", position=(MODEL_LEFT, 0.0, 0.1),
                          visible=vis, font_screen_scale=0.7)
         return
-    _, lo, hi, k = _mjcf_placement(app, bodies)
-    offset = np.array([MJCF_LEFT - k * lo[0], -0.5 * k * (lo[1] + hi[1]), -k * lo[2]])
-    frame = sc.add_frame("/bodies/mjcf", show_axes=False, position=tuple(offset), scale=k, visible=vis)
-    handles = [_add_mesh(sc, f"/bodies/mjcf/{i}_{name}", mesh) for i, (name, mesh) in
+    _, lo, hi, k = _model_placement(app, bodies)
+    offset = np.array([MODEL_LEFT - k * lo[0], -0.5 * k * (lo[1] + hi[1]), -k * lo[2]])
+    frame = sc.add_frame("/bodies/model", show_axes=False, position=tuple(offset), scale=k, visible=vis)
+    handles = [_add_mesh(sc, f"/bodies/model/{i}_{name}", mesh) for i, (name, mesh) in
                enumerate(zip(bodies.names, bodies.meshes))]
-    sc.add_label("/bodies/label", text=f"MuJoCo: {bodies.path.name}", anchor="bottom-center",
-                 position=(MJCF_LEFT + 0.5 * k * (hi[0] - lo[0]), 0.0, k * (hi[2] - lo[2]) + 0.1), visible=vis)
+    sc.add_label("/bodies/label", text=f"{MODEL_BODIES[app.settings.simulator][0]}: {bodies.path.name}",
+                 anchor="bottom-center", visible=vis,
+                 position=(MODEL_LEFT + 0.5 * k * (hi[0] - lo[0]), 0.0, k * (hi[2] - lo[2]) + 0.1))
     app.body_frame = frame
-    app.body_mjcf = (bodies, handles)
+    app.body_model = (bodies, handles)
     pose_bodies(app, None)
 
 
-def _mjcf(app) -> tuple:
-    """The app's MJCF bodies (built once per model file and system), and the note when there are none."""
+def _model(app) -> tuple:
+    """The app's robot-file bodies (built once per file and system), and the note when there are none."""
     exp = getattr(app, "experiment", None)
     cfg = exp.simulator if exp is not None else None
-    key = (engine.base_system(app.system).name, None if cfg is None else (cfg.kind, str(cfg.options.get("model")),
-                                                                          cfg.options.get("model_sha256")))
-    cached = getattr(app, "_mjcf_cache", None)
+    key = (engine.base_system(app.system).name, app.settings.simulator,
+           None if cfg is None else (cfg.kind, str(cfg.options.get("model", cfg.options.get("urdf"))),
+                                     cfg.options.get("model_sha256", cfg.options.get("urdf_sha256"))))
+    cached = getattr(app, "_model_bodies_cache", None)
     if cached is None or cached[0] != key:
-        cached = app._mjcf_cache = (key, engine.mjcf_bodies(app))
+        cached = app._model_bodies_cache = (key, engine.model_bodies(app))
     return cached[1]
 
 
-def _mjcf_placement(app, bodies) -> tuple:
+def _model_placement(app, bodies) -> tuple:
     """(rest state, lo (3,), hi (3,) [m] of the geoms at it, display scale k)."""
     base = engine.base_system(app.system)
     x = _rest_state(app, base)
@@ -213,7 +217,7 @@ def _mjcf_placement(app, bodies) -> tuple:
     lo = np.min([m.bounds[0] for m in meshes], axis=0)
     hi = np.max([m.bounds[1] for m in meshes], axis=0)
     ext = float(np.max(hi - lo))
-    return x, lo, hi, min(1.0, MJCF_SIZE / ext) if ext > 0 else 1.0
+    return x, lo, hi, min(1.0, MODEL_SIZE / ext) if ext > 0 else 1.0
 
 
 def _rest_state(app, base) -> np.ndarray:
@@ -230,7 +234,7 @@ def pose_bodies(app, x) -> None:
         return
     base = engine.base_system(app.system)
     x = _rest_state(app, base) if x is None else np.asarray(x, dtype=float)
-    mj = getattr(app, "body_mjcf", None)
+    mj = getattr(app, "body_model", None)
     if mj is not None:
         bodies, handles = mj
         pos, wxyz = bodies.poses(x)
@@ -440,10 +444,10 @@ def scene_bounds(app) -> tuple:
     if base.name == "pendulum" and app.layers_visible.get("bodies", True):
         hi[0] = max(hi[0], PENDULUM_PIVOT[0] + 0.2)
         hi[2] = max(hi[2], PENDULUM_PIVOT[2] + 0.1)
-    mj = getattr(app, "body_mjcf", None)
+    mj = getattr(app, "body_model", None)
     if mj is not None and app.layers_visible.get("bodies", True):
-        _, blo, bhi, k = _mjcf_placement(app, mj[0])
-        hi[0] = max(hi[0], MJCF_LEFT + k * (bhi[0] - blo[0]))
+        _, blo, bhi, k = _model_placement(app, mj[0])
+        hi[0] = max(hi[0], MODEL_LEFT + k * (bhi[0] - blo[0]))
         hi[2] = max(hi[2], k * (bhi[2] - blo[2]) + 0.2)
     if app.results.get("refine") is not None:  # the residual plane: points at z in [-0.3, 1.3], label at 1.45
         lo[1] = min(lo[1], RESIDUAL_PLANE_Y)

@@ -1,8 +1,9 @@
-"""The GUI's MuJoCo bodies: the MJCF's geoms as trimesh meshes at the state's pose, and the app
-drawing them for the cart-pole experiment (simgap_viz/layers/bodies.py: MjcfBodies,
-simgap_viz/layers/scene.py: draw_mjcf_bodies)."""
+"""The GUI's robot-file bodies: the MJCF's geoms (MuJoCo) and the URDF's visual shapes (PyBullet) as
+trimesh meshes at the state's pose, and the app drawing them for the cart-pole and arm experiments
+(simgap_viz/layers/bodies.py: MjcfBodies, UrdfBodies; simgap_viz/layers/scene.py: draw_model_bodies)."""
 
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,7 +12,7 @@ pytest.importorskip("mujoco")
 
 from simgap.config import load_experiment  # noqa: E402
 from simgap.simulators.base import SimulatorConfig  # noqa: E402
-from simgap_viz.layers.bodies import MjcfBodies, mjcf_bodies  # noqa: E402
+from simgap_viz.layers.bodies import MjcfBodies, UrdfBodies, model_bodies  # noqa: E402
 
 R_POLE, L_POLE = 0.049, 0.6  # the MJCF's pole capsule: fromto (0 0 0) -> (0.001 0 0.6), radius 0.049
 TOL = 2e-3                   # tessellation: a 24-section circle reaches r cos(pi / 24) = 0.991 r sideways
@@ -107,7 +108,7 @@ def test_every_geom_type_has_its_mjcf_size(exp, tmp_path):
 def test_without_mujoco_no_bodies_and_a_note(exp, monkeypatch):
     """MuJoCo not installed: no bodies, a note naming the extra, no exception."""
     monkeypatch.setitem(sys.modules, "mujoco", None)
-    bodies, note = mjcf_bodies(exp.simulator, exp.system)
+    bodies, note = model_bodies(exp.simulator, exp.system)
     assert bodies is None and "simgap[mujoco]" in note
 
 
@@ -123,7 +124,7 @@ def test_app_draws_and_poses_the_cartpole(exp, monkeypatch):
     assert settings.simulator == "mujoco"
     app = SimgapApp(port=0, settings=settings, spec=spec, experiment=e, executor="serial")
     try:
-        bodies, handles = app.body_mjcf
+        bodies, handles = app.body_model
         assert bodies.names == ["rail", "cart", "cpole"] and len(handles) == 3
         x0 = np.asarray(app.settings.x0, dtype=float)  # the experiment's [rollout] x0: theta = 0.05
         pos, wxyz = bodies.poses(x0)
@@ -138,15 +139,97 @@ def test_app_draws_and_poses_the_cartpole(exp, monkeypatch):
         th = -0.3 + np.arctan2(0.001, 0.6)
         assert abs(axis @ [np.sin(th), 0.0, np.cos(th)]) == pytest.approx(1.0, abs=1e-9)
         lo, hi = scene.scene_bounds(app)
-        assert hi[0] >= scene.MJCF_LEFT + 2.0  # the 2.04 m rail beside the square
-        assert app.server.scene._handle_from_node_name.get("/bodies/mjcf") is not None
+        assert hi[0] >= scene.MODEL_LEFT + 2.0  # the 2.04 m rail beside the square
+        assert app.server.scene._handle_from_node_name.get("/bodies/model") is not None
     finally:
         app.stop()
 
     monkeypatch.setitem(sys.modules, "mujoco", None)
     app = SimgapApp(port=0, settings=settings, spec=spec, experiment=e, executor="serial")
     try:
-        assert app.body_mjcf is None and app.body_frame is None
+        assert app.body_model is None and app.body_frame is None
+        assert "/bodies/label" in app.server.scene._handle_from_node_name
+    finally:
+        app.stop()
+
+
+ARM = Path(__file__).resolve().parents[1] / "examples" / "arm"
+
+
+def test_urdf_link_follows_the_state_like_the_mjcf():
+    """examples/arm: the URDF's 0.6 m cylinder (r 0.02) hangs from the shoulder at theta = 0 and,
+    at theta = 0.3, lies where the MJCF's capsule of the same link lies (both turn about +y, the
+    bottom end to -x): the same centre to 2e-3 (tessellation), the pose to 1e-6. Catches a link frame taken at the centre
+    of mass, a local visual frame left out, and the wrong joint set."""
+    urdf = load_experiment(ARM / "arm_urdf.toml", profile=None)
+    ub = UrdfBodies(urdf.simulator, urdf.system)
+    try:
+        (name, rod), = ub.meshes_at([0.0, 0.0])
+        np.testing.assert_allclose(rod.bounds, [[-0.02, -0.02, -0.6], [0.02, 0.02, 0.0]], atol=2e-3)
+        th = 0.3
+        (_, rod), = ub.meshes_at([th, 0.4])
+        mj = dict(MjcfBodies(load_experiment(ARM / "arm_mujoco.toml", profile=None).simulator,
+                             urdf.system).meshes_at([th, 0.4]))["link"]
+        np.testing.assert_allclose(rod.bounds.mean(axis=0)[[0, 2]], [-0.3 * np.sin(th), -0.3 * np.cos(th)],
+                                   atol=2e-3)
+        np.testing.assert_allclose(rod.bounds.mean(axis=0), mj.bounds.mean(axis=0), atol=2e-3)
+        pos, wxyz = ub.poses([th, 0.0])
+        w, qx, qy, qz = wxyz[0]
+        assert 2 * np.arctan2(qy, w) == pytest.approx(th, abs=1e-6) and abs(qx) + abs(qz) < 1e-6  # PyBullet's floats
+        np.testing.assert_allclose(pos[0], [-0.3 * np.sin(th), 0.0, -0.3 * np.cos(th)], atol=1e-6)
+    finally:
+        ub.close()
+
+
+URDF_OFFSET_BASE = """<?xml version="1.0"?>
+<robot name="offset">
+  <link name="base">
+    <inertial><origin xyz="0.3 0 0"/><mass value="1"/><inertia ixx="0.01" ixy="0" ixz="0" iyy="0.01" iyz="0" izz="0.01"/></inertial>
+    <visual><origin xyz="0 0 0.5"/><geometry><box size="0.2 0.4 0.6"/></geometry></visual>
+  </link>
+  <link name="arm">
+    <inertial><origin xyz="0 0 -0.25"/><mass value="1"/><inertia ixx="0.01" ixy="0" ixz="0" iyy="0.01" iyz="0" izz="0.01"/></inertial>
+    <visual><origin xyz="0 0 -0.25"/><geometry><sphere radius="0.1"/></geometry></visual>
+  </link>
+  <joint name="j" type="continuous"><parent link="base"/><child link="arm"/><origin xyz="1 0 0"/><axis xyz="0 1 0"/></joint>
+</robot>
+"""
+
+
+def test_urdf_base_visual_is_placed_from_the_link_frame_not_the_centre_of_mass(tmp_path):
+    """A base whose centre of mass is 0.3 m off its link frame: its box stands at the link frame
+    plus the visual origin (PyBullet's base pose is the centre of mass: the offset must be undone),
+    the child's sphere at the joint origin plus its visual origin turned by the joint angle."""
+    from simgap.simulators.base import SimulatorConfig
+    from simgap.systems import resolve_system
+
+    f = tmp_path / "offset.urdf"
+    f.write_text(URDF_OFFSET_BASE)
+    cfg = SimulatorConfig(kind="pybullet_urdf", system="arm", steps=1,
+                          options={"urdf": str(f), "positions": ["j"], "velocities": ["j"], "inputs": ["j"]})
+    b = UrdfBodies(cfg, resolve_system(str(ARM / "arm.toml")))
+    try:
+        shapes = dict(b.meshes_at([0.5, 0.0]))
+        box = next(m for n, m in shapes.items() if n.startswith("link-1"))
+        ball = next(m for n, m in shapes.items() if n.startswith("link0"))
+        np.testing.assert_allclose(box.bounds, [[-0.1, -0.2, 0.2], [0.1, 0.2, 0.8]], atol=1e-6)
+        np.testing.assert_allclose(ball.bounds.mean(axis=0), [1 - 0.25 * np.sin(0.5), 0, -0.25 * np.cos(0.5)],
+                                   atol=2e-3)
+    finally:
+        b.close()
+
+
+def test_app_draws_the_urdf_arm():
+    """The app with examples/arm/arm_urdf.toml: the link under /bodies/model, labelled PyBullet."""
+    from simgap_viz.app import SimgapApp
+    from simgap_viz.experiment import app_inputs
+
+    settings, _, spec, _, e = app_inputs(experiment=str(ARM / "arm_urdf.toml"), profile="base")
+    assert settings.simulator == "pybullet_urdf"
+    app = SimgapApp(port=0, settings=settings, spec=spec, experiment=e, executor="serial")
+    try:
+        bodies, handles = app.body_model
+        assert isinstance(bodies, UrdfBodies) and len(handles) == 1
         assert "/bodies/label" in app.server.scene._handle_from_node_name
     finally:
         app.stop()

@@ -3,7 +3,7 @@ several grids, and its two halves (pole only, cart only) on the same grids.
 
     python bench/cartpole_synthesis_probe.py              # the table of docs/case-studies.md (minutes)
     python bench/cartpole_synthesis_probe.py --only 4d    # one part: 4d, pole, cart or loop
-    python bench/cartpole_synthesis_probe.py --only loop  # the inner-loop rows (about 3 min of CPU)
+    python bench/cartpole_synthesis_probe.py --only loop  # the inner-loop rows (about 6 min of CPU, 2.3 GB)
 
 Every row synthesizes an invariance controller (stay in the box X given on the row) for the model
 of assets/experiments/cartpole/cartpole.toml with ``gap=None``: if the nominal model wins no cell,
@@ -54,8 +54,12 @@ ROWS_4D = [  # (k, inputs, half-widths of X (p, theta, v, omega), eta)
 ROWS_POLE = [(1, 13, (0.1, 1.0), (0.01, 0.05)), (5, 25, (0.1, 1.0), (0.01, 0.05)),
              (5, 49, (0.1, 1.0), (0.005, 0.025))]
 ROWS_CART = [(1, 13, (0.5, 1.0), (0.1, 0.1)), (1, 13, (0.5, 1.0), (0.01, 0.1))]
-# inner-loop rows: (states kept, half-widths of X (p, theta, v, omega), eta, constant gap per kept state)
-LOOP_GAINS = np.array([0.0, 2.034, 0.0, 2.297])  # ctrl = u + LOOP_GAINS . x
+# inner-loop rows: (states kept, half-widths of X (p, theta, v, omega), eta, constant gap per kept state[, gains])
+LOOP_GAINS = np.array([0.0, 2.034, 0.0, 2.297])  # ctrl = u + LOOP_GAINS . x: PD on the pole only
+# full-state discrete LQR of the textbook model at 0.02 s, Q = diag(0.1, 10, 0.1, 1), R = 10 and R = 1:
+# the cart is stabilized too (p no longer translation invariant); sum |K_i| h_i <= 2.55 on X, no clip
+LQR_R10 = np.array([0.087, 3.857, 0.221, 0.760])
+LQR_R1 = np.array([0.244, 5.946, 0.529, 1.305])
 ROWS_LOOP = [
     ((1, 3), (0.5, 0.1, 1.0, 1.0), (0.1, 0.005, 0.1, 0.025), None),
     ((1, 2, 3), (0.5, 0.1, 1.0, 1.0), (0.1, 0.005, 0.1, 0.025), None),
@@ -65,6 +69,9 @@ ROWS_LOOP = [
     ((1, 2, 3), (0.5, 0.1, 2.0, 1.0), (0.1, 0.002, 0.05, 0.01), (0.0005, 0.004, 0.023)),
     ((0, 1, 2, 3), (0.5, 0.1, 1.0, 1.0), (0.1, 0.005, 0.1, 0.025), None),
     ((0, 1, 2, 3), (0.5, 0.1, 2.0, 1.0), (0.05, 0.004, 0.1, 0.02), None),   # about a minute of CPU
+    ((0, 1, 2, 3), (1.0, 0.1, 2.0, 1.0), (0.1, 0.004, 0.1, 0.02), None),    # about 2 minutes, 2.3 GB
+    ((0, 1, 2, 3), (0.5, 0.1, 1.0, 1.0), (0.05, 0.004, 0.1, 0.02), None, LQR_R10),
+    ((0, 1, 2, 3), (0.5, 0.1, 1.0, 1.0), (0.05, 0.004, 0.1, 0.02), None, LQR_R1),
 ]
 
 
@@ -77,16 +84,17 @@ def run(system: System, k: int, nu: int, half, eta) -> tuple:
     return r.controller.size, cells, time.process_time() - t
 
 
-def inner_loop_system(cp: System, dims, half, n_inputs: int = 5, offset: float = 0.5) -> System:
-    """The cart-pole under the fixed inner loop ctrl = clip(u + LOOP_GAINS . x, -3, 3) (held for one
-    period), restricted to the states ``dims`` (the others 0: exact when p is dropped, f does not
-    depend on p), with X = [-half, half] and the offsets u in [-offset, offset]."""
+def inner_loop_system(cp: System, dims, half, gains=LOOP_GAINS, n_inputs: int = 5, offset: float = 0.5) -> System:
+    """The cart-pole under the fixed inner loop ctrl = clip(u + gains . x, -3, 3) (held for one
+    period), restricted to the states ``dims`` (the others 0: exact when p is dropped and the gains
+    do not use it, as f does not depend on p), with X = [-half, half] and offsets u in [-offset, offset]."""
     dims = list(dims)
+    gains = np.asarray(gains, float)
     half = np.asarray(half, float)
     U = input_grid([-offset], [offset], [n_inputs])
 
     def full(X, u):
-        return cp.step(X, np.clip(u + X @ LOOP_GAINS[:, None], -3.0, 3.0), cp.base_tau)
+        return cp.step(X, np.clip(u + X @ gains[:, None], -3.0, 3.0), cp.base_tau)
 
     def step(x, u, dt):
         X = np.zeros((x.shape[0], 4))
@@ -108,11 +116,11 @@ def inner_loop_system(cp: System, dims, half, n_inputs: int = 5, offset: float =
                   jacobian_bound=lambda u: np.broadcast_to(Jd, (np.atleast_2d(u).shape[0],) + Jd.shape))
 
 
-def run_loop(cp: System, dims, half, eta, gap) -> tuple:
-    s = inner_loop_system(cp, dims, half)
+def run_loop(cp: System, dims, half, eta, gap, gains=LOOP_GAINS) -> tuple:
+    s = inner_loop_system(cp, dims, half, gains)
     e = np.asarray(eta, float)[list(dims)]
     t = time.process_time()
-    inv = (0,) if 0 in dims else ()  # p is translation invariant (LOOP_GAINS[0] = 0)
+    inv = (0,) if 0 in dims and gains[0] == 0 else ()  # p is translation invariant unless the loop feeds it back
     r = synthesize(s, Spec(kind="invariance", safe=Box(s.x_lo, s.x_hi)), list(e), gap=gap, invariant_dims=inv)
     cells = int(np.prod(np.ceil((s.x_hi - s.x_lo) / e - 1e-9)))
     return r.controller.size, cells, time.process_time() - t
@@ -147,12 +155,15 @@ def main(argv=None):
             won, cells, cpu = run(system, k, nu, half, eta)
             print(f"{name:6s} {k:3d} {nu:3d} {str(half):28s} {str(eta):28s} {won:9,d} {cells:9,d} {cpu:6.1f}", flush=True)
     if a.only in (None, "loop"):
-        print(f"\ninner loop ctrl = clip(u + {LOOP_GAINS[1]} theta + {LOOP_GAINS[3]} omega, -3, 3), 5 offsets u in [-0.5, 0.5]")
-        print(f"{'states':14s} {'X half-widths':22s} {'eta':26s} {'gap':22s} {'winning':>9s} {'cells':>9s} {'CPU s':>6s}")
-        for dims, half, eta, gap in ROWS_LOOP:
-            won, cells, cpu = run_loop(cp, dims, half, eta, gap)
+        print("\ninner loop ctrl = clip(u + gains . (p, theta, v, omega), -3, 3), 5 offsets u in [-0.5, 0.5]")
+        print(f"{'states':16s} {'gains':28s} {'X half-widths':22s} {'eta':26s} {'gap':22s} {'winning':>9s} {'cells':>9s} "
+              f"{'CPU s':>6s}")
+        for dims, half, eta, gap, *gains in ROWS_LOOP:
+            g = gains[0] if gains else LOOP_GAINS
+            won, cells, cpu = run_loop(cp, dims, half, eta, gap, g)
             names = ",".join(cp.state_names[i] for i in dims)
-            print(f"{names:14s} {str(half):22s} {str(eta):26s} {str(gap):22s} {won:9,d} {cells:9,d} {cpu:6.1f}", flush=True)
+            print(f"{names:16s} {str(tuple(g.tolist())):28s} {str(half):22s} {str(eta):26s} {str(gap):22s} {won:9,d} "
+                  f"{cells:9,d} {cpu:6.1f}", flush=True)
 
 
 if __name__ == "__main__":

@@ -328,3 +328,32 @@ def test_definitions_give_the_textbook_cartpole(tmp_path):
     selfref = CARTPOLE.replace('temp = "(F + mp*l*thetad^2*sin(theta))/(mc + mp)"', 'temp = "2*temp"')
     with pytest.raises(SimgapError, match="definition 'temp' uses itself"):
         system_from_spec(dict(__import__("tomllib").loads(selfref), format="simgap-system"))
+
+
+def test_synthesize_records_the_experiments_x0_so_rollout_needs_none(collected, tmp_path, capsys):
+    """An invariance experiment has no map to give x0; `simgap synthesize --spec EXP` records its
+    [rollout] x0 in the controller, and `simgap rollout` starts there without --x0 (before, rollout
+    refused with "give --x0"). An x0 outside X is refused, naming [rollout] x0."""
+    d, _ = collected
+    store = d / "store"
+    (tmp_path / "duffing.toml").write_text(DUFFING)
+    spec = ("[synthesis]\nspec = \"invariance\"\nsafe_lo = [-0.8, -1.2]\nsafe_hi = [0.8, 1.2]\neta = [0.05, 0.05]\n"
+            "[rollout]\nx0 = [0.1, -0.1]\n")
+    (tmp_path / "exp.toml").write_text(EXP + spec)
+    cert = tmp_path / "cert.json"
+    assert main(["certify", str(store), "--degree", "1", "--out", str(cert)]) == 0
+    ctrl = tmp_path / "ctrl.npz"
+    assert main(["synthesize", "--cert", str(cert), "--spec", str(tmp_path / "exp.toml"), "--profile", "base",
+                 "--out", str(ctrl)]) == 0
+    assert Controller.load(ctrl).x0.tolist() == [0.1, -0.1]
+    rep = tmp_path / "ro.json"
+    capsys.readouterr()
+    assert main(["rollout", "--controller", str(ctrl), "--simulator", SIM, "--n", "20", "--horizon", "20",
+                 "--out", str(rep)]) == 0
+    assert json.loads(rep.read_text())["x0"] == [0.1, -0.1]
+    (tmp_path / "exp.toml").write_text(EXP + spec.replace("[0.1, -0.1]", "[0.1, -3.0]"))
+    capsys.readouterr()
+    assert main(["synthesize", "--cert", str(cert), "--spec", str(tmp_path / "exp.toml"), "--profile", "base",
+                 "--out", str(tmp_path / "c2.npz")]) != 0
+    assert "[rollout] x0" in capsys.readouterr().err
+    assert not (tmp_path / "c2.npz").exists()

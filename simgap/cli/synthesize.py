@@ -160,6 +160,9 @@ def run(args) -> int:
         if args.steps is not None and args.steps != system.steps:
             system = system.with_steps(args.steps)
         spec, x0, _ = experiment_spec(e)
+        if x0 is None and "x0" in e.section("rollout"):  # recorded, so `simgap rollout` needs no --x0
+            x0 = _floats(",".join(map(str, np.ravel(e.section("rollout")["x0"]))), "[rollout] x0")
+            system.check_states(x0[None], what="[rollout] x0")
     else:
         recorded = cert.nominal_system() if cert is not None and args.system is None else None
         if args.system is None and recorded is None:

@@ -329,14 +329,19 @@ def check_basis(n_pairs: int, n_vars: int, degrees: Sequence[int], extra_terms: 
 
 
 def perrun_size(o: dict, system, rate_per_worker: Optional[float] = None, workers: int = 1,
-                n_controllers: int = 3) -> dict:
-    """Estimated peak memory and time of the per-run stage for checked ``[perrun]`` options ``o``.
+                n_controllers: int = 3, local_workers: int = 0) -> dict:
+    """Estimated work, peak memory and time of the per-run stage for checked ``[perrun]`` options ``o``.
 
     Grid: C = prod ceil((x_hi - x_lo) / eta) cells (invariant dimensions collapse to one class),
-    M inputs. The interval MDP samples n_runs runs of ``hold`` periods per (cell, input) and keeps
-    about min(n_runs, C, 32) successor intervals per pair (two float64 and an int32 index); value
-    iteration keeps a policy and a value per cell and abstract step (horizon / hold); validation
-    rolls ``n_rollouts`` runs of ``horizon`` periods out from ``n_states`` states per controller.
+    M inputs. The interval MDP samples n_runs + pilot_runs runs of ``hold`` periods per (cell, input)
+    (``sampling_steps``; the Lipschitz secants add 2 x 6000 runs of ``hold`` periods per dimension)
+    and keeps about min(n_runs, C, 32) successor intervals per pair (``entries``, about 20 bytes each
+    while they are assembled: counts, bounds, column, row); value iteration keeps a policy and a value
+    per cell and abstract step (horizon / hold); validation rolls ``n_rollouts`` runs of ``horizon``
+    periods out from ``n_states`` states per controller (``rollout_steps``). A simulator step is one
+    period of one run (one ``sim.step`` row); ``rate_per_worker`` is steps per second of one worker.
+    ``local_workers`` sampling processes on this machine each hold one batch of runs
+    (``batch_runs`` x hold states with shared runs). ``cpu_hours`` is the whole stage at that rate.
     """
     eta = np.broadcast_to(np.asarray(o["eta"], dtype=float), (system.n,))
     counts = np.ceil((system.x_hi - system.x_lo) / eta).astype(float)
@@ -347,29 +352,49 @@ def perrun_size(o: dict, system, rate_per_worker: Optional[float] = None, worker
     hold, horizon = int(o["hold"]), int(o["horizon"])
     steps = max(1, -(-horizon // hold))
     S = min(float(o["n_runs"]), C, 32.0)  # successors per pair: a run lands in a few cells (not all n_runs apart)
-    memory = C * M * S * 20 + C * steps * 12 + float(o["n_rollouts"]) * (horizon + 1) * system.n * 8 * 2
-    runs = C_sampled * M * (float(o["n_runs"]) + float(o["pilot_runs"])) * hold \
-        + n_controllers * float(o["n_states"]) * float(o["n_rollouts"]) * horizon
+    entries = C * M * S
+    batch = float(o.get("batch_runs", 1 << 19))
+    worker = batch * (hold * system.n + 3 * system.n + system.inputs.shape[1]) * 8 * 2
+    memory = entries * 20 + C * steps * 12 + float(o["n_rollouts"]) * (horizon + 1) * system.n * 8 * 2 \
+        + max(0, int(local_workers)) * worker
+    sampling = C_sampled * M * (float(o["n_runs"]) + float(o["pilot_runs"])) * hold + system.n * 12000.0 * hold
+    rollouts = n_controllers * float(o["n_states"]) * float(o["n_rollouts"]) * horizon
+    runs = sampling + rollouts
     secs = runs / (rate_per_worker * max(1, workers)) if rate_per_worker else None
-    return {"cells": C, "inputs": M, "memory": memory, "runs": runs, "seconds": secs}
+    return {"cells": C, "inputs": M, "memory": memory, "runs": runs, "seconds": secs, "entries": entries,
+            "sampling_steps": sampling, "rollout_steps": rollouts,
+            "cpu_hours": runs / rate_per_worker / 3600 if rate_per_worker else None}
+
+
+def perrun_cost_text(e: dict, rate_per_worker: Optional[float], workers: int) -> str:
+    """The projected cost of the per-run stage (:func:`perrun_size`) as one line for the log."""
+    at = (f"{e['cpu_hours']:.3g} CPU-hours at {rate_per_worker:.3g} steps/s per worker (calibrated here), "
+          f"about {human_seconds(e['seconds'])} on {workers} worker(s)") if rate_per_worker else "no rate measured"
+    return (f"per-run stage projected: {e['sampling_steps']:.3g} simulator steps to sample the interval MDP + "
+            f"{e['rollout_steps']:.3g} for the validation rollouts; {at}; about {e['entries']:.3g} interval entries, "
+            f"peak memory about {human_bytes(e['memory'])} ({human_bytes(available_memory())} available)")
 
 
 #: the per-run stage estimated to take longer than this is refused (override: SIMGAP_NO_SIZE_CHECK=1)
 MAX_PERRUN_SECONDS = 6 * 3600.0
 
 
-def check_perrun(o: dict, system, rate_per_worker: Optional[float] = None, workers: int = 1) -> dict:
-    """Refuse a per-run stage that cannot fit in memory or would take over 6 hours, with the numbers.
+def check_perrun(o: dict, system, rate_per_worker: Optional[float] = None, workers: int = 1,
+                 local_workers: int = 0) -> dict:
+    """Refuse a per-run stage that cannot fit in memory or would take over 6 hours, with the numbers
+    (:func:`perrun_size`; the message carries the projection of :func:`perrun_cost_text`).
     ``SIMGAP_NO_SIZE_CHECK=1`` skips the time limit for users who know (never the memory one)."""
-    e = perrun_size(o, system, rate_per_worker, workers)
+    e = perrun_size(o, system, rate_per_worker, workers, local_workers=local_workers)
     what = (f"the per-run stage ({e['cells']:,.0f} cells x {e['inputs']:,.0f} inputs, n_runs {int(o['n_runs']):,}, "
             f"hold {int(o['hold'])}, horizon {int(o['horizon'])}, {int(o['n_states'])} states x "
-            f"{int(o['n_rollouts']):,} rollouts: {e['runs']:.3g} simulator periods)")
+            f"{int(o['n_rollouts']):,} rollouts: {e['runs']:.3g} simulator steps, about {e['entries']:.3g} interval "
+            f"entries" + (f", {e['cpu_hours']:.3g} CPU-hours" if e["cpu_hours"] is not None else "") + ")")
     hint = "use a coarser [perrun] eta, fewer n_runs / n_rollouts / n_states or a shorter horizon"
-    check_memory(e["memory"], what, hint)
+    check_memory(e["memory"], what, hint + (" or fewer --workers" if local_workers > 1 else ""))
     if e["seconds"] is not None and e["seconds"] > MAX_PERRUN_SECONDS and not os.environ.get("SIMGAP_NO_SIZE_CHECK"):
         raise SimgapError(f"{what} would take about {human_seconds(e['seconds'])} on {workers} worker(s); {hint} "
-                          "(or set SIMGAP_NO_SIZE_CHECK=1 to run it anyway)")
+                          "(more workers: --executor ray --address HOST:PORT; or set SIMGAP_NO_SIZE_CHECK=1 to run "
+                          "it anyway)")
     return e
 
 

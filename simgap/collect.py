@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -45,7 +44,7 @@ from .simulators import SimulatorConfig, make_simulator
 # the store's format, writer and reader live in simgap.store; re-exported here, their old home
 from .store import (CHUNK_DIR, LOCK, MANIFEST, STORE_FORMAT, _atomic_write_bytes, _chunk_digests,  # noqa: F401
                     _chunk_path, _diff, _done_chunks, _pid_alive, _read_manifest, _write_chunk, canonical_json,
-                    config_hash, describe_system, load_samples, store_lock, store_status)
+                    config_hash, describe_system, fill_store, load_samples, portable_system, store_lock, store_status)
 from .store import system_from_config as _system_from_config
 from .systems import System, wrap_angle
 
@@ -212,14 +211,7 @@ _WORKER_PID = None
 def _job(plan: CollectionPlan) -> dict:
     """Small picklable job description for workers; built-in systems are rebuilt by name."""
     cfg = plan.config()
-    sysobj = None
-    try:
-        rebuilt = _system_from_config(cfg["system"], plan.system.steps)
-        if describe_system(rebuilt) != cfg["system"]:
-            sysobj = plan.system
-    except SimgapError:
-        sysobj = plan.system  # a user-defined system travels by pickle (define it at module level)
-    return {"hash": config_hash(cfg), "config": cfg, "system": sysobj}
+    return {"hash": config_hash(cfg), "config": cfg, "system": portable_system(plan.system)}
 
 
 def _worker_state(job: dict) -> dict:
@@ -349,89 +341,27 @@ def collect(plan: CollectionPlan, store: str | Path, executor: str | Executor = 
     ex = executor if isinstance(executor, Executor) else make_executor(executor, workers, address)
     # the simulator next (an unknown kind or key, a bad value): a config that cannot build one leaves no store
     make_simulator(cfg["simulator"], plan.system).close()
-    if store.exists() and not store.is_dir():
-        raise SimgapError(f"store {str(store)!r} exists and is not a directory")
-    if not (store / MANIFEST).exists() and store.is_dir() and any(p.name != LOCK for p in store.iterdir()):
-        if (store / LOCK).exists():
-            with store_lock(store):  # a collector that has not written its manifest yet is refused here
-                pass
-        raise SimgapError(f"{str(store)!r} is a non-empty directory without {MANIFEST}; refusing to write into it")
-    top = store.absolute()  # the outermost folder this call creates (removed again if nothing is stored)
-    while not top.parent.exists():
-        top = top.parent
-    created = not store.exists()
-    fresh = not (store / MANIFEST).exists()
-    store.mkdir(parents=True, exist_ok=True)
-    with store_lock(store):
-        try:
-            return _collect_locked(plan, store, ex, cfg, h, on_progress, stop, chunk_ids, resume)
-        except BaseException:
-            # a store this call started that holds no finished chunk is no resumable data: remove what
-            # this call made while the lock is held (a store with finished chunks stays, to be resumed)
-            if fresh and not _done_chunks(store, plan.n_chunks):
-                if created:
-                    shutil.rmtree(top, ignore_errors=True)
-                else:
-                    shutil.rmtree(store / CHUNK_DIR, ignore_errors=True)
-                    for name in (MANIFEST, LOCK):
-                        (store / name).unlink(missing_ok=True)
-            raise
-
-
-def _collect_locked(plan, store, ex, cfg, h, on_progress, stop, chunk_ids, resume) -> CollectResult:
-    """The body of :func:`collect`, run while this process holds the store's lock."""
-    if (store / MANIFEST).exists():
-        man = _read_manifest(store)
-        if man["hash"] != h:
-            diffs = _diff(man["config"], cfg)
-            raise SimgapError(f"store {str(store)!r} holds a collection with a different configuration; refusing "
-                              f"to resume. Differences: {'; '.join(diffs[:6])}"
-                              f"{' ...' if len(diffs) > 6 else ''}. Use another output directory.")
-        if not resume:
-            raise SimgapError(f"store {str(store)!r} already exists (resume disabled)")
-    else:
-        (store / CHUNK_DIR).mkdir(parents=True, exist_ok=True)
-        from datetime import datetime, timezone
-        man = {"hash": h, "config": cfg, "created": datetime.now(timezone.utc).isoformat(timespec="seconds")}
-        _atomic_write_bytes(store / MANIFEST, (json.dumps(man, indent=1, sort_keys=True) + "\n").encode())
-    (store / CHUNK_DIR).mkdir(exist_ok=True)
-    for p in (store / CHUNK_DIR).glob(".*.tmp"):  # leftovers of a killed writer (not of a live one)
-        if not _pid_alive(p.name.rsplit(".", 2)[-2]):
-            p.unlink(missing_ok=True)
-
-    n_chunks = plan.n_chunks
-    present = _done_chunks(store, n_chunks)
-    done = _done_chunks(store, n_chunks, h)  # a chunk that does not verify is recomputed
-    for c in present - done:
-        _chunk_path(store, c).unlink(missing_ok=True)
-    resumed_from = len(done)
-    wanted = range(n_chunks) if chunk_ids is None else sorted(set(int(c) for c in chunk_ids))
-    for c in wanted:
-        if not 0 <= c < n_chunks:
-            raise SimgapError(f"chunk id {c} out of range 0..{n_chunks - 1}")
-    todo = [c for c in wanted if c not in done]
     K, S = plan.n_pairs, plan.chunk_size
 
     def pairs_in(c):
         return min((c + 1) * S, K) - c * S
 
-    done_pairs = sum(pairs_in(c) for c in done)
-    if on_progress:
-        on_progress(done_pairs, K)
-    state = {"pairs": done_pairs, "computed": 0, "runs": 0}
+    state = {"pairs": 0, "new": 0}
 
-    def on_result(c, arrays):
-        _write_chunk(store, c, h, arrays)
-        done.add(c)
-        p = pairs_in(c)
-        state["pairs"] += p
-        state["computed"] += 1
-        state["runs"] += p * plan.n_runs
+    def on_start(done):
+        state["pairs"] = sum(pairs_in(c) for c in done)
+        if on_progress:
+            on_progress(state["pairs"], K)
+
+    def on_chunk(c, arrays):
+        state["pairs"] += pairs_in(c)
+        state["new"] += pairs_in(c)
         if on_progress:
             on_progress(state["pairs"], K)
 
     t0 = time.perf_counter()
-    finished = ex.map_chunks(run_chunk, _job(plan), todo, on_result, stop)
-    return CollectResult(store=store, hash=h, n_chunks=n_chunks, done=len(done), computed=state["computed"],
-                         resumed_from=resumed_from, cancelled=not finished, seconds=time.perf_counter() - t0,
-                         runs=state["runs"])
+    r = fill_store(store, cfg, run_chunk, _job(plan), ex, on_start=on_start, on_chunk=on_chunk, should_stop=stop,
+                   chunk_ids=chunk_ids, resume=resume)
+    return CollectResult(store=store, hash=h, n_chunks=plan.n_chunks, done=len(r.done), computed=r.computed,
+                         resumed_from=r.resumed_from, cancelled=not r.finished, seconds=time.perf_counter() - t0,
+                         runs=state["new"] * plan.n_runs)

@@ -143,7 +143,7 @@ def _gamma_stats(cert, ds) -> dict:
 
 
 def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional[str] = None,
-                   workers: Optional[int] = None, n_rollouts: Optional[int] = None,
+                   workers: Optional[int] = None, address: Optional[str] = None, n_rollouts: Optional[int] = None,
                    log: Callable[[str], None] = print, progress: Optional[Callable] = None) -> dict:
     """Run the deterministic-vs-stochastic comparison of ``exp`` into ``out``; return the summary.
 
@@ -151,7 +151,9 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
     ``audit_<method>.json``, ``controller_<method>.npz``, ``rollouts_<method>.npz`` and
     ``summary.json`` (written last, atomically). ``progress(stage_name, unit)``, if given, returns an
     ``on_progress(done, total)`` callback for that stage: each collection ("pairs") and the long
-    parts of the per-run stage (:func:`simgap.perrun.stage.run_stage`).
+    parts of the per-run stage (:func:`simgap.perrun.stage.run_stage`). ``executor``, ``workers`` and
+    ``address`` (default: the experiment's ``[collect]``) say where the collections' chunks and the
+    per-run stage's interval-MDP sampling run; ``address`` is a Ray cluster's.
     """
     from .certify.audit import audit
     from .certify.pipeline import certify
@@ -164,9 +166,13 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
         from .perrun.stage import check_section
         per_run = check_section(per_run, exp.system, exp.plan().n_pairs, exp.collect.n_runs,
                                 exp.section("rollout").get("horizon"))
-        from . import checks
-        wk0 = workers if workers is not None else (exp.collect.workers or os.cpu_count() or 1)
-        checks.check_perrun(per_run, exp.system, checks.calibrated_rate(exp.simulator, exp.system), wk0)
+        from .executors import make_executor
+        from .perrun.stage import project_cost
+        # the per-run sampling runs on the collection's executor (a local pool unless told otherwise)
+        perrun_ex = make_executor(executor or exp.collect.executor,
+                                  workers if workers is not None else exp.collect.workers,
+                                  address or exp.collect.address)
+        project_cost(per_run, exp, perrun_ex, log)
     checked = check_experiment(exp, out, n_rollouts=n_rollouts, workers=workers)
     syn, ro, au = exp.section("synthesis"), exp.section("rollout"), exp.section("audit")
     cert_section = exp.section("certify")
@@ -205,6 +211,7 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
                                                               "data_deterministic")):
             plan = e.plan()
             res = stage(f"collect/{method}", lambda: collect(plan, out / sub, executor=ex, workers=wk or None,
+                                                             address=address or exp.collect.address,
                                                              on_progress=progress and progress(method, "pairs")))
             if not res.complete:
                 raise SimgapError(f"collection of {out / sub} did not finish (cancelled); run again to resume")
@@ -261,7 +268,8 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
         if per_run:
             from .perrun.stage import run_stage
             summary["per_run"] = stage("perrun", lambda: run_stage(exp, out, data["stochastic"], controllers, spec, x0,
-                                                                   per_run, sim=sim, log=log, progress=progress))
+                                                                   per_run, sim=sim, log=log, progress=progress,
+                                                                   executor=perrun_ex))
         for each in sims.values():
             each.close()
         summary["seconds"] = times

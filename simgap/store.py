@@ -23,6 +23,7 @@ import hashlib
 import io
 import json
 import os
+import shutil
 import zipfile
 from pathlib import Path
 from typing import NamedTuple, Optional, Sequence
@@ -70,6 +71,18 @@ def system_from_config(desc: dict, steps: int) -> System:
         s = dataclasses.replace(s, inputs=U)
     return s
 
+
+
+def portable_system(system: System) -> Optional[System]:
+    """None when workers can rebuild ``system`` from its description (:func:`system_from_config`),
+    else the System itself, to travel to them by pickle (define a user system at module level)."""
+    d = describe_system(system)
+    try:
+        if describe_system(system_from_config(d, system.steps)) == d:
+            return None
+    except SimgapError:
+        pass
+    return system
 
 
 # ----------------------------------------------------------------------------------------
@@ -122,7 +135,7 @@ def _write_chunk(store: Path, c: int, h: str, arrays: dict) -> None:
 
 
 @contextlib.contextmanager
-def store_lock(store: Path):
+def store_lock(store: Path, what: str = "collected"):
     """Hold the store's exclusive lock (``.lock``) while collecting into it.
 
     A second collector into the same store is refused at once instead of recomputing every
@@ -137,8 +150,8 @@ def store_lock(store: Path):
         fcntl.lockf(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
     except OSError:
         fh.close()
-        raise SimgapError(f"store {str(store)!r} is being collected by another process; wait for it to finish "
-                          "(then run the same command to check it is complete) or collect into another "
+        raise SimgapError(f"store {str(store)!r} is being {what} by another process; wait for it to finish "
+                          "(then run the same command to check it is complete) or write into another "
                           "folder") from None
     try:
         yield
@@ -159,7 +172,7 @@ def _pid_alive(pid: str) -> bool:
     return True
 
 
-def _read_manifest(store: Path) -> dict:
+def _read_manifest(store: Path, fmt: str = STORE_FORMAT) -> dict:
     mpath = store / MANIFEST
     if not store.is_dir():
         raise SimgapError(f"store {str(store)!r} does not exist or is not a directory")
@@ -170,9 +183,9 @@ def _read_manifest(store: Path) -> dict:
         cfg, h = man["config"], man["hash"]
     except (OSError, ValueError, KeyError, TypeError) as e:
         raise SimgapError(f"store {str(store)!r}: {MANIFEST} is unreadable: {e}") from None
-    if not isinstance(cfg, dict) or cfg.get("format") != STORE_FORMAT:
+    if not isinstance(cfg, dict) or cfg.get("format") != fmt:
         raise SimgapError(f"store {str(store)!r}: unknown format {cfg.get('format') if isinstance(cfg, dict) else cfg!r}"
-                          f" (expected {STORE_FORMAT})")
+                          f" (expected {fmt})")
     if config_hash(cfg) != h:
         raise SimgapError(f"store {str(store)!r}: {MANIFEST} was modified (its hash does not match its configuration)")
     return man
@@ -253,6 +266,119 @@ def store_status(store: str | Path) -> dict:
     done = len(_done_chunks(store, n, man["hash"]))  # only chunks whose digests verify
     return {"hash": man["hash"], "n_chunks": n, "done": done, "complete": done == n, "config": man["config"]}
 
+
+
+# ----------------------------------------------------------------------------------------
+# Filling a store through an executor (collection, per-run sampling)
+# ----------------------------------------------------------------------------------------
+
+class FillResult(NamedTuple):
+    """Outcome of :func:`fill_store`."""
+
+    hash: str
+    done: set            # chunk ids present and verified in the store now
+    computed: int        # chunks computed by this call
+    resumed_from: int    # chunks present (and verified) before this call
+    finished: bool       # False: ``should_stop`` stopped it (the store stays resumable)
+
+
+def fill_store(store: str | Path, cfg: dict, fn, job, executor, *, on_start=None, on_chunk=None, should_stop=lambda: False,
+               chunk_ids=None, resume: bool = True, fmt: str = STORE_FORMAT, what: str = "collection") -> FillResult:
+    """Compute the chunks of the configuration ``cfg`` (``cfg["n_chunks"]`` of them, ``cfg["format"]`` =
+    ``fmt``) missing from ``store`` with ``executor.map_chunks(fn, job, ...)`` and write each one as it
+    arrives: atomically, with its content digests, under the store's lock.
+
+    An existing store with the same configuration hash is resumed: chunks that verify are kept, the
+    others recomputed. A store of another configuration is refused naming the keys that differ; a
+    non-empty folder that is no store is refused. A store this call started that holds no finished chunk
+    when it fails is removed again. ``on_chunk(c, arrays)`` is called in this thread after chunk c is
+    stored, ``on_start(done)`` once with the chunks already there. Results never depend on the executor: ``fn`` must draw its randomness per chunk id.
+    """
+    store = Path(store)
+    h = config_hash(cfg)
+    n_chunks = int(cfg["n_chunks"])
+    if store.exists() and not store.is_dir():
+        raise SimgapError(f"store {str(store)!r} exists and is not a directory")
+    if not (store / MANIFEST).exists() and store.is_dir() and any(p.name != LOCK for p in store.iterdir()):
+        if (store / LOCK).exists():
+            with store_lock(store):  # a writer that has not written its manifest yet is refused here
+                pass
+        raise SimgapError(f"{str(store)!r} is a non-empty directory without {MANIFEST}; refusing to write into it")
+    top = store.absolute()  # the outermost folder this call creates (removed again if nothing is stored)
+    while not top.parent.exists():
+        top = top.parent
+    created = not store.exists()
+    fresh = not (store / MANIFEST).exists()
+    store.mkdir(parents=True, exist_ok=True)
+    with store_lock(store, "written" if what != "collection" else "collected"):
+        try:
+            return _fill_locked(store, cfg, h, n_chunks, fn, job, executor, on_start, on_chunk, should_stop,
+                                chunk_ids, resume, fmt, what)
+        except BaseException:
+            # a store this call started that holds no finished chunk is no resumable data: remove what
+            # this call made while the lock is held (a store with finished chunks stays, to be resumed)
+            if fresh and not _done_chunks(store, n_chunks):
+                if created:
+                    shutil.rmtree(top, ignore_errors=True)
+                else:
+                    shutil.rmtree(store / CHUNK_DIR, ignore_errors=True)
+                    for name in (MANIFEST, LOCK):
+                        (store / name).unlink(missing_ok=True)
+            raise
+
+
+def _fill_locked(store, cfg, h, n_chunks, fn, job, executor, on_start, on_chunk, should_stop, chunk_ids, resume,
+                 fmt, what) -> FillResult:
+    """The body of :func:`fill_store`, run while this process holds the store's lock."""
+    if (store / MANIFEST).exists():
+        man = _read_manifest(store, fmt)
+        if man["hash"] != h:
+            diffs = _diff(man["config"], cfg)
+            raise SimgapError(f"store {str(store)!r} holds a {what} with a different configuration; refusing "
+                              f"to resume. Differences: {'; '.join(diffs[:6])}"
+                              f"{' ...' if len(diffs) > 6 else ''}. Use another output directory.")
+        if not resume:
+            raise SimgapError(f"store {str(store)!r} already exists (resume disabled)")
+    else:
+        (store / CHUNK_DIR).mkdir(parents=True, exist_ok=True)
+        from datetime import datetime, timezone
+        man = {"hash": h, "config": cfg, "created": datetime.now(timezone.utc).isoformat(timespec="seconds")}
+        _atomic_write_bytes(store / MANIFEST, (json.dumps(man, indent=1, sort_keys=True) + "\n").encode())
+    (store / CHUNK_DIR).mkdir(exist_ok=True)
+    for p in (store / CHUNK_DIR).glob(".*.tmp"):  # leftovers of a killed writer (not of a live one)
+        if not _pid_alive(p.name.rsplit(".", 2)[-2]):
+            p.unlink(missing_ok=True)
+    present = _done_chunks(store, n_chunks)
+    done = _done_chunks(store, n_chunks, h)  # a chunk that does not verify is recomputed
+    for c in present - done:
+        _chunk_path(store, c).unlink(missing_ok=True)
+    resumed_from = len(done)
+    wanted = range(n_chunks) if chunk_ids is None else sorted(set(int(c) for c in chunk_ids))
+    for c in wanted:
+        if not 0 <= c < n_chunks:
+            raise SimgapError(f"chunk id {c} out of range 0..{n_chunks - 1}")
+    todo = [c for c in wanted if c not in done]
+    if on_start:
+        on_start(set(done))
+    computed = [0]
+
+    def on_result(c, arrays):
+        _write_chunk(store, c, h, arrays)
+        done.add(c)
+        computed[0] += 1
+        if on_chunk:
+            on_chunk(c, arrays)
+
+    finished = executor.map_chunks(fn, job, todo, on_result, should_stop)
+    return FillResult(hash=h, done=done, computed=computed[0], resumed_from=resumed_from, finished=finished)
+
+
+def read_chunk(store: str | Path, c: int, h: str, names: Sequence[str]) -> dict:
+    """The arrays ``names`` of chunk ``c`` of the store with configuration hash ``h``, verified."""
+    why, out = _chunk_problem(Path(store), c, h, names)
+    if why is not None:
+        raise SimgapError(f"store {str(store)!r}: {why}; run the same command again to recompute it")
+    return out
 
 
 def _load_chunk(store: Path, c: int, h: str, rows: int, names: Sequence[str], optional: Sequence[str] = ()) -> dict:

@@ -17,8 +17,12 @@ def add_parser(sub):
     p.add_argument("experiment", help="experiment name (assets/experiments/<name>.toml) or a TOML path")
     p.add_argument("--profile", default="small", help="profile in the experiment file (default: small)")
     p.add_argument("--out", default=None, help="output folder (default results/<experiment>-<profile>)")
-    p.add_argument("--executor", choices=("local", "serial", "ray"), default=None, help="collection executor")
-    p.add_argument("--workers", type=count(1), default=None, help="collection worker processes")
+    p.add_argument("--executor", choices=("local", "serial", "ray"), default=None,
+                   help="where the collections' chunks and the per-run stage's interval-MDP sampling run "
+                        "(default: [collect] executor, else a local pool)")
+    p.add_argument("--workers", type=count(1), default=None, help="worker processes / Ray CPUs (default: all cores)")
+    p.add_argument("--address", default=None, help="Ray cluster address for --executor ray (default: a local "
+                                                     "Ray instance)")
     p.add_argument("--rollouts", type=count(1), default=None,
                    help="closed-loop rollouts per controller (default: [rollout] n, else 1000)")
     p.add_argument("--no-record", action="store_true", help="skip the Rerun recording")
@@ -33,7 +37,8 @@ def run(args) -> int:
     exp = load_experiment(args.experiment, args.profile)
     out = output_dir(args.out or Path("results") / f"{exp.name}-{exp.profile or 'base'}")
     print(f"simgap run {exp.name} (profile {exp.profile}): results go to {out.absolute()}", file=sys.stderr)
-    summary = run_experiment(exp, out, executor=args.executor, workers=args.workers, n_rollouts=args.rollouts,
+    summary = run_experiment(exp, out, executor=args.executor, workers=args.workers, address=args.address,
+                             n_rollouts=args.rollouts,
                              log=lambda m: print(m, file=sys.stderr, flush=True), progress=lambda stage, unit: ProgressBar(unit, desc=stage))
     print(comparison_table(summary))
     if "per_run" in summary:

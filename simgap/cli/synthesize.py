@@ -20,6 +20,10 @@ controller with the certified one-run success probability p_cert per cell (docs/
 
     simgap synthesize --level run --spec pendulum --profile noisy --out perrun.npz
 
+Its simulator work runs in chunks on a local pool (``--executor``, ``--workers``; Ray with
+``--executor ray --address HOST:PORT``), kept in ``--store`` and resumed from it if given; the
+projected cost is printed first and work this machine cannot hold is refused.
+
 Exit status: 0 with a controller written,
 1 when the winning domain is empty (nothing written; the summary says why), 2 on bad input.
 """
@@ -33,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import fileio
+from ..checks import count
 from ..errors import SimgapError
 
 
@@ -59,6 +64,13 @@ def add_parser(subparsers) -> None:
                         "simulator with p_cert per cell (needs an experiment --spec with a [perrun] section)")
     p.add_argument("--horizon", type=int, default=None, help="--level run: horizon in sampling periods "
                                                                 "(default: [perrun] or [rollout] horizon)")
+    p.add_argument("--executor", choices=["local", "ray", "serial"], default="local",
+                   help="--level run: where the interval MDP's sampling chunks run (default: a local pool)")
+    p.add_argument("--workers", type=count(1), default=None,
+                   help="--level run: worker processes / Ray CPUs (default: all cores)")
+    p.add_argument("--address", default=None, help="--level run: Ray cluster address (default: a local Ray instance)")
+    p.add_argument("--store", default=None, help="--level run: keep the sampling's chunks in this folder; the same "
+                                                 "command resumes an interrupted sampling from it (kill -9 included)")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--cert", help="certificate JSON written by 'simgap certify'")
     g.add_argument("--gamma", help="a constant gap per state dimension, comma separated (or one value)")
@@ -75,7 +87,7 @@ def add_parser(subparsers) -> None:
     p.add_argument("--json", default=None, help="also write the statistics as JSON here")
     p.add_argument("--no-strict-domain", action="store_true",
                    help="let cells stick out of X by eta/2 (SCOTS's convention) instead of blocking them")
-    p.set_defaults(func=run, outputs=("out", "json"))
+    p.set_defaults(func=run, outputs=("out", "json"), output_dirs=("store",))
 
 
 def _floats(text: str, what: str) -> np.ndarray:
@@ -246,7 +258,8 @@ def _run_level(args) -> int:
     ctl, text = synthesize_experiment(e, horizon=args.horizon, x0=x0,
                                       eta=None if args.eta is None else _floats(args.eta, "--eta").tolist(),
                                       hold=args.hold, on_progress=ProgressBar("pairs", desc="interval MDP"),
-                                      log=lambda m: print(m, file=sys.stderr, flush=True))
+                                      log=lambda m: print(m, file=sys.stderr, flush=True), executor=args.executor,
+                                      workers=args.workers, address=args.address, store=args.store)
     print(text)
     ctl.save(args.out)
     print(f"wrote {args.out}")

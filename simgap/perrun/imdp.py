@@ -294,6 +294,56 @@ def _crn_pairs(s, j: int, h: float, n_pairs: int, runs: int, rng: np.random.Gene
             np.repeat(d, runs))
 
 
+def secant_slopes(sim, hold: int, j: int, h_j: float, rng: np.random.Generator, n_pairs: int = 300,
+                  runs: int = 20, residual: bool = False) -> dict:
+    """Slopes of the B = n_pairs x runs common-random-number pairs along dimension j (see
+    :func:`trajectory_lipschitz`): ``{"slope": (B, n)}`` = max_t |y_t(x) - y_t(x')| / d, or with
+    ``residual`` ``{"nominal", "residual"}`` = the same for the nominal map and for the residual
+    z_t = y_t - ynom_t (see :func:`residual_lipschitz`)."""
+    s = sim.system
+    n = s.n
+    B = n_pairs * runs
+    X, U, d = _crn_pairs(s, j, h_j, n_pairs, runs, rng)
+    Xn = X.copy()
+    slope, sl_n = np.zeros((B, n)), np.zeros((B, n))
+    for _ in range(hold):
+        noise = {k: np.concatenate([v, v]) for k, v in sim.draw_noise(B, rng).items()}
+        X = sim.step_with_noise(X, U, noise)
+        if residual:
+            Xn = s.f(Xn, U)
+            Z = s.diff(X, Xn)
+            sl_n = np.maximum(sl_n, np.abs(s.diff(Xn[:B], Xn[B:])) / d[:, None])
+            slope = np.maximum(slope, np.abs(s.diff(Z[:B], Z[B:])) / d[:, None])
+        else:
+            slope = np.maximum(slope, np.abs(s.diff(X[:B], X[B:])) / d[:, None])
+    return {"nominal": sl_n, "residual": slope} if residual else {"slope": slope}
+
+
+def lipschitz_from_slopes(system, slopes: dict, residual: bool = False):
+    """Wood-Zhang estimates from :func:`secant_slopes` per column j (``slopes``: j -> its dict).
+
+    Returns (L, how) with the identity's columns where no slopes were given, or with ``residual``
+    (Ln, Lr, how). Each estimate uses its own generator [7, i, j(, residual)]: no state is shared."""
+    n, names = system.n, system.state_names
+    how = {}
+    if not residual:
+        L = np.eye(n)
+        for j in sorted(slopes):
+            for i in range(n):
+                wz = wood_zhang(slopes[j]["slope"][:, i], np.random.default_rng([7, i, j]))
+                L[i, j] = wz.estimate
+                how[f"d{names[i]}/d{names[j]}"] = wz.to_dict()
+        return L, how
+    Ln, Lr = np.zeros((n, n)), np.zeros((n, n))
+    for j in sorted(slopes):
+        for i in range(n):
+            for L, tag in ((Ln, "nominal"), (Lr, "residual")):
+                wz = wood_zhang(slopes[j][tag][:, i], np.random.default_rng([7, i, j, tag == "residual"]))
+                L[i, j] = wz.estimate
+                how[f"{tag} d{names[i]}/d{names[j]}"] = wz.to_dict()
+    return Ln, Lr, how
+
+
 def trajectory_lipschitz(sim, hold: int, h: np.ndarray, rng: np.random.Generator, n_pairs: int = 300,
                          runs: int = 20, dims=None) -> tuple[np.ndarray, dict]:
     """Per-coordinate constants L (n, n) of the k-period trajectory map, common random numbers.
@@ -301,26 +351,11 @@ def trajectory_lipschitz(sim, hold: int, h: np.ndarray, rng: np.random.Generator
     L[i, j] bounds |y_t,i(x) - y_t,i(x + s e_j)| / |s| for every period t <= k and every noise draw:
     pairs (x, x + d e_j), d log-uniform in [h_j / SECANT_SPREAD, h_j], u uniform from U, the same
     noise per period at both ends; slopes max_t |y_t,i(x) - y_t,i(x')| / d; Wood-Zhang estimate per
-    (i, j). ``dims``: estimate only
-    these columns j (the others are left at the identity's).
+    (i, j). ``dims``: estimate only these columns j (the others are left at the identity's). The
+    columns draw one after the other from ``rng`` (:mod:`simgap.perrun.sampling` gives each its own).
     """
-    s = sim.system
-    n = s.n
-    L = np.eye(n)
-    how = {}
-    B = n_pairs * runs
-    for j in range(n) if dims is None else dims:
-        X, U, d = _crn_pairs(s, j, h[j], n_pairs, runs, rng)
-        slope = np.zeros((B, n))
-        for _ in range(hold):
-            noise = {k: np.concatenate([v, v]) for k, v in sim.draw_noise(B, rng).items()}
-            X = sim.step_with_noise(X, U, noise)
-            slope = np.maximum(slope, np.abs(s.diff(X[:B], X[B:])) / d[:, None])
-        for i in range(n):
-            wz = wood_zhang(slope[:, i], np.random.default_rng([7, i, j]))
-            L[i, j] = wz.estimate
-            how[f"d{s.state_names[i]}/d{s.state_names[j]}"] = wz.to_dict()
-    return L, how
+    dims = range(sim.system.n) if dims is None else dims
+    return lipschitz_from_slopes(sim.system, {j: secant_slopes(sim, hold, j, h[j], rng, n_pairs, runs) for j in dims})
 
 
 def trajectories(sim, x: np.ndarray, u: np.ndarray, k: int, rng, tick=lambda: None) -> np.ndarray:
@@ -366,27 +401,8 @@ def residual_lipschitz(sim, hold: int, h: np.ndarray, rng: np.random.Generator, 
     cells needs: it is small where the model is good, whatever the dynamics (docs/per-run.md).
     """
     s = sim.system
-    n = s.n
-    Ln, Lr = np.zeros((n, n)), np.zeros((n, n))
-    how = {}
-    B = n_pairs * runs
-    for j in range(n):
-        X, U, d = _crn_pairs(s, j, h[j], n_pairs, runs, rng)
-        Xn = X.copy()
-        sl_n, sl_r = np.zeros((B, n)), np.zeros((B, n))
-        for _ in range(hold):
-            noise = {k: np.concatenate([v, v]) for k, v in sim.draw_noise(B, rng).items()}
-            X = sim.step_with_noise(X, U, noise)
-            Xn = s.f(Xn, U)
-            Z = s.diff(X, Xn)
-            sl_n = np.maximum(sl_n, np.abs(s.diff(Xn[:B], Xn[B:])) / d[:, None])
-            sl_r = np.maximum(sl_r, np.abs(s.diff(Z[:B], Z[B:])) / d[:, None])
-        for i in range(n):
-            for L, sl, tag in ((Ln, sl_n, "nominal"), (Lr, sl_r, "residual")):
-                wz = wood_zhang(sl[:, i], np.random.default_rng([7, i, j, tag == "residual"]))
-                L[i, j] = wz.estimate
-                how[f"{tag} d{s.state_names[i]}/d{s.state_names[j]}"] = wz.to_dict()
-    return Ln, Lr, how
+    return lipschitz_from_slopes(s, {j: secant_slopes(sim, hold, j, h[j], rng, n_pairs, runs, residual=True)
+                                     for j in range(s.n)}, residual=True)
 
 
 def block_anchors(grid: UniformGrid, cells: np.ndarray, share: np.ndarray) -> np.ndarray:
@@ -447,7 +463,10 @@ class IMDPOptions:
     split : shares of beta for the (sink, lo, hi) bound families, summing to <= 1 (see :class:`Allocation`);
     share : cells per block along each dimension (an int or one per dimension) whose cells share the
     runs of one anchor cell, shifted by the nominal model and widened by the residual's Lipschitz
-    constant (module docstring, "Shared runs"); None or 1: runs per cell.
+    constant (module docstring, "Shared runs"); None or 1: runs per cell;
+    chunk_size : pairs (with ``share``: (anchor, input) groups) per chunk of the sampling (default
+    :meth:`units_per_chunk`); with batch_runs it
+    fixes how the random streams are cut, so both are part of the sampling's configuration.
     """
 
     eta: object
@@ -460,6 +479,15 @@ class IMDPOptions:
     batch_runs: int = 1 << 19
     split: tuple = (0.9, 0.05, 0.05)
     share: Optional[object] = None
+    chunk_size: Optional[int] = None
+
+    def units_per_chunk(self, n_units: int, unit_pairs: int = 1) -> int:
+        """Units (pairs; with shared runs, (anchor, input) groups of up to ``unit_pairs`` pairs) per chunk
+        of the sampling (:mod:`simgap.perrun.sampling`): ``chunk_size``, or one batch of main runs but at
+        least ~64 chunks (a function of the options alone, never of the executor)."""
+        if self.chunk_size is not None:
+            return int(self.chunk_size)
+        return max(1, min(int(self.batch_runs) // (int(self.n_runs) * max(1, int(unit_pairs))), -(-int(n_units) // 64)))
 
     def validate(self, n: int):
         if int(self.hold) < 1:
@@ -488,141 +516,167 @@ class IMDPOptions:
                 raise SimgapError(f"lipschitz must be >= 0 and finite{' ((nominal, residual) with share)' if shared else ''}, "
                                   f"got {self.lipschitz!r}")
         Allocation.of(self.split)
+        if self.chunk_size is not None and (isinstance(self.chunk_size, bool) or int(self.chunk_size) != self.chunk_size
+                                            or int(self.chunk_size) < 1):
+            raise SimgapError(f"chunk_size must be a whole number of pairs >= 1, got {self.chunk_size!r}")
+        if int(self.batch_runs) < 1:
+            raise SimgapError(f"batch_runs must be >= 1, got {self.batch_runs!r}")
 
 
-def build_imdp(sim, spec: Spec, options: IMDPOptions, log=None, on_progress=None) -> IMDP:
-    """Sample ``sim`` and build the interval MDP of ``spec`` (see module docstring).
+@dataclass
+class Layout:
+    """What the sampling is laid out on, a function of (system, spec, options) alone (workers rebuild it).
 
-    ``on_progress(done, total)``: after every batch, in (cell, input) pairs of both passes (2 x pairs)."""
-    t0 = time.perf_counter()
-    s = sim.system
+    Pairs p = 0..P-1 are (cells[p // M], p % M); ``order`` is the sampling order of the pairs (chunks
+    are consecutive runs of it): the identity per cell, group-major (anchor, input) with shared runs,
+    so that a batch simulates each of its anchors once for all the block's cells."""
+
+    grid: UniformGrid
+    live: np.ndarray
+    target: np.ndarray
+    good: np.ndarray            # live | target: successors kept as columns; others go to the sink
+    cells: np.ndarray           # live cell ids (the sampled rows' cells)
+    centers: np.ndarray
+    M: int
+    order: np.ndarray
+    starts: np.ndarray          # positions in ``order`` where a unit of chunking starts: every pair, or every group
+    share: Optional[np.ndarray] = None
+    anchor: Optional[np.ndarray] = None     # per live cell: its block's anchor cell (shared runs)
+    group: Optional[np.ndarray] = None      # per pair: anchor * M + input
+
+    @property
+    def C(self) -> int:
+        return self.grid.size
+
+    @property
+    def P(self) -> int:
+        return self.cells.size * self.M
+
+    @property
+    def unit_pairs(self) -> int:
+        """The most pairs in one unit of chunking (1, or the cells of a block)."""
+        return 1 if self.share is None else int(np.prod(self.share))
+
+    def chunk_bounds(self, S: int) -> np.ndarray:
+        """(n_chunks + 1,) positions in ``order``: chunk c is order[b[c]:b[c + 1]], S units each."""
+        return np.append(self.starts[::S], self.P).astype(np.int64)
+
+
+def layout(system, spec: Spec, options: "IMDPOptions") -> Layout:
+    """The :class:`Layout` of ``options`` (validated) for ``spec`` on ``system``."""
     o = options
-    o.validate(s.n)
-    grid = UniformGrid(s.x_lo, s.x_hi, o.eta, periodic=tuple(s.angle_dims))
-    ad = tuple(s.angle_dims)
-    k, N, N0 = int(o.hold), int(o.n_runs), int(o.pilot_runs)
-    rng = np.random.default_rng([o.seed, 0])
-    half = grid.eta / 2
-    share = None if o.share is None else np.broadcast_to(np.asarray(o.share), (s.n,)).astype(np.int64)
+    o.validate(system.n)
+    ad = tuple(system.angle_dims)
+    grid = UniformGrid(system.x_lo, system.x_hi, o.eta, periodic=ad)
+    share = None if o.share is None else np.broadcast_to(np.asarray(o.share), (system.n,)).astype(np.int64)
     if share is not None and np.all(share == 1):
         share = None
-    if share is None:
-        if o.lipschitz is None:
-            L, how = trajectory_lipschitz(sim, k, half, np.random.default_rng([o.seed, 1]))
-        else:
-            L, how = np.broadcast_to(np.asarray(o.lipschitz, float), (s.n, s.n)).copy(), "given"
-        rho = L @ half                                   # |y_i(x) - y_i(x_c)| <= sum_j L_ij |x_j - c_j|
-    elif o.lipschitz is None:
-        Ln, Lr, how = residual_lipschitz(sim, k, half, np.random.default_rng([o.seed, 1]))
-    else:
-        Ln, Lr = np.broadcast_to(np.asarray(o.lipschitz, float), (2, s.n, s.n)).copy()
-        how = "given"
-    live, target = cell_labels(grid, spec, s.x_lo, s.x_hi, ad)
-    C, M = grid.size, s.inputs.shape[0]
+    live, target = cell_labels(grid, spec, system.x_lo, system.x_hi, ad)
+    M = system.inputs.shape[0]
     cells = np.flatnonzero(live)
-    P = cells.size * M                                   # sampled pairs, pair p = (cells[p // M], p % M)
-    centers = grid.points(cells)
-    good = live | target                                 # successors kept as columns; others go to the sink
-    t_lip = time.perf_counter() - t0
-    simulated = [0]                                      # runs simulated (k periods each)
-
-    def run_cells(pp, runs, rng):  # runs from every pair's own cell center
-        x = np.repeat(centers[pp // M], runs, axis=0)
-        u = np.repeat(s.inputs[pp % M], runs, axis=0)
-        y, bad = _simulate(sim, spec, x, u, k, rho, rng, s.x_lo, s.x_hi, ad)
-        simulated[0] += len(x)
-        b, ids, single = _hits(grid, y, rho)
-        return b, ids, single, bad
-
-    order = np.arange(P)
+    lay = Layout(grid=grid, live=live, target=target, good=live | target, cells=cells, centers=grid.points(cells),
+                 M=M, order=np.arange(cells.size * M), starts=np.arange(cells.size * M), share=share)
     if share is not None:
-        # anchors: the middle cell of each block of share cells; the pairs go group-major (anchor,
-        # input) so that one batch simulates each of its anchors once for all the block's cells
-        anchor = block_anchors(grid, cells, share)
-        x_anchor = grid.points(anchor)
-        group = anchor.repeat(M) * M + np.tile(np.arange(M), cells.size)
-        order = np.argsort(group, kind="stable")
+        lay.anchor = block_anchors(grid, cells, share)
+        lay.group = lay.anchor.repeat(M) * M + np.tile(np.arange(M), cells.size)
+        lay.order = np.argsort(lay.group, kind="stable")
+        g = lay.group[lay.order]
+        lay.starts = np.flatnonzero(np.r_[True, g[1:] != g[:-1]]) if g.size else np.zeros(0, np.int64)
+    return lay
 
-        def run_shared(pp, runs, rng):  # runs from the anchors, shifted to every pair's cell
-            ug, inv = np.unique(group[pp], return_inverse=True)
+
+def count_pairs(sim, spec: Spec, lay: Layout, widening: dict, pp: np.ndarray, o: "IMDPOptions",
+                rng_pilot: np.random.Generator, rng_main: np.random.Generator) -> dict:
+    """Pilot support and main-run counts of the pairs ``pp`` (steps 2 and 3 of the module docstring).
+
+    ``widening``: ``{"rho": (n,)}`` per cell, or ``{"Ln", "Lr"}`` (n, n) with shared runs. The pilot
+    runs draw from ``rng_pilot`` and the main runs from ``rng_main``, in batches of at most
+    ``o.batch_runs`` runs (whole pairs). Returns ``key`` (sorted support keys pair * (C + 1) + cell,
+    int64), ``n_hit`` and ``n_in`` on it, ``pairs`` (= pp) with their ``n_sink``, ``single_seen``
+    (some pilot run's widened end box in one cell, no sink) and ``simulated`` runs (k periods each).
+    """
+    s = sim.system
+    grid, M, C = lay.grid, lay.M, lay.C
+    ad = tuple(s.angle_dims)
+    k, N, N0 = int(o.hold), int(o.n_runs), int(o.pilot_runs)
+    half = grid.eta / 2
+    simulated = [0]
+
+    if lay.share is None:
+        rho = np.asarray(widening["rho"], float)
+
+        def run_pairs(q, runs, rng):  # runs from every pair's own cell center
+            x = np.repeat(lay.centers[q // M], runs, axis=0)
+            u = np.repeat(s.inputs[q % M], runs, axis=0)
+            y, bad = _simulate(sim, spec, x, u, k, rho, rng, s.x_lo, s.x_hi, ad)
+            simulated[0] += len(x)
+            b, ids, single = _hits(grid, y, rho)
+            return b, ids, single, bad
+    else:
+        Ln, Lr = np.asarray(widening["Ln"], float), np.asarray(widening["Lr"], float)
+        x_anchor = grid.points(lay.anchor)
+
+        def run_pairs(q, runs, rng):  # runs from the anchors, shifted to every pair's cell
+            ug, inv = np.unique(lay.group[q], return_inverse=True)
             xa, ua = grid.points(ug // M), s.inputs[ug % M]
             traj = trajectories(sim, np.repeat(xa, runs, axis=0), np.repeat(ua, runs, axis=0), k, rng)
             simulated[0] += len(ug) * runs
-            shift, r = shared_box(s, centers[pp // M], x_anchor[pp // M], s.inputs[pp % M], k, Ln, Lr, half)
+            shift, r = shared_box(s, lay.centers[q // M], x_anchor[q // M], s.inputs[q % M], k, Ln, Lr, half)
             Y = traj.reshape(len(ug), runs, k, s.n)[inv] + shift[:, None]        # (B, runs, k, n)
             r = np.repeat(r, runs, axis=0)
-            bad = np.zeros(len(pp) * runs, dtype=bool)
+            bad = np.zeros(len(q) * runs, dtype=bool)
             for t in range(k):
                 y = s.wrap(Y[:, :, t].reshape(-1, s.n))
                 bad |= box_unsafe(spec, y - r, y + r, s.x_lo, s.x_hi, ad)
             b, ids, single = _hits(grid, y, r)
             return b, ids, single, bad
 
-    run_pairs = run_cells if share is None else run_shared
-
-    # ----- pass 1: pilot support T(c, a) (sorted keys pair * (C+1) + cell) -------------------------
-    per = max(1, o.batch_runs // N0)
+    # ----- pilot: the support T(c, a) of these pairs (sorted keys pair * (C+1) + cell) -------------
+    per = max(1, int(o.batch_runs) // N0)
     sup, single_seen = [], False
-    for a in range(0, P, per):
-        pp = order[a:a + per]
-        b, ids, single, bad = run_pairs(pp, N0, rng)
-        keep = (ids >= 0) & good[np.maximum(ids, 0)] & ~bad[b]
+    for a in range(0, len(pp), per):
+        q = pp[a:a + per]
+        b, ids, single, bad = run_pairs(q, N0, rng_pilot)
+        keep = (ids >= 0) & lay.good[np.maximum(ids, 0)] & ~bad[b]
         single_seen |= bool(np.any(single & ~bad))
-        sup.append(np.unique(pp[b[keep] // N0] * (C + 1) + ids[keep]))
-        if on_progress:
-            on_progress(min(P, a + per), 2 * P)
+        sup.append(np.unique(q[b[keep] // N0] * (C + 1) + ids[keep]))
     # sorted: with shared runs the pairs go anchor-major, so batches are not in key order (searchsorted needs it)
     support = np.sort(np.concatenate(sup)) if sup else np.zeros(0, np.int64)
-    alloc = Allocation.of(o.split).after_pilot(single_seen)
-    levels = alloc.levels(float(o.beta), P, support.size)   # fixed by the pilot, before the main runs
-    n_bounds = _bound_count(alloc, P, support.size)
-    t_pilot = time.perf_counter() - t0 - t_lip
-    if log:
-        log(f"imdp: {cells.size} live cells x {M} inputs, support {support.size} entries; "
-            f"{n_bounds} one-sided bounds, levels " + ", ".join(f"{f} {v:.3g}" for f, v in levels.items()))
 
-    # ----- pass 2: main runs -> counts on the support ---------------------------------------------
+    # ----- main runs -> counts on the support ------------------------------------------------------
     n_hit = np.zeros(support.size, np.int64)
     n_in = np.zeros(support.size, np.int64)
-    n_sink = np.zeros(P, np.int64)
-    per = max(1, o.batch_runs // N)
-    for a in range(0, P, per):
-        pp = order[a:a + per]
-        b, ids, single, bad = run_pairs(pp, N, rng)
-        key = pp[b // N] * (C + 1) + np.maximum(ids, 0)
+    n_sink = np.zeros(len(pp), np.int64)
+    per = max(1, int(o.batch_runs) // N)
+    for a in range(0, len(pp), per):
+        q = pp[a:a + per]
+        b, ids, single, bad = run_pairs(q, N, rng_main)
+        key = q[b // N] * (C + 1) + np.maximum(ids, 0)
         posc = np.minimum(np.searchsorted(support, key), max(support.size - 1, 0))
         ok = (ids >= 0) & (support[posc] == key) if support.size else np.zeros(b.size, bool)
         sink_run = bad.copy()
         sink_run[b[~ok]] = True                          # a hit outside T(c,a), outside the grid or non-live
-        n_sink[pp] += sink_run.reshape(len(pp), N).sum(axis=1)
+        n_sink[a:a + len(q)] = sink_run.reshape(len(q), N).sum(axis=1)
         hit = ok                                         # j in S (counted even for sink runs: upper bound)
         np.add.at(n_hit, posc[hit], 1)
         inn = ok & single[b] & ~sink_run[b]
         np.add.at(n_in, posc[inn], 1)
-        if on_progress:
-            on_progress(P + min(P, a + per), 2 * P)
-    t_main = time.perf_counter() - t0 - t_lip - t_pilot
+    return {"key": support.astype(np.int64), "n_hit": n_hit, "n_in": n_in, "pairs": np.asarray(pp, np.int64),
+            "n_sink": n_sink, "single_seen": np.bool_(single_seen), "simulated": np.int64(simulated[0])}
 
-    # ----- intervals, CSR ------------------------------------------------------------------------
-    pair_of = support // (C + 1)
-    rows = np.concatenate([cells[pair_of // M] * M + pair_of % M, cells.repeat(M) * M + np.tile(np.arange(M), cells.size)])
-    col = np.concatenate([support % (C + 1), np.full(P, C)])
-    k_lo = np.concatenate([n_in, np.full(P, -1)])
-    k_hi = np.concatenate([n_hit, n_sink])
-    meta = {"pilot_runs": N0, "lipschitz_how": how, "live_cells": int(cells.size), "seed": int(o.seed),
-            "simulator": sim.config.to_dict(), "spec": spec.to_dict(),
-            "seconds": {"lipschitz": t_lip, "pilot": t_pilot, "main": t_main,
-                        "intervals": time.perf_counter() - t0 - t_lip - t_pilot - t_main},
-            "samples": int(simulated[0] * k)}
-    if share is None:
-        meta.update(lipschitz=L.tolist(), rho=rho.tolist(),
-                    assumption="per realization: the k-period trajectory map is L-Lipschitz (common random numbers)")
-    else:
-        rho_max = half @ Ln.T + (np.abs(s.diff(centers, x_anchor)).max(axis=0) + half) @ Lr.T
-        meta.update(lipschitz={"nominal": Ln.tolist(), "residual": Lr.tolist()}, rho=rho_max.tolist(),
-                    share=share.tolist(), anchors=int(np.unique(anchor).size),
-                    assumption="per realization: the residual y_t(x, w) - ynom_t(x) of the k-period run is "
-                               "Lr-Lipschitz and the nominal k-period map Ln-Lipschitz (coordinate-wise, common "
-                               "random numbers); the runs of one anchor cell per block serve every cell of the "
-                               "block, shifted by the nominal model and widened by Ln eta/2 + Lr (|x_c - x_s| + eta/2)")
-    return assemble(grid, s.inputs, k, live, target, rows, col, k_lo, k_hi, alloc, N, o.beta, meta)
+
+def build_imdp(sim, spec: Spec, options: "IMDPOptions", log=None, on_progress=None, executor=None,
+               workers: Optional[int] = None, address: Optional[str] = None, store=None, should_stop=None) -> IMDP:
+    """Sample ``sim`` and build the interval MDP of ``spec`` (see module docstring).
+
+    The simulator work (Lipschitz secants, pilot and main runs) is cut into chunks, each drawing
+    from its own seeded generator, and run by ``executor`` (``serial`` in this process with ``sim``
+    when None; ``local`` or ``ray`` rebuild the simulator from its config in their workers); with
+    ``store`` (a folder) every finished chunk is kept, verified and resumed
+    (:mod:`simgap.perrun.sampling`). The interval MDP does not depend on the executor, the number
+    of workers or interruptions.
+
+    ``on_progress(done, total)``: after every chunk, in (cell, input) pairs of both passes (2 x pairs)."""
+    from .sampling import sample_imdp
+    return sample_imdp(sim, spec, options, log=log, on_progress=on_progress, executor=executor, workers=workers,
+                       address=address, store=store, should_stop=should_stop)

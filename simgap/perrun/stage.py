@@ -17,8 +17,6 @@ experiment's simulator it
 
 from __future__ import annotations
 
-import os
-
 import time
 from pathlib import Path
 from typing import Callable, Dict, Optional
@@ -28,6 +26,7 @@ import numpy as np
 from ..errors import SimgapError
 from .orderstats import alpha_min
 
+SAMPLES = "perrun_samples"   # the interval MDP's chunk stores in a results folder (resumable)
 KEYS = {"alpha", "beta", "eta", "hold", "n_runs", "pilot_runs", "horizon", "n_rollouts", "n_states", "seed",
         "baseline_eta", "baseline_hold", "split", "invariant", "share", "check_states"}
 
@@ -80,9 +79,12 @@ def check_section(sec: dict, system, n_pairs: int, n_runs: int, horizon) -> dict
     return o
 
 
-def build(sim, spec, o: dict, log, on_progress=None):
-    """The interval MDP of checked ``[perrun]`` options ``o``: sampled per cell, or with ``invariant``
-    (state names) once per class of cells and shifted (:mod:`simgap.perrun.translation`); then the
+def build(sim, spec, o: dict, log, on_progress=None, executor=None, workers=None, address=None, store=None):
+    """The interval MDP of checked ``[perrun]`` options ``o``: sampled per cell (or shared), its simulator
+    work in chunks on ``executor`` (a local pool, Ray at ``address``; None: this process with ``sim``),
+    kept in and resumed from the folder ``store`` (:mod:`simgap.perrun.sampling`); or with ``invariant``
+    (state names) once per class of cells and shifted (:mod:`simgap.perrun.translation`, in this
+    process: classes x inputs runs, no chunks); then the
     containment check (``check_states`` fresh states per row, :mod:`simgap.perrun.containment`),
     recorded in the meta as ``containment`` (``passed`` None when not run) and logged, with a
     warning when it fails."""
@@ -97,7 +99,8 @@ def build(sim, spec, o: dict, log, on_progress=None):
         imdp = build_imdp_translation(sim, spec, opts, [names.index(v) for v in o["invariant"]], log=log,
                                       on_progress=on_progress)
     else:
-        imdp = build_imdp(sim, spec, opts, log=log, on_progress=on_progress)
+        imdp = build_imdp(sim, spec, opts, log=log, on_progress=on_progress, executor=executor, workers=workers,
+                          address=address, store=store)
     imdp.meta["randomization"] = randomization_note(sim)
     n_check = int(o.get("check_states", 64))
     if n_check > 0:
@@ -110,10 +113,14 @@ def build(sim, spec, o: dict, log, on_progress=None):
     return imdp
 
 
-def synthesize_experiment(exp, horizon=None, x0=None, eta=None, hold=None, log=print, on_progress=None):
+def synthesize_experiment(exp, horizon=None, x0=None, eta=None, hold=None, log=print, on_progress=None,
+                          executor="local", workers=None, address=None, store=None):
     """Interval-MDP controller of an experiment (``[perrun]`` options, overridable); returns (controller, summary text).
 
-    Bad input (no [perrun] section, horizon < 1, x0 outside X) raises before any sampling."""
+    The sampling runs on ``executor`` (default a local pool of ``workers`` processes; ``ray`` at
+    ``address``), kept in and resumed from the folder ``store`` if given. Bad input (no [perrun]
+    section, horizon < 1, x0 outside X) and work the machine cannot hold (the projected cost is
+    logged first) raise before any sampling."""
     from ..experiment_spec import experiment_spec
     from ..simulators import make_simulator
     from .value_iteration import check_horizon, synthesize_imdp
@@ -124,8 +131,9 @@ def synthesize_experiment(exp, horizon=None, x0=None, eta=None, hold=None, log=p
     sec.update({k: v for k, v in (("horizon", horizon), ("eta", eta), ("hold", hold)) if v is not None})
     plan = exp.plan()
     o = check_section(sec, exp.system, plan.n_pairs, exp.collect.n_runs, exp.section("rollout").get("horizon"))
-    from .. import checks
-    checks.check_perrun(o, exp.system, checks.calibrated_rate(exp.simulator, exp.system), os.cpu_count() or 1)
+    from ..executors import make_executor
+    ex = make_executor(executor or "local", workers, address)
+    project_cost(o, exp, ex, log)
     spec, map_x0, _ = experiment_spec(exp)
     x0 = np.asarray(x0 if x0 is not None else exp.section("rollout").get("x0", map_x0), dtype=float) \
         if (x0 is not None or exp.section("rollout").get("x0") is not None or map_x0 is not None) else None
@@ -133,7 +141,7 @@ def synthesize_experiment(exp, horizon=None, x0=None, eta=None, hold=None, log=p
         exp.system.check_states(np.atleast_2d(x0), "x0")
     check_horizon(spec.kind, int(o["horizon"]), int(o["hold"]))
     with make_simulator(exp.simulator.to_dict(), system=exp.system) as sim:
-        imdp = build(sim, spec, o, log, on_progress)
+        imdp = build(sim, spec, o, log, on_progress, executor=ex, store=store)
     ctl = synthesize_imdp(imdp, int(o["horizon"]), spec.kind)
     lines = [f"p_cert is {imdp.meta['p_cert_conditional_on']}", containment_line(imdp.meta["containment"]),
              f"interval MDP: {imdp.C} cells ({int(imdp.live.sum())} live) x {imdp.M} inputs, hold {imdp.hold}, "
@@ -146,6 +154,20 @@ def synthesize_experiment(exp, horizon=None, x0=None, eta=None, hold=None, log=p
     if x0 is not None:
         lines.append(f"p_cert(x0 = {np.round(x0, 6).tolist()}) = {float(ctl.certified(np.atleast_2d(x0))[0]):.4f}")
     return ctl, "\n".join(lines)
+
+
+def project_cost(o: dict, exp, ex, log) -> dict:
+    """Log the per-run stage's projected cost (simulator steps, CPU-hours at the rate calibrated here,
+    interval entries, memory) for executor ``ex`` and refuse what this machine cannot hold, with the
+    numbers (:func:`simgap.checks.check_perrun`). With Ray at an address the projection counts
+    ``ex.workers`` CPUs (``--workers``: default this machine's cores)."""
+    from .. import checks
+    rate = checks.calibrated_rate(exp.simulator, exp.system)
+    # on a Ray cluster the workers are its CPUs (give --workers to project them); they hold no memory here
+    local = 1 if ex.name == "serial" or (ex.name == "ray" and ex.address) else ex.workers
+    e = checks.perrun_size(o, exp.system, rate, ex.workers, local_workers=local)
+    log(checks.perrun_cost_text(e, rate, ex.workers))
+    return checks.check_perrun(o, exp.system, rate, ex.workers, local_workers=local)
 
 
 def validate_controller(name: str, input_fn, hold: int, sim, spec, x0, domain_states, p_cert_fn, o: dict,
@@ -165,8 +187,12 @@ def validate_controller(name: str, input_fn, hold: int, sim, spec, x0, domain_st
 
 
 def run_stage(exp, out: Path, data, controllers: Dict[str, object], spec, x0, o: dict, sim=None,
-              log: Callable[[str], None] = print, progress: Optional[Callable] = None) -> dict:
+              log: Callable[[str], None] = print, progress: Optional[Callable] = None, executor=None,
+              workers: Optional[int] = None, address: Optional[str] = None) -> dict:
     """Run the per-run stage (module docstring); ``controllers`` are the case study's {method: Controller}.
+
+    The interval MDP's sampling runs on ``executor`` (a name or an Executor; None: in this process with
+    ``sim``) and is kept in ``out/perrun_samples`` (resumed by a second run; :mod:`simgap.perrun.sampling`).
 
     ``sim``: the experiment's stochastic simulator (default: built from the experiment).
     ``progress(name, unit)``, if given, returns an ``on_progress(done, total)`` callback for the
@@ -206,7 +232,8 @@ def run_stage(exp, out: Path, data, controllers: Dict[str, object], spec, x0, o:
                                f" (clipped at 0) in the winning domain, at confidence 1 - beta"
 
         t0 = time.perf_counter()
-        imdp = build(sim, spec, o, lambda m: log(f"[perrun] {m}"), bar("perrun/imdp", "pairs"))
+        imdp = build(sim, spec, o, lambda m: log(f"[perrun] {m}"), bar("perrun/imdp", "pairs"), executor=executor,
+                     workers=workers, address=address, store=out / SAMPLES)
         t_build = time.perf_counter() - t0
         ctl = synthesize_imdp(imdp, H, spec.kind)
         ctl.save(out / "controller_perrun.npz")

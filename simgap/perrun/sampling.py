@@ -1,0 +1,286 @@
+"""Interval-MDP sampling through the executors: chunked, resumable, the same bits on every executor.
+
+The simulator work of :func:`simgap.perrun.imdp.build_imdp` runs as chunks of
+:mod:`simgap.executors`, as a collection does (:mod:`simgap.collect`):
+
+* phase ``lipschitz`` (when the constants are not given): chunk j = the common-random-number
+  secants along state dimension j (:func:`simgap.perrun.imdp.secant_slopes`), drawn from
+  ``SeedSequence(seed, spawn_key=(1, j))``; the Wood-Zhang estimates are made here from the slopes;
+* phase ``runs``: chunk c = the pairs ``order[b[c] : b[c + 1]]`` of the sampling order, S units each
+  (S = ``chunk_size`` pairs, or with shared runs S whole (anchor, input) groups; :class:`simgap.perrun.imdp.Layout`): their pilot runs from
+  ``SeedSequence(seed, spawn_key=(2, c))``, their main runs from ``SeedSequence(seed, spawn_key=(3, c))``
+  (:func:`simgap.perrun.imdp.count_pairs`). A chunk returns its pairs' support and counts only.
+
+Every chunk's randomness is a function of (seed, phase, chunk id) alone, so the interval MDP does not
+depend on the executor (serial, a local pool, Ray), the number of workers, the order in which chunks
+finish, or on interruptions. ``chunk_size`` and ``batch_runs`` are part of the configuration because
+they fix how the random streams are cut. The union bound's split depends on the pilot runs alone
+(whether some pilot run ended in a single cell), which are independent of every main run: that a
+chunk's main runs are simulated before another chunk's pilot does not change its validity.
+
+With ``store`` (a folder) each phase keeps its chunks in a :mod:`simgap.store` folder
+(``store/lipschitz``, ``store/runs``; format ``simgap-perrun/1``): a manifest with the hashed
+configuration (system, simulator, spec, options and, for the runs, the widening constants the
+secants gave) and one file per chunk with the sha256 of every array, written atomically under the
+store's lock. The same call on the same folder verifies the chunks there, recomputes the missing
+or broken ones and gives a bit-identical interval MDP (kill -9 included); a folder holding another
+configuration is refused, naming the keys that differ.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from pathlib import Path
+from typing import Callable, Optional
+
+import numpy as np
+
+from ..errors import SimgapError
+from ..executors import Executor, SerialExecutor, make_executor
+from ..progress import as_stop_check
+from ..store import config_hash, describe_system, fill_store, portable_system, read_chunk, system_from_config
+from .imdp import (IMDP, Allocation, IMDPOptions, _bound_count, assemble, count_pairs, layout,
+                   lipschitz_from_slopes, secant_slopes)
+
+FORMAT = "simgap-perrun/1"
+SECANT_PAIRS, SECANT_RUNS = 300, 20   # common-random-number pairs per dimension x runs per pair
+RUNS_ARRAYS = ("key", "n_hit", "n_in", "pairs", "n_sink", "single_seen", "simulated")
+
+
+def chunk_rng(seed: int, phase: int, chunk: int) -> np.random.Generator:
+    """The generator of chunk ``chunk`` of phase ``phase`` (1 secants, 2 pilot runs, 3 main runs)."""
+    return np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(int(phase), int(chunk))))
+
+
+# ----------------------------------------------------------------------------------------------
+# Configurations (hashed: a store is resumed only with the same one)
+# ----------------------------------------------------------------------------------------------
+
+def _base_config(sim, spec, o: IMDPOptions, lay) -> dict:
+    from .. import __version__
+    return {"format": FORMAT, "simgap_version": __version__, "system": describe_system(sim.system),
+            "simulator": sim.config.to_dict(),
+            # a string: the spec's boxes may be unbounded (inf), which canonical JSON refuses as numbers
+            "spec": json.dumps(spec.to_dict(), sort_keys=True), "eta": lay.grid.eta.tolist(), "hold": int(o.hold),
+            "seed": int(o.seed)}
+
+
+def lipschitz_config(sim, spec, o: IMDPOptions, lay) -> dict:
+    dims = list(range(sim.system.n))
+    return {**_base_config(sim, spec, o, lay), "phase": "lipschitz", "half": (lay.grid.eta / 2).tolist(),
+            "residual": lay.share is not None, "secant_pairs": SECANT_PAIRS, "secant_runs": SECANT_RUNS,
+            "dims": dims, "n_chunks": len(dims)}
+
+
+def runs_config(sim, spec, o: IMDPOptions, lay, widening: dict) -> dict:
+    n_units = int(lay.starts.size)
+    S = o.units_per_chunk(n_units, lay.unit_pairs)
+    return {**_base_config(sim, spec, o, lay), "phase": "runs", "n_runs": int(o.n_runs),
+            "pilot_runs": int(o.pilot_runs), "batch_runs": int(o.batch_runs),
+            "share": None if lay.share is None else lay.share.tolist(), "widening": widening,
+            "chunk_size": S, "chunk_unit": "pair" if lay.share is None else "(anchor, input) group",
+            "n_pairs": lay.P, "n_units": n_units, "n_chunks": -(-n_units // S)}
+
+
+# ----------------------------------------------------------------------------------------------
+# Work in the workers
+# ----------------------------------------------------------------------------------------------
+
+# One simulator and layout per worker process and configuration, kept across chunks; keyed to the
+# process (a forked worker must not reuse what its parent cached)
+_CACHE: dict = {}
+_PID = None
+
+
+def _state(job: dict) -> dict:
+    global _PID
+    if _PID != os.getpid():
+        _CACHE.clear()
+        _PID = os.getpid()
+    st = _CACHE.get(job["hash"])
+    if st is None:
+        _drop_cache()
+        cfg = job["config"]
+        if job["sim"] is not None:                      # the serial executor: the caller's simulator
+            sim, own = job["sim"], False
+        else:
+            from ..simulators import make_simulator
+            system = job["system"] or system_from_config(cfg["system"], cfg["simulator"]["steps"])
+            sim, own = make_simulator(cfg["simulator"], system), True
+        lay = layout(sim.system, job["spec"], job["options"]) if cfg["phase"] == "runs" else None
+        st = _CACHE[job["hash"]] = {"sim": sim, "own": own, "layout": lay}
+    return st
+
+
+def _drop_cache() -> None:
+    for old in _CACHE.values():
+        if old["own"]:
+            old["sim"].close()
+    _CACHE.clear()
+
+
+def secants_chunk(job: dict, c: int) -> dict:
+    """Chunk c of the lipschitz phase: the secant slopes along dimension dims[c]."""
+    st, cfg = _state(job), job["config"]
+    j = int(cfg["dims"][c])
+    return secant_slopes(st["sim"], int(cfg["hold"]), j, float(cfg["half"][j]), chunk_rng(cfg["seed"], 1, j),
+                         int(cfg["secant_pairs"]), int(cfg["secant_runs"]), residual=bool(cfg["residual"]))
+
+
+def runs_chunk(job: dict, c: int) -> dict:
+    """Chunk c of the runs phase: pilot support and main-run counts of its pairs."""
+    st, cfg = _state(job), job["config"]
+    b = st["layout"].chunk_bounds(int(cfg["chunk_size"]))
+    pp = st["layout"].order[b[c]:b[c + 1]]
+    return count_pairs(st["sim"], job["spec"], st["layout"], cfg["widening"], pp, job["options"],
+                       chunk_rng(cfg["seed"], 2, c), chunk_rng(cfg["seed"], 3, c))
+
+
+# ----------------------------------------------------------------------------------------------
+# Orchestration
+# ----------------------------------------------------------------------------------------------
+
+def _run_phase(cfg: dict, fn, sim, spec, o, ex: Executor, folder: Optional[Path], stop, names,
+               on_start: Optional[Callable] = None, on_chunk: Optional[Callable] = None) -> list:
+    """All chunks of ``cfg`` computed by ``ex`` (and kept in ``folder``, resumed from it): their arrays in
+    chunk order."""
+    n = int(cfg["n_chunks"])
+    h = config_hash(cfg)
+    serial = isinstance(ex, SerialExecutor)
+    job = {"hash": h, "config": cfg, "spec": spec, "options": o, "sim": sim if serial else None,
+           "system": None if serial else portable_system(sim.system)}
+    try:
+        if folder is None:
+            out = {}
+
+            def keep(c, arrays):
+                out[c] = arrays
+                if on_chunk:
+                    on_chunk(c, arrays)
+
+            if on_start:
+                on_start(set())
+            finished = ex.map_chunks(fn, job, range(n), keep, stop)
+        else:
+            r = fill_store(folder, cfg, fn, job, ex, on_start=on_start, on_chunk=on_chunk, should_stop=stop,
+                           fmt=FORMAT, what=f"per-run sampling ({cfg['phase']})")
+            finished = r.finished
+    finally:
+        _CACHE.pop(h, None)          # the serial executor cached the caller's simulator here
+    if not finished:
+        raise SimgapError("interval-MDP sampling cancelled" + (f"; the finished chunks are kept in {str(folder)!r}: "
+                                                               "run the same command again to resume" if folder else ""))
+    if folder is None:
+        return [out[c] for c in range(n)]
+    return [read_chunk(folder, c, h, names) for c in range(n)]
+
+
+def sample_imdp(sim, spec, options: IMDPOptions, log=None, on_progress=None, executor=None,
+                workers: Optional[int] = None, address: Optional[str] = None, store=None,
+                should_stop=None) -> IMDP:
+    """The interval MDP of ``spec`` sampled through an executor (module docstring); what
+    :func:`simgap.perrun.imdp.build_imdp` runs. ``executor``: a name (``serial``, ``local``,
+    ``ray``), an :class:`~simgap.executors.Executor`, or None for ``serial`` with ``sim`` itself."""
+    t0 = time.perf_counter()
+    s, o = sim.system, options
+    lay = layout(s, spec, o)
+    ex = executor if isinstance(executor, Executor) else make_executor(executor or "serial", workers, address)
+    stop = as_stop_check(should_stop)
+    folder = None if store is None else Path(store)
+    half = lay.grid.eta / 2
+    shared = lay.share is not None
+    if o.lipschitz is None:
+        cfg = lipschitz_config(sim, spec, o, lay)
+        parts = _run_phase(cfg, secants_chunk, sim, spec, o, ex, folder and folder / "lipschitz", stop,
+                           ("nominal", "residual") if shared else ("slope",))
+        est = lipschitz_from_slopes(s, dict(zip(cfg["dims"], parts)), residual=shared)
+        how = est[-1]
+        if shared:
+            Ln, Lr = est[0], est[1]
+        else:
+            L = est[0]
+    elif shared:
+        Ln, Lr = np.broadcast_to(np.asarray(o.lipschitz, float), (2, s.n, s.n)).copy()
+        how = "given"
+    else:
+        L, how = np.broadcast_to(np.asarray(o.lipschitz, float), (s.n, s.n)).copy(), "given"
+    widening = {"Ln": Ln.tolist(), "Lr": Lr.tolist()} if shared else {"rho": (L @ half).tolist()}
+    t_lip = time.perf_counter() - t0
+
+    cfg = runs_config(sim, spec, o, lay, widening)
+    P, S = lay.P, int(cfg["chunk_size"])
+    bounds = lay.chunk_bounds(S)
+    done = [0]
+
+    def pairs_in(c):
+        return int(bounds[c + 1] - bounds[c])
+
+    def on_start(have):
+        done[0] = sum(pairs_in(c) for c in have)
+        if on_progress and have:
+            on_progress(2 * done[0], 2 * P)
+
+    def on_chunk(c, arrays):
+        done[0] += pairs_in(c)
+        if on_progress:
+            on_progress(2 * done[0], 2 * P)
+
+    if log:
+        log(f"imdp: {lay.cells.size} live cells x {lay.M} inputs = {P} pairs in {cfg['n_chunks']} chunks of "
+            f"{S} {cfg['chunk_unit']}s on executor {ex.name}" + (f" ({ex.workers} workers)" if ex.name != "serial" else "")
+            + (f", kept in {str(folder)!r}" if folder else ""))
+    parts = _run_phase(cfg, runs_chunk, sim, spec, o, ex, folder and folder / "runs", stop, RUNS_ARRAYS,
+                       on_start, on_chunk)
+    t_runs = time.perf_counter() - t0 - t_lip
+    return _assemble(sim, spec, o, lay, parts, widening, L if not shared else None,
+                     (Ln, Lr) if shared else None, how, cfg, t0, t_lip, t_runs, log)
+
+
+def _assemble(sim, spec, o, lay, parts, widening, L, LnLr, how, cfg, t0, t_lip, t_runs, log) -> IMDP:
+    """The interval MDP from the chunks' supports and counts (in chunk order: the result is bit-identical
+    whichever executor computed them)."""
+    s = sim.system
+    C, M, P, cells = lay.C, lay.M, lay.P, lay.cells
+    cat = lambda name, dt: (np.concatenate([p[name] for p in parts]).astype(dt)  # noqa: E731
+                            if parts else np.zeros(0, dt))
+    key, n_hit, n_in = cat("key", np.int64), cat("n_hit", np.int64), cat("n_in", np.int64)
+    n_sink = np.zeros(P, np.int64)
+    n_sink[cat("pairs", np.int64)] = cat("n_sink", np.int64)
+    single_seen = any(bool(p["single_seen"]) for p in parts)
+    simulated = int(sum(int(p["simulated"]) for p in parts))
+    alloc = Allocation.of(o.split).after_pilot(single_seen)     # a function of the pilot runs alone
+    if log:
+        levels = alloc.levels(float(o.beta), P, key.size)
+        log(f"imdp: support {key.size} entries; {_bound_count(alloc, P, key.size)} one-sided bounds, levels "
+            + ", ".join(f"{f} {v:.3g}" for f, v in levels.items()))
+    pair_of = key // (C + 1)
+    rows = np.concatenate([cells[pair_of // M] * M + pair_of % M, cells.repeat(M) * M + np.tile(np.arange(M), cells.size)])
+    col = np.concatenate([key % (C + 1), np.full(P, C)])
+    k_lo = np.concatenate([n_in, np.full(P, -1)])
+    k_hi = np.concatenate([n_hit, n_sink])
+    meta = {"pilot_runs": int(o.pilot_runs), "lipschitz_how": how, "live_cells": int(cells.size), "seed": int(o.seed),
+            "simulator": sim.config.to_dict(), "spec": spec.to_dict(),
+            "seconds": {"lipschitz": t_lip, "runs": t_runs, "intervals": time.perf_counter() - t0 - t_lip - t_runs},
+            "samples": simulated * int(o.hold),
+            "sampling": {"chunks": int(cfg["n_chunks"]), "chunk_size": int(cfg["chunk_size"]),
+                         "batch_runs": int(o.batch_runs), "config_hash": config_hash(cfg),
+                         "streams": "per chunk: SeedSequence(seed, spawn_key=(phase, chunk)), phases 1 secants "
+                                    "(chunk = dimension), 2 pilot, 3 main runs"}}
+    half = lay.grid.eta / 2
+    if LnLr is None:
+        meta.update(lipschitz=L.tolist(), rho=widening["rho"],
+                    assumption="per realization: the k-period trajectory map is L-Lipschitz (common random numbers)")
+    else:
+        Ln, Lr = LnLr
+        x_anchor = lay.grid.points(lay.anchor)
+        rho_max = half @ Ln.T + (np.abs(s.diff(lay.centers, x_anchor)).max(axis=0) + half) @ Lr.T
+        meta.update(lipschitz={"nominal": Ln.tolist(), "residual": Lr.tolist()}, rho=rho_max.tolist(),
+                    share=lay.share.tolist(), anchors=int(np.unique(lay.anchor).size),
+                    assumption="per realization: the residual y_t(x, w) - ynom_t(x) of the k-period run is "
+                               "Lr-Lipschitz and the nominal k-period map Ln-Lipschitz (coordinate-wise, common "
+                               "random numbers); the runs of one anchor cell per block serve every cell of the "
+                               "block, shifted by the nominal model and widened by Ln eta/2 + Lr (|x_c - x_s| + eta/2)")
+    return assemble(lay.grid, s.inputs, int(o.hold), lay.live, lay.target, rows, col, k_lo, k_hi, alloc,
+                    int(o.n_runs), o.beta, meta)

@@ -329,7 +329,7 @@ def check_basis(n_pairs: int, n_vars: int, degrees: Sequence[int], extra_terms: 
 
 
 def perrun_size(o: dict, system, rate_per_worker: Optional[float] = None, workers: int = 1,
-                n_controllers: int = 3, local_workers: int = 0) -> dict:
+                n_controllers: int = 3, local_workers: int = 0, sampling_rate: Optional[float] = None) -> dict:
     """Estimated work, peak memory and time of the per-run stage for checked ``[perrun]`` options ``o``.
 
     Grid: C = prod ceil((x_hi - x_lo) / eta) cells (invariant dimensions collapse to one class),
@@ -340,8 +340,10 @@ def perrun_size(o: dict, system, rate_per_worker: Optional[float] = None, worker
     per cell and abstract step (horizon / hold); validation rolls ``n_rollouts`` runs of ``horizon``
     periods out from ``n_states`` states per controller (``rollout_steps``). A simulator step is one
     period of one run (one ``sim.step`` row); ``rate_per_worker`` is steps per second of one worker.
+    ``sampling_rate`` (default ``rate_per_worker``) is the interval-MDP sampling's own rate in steps
+    per second of one worker, bookkeeping included (:func:`simgap.perrun.sampling.calibrate_sampling`).
     ``local_workers`` sampling processes on this machine each hold one batch of runs
-    (``batch_runs`` x hold states with shared runs). ``cpu_hours`` is the whole stage at that rate.
+    (``batch_runs`` x hold states with shared runs). ``cpu_hours`` is the whole stage at those rates.
     """
     eta = np.broadcast_to(np.asarray(o["eta"], dtype=float), (system.n,))
     counts = np.ceil((system.x_hi - system.x_lo) / eta).astype(float)
@@ -360,16 +362,18 @@ def perrun_size(o: dict, system, rate_per_worker: Optional[float] = None, worker
     sampling = C_sampled * M * (float(o["n_runs"]) + float(o["pilot_runs"])) * hold + system.n * 12000.0 * hold
     rollouts = n_controllers * float(o["n_states"]) * float(o["n_rollouts"]) * horizon
     runs = sampling + rollouts
-    secs = runs / (rate_per_worker * max(1, workers)) if rate_per_worker else None
-    return {"cells": C, "inputs": M, "memory": memory, "runs": runs, "seconds": secs, "entries": entries,
-            "sampling_steps": sampling, "rollout_steps": rollouts,
-            "cpu_hours": runs / rate_per_worker / 3600 if rate_per_worker else None}
+    cpu = sampling / (sampling_rate or rate_per_worker) + rollouts / rate_per_worker if rate_per_worker else None
+    return {"cells": C, "inputs": M, "memory": memory, "runs": runs, "entries": entries,
+            "seconds": cpu / max(1, workers) if cpu is not None else None,
+            "sampling_steps": sampling, "rollout_steps": rollouts, "cpu_hours": cpu / 3600 if cpu is not None else None,
+            "sampling_rate": sampling_rate or rate_per_worker, "rate": rate_per_worker}
 
 
 def perrun_cost_text(e: dict, rate_per_worker: Optional[float], workers: int) -> str:
     """The projected cost of the per-run stage (:func:`perrun_size`) as one line for the log."""
-    at = (f"{e['cpu_hours']:.3g} CPU-hours at {rate_per_worker:.3g} steps/s per worker (calibrated here), "
-          f"about {human_seconds(e['seconds'])} on {workers} worker(s)") if rate_per_worker else "no rate measured"
+    at = (f"{e['cpu_hours']:.3g} CPU-hours at {e['sampling_rate']:.3g} sampling / {rate_per_worker:.3g} rollout "
+          f"steps/s per worker (calibrated here), about {human_seconds(e['seconds'])} on {workers} worker(s)"
+          ) if rate_per_worker else "no rate measured"
     return (f"per-run stage projected: {e['sampling_steps']:.3g} simulator steps to sample the interval MDP + "
             f"{e['rollout_steps']:.3g} for the validation rollouts; {at}; about {e['entries']:.3g} interval entries, "
             f"peak memory about {human_bytes(e['memory'])} ({human_bytes(available_memory())} available)")
@@ -380,11 +384,11 @@ MAX_PERRUN_SECONDS = 6 * 3600.0
 
 
 def check_perrun(o: dict, system, rate_per_worker: Optional[float] = None, workers: int = 1,
-                 local_workers: int = 0) -> dict:
+                 local_workers: int = 0, sampling_rate: Optional[float] = None) -> dict:
     """Refuse a per-run stage that cannot fit in memory or would take over 6 hours, with the numbers
     (:func:`perrun_size`; the message carries the projection of :func:`perrun_cost_text`).
     ``SIMGAP_NO_SIZE_CHECK=1`` skips the time limit for users who know (never the memory one)."""
-    e = perrun_size(o, system, rate_per_worker, workers, local_workers=local_workers)
+    e = perrun_size(o, system, rate_per_worker, workers, local_workers=local_workers, sampling_rate=sampling_rate)
     what = (f"the per-run stage ({e['cells']:,.0f} cells x {e['inputs']:,.0f} inputs, n_runs {int(o['n_runs']):,}, "
             f"hold {int(o['hold'])}, horizon {int(o['horizon'])}, {int(o['n_states'])} states x "
             f"{int(o['n_rollouts']):,} rollouts: {e['runs']:.3g} simulator steps, about {e['entries']:.3g} interval "

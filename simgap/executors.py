@@ -44,6 +44,11 @@ class Executor:
     name = "base"
     workers = 1
 
+    def session(self):
+        """A context in which several ``map_chunks`` calls share one start-up (a Ray instance)."""
+        import contextlib
+        return contextlib.nullcontext(self)
+
     def map_chunks(self, fn: Callable[[Any, int], Any], job: Any, chunk_ids: Iterable[int],
                    on_result: Callable[[int, Any], None],
                    should_stop: Callable[[], bool] = lambda: False) -> bool:
@@ -123,20 +128,41 @@ class RayExecutor(Executor):
         except ImportError:
             raise SimgapError("executor 'ray' needs Ray: pip install 'simgap[ray]' (or pip install ray)") from None
 
+    def _init(self) -> bool:
+        """Connect to (or start) Ray unless it is up already; True if this call did."""
+        import ray
+        if ray.is_initialized():
+            return False
+        kw = dict(include_dashboard=False, log_to_driver=False, configure_logging=False)
+        if self.address:
+            ray.init(address=self.address, **kw)
+        else:
+            ray.init(num_cpus=self.workers, **kw)
+        return True
+
+    def session(self):
+        """One Ray connection (or local instance) for every ``map_chunks`` inside; shut down after it
+        if it was started here."""
+        import contextlib
+
+        @contextlib.contextmanager
+        def ctx():
+            import ray
+            started = self._init()
+            try:
+                yield self
+            finally:
+                if started:
+                    ray.shutdown()
+        return ctx()
+
     def map_chunks(self, fn, job, chunk_ids, on_result, should_stop=lambda: False):
         import ray
 
         todo = list(chunk_ids)
         if not todo:
             return True
-        started_here = False
-        if not ray.is_initialized():
-            kw = dict(include_dashboard=False, log_to_driver=False, configure_logging=False)
-            if self.address:
-                ray.init(address=self.address, **kw)
-            else:
-                ray.init(num_cpus=self.workers, **kw)
-            started_here = True
+        started_here = self._init()
         try:
             task = ray.remote(num_cpus=1, max_retries=0)(_call)
             job_ref = ray.put(job)

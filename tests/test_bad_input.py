@@ -908,7 +908,7 @@ def test_perrun_estimate_counts_the_work():
     e = checks.perrun_size(o, s, rate_per_worker=1e5, workers=2)
     C = np.prod(np.ceil((s.x_hi - s.x_lo) / np.array([0.04, 0.1])))
     assert e["cells"] == C
-    assert e["runs"] == C * len(s.inputs) * 4400 * 20 + 3 * 20 * 10000 * 400
+    assert e["runs"] == C * len(s.inputs) * 4400 * 20 + s.n * 12000 * 20 + 3 * 20 * 10000 * 400   # + the secants
     assert e["seconds"] == pytest.approx(e["runs"] / 2e5)
 
 

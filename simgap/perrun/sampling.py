@@ -138,6 +138,30 @@ def runs_chunk(job: dict, c: int) -> dict:
                        chunk_rng(cfg["seed"], 2, c), chunk_rng(cfg["seed"], 3, c))
 
 
+def calibrate_sampling(sim, spec, options: IMDPOptions, runs: int = 8192, pairs: int = 8) -> Optional[float]:
+    """Steps per second of the interval-MDP sampling in this process, bookkeeping included (box tests,
+    touched cells, counts cost more than the simulator itself for a cheap one): :func:`count_pairs` on
+    ``pairs`` pairs spread over the sampling order, ``runs`` runs of ``hold`` periods in all, timed
+    after one untimed warm-up pair. A step is one (pair, run, period): with shared runs one anchor's
+    run counts once per cell it serves, as in :func:`simgap.checks.perrun_size`. None: no live pair."""
+    import dataclasses
+    lay = layout(sim.system, spec, options)
+    if lay.P == 0:
+        return None
+    L = np.eye(sim.system.n)                       # a plausible widening: the identity's
+    widening = ({"Ln": L.tolist(), "Lr": (0 * L).tolist()} if lay.share is not None
+                else {"rho": (lay.grid.eta / 2).tolist()})
+    pp = lay.order[np.linspace(0, lay.P - 1, min(pairs, lay.P)).astype(np.int64)]
+    per = max(2, runs // len(pp))
+    o = dataclasses.replace(options, n_runs=per, pilot_runs=1, lipschitz=None)
+    rng = np.random.default_rng(0)
+    count_pairs(sim, spec, lay, widening, pp[:1], dataclasses.replace(o, n_runs=2), rng, rng)
+    t = time.perf_counter()
+    count_pairs(sim, spec, lay, widening, pp, o, rng, rng)
+    dt = time.perf_counter() - t
+    return len(pp) * (per + 1) * int(options.hold) / max(dt, 1e-9)
+
+
 # ----------------------------------------------------------------------------------------------
 # Orchestration
 # ----------------------------------------------------------------------------------------------
@@ -189,6 +213,12 @@ def sample_imdp(sim, spec, options: IMDPOptions, log=None, on_progress=None, exe
     ex = executor if isinstance(executor, Executor) else make_executor(executor or "serial", workers, address)
     stop = as_stop_check(should_stop)
     folder = None if store is None else Path(store)
+    with ex.session():          # one Ray start-up for both phases
+        return _sample(sim, spec, o, lay, ex, stop, folder, log, on_progress, t0)
+
+
+def _sample(sim, spec, o, lay, ex, stop, folder, log, on_progress, t0) -> IMDP:
+    s = sim.system
     half = lay.grid.eta / 2
     shared = lay.share is not None
     if o.lipschitz is None:

@@ -157,17 +157,30 @@ def synthesize_experiment(exp, horizon=None, x0=None, eta=None, hold=None, log=p
 
 
 def project_cost(o: dict, exp, ex, log) -> dict:
-    """Log the per-run stage's projected cost (simulator steps, CPU-hours at the rate calibrated here,
+    """Log the per-run stage's projected cost (simulator steps, CPU-hours at the rates calibrated here,
     interval entries, memory) for executor ``ex`` and refuse what this machine cannot hold, with the
-    numbers (:func:`simgap.checks.check_perrun`). With Ray at an address the projection counts
-    ``ex.workers`` CPUs (``--workers``: default this machine's cores)."""
+    numbers (:func:`simgap.checks.check_perrun`). The memory is checked first, from the sizes alone;
+    then the simulator's rate and the sampling's own rate (bookkeeping included,
+    :func:`simgap.perrun.sampling.calibrate_sampling`) are measured. With Ray at an address the
+    projection counts ``ex.workers`` CPUs (``--workers``: default this machine's cores)."""
     from .. import checks
-    rate = checks.calibrated_rate(exp.simulator, exp.system)
+    from ..experiment_spec import experiment_spec
+    from ..simulators import make_simulator
     # on a Ray cluster the workers are its CPUs (give --workers to project them); they hold no memory here
     local = 1 if ex.name == "serial" or (ex.name == "ray" and ex.address) else ex.workers
-    e = checks.perrun_size(o, exp.system, rate, ex.workers, local_workers=local)
+    checks.check_perrun(o, exp.system, None, ex.workers, local_workers=local)      # memory, before any sampling
+    rate = checks.calibrated_rate(exp.simulator, exp.system)
+    sampling = None
+    if not o.get("invariant"):
+        from .imdp import IMDPOptions
+        from .sampling import calibrate_sampling
+        opts = IMDPOptions(eta=o["eta"], hold=int(o["hold"]), n_runs=int(o["n_runs"]), pilot_runs=int(o["pilot_runs"]),
+                           seed=int(o["seed"]), split=o["split"], share=o.get("share"))
+        with make_simulator(exp.simulator.to_dict(), system=exp.system) as sim:
+            sampling = calibrate_sampling(sim, experiment_spec(exp)[0], opts)
+    e = checks.perrun_size(o, exp.system, rate, ex.workers, local_workers=local, sampling_rate=sampling)
     log(checks.perrun_cost_text(e, rate, ex.workers))
-    return checks.check_perrun(o, exp.system, rate, ex.workers, local_workers=local)
+    return checks.check_perrun(o, exp.system, rate, ex.workers, local_workers=local, sampling_rate=sampling)
 
 
 def validate_controller(name: str, input_fn, hold: int, sim, spec, x0, domain_states, p_cert_fn, o: dict,

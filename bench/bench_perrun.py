@@ -17,6 +17,14 @@
    from x0 and ``--states`` initial states in its domain: p_cert, p_emp (95 % Clopper-Pearson),
    soundness p_emp >= p_cert - 3 SE per state, tightness p_emp - p_cert at x0, and p_cert(x0)
    from the same counts with the uniform Bonferroni split (every bound at beta / all bounds).
+3. ``sample``: the interval-MDP sampling rate at the 201 x 201 pendulum (``--cells 201``, the noisy
+   PyBullet pendulum of ``simgap run pendulum --profile perrun``, 21 inputs, hold 20, N = 4000,
+   N0 = 400) in one worker process: the secants of the Lipschitz phase as the sampling draws them
+   (``simgap.perrun.sampling``), then ``--pairs`` (cell, input) pairs spread over the grid through
+   ``count_pairs`` (one chunk's work, bookkeeping included): CPU seconds per simulator step, support
+   entries per row, the worker's peak RSS, and the driver's bytes per entry while it assembles the
+   interval MDP (tracemalloc over the assembly of the sampled chunk). From these: the projection for
+   1, 16 and 256 cores (docs/per-run.md, "Beyond one machine").
 The machine may be shared: the report states wall times and the load average.
 """
 
@@ -120,9 +128,90 @@ def bench_validate(a) -> dict:
             "tightness_x0": round(float(pe[0] - pc[0]), 4), "peak_rss_mb": round(peak_rss_mb()), "table": rows}
 
 
+def bench_sample(a) -> dict:
+    import tracemalloc
+
+    from simgap.perrun.imdp import count_pairs, layout, lipschitz_from_slopes, secant_slopes
+    from simgap.perrun.sampling import SECANT_PAIRS, SECANT_RUNS, _assemble, chunk_rng, runs_config
+    s = get_system("pendulum")
+    cfg = ({"kind": "numpy", "system": "pendulum", "noise": {"actuation_std": 0.5},
+            "effects": {"linear": [[0.0, 0.0], [0.0, -0.3]]}} if a.sim == "numpy" else
+           {"kind": "pybullet_pendulum", "system": "pendulum", "noise": {"actuation_std": 0.5, "sensor_std": 1e-4},
+            "effects": {"joint_damping": 0.1}, "options": {"branches": 25}})
+    sim = make_simulator(cfg, system=s)
+    spec = Spec("invariance", safe=Box(s.x_lo, s.x_hi))
+    eta = ((s.x_hi - s.x_lo) / a.cells).tolist()
+    o = IMDPOptions(eta=eta, hold=a.hold, n_runs=a.n_runs, pilot_runs=a.pilot, seed=a.seed)
+    lay = layout(s, spec, o)
+    half = lay.grid.eta / 2
+    c0 = time.process_time()
+    slopes = {j: secant_slopes(sim, a.hold, j, half[j], chunk_rng(a.seed, 1, j), SECANT_PAIRS, SECANT_RUNS)
+              for j in range(s.n)}
+    cpu_lip = time.process_time() - c0
+    L, how = lipschitz_from_slopes(s, slopes)
+    widening = {"rho": (L @ half).tolist()}
+    pp = lay.order[np.linspace(0, lay.P - 1, a.pairs).astype(np.int64)]
+    c0 = time.process_time()
+    part = count_pairs(sim, spec, lay, widening, pp, o, chunk_rng(a.seed, 2, 0), chunk_rng(a.seed, 3, 0))
+    cpu_runs = time.process_time() - c0
+    steps = len(pp) * (a.n_runs + a.pilot) * a.hold
+    rate = steps / cpu_runs
+    entries_per_row = (part["key"].size + len(pp)) / len(pp)                 # support + the sink
+    # the driver's bytes per entry: tracemalloc over the assembly of synthetic interval MDPs on 41 x 41 and
+    # 81 x 81 grids with the measured entries per row, in chunks as sampled (the sizes, not the numbers, set
+    # the memory); the slope between the two is the cost per entry, the rest a constant (one block of bounds)
+    per_row = max(1, int(round(entries_per_row)) - 1)
+    measured = []
+    for g in (41, 81):
+        small = layout(s, spec, dataclasses.replace(o, eta=((s.x_hi - s.x_lo) / g).tolist()))
+        rng = np.random.default_rng(0)
+        Ps, Cs = small.P, small.C
+        key = (np.arange(Ps)[:, None] * (Cs + 1) + np.sort(rng.integers(0, Cs, (Ps, per_row)), axis=1)).ravel()
+        n_hit = rng.integers(0, a.n_runs, key.size).astype(np.int32)
+        S = o.units_per_chunk(Ps)                                             # pairs per chunk, as sampled
+        bounds = np.arange(0, Ps + S, S).clip(max=Ps)
+        n_sink = rng.integers(0, a.n_runs, Ps).astype(np.int32)
+        parts = [{"key": key[b0 * per_row:b1 * per_row], "n_hit": n_hit[b0 * per_row:b1 * per_row],
+                  "n_in": n_hit[b0 * per_row:b1 * per_row] // 2, "pairs": np.arange(b0, b1), "n_sink": n_sink[b0:b1],
+                  "single_seen": np.bool_(True), "simulated": np.int64(0)} for b0, b1 in zip(bounds[:-1], bounds[1:])]
+        full = dict(runs_config(sim, spec, o, small, widening), n_chunks=len(parts))
+        tracemalloc.start()
+        im = _assemble(sim, spec, o, small, lambda c, names=None: parts[c], widening, L, None, how, full,
+                       time.perf_counter(), 0.0, 0.0, None)
+        _, peak = tracemalloc.get_traced_memory()
+        tracemalloc.stop()
+        measured.append((im.nnz, peak))
+        del im, parts, key, n_hit
+    per_entry = (measured[1][1] - measured[0][1]) / (measured[1][0] - measured[0][0])
+    fixed = measured[1][1] - per_entry * measured[1][0]
+    sim.close()
+    P = lay.P
+    secant_steps = s.n * 2 * SECANT_PAIRS * SECANT_RUNS * a.hold
+    total_steps = P * (a.n_runs + a.pilot) * a.hold + secant_steps
+    cpu_h = (P * (a.n_runs + a.pilot) * a.hold / rate + cpu_lip) / 3600
+    entries = entries_per_row * P
+    imdp_bytes = entries * (4 + 4 + 4 + 4 + 4) + (lay.C * lay.M + 1) * 8     # col, lo, hi, k_lo, k_hi + row_ptr
+    return {"simulator": a.sim, "cells": lay.C, "grid": list(lay.grid.shape), "live_cells": int(lay.cells.size),
+            "inputs": lay.M, "pairs": P, "hold": a.hold, "n_runs": a.n_runs, "pilot_runs": a.pilot,
+            "rho": widening["rho"], "lipschitz": L.tolist(), "sampled_pairs": len(pp),
+            "cpu_seconds_secants": round(cpu_lip, 2), "cpu_seconds_pairs": round(cpu_runs, 2),
+            "steps_per_cpu_second": round(rate), "entries_per_row": round(entries_per_row, 1),
+            "worker_peak_rss_mb": round(peak_rss_mb()),
+            "assembly_bytes_per_entry": round(per_entry, 1), "assembly_fixed_bytes": round(fixed),
+            "assembly_measured": [{"entries": e, "peak_bytes": b} for e, b in measured],
+            "projection": {"simulator_steps": total_steps, "cpu_hours": round(cpu_h, 1), "entries": round(entries),
+                           "imdp_bytes": round(imdp_bytes),
+                           "driver_peak_bytes": round(per_entry * entries + fixed),
+                           "note": "driver_peak_bytes: the assembly reading one chunk at a time, as from the store "
+                                   "(the synthetic chunks exist before tracemalloc starts)",
+                           "wall_hours": {str(c): round(cpu_h / c, 2) for c in (1, 16, 256)}}}
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("what", choices=["vi", "validate"])
+    ap.add_argument("what", choices=["vi", "validate", "sample"])
+    ap.add_argument("--cells", type=int, default=201, help="sample: cells per dimension")
+    ap.add_argument("--pairs", type=int, default=16, help="sample: (cell, input) pairs to sample")
     ap.add_argument("--succ", type=int, default=18, help="vi: successor cells per row")
     ap.add_argument("--sim", choices=["numpy", "pybullet"], default="numpy")
     ap.add_argument("--eta", type=float, nargs=2, default=[0.02, 0.05])
@@ -141,7 +230,9 @@ def main():
     ap.add_argument("--save", default=None, help="vi: write p_cert and the policy to this .npz (to compare runs)")
     ap.add_argument("--json", default=None)
     a = ap.parse_args()
-    rep = bench_vi(a) if a.what == "vi" else bench_validate(a)
+    if a.what == "sample" and "--inputs" not in sys.argv:
+        a.inputs = 21
+    rep = {"vi": bench_vi, "validate": bench_validate, "sample": bench_sample}[a.what](a)
     rep["load_average"] = os.getloadavg()
     rep["command"] = " ".join(["python"] + sys.argv)
     print(json.dumps(rep, indent=1))

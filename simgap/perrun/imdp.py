@@ -197,10 +197,28 @@ def assemble(grid: UniformGrid, inputs: np.ndarray, hold: int, live: np.ndarray,
     col, k_lo, k_hi = col[order].astype(np.int32), k_lo[order].astype(np.int32), k_hi[order].astype(np.int32)
     row_ptr = np.zeros(C * M + 1, np.int64)
     np.cumsum(np.bincount(rows, minlength=C * M), out=row_ptr[1:])
-    is_sink = col == C
-    n_rows, n_support = int(is_sink.sum()), int((~is_sink).sum())
+    return assemble_csr(grid, inputs, hold, live, target, row_ptr, col, k_lo, k_hi, alloc, n_runs, beta, meta, t0)
+
+
+#: entries per block when the bounds are computed (bounds the float64 temporaries: ~100 MB)
+INTERVAL_BLOCK = 1 << 20
+
+
+def assemble_csr(grid: UniformGrid, inputs: np.ndarray, hold: int, live: np.ndarray, target: np.ndarray,
+                 row_ptr: np.ndarray, col: np.ndarray, k_lo: np.ndarray, k_hi: np.ndarray, alloc: Allocation,
+                 n_runs: int, beta: float, meta: dict, t0: Optional[float] = None) -> IMDP:
+    """The interval MDP from counts already in CSR order (int32 ``col``, ``k_lo``, ``k_hi``, taken as they
+    are); the bounds are computed in blocks of :data:`INTERVAL_BLOCK` entries, so the peak memory is the
+    interval MDP plus one block (the same numbers as in one go: every bound is elementwise)."""
+    t0 = time.perf_counter() if t0 is None else t0
+    C = grid.size
+    n_rows = int(np.count_nonzero(col == C))
+    n_support = int(col.size) - n_rows
     levels = alloc.levels(float(beta), n_rows, n_support)
-    lo32, hi32 = float32_outward(*intervals(k_lo, k_hi, is_sink, int(n_runs), levels))
+    lo32, hi32 = np.empty(col.size, np.float32), np.empty(col.size, np.float32)
+    for a in range(0, col.size, INTERVAL_BLOCK):
+        b = slice(a, a + INTERVAL_BLOCK)
+        lo32[b], hi32[b] = float32_outward(*intervals(k_lo[b], k_hi[b], col[b] == C, int(n_runs), levels))
     meta = dict(meta, n_runs=int(n_runs), beta=float(beta), split=dataclasses.asdict(alloc), levels=levels,
                 bounds=_bound_count(alloc, n_rows, n_support), union_bound=UNION_BOUND,
                 p_cert_conditional_on=meta.get("p_cert_conditional_on", P_CERT_CONDITION))
@@ -661,8 +679,10 @@ def count_pairs(sim, spec: Spec, lay: Layout, widening: dict, pp: np.ndarray, o:
         np.add.at(n_hit, posc[hit], 1)
         inn = ok & single[b] & ~sink_run[b]
         np.add.at(n_in, posc[inn], 1)
-    return {"key": support.astype(np.int64), "n_hit": n_hit, "n_in": n_in, "pairs": np.asarray(pp, np.int64),
-            "n_sink": n_sink, "single_seen": np.bool_(single_seen), "simulated": np.int64(simulated[0])}
+    # counts <= N fit int32 (what the interval MDP keeps); the keys need int64 (pairs x (C + 1))
+    return {"key": support.astype(np.int64), "n_hit": n_hit.astype(np.int32), "n_in": n_in.astype(np.int32),
+            "pairs": np.asarray(pp, np.int64), "n_sink": n_sink.astype(np.int32),
+            "single_seen": np.bool_(single_seen), "simulated": np.int64(simulated[0])}
 
 
 def build_imdp(sim, spec: Spec, options: "IMDPOptions", log=None, on_progress=None, executor=None,

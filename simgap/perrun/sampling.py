@@ -41,7 +41,7 @@ from ..errors import SimgapError
 from ..executors import Executor, SerialExecutor, make_executor
 from ..progress import as_stop_check
 from ..store import config_hash, describe_system, fill_store, portable_system, read_chunk, system_from_config
-from .imdp import (IMDP, Allocation, IMDPOptions, _bound_count, assemble, count_pairs, layout,
+from .imdp import (IMDP, Allocation, IMDPOptions, _bound_count, assemble_csr, count_pairs, layout,
                    lipschitz_from_slopes, secant_slopes)
 
 FORMAT = "simgap-perrun/1"
@@ -167,9 +167,10 @@ def calibrate_sampling(sim, spec, options: IMDPOptions, runs: int = 8192, pairs:
 # ----------------------------------------------------------------------------------------------
 
 def _run_phase(cfg: dict, fn, sim, spec, o, ex: Executor, folder: Optional[Path], stop, names,
-               on_start: Optional[Callable] = None, on_chunk: Optional[Callable] = None) -> list:
-    """All chunks of ``cfg`` computed by ``ex`` (and kept in ``folder``, resumed from it): their arrays in
-    chunk order."""
+               on_start: Optional[Callable] = None, on_chunk: Optional[Callable] = None) -> Callable:
+    """Compute all chunks of ``cfg`` with ``ex`` (kept in ``folder`` and resumed from it); returns
+    ``get(c, names)``, the arrays of chunk c (read back from ``folder`` and verified on each call, so
+    the caller holds one chunk at a time)."""
     n = int(cfg["n_chunks"])
     h = config_hash(cfg)
     serial = isinstance(ex, SerialExecutor)
@@ -197,8 +198,8 @@ def _run_phase(cfg: dict, fn, sim, spec, o, ex: Executor, folder: Optional[Path]
         raise SimgapError("interval-MDP sampling cancelled" + (f"; the finished chunks are kept in {str(folder)!r}: "
                                                                "run the same command again to resume" if folder else ""))
     if folder is None:
-        return [out[c] for c in range(n)]
-    return [read_chunk(folder, c, h, names) for c in range(n)]
+        return lambda c, names=names: out[c]
+    return lambda c, names=names: read_chunk(folder, c, h, names)
 
 
 def sample_imdp(sim, spec, options: IMDPOptions, log=None, on_progress=None, executor=None,
@@ -223,9 +224,9 @@ def _sample(sim, spec, o, lay, ex, stop, folder, log, on_progress, t0) -> IMDP:
     shared = lay.share is not None
     if o.lipschitz is None:
         cfg = lipschitz_config(sim, spec, o, lay)
-        parts = _run_phase(cfg, secants_chunk, sim, spec, o, ex, folder and folder / "lipschitz", stop,
-                           ("nominal", "residual") if shared else ("slope",))
-        est = lipschitz_from_slopes(s, dict(zip(cfg["dims"], parts)), residual=shared)
+        get = _run_phase(cfg, secants_chunk, sim, spec, o, ex, folder and folder / "lipschitz", stop,
+                         ("nominal", "residual") if shared else ("slope",))
+        est = lipschitz_from_slopes(s, {j: get(c) for c, j in enumerate(cfg["dims"])}, residual=shared)
         how = est[-1]
         if shared:
             Ln, Lr = est[0], est[1]
@@ -261,35 +262,50 @@ def _sample(sim, spec, o, lay, ex, stop, folder, log, on_progress, t0) -> IMDP:
         log(f"imdp: {lay.cells.size} live cells x {lay.M} inputs = {P} pairs in {cfg['n_chunks']} chunks of "
             f"{S} {cfg['chunk_unit']}s on executor {ex.name}" + (f" ({ex.workers} workers)" if ex.name != "serial" else "")
             + (f", kept in {str(folder)!r}" if folder else ""))
-    parts = _run_phase(cfg, runs_chunk, sim, spec, o, ex, folder and folder / "runs", stop, RUNS_ARRAYS,
-                       on_start, on_chunk)
+    get = _run_phase(cfg, runs_chunk, sim, spec, o, ex, folder and folder / "runs", stop, RUNS_ARRAYS,
+                     on_start, on_chunk)
     t_runs = time.perf_counter() - t0 - t_lip
-    return _assemble(sim, spec, o, lay, parts, widening, L if not shared else None,
+    return _assemble(sim, spec, o, lay, get, widening, L if not shared else None,
                      (Ln, Lr) if shared else None, how, cfg, t0, t_lip, t_runs, log)
 
 
-def _assemble(sim, spec, o, lay, parts, widening, L, LnLr, how, cfg, t0, t_lip, t_runs, log) -> IMDP:
-    """The interval MDP from the chunks' supports and counts (in chunk order: the result is bit-identical
-    whichever executor computed them)."""
+def _assemble(sim, spec, o, lay, get, widening, L, LnLr, how, cfg, t0, t_lip, t_runs, log) -> IMDP:
+    """The interval MDP in CSR order straight from the chunks' supports and counts, one chunk in memory at
+    a time (two passes: row lengths, then the entries): the driver's peak is the interval MDP itself plus
+    one chunk and one block of bounds. Rows in pair order, each row's successors by cell, then the sink:
+    the same whichever executor computed the chunks, in whatever order."""
     s = sim.system
     C, M, P, cells = lay.C, lay.M, lay.P, lay.cells
-    cat = lambda name, dt: (np.concatenate([p[name] for p in parts]).astype(dt)  # noqa: E731
-                            if parts else np.zeros(0, dt))
-    key, n_hit, n_in = cat("key", np.int64), cat("n_hit", np.int64), cat("n_in", np.int64)
-    n_sink = np.zeros(P, np.int64)
-    n_sink[cat("pairs", np.int64)] = cat("n_sink", np.int64)
-    single_seen = any(bool(p["single_seen"]) for p in parts)
-    simulated = int(sum(int(p["simulated"]) for p in parts))
+    n_chunks = int(cfg["n_chunks"])
+    succ = np.zeros(P, np.int64)
+    single_seen, simulated = False, 0
+    for c in range(n_chunks):
+        part = get(c, ("key", "single_seen", "simulated"))
+        p, k = np.unique(part["key"] // (C + 1), return_counts=True)
+        succ[p] += k
+        single_seen |= bool(part["single_seen"])
+        simulated += int(part["simulated"])
+    row_of = cells.repeat(M) * M + np.tile(np.arange(M), cells.size)          # pair -> row (increasing)
+    length = np.zeros(C * M, np.int64)
+    length[row_of] = succ + 1                                                # + the sink entry
+    row_ptr = np.zeros(C * M + 1, np.int64)
+    np.cumsum(length, out=row_ptr[1:])
+    nnz = int(row_ptr[-1])
+    col, k_lo, k_hi = np.empty(nnz, np.int32), np.empty(nnz, np.int32), np.empty(nnz, np.int32)
+    for c in range(n_chunks):
+        part = get(c)
+        key = part["key"]
+        p = key // (C + 1)
+        first = np.searchsorted(p, p)                                        # keys sorted: pairs grouped
+        pos = row_ptr[row_of[p]] + (np.arange(p.size) - first)
+        col[pos], k_lo[pos], k_hi[pos] = key % (C + 1), part["n_in"], part["n_hit"]
+        end = row_ptr[row_of[part["pairs"]] + 1] - 1
+        col[end], k_lo[end], k_hi[end] = C, -1, part["n_sink"]
     alloc = Allocation.of(o.split).after_pilot(single_seen)     # a function of the pilot runs alone
     if log:
-        levels = alloc.levels(float(o.beta), P, key.size)
-        log(f"imdp: support {key.size} entries; {_bound_count(alloc, P, key.size)} one-sided bounds, levels "
+        levels = alloc.levels(float(o.beta), P, nnz - P)
+        log(f"imdp: support {nnz - P} entries; {_bound_count(alloc, P, nnz - P)} one-sided bounds, levels "
             + ", ".join(f"{f} {v:.3g}" for f, v in levels.items()))
-    pair_of = key // (C + 1)
-    rows = np.concatenate([cells[pair_of // M] * M + pair_of % M, cells.repeat(M) * M + np.tile(np.arange(M), cells.size)])
-    col = np.concatenate([key % (C + 1), np.full(P, C)])
-    k_lo = np.concatenate([n_in, np.full(P, -1)])
-    k_hi = np.concatenate([n_hit, n_sink])
     meta = {"pilot_runs": int(o.pilot_runs), "lipschitz_how": how, "live_cells": int(cells.size), "seed": int(o.seed),
             "simulator": sim.config.to_dict(), "spec": spec.to_dict(),
             "seconds": {"lipschitz": t_lip, "runs": t_runs, "intervals": time.perf_counter() - t0 - t_lip - t_runs},
@@ -312,5 +328,5 @@ def _assemble(sim, spec, o, lay, parts, widening, L, LnLr, how, cfg, t0, t_lip, 
                                "Lr-Lipschitz and the nominal k-period map Ln-Lipschitz (coordinate-wise, common "
                                "random numbers); the runs of one anchor cell per block serve every cell of the "
                                "block, shifted by the nominal model and widened by Ln eta/2 + Lr (|x_c - x_s| + eta/2)")
-    return assemble(lay.grid, s.inputs, int(o.hold), lay.live, lay.target, rows, col, k_lo, k_hi, alloc,
-                    int(o.n_runs), o.beta, meta)
+    return assemble_csr(lay.grid, s.inputs, int(o.hold), lay.live, lay.target, row_ptr, col, k_lo, k_hi, alloc,
+                        int(o.n_runs), o.beta, meta)

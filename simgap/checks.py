@@ -374,8 +374,8 @@ def perrun_cost_text(e: dict, rate_per_worker: Optional[float], workers: int) ->
     at = (f"{e['cpu_hours']:.3g} CPU-hours at {e['sampling_rate']:.3g} sampling / {rate_per_worker:.3g} rollout "
           f"steps/s per worker (calibrated here), about {human_seconds(e['seconds'])} on {workers} worker(s)"
           ) if rate_per_worker else "no rate measured"
-    return (f"per-run stage projected: {e['sampling_steps']:.3g} simulator steps to sample the interval MDP + "
-            f"{e['rollout_steps']:.3g} for the validation rollouts; {at}; about {e['entries']:.3g} interval entries, "
+    roll = f" + {e['rollout_steps']:.3g} for the validation rollouts" if e["rollout_steps"] else ""
+    return (f"per-run stage projected: {e['sampling_steps']:.3g} simulator steps to sample the interval MDP{roll}; {at}; about {e['entries']:.3g} interval entries, "
             f"peak memory about {human_bytes(e['memory'])} ({human_bytes(available_memory())} available)")
 
 
@@ -384,11 +384,12 @@ MAX_PERRUN_SECONDS = 6 * 3600.0
 
 
 def check_perrun(o: dict, system, rate_per_worker: Optional[float] = None, workers: int = 1,
-                 local_workers: int = 0, sampling_rate: Optional[float] = None) -> dict:
+                 local_workers: int = 0, sampling_rate: Optional[float] = None, n_controllers: int = 3) -> dict:
     """Refuse a per-run stage that cannot fit in memory or would take over 6 hours, with the numbers
     (:func:`perrun_size`; the message carries the projection of :func:`perrun_cost_text`).
     ``SIMGAP_NO_SIZE_CHECK=1`` skips the time limit for users who know (never the memory one)."""
-    e = perrun_size(o, system, rate_per_worker, workers, local_workers=local_workers, sampling_rate=sampling_rate)
+    e = perrun_size(o, system, rate_per_worker, workers, n_controllers, local_workers=local_workers,
+                    sampling_rate=sampling_rate)
     what = (f"the per-run stage ({e['cells']:,.0f} cells x {e['inputs']:,.0f} inputs, n_runs {int(o['n_runs']):,}, "
             f"hold {int(o['hold'])}, horizon {int(o['horizon'])}, {int(o['n_states'])} states x "
             f"{int(o['n_rollouts']):,} rollouts: {e['runs']:.3g} simulator steps, about {e['entries']:.3g} interval "

@@ -184,10 +184,14 @@ class NanSim(NumpySimulator):
 def test_nan_from_simulator_leaves_no_data(tmp_path, monkeypatch):
     monkeypatch.setitem(sim_base._BACKENDS, "nan_test", f"{__name__}:NanSim")
     bad = SimulatorConfig("nan_test", "pendulum")
+    from simgap.executors import LocalExecutor
     for ex in ("serial", "local"):
         store = tmp_path / ex
+        # the monkeypatched backend reaches pool workers only by fork; a thread another test left alive in
+        # this process (a progress bar's monitor) would make the default start method forkserver
+        executor = ex if ex == "serial" else LocalExecutor(2, start_method="fork")
         with pytest.raises(SimgapError, match=r"chunk (\d+).*NaN") as err:
-            collect(pend_plan(sim=bad, chunk_size=20), store, executor=ex, workers=2)
+            collect(pend_plan(sim=bad, chunk_size=20), store, executor=executor)
         failed = int(re.search(r"chunk (\d+)", str(err.value)).group(1))
         files = sorted(p.name for p in (store / "chunks").iterdir())
         assert f"c{failed:06d}.npz" not in files

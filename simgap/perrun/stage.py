@@ -133,7 +133,7 @@ def synthesize_experiment(exp, horizon=None, x0=None, eta=None, hold=None, log=p
     o = check_section(sec, exp.system, plan.n_pairs, exp.collect.n_runs, exp.section("rollout").get("horizon"))
     from ..executors import make_executor
     ex = make_executor(executor or "local", workers, address)
-    project_cost(o, exp, ex, log)
+    project_cost(o, exp, ex, log, rollouts=False)
     spec, map_x0, _ = experiment_spec(exp)
     x0 = np.asarray(x0 if x0 is not None else exp.section("rollout").get("x0", map_x0), dtype=float) \
         if (x0 is not None or exp.section("rollout").get("x0") is not None or map_x0 is not None) else None
@@ -156,19 +156,21 @@ def synthesize_experiment(exp, horizon=None, x0=None, eta=None, hold=None, log=p
     return ctl, "\n".join(lines)
 
 
-def project_cost(o: dict, exp, ex, log) -> dict:
+def project_cost(o: dict, exp, ex, log, rollouts: bool = True) -> dict:
     """Log the per-run stage's projected cost (simulator steps, CPU-hours at the rates calibrated here,
     interval entries, memory) for executor ``ex`` and refuse what this machine cannot hold, with the
     numbers (:func:`simgap.checks.check_perrun`). The memory is checked first, from the sizes alone;
     then the simulator's rate and the sampling's own rate (bookkeeping included,
     :func:`simgap.perrun.sampling.calibrate_sampling`) are measured. With Ray at an address the
-    projection counts ``ex.workers`` CPUs (``--workers``: default this machine's cores)."""
+    projection counts ``ex.workers`` CPUs (``--workers``: default this machine's cores). ``rollouts``:
+    the validation's rollouts are part of the work (``simgap run``; not ``simgap synthesize``)."""
     from .. import checks
     from ..experiment_spec import experiment_spec
     from ..simulators import make_simulator
     # on a Ray cluster the workers are its CPUs (give --workers to project them); they hold no memory here
     local = 1 if ex.name == "serial" or (ex.name == "ray" and ex.address) else ex.workers
-    checks.check_perrun(o, exp.system, None, ex.workers, local_workers=local)      # memory, before any sampling
+    nc = 3 if rollouts else 0
+    checks.check_perrun(o, exp.system, None, ex.workers, local_workers=local, n_controllers=nc)  # memory first
     rate = checks.calibrated_rate(exp.simulator, exp.system)
     sampling = None
     if not o.get("invariant"):
@@ -178,9 +180,10 @@ def project_cost(o: dict, exp, ex, log) -> dict:
                            seed=int(o["seed"]), split=o["split"], share=o.get("share"))
         with make_simulator(exp.simulator.to_dict(), system=exp.system) as sim:
             sampling = calibrate_sampling(sim, experiment_spec(exp)[0], opts)
-    e = checks.perrun_size(o, exp.system, rate, ex.workers, local_workers=local, sampling_rate=sampling)
+    e = checks.perrun_size(o, exp.system, rate, ex.workers, nc, local_workers=local, sampling_rate=sampling)
     log(checks.perrun_cost_text(e, rate, ex.workers))
-    return checks.check_perrun(o, exp.system, rate, ex.workers, local_workers=local, sampling_rate=sampling)
+    return checks.check_perrun(o, exp.system, rate, ex.workers, local_workers=local, sampling_rate=sampling,
+                               n_controllers=nc)
 
 
 def validate_controller(name: str, input_fn, hold: int, sim, spec, x0, domain_states, p_cert_fn, o: dict,

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import signal
 import threading
 import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
@@ -103,7 +104,7 @@ class LocalExecutor(Executor):
                     "finished chunks are kept, run again to resume") from None
 
         try:
-            return _bounded_map(lambda c: pool.submit(fn, job, c),
+            return _bounded_map(lambda c: submit_without_sigint(pool.submit, fn, job, c),
                                 lambda p: wait(p, return_when=FIRST_COMPLETED)[0],
                                 result, todo, 2 * self.workers, pending, on_result, should_stop)
         finally:
@@ -236,7 +237,6 @@ def exit_with_parent(pid: int, period: float = 1.0) -> None:
     Ctrl-C is ignored here: the terminal sends SIGINT to the whole process group, and the parent
     alone turns it into a clean "interrupted" (the workers printed KeyboardInterrupt tracebacks)
     and ends the pool; a worker whose parent is gone exits through the watch below."""
-    import signal
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     first = _process_token(pid)
 
@@ -258,6 +258,20 @@ def exit_with_parent(pid: int, period: float = 1.0) -> None:
         os._exit(1)
 
     threading.Thread(target=watch, name="simgap-exit-with-parent", daemon=True).start()
+
+
+def submit_without_sigint(submit, *args):
+    """``submit(*args)`` with SIGINT blocked in this thread: a worker the pool forks meanwhile (the
+    fork server too) starts with SIGINT blocked, so a Ctrl-C in the moment between its fork and
+    :func:`exit_with_parent` cannot kill it and leave the pool broken while the parent shuts it
+    down. A SIGINT that arrives meanwhile is delivered to this process when the mask is restored."""
+    if not hasattr(signal, "pthread_sigmask") or threading.current_thread() is not threading.main_thread():
+        return submit(*args)
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        return submit(*args)
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
 def _call(fn, job, c):

@@ -105,14 +105,14 @@ class ParallelSimulator(Simulator):
         parts = min(self.workers, B // MIN_ROWS_PER_PROCESS)
         if parts <= 1 or u.shape[0] != B:
             return self.inner.step_with_noise(x, u, noise)
+        from ..executors import LocalExecutor, submit_without_sigint
         if self._pool is None:
-            from ..executors import LocalExecutor
             self._pool = ProcessPoolExecutor(self.workers - 1, mp_context=LocalExecutor()._context(),
                                              initializer=_start_helper,
                                              initargs=(self.config.to_dict(), self._system_arg, os.getpid()))
         cuts = np.linspace(0, B, parts + 1).astype(int)
-        futures = [self._pool.submit(_helper_step, x[a:b], u[a:b], {k: v[a:b] for k, v in noise.items()})
-                   for a, b in zip(cuts[1:-1], cuts[2:])]
+        futures = [submit_without_sigint(self._pool.submit, _helper_step, x[a:b], u[a:b],
+                                         {k: v[a:b] for k, v in noise.items()}) for a, b in zip(cuts[1:-1], cuts[2:])]
         own = self.inner.step_with_noise(x[:cuts[1]], u[:cuts[1]], {k: v[:cuts[1]] for k, v in noise.items()})
         return np.concatenate([own] + [f.result() for f in futures])
 

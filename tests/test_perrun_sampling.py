@@ -151,6 +151,15 @@ def test_store_refuses_other_configuration_and_modified_chunks(sim, tmp_path):
     again = build_imdp(sim, SPEC, _opts(n_runs=100, pilot_runs=20), store=store)
     _same(again, a)
     assert set(RUNS_ARRAYS) <= set(np.load(p).files)
+    # simgap run's own store (replace_other): the changed options replace the old samples, said in the log
+    said = []
+    other = build_imdp(sim, SPEC, _opts(n_runs=120, pilot_runs=20), store=store, replace_other=True, log=said.append)
+    assert any("removed the per-run samples of another configuration" in m and "runs" in m for m in said)
+    assert other.meta["n_runs"] == 120
+    _same(other, build_imdp(sim, SPEC, _opts(n_runs=120, pilot_runs=20)))
+    said.clear()
+    build_imdp(sim, SPEC, _opts(n_runs=120, pilot_runs=20), store=store, replace_other=True, log=said.append)
+    assert not any("removed" in m for m in said)                  # the same options resume, nothing removed
 
 
 def test_refusal_names_the_numbers(tmp_path):

@@ -686,7 +686,8 @@ def count_pairs(sim, spec: Spec, lay: Layout, widening: dict, pp: np.ndarray, o:
 
 
 def build_imdp(sim, spec: Spec, options: "IMDPOptions", log=None, on_progress=None, executor=None,
-               workers: Optional[int] = None, address: Optional[str] = None, store=None, should_stop=None) -> IMDP:
+               workers: Optional[int] = None, address: Optional[str] = None, store=None, should_stop=None,
+               replace_other: bool = False) -> IMDP:
     """Sample ``sim`` and build the interval MDP of ``spec`` (see module docstring).
 
     The simulator work (Lipschitz secants, pilot and main runs) is cut into chunks, each drawing
@@ -694,9 +695,10 @@ def build_imdp(sim, spec: Spec, options: "IMDPOptions", log=None, on_progress=No
     when None; ``local`` or ``ray`` rebuild the simulator from its config in their workers); with
     ``store`` (a folder) every finished chunk is kept, verified and resumed
     (:mod:`simgap.perrun.sampling`). The interval MDP does not depend on the executor, the number
-    of workers or interruptions.
+    of workers or interruptions. A store of another configuration is refused, or with
+    ``replace_other`` removed first.
 
     ``on_progress(done, total)``: after every chunk, in (cell, input) pairs of both passes (2 x pairs)."""
     from .sampling import sample_imdp
     return sample_imdp(sim, spec, options, log=log, on_progress=on_progress, executor=executor, workers=workers,
-                       address=address, store=store, should_stop=should_stop)
+                       address=address, store=store, should_stop=should_stop, replace_other=replace_other)

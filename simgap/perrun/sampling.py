@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import time
 from pathlib import Path
 from typing import Callable, Optional
@@ -40,7 +41,8 @@ import numpy as np
 from ..errors import SimgapError
 from ..executors import Executor, SerialExecutor, make_executor
 from ..progress import as_stop_check
-from ..store import config_hash, describe_system, fill_store, portable_system, read_chunk, system_from_config
+from ..store import (MANIFEST, _read_manifest, config_hash, describe_system, fill_store, portable_system, read_chunk,
+                     system_from_config)
 from .imdp import (IMDP, Allocation, IMDPOptions, _bound_count, assemble_csr, count_pairs, layout,
                    lipschitz_from_slopes, secant_slopes)
 
@@ -167,12 +169,23 @@ def calibrate_sampling(sim, spec, options: IMDPOptions, runs: int = 8192, pairs:
 # ----------------------------------------------------------------------------------------------
 
 def _run_phase(cfg: dict, fn, sim, spec, o, ex: Executor, folder: Optional[Path], stop, names,
-               on_start: Optional[Callable] = None, on_chunk: Optional[Callable] = None) -> Callable:
+               on_start: Optional[Callable] = None, on_chunk: Optional[Callable] = None, replace: bool = False,
+               log=None) -> Callable:
     """Compute all chunks of ``cfg`` with ``ex`` (kept in ``folder`` and resumed from it); returns
     ``get(c, names)``, the arrays of chunk c (read back from ``folder`` and verified on each call, so
-    the caller holds one chunk at a time)."""
+    the caller holds one chunk at a time). With ``replace`` a store of another configuration in
+    ``folder`` is removed first (a results folder's own cache), else it is refused."""
     n = int(cfg["n_chunks"])
     h = config_hash(cfg)
+    if replace and folder is not None and (folder / MANIFEST).is_file():
+        try:
+            stale = _read_manifest(folder, FORMAT)["hash"] != h
+        except SimgapError:
+            stale = True
+        if stale:
+            shutil.rmtree(folder)
+            if log:
+                log(f"removed the per-run samples of another configuration in {str(folder)!r}")
     serial = isinstance(ex, SerialExecutor)
     job = {"hash": h, "config": cfg, "spec": spec, "options": o, "sim": sim if serial else None,
            "system": None if serial else portable_system(sim.system)}
@@ -204,10 +217,12 @@ def _run_phase(cfg: dict, fn, sim, spec, o, ex: Executor, folder: Optional[Path]
 
 def sample_imdp(sim, spec, options: IMDPOptions, log=None, on_progress=None, executor=None,
                 workers: Optional[int] = None, address: Optional[str] = None, store=None,
-                should_stop=None) -> IMDP:
+                should_stop=None, replace_other: bool = False) -> IMDP:
     """The interval MDP of ``spec`` sampled through an executor (module docstring); what
     :func:`simgap.perrun.imdp.build_imdp` runs. ``executor``: a name (``serial``, ``local``,
-    ``ray``), an :class:`~simgap.executors.Executor`, or None for ``serial`` with ``sim`` itself."""
+    ``ray``), an :class:`~simgap.executors.Executor`, or None for ``serial`` with ``sim`` itself.
+    ``replace_other``: a store of another configuration in ``store`` is removed (``simgap run`` after
+    the ``[perrun]`` options changed) instead of refused."""
     t0 = time.perf_counter()
     s, o = sim.system, options
     lay = layout(s, spec, o)
@@ -215,17 +230,17 @@ def sample_imdp(sim, spec, options: IMDPOptions, log=None, on_progress=None, exe
     stop = as_stop_check(should_stop)
     folder = None if store is None else Path(store)
     with ex.session():          # one Ray start-up for both phases
-        return _sample(sim, spec, o, lay, ex, stop, folder, log, on_progress, t0)
+        return _sample(sim, spec, o, lay, ex, stop, folder, log, on_progress, t0, replace_other)
 
 
-def _sample(sim, spec, o, lay, ex, stop, folder, log, on_progress, t0) -> IMDP:
+def _sample(sim, spec, o, lay, ex, stop, folder, log, on_progress, t0, replace) -> IMDP:
     s = sim.system
     half = lay.grid.eta / 2
     shared = lay.share is not None
     if o.lipschitz is None:
         cfg = lipschitz_config(sim, spec, o, lay)
         get = _run_phase(cfg, secants_chunk, sim, spec, o, ex, folder and folder / "lipschitz", stop,
-                         ("nominal", "residual") if shared else ("slope",))
+                         ("nominal", "residual") if shared else ("slope",), replace=replace, log=log)
         est = lipschitz_from_slopes(s, {j: get(c) for c, j in enumerate(cfg["dims"])}, residual=shared)
         how = est[-1]
         if shared:
@@ -263,7 +278,7 @@ def _sample(sim, spec, o, lay, ex, stop, folder, log, on_progress, t0) -> IMDP:
             f"{S} {cfg['chunk_unit']}s on executor {ex.name}" + (f" ({ex.workers} workers)" if ex.name != "serial" else "")
             + (f", kept in {str(folder)!r}" if folder else ""))
     get = _run_phase(cfg, runs_chunk, sim, spec, o, ex, folder and folder / "runs", stop, RUNS_ARRAYS,
-                     on_start, on_chunk)
+                     on_start, on_chunk, replace=replace, log=log)
     t_runs = time.perf_counter() - t0 - t_lip
     return _assemble(sim, spec, o, lay, get, widening, L if not shared else None,
                      (Ln, Lr) if shared else None, how, cfg, t0, t_lip, t_runs, log)

@@ -79,7 +79,8 @@ def check_section(sec: dict, system, n_pairs: int, n_runs: int, horizon) -> dict
     return o
 
 
-def build(sim, spec, o: dict, log, on_progress=None, executor=None, workers=None, address=None, store=None):
+def build(sim, spec, o: dict, log, on_progress=None, executor=None, workers=None, address=None, store=None,
+          replace_other=False):
     """The interval MDP of checked ``[perrun]`` options ``o``: sampled per cell (or shared), its simulator
     work in chunks on ``executor`` (a local pool, Ray at ``address``; None: this process with ``sim``),
     kept in and resumed from the folder ``store`` (:mod:`simgap.perrun.sampling`); or with ``invariant``
@@ -100,7 +101,7 @@ def build(sim, spec, o: dict, log, on_progress=None, executor=None, workers=None
                                       on_progress=on_progress)
     else:
         imdp = build_imdp(sim, spec, opts, log=log, on_progress=on_progress, executor=executor, workers=workers,
-                          address=address, store=store)
+                          address=address, store=store, replace_other=replace_other)
     imdp.meta["randomization"] = randomization_note(sim)
     n_check = int(o.get("check_states", 64))
     if n_check > 0:
@@ -208,7 +209,8 @@ def run_stage(exp, out: Path, data, controllers: Dict[str, object], spec, x0, o:
     """Run the per-run stage (module docstring); ``controllers`` are the case study's {method: Controller}.
 
     The interval MDP's sampling runs on ``executor`` (a name or an Executor; None: in this process with
-    ``sim``) and is kept in ``out/perrun_samples`` (resumed by a second run; :mod:`simgap.perrun.sampling`).
+    ``sim``) and is kept in ``out/perrun_samples`` (resumed by a second run, replaced when the ``[perrun]``
+    options changed; :mod:`simgap.perrun.sampling`).
 
     ``sim``: the experiment's stochastic simulator (default: built from the experiment).
     ``progress(name, unit)``, if given, returns an ``on_progress(done, total)`` callback for the
@@ -249,7 +251,7 @@ def run_stage(exp, out: Path, data, controllers: Dict[str, object], spec, x0, o:
 
         t0 = time.perf_counter()
         imdp = build(sim, spec, o, lambda m: log(f"[perrun] {m}"), bar("perrun/imdp", "pairs"), executor=executor,
-                     workers=workers, address=address, store=out / SAMPLES)
+                     workers=workers, address=address, store=out / SAMPLES, replace_other=True)
         t_build = time.perf_counter() - t0
         ctl = synthesize_imdp(imdp, H, spec.kind)
         ctl.save(out / "controller_perrun.npz")

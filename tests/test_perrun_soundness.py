@@ -219,7 +219,10 @@ def test_shared_runs_over_several_batches_keep_their_successors():
     spec = Spec("invariance", safe=Box([-0.8], [0.8]))
     o = dict(eta=[0.02], hold=5, n_runs=10, pilot_runs=10, seed=1, share=20, lipschitz=[[[1.0]], [[0.0]]])
     one = build_imdp(sim, spec, IMDPOptions(**o))
-    many = build_imdp(sim, spec, IMDPOptions(**o, batch_runs=200))
+    # one chunk of every (anchor, input) group, simulated in batches of 20 pairs (the sort must hold
+    # within a chunk: chunks of their own are sorted by construction)
+    many = build_imdp(sim, spec, IMDPOptions(**o, batch_runs=200, chunk_size=1000))
+    assert many.meta["sampling"]["chunks"] == 1
     sink = lambda im: im.k_hi[im.col == im.C]   # noqa: E731
     assert sink(one).sum() < sink(one).size * 10          # some rows have real successors
     np.testing.assert_array_equal(sink(many), sink(one))

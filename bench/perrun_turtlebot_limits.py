@@ -1,7 +1,8 @@
 """What a per-run certificate of the TurtleBot from x0 would take (run by hand; docs/per-run.md, "TurtleBot").
 
     python bench/perrun_turtlebot_limits.py grid 0.05 0.05 0.0982    # noise-free robust game: is x0 won?
-    python bench/perrun_turtlebot_limits.py spread                    # one 0.3 s step under the gazebo noise
+    python bench/perrun_turtlebot_limits.py spread                    # one 0.3 s step under the gazebo_stress noise
+    python bench/perrun_turtlebot_limits.py spread --profile gazebo   # ... under the Gazebo-sized noise
 
 1. ``grid ETA_X ETA_Y ETA_THETA``: the translation-invariant interval MDP (simgap.perrun.translation)
    of the noise-free numpy unicycle (30 periods of 0.01 s per step, inputs v in {0.5, 1} m/s x
@@ -9,8 +10,8 @@
    (hi = 1 where a run touched the cell, sink bound 1 or 0): the robust game over the widened
    support, the best any sampling could give on that grid. Prints whether x0 = (3.5, 2, 1.5) is won,
    the entries, the build and value-iteration times and the peak RSS.
-2. ``spread``: 2000 PyBullet runs of one 0.3 s step from (2, 2, 0) under the experiment's gazebo_stress
-   profile, per input: quantiles of the end state and the 90 % / 99 % ranges in cells of
+2. ``spread [--profile P]``: 2000 PyBullet runs of one 0.3 s step from (2, 2, 0) under the experiment's
+   gazebo_stress profile (or profile P, e.g. gazebo), per input: quantiles of the end state and the 90 % / 99 % ranges in cells of
    0.05 m x 0.05 m x pi/32 (the grid of 1. that wins x0), i.e. how many successor cells a row of
    that grid's interval MDP has under this noise.
 """
@@ -61,8 +62,8 @@ def grid(eta, horizon: int) -> dict:
             "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)}
 
 
-def spread(runs: int) -> dict:
-    exp = load_experiment(ROOT / "assets/experiments/turtlebot.toml", "gazebo_stress")
+def spread(runs: int, profile: str = "gazebo_stress") -> dict:
+    exp = load_experiment(ROOT / "assets/experiments/turtlebot.toml", profile)
     s = dataclasses.replace(exp.system, inputs=INPUTS)
     cells = np.array([0.05, 0.05, np.pi / 32])
     out = {}
@@ -85,8 +86,9 @@ def main():
     g.add_argument("--horizon", type=int, default=60, help="0.3 s steps")
     sp = sub.add_parser("spread")
     sp.add_argument("--runs", type=int, default=2000)
+    sp.add_argument("--profile", default="gazebo_stress", help="the TurtleBot experiment's profile (its simulator)")
     a = ap.parse_args()
-    res = grid(a.eta, a.horizon) if a.what == "grid" else spread(a.runs)
+    res = grid(a.eta, a.horizon) if a.what == "grid" else spread(a.runs, a.profile)
     print(json.dumps(res, indent=1))
 
 

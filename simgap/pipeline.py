@@ -137,6 +137,24 @@ def closest_approach(arena, rr) -> dict:
     return out
 
 
+#: why the case study's controllers carry no p_cert (summary.json and the table say it)
+NO_P_CERT = ("the deterministic-gap controller states no probability and the stochastic-gap controller's guarantee "
+             "is about the mean map (the expected state), not single runs: neither has a per-run p_cert; the per-run "
+             "stage ([perrun] section, docs/per-run.md) synthesizes its own controller with one")
+
+
+def per_run_empirical(rr) -> dict:
+    """p_emp(x0) of one controller from the case study's R rollouts: the success fraction k / R (a run
+    succeeds by the spec's verdict within the horizon), its standard error sqrt(p (1 - p) / R) and
+    two-sided 95 % Clopper-Pearson interval; ``p_cert`` None with the reason (:data:`NO_P_CERT`)."""
+    from .perrun.validation import empirical
+    R = int(rr.n_rollouts)
+    k = R - int(rr.n_failures)
+    e = empirical(np.array([k]), R)
+    return {"p_emp": e["p_emp"][0], "se": e["se"][0], "ci95": e["ci95"][0], "successes": k, "n_rollouts": R,
+            "horizon": int(rr.horizon), "p_cert": None, "p_cert_note": NO_P_CERT}
+
+
 def _gamma_stats(cert, ds) -> dict:
     g = cert.gamma(ds.x, ds.u)
     return {"max": g.max(axis=0).tolist(), "mean": g.mean(axis=0).tolist()}
@@ -262,6 +280,7 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
                 entry["n_rollouts"] = int(rr.n_rollouts)
                 entry["mean_map_satisfies"] = None if rr.mean_map is None else rr.mean_map["satisfied"]
                 entry["rollout_average_satisfies"] = rr.rollout_average_verdict["satisfied"]
+                entry["per_run_empirical"] = per_run_empirical(rr)
                 if arena is not None:
                     entry["closest_approach"] = closest_approach(arena, rr)
             summary["methods"][method] = entry
@@ -315,6 +334,14 @@ def comparison_table(summary: dict) -> str:
     rows.append(("winning cells", *both(lambda e: f"{e['winning_cells']:,}")))
     rows.append(("failures", *both(lambda e: f"{e['failures']} / {e['n_rollouts']}" if "failures" in e
                                    else e["rollouts"].get("skipped", "-"))))
+    if any("per_run_empirical" in summary["methods"][m] for m in METHODS):
+        def pe(e):
+            r = e.get("per_run_empirical")
+            return "-" if r is None else f"{r['p_emp']:.4f} +- {r['se']:.4f}"
+        rows.append(("p_emp(x0) per run +- SE", *both(pe)))
+        rows.append(("p_cert(x0) per run", *both(lambda e: "-" if e.get("per_run_empirical") is None else
+                                                 ("none stated" if e["per_run_empirical"]["p_cert"] is None
+                                                  else f"{e['per_run_empirical']['p_cert']:.4f}"))))
     rows.append(("mean map satisfies (guarantee)", *both(lambda e: str(e.get("mean_map_satisfies", "-")))))
     rows.append(("rollout average satisfies", *both(lambda e: str(e.get("rollout_average_satisfies", "-")))))
     if any("closest_approach" in summary["methods"][m] for m in METHODS):
@@ -326,6 +353,10 @@ def comparison_table(summary: dict) -> str:
     w = [max(len(str(r[c])) for r in rows) for c in range(3)]
     lines = ["  ".join(str(r[c]).ljust(w[c]) if c == 0 else str(r[c]).rjust(w[c]) for c in range(3)) for r in rows]
     lines.insert(1, "-" * len(lines[0]))
+    if any((summary["methods"][m].get("per_run_empirical") or {}).get("p_cert", 0) is None for m in METHODS):
+        lines.append("")
+        lines.append(f"p_emp: successes out of the rollouts from x0 (95 % Clopper-Pearson intervals in summary.json); "
+                     f"p_cert: {NO_P_CERT}")
     warnings = [(m, w) for m in METHODS for w in summary["methods"][m].get("warnings", [])]
     if warnings:
         lines.append("")

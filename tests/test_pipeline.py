@@ -38,6 +38,11 @@ def test_summary_structure_and_sanity(small_run):
     assert sto["failures"] == 0
     assert sto["audit_pass_rate_joint"] >= sto["confidence_joint"]
     assert sto["mean_map_satisfies"] is True and sto["rollout_average_satisfies"] is True
+    # per-run p_emp(x0): the success fraction of the same rollouts, with no p_cert stated
+    for e in (det, sto):
+        pe = e["per_run_empirical"]
+        assert pe["successes"] == e["n_rollouts"] - e["failures"] and pe["n_rollouts"] == e["n_rollouts"]
+        assert pe["p_emp"] == pytest.approx(1 - e["failures"] / e["n_rollouts"]) and pe["p_cert"] is None
     for name in ("cert_stochastic.json", "cert_deterministic.json", "controller_stochastic.npz",
                  "rollouts_stochastic.npz", "audit_stochastic.json", "run.rrd"):
         assert (out / name).stat().st_size > 0, name
@@ -139,3 +144,33 @@ def test_closest_approach_over_rollouts_and_the_mean_map():
                      "stochastic": e}}
     table = comparison_table(s)
     assert "closest approach min [m]" in table and "-0.050" in table and f"{dist[50]:.3f}" in table
+
+
+def test_per_run_empirical_is_the_success_fraction_with_its_standard_error():
+    """p_emp = k / R with SE sqrt(p (1 - p) / R) and a 95 % Clopper-Pearson interval, checked against
+    Monte Carlo: over 4000 seeded repeats of R = 1000 Bernoulli(0.95) runs the spread of p_emp is
+    the stated SE (to 5 %) and the interval covers 0.95 in at least 95 % of the repeats (3 SE)."""
+    from types import SimpleNamespace
+
+    from simgap.pipeline import comparison_table, per_run_empirical
+
+    pe = per_run_empirical(SimpleNamespace(n_rollouts=1000, n_failures=44, horizon=600))
+    assert pe["successes"] == 956 and pe["p_emp"] == pytest.approx(0.956)
+    assert pe["se"] == pytest.approx(np.sqrt(0.956 * 0.044 / 1000))
+    assert pe["ci95"][0] < 0.956 < pe["ci95"][1] and pe["p_cert"] is None and "mean map" in pe["p_cert_note"]
+    rng = np.random.default_rng(5)
+    fails = rng.binomial(1000, 0.05, 4000)
+    once = {f: per_run_empirical(SimpleNamespace(n_rollouts=1000, n_failures=int(f), horizon=1)) for f in set(fails)}
+    est = [once[f] for f in fails]
+    p = np.array([e["p_emp"] for e in est])
+    assert np.std(p) == pytest.approx(np.sqrt(0.95 * 0.05 / 1000), rel=0.05)
+    assert np.mean([e["se"] for e in est]) == pytest.approx(np.std(p), rel=0.05)
+    cover = np.mean([e["ci95"][0] <= 0.95 <= e["ci95"][1] for e in est])
+    assert cover >= 0.95 - 3 * np.sqrt(0.95 * 0.05 / 4000)
+    e = {"gamma": {"max": [0.1] * 3}, "confidence_per_dim": [0.9] * 3, "audit_pass_rate_joint": 1.0,
+         "audit_violated_joint": 0.0, "winning_cells": 1, "rollouts": {"skipped": "x0 is outside the winning domain"}}
+    s = {"system": {"state_names": ["x", "y", "theta"]},
+         "methods": {"deterministic": {**e, "failures": 44, "n_rollouts": 1000, "per_run_empirical": pe},
+                     "stochastic": e}}
+    table = comparison_table(s)
+    assert "p_emp(x0) per run +- SE" in table and "0.9560 +- 0.0065" in table and "none stated" in table

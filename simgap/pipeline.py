@@ -155,6 +155,14 @@ def per_run_empirical(rr) -> dict:
             "horizon": int(rr.horizon), "p_cert": None, "p_cert_note": NO_P_CERT}
 
 
+def per_run_note(summary: dict) -> Optional[str]:
+    """What the table's per-run rows mean (printed under it by ``simgap run``); None without them."""
+    if not any("per_run_empirical" in summary["methods"][m] for m in METHODS):
+        return None
+    return (f"p_emp(x0): successes out of the rollouts from x0 (95 % Clopper-Pearson intervals in summary.json); "
+            f"p_cert: {NO_P_CERT}")
+
+
 def _gamma_stats(cert, ds) -> dict:
     g = cert.gamma(ds.x, ds.u)
     return {"max": g.max(axis=0).tolist(), "mean": g.mean(axis=0).tolist()}
@@ -353,10 +361,6 @@ def comparison_table(summary: dict) -> str:
     w = [max(len(str(r[c])) for r in rows) for c in range(3)]
     lines = ["  ".join(str(r[c]).ljust(w[c]) if c == 0 else str(r[c]).rjust(w[c]) for c in range(3)) for r in rows]
     lines.insert(1, "-" * len(lines[0]))
-    if any((summary["methods"][m].get("per_run_empirical") or {}).get("p_cert", 0) is None for m in METHODS):
-        lines.append("")
-        lines.append(f"p_emp: successes out of the rollouts from x0 (95 % Clopper-Pearson intervals in summary.json); "
-                     f"p_cert: {NO_P_CERT}")
     warnings = [(m, w) for m in METHODS for w in summary["methods"][m].get("warnings", [])]
     if warnings:
         lines.append("")

@@ -152,7 +152,7 @@ def test_per_run_empirical_is_the_success_fraction_with_its_standard_error():
     the stated SE (to 5 %) and the interval covers 0.95 in at least 95 % of the repeats (3 SE)."""
     from types import SimpleNamespace
 
-    from simgap.pipeline import comparison_table, per_run_empirical
+    from simgap.pipeline import comparison_table, per_run_empirical, per_run_note
 
     pe = per_run_empirical(SimpleNamespace(n_rollouts=1000, n_failures=44, horizon=600))
     assert pe["successes"] == 956 and pe["p_emp"] == pytest.approx(0.956)
@@ -174,3 +174,4 @@ def test_per_run_empirical_is_the_success_fraction_with_its_standard_error():
                      "stochastic": e}}
     table = comparison_table(s)
     assert "p_emp(x0) per run +- SE" in table and "0.9560 +- 0.0065" in table and "none stated" in table
+    assert "mean map" in per_run_note(s) and per_run_note({"methods": {"deterministic": e, "stochastic": e}}) is None

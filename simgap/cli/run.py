@@ -31,7 +31,7 @@ def add_parser(sub):
 
 def run(args) -> int:
     from ..config import load_experiment
-    from ..pipeline import comparison_table, run_experiment
+    from ..pipeline import comparison_table, per_run_note, run_experiment
     from ..progress import ProgressBar
 
     exp = load_experiment(args.experiment, args.profile)
@@ -41,6 +41,10 @@ def run(args) -> int:
                              n_rollouts=args.rollouts,
                              log=lambda m: print(m, file=sys.stderr, flush=True), progress=lambda stage, unit: ProgressBar(unit, desc=stage))
     print(comparison_table(summary))
+    note = per_run_note(summary)
+    if note:
+        print()
+        print(note)
     if "per_run" in summary:
         from ..perrun.stage import table
         print()

@@ -138,6 +138,26 @@ def test_urdf_mobile_base_drives_and_is_batch_independent(rng):
 # mujoco
 # ----------------------------------------------------------------------------------------
 
+def test_mujoco_diff_drive_follows_the_unicycle_inputs(rng):
+    """assets/urdf/diffbot.xml (bench/bench_mujoco_turtlebot.py): v drives along the heading, omega > 0
+    turns left (the tendon signs), the state is the planar pose; rows are bit-identical alone."""
+    pytest.importorskip("mujoco")
+    c = {"kind": "mujoco", "system": "turtlebot", "steps": 30, "noise": {"actuation_std": [0.03, 0.03]},
+         "options": {"model": str(REPO / "assets" / "urdf" / "diffbot.xml"), "threads": 1,
+                     "positions": ["root_x", "root_y", "root_yaw"], "velocities": [], "inputs": ["v", "omega"]}}
+    s = get_system("turtlebot", steps=30)
+    x = np.array([[2.0, 2.0, 0.0], [2.0, 2.0, np.pi / 2], [2.0, 2.0, 0.3], [2.0, 2.0, 0.3]])
+    u = np.array([[1.0, 0.0], [1.0, 0.0], [0.0, 1.0], [0.0, -1.0]])
+    with make_simulator(c, s) as sim:
+        noise = sim.draw_noise(4, rng)
+        assert np.array_equal(sim.step_with_noise(x, u, noise), one_at_a_time(sim, x, u, noise))
+        y = sim.step_with_noise(x, u, {k: np.zeros_like(v) for k, v in noise.items()})
+    f = s.f(x, u)   # the unicycle: 0.3 m along the heading, or +-0.3 rad in place
+    assert np.all(np.abs(s.diff(y, f)) < [0.1, 0.1, 0.15])    # starts at rest: up to 0.05 m short (docs)
+    assert y[0, 0] - 2.0 > 0.2 and abs(y[0, 1] - 2.0) < 0.01 and y[1, 1] - 2.0 > 0.2 and abs(y[1, 0] - 2.0) < 0.01
+    assert y[2, 2] - 0.3 > 0.2 and 0.3 - y[3, 2] > 0.2
+
+
 @pytest.mark.parametrize("steps", [1, 3])
 def test_mujoco_pendulum_agrees_with_pybullet_pendulum(rng, steps):
     """The same rod as MJCF: MuJoCo's semi-implicit Euler gives Bullet's numbers to 1e-12."""

@@ -329,14 +329,16 @@ def check_basis(n_pairs: int, n_vars: int, degrees: Sequence[int], extra_terms: 
 
 
 def perrun_size(o: dict, system, rate_per_worker: Optional[float] = None, workers: int = 1,
-                n_controllers: int = 3, local_workers: int = 0, sampling_rate: Optional[float] = None) -> dict:
+                n_controllers: int = 3, local_workers: int = 0, sampling_rate: Optional[float] = None,
+                entries_per_row: Optional[float] = None) -> dict:
     """Estimated work, peak memory and time of the per-run stage for checked ``[perrun]`` options ``o``.
 
     Grid: C = prod ceil((x_hi - x_lo) / eta) cells (invariant dimensions collapse to one class),
     M inputs. The interval MDP samples n_runs + pilot_runs runs of ``hold`` periods per (cell, input)
     (``sampling_steps``; the Lipschitz secants add 2 x 6000 runs of ``hold`` periods per dimension)
-    and keeps about min(n_runs, C, 32) successor intervals per pair (``entries``, about 20 bytes each
-    while they are assembled: counts, bounds, column, row); value iteration keeps a policy and a value
+    and keeps about ``entries_per_row`` (measured by the caller; default min(n_runs, C, 32)) intervals
+    per pair (``entries``, about 20 bytes each while they are assembled: counts, bounds, column,
+    :mod:`simgap.perrun.sampling`); value iteration keeps a policy and a value
     per cell and abstract step (horizon / hold); validation rolls ``n_rollouts`` runs of ``horizon``
     periods out from ``n_states`` states per controller (``rollout_steps``). A simulator step is one
     period of one run (one ``sim.step`` row); ``rate_per_worker`` is steps per second of one worker.
@@ -353,7 +355,8 @@ def perrun_size(o: dict, system, rate_per_worker: Optional[float] = None, worker
     M = float(len(system.inputs))
     hold, horizon = int(o["hold"]), int(o["horizon"])
     steps = max(1, -(-horizon // hold))
-    S = min(float(o["n_runs"]), C, 32.0)  # successors per pair: a run lands in a few cells (not all n_runs apart)
+    # successors per pair: a run lands in a few cells (not all n_runs apart), unless measured
+    S = float(entries_per_row) if entries_per_row else min(float(o["n_runs"]), C, 32.0)
     entries = C * M * S
     batch = float(o.get("batch_runs", 1 << 19))
     worker = batch * (hold * system.n + 3 * system.n + system.inputs.shape[1]) * 8 * 2
@@ -366,7 +369,8 @@ def perrun_size(o: dict, system, rate_per_worker: Optional[float] = None, worker
     return {"cells": C, "inputs": M, "memory": memory, "runs": runs, "entries": entries,
             "seconds": cpu / max(1, workers) if cpu is not None else None,
             "sampling_steps": sampling, "rollout_steps": rollouts, "cpu_hours": cpu / 3600 if cpu is not None else None,
-            "sampling_rate": sampling_rate or rate_per_worker, "rate": rate_per_worker}
+            "sampling_rate": sampling_rate or rate_per_worker, "rate": rate_per_worker,
+            "entries_per_row": S, "entries_measured": bool(entries_per_row)}
 
 
 def perrun_cost_text(e: dict, rate_per_worker: Optional[float], workers: int) -> str:
@@ -375,8 +379,10 @@ def perrun_cost_text(e: dict, rate_per_worker: Optional[float], workers: int) ->
           f"steps/s per worker (calibrated here), about {human_seconds(e['seconds'])} on {workers} worker(s)"
           ) if rate_per_worker else "no rate measured"
     roll = f" + {e['rollout_steps']:.3g} for the validation rollouts" if e["rollout_steps"] else ""
-    return (f"per-run stage projected: {e['sampling_steps']:.3g} simulator steps to sample the interval MDP{roll}; {at}; about {e['entries']:.3g} interval entries, "
-            f"peak memory about {human_bytes(e['memory'])} ({human_bytes(available_memory())} available)")
+    per = f"{e['entries_per_row']:.3g} per row, " + ("measured on a few pairs" if e["entries_measured"] else "guessed")
+    return (f"per-run stage projected: {e['sampling_steps']:.3g} simulator steps to sample the interval MDP{roll}; "
+            f"{at}; about {e['entries']:.3g} interval entries ({per}), peak memory about "
+            f"{human_bytes(e['memory'])} ({human_bytes(available_memory())} available)")
 
 
 #: the per-run stage estimated to take longer than this is refused (override: SIMGAP_NO_SIZE_CHECK=1)
@@ -384,12 +390,13 @@ MAX_PERRUN_SECONDS = 6 * 3600.0
 
 
 def check_perrun(o: dict, system, rate_per_worker: Optional[float] = None, workers: int = 1,
-                 local_workers: int = 0, sampling_rate: Optional[float] = None, n_controllers: int = 3) -> dict:
+                 local_workers: int = 0, sampling_rate: Optional[float] = None, n_controllers: int = 3,
+                 entries_per_row: Optional[float] = None) -> dict:
     """Refuse a per-run stage that cannot fit in memory or would take over 6 hours, with the numbers
     (:func:`perrun_size`; the message carries the projection of :func:`perrun_cost_text`).
     ``SIMGAP_NO_SIZE_CHECK=1`` skips the time limit for users who know (never the memory one)."""
     e = perrun_size(o, system, rate_per_worker, workers, n_controllers, local_workers=local_workers,
-                    sampling_rate=sampling_rate)
+                    sampling_rate=sampling_rate, entries_per_row=entries_per_row)
     what = (f"the per-run stage ({e['cells']:,.0f} cells x {e['inputs']:,.0f} inputs, n_runs {int(o['n_runs']):,}, "
             f"hold {int(o['hold'])}, horizon {int(o['horizon'])}, {int(o['n_states'])} states x "
             f"{int(o['n_rollouts']):,} rollouts: {e['runs']:.3g} simulator steps, about {e['entries']:.3g} interval "

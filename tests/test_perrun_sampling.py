@@ -193,3 +193,21 @@ def test_time_refusal_counts_cpu_hours_at_the_sampling_rate():
                                           r"--executor ray --address.*SIMGAP_NO_SIZE_CHECK"):
         checks.check_perrun(o, s, rate_per_worker=1e7, workers=4, sampling_rate=1e3)       # 15.5 h
     checks.check_perrun(o, s, rate_per_worker=1e7, workers=4, sampling_rate=1e7)      # 8 min: accepted
+
+
+def test_calibration_measures_rate_and_support(sim, serial):
+    """The projection's sampling rate and support per row are measured on a few pairs: the support is
+    that of the real build within a factor 2 (here the one-cell widening of the calibration against the
+    secants' own), and the memory estimate uses it rather than the a-priori guess of 32 per row."""
+    from simgap import checks
+    from simgap.perrun.sampling import calibrate_sampling
+    cal = calibrate_sampling(sim, SPEC, _opts())
+    real = serial["cell"].nnz / (serial["cell"].live.sum() * serial["cell"].M)
+    assert cal["rate"] > 0 and 0.5 * real <= cal["entries_per_row"] <= 2 * real, (cal, real)
+    o = {"eta": [0.05, 0.125], "hold": 10, "horizon": 40, "n_runs": 300, "pilot_runs": 50, "n_rollouts": 10,
+         "n_states": 1}
+    s = sim.system
+    guess, measured = checks.perrun_size(o, s), checks.perrun_size(o, s, entries_per_row=150.0)
+    C = np.prod(np.ceil((s.x_hi - s.x_lo) / np.array([0.05, 0.125])))
+    assert measured["entries"] == C * 21 * 150 and guess["entries"] == C * 21 * 32
+    assert measured["memory"] - guess["memory"] == pytest.approx(C * 21 * (150 - 32) * 20)

@@ -140,28 +140,32 @@ def runs_chunk(job: dict, c: int) -> dict:
                        chunk_rng(cfg["seed"], 2, c), chunk_rng(cfg["seed"], 3, c))
 
 
-def calibrate_sampling(sim, spec, options: IMDPOptions, runs: int = 8192, pairs: int = 8) -> Optional[float]:
-    """Steps per second of the interval-MDP sampling in this process, bookkeeping included (box tests,
-    touched cells, counts cost more than the simulator itself for a cheap one): :func:`count_pairs` on
-    ``pairs`` pairs spread over the sampling order, ``runs`` runs of ``hold`` periods in all, timed
-    after one untimed warm-up pair. A step is one (pair, run, period): with shared runs one anchor's
-    run counts once per cell it serves, as in :func:`simgap.checks.perrun_size`. None: no live pair."""
+def calibrate_sampling(sim, spec, options: IMDPOptions, runs: int = 8192, pairs: int = 8) -> Optional[dict]:
+    """The interval-MDP sampling measured in this process on ``pairs`` pairs spread over the sampling
+    order, with a one-cell widening (rho = eta / 2; the real one comes from the secants, and a wider
+    one costs more and touches more cells): ``{"rate"}`` steps per second, bookkeeping included (box
+    tests, touched cells and counts cost more than a cheap simulator itself), timed over the pilot's
+    N0 runs and ``runs`` main runs in all, after one untimed warm-up pair; ``{"entries_per_row"}`` the
+    support the N0 pilot runs gave plus the sink. A step is one (pair, run, period): with shared runs
+    one anchor's run counts once per cell it serves, as in :func:`simgap.checks.perrun_size`. None: no
+    live pair."""
     import dataclasses
     lay = layout(sim.system, spec, options)
     if lay.P == 0:
         return None
-    L = np.eye(sim.system.n)                       # a plausible widening: the identity's
+    L = np.eye(sim.system.n)
     widening = ({"Ln": L.tolist(), "Lr": (0 * L).tolist()} if lay.share is not None
                 else {"rho": (lay.grid.eta / 2).tolist()})
     pp = lay.order[np.linspace(0, lay.P - 1, min(pairs, lay.P)).astype(np.int64)]
     per = max(2, runs // len(pp))
-    o = dataclasses.replace(options, n_runs=per, pilot_runs=1, lipschitz=None)
+    o = dataclasses.replace(options, n_runs=per, lipschitz=None)
     rng = np.random.default_rng(0)
-    count_pairs(sim, spec, lay, widening, pp[:1], dataclasses.replace(o, n_runs=2), rng, rng)
+    count_pairs(sim, spec, lay, widening, pp[:1], dataclasses.replace(o, n_runs=2, pilot_runs=1), rng, rng)
     t = time.perf_counter()
-    count_pairs(sim, spec, lay, widening, pp, o, rng, rng)
+    part = count_pairs(sim, spec, lay, widening, pp, o, rng, rng)
     dt = time.perf_counter() - t
-    return len(pp) * (per + 1) * int(options.hold) / max(dt, 1e-9)
+    return {"rate": len(pp) * (per + int(o.pilot_runs)) * int(options.hold) / max(dt, 1e-9),
+            "entries_per_row": part["key"].size / len(pp) + 1}
 
 
 # ----------------------------------------------------------------------------------------------

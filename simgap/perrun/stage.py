@@ -161,8 +161,8 @@ def project_cost(o: dict, exp, ex, log, rollouts: bool = True) -> dict:
     """Log the per-run stage's projected cost (simulator steps, CPU-hours at the rates calibrated here,
     interval entries, memory) for executor ``ex`` and refuse what this machine cannot hold, with the
     numbers (:func:`simgap.checks.check_perrun`). The memory is checked first, from the sizes alone;
-    then the simulator's rate and the sampling's own rate (bookkeeping included,
-    :func:`simgap.perrun.sampling.calibrate_sampling`) are measured. With Ray at an address the
+    then the simulator's rate and the sampling's own rate and support per row (bookkeeping included,
+    :func:`simgap.perrun.sampling.calibrate_sampling`) are measured and the check repeated with them. With Ray at an address the
     projection counts ``ex.workers`` CPUs (``--workers``: default this machine's cores). ``rollouts``:
     the validation's rollouts are part of the work (``simgap run``; not ``simgap synthesize``)."""
     from .. import checks
@@ -173,18 +173,19 @@ def project_cost(o: dict, exp, ex, log, rollouts: bool = True) -> dict:
     nc = 3 if rollouts else 0
     checks.check_perrun(o, exp.system, None, ex.workers, local_workers=local, n_controllers=nc)  # memory first
     rate = checks.calibrated_rate(exp.simulator, exp.system)
-    sampling = None
+    cal = None
     if not o.get("invariant"):
         from .imdp import IMDPOptions
         from .sampling import calibrate_sampling
         opts = IMDPOptions(eta=o["eta"], hold=int(o["hold"]), n_runs=int(o["n_runs"]), pilot_runs=int(o["pilot_runs"]),
                            seed=int(o["seed"]), split=o["split"], share=o.get("share"))
         with make_simulator(exp.simulator.to_dict(), system=exp.system) as sim:
-            sampling = calibrate_sampling(sim, experiment_spec(exp)[0], opts)
-    e = checks.perrun_size(o, exp.system, rate, ex.workers, nc, local_workers=local, sampling_rate=sampling)
+            cal = calibrate_sampling(sim, experiment_spec(exp)[0], opts)
+    kw = dict(local_workers=local, n_controllers=nc, sampling_rate=cal and cal["rate"],
+              entries_per_row=cal and cal["entries_per_row"])
+    e = checks.perrun_size(o, exp.system, rate, ex.workers, **kw)
     log(checks.perrun_cost_text(e, rate, ex.workers))
-    return checks.check_perrun(o, exp.system, rate, ex.workers, local_workers=local, sampling_rate=sampling,
-                               n_controllers=nc)
+    return checks.check_perrun(o, exp.system, rate, ex.workers, **kw)
 
 
 def validate_controller(name: str, input_fn, hold: int, sim, spec, x0, domain_states, p_cert_fn, o: dict,

@@ -912,6 +912,14 @@ def test_perrun_estimate_counts_the_work():
     assert e["seconds"] == pytest.approx(e["runs"] / 2e5)
 
 
+def _terminal_sigint():
+    """In the child before exec: SIGINT handled and unblocked, as in a terminal, whatever this test
+    process inherited or was left with by an earlier test (SIG_IGN survives exec)."""
+    import signal
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+
+
 def test_ctrl_c_during_collection_prints_no_worker_traceback(work, tmp_path):
     """SIGINT to the whole process group, as a terminal's Ctrl-C sends it: the parent says
     "interrupted"; the pool's workers print nothing (they printed KeyboardInterrupt tracebacks)."""
@@ -922,7 +930,8 @@ def test_ctrl_c_during_collection_prints_no_worker_traceback(work, tmp_path):
                           "--epsilon", "0.002", "--n-runs", "2", "--chunk-size", "64", "--executor", "local",
                           "--workers", "2",
                           "--out", str(tmp_path / "st"), "--no-progress"], cwd=tmp_path, env=env,
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                         preexec_fn=_terminal_sigint)
     try:
         deadline = time.monotonic() + 60
         while not list((tmp_path / "st" / "chunks").glob("c*.npz")) and time.monotonic() < deadline:

@@ -93,6 +93,9 @@ def test_watch_exits_only_after_the_parent(monkeypatch, proc):
         pytest.skip("needs /proc")
     exited = []
     monkeypatch.setattr(ex.os, "_exit", lambda code: exited.append(code))
+    # exit_with_parent ignores SIGINT (as a worker must); in this process that would outlive the test
+    # and every later subprocess would inherit SIG_IGN (a Ctrl-C test then saw its SIGINT ignored)
+    monkeypatch.setattr(ex.signal, "signal", lambda *a: None)
     parent = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(2)"])
     ex.exit_with_parent(parent.pid, period=0.1)
     time.sleep(1.0)

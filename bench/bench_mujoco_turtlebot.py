@@ -28,13 +28,13 @@ from __future__ import annotations
 
 import argparse
 import os
-import time
 from pathlib import Path
 
 import numpy as np
 
+from bench_mujoco import rate          # the same timing (best of repeat batches after a warm-up)
+from bench_turtlebot import batch     # the same collection-like batch as the PyBullet bench
 from simgap.simulators import make_simulator
-from simgap.systems import get_system
 
 ROOT = Path(__file__).resolve().parents[1]
 STEPS = 30  # the experiment's k: tau_k = 0.3 s
@@ -46,16 +46,6 @@ MJ_OPTIONS = {"model": str(ROOT / "assets" / "urdf" / "diffbot.xml"), "positions
               "velocities": [], "inputs": ["v", "omega"]}
 
 
-def batch(B: int, seed: int = 0):
-    """The system and a collection-like batch (x, u) of B runs."""
-    s = get_system("turtlebot", steps=STEPS)
-    rng = np.random.default_rng(seed)
-    x = np.column_stack([np.full(B, 2.0), np.full(B, 2.0), rng.uniform(-np.pi, np.pi, B)])
-    grid = np.linspace(-1.0, 1.0, 5)
-    U = np.array([[a, b] for a in grid for b in grid])
-    return s, x, U[rng.integers(0, len(U), B)]
-
-
 def quiet(noise: dict) -> dict:
     """The same draws with the additive noises zeroed and every relative factor 1 (noise-free)."""
     factors = ("radius", "mass", "friction", "damping", "slip")
@@ -65,18 +55,10 @@ def quiet(noise: dict) -> dict:
 def measure(cfg, s, x, u, repeat: int):
     """(robot-steps per CPU s, per wall s, max |fhat - f| (3,), rms (3,)) of one simulator."""
     with make_simulator(cfg, s) as sim:
-        sim.step(x[:64], u[:64], np.random.default_rng(99))  # warm-up (MuJoCo's thread pool, contacts)
-        cpu, wall = [], []
-        for r in range(repeat):
-            rng = np.random.default_rng(r)
-            t0, c0 = time.perf_counter(), time.process_time()
-            sim.step(x, u, rng)
-            cpu.append(time.process_time() - c0)
-            wall.append(time.perf_counter() - t0)
+        cpu_rate, wall_rate = rate(sim, x, u, STEPS, repeat)
         y = sim.step_with_noise(x, u, quiet(sim.draw_noise(len(x), np.random.default_rng(0))))
     d = np.abs(s.diff(y, s.f(x, u)))
-    n = len(x) * STEPS
-    return n / min(cpu), n / min(wall), d.max(axis=0), np.sqrt((d ** 2).mean(axis=0))
+    return cpu_rate, wall_rate, d.max(axis=0), np.sqrt((d ** 2).mean(axis=0))
 
 
 def main(argv=None):

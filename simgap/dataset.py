@@ -161,14 +161,7 @@ def load_dataset(path: str | Path, system: System | None = None) -> Dataset:
 
 
 def load_store(path: str | Path, system: System | None = None) -> Dataset:
-    """Load a complete collection store (:mod:`simgap.store`) as a :class:`Dataset`.
-
-    ``system`` is needed for user-defined systems and must match the recorded description;
-    built-in systems are rebuilt from the manifest. The dataset's manifest holds the hashed
-    configuration (``system``, ``simulator``, ``cover``, ``seed``, ``n_runs``, ...) plus
-    ``hash`` and ``store``.
-
-    Raises SimgapError for a missing, unreadable, modified, mismatched or incomplete store.
-    """
+    """Load a complete collection store (:mod:`simgap.store`) as a :class:`Dataset`: what
+    :func:`simgap.store.read_store` reads and verifies (``system``, manifest and refusals there)."""
     c = store.read_store(path, system)
     return Dataset(system=c.system, n_runs=c.n_runs, epsilon=c.epsilon, manifest=c.manifest, **c.arrays)

@@ -103,26 +103,14 @@ class LocalExecutor(Executor):
                     "script in a threaded program, guard it with `if __name__ == '__main__':`; "
                     "finished chunks are kept, run again to resume") from None
 
-        finished = False
         try:
-            done = _bounded_map(lambda c: submit_without_sigint(pool.submit, fn, job, c),
+            return _bounded_map(lambda c: submit_without_sigint(pool.submit, fn, job, c),
                                 lambda p: wait(p, return_when=FIRST_COMPLETED)[0],
                                 result, todo, 2 * self.workers, pending, on_result, should_stop)
-            finished = True
-            return done
         finally:
             for fut in pending:
                 fut.cancel()
-            if finished:
-                pool.shutdown(wait=True, cancel_futures=True)
-            else:
-                # interrupted (Ctrl-C) or failed: the caller keeps only what on_result took, so the
-                # results in flight are not needed, and waiting for them could hang when the
-                # interrupt hit the pool's own bookkeeping: end the workers instead
-                workers = list((getattr(pool, "_processes", None) or {}).values())
-                pool.shutdown(wait=False, cancel_futures=True)
-                for w in workers:
-                    w.terminate()
+            pool.shutdown(wait=True, cancel_futures=True)
 
 
 class RayExecutor(Executor):

@@ -128,6 +128,8 @@ class CertifySection(Section):
     lhat: Literal["data", "simulator"] = "data"
     lhat_pairs: Int1 = 2000
     lhat_runs: Annotated[int, Field(ge=2)] = 100
+    lipschitz_term: Literal["paper", "gap"] = "paper"
+    continuous_inputs: bool = False
     solver: Literal["CLARABEL", "HIGHS"] = "CLARABEL"
     seed: Int0 = 0
 

@@ -425,22 +425,49 @@ class Certificate:
             lines.append("note: " + note)
         cols = ["dim", "max gap", "delta1", "delta2", "beta1", "beta2", "Mhat", "L_f", "Lhat_fhat", "L_2",
                 "Lx*eps", "gamma min", "gamma max", "conf"]
+        if self.lipschitz_term == "gap":
+            cols[10] = "L term"
         w = [10] + [11] * (len(cols) - 1)
         fmt = lambda v: "-" if v is None else (v if isinstance(v, str) else f"{v:.4g}")
         row = lambda vals: "".join(f"{fmt(v):<{w[0]}}" if k == 0 else f"{fmt(v):>{w[k]}}" for k, v in enumerate(vals))
         hdr = row(cols)
         lines += [hdr, "-" * len(hdr)]
-        for name, d in zip(self.state_names, self.dims):
+        lt = self.lipschitz_terms()
+        for i, (name, d) in enumerate(zip(self.state_names, self.dims)):
             lo, hi = d.scp.get("gamma_range_on_data", [float("nan")] * 2)
             lines.append(row([name, d.gap_max, d.delta1, d.delta2, d.beta1, d.beta2, d.Mhat, d.L_f, d.L_fhat, d.L_2,
-                              d.L_x * self.epsilon, lo, hi, d.confidence]))
+                              lt[i], lo, hi, d.confidence]))
+        gt = self.gap_terms()
+        if gt is not None:
+            used = self.lipschitz_term
+            lines.append("")
+            lines.append(f"Lipschitz term side by side (gamma uses the {'gap' if used == 'gap' else 'paper'}'s; the gap's "
+                         f"own term is beyond the paper): paper (L_f + Lhat_fhat + L_2) eps with eps = "
+                         f"{self.epsilon:g}; gap sum_j (L_ij + L_2,ij) eps_j with eps_j = "
+                         + ", ".join(f"{nm} {r:.4g}" for nm, r in zip(self.state_names, self.radii)))
+            cols2 = ["dim", "paper term", "gap term", "gamma max", "gamma max"] + [f"L[{nm}]" for nm in self.state_names]
+            sub = ["", "", "", "(paper)", "(gap)"] + [""] * self.n
+            w2 = [10] + [12] * (len(cols2) - 1)
+            row2 = lambda vals: "".join(f"{fmt(v):<{w2[0]}}" if k == 0 else f"{fmt(v):>{w2[k]}}"
+                                        for k, v in enumerate(vals))
+            lines += [row2(cols2), row2(sub), "-" * sum(w2)]
+            pt = self.paper_terms()
+            for i, (name, d) in enumerate(zip(self.state_names, self.dims)):
+                hi = d.scp.get("gamma_range_on_data", [float("nan")] * 2)[1]
+                paper_hi, gap_hi = (hi - gt[i] + pt[i], hi) if used == "gap" else (hi, hi - pt[i] + gt[i])
+                lines.append(row2([name, pt[i], gt[i], paper_hi, gap_hi, *d.L_gap]))
+            if self.continuous:
+                lines.append("continuous inputs (beyond the paper): u anywhere in ["
+                             + ", ".join(f"{a:g}..{b:g}" for a, b in zip(*self.input_box)) + "] adds "
+                             + ", ".join(f"{nm} {v:.4g}" for nm, v in zip(self.state_names, self.input_terms())))
         jc = self.joint_confidence
         lines.append("joint confidence (Theorem 2): " + ("not stated (deterministic baseline)" if jc is None
                                                          else f"{jc:.4f} ({100 * jc:.2f} %), {self.scope}"))
         lines.append(self.statement())
-        for name, d in zip(self.state_names, self.dims):
+        const = self.constant()
+        for i, (name, d) in enumerate(zip(self.state_names, self.dims)):
             terms = " ".join(f"{c:+.4g}*{t}" if t != "1" else f"{c:+.4g}" for c, t in zip(d.q, d.terms) if c != 0)
-            lines.append(f"gamma_{name}(x,u) = {d.L_x * self.epsilon + d.delta2 + d.repair:.4g} + [{terms}]")
+            lines.append(f"gamma_{name}(x,u) = {const[i]:.4g} + [{terms}]")
         return "\n".join(lines)
 
 

@@ -384,9 +384,15 @@ def mean_noise_share(ds, pairs, i: int, slopes: np.ndarray, rng: np.random.Gener
 
 def beyond_paper(o: CertifyOptions) -> List[str]:
     """Labels of every choice in ``o`` that the paper does not make (stored in the certificate)."""
+    out = []
+    if o.lipschitz_term == "gap":
+        out.append("Lipschitz term from the gap itself: sum_j L_ij eps_j with L_ij the slope of g_i = E fhat_i - f_i "
+                   "in x_j and eps_j the cover's radius per dimension (the paper: (L_f + Lhat_fhat + L_2) eps)")
+    if o.continuous_inputs:
+        out.append("gamma certified between the input grid's values: + sum_k L^u_ik eps^u_k for continuous inputs")
     if o.method != "stochastic":
-        return []
-    out = list(o.bounds.beyond_paper())
+        return out
+    out += list(o.bounds.beyond_paper())
     if o.variance == "empirical" and o.safety != 10.0:
         out.append(f"variance safety factor {o.safety:g} (the paper takes 10 x the largest sample variance)")
     if o.variance != "empirical":
@@ -394,11 +400,6 @@ def beyond_paper(o: CertifyOptions) -> List[str]:
                    f"not over all of X (between rows the variance is assumed no larger)")
     if o.lhat == "simulator":
         out.append("Lhat_fhat from the simulator with common random numbers along the covered dimensions")
-    if o.lipschitz_term == "gap":
-        out.append("Lipschitz term from the gap itself: sum_j L_ij eps_j with L_ij the slope of g_i = E fhat_i - f_i "
-                   "in x_j and eps_j the cover's radius per dimension (the paper: (L_f + Lhat_fhat + L_2) eps)")
-    if o.continuous_inputs:
-        out.append("gamma certified between the input grid's values: + sum_k L^u_ik eps^u_k for continuous inputs")
     return out
 
 

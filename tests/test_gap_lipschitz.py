@@ -187,3 +187,16 @@ def test_bad_input_is_refused_by_name():
     cert = certify(ds, method="deterministic")
     with pytest.raises(SimgapError, match="continuous_inputs"):
         cert.gamma_sup([-1, -1], [1, 1], [-1], [1])
+
+
+def test_a_cover_with_one_radius_per_dimension_from_the_experiment(tmp_path):
+    from simgap.config import load_experiment
+    body = '[system]\nname = "pendulum"\n[simulator]\nkind = "numpy"\n[collect]\nn_runs = 2\n'
+    (tmp_path / "e.toml").write_text(body + "epsilon = [0.01, 0.02]\n")
+    cov = load_experiment(tmp_path / "e.toml", profile=None).cover()
+    assert np.allclose(cov.widths / 2, [0.01, 0.02]) and cov.radius <= cov.epsilon
+    for bad, words in (("epsilon = [0.01, 0.0]", "epsilon[1]"), ("epsilon = [0.01, -1.0]", "epsilon[1]"),
+                       ("epsilon = [0.01, 0.02]\nspacing = [0.02, 0.04]", "not both")):
+        (tmp_path / "b.toml").write_text(body + bad + "\n")
+        with pytest.raises(SimgapError, match=words.replace("[", r"\[").replace("]", r"\]")):
+            load_experiment(tmp_path / "b.toml", profile=None)

@@ -1,14 +1,15 @@
 """Mutation check: every known wrong implementation of the certificate or the abstraction must
 make the tight-margin tests fail.
 
-    python bench/mutations.py [--group abstraction|perrun|all] [--tests TEST ...]
+    python bench/mutations.py [--group abstraction|perrun|gap|all] [--tests TEST ...]
                               [--only NAME ...] [--all-failures] [--json out.json]
 
 Group ``abstraction`` (the default) runs tests/test_soundness_margins.py and
 tests/test_certificate_margins.py per mutation; group ``perrun`` mutates the per-run stage
 (simgap/perrun/) and runs each mutation's own test file (the interval-MDP mutations
 tests/test_perrun_soundness.py, the realization-gap ones tests/test_perrun_realization.py);
-``--tests`` overrides the files for every mutation.
+group ``gap`` mutates the gap's own Lipschitz term and the input term (beyond the paper) and runs
+tests/test_gap_lipschitz.py; ``--tests`` overrides the files for every mutation.
 
 The repository this script lives in is copied to a temporary directory (never edited in place).
 The chosen tests are run once unmutated (they must pass), then once per mutation with the
@@ -36,12 +37,15 @@ DEFAULT_TESTS = ["tests/test_soundness_margins.py", "tests/test_certificate_marg
 #: the test file each per-run mutation is checked with (by the file it mutates)
 PERRUN_TESTS = {"simgap/perrun/realization.py": ["tests/test_perrun_realization.py"]}
 PERRUN_DEFAULT = ["tests/test_perrun_soundness.py"]
+GAP_TESTS = ["tests/test_gap_lipschitz.py"]
 
 
 def tests_for(rel: str, group: str, override=None) -> list:
     """The tests a mutation of ``rel`` in ``group`` is checked with (``override``: --tests)."""
     if override:
         return list(override)
+    if group == "gap":
+        return GAP_TESTS
     return DEFAULT_TESTS if group == "abstraction" else PERRUN_TESTS.get(rel, PERRUN_DEFAULT)
 
 
@@ -85,11 +89,26 @@ MUTATIONS = [
                   "M = system.inputs.shape[0]\n    return np.ones(M, dtype=bool)\n"),
      "synthesis over every input of the system, certified or not", "abstraction"),
     ("delta_2 dropped", "simgap/certify/certificate.py",
-     _in_function("constant", " + d.delta2", ""),
+     _in_function("constant", "d.delta2 + d.repair", "d.repair"),
      "gamma = L_x eps + q^T p (+ repair), without delta_2", "abstraction"),
     ("L*epsilon term dropped", "simgap/certify/certificate.py",
-     _in_function("constant", "d.L_x * self.epsilon + ", ""),
+     _in_function("constant", "return self.lipschitz_terms() + ", "return "),
      "gamma = q^T p + delta_2 (+ repair), without the Lipschitz term", "abstraction"),
+    # ----- the gap's own Lipschitz term and inputs between grid values (tests/test_gap_lipschitz.py) -----
+    ("gap term halved", "simgap/certify/certificate.py",
+     _in_function("gap_terms", "np.dot(np.add(d.L_gap, d.L2_x), self.radii)",
+                  "np.dot(0.5 * np.add(d.L_gap, d.L2_x), self.radii)"),
+     "gamma with half the gap's own Lipschitz term", "gap"),
+    ("gap term dropped", "simgap/certify/certificate.py",
+     _in_function("gap_terms", "np.dot(np.add(d.L_gap, d.L2_x), self.radii)", "0.0 * self.radii[0]"),
+     "gamma with the gap's term but no Lipschitz extension at all", "gap"),
+    ("gap radii: full cells", "simgap/certify/lipschitz.py",
+     _in_function("axis_grid", "radii[j] = max(0.5 * gaps.max(initial=0.0), v[0] - s.x_lo[j], s.x_hi[j] - v[-1])",
+                  "radii[j] = max(0.25 * gaps.max(initial=0.0), v[0] - s.x_lo[j], s.x_hi[j] - v[-1])"),
+     "the per-dimension radius taken as a quarter of the spacing", "gap"),
+    ("input term dropped", "simgap/certify/certificate.py",
+     _in_function("gamma", "g = g + self.input_terms()", "g = g"),
+     "gamma at inputs between grid values without the input Lipschitz term", "gap"),
     ("delta_1 dropped", "simgap/certify/pipeline.py",
      _in_function("certify", "solve_scp(P, g[:, i], float(d1[i]),", "solve_scp(P, g[:, i], 0.0,"),
      "the scenario program without delta_1 in its constraints", "abstraction"),
@@ -174,7 +193,7 @@ def run_tests(root: Path, tests, timeout: int, stop_first: bool = True) -> tuple
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--group", choices=["abstraction", "perrun", "all"], default="abstraction",
+    ap.add_argument("--group", choices=["abstraction", "perrun", "gap", "all"], default="abstraction",
                     help="which mutations (default: the abstraction's)")
     ap.add_argument("--tests", nargs="+", default=None, help="test files/ids to run per mutation (default: by group)")
     ap.add_argument("--only", nargs="+", default=None, help="run only these mutations (names)")

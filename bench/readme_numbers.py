@@ -22,7 +22,10 @@ ROOT = Path(__file__).resolve().parents[1]
 # Results-table label prefix per (experiment, profile)
 ROW_LABELS = {("pendulum", "small"): "pendulum, small", ("pendulum", "paper"): "pendulum, paper",
               ("pendulum", "noisy"): "pendulum, noisy", ("turtlebot", "small"): "TurtleBot, small",
-              ("turtlebot", "gazebo"): "TurtleBot, gazebo", ("turtlebot", "gazebo_n400"): "TurtleBot, N1hat 400"}
+              ("turtlebot", "gazebo"): "TurtleBot, gazebo", ("turtlebot", "gazebo_n400"): "TurtleBot, N1hat 400",
+              ("pendulum", "tight"): "pendulum, tight", ("turtlebot", "tight"): "TurtleBot, tight",
+              ("cartpole", "small"): "cart-pole, Gymnasium", ("cartpole", "tight"): "cart-pole, tight",
+              ("cartpole", "refined"): "cart-pole, refined"}
 PRINTED_RUN = ("pendulum", "small")  # the run whose printed table the README shows
 
 

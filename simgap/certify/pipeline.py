@@ -7,7 +7,9 @@ Per state dimension i:
      deterministic baseline: delta = 0, no confidence;
   4. SCP-N1hat (scp.py) -> q_i;
   5. L_f, Lhat_fhat, L_2 (lipschitz.py);
-  6. gamma_i = (L_f + Lhat_fhat + L_2) eps + q_i^T p_i + delta_2i (+ repair_i).
+  6. gamma_i = (L_f + Lhat_fhat + L_2) eps + q_i^T p_i + delta_2i (+ repair_i), or with
+     ``lipschitz_term = "gap"`` (beyond the paper) sum_j (L_ij + L_2,ij) eps_j in place of the first
+     term: L_ij the gap's own slope in x_j, eps_j the cover's radius per dimension (_gap_lipschitz).
 """
 
 from __future__ import annotations
@@ -334,9 +336,6 @@ def certify(dataset, options: Optional[CertifyOptions] = None, simulator=None, *
         term = gap_term if o.lipschitz_term == "gap" else paper_term
         const = term + float(d2[i]) + res.repair
         scp["gamma_range_on_data"] = [float(fit.min() + const), float(fit.max() + const)]
-        if gl is not None:
-            other = (paper_term if o.lipschitz_term == "gap" else gap_term) + float(d2[i]) + res.repair
-            scp["gamma_range_on_data_other_term"] = [float(fit.min() + other), float(fit.max() + other)]
         dims.append(DimCertificate(
             terms=bases[i].names, q=res.q, delta1=float(d1[i]), delta2=float(d2[i]),
             beta1=None if beta1 is None else float(beta1[i]), beta2=None if beta2 is None else float(beta2[i]),

@@ -279,7 +279,7 @@ def certify(dataset, options: Optional[CertifyOptions] = None, simulator=None, *
     # one simulation instead of two.
     shared_crn = o.lipschitz_term == "gap" and o.lhat == "simulator"
     gl = _gap_lipschitz(ds, o, simulator) if (o.lipschitz_term == "gap" or o.continuous_inputs) else None
-    pairs, lip, U_data = _data_lipschitz(ds, dataclasses.replace(o, lhat="data") if shared_crn else o, simulator)
+    pairs, lip, U_data = _data_lipschitz(ds, dataclasses.replace(o, lhat="none") if shared_crn else o, simulator)
     if shared_crn:
         lip = [(L_f, how_f, float(np.linalg.norm(gl["Lfhat_axes"][i])),
                 {"how": "sqrt(sum_j Lhat_j^2) over the covered axes, Lhat_j the Wood-Zhang estimate on slopes of "
@@ -408,7 +408,8 @@ _LIP_CACHE: "OrderedDict[tuple, tuple]" = OrderedDict()
 
 
 def _data_lipschitz(ds, o: CertifyOptions, simulator=None):
-    """(neighbour pairs, [(L_f, how, Lhat_fhat, how)] per dimension, the data's inputs) of a dataset.
+    """(neighbour pairs, [(L_f, how, Lhat_fhat, how)] per dimension, the data's inputs) of a dataset
+    (``o.lhat = "none"``: no Lhat_fhat, None in its place).
 
     These depend only on the data and the Lipschitz options, not on delta or the basis, so the
     result is memoized per dataset (a delta or basis change re-solves only the programs). Each
@@ -422,11 +423,11 @@ def _data_lipschitz(ds, o: CertifyOptions, simulator=None):
     s = ds.system
     pairs = neighbour_pairs(ds)
     if o.lipschitz_mode == "increment":
-        sl_fhat = slopes_of(s.diff(ds.mean, ds.x), pairs, s)  # mean fhat - x (wrapped): the increment
+        sl_fhat = slopes_of(s.diff(ds.mean, ds.x), pairs, s) if o.lhat != "none" else None  # the increment
         sl_f = slopes_of(s.diff(ds.f_nom, ds.x), pairs, s)
         Lf_analytic = None
     else:
-        sl_fhat = slopes_of(ds.mean, pairs, s)
+        sl_fhat = slopes_of(ds.mean, pairs, s) if o.lhat != "none" else None
         sl_f = slopes_of(ds.f_nom, pairs, s)
         Lf_analytic = s.lipschitz_f()
     if o.lhat == "simulator":
@@ -459,6 +460,9 @@ def _data_lipschitz(ds, o: CertifyOptions, simulator=None):
             L_f = wz.estimate
             how_f = {"how": f"Wood-Zhang estimate on slopes of f_{i + 1}" + (" - x" if incr else "")
                      + " over neighbouring cover points", **wz.to_dict()}
+        if sl_fhat is None:  # lhat = "none": Lhat_fhat comes from elsewhere (the gap term's runs)
+            out.append((L_f, how_f, None, None))
+            continue
         wz = wood_zhang(sl_fhat[:, i], np.random.default_rng([o.seed, 3, i]))
         how_fhat = {"how": "Wood-Zhang estimate on slopes of the empirical mean"
                     + (" increment (mean - x)" if incr else "") + src, **wz.to_dict()}

@@ -134,8 +134,8 @@ def load_dataset(path: str | Path, system: System | None = None) -> Dataset:
     path = Path(path)
     if path.is_dir():
         return load_store(path, system=system)
-    if not path.exists():
-        raise SimgapError(f"dataset {str(path)!r} does not exist")
+    from .file_guard import regular_file
+    regular_file(path, "dataset")
     try:
         with np.load(path, allow_pickle=False) as z:
             arrays = {k: z[k] for k in ARRAYS}

@@ -152,9 +152,10 @@ def _compare(args, res) -> dict:
         from ..synthesis.spec import Spec
         if not args.eta:
             raise SimgapError("--spec needs --eta (cell widths)")
+        from ..file_guard import read_json
         try:
-            spec = Spec.from_dict(json.loads(Path(args.spec).read_text()))
-        except (OSError, json.JSONDecodeError, KeyError, TypeError) as e:
+            spec = Spec.from_dict(read_json(args.spec, "--spec"))
+        except (KeyError, TypeError) as e:
             raise SimgapError(f"--spec {args.spec!r}: not a readable specification JSON ({e})") from None
         try:
             eta = [float(v) for v in args.eta.split(",")]

@@ -105,12 +105,8 @@ def load_spec(text: str, system):
     from ..synthesis.spec import Spec
     path = Path(text)
     if path.suffix == ".json":
-        if not path.exists():
-            raise SimgapError(f"spec file {text!r} does not exist")
-        try:
-            d = json.loads(path.read_text())
-        except ValueError as e:
-            raise SimgapError(f"spec file {text!r} is not valid JSON: {e}") from None
+        from ..file_guard import read_json
+        d = read_json(path, "spec file")
         try:
             return Spec.from_dict(d), None
         except (KeyError, TypeError) as e:

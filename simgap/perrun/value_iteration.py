@@ -104,7 +104,9 @@ class PerRunController:
     @classmethod
     def load(cls, path) -> "PerRunController":
         import json
-        path = Path(path)
+
+        from ..file_guard import regular_file
+        path = regular_file(path, "per-run controller file")
         try:
             with np.load(path, allow_pickle=False) as z:
                 meta = json.loads(str(z["meta"]))

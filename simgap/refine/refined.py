@@ -206,13 +206,8 @@ def system_from_dict(d: dict, _depth: int = 0) -> System:
 
 def load_refined(path: str | Path) -> System:
     """Load a refined system JSON file."""
-    path = Path(path)
-    try:
-        d = json.loads(path.read_text())
-    except OSError as e:
-        raise SimgapError(f"cannot read refined system {str(path)!r}: {e}") from None
-    except (json.JSONDecodeError, RecursionError) as e:
-        raise SimgapError(f"refined system {str(path)!r} is not valid JSON or nested too deeply: {e}") from None
+    from ..file_guard import read_json
+    d = read_json(path, "refined system")
     return system_from_dict(d)
 
 

@@ -189,6 +189,8 @@ class RolloutResult:
 
 def load_rollout(path) -> RolloutResult:
     """Read a file written by :meth:`RolloutResult.save_npz` (no pickle)."""
+    from ..file_guard import regular_file
+    regular_file(path, "rollout file")
     try:
         with np.load(os.fspath(path), allow_pickle=False) as z:
             a = {k: z[k] for k in z.files}

@@ -182,8 +182,8 @@ class Controller:
         refined system) with the stored input set, unless ``system`` is given.
         """
         path = Path(path)
-        if not path.exists():
-            raise SimgapError(f"controller file {str(path)!r} does not exist")
+        from ..file_guard import regular_file
+        regular_file(path, "controller file")
         try:
             with np.load(path, allow_pickle=False) as z:
                 arrays = {k: z[k] for k in ("steps", "valid", "chosen", "target", "inputs", "meta")}

@@ -60,6 +60,17 @@ def count(lo: int = 1):
     return parse
 
 
+def probability(text: str) -> float:
+    """argparse type: a number strictly between 0 and 1 (0, 1, NaN and inf refused)."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number in (0, 1), got {text!r}") from None
+    if not 0.0 < v < 1.0:  # NaN fails both comparisons
+        raise argparse.ArgumentTypeError(f"must be in (0, 1) (strictly), got {text!r}")
+    return v
+
+
 def port(text: str) -> int:
     """argparse type: a TCP port 0..65535 (0 = any free port)."""
     v = _integer(text)

@@ -191,7 +191,13 @@ def run(args) -> int:
         v = _floats(args.safe, "--safe")
         if v.size != 2 * system.n:
             raise SimgapError(f"--safe: need {2 * system.n} numbers (lo, hi per state), got {v.size}")
-        spec = Spec(kind="invariance", safe=Box(v[0::2], v[1::2]))
+        lo, hi = v[0::2], v[1::2]
+        bad = np.flatnonzero(lo > hi)
+        if bad.size:
+            i = int(bad[0])
+            raise SimgapError(f"--safe: the pair for {system.state_names[i]} is lo = {lo[i]:g} > hi = {hi[i]:g}; give "
+                              "lo1,hi1,lo2,hi2,... with each lo <= hi")
+        spec = Spec(kind="invariance", safe=Box(lo, hi))
     elif exp is None:
         spec, x0 = load_spec(args.spec, system)
     if args.x0 is not None:
@@ -250,6 +256,9 @@ def _run_level(args) -> int:
         raise SimgapError("--level run needs an experiment as --spec (its simulator and [perrun] section)")
     e = load_experiment(exp, args.profile)
     x0 = None if args.x0 is None else _floats(args.x0, "--x0")
+    if args.eta is not None:
+        from ..perrun.stage import check_eta
+        check_eta(_floats(args.eta, "--eta"), e.system, "--eta")
     from ..progress import ProgressBar
     ctl, text = synthesize_experiment(e, horizon=args.horizon, x0=x0,
                                       eta=None if args.eta is None else _floats(args.eta, "--eta").tolist(),

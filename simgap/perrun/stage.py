@@ -31,6 +31,20 @@ KEYS = {"alpha", "beta", "eta", "hold", "n_runs", "pilot_runs", "horizon", "n_ro
         "baseline_eta", "baseline_hold", "split", "invariant", "share", "check_states"}
 
 
+def check_eta(eta, system, what: str = "eta") -> None:
+    """Refuse cell widths that are not one positive number or one per state dimension (before any
+    size is projected from them: a wrong length must not reach the grid arithmetic)."""
+    try:
+        a = np.asarray(eta, dtype=float)
+    except (TypeError, ValueError):
+        raise SimgapError(f"{what}: expected numbers (cell widths), got {eta!r}") from None
+    if a.ndim > 1 or (a.ndim == 1 and a.size not in (1, system.n)):
+        raise SimgapError(f"{what}: need one cell width or {system.n} (one per state "
+                          f"{', '.join(system.state_names)}), got {a.size}: {eta!r}")
+    if not np.all(np.isfinite(a)) or np.any(a <= 0):
+        raise SimgapError(f"{what}: cell widths must be finite and > 0, got {eta!r}")
+
+
 def check_section(sec: dict, system, n_pairs: int, n_runs: int, horizon) -> dict:
     """Validate ``[perrun]`` before any work (so bad input writes nothing); returns it with defaults."""
     bad = set(sec) - KEYS
@@ -53,6 +67,7 @@ def check_section(sec: dict, system, n_pairs: int, n_runs: int, horizon) -> dict
         raise SimgapError(f"[perrun] horizon must be >= 1 sampling period, got {o['horizon']}")
     if "eta" not in o:
         raise SimgapError("[perrun] eta (interval-MDP cell widths) is required")
+    check_eta(o["eta"], system, "[perrun] eta")
     inv = o.get("invariant") or []
     if not isinstance(inv, list) or any(v not in system.state_names or system.state_names.index(v) in system.angle_dims
                                         for v in inv):

@@ -123,6 +123,8 @@ class PerRunController:
         grid = UniformGrid.from_dict(meta["grid"])
         if arrays["policy"].ndim != 2 or arrays["policy"].shape[1] != grid.size or arrays["p_cert"].shape != (grid.size,):
             raise SimgapError(f"{str(path)!r}: policy/p_cert do not match the grid")
+        from ..synthesis.controller import check_input_indices
+        check_input_indices(arrays["policy"], arrays["inputs"], f"per-run controller file {str(path)!r}: policy")
         p = np.asarray(arrays["p_cert"], float)
         if not np.all((p >= 0.0) & (p <= 1.0)):  # also refuses NaN
             raise SimgapError(f"{str(path)!r}: p_cert holds values outside [0, 1]")

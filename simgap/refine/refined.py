@@ -209,10 +209,6 @@ def system_from_dict(d: dict, _depth: int = 0) -> System:
         except (TypeError, ValueError):
             raise SimgapError(f"refined system: effect {printable(repr(spec.get('name')))} has a coefficient or "
                               f"stderr that is not a number") from None
-        if not np.isfinite(coefs[-1]) or np.isinf(ses[-1]):
-            raise SimgapError(f"refined system: effect {printable(repr(spec.get('name')))} has coefficient "
-                              f"{coefs[-1]!r} and stderr {ses[-1]!r}: the coefficient must be finite (and the stderr "
-                              "finite or null)")
     sysobj = build_refined(base, base_spec, effects, coefs, ses, name=name).with_steps(steps)
     check_values(sysobj, "refined system")
     return sysobj

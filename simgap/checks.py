@@ -19,8 +19,6 @@ import socket
 from pathlib import Path
 from typing import Optional, Sequence
 
-import numpy as np
-
 from .errors import SimgapError
 from .fileio import human_bytes  # noqa: F401  (in fileio, whose write errors use it: fileio imports no checks)
 

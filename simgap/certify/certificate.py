@@ -22,7 +22,6 @@ confidence), joint_confidence, provenance (dataset hash, package versions, seed,
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import List, Optional

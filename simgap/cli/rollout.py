@@ -12,7 +12,6 @@ TurtleBot's physical obstacles (when the config has none) and the default x0.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np

@@ -30,7 +30,6 @@ Exit status: 0 with a controller written,
 
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 

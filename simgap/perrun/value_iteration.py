@@ -103,13 +103,11 @@ class PerRunController:
 
     @classmethod
     def load(cls, path) -> "PerRunController":
-        import json
-
-        from ..file_guard import regular_file
+        from ..file_guard import loads_json, regular_file
         path = regular_file(path, "per-run controller file")
         try:
             with np.load(path, allow_pickle=False) as z:
-                meta = json.loads(str(z["meta"]))
+                meta = loads_json(str(z["meta"]), f"per-run controller file {str(path)!r}: its metadata")
                 arrays = {k: z[k] for k in ("inputs", "policy", "p_cert", "target")}
         except (*BAD_FILE_ERRORS, KeyError) as e:
             raise SimgapError(f"{str(path)!r} is not a per-run controller: {e}") from None

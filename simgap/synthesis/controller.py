@@ -182,17 +182,14 @@ class Controller:
         refined system) with the stored input set, unless ``system`` is given.
         """
         path = Path(path)
-        from ..file_guard import regular_file
+        from ..file_guard import loads_json, regular_file
         regular_file(path, "controller file")
         try:
             with np.load(path, allow_pickle=False) as z:
                 arrays = {k: z[k] for k in ("steps", "valid", "chosen", "target", "inputs", "meta")}
         except (*BAD_FILE_ERRORS, KeyError) as e:
             raise SimgapError(f"controller file {str(path)!r} is not a simgap controller ({e})") from None
-        try:
-            meta = json.loads(str(arrays.pop("meta")))
-        except ValueError as e:
-            raise SimgapError(f"controller file {str(path)!r}: its metadata is not JSON ({e})") from None
+        meta = loads_json(str(arrays.pop("meta")), f"controller file {str(path)!r}: its metadata")
         if not isinstance(meta, dict) or meta.get("format") != FORMAT:
             raise SimgapError(f"controller file {str(path)!r} is not a simgap controller (format tag)")
         if meta.get("version") != VERSION:

@@ -35,6 +35,7 @@ from typing import Callable, Iterable, Optional, Sequence
 
 import numpy as np
 
+from .checks import check_disk, check_memory, check_seconds
 from .cover import Cover, CoverSpec, make_cover
 from .dataset import Dataset, load_store
 from .errors import SimgapError
@@ -365,3 +366,36 @@ def collect(plan: CollectionPlan, store: str | Path, executor: str | Executor = 
     return CollectResult(store=store, hash=h, n_chunks=plan.n_chunks, done=len(r.done), computed=r.computed,
                          resumed_from=r.resumed_from, cancelled=not r.finished, seconds=time.perf_counter() - t0,
                          runs=state["new"] * plan.n_runs)
+
+
+# ----- cost model: checked before any work (simgap run, simgap collect) ---------------------------
+
+def collection_size(n_pairs: int, n_runs: int, n: int, m: int, steps: int, batch_runs: int, workers: int,
+                    keep_samples: bool, rate_per_worker: Optional[float] = None) -> dict:
+    """Estimated peak memory, disk and time of a collection (see :mod:`simgap.collect`).
+
+    A worker steps at most max(batch_runs, N1hat) runs at once (whole pairs): states, inputs and
+    next states in float64 plus the simulator's own work arrays (a factor 4 is allowed for them).
+    With ``keep_samples`` a chunk also holds its raw samples. The store keeps 7 per-pair arrays.
+    """
+    per_call = max(int(batch_runs), int(n_runs))
+    worker = per_call * (3 * n + m) * 8 * 4
+    if keep_samples:
+        worker += min(int(n_pairs), max(1, int(batch_runs) // int(n_runs))) * int(n_runs) * n * 8
+    disk = n_pairs * (5 * n + m + 2) * 8 + (n_pairs * n_runs * n * 8 if keep_samples else 0)
+    runs = n_pairs * n_runs
+    secs = runs / (rate_per_worker * max(1, workers)) if rate_per_worker else None
+    return {"memory": worker * max(1, workers), "disk": disk, "seconds": secs, "runs": runs,
+            "sim_steps": runs * steps}
+
+
+def check_collection(n_pairs: int, n_runs: int, n: int, m: int, steps: int, batch_runs: int, workers: int,
+                     keep_samples: bool, store, rate_per_worker: Optional[float] = None) -> dict:
+    """Refuse a collection that cannot fit in memory or on disk, or would take over a year."""
+    est = collection_size(n_pairs, n_runs, n, m, steps, batch_runs, workers, keep_samples, rate_per_worker)
+    what = f"collecting {n_pairs:,} pairs x N1hat={n_runs:,} runs ({est['sim_steps']:,} simulator steps)"
+    hint = "lower --n-runs (N1hat) or raise --epsilon"
+    check_memory(est["memory"], f"{what} on {workers} worker(s)", hint + " or use fewer --workers")
+    check_disk(est["disk"], store, what, hint)
+    check_seconds(est["seconds"], what, hint)
+    return est

@@ -33,6 +33,7 @@ from typing import Optional
 import numpy as np
 
 from . import schema
+from .file_guard import read_text
 from .collect import DEFAULT_BATCH_RUNS, CollectionPlan
 from .cover import Cover, CoverSpec, make_cover
 from .errors import SimgapError
@@ -151,11 +152,11 @@ def load_experiment(path_or_name: str | Path, profile: Optional[str] = "small",
     """
     path = Path(path_or_name) if text is not None else resolve_experiment(path_or_name)
     try:
-        raw = tomllib.loads(text if text is not None else path.read_text())
+        raw = tomllib.loads(text if text is not None else read_text(path, "experiment"))
     except tomllib.TOMLDecodeError as e:
         raise SimgapError(f"experiment {str(path)!r} is not valid TOML: {e}") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise SimgapError(f"experiment {str(path)!r} is unreadable: {e}") from None
+    except RecursionError:
+        raise SimgapError(f"experiment {str(path)!r} nests too deeply (refused)") from None
     profiles = raw.pop("profiles", {})
     for table in [raw] + [p for p in (profiles.values() if isinstance(profiles, dict) else ()) if isinstance(p, dict)]:
         _system_shorthand(table)

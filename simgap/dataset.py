@@ -134,14 +134,14 @@ def load_dataset(path: str | Path, system: System | None = None) -> Dataset:
     path = Path(path)
     if path.is_dir():
         return load_store(path, system=system)
-    if not path.exists():
-        raise SimgapError(f"dataset {str(path)!r} does not exist")
+    from .file_guard import loads_json, regular_file
+    regular_file(path, "dataset")
     try:
         with np.load(path, allow_pickle=False) as z:
             arrays = {k: z[k] for k in ARRAYS}
             if "absdev_top" in z.files:
                 arrays["absdev_top"] = z["absdev_top"]
-            meta = json.loads(str(z["meta"]))
+            meta = loads_json(str(z["meta"]), f"dataset {str(path)!r}: its metadata")
     except (*BAD_FILE_ERRORS, KeyError) as e:
         raise SimgapError(f"dataset {str(path)!r} is unreadable or not a simgap dataset: {e}") from None
     try:

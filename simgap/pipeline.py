@@ -28,7 +28,8 @@ from typing import Callable, Optional
 import numpy as np
 
 from . import fileio, results_folder
-from .collect import collect, load_store
+from .collect import check_collection, collect, load_store
+from .store import check_fillable
 from .config import ExperimentConfig
 from .errors import SimgapError
 # the specification of an experiment lives in simgap.experiment_spec (the per-run stage needs it too);
@@ -37,6 +38,10 @@ from .experiment_spec import experiment_spec  # noqa: F401
 from .simulators import make_simulator
 
 METHODS = ("deterministic", "stochastic")
+#: every result file a run may write into its folder (a foreign file under one of these names is refused)
+RESULT_NAMES = tuple(f"{kind}_{m}.{ext}" for m in METHODS for kind, ext in
+                     (("cert", "json"), ("audit", "json"), ("controller", "npz"), ("rollouts", "npz"))) + (
+    "summary.json", "run.rrd", "perrun.rrd", "cert_run.json", "controller_run_baseline.npz", "controller_perrun.npz")
 
 def baseline_experiment(exp: ExperimentConfig) -> ExperimentConfig:
     """The deterministic baseline's collection: noise and randomization off, N1hat = 2 identical runs."""
@@ -118,7 +123,7 @@ def check_experiment(exp: ExperimentConfig, out: Optional[str | Path] = None, *,
 
     c = exp.collect
     wk = workers if workers is not None else c.workers
-    checks.check_collection(plan.n_pairs, plan.n_runs, n, s.m, s.steps, plan.batch_runs, wk or os.cpu_count() or 1,
+    check_collection(plan.n_pairs, plan.n_runs, n, s.m, s.steps, plan.batch_runs, wk or os.cpu_count() or 1,
                             plan.keep_samples, Path(out) if out is not None else Path("."))
     with make_simulator(exp.simulator, s):
         pass  # the simulator's kind, noise, effects and options are valid
@@ -213,6 +218,11 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
     if per_run:  # a reach-avoid horizon shorter than one hold certifies nothing: refused before any work
         from .perrun.value_iteration import check_horizon
         check_horizon(spec.kind, int(per_run["horizon"]), int(per_run["hold"]))
+    # the stores must be resumable and the folder's files ours to replace before anything is removed:
+    # a refused run leaves an earlier run's results and the user's own files as they were
+    for e, sub in ((exp, "data"), (baseline_experiment(exp), "data_deterministic")):
+        check_fillable(out / sub, e.plan().config())
+    results_folder.claim(out, RESULT_NAMES)
     out.mkdir(parents=True, exist_ok=True)  # after validation: bad input leaves no folder behind
     run_id = results_folder.new_run_id()
     try:  # embedded: the folder opens without the file, from anywhere (simgap gui RESULTS)
@@ -220,7 +230,11 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
     except OSError:
         toml_text = None
     with results_folder.run_lock(out):
-        results_folder.remove_stale(out, log)  # nothing of an earlier run stands beside this one
+        # again under the lock (the folder may have changed since), then the earlier run's files go
+        results_folder.claim(out, RESULT_NAMES).release(run_id, log)
+
+        def wrote(*names):
+            results_folder.record(out, names)
         ex = executor or exp.collect.executor
         wk = workers if workers is not None else exp.collect.workers
         times: dict = {}
@@ -260,13 +274,16 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
             opts = certify_options(cert_section, method)
             cert = stage(f"certify/{method}", lambda: certify(ds, opts, simulator=sims[method]))
             cert.save(out / f"cert_{method}.json")
+            wrote(f"cert_{method}.json")
             rep = stage(f"audit/{method}", lambda: audit(cert, sim, points=int(au.get("points", 200)),
                                                          runs=int(au.get("runs", 2000)), seed=int(au.get("seed", 7)),
                                                          dataset=data["stochastic"]))
             fileio.write_json(out / f"audit_{method}.json", rep)
+            wrote(f"audit_{method}.json")
             sres = stage(f"synthesize/{method}", lambda: synthesize(exp.system, spec, syn["eta"], gap=cert, hold=hold,
                                                                     x0=x0))
             sres.controller.save(out / f"controller_{method}.npz")
+            wrote(f"controller_{method}.npz")
             if not sres.empty:
                 controllers[method] = sres.controller
             entry = {
@@ -289,6 +306,7 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
                                                                 horizon=ro.get("horizon"), seed=int(ro.get("seed", 11)),
                                                                 on_exit=ro.get("on_exit", "hold")))
                 rr.save_npz(out / f"rollouts_{method}.npz")
+                wrote(f"rollouts_{method}.npz")
                 entry["rollouts"] = rr.to_dict(per_rollout=False)
                 entry["failures"] = int(rr.n_failures)
                 entry["n_rollouts"] = int(rr.n_rollouts)
@@ -302,7 +320,7 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
             from .perrun.stage import run_stage
             summary["per_run"] = stage("perrun", lambda: run_stage(exp, out, data["stochastic"], controllers, spec, x0,
                                                                    per_run, sim=sim, log=log, progress=progress,
-                                                                   executor=perrun_ex))
+                                                                   executor=perrun_ex, wrote=wrote))
         for each in sims.values():
             each.close()
         summary["seconds"] = times

@@ -1,12 +1,20 @@
 """A results folder's own list of files: which files belong to its ``summary.json``.
 
-``simgap run`` may be pointed at a folder that already holds an earlier run. Before any stage
-writes, the earlier run's result files (:data:`RESULT_PATTERNS`) are removed, so nothing stale
-can stand beside the new results; the collection stores stay (they are resumable and verified
-by their configuration hash). When the run ends, ``summary.json`` lists every file it wrote
-with its sha256 and size, under the run's id (``run_id``). Every reader of the folder
-(:func:`check_listed`) refuses a file the summary does not list or whose digest differs, e.g. a
-``rollouts_*.npz`` copied in from another run.
+A results folder owns only what simgap wrote into it. ``simgap run`` may be pointed at a folder
+that already holds an earlier run, or the user's own files. Before the new run writes, it
+:func:`claim` s the folder: the files it owns are those listed in the folder's own manifests with
+the digest they have now (``summary.json`` of a finished run, :data:`JOURNAL` of a run that was
+stopped); every other file is foreign. A foreign file under a name the run would write is
+refused (the run would overwrite it); foreign files under other names stay, untouched, beside
+the results. Only after every check that can refuse the run has passed are the owned files
+removed (:meth:`Claim.release`, the summary first). While the run writes, :data:`JOURNAL`
+records every file with its sha256 (:func:`record`); at the end ``summary.json`` lists them
+under the run's id (``run_id``). Every reader of the folder (:func:`check_listed`,
+:func:`check_complete`) refuses a file the summary does not list or whose digest differs, e.g. a
+``rollouts_*.npz`` copied in from another run, and names a listed file that is missing.
+
+The collection stores (``data/``, ``data_deterministic/``) are not result files: they are
+resumable and verified by their configuration hash (:mod:`simgap.store`).
 
 The digests detect accidents and mix-ups, not forgery: whoever edits a file can recompute its
 digest in ``summary.json`` too (README, "What the digests protect against").
@@ -16,13 +24,17 @@ from __future__ import annotations
 
 import hashlib
 import uuid
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from .errors import SimgapError
+from .file_guard import printable, read_json
 
 #: result files of a run (the stores data/ and data_deterministic/ are not among them)
 RESULT_PATTERNS = ("summary.json", "run.rrd", "perrun.rrd", "cert_*.json", "audit_*.json", "controller_*.npz",
                    "rollouts_*.npz")
+#: the running run's list of the files it wrote so far, with their digests (hidden; kept after the run)
+JOURNAL = ".simgap-files.json"
 
 
 def new_run_id() -> str:
@@ -37,31 +49,112 @@ def file_digest(path: Path) -> str:
     return h.hexdigest()
 
 
-def remove_stale(out: Path, log=None) -> list:
-    """Remove an earlier run's result files from ``out`` (the summary first, so a run stopped
-    half-way never leaves an old summary beside new files). Returns the names removed."""
-    out = Path(out)
-    gone = []
-    names = ["summary.json"] + sorted({p.name for pat in RESULT_PATTERNS[1:] for p in out.glob(pat)})
-    for name in names:
+def _manifest(path: Path):
+    """A manifest's ``files`` table, or None when ``path`` is missing or is no simgap manifest."""
+    if not path.is_file():
+        return None
+    try:
+        d = read_json(path, "manifest")
+    except SimgapError:
+        return None
+    if not isinstance(d, dict) or not isinstance(d.get("run_id"), str) or not isinstance(d.get("files"), dict):
+        return None
+    return d
+
+
+def _owned(out: Path) -> tuple:
+    """(owned names, why-foreign {name: reason}) of the result-like files in ``out``."""
+    listed: dict = {}
+    summary = _manifest(out / "summary.json")
+    journal = _manifest(out / JOURNAL)
+    for man in (summary, journal):
+        for name, e in (man or {}).get("files", {}).items() if man else ():
+            if isinstance(e, dict) and isinstance(e.get("sha256"), str) and "/" not in name and name not in (".", ".."):
+                listed.setdefault(name, set()).add(e["sha256"])
+    present = sorted({p.name for pat in RESULT_PATTERNS for p in out.glob(pat)
+                      if p.is_file() or p.is_symlink()} | (set(listed) & {p.name for p in out.iterdir()}))
+    owned, foreign = [], {}
+    for name in present:
         p = out / name
-        if p.is_file() or p.is_symlink():
-            p.unlink()
+        if name == "summary.json":
+            if summary is not None and not p.is_symlink():
+                owned.append(name)
+            else:
+                foreign[name] = "not a simgap run's summary (no run_id and file list)"
+        elif p.is_symlink() or not p.is_file():
+            foreign[name] = "a link or not a regular file"
+        elif name not in listed:
+            foreign[name] = "not listed in the folder's summary.json"
+        elif file_digest(p) not in listed[name]:
+            foreign[name] = "changed since simgap wrote it (sha256 differs from the folder's list)"
+        else:
+            owned.append(name)
+    return owned, foreign
+
+
+@dataclass
+class Claim:
+    """What a new run found in its results folder (:func:`claim`)."""
+
+    out: Path
+    owned: list = field(default_factory=list)      # an earlier run's files, listed with matching digests
+    foreign: dict = field(default_factory=dict)    # every other result-like file: {name: why it is not owned}
+
+    def release(self, run_id: str, log=None) -> list:
+        """Remove the owned files (the summary first, so a run stopped half-way never leaves an old
+        summary beside new files) and start this run's journal. Call only after every check that
+        can refuse the run has passed. Files changed since :func:`claim` looked are kept."""
+        from . import fileio
+        now, _ = _owned(self.out)
+        gone = []
+        for name in sorted(set(self.owned) & set(now), key=lambda n: n != "summary.json"):
+            (self.out / name).unlink(missing_ok=True)
             gone.append(name)
-    if gone and log:
-        log(f"removed {len(gone)} result file(s) of an earlier run in {out}: {', '.join(gone)}")
-    return gone
+        fileio.write_json(self.out / JOURNAL, {"run_id": run_id, "files": {}})
+        if log and gone:
+            log(f"removed {len(gone)} file(s) of the earlier run in {self.out} (listed in its summary.json with "
+                f"matching sha256): {', '.join(gone)}")
+        if log and self.foreign:
+            log(f"left {len(self.foreign)} file(s) simgap did not write untouched beside the results in {self.out}: "
+                + ", ".join(printable(n) for n in sorted(self.foreign)))
+        return gone
+
+
+def claim(out: Path, will_write) -> Claim:
+    """Sort ``out``'s result-like files into an earlier run's (owned) and foreign ones; refuse the
+    run if a foreign file has a name in ``will_write`` (the run would overwrite or stand beside it,
+    and readers would refuse the folder). Nothing is changed."""
+    out = Path(out)
+    if not out.is_dir():
+        return Claim(out)
+    owned, foreign = _owned(out)
+    clash = sorted(n for n in foreign if n in set(will_write) or n == "summary.json")
+    if clash:
+        raise SimgapError(
+            f"--out {str(out)!r} holds file(s) this run would overwrite that simgap did not write there: "
+            + "; ".join(f"{printable(n)} ({foreign[n]})" for n in clash)
+            + ". Nothing was changed; move them away or choose another --out")
+    return Claim(out, owned, foreign)
+
+
+def record(out: Path, names) -> None:
+    """Add ``names`` (just written into ``out``) with their sha256 to the running run's journal."""
+    from . import fileio
+    path = Path(out) / JOURNAL
+    j = read_json(path, "run journal")
+    for name in names:
+        p = Path(out) / name
+        j["files"][name] = {"sha256": file_digest(p), "bytes": p.stat().st_size, "run_id": j["run_id"]}
+    fileio.write_json(path, j)
 
 
 def list_files(out: Path, run_id: str) -> dict:
-    """{name: {sha256, bytes, run_id}} of every result file now in ``out`` (summary.json excluded)."""
-    out = Path(out)
-    files = {}
-    for pat in RESULT_PATTERNS[1:]:
-        for p in sorted(out.glob(pat)):
-            if p.is_file():
-                files[p.name] = {"sha256": file_digest(p), "bytes": p.stat().st_size, "run_id": run_id}
-    return files
+    """{name: {sha256, bytes, run_id}} of every file this run recorded in its journal."""
+    j = read_json(Path(out) / JOURNAL, "run journal")
+    if j.get("run_id") != run_id:
+        raise SimgapError(f"{Path(out) / JOURNAL} belongs to another run ({printable(j.get('run_id'))}); was a second "
+                          "run started in this folder?")
+    return dict(j["files"])
 
 
 def check_listed(root: Path, summary: dict, name: str, digest: bool = True) -> None:
@@ -71,37 +164,40 @@ def check_listed(root: Path, summary: dict, name: str, digest: bool = True) -> N
     if files is None:
         return
     where = Path(root) / name
+    run = printable(summary.get("run_id", "?"))
     if not isinstance(files, dict):
         raise SimgapError(f"{Path(root) / 'summary.json'}: 'files' must be a table")
     entry = files.get(name)
     if not isinstance(entry, dict) or "sha256" not in entry:
-        raise SimgapError(f"{where} is not part of this run: summary.json (run {summary.get('run_id', '?')}) does "
+        raise SimgapError(f"{where} is not part of this run: summary.json (run {run}) does "
                           "not list it; it was left by another run or copied in (refused)")
     if digest and file_digest(where) != entry["sha256"]:
         raise SimgapError(f"{where} differs from the file this run wrote (sha256 does not match summary.json, run "
-                          f"{summary.get('run_id', '?')}): it was changed or comes from another run (refused)")
+                          f"{run}): it was changed or comes from another run (refused)")
 
 
-def unlisted(root: Path, summary: dict) -> list:
-    """Result files in ``root`` that the summary does not list (stale or copied in)."""
+def check_complete(root: Path, summary: dict) -> None:
+    """Refuse a folder whose ``summary.json`` lists a file that is missing, naming every such file
+    (a reader that drew what it could would show a run that is not the one the summary describes)."""
     files = summary.get("files")
     if not isinstance(files, dict):
-        return []
-    return sorted({p.name for pat in RESULT_PATTERNS[1:] for p in Path(root).glob(pat)} - set(files))
+        return
+    gone = sorted(n for n in files if not (Path(root) / n).is_file())
+    if gone:
+        raise SimgapError(f"results folder {str(root)!r}: summary.json (run {printable(summary.get('run_id', '?'))}) "
+                          f"lists {', '.join(printable(n) for n in gone)} but the folder has no such file (deleted "
+                          "or moved?); run the experiment again or restore the file (refused)")
 
 
 def add_files(out: Path, names) -> None:
-    """List files written after the summary (the recordings) in ``out/summary.json``."""
-    import json
-
+    """List files written after the summary (the recordings) in the run's journal and in
+    ``out/summary.json``."""
     from . import fileio
 
+    record(out, names)
     path = Path(out) / "summary.json"
-    summary = json.loads(path.read_text())
-    files = summary.setdefault("files", {})
-    for name in names:
-        p = Path(out) / name
-        files[name] = {"sha256": file_digest(p), "bytes": p.stat().st_size, "run_id": summary.get("run_id")}
+    summary = read_json(path, "summary")
+    summary["files"] = list_files(out, summary.get("run_id"))
     fileio.write_json(path, summary)
 
 

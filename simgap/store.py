@@ -178,10 +178,11 @@ def _read_manifest(store: Path, fmt: str = STORE_FORMAT) -> dict:
         raise SimgapError(f"store {str(store)!r} does not exist or is not a directory")
     if not mpath.is_file():
         raise SimgapError(f"{str(store)!r} is not a simgap store (no {MANIFEST})")
+    from .file_guard import read_json
+    man = read_json(mpath, f"store {str(store)!r}: {MANIFEST}")
     try:
-        man = json.loads(mpath.read_text())
         cfg, h = man["config"], man["hash"]
-    except (OSError, ValueError, KeyError, TypeError) as e:
+    except (KeyError, TypeError) as e:
         raise SimgapError(f"store {str(store)!r}: {MANIFEST} is unreadable: {e}") from None
     if not isinstance(cfg, dict) or cfg.get("format") != fmt:
         raise SimgapError(f"store {str(store)!r}: unknown format {cfg.get('format') if isinstance(cfg, dict) else cfg!r}"
@@ -282,6 +283,31 @@ class FillResult(NamedTuple):
     finished: bool       # False: ``should_stop`` stopped it (the store stays resumable)
 
 
+def check_fillable(store: str | Path, cfg: dict, fmt: str = STORE_FORMAT, what: str = "collection") -> None:
+    """Refuse what :func:`fill_store` would refuse, without writing anything: ``store`` is a file, a
+    non-empty folder that is no store, or a store of another configuration (the keys that differ
+    are named). Callers that must not change anything before a refusal (``simgap run`` deleting an
+    earlier run's results) check here first."""
+    store = Path(store)
+    if store.exists() and not store.is_dir():
+        raise SimgapError(f"store {str(store)!r} exists and is not a directory")
+    if not store.is_dir():
+        return
+    if not (store / MANIFEST).exists():
+        if any(p.name != LOCK for p in store.iterdir()):
+            if (store / LOCK).exists():
+                with store_lock(store):  # a writer that has not written its manifest yet is refused here
+                    pass
+            raise SimgapError(f"{str(store)!r} is a non-empty directory without {MANIFEST}; refusing to write into it")
+        return
+    man = _read_manifest(store, fmt)
+    if man["hash"] != config_hash(cfg):
+        diffs = _diff(man["config"], cfg)
+        raise SimgapError(f"store {str(store)!r} holds a {what} with a different configuration; refusing "
+                          f"to resume. Differences: {'; '.join(diffs[:6])}"
+                          f"{' ...' if len(diffs) > 6 else ''}. Use another output directory.")
+
+
 def fill_store(store: str | Path, cfg: dict, fn, job, executor, *, on_start=None, on_chunk=None, should_stop=lambda: False,
                chunk_ids=None, resume: bool = True, fmt: str = STORE_FORMAT, what: str = "collection") -> FillResult:
     """Compute the chunks of the configuration ``cfg`` (``cfg["n_chunks"]`` of them, ``cfg["format"]`` =
@@ -297,13 +323,7 @@ def fill_store(store: str | Path, cfg: dict, fn, job, executor, *, on_start=None
     store = Path(store)
     h = config_hash(cfg)
     n_chunks = int(cfg["n_chunks"])
-    if store.exists() and not store.is_dir():
-        raise SimgapError(f"store {str(store)!r} exists and is not a directory")
-    if not (store / MANIFEST).exists() and store.is_dir() and any(p.name != LOCK for p in store.iterdir()):
-        if (store / LOCK).exists():
-            with store_lock(store):  # a writer that has not written its manifest yet is refused here
-                pass
-        raise SimgapError(f"{str(store)!r} is a non-empty directory without {MANIFEST}; refusing to write into it")
+    check_fillable(store, cfg, fmt, what)
     top = store.absolute()  # the outermost folder this call creates (removed again if nothing is stored)
     while not top.parent.exists():
         top = top.parent
@@ -331,12 +351,7 @@ def _fill_locked(store, cfg, h, n_chunks, fn, job, executor, on_start, on_chunk,
                  fmt, what) -> FillResult:
     """The body of :func:`fill_store`, run while this process holds the store's lock."""
     if (store / MANIFEST).exists():
-        man = _read_manifest(store, fmt)
-        if man["hash"] != h:
-            diffs = _diff(man["config"], cfg)
-            raise SimgapError(f"store {str(store)!r} holds a {what} with a different configuration; refusing "
-                              f"to resume. Differences: {'; '.join(diffs[:6])}"
-                              f"{' ...' if len(diffs) > 6 else ''}. Use another output directory.")
+        check_fillable(store, cfg, fmt, what)
         if not resume:
             raise SimgapError(f"store {str(store)!r} already exists (resume disabled)")
     else:

@@ -86,12 +86,11 @@ def load_system_file(path: str | Path) -> System:
     """Read, check and build the system of a TOML system file (module docstring)."""
     path = Path(path)
     where = f"system file {str(path)!r}"
+    from .file_guard import read_text
     try:
-        raw = tomllib.loads(path.read_text())
+        raw = tomllib.loads(read_text(path, "system file"))
     except tomllib.TOMLDecodeError as e:
         raise SimgapError(f"{where} is not valid TOML: {e}") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise SimgapError(f"{where} is unreadable: {e}") from None
     return system_from_spec(dict(raw, format=raw.get("format", FORMAT)), where)
 
 

@@ -24,6 +24,7 @@ from urllib.parse import quote
 
 from simgap.checks import check_bindable, host
 from simgap.errors import SimgapError
+from simgap.results_folder import check_listed
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
@@ -59,6 +60,11 @@ def recordings(paths) -> list:
             if not files:
                 raise SimgapError(f"{str(p)!r} holds no run.rrd: record it with `simgap run` (without --no-record) "
                                   "or `simgap record`")
+            if (p / "summary.json").exists():  # a run's folder: serve only the recordings this run wrote
+                from .results import read_summary
+                summary = read_summary(p)
+                for f in files:
+                    check_listed(p, summary, f.name)
             out += files
         elif not p.exists():
             raise SimgapError(f"{str(p)!r} does not exist")

@@ -10,13 +10,13 @@ pickle; the stores verify their digests); only files inside the folder are opene
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional
 
 from simgap.errors import SimgapError
-from simgap.results_folder import check_listed
+from simgap.file_guard import read_json, resolved
+from simgap.results_folder import check_complete, check_listed
 
 METHODS = ("stochastic", "deterministic")
 DATA_DIRS = {"stochastic": "data", "deterministic": "data_deterministic"}
@@ -48,9 +48,19 @@ def is_run_dir(path) -> bool:
     return p.is_dir() and (p / "summary.json").is_file()
 
 
+def read_summary(root: Path) -> dict:
+    """``root/summary.json`` of a finished run (a regular file, size- and depth-checked JSON with a
+    ``methods`` table), after checking that every file it lists is there (a missing one is named)."""
+    summary = read_json(root / "summary.json", "summary")
+    if not isinstance(summary, dict) or not isinstance(summary.get("methods"), dict):
+        raise SimgapError(f"{root / 'summary.json'} has no 'methods' table: not a `simgap run` summary")
+    check_complete(root, summary)
+    return summary
+
+
 def _inside(root: Path, name: str) -> Path:
-    p = (root / name).resolve()
-    if root.resolve() not in p.parents:
+    p = resolved(root / name, "results folder file")
+    if resolved(root, "results folder") not in p.parents:
         raise SimgapError(f"results folder: {name!r} points outside {root}")
     return p
 
@@ -100,12 +110,7 @@ def load_run(path) -> RunResults:
     if not (root / "summary.json").is_file():
         raise SimgapError(f"{str(root)!r} has no summary.json: not a finished `simgap run` folder "
                           "(run `simgap run EXPERIMENT` first, or give --experiment/--dataset)")
-    try:
-        summary = json.loads((root / "summary.json").read_text())
-    except (OSError, ValueError) as e:
-        raise SimgapError(f"{root / 'summary.json'} is not readable JSON: {e}") from None
-    if not isinstance(summary, dict) or not isinstance(summary.get("methods"), dict):
-        raise SimgapError(f"{root / 'summary.json'} has no 'methods' table: not a `simgap run` summary")
+    summary = read_summary(root)
     exp = _experiment(summary, root)
     run = RunResults(path=root, summary=summary, experiment=exp)
     for m in METHODS:
@@ -123,10 +128,7 @@ def load_run(path) -> RunResults:
         audit = None
         ap = _inside(root, f"audit_{m}.json")
         if ap.is_file():
-            try:
-                audit = json.loads(ap.read_text())
-            except (OSError, ValueError) as e:
-                raise SimgapError(f"{ap} is not readable JSON: {e}") from None
+            audit = read_json(ap, "audit report")
         cp = _inside(root, f"controller_{m}.npz")
         if not cp.is_file():
             raise SimgapError(f"results folder {root}: {cp.name} is missing")

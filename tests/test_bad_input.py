@@ -10,7 +10,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from simgap import checks
+from simgap import checks, file_guard
+from simgap.collect import check_collection, collection_size
+from simgap.perrun import cost
 from simgap.errors import SimgapError
 
 from cli_helpers import files, refused, simgap
@@ -126,16 +128,16 @@ def test_refine_writes_no_tmp(work, tmp_path):
 
 
 def test_output_checks_unit(tmp_path):
-    assert checks.output_file(tmp_path / "a.json") == tmp_path / "a.json"
-    assert checks.output_dir(tmp_path / "new" / "deeper") == tmp_path / "new" / "deeper"
+    assert file_guard.output_file(tmp_path / "a.json") == tmp_path / "a.json"
+    assert file_guard.output_dir(tmp_path / "new" / "deeper") == tmp_path / "new" / "deeper"
     assert list(tmp_path.iterdir()) == []  # checking creates nothing
     with pytest.raises(SimgapError, match="is a folder"):
-        checks.output_file(tmp_path)
+        file_guard.output_file(tmp_path)
     (tmp_path / "f").write_text("x")
     with pytest.raises(SimgapError, match="not a folder"):
-        checks.output_dir(tmp_path / "f")
+        file_guard.output_dir(tmp_path / "f")
     with pytest.raises(SimgapError, match="is a file, not a folder"):
-        checks.output_dir(tmp_path / "f" / "sub")
+        file_guard.output_dir(tmp_path / "f" / "sub")
 
 
 # ----- hangs ------------------------------------------------------------------------------------
@@ -200,12 +202,12 @@ def test_collect_too_many_runs_is_refused_with_numbers(work, tmp_path):
 
 
 def test_collection_estimates():
-    e = checks.collection_size(504, 8, 2, 1, 1, 1 << 18, 2, False, rate_per_worker=1e5)
+    e = collection_size(504, 8, 2, 1, 1, 1 << 18, 2, False, rate_per_worker=1e5)
     assert e["runs"] == 4032 and e["seconds"] == pytest.approx(4032 / 2e5)
     with pytest.raises(SimgapError, match="would take about"):
-        checks.check_collection(10 ** 6, 1000, 2, 1, 1, 1 << 18, 1, False, ".", rate_per_worker=10.0)
+        check_collection(10 ** 6, 1000, 2, 1, 1, 1 << 18, 1, False, ".", rate_per_worker=10.0)
     with pytest.raises(SimgapError, match="of disk"):
-        checks.check_collection(10 ** 8, 10 ** 5, 3, 2, 1, 1 << 18, 1, True, ".", rate_per_worker=1e12)
+        check_collection(10 ** 8, 10 ** 5, 3, 2, 1, 1 << 18, 1, True, ".", rate_per_worker=1e12)
 
 
 def test_rollout_too_many_is_refused_with_numbers(work, tmp_path):
@@ -565,7 +567,7 @@ def test_more_bad_values_are_named(work, capsys, args, words):
     assert files(work) == before
 
 
-# ----- outputs over inputs (one shared check, simgap.checks.not_over_inputs) ----------------------
+# ----- outputs over inputs (one shared check, simgap.file_guard.not_over_inputs) ----------------------
 
 def _digests(folder: Path) -> dict:
     import hashlib
@@ -611,7 +613,7 @@ def test_output_over_an_input_through_a_link(work, tmp_path):
     refused(simgap("refine", "--system", "pendulum", "--data", work / "data.npz", "--out", tmp_path / "hard.npz",
                    cwd=tmp_path), "destroy the input", "hard.npz")
     # a sibling of an input is fine
-    assert checks.not_over_inputs([("--out", work / "cert2.json")], [("--cert", work / "cert.json")]) is None
+    assert file_guard.not_over_inputs([("--out", work / "cert2.json")], [("--cert", work / "cert.json")]) is None
 
 
 # ----- a full disk: a file-size limit stands in (RLIMIT_FSIZE; SIGXFSZ ignored so writes fail
@@ -674,28 +676,30 @@ def test_full_disk_run_never_announces_a_truncated_recording(work, tmp_path):
 
 @pytest.fixture(scope="module")
 def run_folder(work, tmp_path_factory):
-    """A finished `simgap run` of the work experiment, made from a copy of its TOML."""
+    """A finished `simgap run` of the work experiment, made from a copy of its TOML, in a folder that
+    already held two files of the user's whose names look like results."""
     d = tmp_path_factory.mktemp("runs")
     (d / "exp").mkdir()
     (d / "exp" / "exp.toml").write_text(EXP)
     (d / "res").mkdir()
-    (d / "res" / "rollouts_stochastic.npz").write_bytes((work / "ctrl.npz").read_bytes())  # an earlier run's
+    (d / "res" / "controller_good.npz").write_bytes((work / "ctrl.npz").read_bytes())  # the user's own
     (d / "res" / "audit_old.json").write_text("{}")
     r = simgap("run", "exp/exp.toml", "--profile", "base", "--out", "res", cwd=d, timeout=300)
     assert r.returncode == 0, r.stderr
     return d, r
 
 
-def test_a_reused_results_folder_keeps_nothing_stale(run_folder):
+def test_a_reused_results_folder_lists_only_what_the_run_wrote(run_folder, work):
     import json
     d, r = run_folder
     res = d / "res"
-    assert "removed 2 result file(s) of an earlier run" in r.stderr
-    assert not (res / "audit_old.json").exists() and not (res / "rollouts_stochastic.npz").exists()
+    assert "left 2 file(s) simgap did not write untouched" in r.stderr
+    assert (res / "audit_old.json").read_text() == "{}"  # the user's files stay, byte for byte
+    assert (res / "controller_good.npz").read_bytes() == (work / "ctrl.npz").read_bytes()
     s = json.loads((res / "summary.json").read_text())
     assert len(s["run_id"]) == 32
     on_disk = {p.name for p in res.iterdir() if p.is_file() and not p.name.startswith(".")} - {"summary.json"}
-    assert set(s["files"]) == on_disk and "run.rrd" in on_disk  # every file listed, the recording too
+    assert set(s["files"]) == on_disk - {"audit_old.json", "controller_good.npz"} and "run.rrd" in on_disk
     from simgap.results_folder import file_digest
     for name, e in s["files"].items():
         assert e["sha256"] == file_digest(res / name) and e["run_id"] == s["run_id"]
@@ -905,7 +909,7 @@ def test_perrun_estimate_counts_the_work():
     s = get_system("pendulum")
     o = {"eta": [0.04, 0.1], "hold": 20, "horizon": 400, "n_runs": 4000, "pilot_runs": 400, "n_rollouts": 10000,
          "n_states": 20}
-    e = checks.perrun_size(o, s, rate_per_worker=1e5, workers=2)
+    e = cost.perrun_size(o, s, rate_per_worker=1e5, workers=2)
     C = np.prod(np.ceil((s.x_hi - s.x_lo) / np.array([0.04, 0.1])))
     assert e["cells"] == C
     assert e["runs"] == C * len(s.inputs) * 4400 * 20 + s.n * 12000 * 20 + 3 * 20 * 10000 * 400   # + the secants

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from simgap.errors import SimgapError
+from simgap.perrun import cost
 from simgap.perrun.imdp import IMDPOptions, build_imdp
 from simgap.perrun.sampling import RUNS_ARRAYS
 from simgap.simulators import make_simulator
@@ -181,25 +182,23 @@ def test_time_refusal_counts_cpu_hours_at_the_sampling_rate():
     """Over 6 hours at the calibrated rates: refused naming the steps and CPU-hours, with the way out
     (more workers through Ray, or the override); the sampling's own rate, not the simulator's, prices
     the interval MDP."""
-    from simgap import checks
     s = get_system("pendulum")
     o = {"eta": [0.04, 0.1], "hold": 20, "horizon": 400, "n_runs": 4000, "pilot_runs": 400, "n_rollouts": 10000,
          "n_states": 20}
-    fast = checks.perrun_size(o, s, rate_per_worker=1e7, sampling_rate=1e7)
-    slow = checks.perrun_size(o, s, rate_per_worker=1e7, sampling_rate=1e5)
+    fast = cost.perrun_size(o, s, rate_per_worker=1e7, sampling_rate=1e7)
+    slow = cost.perrun_size(o, s, rate_per_worker=1e7, sampling_rate=1e5)
     assert slow["cpu_hours"] == pytest.approx(slow["sampling_steps"] / 1e5 / 3600 + slow["rollout_steps"] / 1e7 / 3600)
     assert slow["cpu_hours"] > 30 * fast["cpu_hours"]
     with pytest.raises(SimgapError, match=r"simulator steps.*CPU-hours.*would take about .* on 4 worker\(s\).*"
                                           r"--executor ray --address.*SIMGAP_NO_SIZE_CHECK"):
-        checks.check_perrun(o, s, rate_per_worker=1e7, workers=4, sampling_rate=1e3)       # 15.5 h
-    checks.check_perrun(o, s, rate_per_worker=1e7, workers=4, sampling_rate=1e7)      # 8 min: accepted
+        cost.check_perrun(o, s, rate_per_worker=1e7, workers=4, sampling_rate=1e3)       # 15.5 h
+    cost.check_perrun(o, s, rate_per_worker=1e7, workers=4, sampling_rate=1e7)      # 8 min: accepted
 
 
 def test_calibration_measures_rate_and_support(sim, serial):
     """The projection's sampling rate and support per row are measured on a few pairs: the support is
     that of the real build within a factor 2 (here the one-cell widening of the calibration against the
     secants' own), and the memory estimate uses it rather than the a-priori guess of 32 per row."""
-    from simgap import checks
     from simgap.perrun.sampling import calibrate_sampling
     cal = calibrate_sampling(sim, SPEC, _opts())
     real = serial["cell"].nnz / (serial["cell"].live.sum() * serial["cell"].M)
@@ -207,7 +206,7 @@ def test_calibration_measures_rate_and_support(sim, serial):
     o = {"eta": [0.05, 0.125], "hold": 10, "horizon": 40, "n_runs": 300, "pilot_runs": 50, "n_rollouts": 10,
          "n_states": 1}
     s = sim.system
-    guess, measured = checks.perrun_size(o, s), checks.perrun_size(o, s, entries_per_row=150.0)
+    guess, measured = cost.perrun_size(o, s), cost.perrun_size(o, s, entries_per_row=150.0)
     C = np.prod(np.ceil((s.x_hi - s.x_lo) / np.array([0.05, 0.125])))
     assert measured["entries"] == C * 21 * 150 and guess["entries"] == C * 21 * 32
     assert measured["memory"] - guess["memory"] == pytest.approx(C * 21 * (150 - 32) * 20)

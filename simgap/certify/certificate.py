@@ -22,7 +22,6 @@ confidence), joint_confidence, provenance (dataset hash, package versions, seed,
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import List, Optional
@@ -541,13 +540,9 @@ def _same(a, b) -> bool:
 
 def load(path, dataset=None) -> Certificate:
     """Load a certificate JSON, verifying its digest; with ``dataset``, check its content hash matches."""
+    from ..file_guard import read_json
     path = Path(path)
-    if not path.exists():
-        raise SimgapError(f"certificate {str(path)!r} does not exist")
-    try:
-        d = json.loads(path.read_text())
-    except (OSError, ValueError) as e:
-        raise SimgapError(f"certificate {str(path)!r} is not readable JSON: {e}") from None
+    d = read_json(path, "certificate")
     cert = Certificate.from_dict(d, source=f"certificate {str(path)!r}")
     if dataset is not None:
         want = cert.provenance.get("dataset_hash", "")

@@ -176,6 +176,33 @@ def check_dataset(ds) -> None:
         raise SimgapError(f"dataset: epsilon must be > 0, got {ds.epsilon}")
     if np.any(ds.var < 0):
         raise SimgapError("dataset: negative sample variances")
+    check_recorded(ds)
+
+
+def check_recorded(ds) -> None:
+    """Refuse a data set whose rows or recorded numbers contradict its own configuration: every
+    cover point x_r inside X (a point outside changes the Lipschitz and basis terms the
+    certificate rests on), the cover and input indices in range, and N1hat, epsilon and the pair
+    count equal to the collection configuration the manifest records."""
+    s = ds.system
+    s.check_states(ds.x, "dataset: cover points x_r")
+    M = len(s.inputs)
+    if ds.input_index.shape != (ds.K,) or np.any(ds.input_index < 0) or np.any(ds.input_index >= M):
+        raise SimgapError(f"dataset: input_index must hold one index in 0..{M - 1} per row (the system's {M} inputs)")
+    if np.any(ds.cover_index < 0):
+        raise SimgapError("dataset: cover_index holds negative indices")
+    m = ds.manifest or {}
+    for key, have in (("n_runs", int(ds.n_runs)), ("epsilon", float(ds.epsilon)), ("n_pairs", int(ds.K))):
+        want = m.get(key)
+        if want is None:
+            continue
+        if isinstance(want, bool) or not isinstance(want, (int, float)) or not np.isclose(float(want), have,
+                                                                                        rtol=1e-12, atol=0):
+            what = "rows (x_r, u) pairs" if key == "n_pairs" else key
+            raise SimgapError(f"dataset: {what} is {have:g} but its manifest's collection configuration says "
+                              f"{key} = {want!r} (the data set was edited; refused)")
+    if int(ds.n_runs) < 2:
+        raise SimgapError(f"dataset: N1hat (n_runs) must be >= 2, got {ds.n_runs}")
 
 
 def certify(dataset, options: Optional[CertifyOptions] = None, simulator=None, **kw) -> Certificate:

@@ -3,7 +3,7 @@
 Each module in ``SUBCOMMANDS`` defines ``add_parser(subparsers)`` (registering its parser and
 setting ``func=run`` via ``set_defaults``) and ``run(args) -> int``. A parser may also set
 ``outputs`` (argument names of result files) and ``output_dirs`` (of result folders): they are
-checked before the command does any work (:func:`simgap.checks.check_outputs`). Errors that
+checked before the command does any work (:func:`simgap.file_guard.check_outputs`). Errors that
 name a bad input (SimgapError) print ``error: ...`` and exit with status 2; no traceback.
 """
 
@@ -68,7 +68,7 @@ def main(argv=None) -> int:
         parser.print_help()
         return 0
     try:
-        from ..checks import check_outputs
+        from ..file_guard import check_outputs
         check_outputs(args)
         return int(args.func(args) or 0)
     except SimgapError as e:

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import argparse
 
-from ..checks import count
+from ..checks import count, probability
 from ..errors import SimgapError
 
 
@@ -31,9 +31,10 @@ def add_parser(subparsers) -> None:
     p.add_argument("--points", type=count(1), default=200, help="fresh (x,u) points (default 200)")
     p.add_argument("--runs", type=count(2), default=2000, help="simulator runs per point (default 2000)")
     p.add_argument("--seed", type=int, default=12345)
-    p.add_argument("--alpha", type=float, default=0.05,
-                   help="family-wise false-alarm rate of the Holm-corrected tests (default 0.05)")
-    p.add_argument("--power-fraction", type=float, default=0.01,
+    p.add_argument("--alpha", type=probability, default=None,
+                   help="mean-level certificates: family-wise false-alarm rate of the Holm-corrected tests, in "
+                        "(0, 1) (default 0.05); a run-level certificate is audited at its own alpha")
+    p.add_argument("--power-fraction", type=probability, default=0.01,
                    help="violated fraction of (x,u) the printed power refers to (default 0.01)")
     p.add_argument("--out", help="write the audit report JSON here")
     p.set_defaults(func=run, outputs=("out",))
@@ -48,6 +49,9 @@ def run(args) -> int:
     ds = load_dataset(args.data)
     nominal = ds if args.system is None else ds.with_nominal(resolve_system(args.system))
     cert = load(args.cert, dataset=nominal)
+    if cert.method == "run" and args.alpha is not None:
+        raise SimgapError(f"--alpha {args.alpha:g}: not used for a run-level certificate (it is audited at its own "
+                          f"alpha = {cert.options.get('alpha')}, the miss probability it claims); leave --alpha out")
     src = load_dataset(args.against) if args.against else ds
     sim_cfg = src.manifest.get("simulator")
     if not sim_cfg:
@@ -66,7 +70,8 @@ def run(args) -> int:
             from ..perrun.run_audit import audit_run, report_table
             rep = audit_run(cert, sim, points=args.points, runs=args.runs, seed=args.seed, system=nominal.system)
         else:
-            rep = audit(cert, sim, points=args.points, runs=args.runs, seed=args.seed, dataset=ds, alpha=args.alpha,
+            rep = audit(cert, sim, points=args.points, runs=args.runs, seed=args.seed, dataset=ds,
+                        alpha=0.05 if args.alpha is None else args.alpha,
                     power_fraction=args.power_fraction, system=nominal.system)
     rep["simulator_source"] = str(args.against or args.data)
     print(report_table(rep))

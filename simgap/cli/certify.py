@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 
+from ..checks import probability
 from ..errors import SimgapError
 
 
@@ -61,7 +62,7 @@ def add_parser(subparsers) -> None:
     p.add_argument("--level", choices=["mean", "run"], default="mean",
                    help="mean: bound the gap of the expected next state (paper); run: gamma^alpha bounding one "
                         "run's deviation with probability >= 1 - alpha (docs/per-run.md)")
-    p.add_argument("--alpha", type=float, help="run level: per-dimension miss probability of one run, in (0, 1)")
+    p.add_argument("--alpha", type=probability, help="run level: per-dimension miss probability of one run, in (0, 1)")
     p.add_argument("--degree", default="2", help="total degree of the monomial basis (or one per dimension: 1,2,2); "
                                                  "-1 = user terms only")
     p.add_argument("--term", action="append", metavar="DIM:EXPR",
@@ -136,7 +137,8 @@ def check_certify_size(opts, ds) -> None:
 
     s = ds.system
     degs = list(opts.degree) if isinstance(opts.degree, (list, tuple)) else [opts.degree] * s.n
-    n_terms = max(len(opts.terms.get(-1, [])) + len(opts.terms.get(i, [])) for i in range(s.n))
+    terms = opts.terms or {}
+    n_terms = max(len(terms.get(-1, [])) + len(terms.get(i, [])) for i in range(s.n))
     check_basis(ds.K, s.n + s.m - len(invariant_dims(ds)), degs, n_terms, what="--degree")
 
 
@@ -199,6 +201,7 @@ def _run_level(args) -> int:
                           "model; collect with that system instead (an experiment's system.name may be a refined "
                           "JSON)")
     ds = _data(args)
+    check_certify_size(opts, ds)  # as the mean level: a basis too large is refused before any work
     cert = certify_run(ds, opts)
     print(cert.summary())
     print(f"alpha = {cert.options['alpha']:g} per dimension and run (smallest alpha these data support: "

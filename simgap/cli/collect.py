@@ -10,7 +10,9 @@ from __future__ import annotations
 import argparse
 import sys
 
-from ..checks import check_collection, count, output_dir
+from ..checks import count
+from ..collect import check_collection
+from ..file_guard import output_dir
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:

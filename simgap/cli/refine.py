@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 from pathlib import Path
 
 from .. import fileio
@@ -108,6 +109,10 @@ def run(args) -> int:
             print(format_validation(res.report["validation"], res.system.state_names))
     if args.out:
         out = Path(args.out)
+        bad = _first_nonfinite(res.report)
+        if bad:
+            raise SimgapError(f"the refinement report holds {bad[1]} at {bad[0]}: the model (--system "
+                              f"{args.system!r}) or the data evaluate to inf or NaN; nothing was written to {str(out)!r}")
         fileio.write_text(out, json.dumps(res.report, indent=2, allow_nan=False))
         if not args.quiet:
             print(f"report written to {out}")
@@ -124,6 +129,18 @@ def run(args) -> int:
         if not args.quiet:
             print(f"recording written to {args.record} (residual vs {info['against']}; open with: rerun {args.record})")
     return 0
+
+
+def _first_nonfinite(obj, where: str = "report"):
+    """(path, value) of the first inf or NaN in a JSON-ready report, or None."""
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return where, obj
+    items = obj.items() if isinstance(obj, dict) else enumerate(obj) if isinstance(obj, (list, tuple)) else ()
+    for k, v in items:
+        hit = _first_nonfinite(v, f"{where}[{k!r}]" if isinstance(k, str) else f"{where}[{k}]")
+        if hit:
+            return hit
+    return None
 
 
 def _load(path, args, system):
@@ -152,9 +169,10 @@ def _compare(args, res) -> dict:
         from ..synthesis.spec import Spec
         if not args.eta:
             raise SimgapError("--spec needs --eta (cell widths)")
+        from ..file_guard import read_json
         try:
-            spec = Spec.from_dict(json.loads(Path(args.spec).read_text()))
-        except (OSError, json.JSONDecodeError, KeyError, TypeError) as e:
+            spec = Spec.from_dict(read_json(args.spec, "--spec"))
+        except (KeyError, TypeError) as e:
             raise SimgapError(f"--spec {args.spec!r}: not a readable specification JSON ({e})") from None
         try:
             eta = [float(v) for v in args.eta.split(",")]

@@ -12,7 +12,6 @@ TurtleBot's physical obstacles (when the config has none) and the default x0.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -77,14 +76,11 @@ def simulator_config(arg: str, profile=None) -> dict:
     if arg.lstrip().startswith("{"):
         text = arg
     elif arg.endswith(".json"):
-        if not Path(arg).is_file():
-            raise SimgapError(f"simulator config file {arg!r} does not exist")
-        text = Path(arg).read_text()
+        from ..file_guard import read_text
+        text = read_text(arg, "simulator config file")
     if text is not None:
-        try:
-            d = json.loads(text)
-        except json.JSONDecodeError as e:
-            raise SimgapError(f"simulator config {arg[:60]!r}: not valid JSON ({e})") from None
+        from ..file_guard import loads_json, printable
+        d = loads_json(text, f"simulator config {printable(arg[:60])!r}")
         if not isinstance(d, dict):
             raise SimgapError("simulator config: expected a JSON object")
         d = d.get("simulator", d)  # a whole experiment/manifest JSON also works

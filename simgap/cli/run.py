@@ -5,7 +5,8 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from ..checks import count, output_dir
+from ..checks import count
+from ..file_guard import output_dir
 
 
 def add_parser(sub):

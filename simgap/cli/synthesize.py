@@ -30,7 +30,6 @@ Exit status: 0 with a controller written,
 
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 
@@ -105,12 +104,8 @@ def load_spec(text: str, system):
     from ..synthesis.spec import Spec
     path = Path(text)
     if path.suffix == ".json":
-        if not path.exists():
-            raise SimgapError(f"spec file {text!r} does not exist")
-        try:
-            d = json.loads(path.read_text())
-        except ValueError as e:
-            raise SimgapError(f"spec file {text!r} is not valid JSON: {e}") from None
+        from ..file_guard import read_json
+        d = read_json(path, "spec file")
         try:
             return Spec.from_dict(d), None
         except (KeyError, TypeError) as e:
@@ -195,7 +190,13 @@ def run(args) -> int:
         v = _floats(args.safe, "--safe")
         if v.size != 2 * system.n:
             raise SimgapError(f"--safe: need {2 * system.n} numbers (lo, hi per state), got {v.size}")
-        spec = Spec(kind="invariance", safe=Box(v[0::2], v[1::2]))
+        lo, hi = v[0::2], v[1::2]
+        bad = np.flatnonzero(lo > hi)
+        if bad.size:
+            i = int(bad[0])
+            raise SimgapError(f"--safe: the pair for {system.state_names[i]} is lo = {lo[i]:g} > hi = {hi[i]:g}; give "
+                              "lo1,hi1,lo2,hi2,... with each lo <= hi")
+        spec = Spec(kind="invariance", safe=Box(lo, hi))
     elif exp is None:
         spec, x0 = load_spec(args.spec, system)
     if args.x0 is not None:
@@ -254,6 +255,9 @@ def _run_level(args) -> int:
         raise SimgapError("--level run needs an experiment as --spec (its simulator and [perrun] section)")
     e = load_experiment(exp, args.profile)
     x0 = None if args.x0 is None else _floats(args.x0, "--x0")
+    if args.eta is not None:
+        from ..perrun.stage import check_eta
+        check_eta(_floats(args.eta, "--eta"), e.system, "--eta")
     from ..progress import ProgressBar
     ctl, text = synthesize_experiment(e, horizon=args.horizon, x0=x0,
                                       eta=None if args.eta is None else _floats(args.eta, "--eta").tolist(),

@@ -39,8 +39,14 @@ def order_index(n_runs: int, alpha: float, beta: float) -> int:
         raise SimgapError(f"alpha = {alpha:g} is below what N1hat = {n_runs} runs per pair support at confidence "
                           f"1 - {beta:.3g} per pair: the smallest supported alpha is {a_min:.4g} (more runs lower it: "
                           f"alpha_min ~ ln(1/beta)/N1hat)")
-    cdf = stats.binom.cdf(np.arange(n_runs), n_runs, alpha)
-    return int(np.flatnonzero(cdf <= beta)[-1])
+    # the largest j with cdf(j) <= beta, found from the quantile function (no O(N) table: a data set
+    # may claim billions of runs); cdf(0) = (1 - alpha)^N <= beta holds since alpha >= alpha_min
+    j = int(min(max(stats.binom.ppf(beta, n_runs, alpha), 0), n_runs - 1))
+    while j > 0 and stats.binom.cdf(j, n_runs, alpha) > beta:
+        j -= 1
+    while j + 1 < n_runs and stats.binom.cdf(j + 1, n_runs, alpha) <= beta:
+        j += 1
+    return j
 
 
 def clopper_pearson(k, n, level: float = 0.95):

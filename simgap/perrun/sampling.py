@@ -147,7 +147,7 @@ def calibrate_sampling(sim, spec, options: IMDPOptions, runs: int = 8192, pairs:
     tests, touched cells and counts cost more than a cheap simulator itself), timed over the pilot's
     N0 runs and ``runs`` main runs in all, after one untimed warm-up pair; ``{"entries_per_row"}`` the
     support the N0 pilot runs gave plus the sink. A step is one (pair, run, period): with shared runs
-    one anchor's run counts once per cell it serves, as in :func:`simgap.checks.perrun_size`. None: no
+    one anchor's run counts once per cell it serves, as in :func:`simgap.perrun.cost.perrun_size`. None: no
     live pair."""
     import dataclasses
     lay = layout(sim.system, spec, options)

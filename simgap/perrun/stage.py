@@ -31,6 +31,20 @@ KEYS = {"alpha", "beta", "eta", "hold", "n_runs", "pilot_runs", "horizon", "n_ro
         "baseline_eta", "baseline_hold", "split", "invariant", "share", "check_states"}
 
 
+def check_eta(eta, system, what: str = "eta") -> None:
+    """Refuse cell widths that are not one positive number or one per state dimension (before any
+    size is projected from them: a wrong length must not reach the grid arithmetic)."""
+    try:
+        a = np.asarray(eta, dtype=float)
+    except (TypeError, ValueError):
+        raise SimgapError(f"{what}: expected numbers (cell widths), got {eta!r}") from None
+    if a.ndim > 1 or (a.ndim == 1 and a.size not in (1, system.n)):
+        raise SimgapError(f"{what}: need one cell width or {system.n} (one per state "
+                          f"{', '.join(system.state_names)}), got {a.size}: {eta!r}")
+    if not np.all(np.isfinite(a)) or np.any(a <= 0):
+        raise SimgapError(f"{what}: cell widths must be finite and > 0, got {eta!r}")
+
+
 def check_section(sec: dict, system, n_pairs: int, n_runs: int, horizon) -> dict:
     """Validate ``[perrun]`` before any work (so bad input writes nothing); returns it with defaults."""
     bad = set(sec) - KEYS
@@ -53,6 +67,7 @@ def check_section(sec: dict, system, n_pairs: int, n_runs: int, horizon) -> dict
         raise SimgapError(f"[perrun] horizon must be >= 1 sampling period, got {o['horizon']}")
     if "eta" not in o:
         raise SimgapError("[perrun] eta (interval-MDP cell widths) is required")
+    check_eta(o["eta"], system, "[perrun] eta")
     inv = o.get("invariant") or []
     if not isinstance(inv, list) or any(v not in system.state_names or system.state_names.index(v) in system.angle_dims
                                         for v in inv):
@@ -160,19 +175,19 @@ def synthesize_experiment(exp, horizon=None, x0=None, eta=None, hold=None, log=p
 def project_cost(o: dict, exp, ex, log, rollouts: bool = True) -> dict:
     """Log the per-run stage's projected cost (simulator steps, CPU-hours at the rates calibrated here,
     interval entries, memory) for executor ``ex`` and refuse what this machine cannot hold, with the
-    numbers (:func:`simgap.checks.check_perrun`). The memory is checked first, from the sizes alone;
+    numbers (:func:`simgap.perrun.cost.check_perrun`). The memory is checked first, from the sizes alone;
     then the simulator's rate and the sampling's own rate and support per row (bookkeeping included,
     :func:`simgap.perrun.sampling.calibrate_sampling`) are measured and the check repeated with them. With Ray at an address the
     projection counts ``ex.workers`` CPUs (``--workers``: default this machine's cores). ``rollouts``:
     the validation's rollouts are part of the work (``simgap run``; not ``simgap synthesize``)."""
-    from .. import checks
+    from . import cost
     from ..experiment_spec import experiment_spec
     from ..simulators import make_simulator
     # on a Ray cluster the workers are its CPUs (give --workers to project them); they hold no memory here
     local = 1 if ex.name == "serial" or (ex.name == "ray" and ex.address) else ex.workers
     nc = 3 if rollouts else 0
-    checks.check_perrun(o, exp.system, None, ex.workers, local_workers=local, n_controllers=nc)  # memory first
-    rate = checks.calibrated_rate(exp.simulator, exp.system)
+    cost.check_perrun(o, exp.system, None, ex.workers, local_workers=local, n_controllers=nc)  # memory first
+    rate = cost.calibrated_rate(exp.simulator, exp.system)
     cal = None
     if not o.get("invariant"):
         from .imdp import IMDPOptions
@@ -183,9 +198,9 @@ def project_cost(o: dict, exp, ex, log, rollouts: bool = True) -> dict:
             cal = calibrate_sampling(sim, experiment_spec(exp)[0], opts)
     kw = dict(local_workers=local, n_controllers=nc, sampling_rate=cal and cal["rate"],
               entries_per_row=cal and cal["entries_per_row"])
-    e = checks.perrun_size(o, exp.system, rate, ex.workers, **kw)
-    log(checks.perrun_cost_text(e, rate, ex.workers))
-    return checks.check_perrun(o, exp.system, rate, ex.workers, **kw)
+    e = cost.perrun_size(o, exp.system, rate, ex.workers, **kw)
+    log(cost.perrun_cost_text(e, rate, ex.workers))
+    return cost.check_perrun(o, exp.system, rate, ex.workers, **kw)
 
 
 def validate_controller(name: str, input_fn, hold: int, sim, spec, x0, domain_states, p_cert_fn, o: dict,
@@ -206,7 +221,7 @@ def validate_controller(name: str, input_fn, hold: int, sim, spec, x0, domain_st
 
 def run_stage(exp, out: Path, data, controllers: Dict[str, object], spec, x0, o: dict, sim=None,
               log: Callable[[str], None] = print, progress: Optional[Callable] = None, executor=None,
-              workers: Optional[int] = None, address: Optional[str] = None) -> dict:
+              workers: Optional[int] = None, address: Optional[str] = None, wrote=None) -> dict:
     """Run the per-run stage (module docstring); ``controllers`` are the case study's {method: Controller}.
 
     The interval MDP's sampling runs on ``executor`` (a name or an Executor; None: in this process with
@@ -215,7 +230,9 @@ def run_stage(exp, out: Path, data, controllers: Dict[str, object], spec, x0, o:
 
     ``sim``: the experiment's stochastic simulator (default: built from the experiment).
     ``progress(name, unit)``, if given, returns an ``on_progress(done, total)`` callback for the
-    interval-MDP sampling ("pairs") and for each controller's rollouts ("periods")."""
+    interval-MDP sampling ("pairs") and for each controller's rollouts ("periods").
+    ``wrote(name)``, if given, is called after each result file is written into ``out`` (the results
+    folder's journal, :func:`simgap.results_folder.record`)."""
     import contextlib
 
     from ..simulators import make_simulator
@@ -226,6 +243,7 @@ def run_stage(exp, out: Path, data, controllers: Dict[str, object], spec, x0, o:
     from .value_iteration import synthesize_imdp
 
     bar = progress or (lambda name, unit: None)
+    wrote = wrote or (lambda name: None)
     system = exp.system
     H, n = int(o["horizon"]), system.n
     rng = np.random.default_rng([int(o["seed"]), 3])
@@ -236,6 +254,7 @@ def run_stage(exp, out: Path, data, controllers: Dict[str, object], spec, x0, o:
         t0 = time.perf_counter()
         cert = certify_run(data, alpha=float(o["alpha"]), beta=float(o["beta"]), seed=int(o["seed"]), simulator=sim)
         cert.save(out / "cert_run.json")
+        wrote("cert_run.json")
         res["run_certificate"] = {"gamma_range": [d.scp["gamma_range_on_data"] for d in cert.dims],
                                   "order_statistic": cert.options["order_statistic"],
                                   "alpha_min": cert.options["alpha_min"], "seconds": round(time.perf_counter() - t0, 3)}
@@ -246,6 +265,7 @@ def run_stage(exp, out: Path, data, controllers: Dict[str, object], spec, x0, o:
         # composing gamma^alpha over held periods is valid here: the union bound covers every period
         base = synthesize(system, spec, syn_eta, gap=cert, hold=syn_hold, x0=x0, compose_hold=True).controller
         base.save(out / "controller_run_baseline.npz")
+        wrote("controller_run_baseline.npz")
         p_union = max(0.0, 1.0 - H * n * float(o["alpha"]))
         res["baseline_rule"] = f"p >= 1 - H n alpha = 1 - {H}*{n}*{o['alpha']:g} = {1 - H * n * float(o['alpha']):.4g}" \
                                f" (clipped at 0) in the winning domain, at confidence 1 - beta"
@@ -256,6 +276,7 @@ def run_stage(exp, out: Path, data, controllers: Dict[str, object], spec, x0, o:
         t_build = time.perf_counter() - t0
         ctl = synthesize_imdp(imdp, H, spec.kind)
         ctl.save(out / "controller_perrun.npz")
+        wrote("controller_perrun.npz")
         res["imdp"] = {"cells": int(imdp.C), "live_cells": int(imdp.live.sum()), "inputs": int(imdp.M),
                        "nnz": imdp.nnz, "bytes": imdp.nbytes(), "hold": imdp.hold, "steps": ctl.steps,
                        "certified_periods": ctl.meta["certified_periods"], "horizon_rule": ctl.meta["horizon_rule"],

@@ -103,11 +103,11 @@ class PerRunController:
 
     @classmethod
     def load(cls, path) -> "PerRunController":
-        import json
-        path = Path(path)
+        from ..file_guard import loads_json, regular_file
+        path = regular_file(path, "per-run controller file")
         try:
             with np.load(path, allow_pickle=False) as z:
-                meta = json.loads(str(z["meta"]))
+                meta = loads_json(str(z["meta"]), f"per-run controller file {str(path)!r}: its metadata")
                 arrays = {k: z[k] for k in ("inputs", "policy", "p_cert", "target")}
         except (*BAD_FILE_ERRORS, KeyError) as e:
             raise SimgapError(f"{str(path)!r} is not a per-run controller: {e}") from None
@@ -121,6 +121,8 @@ class PerRunController:
         grid = UniformGrid.from_dict(meta["grid"])
         if arrays["policy"].ndim != 2 or arrays["policy"].shape[1] != grid.size or arrays["p_cert"].shape != (grid.size,):
             raise SimgapError(f"{str(path)!r}: policy/p_cert do not match the grid")
+        from ..synthesis.controller import check_input_indices
+        check_input_indices(arrays["policy"], arrays["inputs"], f"per-run controller file {str(path)!r}: policy")
         p = np.asarray(arrays["p_cert"], float)
         if not np.all((p >= 0.0) & (p <= 1.0)):  # also refuses NaN
             raise SimgapError(f"{str(path)!r}: p_cert holds values outside [0, 1]")

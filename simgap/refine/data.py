@@ -318,6 +318,8 @@ def load_transitions(path: str | Path, system: Optional[System] = None,
         raise SimgapError(f"data file {str(path)!r} does not exist")
     if path.is_dir():
         return _load_collected(path, system)
+    from ..file_guard import regular_file
+    regular_file(path, "data file")
     suffix = path.suffix.lower()
     if suffix == ".npz":
         try:

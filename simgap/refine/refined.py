@@ -169,13 +169,21 @@ def system_from_dict(d: dict, _depth: int = 0) -> System:
         raise SimgapError(f"not a simgap refined-system file (need \"format\": \"{FORMAT}\")")
     if _depth > MAX_NESTING:
         raise SimgapError(f"refined system: more than {MAX_NESTING} nested refinements")
-    try:
-        base_spec, effs, steps = d["base"], d["effects"], int(d.get("steps", 1))
-    except (KeyError, TypeError, ValueError):
-        raise SimgapError("refined system: needs 'base' and 'effects'") from None
+    from ..file_guard import printable
+    missing = [k for k in ("base", "effects") if k not in d]
+    if missing:
+        raise SimgapError(f"refined system: needs 'base' and 'effects' (missing {', '.join(missing)})")
+    base_spec, effs, steps = d["base"], d["effects"], d.get("steps", 1)
+    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
+        raise SimgapError(f"refined system: \"steps\" must be a whole number of base steps >= 1, got "
+                          f"{printable(repr(steps))[:80]}")
     name = d.get("name")
     if name is not None and (not isinstance(name, str) or is_named(name)):
-        raise SimgapError(f"refined system: name {name!r} must be a string other than a built-in's or plugin's")
+        raise SimgapError(f"refined system: name {printable(repr(name))[:80]} must be a string other than a built-in's "
+                          "or plugin's")
+    if name is not None and printable(name) != name:
+        raise SimgapError(f"refined system: name {printable(repr(name))[:80]} holds control characters (terminal "
+                          "escape codes); give a plain name")
     from ..system_file import is_spec, system_from_spec
     if is_spec(base_spec):
         base = system_from_spec(base_spec, "refined system: its base system file").with_steps(1)
@@ -199,20 +207,26 @@ def system_from_dict(d: dict, _depth: int = 0) -> System:
             se = spec.get("stderr")
             ses.append(float("nan") if se is None else float(se))
         except (TypeError, ValueError):
-            raise SimgapError(f"refined system: effect {spec.get('name')!r} has a coefficient or stderr that is "
-                              f"not a number") from None
-    return build_refined(base, base_spec, effects, coefs, ses, name=name).with_steps(steps)
+            raise SimgapError(f"refined system: effect {printable(repr(spec.get('name')))} has a coefficient or "
+                              f"stderr that is not a number") from None
+    sysobj = build_refined(base, base_spec, effects, coefs, ses, name=name).with_steps(steps)
+    check_values(sysobj, "refined system")
+    return sysobj
+
+
+def check_values(system: System, where: str) -> None:
+    """Refuse a model that is not finite on X: evaluated once per input at the corners and seeded
+    states of X (:mod:`simgap.system_file`'s check), so inf or NaN is named on load, not in a report."""
+    from ..system_file import _check_finite, _check_states
+    xs = _check_states(system.x_lo, system.x_hi)
+    _check_finite(lambda x, u, dt: system.f(x, u), xs, system.inputs, 0.0, list(system.state_names), where,
+                  "the refined model")
 
 
 def load_refined(path: str | Path) -> System:
     """Load a refined system JSON file."""
-    path = Path(path)
-    try:
-        d = json.loads(path.read_text())
-    except OSError as e:
-        raise SimgapError(f"cannot read refined system {str(path)!r}: {e}") from None
-    except (json.JSONDecodeError, RecursionError) as e:
-        raise SimgapError(f"refined system {str(path)!r} is not valid JSON or nested too deeply: {e}") from None
+    from ..file_guard import read_json
+    d = read_json(path, "refined system")
     return system_from_dict(d)
 
 

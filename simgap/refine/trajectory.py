@@ -58,8 +58,8 @@ PRESETS = {
 def read_timeseries(path: str | Path, names: Sequence[str]) -> dict:
     """Read named 1-D variables from a .mat (MATLAB v5, scipy.io.loadmat), .npz or .csv file."""
     path = Path(path)
-    if not path.exists():
-        raise SimgapError(f"trajectory file {str(path)!r} does not exist")
+    from ..file_guard import regular_file
+    regular_file(path, "trajectory file")
     suffix = path.suffix.lower()
     try:
         if suffix == ".mat":

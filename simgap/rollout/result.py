@@ -189,6 +189,8 @@ class RolloutResult:
 
 def load_rollout(path) -> RolloutResult:
     """Read a file written by :meth:`RolloutResult.save_npz` (no pickle)."""
+    from ..file_guard import loads_json, regular_file
+    regular_file(path, "rollout file")
     try:
         with np.load(os.fspath(path), allow_pickle=False) as z:
             a = {k: z[k] for k in z.files}
@@ -196,7 +198,7 @@ def load_rollout(path) -> RolloutResult:
         raise SimgapError(f"rollout file {str(path)!r}: cannot read ({e})") from None
     if "meta_json" not in a:
         raise SimgapError(f"rollout file {str(path)!r}: not a simgap rollout file (no meta_json)")
-    meta = json.loads(str(a.pop("meta_json")))
+    meta = loads_json(str(a.pop("meta_json")), f"rollout file {str(path)!r}: its metadata")
     nominal = meta["nominal_full"]
     nominal["x_lo"] = [float(v) for v in nominal["x_lo"]]
     nominal["x_hi"] = [float(v) for v in nominal["x_hi"]]

@@ -182,17 +182,14 @@ class Controller:
         refined system) with the stored input set, unless ``system`` is given.
         """
         path = Path(path)
-        if not path.exists():
-            raise SimgapError(f"controller file {str(path)!r} does not exist")
+        from ..file_guard import loads_json, regular_file
+        regular_file(path, "controller file")
         try:
             with np.load(path, allow_pickle=False) as z:
                 arrays = {k: z[k] for k in ("steps", "valid", "chosen", "target", "inputs", "meta")}
         except (*BAD_FILE_ERRORS, KeyError) as e:
             raise SimgapError(f"controller file {str(path)!r} is not a simgap controller ({e})") from None
-        try:
-            meta = json.loads(str(arrays.pop("meta")))
-        except ValueError as e:
-            raise SimgapError(f"controller file {str(path)!r}: its metadata is not JSON ({e})") from None
+        meta = loads_json(str(arrays.pop("meta")), f"controller file {str(path)!r}: its metadata")
         if not isinstance(meta, dict) or meta.get("format") != FORMAT:
             raise SimgapError(f"controller file {str(path)!r} is not a simgap controller (format tag)")
         if meta.get("version") != VERSION:
@@ -206,6 +203,11 @@ class Controller:
         grid = UniformGrid.from_dict(meta["grid"])
         if arrays["steps"].shape != (grid.size,):
             raise SimgapError(f"controller file {str(path)!r}: arrays do not match the grid size {grid.size}")
+        check_input_indices(arrays["chosen"], arrays["inputs"], f"controller file {str(path)!r}: chosen")
+        if arrays["valid"].ndim != 2 or arrays["valid"].shape != (grid.size, -(-len(arrays["inputs"]) // 8)):
+            raise SimgapError(f"controller file {str(path)!r}: the valid-input mask has shape {arrays['valid'].shape}, "
+                              f"expected ({grid.size}, {-(-len(arrays['inputs']) // 8)}) for {len(arrays['inputs'])} "
+                              "inputs")
         spec = Spec.from_dict(meta["spec"]) if meta.get("spec") else None
         if system is None and meta.get("system"):
             system = _rebuild_system(meta["system"], arrays["inputs"])
@@ -215,6 +217,21 @@ class Controller:
     def describe(self) -> dict:
         return {"kind": self.kind, "grid": self.grid.describe(), "n_inputs": self.n_inputs,
                 "hold": self.hold, "winning": self.size, "winning_with_target": self.size_with_target}
+
+
+def check_input_indices(idx, inputs, what: str) -> None:
+    """Refuse input indices outside -1 (none) .. M-1 for the M rows of ``inputs`` (finite numbers)."""
+    inputs = np.asarray(inputs)
+    if inputs.ndim != 2 or inputs.shape[0] < 1 or not np.issubdtype(inputs.dtype, np.number) \
+            or not np.all(np.isfinite(inputs)):
+        raise SimgapError(f"{what}: the input table must be a finite (M, m) array, got shape {inputs.shape}")
+    idx = np.asarray(idx)
+    if not np.issubdtype(idx.dtype, np.integer):
+        raise SimgapError(f"{what}: input indices must be integers, got {idx.dtype}")
+    bad = (idx < -1) | (idx >= inputs.shape[0])
+    if bad.any():
+        raise SimgapError(f"{what}: {int(bad.sum())} input index(es) outside -1..{inputs.shape[0] - 1} (the file has "
+                          f"{inputs.shape[0]} inputs), e.g. {int(idx[bad].flat[0])} (refused)")
 
 
 def _json_default(o):

@@ -38,6 +38,7 @@ import numpy as np
 
 from .. import fileio
 from ..checks import count
+from ..profiles import DEFAULT_PROFILE
 from ..errors import SimgapError
 
 
@@ -81,7 +82,9 @@ def add_parser(subparsers) -> None:
     p.add_argument("--eta", default=None,
                    help="cell width, one value or one per state dimension (comma separated); "
                         "default: the experiment's [synthesis] eta")
-    p.add_argument("--profile", default="small", help="experiment profile (with an experiment --spec)")
+    p.add_argument("--profile", default=DEFAULT_PROFILE,
+                   help="experiment profile (with an experiment --spec; default: small, or the base settings when "
+                        "the file has no small profile)")
     p.add_argument("--out", required=True, help="controller file to write (.npz)")
     p.add_argument("--x0", default=None, help="initial state to record and check (default: the map's)")
     p.add_argument("--json", default=None, help="also write the statistics as JSON here")

@@ -25,7 +25,7 @@ from ..systems import embedded_ref, system_digest
 from .basis import Basis
 from .bounds import BoundOptions, beta_from_delta, delta_from_beta, required_runs
 from .certificate import Certificate, DimCertificate
-from .lipschitz import fhat_slopes_crn, l2_analytic, neighbour_pairs, slopes_of, wood_zhang
+from .lipschitz import LHAT_PAIRS, LHAT_RUNS, fhat_slopes_crn, l2_analytic, neighbour_pairs, slopes_of, wood_zhang
 from .scp import solve_scp
 from .variance import variance_bound
 
@@ -73,8 +73,8 @@ class CertifyOptions:
     lipschitz_mode: str = "increment"
     l2: str = "analytic"
     lhat: str = "data"
-    lhat_pairs: int = 2000
-    lhat_runs: int = 100
+    lhat_pairs: int = LHAT_PAIRS
+    lhat_runs: int = LHAT_RUNS
     scp_method: str = "cg"
     solver: str = "CLARABEL"
     secondary: bool = True
@@ -164,11 +164,13 @@ def check_dataset(ds) -> None:
         raise SimgapError("dataset: negative sample variances")
 
 
-def certify(dataset, options: Optional[CertifyOptions] = None, simulator=None, **kw) -> Certificate:
+def certify(dataset, options: Optional[CertifyOptions] = None, simulator=None, on_progress=None,
+            **kw) -> Certificate:
     """Compute the stochastic simulation-gap certificate of ``dataset`` (see module docstring).
 
     ``options`` or keyword arguments of :class:`CertifyOptions`. ``simulator`` (a Simulator)
     is only used by ``lhat="simulator"``; by default it is rebuilt from the data manifest.
+    ``on_progress(rows_done, rows)``: progress of the ``lhat="simulator"`` runs (the same numbers).
     """
     t0 = time.perf_counter()
     o = options or CertifyOptions(**kw)
@@ -258,7 +260,7 @@ def certify(dataset, options: Optional[CertifyOptions] = None, simulator=None, *
                          f"{N} runs (the predecessor work used one run)")
 
     # ----- Lipschitz constants from the data (no dependence on delta or the basis) --------
-    pairs, lip, U_data = _data_lipschitz(ds, o, simulator)  # U_data: the inputs gamma is certified for
+    pairs, lip, U_data = _data_lipschitz(ds, o, simulator, on_progress)  # U_data: the inputs gamma is certified for
     warnings = []  # notes that likely cost the user: also shown by `simgap run`
     for i, (_, _, L_fhat, how_fhat) in enumerate(lip):
         share = how_fhat.get("noise_share", 0.0)
@@ -350,7 +352,7 @@ def beyond_paper(o: CertifyOptions) -> List[str]:
 _LIP_CACHE: "OrderedDict[tuple, tuple]" = OrderedDict()
 
 
-def _data_lipschitz(ds, o: CertifyOptions, simulator=None):
+def _data_lipschitz(ds, o: CertifyOptions, simulator=None, on_progress=None):
     """(neighbour pairs, [(L_f, how, Lhat_fhat, how)] per dimension, the data's inputs) of a dataset.
 
     These depend only on the data and the Lipschitz options, not on delta or the basis, so the
@@ -376,7 +378,7 @@ def _data_lipschitz(ds, o: CertifyOptions, simulator=None):
         from ..simulators import make_simulator
         cov = [j for j in range(s.n) if j not in invariant_dims(ds)]  # pairs along covered dims only
         crn = dict(h=ds.epsilon, n_pairs=o.lhat_pairs, runs=o.lhat_runs, increment=o.lipschitz_mode == "increment",
-                   dims=cov, inputs=np.unique(ds.u, axis=0))
+                   dims=cov, inputs=np.unique(ds.u, axis=0), on_progress=on_progress)
         if simulator is None:
             cfg = ds.manifest.get("simulator")
             if not cfg:

@@ -213,15 +213,14 @@ def run(args) -> int:
     if eta.size not in (1, system.n):
         raise SimgapError(f"--eta: need 1 or {system.n} values, got {eta.size}")
     hold = args.hold if args.hold is not None else int(syn.get("hold", 1))
-    if np.all(np.isfinite(eta)) and np.all(eta > 0):  # else synthesize names the bad eta
-        from ..checks import check_memory
-        cells = float(np.prod(np.ceil((system.x_hi - system.x_lo) / np.broadcast_to(eta, (system.n,)))))
-        # a lower bound: the abstraction keeps at least one 4-byte entry per (cell, input) pair
-        check_memory(4.0 * cells * len(system.inputs), f"synthesis on {cells:,.0f} cells x {len(system.inputs)} "
-                     f"inputs (eta {np.asarray(eta).tolist()})", "use a coarser --eta")
-
-    res = synthesize(system, spec, eta, gap=gap, hold=hold, strict_domain=not args.no_strict_domain,
-                     x0=x0, compose_hold=args.compose_hold)
+    from ..progress import ProgressBar
+    bar = ProgressBar(unit="classes", desc="abstraction")
+    try:
+        res = synthesize(system, spec, eta, gap=gap, hold=hold, strict_domain=not args.no_strict_domain,
+                         x0=x0, compose_hold=args.compose_hold, log=lambda m: print(m, flush=True),
+                         on_progress=bar)
+    finally:
+        bar.close()
     print(res.summary())
     if args.json:
         _write_json(args.json, res.stats)

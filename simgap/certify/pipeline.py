@@ -26,7 +26,7 @@ from .basis import Basis
 from .bounds import BoundOptions, beta_from_delta, delta_from_beta, required_runs
 from .certificate import Certificate, DimCertificate
 from .lipschitz import LHAT_PAIRS, LHAT_RUNS, fhat_slopes_crn, l2_analytic, neighbour_pairs, slopes_of, wood_zhang
-from .scp import solve_scp
+from .scp import DependentTerms, solve_scp
 from .variance import variance_bound
 
 PerDim = Union[None, float, Sequence[float]]
@@ -153,6 +153,34 @@ def bases_for(system, degree, terms: Dict[int, List[str]], exclude_dims: Sequenc
     return out
 
 
+def dependent_terms_message(err, system, i: int, degree, terms: Dict[int, List[str]], names: List[str]) -> str:
+    """What to drop when the basis of dimension ``i`` is linearly dependent on the data (``err``: a
+    :class:`~simgap.certify.scp.DependentTerms`), in the command line's and the TOML's spellings."""
+    n, dim = system.n, system.state_names[i]
+    degs = [degree] * n if np.isscalar(degree) else list(degree)
+    t_all, t_i = list(terms.get(-1, [])), list(terms.get(i, []))
+    n_mono = len(names) - len(t_all) - len(t_i)
+    bad = names[err.column]
+    why = (f"'{bad}' is zero on the data" if not err.on else
+           f"'{bad}' is a linear combination of {', '.join(repr(names[j]) for j in err.on)} on the data")
+    head = (f"certify: the basis terms of {dim} are linearly dependent on the data, so q would not be unique: "
+            f"{why}. Drop it")
+    if err.column >= n_mono + len(t_all):  # a term the user gave for this dimension
+        return (f"{head}: on the command line leave out --term {dim}:'{bad}'; in the experiment's [certify] "
+                f"remove \"{bad}\" from terms.{dim}")
+    if err.column >= n_mono:  # a term given for every dimension
+        return (f"{head}: it is given for all dimensions (--term all:'{bad}', TOML terms.all); give it only for the "
+                f"dimensions that need it (--term NAME:'{bad}', TOML terms.NAME)")
+    keep = [t for j, t in enumerate(names[:n_mono]) if j != err.column] + t_i  # the monomials stay, listed
+    d_i, degs[i] = int(degs[i]), -1
+    cli = f"--degree {','.join(str(int(d)) for d in degs)} " + " ".join(f"--term {dim}:'{t}'" for t in keep)
+    toml = (f"degree = [{', '.join(str(int(d)) for d in degs)}] and terms.{dim} = "
+            f"[{', '.join(chr(34) + t + chr(34) for t in keep)}]")
+    return (f"{head} (a monomial of the degree-{d_i} basis: with degree -1 for {dim} "
+            f"the terms are listed instead): on the command line {cli}"
+            + (" (keeping the --term all: terms)" if t_all else "") + f"; in the experiment's [certify] {toml}")
+
+
 def check_dataset(ds) -> None:
     """Reject data the program would silently get wrong."""
     ds.check_finite()
@@ -273,8 +301,11 @@ def certify(dataset, options: Optional[CertifyOptions] = None, simulator=None, o
     dims = []
     for i in range(n):
         P = bases[i].design(ds.x, ds.u)
-        res = solve_scp(P, g[:, i], float(d1[i]), method=o.scp_method, solver=o.solver, secondary=o.secondary,
-                        seed=o.seed)
+        try:
+            res = solve_scp(P, g[:, i], float(d1[i]), method=o.scp_method, solver=o.solver,
+                            secondary=o.secondary, seed=o.seed)
+        except DependentTerms as e:
+            raise SimgapError(dependent_terms_message(e, s, i, o.degree, o.terms, bases[i].names)) from None
         L_f, how_f, L_fhat, how_fhat = lip[i]
         how = {"L_f": how_f, "L_fhat": how_fhat}
         if o.l2 == "analytic":

@@ -25,26 +25,14 @@ def _floats(text: str, name: str):
 
 
 def parse_terms(items, system) -> dict:
-    """``i:expr`` items (i = 1-based state dimension, a state name, or 'all') -> {0-based dim: [expr]}."""
+    """``DIM:EXPR`` items (DIM = a state name, 'all', or a 1-based dimension) -> {0-based dim or -1: [expr]}."""
+    from ..certify.basis import term_dimension
     out = {}
     for item in items or []:
         if ":" not in item:
-            raise SimgapError(f"--term {item!r}: expected DIM:EXPR, e.g. 2:'cos(x1)' or all:'x1*u1'")
+            raise SimgapError(f"--term {item!r}: expected DIM:EXPR, e.g. omega:'sin(theta)' or all:'x1*u1'")
         key, expr = item.split(":", 1)
-        key = key.strip()
-        if key in ("all", "*"):
-            i = -1
-        elif key in system.state_names:
-            i = system.state_names.index(key)
-        else:
-            try:
-                i = int(key) - 1
-            except ValueError:
-                raise SimgapError(f"--term {item!r}: dimension {key!r} is not 1..{system.n}, a state name "
-                                  f"({', '.join(system.state_names)}) or 'all'") from None
-            if not (0 <= i < system.n):
-                raise SimgapError(f"--term {item!r}: dimension {key} out of range 1..{system.n}")
-        out.setdefault(i, []).append(expr.strip())
+        out.setdefault(term_dimension(key, system, one_based=True, where=f"--term {item!r}"), []).append(expr.strip())
     return out
 
 

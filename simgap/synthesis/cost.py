@@ -96,7 +96,8 @@ def synthesis_cost(system, grid: UniformGrid, gap=None, hold: int = 1, invariant
 
 def synthesis_cost_text(c: dict, grid: UniformGrid) -> str:
     """:func:`synthesis_cost` as the lines printed before the abstraction is built."""
-    from ..checks import available_memory, human_bytes
+    from ..fileio import human_bytes
+    from ..memory import available_memory
     from ..cover import format_duration
     shared = f", {c['classes']:,.0f} classes of shared boxes" if c["classes"] < c["cells"] else ""
     return (f"estimate: grid {' x '.join(map(str, grid.shape))} = {c['cells']:,.0f} cells x {c['inputs']} inputs"
@@ -108,7 +109,7 @@ def synthesis_cost_text(c: dict, grid: UniformGrid) -> str:
 
 def check_synthesis_cost(c: dict, grid: UniformGrid) -> None:
     """Refuse a synthesis whose estimated peak memory exceeds the available memory, with the numbers."""
-    from ..checks import check_memory
+    from ..memory import check_memory
     check_memory(c["memory"], f"synthesis on {c['cells']:,.0f} cells x {c['inputs']} inputs (grid "
                  f"{' x '.join(map(str, grid.shape))}, eta {np.round(grid.eta, 9).tolist()}; about "
                  f"{c['transitions']:.3g} transitions)", "use a coarser --eta (each halving of eta in one "

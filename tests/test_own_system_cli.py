@@ -89,3 +89,36 @@ def test_links_without_inertial_data_are_summarized_once(tmp_path):
     line = ("husky.urdf: 6 links without inertial data: assumed 1 kg each (PyBullet's default, unit inertia): "
             "base_footprint, imu_link, top_plate_link, user_rail_link, front_bumper_link, rear_bumper_link")
     assert err.count("links without inertial data") == 1 and line in err, err
+
+
+def test_rollout_takes_the_experiments_rollout_seed(duffing):
+    import json
+    text = (duffing / "experiment.toml").read_text().replace("x0 = [0.1, 0.1]", "x0 = [0.1, 0.1]\nseed = 5")
+    (duffing / "experiment.toml").write_text(text)
+    r = simgap("synthesize", "--no-gap", "--spec", "experiment.toml", "--out", "c.npz", cwd=duffing)
+    assert r.returncode == 0, r.stderr
+    r = simgap("rollout", "--controller", "c.npz", "--simulator", "experiment.toml", "--n", "20", "--out", "a.json",
+               cwd=duffing)
+    assert r.returncode == 0, r.stderr
+    assert "seed 5" in r.stdout and "[rollout] of experiment.toml" in r.stdout, r.stdout
+    a = json.loads((duffing / "a.json").read_text())
+    assert a["seed"] == 5 and a["horizon"] == 50, (a["seed"], a["horizon"])  # [rollout] seed and horizon
+    r = simgap("rollout", "--controller", "c.npz", "--simulator", "experiment.toml", "--n", "20", "--seed", "2",
+               "--out", "b.json", cwd=duffing)
+    assert r.returncode == 0 and json.loads((duffing / "b.json").read_text())["seed"] == 2
+
+
+def test_synthesize_says_when_x0_is_outside_the_winning_domain(duffing):
+    r = simgap("synthesize", "--gamma", "0.005,0.03", "--spec", "experiment.toml", "--x0", "0.75,1.15",
+               "--out", "c.npz", cwd=duffing)
+    assert r.returncode == 3, r.stdout + r.stderr
+    assert "is OUTSIDE the winning domain" in r.stdout and (duffing / "c.npz").exists()
+    r = simgap("synthesize", "--gamma", "0.005,0.03", "--spec", "experiment.toml", "--x0", "0,0",
+               "--out", "d.npz", cwd=duffing)
+    assert r.returncode == 0 and "x0            [0.0, 0.0]: winning" in r.stdout, r.stdout
+
+
+def test_an_output_in_a_missing_folder_says_how_to_fix_it(duffing):
+    r = simgap("synthesize", "--no-gap", "--spec", "experiment.toml", "--out", "runs/x.npz", cwd=duffing)
+    refused(r, "folder 'runs' does not exist", "mkdir -p 'runs'")
+    assert not (duffing / "runs").exists()

@@ -24,8 +24,9 @@ Its simulator work runs in chunks on a local pool (``--executor``, ``--workers``
 ``--executor ray --address HOST:PORT``), kept in ``--store`` and resumed from it if given; the
 projected cost is printed first and work this machine cannot hold is refused.
 
-Exit status: 0 with a controller written,
-1 when the winning domain is empty (nothing written; the summary says why), 2 on bad input.
+Exit status: 0 with a controller written (and x0, when one is requested or recorded, winning),
+1 when the winning domain is empty (nothing written; the summary says why), 2 on bad input, 3 when
+the controller is written but the requested x0 lies outside its winning domain.
 """
 
 from __future__ import annotations
@@ -39,6 +40,9 @@ import numpy as np
 from .. import fileio
 from ..checks import count
 from ..profiles import DEFAULT_PROFILE
+
+#: exit status: a controller was written, but the requested x0 is outside its winning domain
+X0_OUTSIDE = 3
 from ..errors import SimgapError
 
 
@@ -236,8 +240,9 @@ def run(args) -> int:
                   f"abstract steps to go (worst case)" if spec.kind == "reach_avoid" else
                   f"x0            {np.asarray(x0).tolist()}: winning")
         else:
-            print(f"warning: x0 {np.asarray(x0).tolist()} is outside the winning domain; rollouts from it "
-                  "will be refused")
+            print(f"result: x0 {np.asarray(x0).tolist()} is OUTSIDE the winning domain: the controller is written "
+                  "(its domain can be looked at) but rollouts from x0 are refused (exit status 3)")
+            return X0_OUTSIDE
     return 0
 
 

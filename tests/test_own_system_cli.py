@@ -122,3 +122,34 @@ def test_an_output_in_a_missing_folder_says_how_to_fix_it(duffing):
     r = simgap("synthesize", "--no-gap", "--spec", "experiment.toml", "--out", "runs/x.npz", cwd=duffing)
     refused(r, "folder 'runs' does not exist", "mkdir -p 'runs'")
     assert not (duffing / "runs").exists()
+
+
+@pytest.mark.parametrize("key,value,words", [
+    ("inputs", '["shoulder", "shoulder"]', ["options.inputs names 'shoulder' twice"]),
+    ("velocities", '["shoulder", "shoulder"]', ["options.velocities names 'shoulder' twice"]),
+])
+def test_a_joint_named_twice_is_refused(tmp_path, key, value, words):
+    d = tmp_path / "arm"
+    shutil.copytree(REPO / "examples" / "arm", d)
+    for name in ("arm_urdf.toml", "arm_mujoco.toml"):
+        text = (d / name).read_text()
+        lines = [(f"{key} = {value}" if ln.startswith(f"{key} = ") else ln) for ln in text.splitlines()]
+        (d / name).write_text("\n".join(lines) + "\n")
+        r = simgap("collect", name, "--dry-run", cwd=d, timeout=300)
+        if name == "arm_mujoco.toml" and "extra" in r.stderr and "mujoco" in r.stderr:
+            continue  # MuJoCo not installed here: its refusal names the extra instead
+        refused(r, *words)
+
+
+def test_a_velocity_state_on_a_fixed_joint_is_refused(tmp_path):
+    pybullet_data = pytest.importorskip("pybullet_data")
+    d = tmp_path / "husky"
+    shutil.copytree(Path(pybullet_data.getDataPath()) / "husky", d)
+    (d / "unicycle.toml").write_text(HUSKY_SYSTEM.replace('states = ["x", "y", "theta"]',
+                                                          'states = ["x", "y", "theta", "w"]')
+                                     .replace("x_lo = [-2.0, -2.0, -3.14159]", "x_lo = [-2.0, -2.0, -3.14159, -1]")
+                                     .replace("x_hi = [2.0, 2.0, 3.14159]", "x_hi = [2.0, 2.0, 3.14159, 1]")
+                                     .replace('theta = "theta"', 'theta = "theta"\nw = "w"'))
+    (d / "exp.toml").write_text(HUSKY_EXPERIMENT.replace("base_pose = true", 'base_pose = true\nvelocities = ["imu_joint"]'))
+    refused(simgap("collect", "exp.toml", "--dry-run", cwd=d, timeout=300),
+            "no revolute/prismatic joint 'imu_joint'", "options.velocities", "front_left_wheel")

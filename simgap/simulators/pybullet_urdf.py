@@ -82,6 +82,10 @@ def name_list(value, what: str) -> List[str]:
         value = [value]
     if not isinstance(value, (list, tuple)) or not all(isinstance(v, str) and v for v in value):
         raise SimgapError(f"{what}: need a list of names, got {value!r}")
+    twice = sorted({v for v in value if list(value).count(v) > 1})
+    if twice:  # two state components or two inputs on one joint: one would silently overwrite the other
+        raise SimgapError(f"{what} names {', '.join(map(repr, twice))} twice; each joint once (one input per "
+                          "joint: two inputs on one joint would overwrite each other)")
     return list(value)
 
 

@@ -143,3 +143,27 @@ def test_synthesis_over_memory_is_refused_with_the_numbers(duffing):
     refused(r, "synthesis on 2,000,090,001 cells x 9 inputs", "of memory", "coarser --eta")
     assert "estimate:" in r.stdout
     assert not (duffing / "huge.npz").exists()
+
+
+@pytest.mark.parametrize("kind", ["invariance", "reach_avoid"])
+def test_the_game_reports_its_iterations(kind):
+    """The games say how far they are while they run (throttled; here every iteration)."""
+    import numpy as np
+    sys.path.insert(0, str(REPO))
+    import simgap.synthesis.controller as controller
+    from simgap.synthesis.fixed_point import game_progress
+    from simgap.synthesis.spec import Box, Spec
+    from simgap.systems import resolve_system
+    s = resolve_system(str(DUFFING / "duffing.toml"))
+    spec = (Spec(kind="invariance", safe=Box(np.array([-0.8, -1.2]), np.array([0.8, 1.2]))) if kind == "invariance"
+            else Spec(kind="reach_avoid", target=Box(np.array([-0.1, -0.1]), np.array([0.1, 0.1]))))
+    lines = []
+    orig = controller.game_progress
+    try:
+        controller.game_progress = lambda log: game_progress(log, every=0.0)
+        res = controller.synthesize(s, spec, [0.02, 0.02], gap=np.array([0.002, 0.01]), log=lines.append)
+    finally:
+        controller.game_progress = orig
+    its = [int(ln.split("iteration ")[1].split(",")[0].replace(",", "")) for ln in lines if ln.startswith("game: iter")]
+    assert lines[0].startswith("estimate:") and its, lines
+    assert its == sorted(its) and its[-1] <= res.stats["iterations"] and its[-1] >= res.stats["iterations"] - 1

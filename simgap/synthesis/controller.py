@@ -23,6 +23,7 @@ an edited file.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import resource
@@ -39,6 +40,7 @@ from ..systems import System
 from .abstraction import (COMPOSED_HOLD_LABEL, as_gap, build_abstraction, certified_input_mask, check_hold,
                           describe_gap, growth_function, uncertified_inputs_message)
 from .cost import check_synthesis_cost, synthesis_cost, synthesis_cost_text
+from .fixed_point import game_progress
 from .games import METHODS, GameResult, solve_invariance, solve_reach
 from .grid import UniformGrid
 from .spec import Spec
@@ -401,15 +403,16 @@ def synthesize(system: System, spec: Spec, eta, gap=None, hold: int = 1, *, grow
                            invariant_dims=invariant_dims, guard=guard, compose_hold=compose_hold,
                            on_progress=on_progress)
     if log is not None:
-        log(f"game: {spec.kind} on {grid.size:,} cells ...")
+        log(f"game: {spec.kind} on {grid.size:,} cells (a line every 10 s while it runs) ...")
     t2 = time.perf_counter()
-    if spec.kind == "reach_avoid":
-        res = solve_reach(ab, cells, blocked, method=method)
-        chosen = _first_valid(res.valid_packed, ab.n_inputs)
-        chosen[res.target] = -1
-    else:
-        res = solve_invariance(ab, cells, blocked, method=method)
-        chosen = res.chosen
+    with game_progress(log) if log is not None else contextlib.nullcontext():
+        if spec.kind == "reach_avoid":
+            res = solve_reach(ab, cells, blocked, method=method)
+            chosen = _first_valid(res.valid_packed, ab.n_inputs)
+            chosen[res.target] = -1
+        else:
+            res = solve_invariance(ab, cells, blocked, method=method)
+            chosen = res.chosen
     t3 = time.perf_counter()
     stats = {
         "system": system.name, "tau": system.tau, "hold": int(hold), "hold_mode": _hold_mode(hold, gap),

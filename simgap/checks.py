@@ -21,6 +21,7 @@ from typing import Optional, Sequence
 
 from .errors import SimgapError
 from .fileio import human_bytes  # noqa: F401  (in fileio, whose write errors use it: fileio imports no checks)
+from .memory import available_memory, check_memory  # noqa: F401  (light: stages import them directly)
 
 #: work estimated to take longer than this is refused (the numbers are printed)
 MAX_SECONDS = 365 * 24 * 3600.0
@@ -132,34 +133,11 @@ def reachable(address: str, timeout: float = 5.0, what: str = "server") -> None:
 # Sizes
 # ----------------------------------------------------------------------------------------
 
-def available_memory() -> int:
-    """Bytes of memory available to new allocations (MemAvailable), or total RAM."""
-    try:
-        with open("/proc/meminfo") as fh:
-            for line in fh:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        pass
-    try:
-        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-    except (ValueError, OSError, AttributeError):
-        return 1 << 34
-
-
 def human_seconds(s: float) -> str:
     for unit, d in (("years", 365 * 86400.0), ("days", 86400.0), ("h", 3600.0), ("min", 60.0)):
         if s >= d:
             return f"{s / d:.3g} {unit}"
     return f"{s:.3g} s"
-
-
-def check_memory(need: float, what: str, hint: str = "") -> None:
-    """Refuse work whose estimated peak memory ``need`` [bytes] exceeds the available memory."""
-    have = available_memory()
-    if need > have:
-        raise SimgapError(f"{what} needs about {human_bytes(need)} of memory, {human_bytes(have)} is available"
-                          + (f"; {hint}" if hint else ""))
 
 
 def check_disk(need: float, folder, what: str, hint: str = "") -> None:

@@ -38,6 +38,7 @@ from .collect import DEFAULT_BATCH_RUNS, CollectionPlan
 from .cover import Cover, CoverSpec, make_cover
 from .errors import SimgapError
 from .paths import ASSETS_DIR
+from .profiles import DEFAULT_PROFILE, DefaultProfile
 from .simulators.base import SimulatorConfig, simulator_class
 from .systems import BUILTIN, System, get_system, input_grid, is_named, resolve_system
 
@@ -127,7 +128,7 @@ def resolve_experiment(path_or_name: str | Path) -> Path:
     raise SimgapError(f"experiment file {s!r} does not exist")
 
 
-def load_experiment(path_or_name: str | Path, profile: Optional[str] = "small",
+def load_experiment(path_or_name: str | Path, profile: Optional[str] = DEFAULT_PROFILE,
                     overrides: Optional[dict] = None, system: Optional[System] = None, *,
                     text: Optional[str] = None) -> ExperimentConfig:
     """Load an experiment TOML, apply ``profile`` and ``overrides`` ({section: {key: value}}).
@@ -135,7 +136,8 @@ def load_experiment(path_or_name: str | Path, profile: Optional[str] = "small",
     ``system`` replaces what ``[system]`` names (its file is then not read): a results folder
     reopened after its system file is gone passes the model its data embed.
 
-    ``profile`` None or ``"base"`` uses the top-level configuration as is.
+    ``profile`` None or ``"base"`` uses the top-level configuration as is; the default
+    (:data:`DEFAULT_PROFILE`) is ``small`` when the file defines it, else the base.
 
     The whole file is checked against :mod:`simgap.schema` before anything runs: every profile
     (a typo in one that is not used is still an error), then the requested one with the
@@ -161,8 +163,8 @@ def load_experiment(path_or_name: str | Path, profile: Optional[str] = "small",
     for table in [raw] + [p for p in (profiles.values() if isinstance(profiles, dict) else ()) if isinstance(p, dict)]:
         _system_shorthand(table)
     schema.check_profiles(profiles, f"experiment {path.name}")
-    if profile == "base":  # the top-level configuration without any profile
-        profile = None
+    if profile == "base" or (isinstance(profile, DefaultProfile) and profile not in profiles):
+        profile = None  # the top-level configuration without any profile
     if profile is not None and profile not in profiles:
         raise SimgapError(f"experiment {str(path)!r} has no profile {profile!r}; "
                           f"profiles: {', '.join(sorted(profiles)) or 'none'} (or base)")

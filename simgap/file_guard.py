@@ -167,7 +167,8 @@ def output_file(path, what: str = "--out") -> Path:
                           " plus the extension)")
     folder = p.parent if str(p.parent) else Path(".")
     if not folder.exists():
-        raise SimgapError(f"{what} {str(p)!r}: folder {str(folder)!r} does not exist")
+        raise SimgapError(f"{what} {str(p)!r}: folder {str(folder)!r} does not exist; create it first (mkdir -p "
+                          f"{str(folder)!r}) or write into an existing folder")
     if not folder.is_dir():
         raise SimgapError(f"{what} {str(p)!r}: {str(folder)!r} is not a folder")
     _probe_writable(folder, what, p)

@@ -50,15 +50,20 @@ def baseline_experiment(exp: ExperimentConfig) -> ExperimentConfig:
     return dataclasses.replace(exp, simulator=sim, collect=col)
 
 
-def certify_options(section: dict, method: str):
-    """CertifyOptions from an experiment's ``[certify]`` section."""
+def certify_options(section: dict, method: str, system=None):
+    """CertifyOptions from an experiment's ``[certify]`` section (``terms`` keys: state names, ``all``,
+    or 0-based numbers with -1 = all; names need ``system``)."""
     from .certify.bounds import BoundOptions
     from .certify.pipeline import CertifyOptions
 
     s = dict(section)  # keys and types checked by simgap.schema when the experiment was loaded
     bkw = {k: s.pop(k) for k in ("concentration", "uniform", "lemma2_factor") if k in s}
     if "terms" in s:
-        s["terms"] = {int(k): list(v) for k, v in s["terms"].items()}
+        if system is not None:
+            from .certify.basis import terms_by_dimension
+            s["terms"] = terms_by_dimension(s["terms"], system)
+        else:
+            s["terms"] = {int(k): list(v) for k, v in s["terms"].items()}
     if method == "deterministic":
         for k in ("delta1", "delta2", "beta1", "beta2", "variance", "safety", "value_range"):
             s.pop(k, None)
@@ -115,7 +120,7 @@ def check_experiment(exp: ExperimentConfig, out: Optional[str | Path] = None, *,
     inv = [d if isinstance(d, int) else s.state_names.index(d) for d in exp.collect.invariant_dims
            if isinstance(d, int) or d in s.state_names]
     for method in METHODS:
-        opts = certify_options(cert, method)
+        opts = certify_options(cert, method, exp.system)
         degs = list(opts.degree) if np.ndim(opts.degree) else [opts.degree] * n
         n_terms = max(len(opts.terms.get(-1, [])) + len(opts.terms.get(i, [])) for i in range(n))
         checks.check_basis(plan.n_pairs, n + s.m - len(inv), degs, n_terms, what="[certify] degree")
@@ -271,7 +276,7 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
         controllers = {}
         for method in METHODS:
             ds = data[method]
-            opts = certify_options(cert_section, method)
+            opts = certify_options(cert_section, method, exp.system)
             cert = stage(f"certify/{method}", lambda: certify(ds, opts, simulator=sims[method]))
             cert.save(out / f"cert_{method}.json")
             wrote(f"cert_{method}.json")

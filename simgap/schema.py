@@ -125,7 +125,8 @@ class CollectSection(Section):
 
 
 class CertifySection(Section):
-    """``[certify]``: :class:`simgap.certify.CertifyOptions` (``terms`` keys: 0-based dimension, -1 = all)."""
+    """``[certify]``: :class:`simgap.certify.CertifyOptions` (``terms`` keys: a state name or ``all``, as on the
+    command line; or a 0-based dimension, -1 = all)."""
     degree: Union[Annotated[int, Field(ge=-1)], list[Annotated[int, Field(ge=-1)]]] = 2
     terms: dict[str, list[str]] = {}
     delta1: Optional[Union[Positive, list[Positive]]] = None
@@ -150,12 +151,14 @@ class CertifySection(Section):
 
     @model_validator(mode="after")
     def _term_keys(self):
-        for k in self.terms:
+        for k in self.terms:  # state names are checked against the system (simgap.certify.basis.term_dimension)
             try:
-                if int(k) < -1:
-                    raise ValueError
+                bad = int(k) < -1
             except ValueError:
-                raise ValueError(f"terms: keys are 0-based state dimensions or -1 (all), got {k!r}") from None
+                bad = not str(k).isidentifier()
+            if bad:
+                raise ValueError(f"terms: keys are state names, all, or 0-based state dimensions (-1 = all), "
+                                 f"got {k!r}")
         return self
 
 

@@ -69,7 +69,8 @@ def _spec_patches(ax, spec, system) -> None:
     if spec is None:
         return
     for i, b in enumerate(getattr(spec, "obstacles", ()) or ()):
-        _box(ax, b, system, facecolor="0.45", edgecolor="0.2", lw=0.5, label="obstacle" if i == 0 else None, zorder=3)
+        _box(ax, b, system, facecolor="0.45", edgecolor="0.2", lw=0.5, label="obstacle grown by the robot radius" if i == 0 else None,
+             zorder=3)  # the spec's boxes: the map's obstacles grown by robot_radius (what the centre avoids)
     if getattr(spec, "target", None) is not None:
         _box(ax, spec.target, system, facecolor=(0.2, 0.7, 0.3, 0.35), edgecolor="green", lw=1.2, label="target",
              zorder=2)

@@ -45,6 +45,51 @@ from ..errors import SimgapError
 from ..simulators import Simulator, make_simulator
 
 QUANTILES = (0.0, 0.01, 0.05, 0.5, 0.95, 1.0)
+#: simulator rows (point x run) stepped at once: bounds the audit's memory
+CHUNK_SAMPLES = 1_000_000
+
+
+def audit_cost(points: int, runs: int, system, rate_per_worker=None, workers: int = 1,
+               chunk_samples: int = CHUNK_SAMPLES) -> dict:
+    """Work, peak memory and time of an audit of ``points`` x ``runs`` (before any of it runs).
+
+    ``rows`` = points x runs simulator periods (each ``system.steps`` base periods); the points go
+    in chunks of ``chunk_samples`` rows, all of a point's runs at once, so a chunk of
+    max(runs, ...) rows holds states, inputs, noise and next states (float64, a factor 4 for the
+    simulator's work arrays). ``seconds`` = rows / (rate x workers) when a rate [runs/s of one
+    worker] was measured (:func:`simgap.cover.calibrate_rate`)."""
+    n, m = system.n, system.m
+    rows = float(points) * float(runs)
+    chunk = float(min(int(points), max(1, chunk_samples // int(runs)))) * float(runs)
+    memory = chunk * (3 * n + m) * 8 * 4 + float(points) * n * 8 * 6
+    secs = rows / (rate_per_worker * max(1, workers)) if rate_per_worker else None
+    return {"points": int(points), "runs": int(runs), "rows": rows, "sim_steps": rows * system.steps,
+            "memory": memory, "seconds": secs, "rate": rate_per_worker, "workers": int(workers)}
+
+
+def audit_cost_text(c: dict) -> str:
+    """:func:`audit_cost` as the line a command prints before the audit starts."""
+    from ..checks import available_memory, human_bytes
+    from ..cover import format_duration
+    t = ("time unknown" if c["seconds"] is None else
+         f"about {format_duration(c['seconds'])} at {c['rate']:,.0f} runs/s per worker x {c['workers']} "
+         "(calibrated here)")
+    return (f"estimate: audit of {c['points']:,} points x {c['runs']:,} runs = {c['rows']:,.0f} simulator runs; "
+            f"{t}; peak memory about {human_bytes(c['memory'])} ({human_bytes(available_memory())} available)")
+
+
+def check_audit_cost(c: dict) -> None:
+    """Refuse an audit over the machine's memory (or over :data:`simgap.checks.MAX_COMMAND_SECONDS`)."""
+    from ..checks import check_sim_work
+    check_sim_work(c["rows"], c["memory"], f"auditing {c['points']:,} points x {c['runs']:,} runs",
+                   "use fewer --points or --runs (or the experiment's [audit] points / runs)", c["rate"], c["workers"])
+
+
+def _chunk_progress(on_progress, a: int, R: int, B: int):
+    """``on_rows`` for :meth:`Simulator.step` of the chunk starting at point ``a``: runs done of B x R."""
+    if on_progress is None:
+        return None
+    return lambda rows: on_progress(a * R + rows, B * R)
 
 
 def draw_points(system, B: int, rng: np.random.Generator, cover=None, cov_dims=None, inputs=None, input_box=None):
@@ -93,8 +138,8 @@ def power(points: int, fraction: float) -> float:
 
 
 def audit(cert, simulator, points: int = 200, runs: int = 2000, seed: int = 0, dataset=None,
-          chunk_samples: int = 1_000_000, alpha: float = 0.05, power_fraction: float = 0.01,
-          system=None) -> dict:
+          chunk_samples: int = CHUNK_SAMPLES, alpha: float = 0.05, power_fraction: float = 0.01,
+          system=None, on_progress=None) -> dict:
     """Audit ``cert`` with ``simulator`` (a Simulator, SimulatorConfig or its dict). Returns the report dict.
 
     ``system``: the nominal model f the certificate is for when it is not the simulator's own
@@ -102,6 +147,7 @@ def audit(cert, simulator, points: int = 200, runs: int = 2000, seed: int = 0, d
 
     ``alpha``: family-wise false-alarm rate of the Holm-corrected tests; ``power_fraction``: the
     violated fraction of (x, u) the reported power refers to (see module docstring).
+    ``on_progress(runs_done, points x runs)``: called while the runs go (the same numbers either way).
     """
     if int(points) < 1 or int(runs) < 2:
         raise SimgapError(f"audit: need points >= 1 and runs >= 2, got points={points}, runs={runs}")
@@ -128,7 +174,8 @@ def audit(cert, simulator, points: int = 200, runs: int = 2000, seed: int = 0, d
     per = max(1, chunk_samples // R)
     for a in range(0, B, per):  # chunks of points; runs vectorized
         b = min(B, a + per)
-        nxt = sim.step(np.repeat(x[a:b], R, axis=0), np.repeat(u[a:b], R, axis=0), rng).reshape(b - a, R, n)
+        nxt = sim.step(np.repeat(x[a:b], R, axis=0), np.repeat(u[a:b], R, axis=0), rng,
+                       on_rows=_chunk_progress(on_progress, a, R, B)).reshape(b - a, R, n)
         d = s.diff(nxt, fx[a:b, None, :])
         mean_dev[a:b] = d.mean(axis=1)
         sd[a:b] = d.std(axis=1, ddof=1)

@@ -49,6 +49,46 @@ def variable_names(system: System) -> dict:
     return dict(VarSpace.of_system(system).columns)
 
 
+def term_dimension(key, system: System, one_based: bool, where: str) -> int:
+    """The 0-based state dimension a basis term's key names, or -1 for every dimension.
+
+    One spelling works everywhere: a state name (``omega``) or ``all``. Numbers differ by
+    place: the command line (``--term 2:EXPR``, ``one_based``) counts from 1; an experiment's
+    ``[certify] terms`` table counts from 0 with ``-1`` for all (older files). A number in the
+    other place's convention is refused with the spelling to use."""
+    k = str(key).strip()
+    if k in ("all", "*"):
+        return -1
+    if k in system.state_names:
+        return system.state_names.index(k)
+    names = f"a state name ({', '.join(system.state_names)}) or all"
+    try:
+        v = int(k)
+    except ValueError:
+        raise SimgapError(f"{where}: {k!r} is not {names}") from None
+    if one_based:
+        if v == -1:
+            raise SimgapError(f"{where}: -1 is the experiment file's key for every dimension; on the command line "
+                              "write all:EXPR")
+        if not 1 <= v <= system.n:
+            raise SimgapError(f"{where}: dimension {v} is not 1..{system.n} (the command line counts from 1; "
+                              f"the experiment's terms keys from 0), or use {names}")
+        return v - 1
+    if not -1 <= v < system.n:
+        raise SimgapError(f"{where}: key {v} is not 0..{system.n - 1} or -1 (an experiment's terms keys count from 0, "
+                          f"-1 = all; the command line from 1), or use {names}")
+    return v
+
+
+def terms_by_dimension(terms: dict, system: System, where: str = "[certify] terms") -> dict:
+    """An experiment's ``[certify] terms`` table ({key: [EXPR, ...]}, keys as :func:`term_dimension`
+    with 0-based numbers) as {0-based dimension or -1: [EXPR, ...]}."""
+    out: dict = {}
+    for k, v in (terms or {}).items():
+        out.setdefault(term_dimension(k, system, one_based=False, where=f"{where} key {k!r}"), []).extend(list(v))
+    return out
+
+
 def parse_term(text: str, system: System) -> "Term":
     """Parse one basis term (see module docstring) into a :class:`Term`."""
     e = parse(text, VarSpace.of_system(system), what="basis term", functions=FUNCS, constants=False,

@@ -31,10 +31,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import stats
-from scipy.spatial import cKDTree
 
 from ..errors import SimgapError
+
+#: pairs and runs per pair of the simulator estimate of Lhat_fhat (``lhat="simulator"``)
+LHAT_PAIRS, LHAT_RUNS = 2000, 100
 
 
 @dataclass
@@ -68,6 +69,7 @@ def wood_zhang(slopes: np.ndarray, rng: np.random.Generator, n_batches: int = 20
         return WoodZhang(smax, smax, s.size, n_batches, bs, True)  # constant slope: nothing to fit
     try:
         with np.errstate(all="ignore"):
+            from scipy import stats  # imported here: its import takes seconds, the cost estimates come first
             c, loc, scale = stats.weibull_max.fit(maxima)
         ok = bool(np.isfinite(loc) and loc >= top - 1e-12 * top and loc <= 10.0 * smax)
     except Exception:  # scipy's optimizer can fail on degenerate samples: fall back, recorded
@@ -87,6 +89,7 @@ def neighbour_pairs(dataset, radius_factor: float = 1.0 + 1e-6):
     rowmap[ci, ii] = np.arange(dataset.K)
     C = np.zeros((N, dataset.system.n))
     C[ci] = dataset.x
+    from scipy.spatial import cKDTree
     tree = cKDTree(C)
     pr = tree.query_pairs(2.0 * dataset.epsilon * radius_factor, output_type="ndarray")
     if pr.size == 0:
@@ -129,8 +132,40 @@ def l2_analytic(basis, q: np.ndarray, system, splits: int | None = None, inputs=
     return best
 
 
-def fhat_slopes_crn(sim, rng: np.random.Generator, h: float, n_pairs: int = 2000, runs: int = 100,
-                    increment: bool = True, dims=None, inputs=None) -> np.ndarray:
+def crn_cost(n_pairs: int, runs: int, system, rate_per_worker=None, workers: int = 1) -> dict:
+    """Work, peak memory and time of :func:`fhat_slopes_crn` before it runs.
+
+    2 x n_pairs x runs simulator rows in one batch (both ends of every pair share their draws):
+    states, inputs, next states and noise in float64 (a factor 4 for the simulator's work arrays).
+    ``seconds`` = rows / (rate x workers) at a measured rate [runs/s of one worker]."""
+    rows = 2.0 * float(n_pairs) * float(runs)
+    memory = rows * (3 * system.n + system.m) * 8 * 4
+    secs = rows / (rate_per_worker * max(1, workers)) if rate_per_worker else None
+    return {"pairs": int(n_pairs), "runs": int(runs), "rows": rows, "memory": memory, "seconds": secs,
+            "rate": rate_per_worker, "workers": int(workers)}
+
+
+def crn_cost_text(c: dict) -> str:
+    """:func:`crn_cost` as the line ``simgap certify --lhat simulator`` prints first."""
+    from ..checks import available_memory, human_bytes
+    from ..cover import format_duration
+    t = ("time unknown" if c["seconds"] is None else
+         f"about {format_duration(c['seconds'])} at {c['rate']:,.0f} runs/s per worker x {c['workers']} "
+         "(calibrated here)")
+    return (f"estimate: Lhat_fhat from the simulator, {c['pairs']:,} pairs x {c['runs']:,} runs x 2 ends = "
+            f"{c['rows']:,.0f} simulator runs; {t}; peak memory about {human_bytes(c['memory'])} "
+            f"({human_bytes(available_memory())} available)")
+
+
+def check_crn_cost(c: dict) -> None:
+    """Refuse :func:`fhat_slopes_crn` work over the machine's memory (or a command's time limit)."""
+    from ..checks import check_sim_work
+    check_sim_work(c["rows"], c["memory"], f"Lhat_fhat from the simulator ({c['pairs']:,} pairs x {c['runs']:,} runs)",
+                   "use --lhat data", c["rate"], c["workers"])
+
+
+def fhat_slopes_crn(sim, rng: np.random.Generator, h: float, n_pairs: int = LHAT_PAIRS, runs: int = LHAT_RUNS,
+                    increment: bool = True, dims=None, inputs=None, on_progress=None) -> np.ndarray:
     """Slopes of the empirical mean of fhat with COMMON random numbers, (n_pairs, n).
 
     The quantity in the paper's proof of Theorem 1 is the Lipschitz constant of
@@ -143,6 +178,8 @@ def fhat_slopes_crn(sim, rng: np.random.Generator, h: float, n_pairs: int = 2000
     x only along covered dimensions (declared-invariant ones are not covered and the gap does
     not depend on them), so a direction with components elsewhere would dilute the slope.
     ``inputs`` (default the system's U): the inputs u is drawn from (the data's, which gamma covers).
+    ``on_progress(rows_done, rows)``: the 2 n_pairs runs rows go in parts (the same numbers);
+    :func:`crn_cost` prices them beforehand.
     """
     s = sim.system
     dims = list(range(s.n)) if dims is None else sorted(int(j) for j in dims)
@@ -160,7 +197,7 @@ def fhat_slopes_crn(sim, rng: np.random.Generator, h: float, n_pairs: int = 2000
     x2 = x + h * d
     U = s.inputs if inputs is None else np.atleast_2d(np.asarray(inputs, float))
     u = U[rng.integers(0, len(U), n_pairs)]
-    m1, m2 = crn_pair_means(sim, x, x2, u, u, runs, rng, increment)
+    m1, m2 = crn_pair_means(sim, x, x2, u, u, runs, rng, increment, on_progress)
     return np.abs(s.diff(m1, m2)) / h
 
 
@@ -253,15 +290,20 @@ def gap_slopes_data(dataset, grid: AxisGrid, j: int) -> tuple:
     return sl, noise
 
 
-def crn_pair_means(sim, x1, x2, u1, u2, runs: int, rng: np.random.Generator, increment: bool = True):
-    """Means of fhat (or of fhat - x) at (x1, u1) and (x2, u2) over ``runs`` COMMON noise draws per pair."""
+def crn_pair_means(sim, x1, x2, u1, u2, runs: int, rng: np.random.Generator, increment: bool = True,
+                   on_progress=None):
+    """Means of fhat (or of fhat - x) at (x1, u1) and (x2, u2) over ``runs`` COMMON noise draws per pair
+    (``on_progress(rows_done, rows)`` while the runs are simulated)."""
     s = sim.system
     P = len(x1)
     X = np.repeat(np.concatenate([x1, x2]), runs, axis=0)
     U = np.repeat(np.concatenate([u1, u2]), runs, axis=0)
     noise = sim.draw_noise(P * runs, rng)
     noise = {k: np.concatenate([v, v]) for k, v in noise.items()}  # the same draws at both ends
-    nxt = sim.step_with_noise(X, U, noise)
+    if on_progress is None:
+        nxt = sim.step_with_noise(X, U, noise)
+    else:
+        nxt = sim.step_with_noise_in_parts(X, U, noise, lambda done: on_progress(done, X.shape[0]))
     base = s.diff(nxt, X) if increment else nxt
     m = base.reshape(2, P, runs, s.n).mean(axis=2)
     return m[0], m[1]

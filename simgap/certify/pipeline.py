@@ -28,9 +28,9 @@ from ..systems import embedded_ref, system_digest
 from .basis import Basis
 from .bounds import BoundOptions, beta_from_delta, delta_from_beta, required_runs
 from .certificate import Certificate, DimCertificate
-from .lipschitz import (axis_grid, fhat_slopes_crn, gap_slopes_crn, gap_slopes_data, l2_analytic, l2_partials,
-                        neighbour_pairs, slopes_of, wood_zhang)
-from .scp import solve_scp
+from .lipschitz import (LHAT_PAIRS, LHAT_RUNS, axis_grid, fhat_slopes_crn, gap_slopes_crn, gap_slopes_data, l2_analytic,
+                        l2_partials, neighbour_pairs, slopes_of, wood_zhang)
+from .scp import DependentTerms, solve_scp
 from .variance import variance_bound
 
 PerDim = Union[None, float, Sequence[float]]
@@ -85,8 +85,8 @@ class CertifyOptions:
     lipschitz_mode: str = "increment"
     l2: str = "analytic"
     lhat: str = "data"
-    lhat_pairs: int = 2000
-    lhat_runs: int = 100
+    lhat_pairs: int = LHAT_PAIRS
+    lhat_runs: int = LHAT_RUNS
     lipschitz_term: str = "paper"
     continuous_inputs: bool = False
     scp_method: str = "cg"
@@ -167,6 +167,34 @@ def bases_for(system, degree, terms: Dict[int, List[str]], exclude_dims: Sequenc
     return out
 
 
+def dependent_terms_message(err, system, i: int, degree, terms: Dict[int, List[str]], names: List[str]) -> str:
+    """What to drop when the basis of dimension ``i`` is linearly dependent on the data (``err``: a
+    :class:`~simgap.certify.scp.DependentTerms`), in the command line's and the TOML's spellings."""
+    n, dim = system.n, system.state_names[i]
+    degs = [degree] * n if np.isscalar(degree) else list(degree)
+    t_all, t_i = list(terms.get(-1, [])), list(terms.get(i, []))
+    n_mono = len(names) - len(t_all) - len(t_i)
+    bad = names[err.column]
+    why = (f"'{bad}' is zero on the data" if not err.on else
+           f"'{bad}' is a linear combination of {', '.join(repr(names[j]) for j in err.on)} on the data")
+    head = (f"certify: the basis terms of {dim} are linearly dependent on the data, so q would not be unique: "
+            f"{why}. Drop it")
+    if err.column >= n_mono + len(t_all):  # a term the user gave for this dimension
+        return (f"{head}: on the command line leave out --term {dim}:'{bad}'; in the experiment's [certify] "
+                f"remove \"{bad}\" from terms.{dim}")
+    if err.column >= n_mono:  # a term given for every dimension
+        return (f"{head}: it is given for all dimensions (--term all:'{bad}', TOML terms.all); give it only for the "
+                f"dimensions that need it (--term NAME:'{bad}', TOML terms.NAME)")
+    keep = [t for j, t in enumerate(names[:n_mono]) if j != err.column] + t_i  # the monomials stay, listed
+    d_i, degs[i] = int(degs[i]), -1
+    cli = f"--degree {','.join(str(int(d)) for d in degs)} " + " ".join(f"--term {dim}:'{t}'" for t in keep)
+    toml = (f"degree = [{', '.join(str(int(d)) for d in degs)}] and terms.{dim} = "
+            f"[{', '.join(chr(34) + t + chr(34) for t in keep)}]")
+    return (f"{head} (a monomial of the degree-{d_i} basis: with degree -1 for {dim} "
+            f"the terms are listed instead): on the command line {cli}"
+            + (" (keeping the --term all: terms)" if t_all else "") + f"; in the experiment's [certify] {toml}")
+
+
 def check_dataset(ds) -> None:
     """Reject data the program would silently get wrong."""
     ds.check_finite()
@@ -205,11 +233,13 @@ def check_recorded(ds) -> None:
         raise SimgapError(f"dataset: N1hat (n_runs) must be >= 2, got {ds.n_runs}")
 
 
-def certify(dataset, options: Optional[CertifyOptions] = None, simulator=None, **kw) -> Certificate:
+def certify(dataset, options: Optional[CertifyOptions] = None, simulator=None, on_progress=None,
+            **kw) -> Certificate:
     """Compute the stochastic simulation-gap certificate of ``dataset`` (see module docstring).
 
     ``options`` or keyword arguments of :class:`CertifyOptions`. ``simulator`` (a Simulator)
     is only used by ``lhat="simulator"``; by default it is rebuilt from the data manifest.
+    ``on_progress(rows_done, rows)``: progress of the ``lhat="simulator"`` runs (the same numbers).
     """
     t0 = time.perf_counter()
     o = options or CertifyOptions(**kw)
@@ -306,7 +336,8 @@ def certify(dataset, options: Optional[CertifyOptions] = None, simulator=None, *
     # one simulation instead of two.
     shared_crn = o.lipschitz_term == "gap" and o.lhat == "simulator"
     gl = _gap_lipschitz(ds, o, simulator) if (o.lipschitz_term == "gap" or o.continuous_inputs) else None
-    pairs, lip, U_data = _data_lipschitz(ds, dataclasses.replace(o, lhat="none") if shared_crn else o, simulator)
+    pairs, lip, U_data = _data_lipschitz(ds, dataclasses.replace(o, lhat="none") if shared_crn else o, simulator,
+                                         on_progress)  # U_data: the inputs gamma is certified for
     if shared_crn:
         lip = [(L_f, how_f, float(np.linalg.norm(gl["Lfhat_axes"][i])),
                 {"how": "sqrt(sum_j Lhat_j^2) over the covered axes, Lhat_j the Wood-Zhang estimate on slopes of "
@@ -334,8 +365,11 @@ def certify(dataset, options: Optional[CertifyOptions] = None, simulator=None, *
     dims = []
     for i in range(n):
         P = bases[i].design(ds.x, ds.u)
-        res = solve_scp(P, g[:, i], float(d1[i]), method=o.scp_method, solver=o.solver, secondary=o.secondary,
-                        seed=o.seed)
+        try:
+            res = solve_scp(P, g[:, i], float(d1[i]), method=o.scp_method, solver=o.solver,
+                            secondary=o.secondary, seed=o.seed)
+        except DependentTerms as e:
+            raise SimgapError(dependent_terms_message(e, s, i, o.degree, o.terms, bases[i].names)) from None
         L_f, how_f, L_fhat, how_fhat = lip[i]
         how = {"L_f": how_f, "L_fhat": how_fhat}
         partials = None
@@ -434,7 +468,7 @@ def beyond_paper(o: CertifyOptions) -> List[str]:
 _LIP_CACHE: "OrderedDict[tuple, tuple]" = OrderedDict()
 
 
-def _data_lipschitz(ds, o: CertifyOptions, simulator=None):
+def _data_lipschitz(ds, o: CertifyOptions, simulator=None, on_progress=None):
     """(neighbour pairs, [(L_f, how, Lhat_fhat, how)] per dimension, the data's inputs) of a dataset
     (``o.lhat = "none"``: no Lhat_fhat, None in its place).
 
@@ -461,7 +495,7 @@ def _data_lipschitz(ds, o: CertifyOptions, simulator=None):
         from ..simulators import make_simulator
         cov = [j for j in range(s.n) if j not in invariant_dims(ds)]  # pairs along covered dims only
         crn = dict(h=ds.epsilon, n_pairs=o.lhat_pairs, runs=o.lhat_runs, increment=o.lipschitz_mode == "increment",
-                   dims=cov, inputs=np.unique(ds.u, axis=0))
+                   dims=cov, inputs=np.unique(ds.u, axis=0), on_progress=on_progress)
         if simulator is None:
             cfg = ds.manifest.get("simulator")
             if not cfg:

@@ -55,6 +55,34 @@ class ScpResult:
                 "n_rows_used": self.n_rows_used, "seconds": self.seconds, "stages": self.stages}
 
 
+class DependentTerms(SimgapError):
+    """The design matrix's column ``column`` is a linear combination of the columns ``on`` (0-based)
+    on the data: q would not be unique. :func:`simgap.certify.pipeline.certify` names the terms."""
+
+    def __init__(self, column: int, on: list):
+        self.column, self.on = int(column), [int(j) for j in on]
+        super().__init__(f"scenario program: basis term {self.column} is linearly dependent on terms {self.on} on "
+                         "the data (q would not be unique); remove it")
+
+
+def dependent_column(P: np.ndarray):
+    """(j, on): the first column of ``P`` that is (numerically) a linear combination of the columns
+    before it, and those of them with a non-negligible coefficient.
+
+    One QR factorization P = Q R without pivoting: |R_jj| is the part of column j orthogonal to
+    columns 0..j-1; below numpy's rank tolerance (largest singular value x max(K, z) x eps) the
+    column is dependent, with coefficients R[:j, :j]^-1 R[:j, j]. Falls back to the smallest |R_jj|."""
+    R = np.linalg.qr(P, mode="r")
+    d = np.abs(np.diag(R))
+    tol = np.linalg.svd(R, compute_uv=False)[0] * max(P.shape) * np.finfo(float).eps
+    small = np.flatnonzero(d <= tol)
+    j = int(small[0]) if small.size else int(np.argmin(d))
+    if j == 0:
+        return 0, []
+    coef = np.linalg.solve(R[:j, :j], R[:j, j])
+    return j, [int(i) for i in np.flatnonzero(np.abs(coef) > 1e-6 * np.abs(coef).max())]
+
+
 def _lp(c, A, b, solver):
     """min c^T v s.t. A v <= b via cvxpy. Returns (v, status)."""
     import cvxpy as cp
@@ -143,10 +171,10 @@ def solve_scp(P: np.ndarray, g: np.ndarray, delta1: float = 0.0, *, method: str 
     G = g + delta1
     gs = float(G.max()) if G.max() > 0 else 1.0
     G = G / gs
-    if np.linalg.matrix_rank(Ps[np.random.default_rng(seed).choice(K, min(K, 5000), replace=False)]) < z \
-            and np.linalg.matrix_rank(Ps) < z:
-        raise SimgapError("scenario program: the basis terms are linearly dependent on the data "
-                          "(q would not be unique); remove a redundant term")
+    sample = Ps[np.random.default_rng(seed).choice(K, min(K, 5000), replace=False)]
+    if np.linalg.matrix_rank(sample) < z and np.linalg.matrix_rank(Ps) < z:
+        col, on = dependent_column(Ps)
+        raise DependentTerms(col, on)
 
     rng = np.random.default_rng(seed)
     if method == "full":

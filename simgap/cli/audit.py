@@ -14,6 +14,25 @@ import argparse
 
 from ..checks import count, probability
 from ..errors import SimgapError
+from ..profiles import DEFAULT_PROFILE
+
+#: defaults without an experiment (the experiment's [audit] section overrides them, flags override both)
+POINTS, RUNS, SEED = 200, 2000, 12345
+
+
+def audit_settings(args) -> dict:
+    """points, runs, seed and where they came from: flags, else the experiment's [audit], else the defaults."""
+    section, src = {}, "defaults"
+    if args.experiment:
+        from ..config import load_experiment
+        section = load_experiment(args.experiment, args.profile).section("audit")
+        src = f"{args.experiment} [audit]"
+    out = {"points": int(section.get("points", POINTS)), "runs": int(section.get("runs", RUNS)),
+           "seed": int(section.get("seed", SEED))}
+    given = {k: getattr(args, k) for k in out if getattr(args, k) is not None}
+    out.update(given)
+    out["source"] = src + (f", flags {', '.join('--' + k for k in given)}" if given else "")
+    return out
 
 
 def add_parser(subparsers) -> None:
@@ -28,9 +47,18 @@ def add_parser(subparsers) -> None:
                    help="the nominal model the certificate is for, when it was certified with `simgap certify "
                         "--system` (a name, a system file .toml or a refined-system JSON); the simulator stays the "
                         "data set's")
-    p.add_argument("--points", type=count(1), default=200, help="fresh (x,u) points (default 200)")
-    p.add_argument("--runs", type=count(2), default=2000, help="simulator runs per point (default 2000)")
-    p.add_argument("--seed", type=int, default=12345)
+    p.add_argument("--experiment", metavar="EXP",
+                   help="read --points, --runs and --seed from this experiment's [audit] section (a name or .toml; "
+                        "the flags override it)")
+    p.add_argument("--profile", default=DEFAULT_PROFILE,
+                   help="the experiment's profile (default: small, or the base settings when it has no small profile)")
+    p.add_argument("--points", type=count(1), default=None,
+                   help=f"fresh (x,u) points (default: the experiment's [audit] points, else {POINTS})")
+    p.add_argument("--runs", type=count(2), default=None,
+                   help=f"simulator runs per point (default: the experiment's [audit] runs, else {RUNS})")
+    p.add_argument("--seed", type=int, default=None,
+                   help=f"seed of the points and runs (default: the experiment's [audit] seed, else {SEED})")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--alpha", type=probability, default=None,
                    help="mean-level certificates: family-wise false-alarm rate of the Holm-corrected tests, in "
                         "(0, 1) (default 0.05); a run-level certificate is audited at its own alpha")
@@ -41,38 +69,49 @@ def add_parser(subparsers) -> None:
 
 
 def run(args) -> int:
-    from ..certify import load
-    from ..certify.audit import audit, report_table, save_report
     from ..dataset import load_dataset
-    from ..systems import resolve_system
+    from ..progress import ProgressBar
+    from ..simulators import make_simulator
 
+    # the settings and the estimate first (the certificate's modules take seconds to import)
     ds = load_dataset(args.data)
-    nominal = ds if args.system is None else ds.with_nominal(resolve_system(args.system))
-    cert = load(args.cert, dataset=nominal)
-    if cert.method == "run" and args.alpha is not None:
-        raise SimgapError(f"--alpha {args.alpha:g}: not used for a run-level certificate (it is audited at its own "
-                          f"alpha = {cert.options.get('alpha')}, the miss probability it claims); leave --alpha out")
     src = load_dataset(args.against) if args.against else ds
     sim_cfg = src.manifest.get("simulator")
     if not sim_cfg:
         raise SimgapError(f"data set {args.against or args.data!r} has no simulator config in its manifest; "
                           f"cannot audit")
-    from ..simulators import make_simulator
+    st = audit_settings(args)
+    print(f"audit settings: {st['points']:,} points x {st['runs']:,} runs, seed {st['seed']} ({st['source']})",
+          flush=True)
+    bar = None if args.no_progress else ProgressBar(unit="runs", desc="audit")
     with make_simulator(sim_cfg, system=ds.system) as sim:
-        from ..checks import check_sim_work
+        from ..certify.audit import audit_cost, audit_cost_text, check_audit_cost
         from ..cover import calibrate_rate
-        n, m = ds.system.n, ds.system.m
-        # the points go in chunks, each point's runs at once: at least one point's runs in memory
-        check_sim_work(float(args.points) * args.runs, float(args.runs) * (3 * n + m) * 8 * 4 + args.points * n * 16.0,
-                       f"auditing {args.points:,} points x {args.runs:,} runs", "use fewer --points or --runs",
-                       calibrate_rate(sim, n_runs=65536, budget=0.3))
-        if cert.method == "run":  # run-level certificate: coverage of gamma^alpha, not the mean gap
-            from ..perrun.run_audit import audit_run, report_table
-            rep = audit_run(cert, sim, points=args.points, runs=args.runs, seed=args.seed, system=nominal.system)
-        else:
-            rep = audit(cert, sim, points=args.points, runs=args.runs, seed=args.seed, dataset=ds,
-                        alpha=0.05 if args.alpha is None else args.alpha,
-                    power_fraction=args.power_fraction, system=nominal.system)
+        cost = audit_cost(st["points"], st["runs"], ds.system, calibrate_rate(sim, budget=0.3))
+        print(audit_cost_text(cost), flush=True)
+        check_audit_cost(cost)
+        from ..certify import load
+        from ..certify.audit import audit, save_report
+        from ..systems import resolve_system
+        nominal = ds if args.system is None else ds.with_nominal(resolve_system(args.system))
+        cert = load(args.cert, dataset=nominal)
+        if cert.method == "run" and args.alpha is not None:
+            raise SimgapError(f"--alpha {args.alpha:g}: not used for a run-level certificate (it is audited at its "
+                              f"own alpha = {cert.options.get('alpha')}, the miss probability it claims); leave "
+                              f"--alpha out")
+        try:
+            if cert.method == "run":  # run-level certificate: coverage of gamma^alpha, not the mean gap
+                from ..perrun.run_audit import audit_run, report_table
+                rep = audit_run(cert, sim, points=st["points"], runs=st["runs"], seed=st["seed"],
+                                system=nominal.system, on_progress=bar)
+            else:
+                from ..certify.audit import report_table
+                rep = audit(cert, sim, points=st["points"], runs=st["runs"], seed=st["seed"], dataset=ds,
+                            alpha=0.05 if args.alpha is None else args.alpha, power_fraction=args.power_fraction,
+                            system=nominal.system, on_progress=bar)
+        finally:
+            if bar:
+                bar.close()
     rep["simulator_source"] = str(args.against or args.data)
     print(report_table(rep))
     if args.out:

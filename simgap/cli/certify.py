@@ -26,26 +26,14 @@ def _floats(text: str, name: str):
 
 
 def parse_terms(items, system) -> dict:
-    """``i:expr`` items (i = 1-based state dimension, a state name, or 'all') -> {0-based dim: [expr]}."""
+    """``DIM:EXPR`` items (DIM = a state name, 'all', or a 1-based dimension) -> {0-based dim or -1: [expr]}."""
+    from ..certify.basis import term_dimension
     out = {}
     for item in items or []:
         if ":" not in item:
-            raise SimgapError(f"--term {item!r}: expected DIM:EXPR, e.g. 2:'cos(x1)' or all:'x1*u1'")
+            raise SimgapError(f"--term {item!r}: expected DIM:EXPR, e.g. omega:'sin(theta)' or all:'x1*u1'")
         key, expr = item.split(":", 1)
-        key = key.strip()
-        if key in ("all", "*"):
-            i = -1
-        elif key in system.state_names:
-            i = system.state_names.index(key)
-        else:
-            try:
-                i = int(key) - 1
-            except ValueError:
-                raise SimgapError(f"--term {item!r}: dimension {key!r} is not 1..{system.n}, a state name "
-                                  f"({', '.join(system.state_names)}) or 'all'") from None
-            if not (0 <= i < system.n):
-                raise SimgapError(f"--term {item!r}: dimension {key} out of range 1..{system.n}")
-        out.setdefault(i, []).append(expr.strip())
+        out.setdefault(term_dimension(key, system, one_based=True, where=f"--term {item!r}"), []).append(expr.strip())
     return out
 
 
@@ -100,6 +88,7 @@ def add_parser(subparsers) -> None:
     s.add_argument("--seed", type=int, default=0)
     p.add_argument("--compare", action="store_true",
                    help="certify under each bound option and print delta and gamma side by side")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar (--lhat simulator)")
     p.add_argument("--out", help="write the certificate JSON here")
     p.add_argument("--sign-key", metavar="KEY", help="sign the certificate with this private key (simgap key new; "
                                                      "default: $SIMGAP_SIGNING_KEY, if set)")
@@ -143,25 +132,54 @@ def check_certify_size(opts, ds) -> None:
 
 
 def run(args) -> int:
-    from ..certify import certify
-    from ..certify.pipeline import compare_options, comparison_table
-
     if args.level == "run":
         return _run_level(args)
     if args.alpha is not None:
         raise SimgapError("--alpha belongs to --level run (the mean-level certificate has beta, not alpha)")
     ds = _data(args)
-    opts = options_from_args(args, ds.system)
-    check_certify_size(opts, ds)
-    if args.compare:
-        print(comparison_table(compare_options(ds, opts), ds.system.state_names))
-        return 0
-    cert = certify(ds, opts)
+    if args.lhat == "simulator" and not args.compare:
+        cert = _certify_with_simulator(args, ds)
+    else:
+        from ..certify import certify
+        from ..certify.pipeline import compare_options, comparison_table
+        opts = options_from_args(args, ds.system)
+        check_certify_size(opts, ds)
+        if args.compare:
+            print(comparison_table(compare_options(ds, opts), ds.system.state_names))
+            return 0
+        cert = certify(ds, opts)
     print(cert.summary())
     if args.out:
         cert.save(args.out, sign_key=args.sign_key)
         print(f"wrote {args.out}")
     return 0
+
+
+def _certify_with_simulator(args, ds):
+    """certify with ``lhat="simulator"``: the simulator runs' estimate first (before the fitting
+    modules are imported), then the options and a progress bar while the runs go."""
+    from ..certify.lipschitz import LHAT_PAIRS, LHAT_RUNS, check_crn_cost, crn_cost, crn_cost_text
+    from ..cover import calibrate_rate
+    from ..progress import ProgressBar
+    from ..simulators import make_simulator
+
+    cfg = ds.manifest.get("simulator")
+    if not cfg:
+        raise SimgapError("--lhat simulator needs the data manifest's simulator config; this data set has none "
+                          "(use --lhat data)")
+    bar = None if args.no_progress else ProgressBar(unit="runs", desc="Lhat_fhat (simulator)")
+    with make_simulator(cfg, system=ds.system) as sim:
+        cost = crn_cost(LHAT_PAIRS, LHAT_RUNS, ds.system, calibrate_rate(sim, budget=0.3))
+        print(crn_cost_text(cost), flush=True)
+        check_crn_cost(cost)
+        from ..certify import certify
+        opts = options_from_args(args, ds.system)
+        check_certify_size(opts, ds)
+        try:
+            return certify(ds, opts, simulator=sim, on_progress=bar)
+        finally:
+            if bar:
+                bar.close()
 
 
 def _data(args):

@@ -13,6 +13,7 @@ import sys
 from ..checks import count
 from ..collect import check_collection
 from ..file_guard import output_dir
+from ..profiles import DEFAULT_PROFILE
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
@@ -22,7 +23,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                     "EXPERIMENT is a TOML file or a built-in name (pendulum, turtlebot). Running the same "
                     "command again resumes an interrupted collection.")
     p.add_argument("experiment", metavar="EXPERIMENT", help="experiment TOML path or built-in name")
-    p.add_argument("--profile", default="small", help="profile in the TOML (default: small; e.g. paper; base = no profile)")
+    p.add_argument("--profile", default=DEFAULT_PROFILE,
+                   help="profile in the TOML (default: small, or the base settings when the file has no small "
+                        "profile; e.g. paper; base = no profile)")
     p.add_argument("--out", help="store directory (default: runs/<experiment>-<profile>/data)")
     p.add_argument("--executor", choices=["local", "ray", "serial"], help="where chunks run (default from TOML)")
     p.add_argument("--workers", type=count(1), help="worker processes / Ray CPUs (default: all cores)")
@@ -54,7 +57,7 @@ def run(args) -> int:
     exp = load_experiment(args.experiment, args.profile, overrides=over)
     c = exp.collect
     store = output_dir(exp.store_dir(), "store")
-    print(f"experiment {exp.name} (profile {exp.profile}): system {exp.system.name}, tau={exp.system.tau:g} s; "
+    print(f"experiment {exp.name} (profile {exp.profile or 'base'}): system {exp.system.name}, tau={exp.system.tau:g} s; "
           f"simulator {exp.simulator.kind}")
     cover = exp.cover()
     print(cover.summary())

@@ -30,9 +30,13 @@ def add_parser(sub) -> None:
     p.add_argument("--profile", default=None, help="experiment profile (with an experiment --simulator)")
     p.add_argument("--map", default=None, help="map name or TOML: obstacles for the PyBullet world, default x0")
     p.add_argument("--x0", nargs="+", default=None, help="initial state, e.g. --x0 3.5 2 1.5 or --x0 3.5,2,1.5")
-    p.add_argument("--n", type=count(1), default=1000, help="number of rollouts R (default 1000)")
-    p.add_argument("--horizon", type=count(1), default=None, help="simulator steps T (default: from the controller)")
-    p.add_argument("--seed", type=count(0), default=0, help="seed of the numpy generator (default 0)")
+    p.add_argument("--n", type=count(1), default=None,
+                   help="number of rollouts R (default: an experiment --simulator's [rollout] n, else 1000)")
+    p.add_argument("--horizon", type=count(1), default=None,
+                   help="simulator steps T (default: an experiment --simulator's [rollout] horizon, else from the "
+                        "controller)")
+    p.add_argument("--seed", type=count(0), default=None,
+                   help="seed of the numpy generator (default: an experiment --simulator's [rollout] seed, else 0)")
     p.add_argument("--hold", type=count(1), default=None,
                    help="simulator steps per controller query (default: what the controller records)")
     p.add_argument("--on-exit", choices=("hold", "stop"), default="hold",
@@ -70,8 +74,10 @@ def load_controller(path):
     return cmod.Controller.load(path)
 
 
-def simulator_config(arg: str, profile=None) -> dict:
-    """SimulatorConfig dict from a JSON file / inline JSON, or from an experiment (name or TOML)."""
+def simulator_config(arg: str, profile=None, rollout_section: dict | None = None) -> dict:
+    """SimulatorConfig dict from a JSON file / inline JSON, or from an experiment (name or TOML).
+
+    ``rollout_section``, if given, receives the experiment's ``[rollout]`` section (empty for JSON)."""
     text = None
     if arg.lstrip().startswith("{"):
         text = arg
@@ -92,6 +98,8 @@ def simulator_config(arg: str, profile=None) -> dict:
         raise SimgapError(f"--simulator {arg!r}: not JSON, and experiment files are not supported in this "
                           f"installation") from None
     exp = load_experiment(arg, profile) if profile is not None else load_experiment(arg)
+    if rollout_section is not None:
+        rollout_section.update(exp.section("rollout"))
     sim = getattr(exp, "simulator", None)
     if sim is None and isinstance(exp, dict):
         sim = exp.get("simulator")
@@ -106,7 +114,15 @@ def run(args) -> int:
     from ..rollout import rollout
 
     ctrl = load_controller(args.controller)
-    cfg = simulator_config(args.simulator, args.profile)
+    section: dict = {}
+    cfg = simulator_config(args.simulator, args.profile, section)
+    n = args.n if args.n is not None else int(section.get("n", 1000))
+    seed = args.seed if args.seed is not None else int(section.get("seed", 0))
+    horizon = args.horizon if args.horizon is not None else section.get("horizon")
+    given = [f"--{k}" for k in ("n", "seed", "horizon") if getattr(args, k) is not None]
+    src = "[rollout] of " + args.simulator if section else "defaults"
+    print(f"rollout settings: n {n}, seed {seed}, horizon {horizon if horizon is not None else 'from the controller'}"
+          f" ({src}" + (f", flags {', '.join(given)}" if given else "") + ")", flush=True)
     amap = load_map(args.map) if args.map else None
     if amap is not None and cfg.get("kind") == "pybullet_turtlebot" and not cfg.get("options", {}).get("obstacles"):
         cfg = dict(cfg, options={**cfg.get("options", {}), **amap.simulator_options()})
@@ -125,7 +141,7 @@ def run(args) -> int:
             x0 = amap.x0(sim.system)
         else:
             raise SimgapError("give --x0 (or --map, whose initial_state is used)")
-        res = rollout(ctrl, sim, x0, n_rollouts=args.n, horizon=args.horizon, seed=args.seed, hold=args.hold,
+        res = rollout(ctrl, sim, x0, n_rollouts=n, horizon=horizon, seed=seed, hold=args.hold,
                       on_exit=args.on_exit, batched=not args.one_at_a_time, mean_map_runs=args.mean_map_runs)
     finally:
         sim.close()

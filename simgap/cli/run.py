@@ -7,6 +7,7 @@ from pathlib import Path
 
 from ..checks import count
 from ..file_guard import output_dir
+from ..profiles import DEFAULT_PROFILE
 
 
 def add_parser(sub):
@@ -16,7 +17,9 @@ def add_parser(sub):
                     "audit both, synthesize a controller with each, run closed-loop rollouts in the stochastic "
                     "simulator, and write results/<experiment>-<profile>/summary.json plus a Rerun recording.")
     p.add_argument("experiment", help="experiment name (assets/experiments/<name>.toml) or a TOML path")
-    p.add_argument("--profile", default="small", help="profile in the experiment file (default: small)")
+    p.add_argument("--profile", default=DEFAULT_PROFILE,
+                   help="profile in the experiment file (default: small, or the base settings when the file has no "
+                        "small profile; base = no profile)")
     p.add_argument("--out", default=None, help="output folder (default results/<experiment>-<profile>)")
     p.add_argument("--executor", choices=("local", "serial", "ray"), default=None,
                    help="where the collections' chunks and the per-run stage's interval-MDP sampling run "
@@ -37,7 +40,7 @@ def run(args) -> int:
 
     exp = load_experiment(args.experiment, args.profile)
     out = output_dir(args.out or Path("results") / f"{exp.name}-{exp.profile or 'base'}")
-    print(f"simgap run {exp.name} (profile {exp.profile}): results go to {out.absolute()}", file=sys.stderr)
+    print(f"simgap run {exp.name} (profile {exp.profile or 'base'}): results go to {out.absolute()}", file=sys.stderr)
     summary = run_experiment(exp, out, executor=args.executor, workers=args.workers, address=args.address,
                              n_rollouts=args.rollouts,
                              log=lambda m: print(m, file=sys.stderr, flush=True), progress=lambda stage, unit: ProgressBar(unit, desc=stage))

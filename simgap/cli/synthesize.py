@@ -24,8 +24,9 @@ Its simulator work runs in chunks on a local pool (``--executor``, ``--workers``
 ``--executor ray --address HOST:PORT``), kept in ``--store`` and resumed from it if given; the
 projected cost is printed first and work this machine cannot hold is refused.
 
-Exit status: 0 with a controller written,
-1 when the winning domain is empty (nothing written; the summary says why), 2 on bad input.
+Exit status: 0 with a controller written (and x0, when one is requested or recorded, winning),
+1 when the winning domain is empty (nothing written; the summary says why), 2 on bad input, 3 when
+the controller is written but the requested x0 lies outside its winning domain.
 """
 
 from __future__ import annotations
@@ -37,6 +38,10 @@ import numpy as np
 
 from .. import fileio
 from ..checks import count
+from ..profiles import DEFAULT_PROFILE
+
+#: exit status: a controller was written, but the requested x0 is outside its winning domain
+X0_OUTSIDE = 3
 from ..errors import SimgapError
 
 
@@ -80,7 +85,9 @@ def add_parser(subparsers) -> None:
     p.add_argument("--eta", default=None,
                    help="cell width, one value or one per state dimension (comma separated); "
                         "default: the experiment's [synthesis] eta")
-    p.add_argument("--profile", default="small", help="experiment profile (with an experiment --spec)")
+    p.add_argument("--profile", default=DEFAULT_PROFILE,
+                   help="experiment profile (with an experiment --spec; default: small, or the base settings when "
+                        "the file has no small profile)")
     p.add_argument("--out", required=True, help="controller file to write (.npz)")
     p.add_argument("--x0", default=None, help="initial state to record and check (default: the map's)")
     p.add_argument("--json", default=None, help="also write the statistics as JSON here")
@@ -211,15 +218,14 @@ def run(args) -> int:
     if eta.size not in (1, system.n):
         raise SimgapError(f"--eta: need 1 or {system.n} values, got {eta.size}")
     hold = args.hold if args.hold is not None else int(syn.get("hold", 1))
-    if np.all(np.isfinite(eta)) and np.all(eta > 0):  # else synthesize names the bad eta
-        from ..checks import check_memory
-        cells = float(np.prod(np.ceil((system.x_hi - system.x_lo) / np.broadcast_to(eta, (system.n,)))))
-        # a lower bound: the abstraction keeps at least one 4-byte entry per (cell, input) pair
-        check_memory(4.0 * cells * len(system.inputs), f"synthesis on {cells:,.0f} cells x {len(system.inputs)} "
-                     f"inputs (eta {np.asarray(eta).tolist()})", "use a coarser --eta")
-
-    res = synthesize(system, spec, eta, gap=gap, hold=hold, strict_domain=not args.no_strict_domain,
-                     x0=x0, compose_hold=args.compose_hold)
+    from ..progress import ProgressBar
+    bar = ProgressBar(unit="classes", desc="abstraction")
+    try:
+        res = synthesize(system, spec, eta, gap=gap, hold=hold, strict_domain=not args.no_strict_domain,
+                         x0=x0, compose_hold=args.compose_hold, log=lambda m: print(m, flush=True),
+                         on_progress=bar)
+    finally:
+        bar.close()
     print(res.summary())
     if args.json:
         _write_json(args.json, res.stats)
@@ -235,8 +241,9 @@ def run(args) -> int:
                   f"abstract steps to go (worst case)" if spec.kind == "reach_avoid" else
                   f"x0            {np.asarray(x0).tolist()}: winning")
         else:
-            print(f"warning: x0 {np.asarray(x0).tolist()} is outside the winning domain; rollouts from it "
-                  "will be refused")
+            print(f"result: x0 {np.asarray(x0).tolist()} is OUTSIDE the winning domain: the controller is written "
+                  "(its domain can be looked at) but rollouts from x0 are refused (exit status 3)")
+            return X0_OUTSIDE
     return 0
 
 

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..certify.audit import draw_points
+from ..certify.audit import _chunk_progress, draw_points
 from ..errors import SimgapError
 from ..simulators.base import Simulator, make_simulator
 from .orderstats import cp_lower
@@ -23,10 +23,11 @@ from .realization import run_alpha
 
 
 def audit_run(cert, simulator, points: int = 100, runs: int = 2000, seed: int = 0, level: float = 0.001,
-              chunk_samples: int = 1_000_000, system=None) -> dict:
+              chunk_samples: int = 1_000_000, system=None, on_progress=None) -> dict:
     """Coverage audit of the run-level certificate ``cert`` (see module docstring); returns a report dict.
 
-    ``system``: the nominal model when it is not the simulator's own (as in :func:`simgap.certify.audit.audit`)."""
+    ``system``: the nominal model when it is not the simulator's own (as in :func:`simgap.certify.audit.audit`);
+    ``on_progress(runs_done, points x runs)`` as there."""
     alpha = run_alpha(cert)
     if int(points) < 1 or int(runs) < 10:
         raise SimgapError(f"run audit: need points >= 1 and runs >= 10, got points={points}, runs={runs}")
@@ -42,7 +43,8 @@ def audit_run(cert, simulator, points: int = 100, runs: int = 2000, seed: int = 
     per = max(1, chunk_samples // R)
     for a in range(0, B, per):  # bounded memory; vectorized over points x runs
         b = min(B, a + per)
-        nxt = sim.step(np.repeat(x[a:b], R, axis=0), np.repeat(u[a:b], R, axis=0), rng).reshape(b - a, R, s.n)
+        nxt = sim.step(np.repeat(x[a:b], R, axis=0), np.repeat(u[a:b], R, axis=0), rng,
+                       on_rows=_chunk_progress(on_progress, a, R, B)).reshape(b - a, R, s.n)
         d = np.abs(s.diff(nxt, fnom[a:b, None, :]))
         exceed[a:b] = (d > gam[a:b, None, :]).sum(axis=1)
     lower = cp_lower(exceed, R, level / B)

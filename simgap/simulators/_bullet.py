@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import sys
 from pathlib import Path
 
@@ -51,6 +52,60 @@ def _quiet_c_output():
         for fd, copy in saved:
             os.dup2(copy, fd)
             os.close(copy)
+
+
+@contextlib.contextmanager
+def capture_c_output():
+    """Capture what C code writes on file descriptors 1 and 2 during the block (a temporary file
+    behind both); yields a list that holds the text afterwards, as its one element."""
+    import tempfile
+    out: list = []
+    saved = []
+    with tempfile.TemporaryFile(mode="w+b") as tmp:
+        try:
+            for fd, stream in ((1, sys.stdout), (2, sys.stderr)):
+                try:
+                    stream.flush()
+                    saved.append((fd, os.dup(fd)))
+                except (OSError, ValueError, AttributeError):  # no real descriptor (e.g. captured)
+                    pass
+            for fd, _ in saved:
+                os.dup2(tmp.fileno(), fd)
+            yield out
+        finally:
+            for fd, copy in saved:
+                os.dup2(copy, fd)
+                os.close(copy)
+            tmp.seek(0)
+            out.append(tmp.read().decode("utf-8", "replace"))
+
+
+_NO_INERTIA = "No inertial data for link"
+_WARNING = re.compile(r"b3Warning\[[^\]]*\]:\s*")
+
+
+def links_without_inertia(text: str) -> tuple:
+    """(link names, the rest) of PyBullet's URDF-import output: each "No inertial data for link,
+    using mass=1, ..." warning is followed by a warning that holds the link's name."""
+    parts = [p.strip() for p in _WARNING.split(text)]
+    names, rest, i = [], [], 0
+    while i < len(parts):
+        if parts[i].startswith(_NO_INERTIA):
+            if i + 1 < len(parts) and parts[i + 1] and " " not in parts[i + 1]:
+                names.append(parts[i + 1])
+                i += 2
+                continue
+            names.append("?")
+        elif parts[i]:
+            rest.append(parts[i])
+        i += 1
+    return list(dict.fromkeys(names)), rest
+
+
+def inertia_note(names: list, path) -> str:
+    """The one line that replaces PyBullet's per-link "No inertial data" warnings."""
+    return (f"{Path(path).name}: {len(names)} link{'s' if len(names) != 1 else ''} without inertial data: "
+            f"assumed 1 kg each (PyBullet's default, unit inertia): {', '.join(names)}")
 
 
 def pybullet_module():

@@ -139,20 +139,41 @@ class Simulator(ABC):
         """Deterministic next states (B,n) for states x (B,n), inputs u (B,m) and drawn noise."""
 
     def step(self, x: np.ndarray, u: np.ndarray, rng: np.random.Generator,
-             episode: Dict[str, np.ndarray] | None = None) -> np.ndarray:
+             episode: Dict[str, np.ndarray] | None = None, on_rows=None) -> np.ndarray:
         """B independent runs: next states (B,n) after tau from x (B,n) with u (B,m) held.
 
         ``episode``: per-run parameters (B rows, from :meth:`draw_episode`) used instead of this
-        period's draws (which are still drawn, so the other draws do not depend on the mode)."""
+        period's draws (which are still drawn, so the other draws do not depend on the mode).
+        ``on_rows(done)``, if given, is called with the rows finished so far while the batch runs
+        in parts (:meth:`step_with_noise_in_parts`): the same numbers as one call."""
         x = np.atleast_2d(np.asarray(x, dtype=float))
         u = np.atleast_2d(np.asarray(u, dtype=float))
         if x.shape[0] != u.shape[0]:
             raise SimgapError(f"simulator: {x.shape[0]} states but {u.shape[0]} inputs")
-        out = self.step_with_noise(x, u, self.with_episode(self.draw_noise(x.shape[0], rng), episode))
+        noise = self.with_episode(self.draw_noise(x.shape[0], rng), episode)
+        out = self.step_with_noise(x, u, noise) if on_rows is None else \
+            self.step_with_noise_in_parts(x, u, noise, on_rows)
         if not np.all(np.isfinite(out)):
             bad = int((~np.isfinite(out)).any(axis=1).sum())
             raise SimgapError(f"simulator {self.config.kind!r} returned NaN/inf for {bad} of {len(out)} runs")
         return out
+
+    def step_with_noise_in_parts(self, x: np.ndarray, u: np.ndarray, noise: Dict[str, np.ndarray], on_rows,
+                                 parts: int = 50, min_rows: int = 4096) -> np.ndarray:
+        """:meth:`step_with_noise` in about ``parts`` slices of rows (at least ``min_rows`` each),
+        calling ``on_rows(done)`` after each: for progress on a long batch. Every backend computes
+        row i from (x_i, u_i, noise_i) alone, so the result is the one call's."""
+        B = x.shape[0]
+        size = max(int(min_rows), -(-B // max(1, int(parts))))
+        out = None
+        for a in range(0, B, size):
+            b = min(B, a + size)
+            part = self.step_with_noise(x[a:b], u[a:b], {k: v[a:b] for k, v in noise.items()})
+            if out is None:
+                out = np.empty((B,) + part.shape[1:], dtype=part.dtype)
+            out[a:b] = part
+            on_rows(b)
+        return out if out is not None else self.step_with_noise(x, u, noise)
 
     def close(self) -> None:
         """Release backend resources (PyBullet client)."""

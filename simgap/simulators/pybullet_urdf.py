@@ -46,13 +46,15 @@ joint (Bullet's joint damping: the explicit torque -c qdot in each physics step)
 from __future__ import annotations
 
 import hashlib
+import sys
 from pathlib import Path
 from typing import Dict, List
 
 import numpy as np
 
 from ..errors import SimgapError
-from ._bullet import BulletSimulator, bullet_client, check_std, int_option, pybullet_module, relative_factors
+from ._bullet import (BulletSimulator, bullet_client, capture_c_output, check_std, inertia_note, int_option,
+                      links_without_inertia, pybullet_module, relative_factors)
 from .base import as_vector
 
 MAX_COPIES = 256
@@ -80,7 +82,27 @@ def name_list(value, what: str) -> List[str]:
         value = [value]
     if not isinstance(value, (list, tuple)) or not all(isinstance(v, str) and v for v in value):
         raise SimgapError(f"{what}: need a list of names, got {value!r}")
+    twice = sorted({v for v in value if list(value).count(v) > 1})
+    if twice:  # two state components or two inputs on one joint: one would silently overwrite the other
+        raise SimgapError(f"{what} names {', '.join(map(repr, twice))} twice; each joint once (one input per "
+                          "joint: two inputs on one joint would overwrite each other)")
     return list(value)
+
+
+_REPORTED: set = set()
+
+
+def _report_load(path, no_inertia: list, rest: list) -> None:
+    """Say once per process and robot file what loading it assumed (the links PyBullet gave 1 kg)
+    and pass on anything else it printed; worker processes stay quiet (the main process said it)."""
+    import multiprocessing
+    key = str(path)
+    if key in _REPORTED or multiprocessing.parent_process() is not None:
+        return
+    _REPORTED.add(key)
+    lines = ([inertia_note(no_inertia, path)] if no_inertia else []) + list(dict.fromkeys(rest))
+    for k, line in enumerate(lines):
+        print(f"note: {line}" if k == 0 and no_inertia else line, file=sys.stderr, flush=True)
 
 
 class UrdfSimulator(BulletSimulator):
@@ -143,10 +165,13 @@ class UrdfSimulator(BulletSimulator):
         self._pb, self._cid = pb, c._client
         flags = pb.URDF_USE_INERTIA_FROM_FILE
         try:
-            bodies = [c.loadURDF(str(self.path), basePosition=[0, 0, self.base_height],
-                                 useFixedBase=self.fixed_base, flags=flags) for _ in range(self.copies)]
+            with capture_c_output() as said:  # PyBullet warns per link and per copy, on the C streams
+                bodies = [c.loadURDF(str(self.path), basePosition=[0, 0, self.base_height],
+                                     useFixedBase=self.fixed_base, flags=flags) for _ in range(self.copies)]
         except pb.error as e:
             raise SimgapError(f"pybullet_urdf: cannot load {self.path}: {e}") from None
+        self.links_without_inertia, rest = links_without_inertia(said[0] if said else "")
+        _report_load(self.path, self.links_without_inertia, rest)
         self.bodies = bodies
         b0 = bodies[0]
         nj = c.getNumJoints(b0)

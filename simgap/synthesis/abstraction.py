@@ -415,7 +415,7 @@ def growth_function(system: System, growth: Optional[GrowthFn]) -> GrowthFn:
 def build_abstraction(system: System, grid: UniformGrid, *, growth: Optional[GrowthFn] = None,
                       gap=None, hold: int = 1, invariant_dims=(), guard: float = 1e-10,
                       block: int = 1 << 14, check_invariance: bool = True,
-                      compose_hold: bool = False) -> Abstraction:
+                      compose_hold: bool = False, on_progress=None) -> Abstraction:
     """Compute the successor boxes of all (cell, input) pairs (see the module docstring).
 
     Parameters
@@ -439,6 +439,8 @@ def build_abstraction(system: System, grid: UniformGrid, *, growth: Optional[Gro
         Relative rounding guard z = guard * eta (SCOTS: 1e-10).
     compose_hold : bool
         Allow ``hold > 1`` with a gap (composes a one-period gap; module docstring, way 2).
+    on_progress : callable, optional
+        ``on_progress(classes_done, classes)`` after every block of classes.
     """
     t0 = time.perf_counter()
     if int(hold) != hold or hold < 1:
@@ -562,6 +564,8 @@ def build_abstraction(system: System, grid: UniformGrid, *, growth: Optional[Gro
                 mh = np.floor(np.nan_to_num((mhi + z) / eta + 0.5))
                 mid_lo[s:e] = np.clip(ml, -_OFF_LIMIT, _OFF_LIMIT).reshape(e - s, M, n)
                 mid_hi[s:e] = np.clip(mh, -_OFF_LIMIT, _OFF_LIMIT).reshape(e - s, M, n)
+        if on_progress is not None:
+            on_progress(e, K)
 
     def small(a):
         if a is None:

@@ -23,6 +23,7 @@ an edited file.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import resource
@@ -38,6 +39,8 @@ from ..errors import BAD_FILE_ERRORS, SimgapError
 from ..systems import System
 from .abstraction import (COMPOSED_HOLD_LABEL, as_gap, build_abstraction, certified_input_mask, check_hold,
                           describe_gap, growth_function, uncertified_inputs_message)
+from .cost import check_synthesis_cost, synthesis_cost, synthesis_cost_text
+from .fixed_point import game_progress
 from .games import METHODS, GameResult, solve_invariance, solve_reach
 from .grid import UniformGrid
 from .spec import Spec
@@ -335,7 +338,8 @@ def label_cells(grid: UniformGrid, spec: Spec, x_lo, x_hi, strict_domain: bool =
 
 def synthesize(system: System, spec: Spec, eta, gap=None, hold: int = 1, *, growth=None,
                invariant_dims=None, periodic=None, guard: float = 1e-10, strict_domain: bool = True,
-               x0=None, compose_hold: bool = False, method: str = "auto") -> SynthesisResult:
+               x0=None, compose_hold: bool = False, method: str = "auto", log=None,
+               on_progress=None) -> SynthesisResult:
     """Synthesize a controller for x+ in f(x, u) + [-gamma(x, u), gamma(x, u)] enforcing ``spec``.
 
     Parameters
@@ -372,6 +376,11 @@ def synthesize(system: System, spec: Spec, eta, gap=None, hold: int = 1, *, grow
         Game algorithm: ``worklist`` (SCOTS-style predecessor counters, cost ~ transitions),
         ``sat`` (level-wise summed-area tables, cost ~ 2^n per pair: for large boxes) or
         ``auto`` (by the mean box volume); the results are identical.
+    log : callable, optional
+        ``log(text)`` receives the cost estimate (:mod:`simgap.synthesis.cost`) before the
+        abstraction is built; a synthesis over the available memory is refused either way.
+    on_progress : callable, optional
+        ``on_progress(classes_done, classes)`` while the abstraction is built.
 
     Returns
     -------
@@ -399,19 +408,28 @@ def synthesize(system: System, spec: Spec, eta, gap=None, hold: int = 1, *, grow
     growth = growth_function(system, growth)
     if method not in METHODS:
         raise SimgapError(f"game method must be one of {', '.join(METHODS)}, got {method!r}")
-    grid = UniformGrid(system.x_lo, system.x_hi, eta, periodic=periodic)
+    grid = UniformGrid(system.x_lo, system.x_hi, eta, periodic=periodic, check_size=False)
+    cost = synthesis_cost(system, grid, gap, hold, invariant_dims, growth)  # before any per-cell array
+    if log is not None:
+        log(synthesis_cost_text(cost, grid))
+    check_synthesis_cost(cost, grid)
+    grid.check_size()
     blocked, cells = label_cells(grid, spec, system.x_lo, system.x_hi, strict_domain=strict_domain)
     t1 = time.perf_counter()
     ab = build_abstraction(system, grid, growth=growth, gap=gap, hold=hold,
-                           invariant_dims=invariant_dims, guard=guard, compose_hold=compose_hold)
+                           invariant_dims=invariant_dims, guard=guard, compose_hold=compose_hold,
+                           on_progress=on_progress)
+    if log is not None:
+        log(f"game: {spec.kind} on {grid.size:,} cells (a line every 10 s while it runs) ...")
     t2 = time.perf_counter()
-    if spec.kind == "reach_avoid":
-        res = solve_reach(ab, cells, blocked, method=method)
-        chosen = _first_valid(res.valid_packed, ab.n_inputs)
-        chosen[res.target] = -1
-    else:
-        res = solve_invariance(ab, cells, blocked, method=method)
-        chosen = res.chosen
+    with game_progress(log) if log is not None else contextlib.nullcontext():
+        if spec.kind == "reach_avoid":
+            res = solve_reach(ab, cells, blocked, method=method)
+            chosen = _first_valid(res.valid_packed, ab.n_inputs)
+            chosen[res.target] = -1
+        else:
+            res = solve_invariance(ab, cells, blocked, method=method)
+            chosen = res.chosen
     t3 = time.perf_counter()
     stats = {
         "system": system.name, "tau": system.tau, "hold": int(hold), "hold_mode": _hold_mode(hold, gap),

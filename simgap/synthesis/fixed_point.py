@@ -4,6 +4,9 @@ between their two algorithms, worklist or summed-area tables (:func:`choose_meth
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
+import time
 from dataclasses import dataclass, field
 from typing import Optional
 
@@ -36,6 +39,36 @@ class GameResult:
 
 
 METHODS = ("auto", "worklist", "sat")
+
+#: the running game's progress reporter (set by :func:`game_progress`; None: silent)
+_PROGRESS: contextvars.ContextVar = contextvars.ContextVar("game_progress", default=None)
+
+
+@contextlib.contextmanager
+def game_progress(log, every: float = 10.0):
+    """Within the block, the games report ``log("game: iteration i, ...")`` at most every ``every``
+    seconds (the number of iterations is not known beforehand: what changed last is reported)."""
+    t0 = time.perf_counter()
+    state = {"last": t0}
+
+    def report(it: int, changed: int) -> None:
+        now = time.perf_counter()
+        if now - state["last"] >= every:
+            state["last"] = now
+            log(f"game: iteration {it:,}, {changed:,} cells decided in the last one, {now - t0:.0f} s so far")
+
+    token = _PROGRESS.set(report)
+    try:
+        yield
+    finally:
+        _PROGRESS.reset(token)
+
+
+def tick(it: int, changed: int) -> None:
+    """Called by the games once per iteration (cheap when nobody listens)."""
+    report = _PROGRESS.get()
+    if report is not None:
+        report(it, changed)
 _WORKLIST_MAX_PAIRS = 1 << 26  # (cell, input) pairs: the worklist keeps 2 bytes or so per pair
 
 

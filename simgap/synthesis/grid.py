@@ -44,7 +44,8 @@ class UniformGrid:
         Dimensions that wrap (period hi_d - lo_d).
     """
 
-    def __init__(self, lo: Sequence[float], hi: Sequence[float], eta, periodic: Sequence[int] = ()):
+    def __init__(self, lo: Sequence[float], hi: Sequence[float], eta, periodic: Sequence[int] = (),
+                 check_size: bool = True):
         lo = np.asarray(lo, dtype=float).ravel()
         hi = np.asarray(hi, dtype=float).ravel()
         n = lo.size
@@ -92,10 +93,16 @@ class UniformGrid:
         self.periodic_mask = pmask
         self.n = n
         self.size = int(np.prod(shape))
-        if self.size >= 2 ** 31 - 1:
-            raise SimgapError(f"grid: {self.size} cells is too many (limit 2^31)")
+        if check_size:
+            self.check_size()
         # C-order strides of the multi-index
         self.strides = np.array([int(np.prod(shape[d + 1:])) for d in range(n)], dtype=np.int64)
+
+    def check_size(self) -> None:
+        """Refuse a grid of 2^31 cells or more (cell ids are int32); ``check_size=False`` defers
+        this, so that a cost estimate can name the numbers first."""
+        if self.size >= 2 ** 31 - 1:
+            raise SimgapError(f"grid: {self.size:,} cells is too many (limit 2^31); use a coarser eta")
 
     # ----- conversions ---------------------------------------------------------------------
     @property

@@ -20,7 +20,7 @@ import numpy as np
 
 from .abstraction import Abstraction
 from .boxes import BoxCounter, PairEvaluator, RowBoxes
-from .fixed_point import GameResult, choose_method
+from .fixed_point import GameResult, choose_method, tick
 from .live import _usable_pairs, live_pairs
 from .pair_rows import _block_size, _unpack, pack_rows, unpack_rows
 from .predecessors import _frontier, _predecessors
@@ -97,6 +97,7 @@ def _invariance_worklist(ab: Abstraction, S: np.ndarray, alive: np.ndarray, pre)
         c = p // M
         np.subtract.at(n_alive, c, np.int32(1))
         R = _distinct(np.compress(n_alive.take(c) == 0, c), owner)
+        tick(it, R.size)
         if R.size == 0:
             break
         W[R] = False
@@ -155,6 +156,7 @@ def _invariance_sat(ab: Abstraction, ev: PairEvaluator, S: np.ndarray, live: np.
         if not lose:
             break
         changed = np.concatenate(lose)
+        tick(it, changed.size)
         W[changed] = False
     return W, it, tested
 

@@ -18,7 +18,7 @@ import numpy as np
 
 from .abstraction import Abstraction
 from .boxes import BoxCounter, PairEvaluator, pair_volumes
-from .fixed_point import GameResult, choose_method
+from .fixed_point import GameResult, choose_method, tick
 from .live import _per_class, _usable_pairs, _valid_shared, live_pairs
 from .pair_rows import _block_size, _unpack, pack_rows
 from .predecessors import _frontier, _predecessors
@@ -107,6 +107,7 @@ def _reach_worklist(ab: Abstraction, target: np.ndarray, live: np.ndarray, pre):
         if done.size == 0:
             break
         R, row = np.unique(done // M, return_inverse=True)
+        tick(it, R.size)
         rows = np.zeros((R.size, M), dtype=bool)
         rows[row, done % M] = True
         packed[R] = pack_rows(rows)
@@ -164,6 +165,7 @@ def _reach_sat(ab: Abstraction, ev: PairEvaluator, target, blocked, live, group_
         if not new_ids:
             break
         new = np.concatenate(new_ids)
+        tick(it, new.size)
         packed[new] = np.concatenate(new_rows)
         W[new] = True
         open_[new] = False

@@ -1,0 +1,155 @@
+"""A user's own robot through the command line: experiments without profiles, robot files
+nobody here wrote (PyBullet's husky: links without inertial data), the smaller fixes."""
+
+import shutil
+import sys
+from pathlib import Path
+
+import pytest
+
+from cli_helpers import REPO, refused, simgap
+
+sys.path.insert(0, str(REPO))
+
+DUFFING = REPO / "examples" / "duffing"
+
+HUSKY_SYSTEM = """
+name = "husky_unicycle"
+states = ["x", "y", "theta"]
+inputs = ["fl", "fr", "rl", "rr"]
+x_lo = [-2.0, -2.0, -3.14159]
+x_hi = [2.0, 2.0, 3.14159]
+tau = 0.5
+angles = ["theta"]
+input_set = [[0, 0, 0, 0], [5, 5, 5, 5]]
+[params]
+r = 0.165
+[dynamics]
+kind = "discrete"
+x = "x + dt*r*(fl + fr + rl + rr)/4*cos(theta)"
+y = "y + dt*r*(fl + fr + rl + rr)/4*sin(theta)"
+theta = "theta"
+"""
+
+HUSKY_EXPERIMENT = """
+system = "unicycle.toml"
+[simulator]
+kind = "pybullet_urdf"
+[simulator.options]
+urdf = "husky.urdf"
+base_pose = true
+inputs = ["front_left_wheel", "front_right_wheel", "rear_left_wheel", "rear_right_wheel"]
+input_mode = "velocity"
+ground = true
+copies = 4
+base_height = 0.2
+[collect]
+epsilon = 1.0
+n_runs = 2
+"""
+
+
+@pytest.fixture
+def duffing(tmp_path):
+    d = tmp_path / "duffing"
+    shutil.copytree(DUFFING, d)
+    return d
+
+
+def test_an_experiment_without_profiles_runs_with_its_base_settings(duffing):
+    from simgap.config import load_experiment
+    assert "[profiles" not in (duffing / "experiment.toml").read_text()
+    exp = load_experiment(duffing / "experiment.toml")  # the docs' snippet: no profile named
+    assert exp.profile is None and exp.collect.n_runs == 30
+    r = simgap("collect", "experiment.toml", "--dry-run", cwd=duffing)
+    assert r.returncode == 0, r.stderr
+    assert "(profile base)" in r.stdout and "experiment-base" in r.stdout
+    # an explicit profile must exist
+    refused(simgap("collect", "experiment.toml", "--profile", "small", "--dry-run", cwd=duffing),
+            "has no profile 'small'")
+
+
+def test_a_file_with_a_small_profile_still_gets_it():
+    from simgap.config import load_experiment
+    exp = load_experiment(REPO / "examples" / "arm" / "arm_mujoco.toml")
+    assert exp.profile == "small"
+
+
+def test_links_without_inertial_data_are_summarized_once(tmp_path):
+    pybullet_data = pytest.importorskip("pybullet_data")
+    src = Path(pybullet_data.getDataPath()) / "husky"
+    d = tmp_path / "husky"
+    shutil.copytree(src, d)
+    (d / "unicycle.toml").write_text(HUSKY_SYSTEM)
+    (d / "exp.toml").write_text(HUSKY_EXPERIMENT)
+    r = simgap("collect", "exp.toml", "--dry-run", cwd=d, timeout=300)
+    assert r.returncode == 0, r.stderr
+    err = r.stderr
+    assert "No inertial data" not in err and "b3Warning" not in err, err
+    line = ("husky.urdf: 6 links without inertial data: assumed 1 kg each (PyBullet's default, unit inertia): "
+            "base_footprint, imu_link, top_plate_link, user_rail_link, front_bumper_link, rear_bumper_link")
+    assert err.count("links without inertial data") == 1 and line in err, err
+
+
+def test_rollout_takes_the_experiments_rollout_seed(duffing):
+    import json
+    text = (duffing / "experiment.toml").read_text().replace("x0 = [0.1, 0.1]", "x0 = [0.1, 0.1]\nseed = 5")
+    (duffing / "experiment.toml").write_text(text)
+    r = simgap("synthesize", "--no-gap", "--spec", "experiment.toml", "--out", "c.npz", cwd=duffing)
+    assert r.returncode == 0, r.stderr
+    r = simgap("rollout", "--controller", "c.npz", "--simulator", "experiment.toml", "--n", "20", "--out", "a.json",
+               cwd=duffing)
+    assert r.returncode == 0, r.stderr
+    assert "seed 5" in r.stdout and "[rollout] of experiment.toml" in r.stdout, r.stdout
+    a = json.loads((duffing / "a.json").read_text())
+    assert a["seed"] == 5 and a["horizon"] == 50, (a["seed"], a["horizon"])  # [rollout] seed and horizon
+    r = simgap("rollout", "--controller", "c.npz", "--simulator", "experiment.toml", "--n", "20", "--seed", "2",
+               "--out", "b.json", cwd=duffing)
+    assert r.returncode == 0 and json.loads((duffing / "b.json").read_text())["seed"] == 2
+
+
+def test_synthesize_says_when_x0_is_outside_the_winning_domain(duffing):
+    r = simgap("synthesize", "--gamma", "0.005,0.03", "--spec", "experiment.toml", "--x0", "0.75,1.15",
+               "--out", "c.npz", cwd=duffing)
+    assert r.returncode == 3, r.stdout + r.stderr
+    assert "is OUTSIDE the winning domain" in r.stdout and (duffing / "c.npz").exists()
+    r = simgap("synthesize", "--gamma", "0.005,0.03", "--spec", "experiment.toml", "--x0", "0,0",
+               "--out", "d.npz", cwd=duffing)
+    assert r.returncode == 0 and "x0            [0.0, 0.0]: winning" in r.stdout, r.stdout
+
+
+def test_an_output_in_a_missing_folder_says_how_to_fix_it(duffing):
+    r = simgap("synthesize", "--no-gap", "--spec", "experiment.toml", "--out", "runs/x.npz", cwd=duffing)
+    refused(r, "folder 'runs' does not exist", "mkdir -p 'runs'")
+    assert not (duffing / "runs").exists()
+
+
+@pytest.mark.parametrize("key,value,words", [
+    ("inputs", '["shoulder", "shoulder"]', ["options.inputs names 'shoulder' twice"]),
+    ("velocities", '["shoulder", "shoulder"]', ["options.velocities names 'shoulder' twice"]),
+])
+def test_a_joint_named_twice_is_refused(tmp_path, key, value, words):
+    d = tmp_path / "arm"
+    shutil.copytree(REPO / "examples" / "arm", d)
+    for name in ("arm_urdf.toml", "arm_mujoco.toml"):
+        text = (d / name).read_text()
+        lines = [(f"{key} = {value}" if ln.startswith(f"{key} = ") else ln) for ln in text.splitlines()]
+        (d / name).write_text("\n".join(lines) + "\n")
+        r = simgap("collect", name, "--dry-run", cwd=d, timeout=300)
+        if name == "arm_mujoco.toml" and "extra" in r.stderr and "mujoco" in r.stderr:
+            continue  # MuJoCo not installed here: its refusal names the extra instead
+        refused(r, *words)
+
+
+def test_a_velocity_state_on_a_fixed_joint_is_refused(tmp_path):
+    pybullet_data = pytest.importorskip("pybullet_data")
+    d = tmp_path / "husky"
+    shutil.copytree(Path(pybullet_data.getDataPath()) / "husky", d)
+    (d / "unicycle.toml").write_text(HUSKY_SYSTEM.replace('states = ["x", "y", "theta"]',
+                                                          'states = ["x", "y", "theta", "w"]')
+                                     .replace("x_lo = [-2.0, -2.0, -3.14159]", "x_lo = [-2.0, -2.0, -3.14159, -1]")
+                                     .replace("x_hi = [2.0, 2.0, 3.14159]", "x_hi = [2.0, 2.0, 3.14159, 1]")
+                                     .replace('theta = "theta"', 'theta = "theta"\nw = "w"'))
+    (d / "exp.toml").write_text(HUSKY_EXPERIMENT.replace("base_pose = true", 'base_pose = true\nvelocities = ["imu_joint"]'))
+    refused(simgap("collect", "exp.toml", "--dry-run", cwd=d, timeout=300),
+            "no revolute/prismatic joint 'imu_joint'", "options.velocities", "front_left_wheel")

@@ -35,7 +35,8 @@ class ViewPanel(Panel):
             self.time = gui.add_slider("Time step", min=0, max=100, step=1, initial_value=0,
                                        hint="marks the drawn rollouts' states and poses the simulator bodies")
             self.rollout_index = gui.add_number("Bodies follow rollout", initial_value=0, min=0, step=1)
-            self.n_draw.on_update(lambda _e: app.set_time(n_draw=int(self.n_draw.value)))
+            self.n_draw.on_update(lambda _e: None if getattr(app, "_syncing", False)
+                                  else app.set_time(n_draw=int(self.n_draw.value)))
             self.time.on_update(lambda _e: app.set_time(t=int(self.time.value)))
             self.rollout_index.on_update(lambda _e: app.guarded(app.set_time, rollout_index=int(self.rollout_index.value)))
         self.folder = gui.add_folder("Gamma surface")
@@ -62,6 +63,8 @@ class ViewPanel(Panel):
                 parts.append("beige: safe but losing")
             if wc.get("unsafe_inner"):
                 parts.append("red-brown: unsafe (obstacle" + ("" if reach else " or outside the safe set") + ")")
+            elif wc.get("unsafe"):
+                parts.append("red-brown edge: cells that straddle X's border")
             if reach and wc.get("target"):
                 parts.append("blue: target")
             rows.append("| winning map | " + "; ".join(parts) + " |")
@@ -89,6 +92,7 @@ class ViewPanel(Panel):
             T = int(res.trajectories.shape[1]) - 1
             self.time.max = max(T, 1)
             self.n_draw.max = max(int(rd["total"]), 1)
+            self.set_quiet(self.n_draw, min(int(app.view["n_draw"]), int(rd["total"])))
             self.rollout_index.max = int(rd["total"]) - 1
         self.colorbar.visible = bool(lg is not None and lg.get("shown"))
         if lg is not None:

@@ -89,14 +89,14 @@ class SimgapApp:
         self.notifications: list = []  # (title, body, color) in order, also for tests
         self.timings: dict = {}  # stage -> seconds of the last run (or cache hit)
         self.auto_certify = True
-        self.view = {"dim": 0, "a": 0, "b": 1, "fixed": None, "zscale": None, "n_draw": 100, "t": None,
-                     "rollout_index": 0}
+        from .layers import scene
+        self.view = {"dim": 0, "a": 0, "b": 1, "fixed": None, "zscale": None, "n_draw": scene.N_DRAW, "t": None,
+                     "rollout_index": 0, "flat_gamma": False}
         self.legend = None  # what the gamma layer drew (range, height scale), for the View tab
         self.winning_counts = None
         self.rollout_drawn = None
         self.body_frame = None
-        self.layers_visible = {"gamma": True, "data": True, "map": True, "winning": True, "rollouts": True,
-                               "bodies": True}
+        self.layers_visible = scene.default_visibility()
         self.jobs = JobRunner(on_progress=self._job_progress, on_finish=self._job_finished)
         self._scene_version = 0
         self.run = None  # a loaded `simgap run` folder (results.RunResults) and the method shown
@@ -336,7 +336,7 @@ class SimgapApp:
         self._show_results()
         self.panels["perrun"].show()
         self.set_status(f"run **{run.path.name}** ({method}): data K = {m.dataset.K}, "
-                        f"{m.synthesis.controller.size_with_target} winning cells"
+                        f"{m.synthesis.controller.size:,} winning cells"
                         + (f", {m.rollouts.n_rollouts} rollouts" if m.rollouts is not None else ""))
 
     def _show_results(self) -> None:
@@ -548,11 +548,20 @@ class SimgapApp:
 
     def set_layer_visible(self, layer: str, visible: bool) -> None:
         """Show or hide one layer (redraws it)."""
+        from .layers import scene
         self.layers_visible[layer] = bool(visible)
-        if layer in ("map", "bodies"):
+        if any(lay.key == layer and lay.system for lay in scene.LAYERS):
             self.refresh_system_layers()
         else:
             self.refresh_result_layers()
+
+    def set_flat_gamma(self, flat: bool) -> None:
+        """Draw gamma as a surface even where it is nearly flat on the slice (default: only where it varies)."""
+        with self.lock:
+            self.view["flat_gamma"] = bool(flat)
+        from .layers import scene
+        scene.draw_gamma(self)
+        self.panels["view"].show_legend()
 
     def set_view(self, dim=None, a=None, b=None, fixed_index=None, fixed_value=None) -> dict:
         """Change the gamma-surface slice and redraw it; returns what was drawn (see layers.scene.draw_gamma)."""

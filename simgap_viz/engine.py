@@ -363,11 +363,13 @@ def winning_cells(res):
     """Winning domain projected on (x1, x2): (centers (C,2), widths (2,), fraction (C,) in (0,1]).
 
     Cells of higher dimensions (e.g. headings) with the same (x1, x2) are merged; ``fraction``
-    is the share of them that is winning. Only columns with a winning cell are returned.
+    is the share of them that is winning. Only columns with a winning cell are returned. Target
+    cells are not winning cells here (``geometry.WINNING_CELLS``, the CLI table's count): a 2-D
+    grid returns exactly ``controller.size`` cells.
     """
     ctrl = res.controller
     g = ctrl.grid
-    win = np.asarray(ctrl.winning_mask).reshape(g.shape)
+    win = np.asarray(ctrl.winning_mask & ~np.asarray(ctrl.target, bool)).reshape(g.shape)
     if win.ndim > 2:
         frac = win.reshape(g.shape[0], g.shape[1], -1).mean(axis=2)
     elif win.ndim == 2:

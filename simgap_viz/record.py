@@ -133,7 +133,7 @@ def record_run(out: str | Path, system, *, dataset=None, certificate=None, spec=
     Returns
     -------
     dict with the entity paths, ``methods``, ``n_rollouts`` and ``n_steps`` (T+1) of the last method
-    with rollouts, ``gamma_vertices``, ``gamma_triangles``, ``winning_cells`` (per method),
+    with rollouts, ``gamma_vertices``, ``gamma_triangles``, ``winning_cells`` (per method, as ``geometry.WINNING_CELLS`` defines them),
     ``seconds`` (logging time) and ``bytes`` (file size).
     """
     import rerun as rr
@@ -222,7 +222,7 @@ def _log_winning(log, rr, system, m: str, synthesis) -> int:
     half = np.zeros((C, 3), np.float32)
     half[:, :2] = hxy * 0.95
     log(f"world/{m}/winning", rr.Boxes3D(centers=cen, half_sizes=half, colors=cells["colors"], fill_mode="solid"))
-    return int(C)
+    return G.winning_cells_count(synthesis.controller)  # cells, as the CLI counts them (one box per column)
 
 
 def _gamma_layers(system, gamma, dataset, i, fixed, res, max_points) -> dict:

@@ -13,6 +13,7 @@ import time
 
 import numpy as np
 import pytest
+from test_viz_results import run_dir  # noqa: F401  (a tiny real pendulum run folder, module-scoped fixture)
 
 CHROMIUM = "/usr/bin/chromium"
 ARGS = ["--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
@@ -122,3 +123,67 @@ def test_certify_in_browser(tmp_path):
     std, shape = _png_stats(png)
     assert shape[0] == 800 and shape[1] == 1280
     assert std > 5.0, f"screenshot looks blank (pixel std {std:.2f})"
+
+
+def _rgb(png: bytes) -> np.ndarray:
+    from PIL import Image
+    return np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=int)
+
+
+def _changed(a: np.ndarray, b: np.ndarray, tol: int = 25) -> np.ndarray:
+    """Pixels where two screenshots differ by more than ``tol`` in some channel."""
+    return np.abs(a - b).max(axis=-1) > tol
+
+
+def test_default_scene_shows_the_map_and_the_runs(run_dir, tmp_path):  # noqa: F811
+    """The default scene of a loaded pendulum run, by what the page shows: the winning domain is at
+    most 20 % covered by the other layers, and the thin rollouts show outside the bold lines.
+
+    Canvas screenshots with one camera: the default scene (A); the same with no thin rollout
+    drawn, only the bold mean / mean-map / nominal lines (C); without the bold lines either (D); the
+    winning map alone (R, every other result node removed). Covered = R's winning-green pixels that
+    look different in A. Thin rollouts seen = pixels that change between C and A, at least a fifth
+    of the bold lines' (C vs D). Fails for the earlier scene, whose opaque gamma sheet
+    stood over the map and whose rollouts lay under the bold lines."""
+    _need_browser()
+    from playwright.sync_api import sync_playwright
+
+    from simgap_viz import screenshot as S
+    from simgap_viz.app import SimgapApp
+    from simgap_viz.layers import scene
+    from simgap_viz.results import load_run
+
+    app = SimgapApp(port=0, executor="serial")
+    try:
+        app.load_run(load_run(run_dir))
+        assert app.view["n_draw"] >= app.results["rollout"].n_rollouts  # every rollout drawn by default
+        with sync_playwright() as pw:
+            b = pw.chromium.launch(executable_path=S.CHROMIUM, args=S.ARGS)
+            try:
+                page = S.open_page(b, app.url + "/?fixedDpr=1", 1280, 800)
+                S.show_tab(page, "View", settle=3.0)
+                A = _rgb(S.canvas_png(page, tmp_path / "A.png"))
+                app.set_time(n_draw=0)  # the bold lines stay
+                time.sleep(2.5)
+                C = _rgb(S.canvas_png(page, tmp_path / "C.png"))
+                app.server.scene.remove_by_name("/rollouts")  # the bold lines too
+                time.sleep(2.5)
+                D = _rgb(S.canvas_png(page, tmp_path / "D.png"))
+                for lay in scene.LAYERS:  # everything but the winning map (and the bodies beside it)
+                    if lay.key not in ("winning", "bodies"):
+                        for node in lay.nodes:
+                            app.server.scene.remove_by_name(node)
+                time.sleep(2.5)
+                R = _rgb(S.canvas_png(page, tmp_path / "R.png"))
+            finally:
+                b.close()
+    finally:
+        app.stop()
+    r, g, bl = R[..., 0], R[..., 1], R[..., 2]
+    winning = (g > r + 40) & (g > bl + 40)  # the map's greens
+    assert winning.sum() > 5000, f"the winning domain is hardly visible ({winning.sum()} px)"
+    covered = float((_changed(A, R) & winning).sum()) / winning.sum()
+    assert covered <= 0.20, f"{100 * covered:.0f} % of the winning domain is covered by other layers"
+    thin = int(_changed(A, C).sum())
+    bold = int(_changed(C, D).sum())
+    assert thin >= 200 and thin >= 0.2 * bold, f"thin rollouts show on {thin} px (bold lines {bold} px)"

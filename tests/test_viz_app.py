@@ -136,7 +136,14 @@ def test_certify_summary_and_cheap_recertify(app):
     jc = cert.joint_confidence
     # target confidence 0.9 split over 2 dims x 2 betas; a dimension without noise spends none
     assert 0.9 - 1e-9 <= jc < 1.0
+    from simgap_viz.layers import scene
     drawn = app.set_view(dim=1)
+    # the data gaps are drawn with the surface only; a gamma that hardly varies is not a surface by default
+    assert (drawn["points"].shape[0] > 0) == drawn["shown"]
+    assert drawn["shown"] == ((drawn["range"][1] - drawn["range"][0]) / drawn["range"][1] >= scene.GAMMA_VISIBLE)
+    app.set_flat_gamma(True)
+    drawn = app.set_view(dim=1)
+    assert drawn["shown"]
     assert drawn["vertices"].shape == (41 * 41, 3) and drawn["faces"].shape == (2 * 40 * 40, 3)
     assert drawn["points"].shape[0] > 0
     assert app.last_data_covered is not None and app.last_data_covered.all()  # gap <= gamma on the data
@@ -314,7 +321,7 @@ def test_synthesize_and_rollout_layers(app):
     assert img.shape[0] % syn.controller.grid.shape[1] == 0 and img.shape[1] % syn.controller.grid.shape[0] == 0
     k = img.shape[1] // syn.controller.grid.shape[0]
     cell = img[::k, ::k][::-1].transpose(1, 0, 2)  # back to (i, j) cell order
-    is_win = np.all(cell == G.WIN_NEAR, axis=2).ravel()  # invariance in 2-D: every winning cell fully winning
+    is_win = np.all(cell == G.WIN_ALL, axis=2).ravel()  # invariance in 2-D: every winning cell fully winning
     assert np.array_equal(is_win, win)
     app.rollout()
     out = app.wait(120)
@@ -334,7 +341,7 @@ def test_synthesize_and_rollout_layers(app):
     P = (G.Frame(app.system).xy(ro.trajectories[0])[:, :2] + 1) * 32
     rows, cols = np.clip(63 - P[:, 1].astype(int), 0, 63), np.clip(P[:, 0].astype(int), 0, 63)
     one = round(255 * G.RUN_ALPHA)
-    assert np.all(img[rows, cols, :3] == G.BLUE) and np.all(img[rows, cols, 3] >= one)
+    assert np.all(img[rows, cols, :3] == G.RUN_BLUE) and np.all(img[rows, cols, 3] >= one)
     assert (img[..., 3] > 0).sum() < 0.5 * 64 * 64 and np.median(img[rows, cols, 3]) < 2 * one  # one run: faint
     # translucent runs add up: ten runs along the same path are much denser than one (100 vs 1000 differ)
     img10 = G.rollout_image(G.Frame(app.system), np.repeat(ro.trajectories[:1], 10, axis=0), np.zeros(10, bool),
@@ -466,6 +473,7 @@ def test_gamma_layer_height_scale_and_colors(app):
     from simgap_viz.layers import geometry as G
     app.certify()
     assert app.wait(60).ok
+    app.set_flat_gamma(True)  # drawn even where it hardly varies (by default only the legend gives its value)
     d1 = app.set_view(dim=1)
     top1 = d1["top"]
     assert d1["vertices"][:, 2].max() <= 1.0 + 1e-6 and d1["vertices"][:, 2].max() > 0.5  # visible, in [0, 1]

@@ -18,6 +18,7 @@ from simgap.systems import System
 
 # colors (RGB 0-255)
 BLUE = (60, 120, 220)
+RUN_BLUE = (20, 50, 150)  # the thin rollouts: dark enough to read on the light green winning map
 RED = (220, 50, 50)
 GREEN = (40, 170, 80)
 YELLOW = (250, 200, 20)
@@ -103,8 +104,10 @@ def nice_ticks(lo: float, hi: float, n: int = 5) -> np.ndarray:
     return t[(t >= lo - 1e-12 * abs(step)) & (t <= hi + 1e-12 * abs(step))] + 0.0  # no "-0"
 
 
-# winning-domain map colors
+# winning-domain map colors: reach-avoid dark (near the target) -> light (far); invariance one light
+# green for a fully winning column, paler for a smaller share of winning cells over the other dimensions
 WIN_NEAR, WIN_FAR = (15, 100, 45), (140, 210, 130)
+WIN_ALL, WIN_SOME = (120, 200, 120), (200, 232, 180)
 LOSING = (238, 232, 205)
 UNSAFE = (150, 60, 60)
 TARGET = (40, 110, 210)
@@ -115,12 +118,18 @@ def winning_map(controller, blocked: np.ndarray, allowed: np.ndarray, max_pixels
 
     Per (x1, x2) column of grid cells (other dimensions, e.g. the heading, reduced): *winning*
     (green) if any cell of the column is winning, shaded by the worst-case steps-to-go of its best
-    cell for reach-avoid (dark: near the target, light: far) or by the winning fraction otherwise;
-    *unsafe* (red-brown) if every cell is blocked (obstacle, outside X) or, for invariance, outside
-    the safe set; *safe but losing* (beige) otherwise; target cells blue. ``blocked`` and
-    ``allowed`` (N,) are the engine's cell labels (``label_cells``). Returns dict(image (H,W,3)
-    uint8 with row 0 at the top (+x2), lo (2,), hi (2,) the image's extent in state units,
-    counts {winning, losing, unsafe} in columns).
+    cell for reach-avoid (dark: near the target, light: far) or by the winning share otherwise
+    (light green: all, paler: some); *unsafe* (red-brown) if every cell is blocked (obstacle,
+    outside X) or, for invariance, outside the safe set; *safe but losing* (beige) otherwise;
+    target columns blue (reach-avoid only). ``blocked`` and ``allowed`` (N,) are the engine's cell
+    labels (``label_cells``).
+
+    Returns dict(image (H,W,3) uint8 with row 0 at the top (+x2), lo (2,), hi (2,) the image's
+    extent in state units, counts, max_steps, reduced_dims). ``counts`` has ``winning_cells``
+    (grid cells, target excluded: :func:`winning_cells_count`, the number the CLI table shows) and,
+    in (x1, x2) columns as drawn, ``winning``, ``losing``, ``unsafe``, ``target`` and
+    ``unsafe_inner`` (unsafe columns off the grid's outer ring, the ones a person can see: the ring
+    of cells that straddle X's border lies under the safe-set outline).
     """
     g = controller.grid
     shape = tuple(g.shape) + ((1,) if g.n == 1 else ())
@@ -131,7 +140,8 @@ def winning_map(controller, blocked: np.ndarray, allowed: np.ndarray, max_pixels
     unsafe_cell = np.asarray(blocked, bool).reshape(cols)
     if not reach:
         unsafe_cell = unsafe_cell | ~np.asarray(allowed, bool).reshape(cols)
-    target = np.asarray(controller.target, bool).reshape(cols).any(axis=2)
+    target = np.asarray(controller.target, bool).reshape(cols).any(axis=2) if reach \
+        else np.zeros(shape[:2], bool)
     w_any = win.any(axis=2)
     unsafe = unsafe_cell.all(axis=2) & ~w_any
     img = np.empty(shape[:2] + (3,), np.uint8)
@@ -141,9 +151,10 @@ def winning_map(controller, blocked: np.ndarray, allowed: np.ndarray, max_pixels
         s = np.where(win, steps, np.iinfo(np.int32).max).min(axis=2).astype(float)
         smax = max(float(s[w_any].max()) if w_any.any() else 1.0, 1.0)
         t = np.where(w_any, s / smax, 0.0)
+        near, far = np.array(WIN_NEAR, float), np.array(WIN_FAR, float)
     else:
         t = 1.0 - win.mean(axis=2)
-    near, far = np.array(WIN_NEAR, float), np.array(WIN_FAR, float)
+        near, far = np.array(WIN_ALL, float), np.array(WIN_SOME, float)
     shade = ((1 - t)[..., None] * near + t[..., None] * far).astype(np.uint8)
     img[w_any] = shade[w_any]
     img[target] = TARGET
@@ -152,10 +163,23 @@ def winning_map(controller, blocked: np.ndarray, allowed: np.ndarray, max_pixels
     lo, hi = g.domain_lo[:2], g.domain_hi[:2]
     if g.n == 1:
         lo, hi = np.array([lo[0], -1.0]), np.array([hi[0], 1.0])
+    inner = np.zeros(shape[:2], bool)
+    inner[1:-1, 1:-1] = True
     return {"image": image, "lo": lo, "hi": hi,
-            "counts": {"winning": int(w_any.sum()), "losing": int((~w_any & ~unsafe).sum()),
-                       "unsafe": int(unsafe.sum())}, "max_steps": int(smax) if reach else None,
-            "reduced_dims": max(g.n - 2, 0)}
+            "counts": {"winning_cells": winning_cells_count(controller), "winning": int((w_any & ~target).sum()),
+                       "losing": int((~w_any & ~unsafe).sum()), "unsafe": int(unsafe.sum()),
+                       "unsafe_inner": int((unsafe & inner).sum()), "target": int(target.sum())},
+            "max_steps": int(smax) if reach else None, "reduced_dims": max(g.n - 2, 0)}
+
+
+WINNING_CELLS = ("winning cells: grid cells from which the controller keeps the state safe (invariance) or "
+                 "brings it to the target (reach-avoid), the target's own cells not counted (SCOTS's count)")
+"""The one definition of "winning cells" shown by the CLI table, the GUI, the recording and the summary."""
+
+
+def winning_cells_count(controller) -> int:
+    """The number of winning cells as :data:`WINNING_CELLS` defines it (``controller.size``)."""
+    return int(controller.size)
 
 
 def rollout_subset(failed: np.ndarray, n_draw: int, seed: int = 0) -> np.ndarray:
@@ -300,7 +324,7 @@ def rollout_segments(frame: Frame, traj: np.ndarray, failed: np.ndarray | None =
 def rollout_image(frame: Frame, traj: np.ndarray, failed: np.ndarray | None = None, px: int = 1024,
                   width: int = 2, max_samples: int = 20_000_000, alpha: float = RUN_ALPHA) -> np.ndarray:
     """The rollouts as an RGBA image of the display square [-1, 1]^2 (row 0 at +x2): every step
-    of every trajectory rasterized as a ``width``-pixel line, blue, failures red on top; transparent
+    of every trajectory rasterized as a ``width``-pixel line, dark blue, failures red on top; transparent
     elsewhere.
 
     Each rollout is translucent (opacity ``alpha``): a pixel crossed by k rollouts has opacity
@@ -330,7 +354,7 @@ def rollout_image(frame: Frame, traj: np.ndarray, failed: np.ndarray | None = No
     ix = np.clip((np.repeat(a[:, 0], n) + t * np.repeat(d[:, 0], n)).astype(np.int64), 0, px - 1)
     iy = np.clip(px - 1 - (np.repeat(a[:, 1], n) + t * np.repeat(d[:, 1], n)).astype(np.int64), 0, px - 1)
     run = np.repeat(np.repeat(np.arange(R), traj.shape[1] - 1), n)
-    for mask, rgb, a_run in ((~failed[run], BLUE, alpha), (failed[run], RED, max(alpha, 0.6))):
+    for mask, rgb, a_run in ((~failed[run], RUN_BLUE, alpha), (failed[run], RED, max(alpha, 0.6))):
         if not mask.any():
             continue
         # one count per visit: consecutive samples of a run in one pixel collapse
@@ -354,6 +378,25 @@ def polyline_segments(frame: Frame, path: np.ndarray) -> np.ndarray:
     """One trajectory (T+1, n) as (T, 2, 3) display segments."""
     P = frame.xy(np.asarray(path, dtype=float))
     return np.stack([P[:-1], P[1:]], axis=1).astype(np.float32)
+
+
+def dashed_segments(frame: Frame, path: np.ndarray, on: float, off: float, phase: float = 0.0) -> np.ndarray:
+    """One trajectory (T+1, n) as a dashed line: (S, 2, 3) display segments covering arc lengths
+    [phase + k (on + off), phase + k (on + off) + on) of the display path (units of the square).
+
+    The bold lines are dashed so that the rollouts' density under them shows in the gaps."""
+    P = frame.xy(np.asarray(path, dtype=float))
+    if P.shape[0] < 2:
+        return np.zeros((0, 2, 3), np.float32)
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))])
+    if s[-1] <= 0:
+        return np.zeros((0, 2, 3), np.float32)
+    step = min(on, off) / 4
+    t = np.arange(0.0, s[-1] + step, step)
+    t[-1] = min(t[-1], s[-1])
+    Q = np.stack([np.interp(t, s, P[:, k]) for k in range(3)], axis=1)
+    keep = np.mod(t[:-1] - phase, on + off) < on
+    return np.stack([Q[:-1][keep], Q[1:][keep]], axis=1).astype(np.float32)
 
 
 def box_cells(frame: Frame, centers: np.ndarray, widths: np.ndarray, values: np.ndarray | None = None) -> dict:

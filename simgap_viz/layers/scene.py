@@ -1,14 +1,17 @@
 """Drawing the app's layers into the viser scene: few nodes, batched geometry, one frame.
 
 Every state-space layer lives in one display frame: the first two state dimensions mapped to
-the square [-1, 1]^2 (z = 0, see :mod:`.geometry`). The gamma surface rises above it with heights
-z = gamma / top in [0, 1] (``top`` recomputed for each certificate and slice, shown as z ticks);
-the winning domain is one opaque image just below it; the rollouts are one transparent image
-on top of it (the bold mean and nominal trajectories are line segments).
+the square [-1, 1]^2 (z = 0, see :mod:`.geometry`). The winning domain is one opaque image on it,
+the rollouts one translucent image on top (a density; the bold mean map, mean and nominal
+trajectories thin line segments, the last two dashed). The gamma surface, over the two
+variables the View tab picks, stands on its own square behind the map (``SURFACE_OFFSET``) with
+heights z = gamma / top in [0, 1], its own ticks and a vertical gamma axis, and only where gamma
+varies enough to see (``GAMMA_VISIBLE``; otherwise the legend gives its value). The layers are
+listed in :data:`LAYERS` (:class:`Layer`): the View tab's checkboxes and the redraws follow from it.
 A TurtleBot's arena and robot are drawn in the same frame (metres mapped like x, y), so the map
 appears once at one scale; the pendulum's rod, which has no place in the (theta, omega) plane,
 stands beside the square. Node names: ``/grid``, ``/axes``, ``/map``, ``/winning``,
-``/gamma/surface``, ``/gamma/data``, ``/rollouts/{all,mean,nominal,now}``, ``/bodies``, ``/refine``.
+``/gamma/surface``, ``/gamma/axes``, ``/gamma/data``, ``/zaxis``, ``/rollouts/{all,mean,nominal,now}``, ``/bodies``, ``/refine``.
 
 Frame cost in software WebGL (SwiftShader, bench/bench_viz.py --browser) decides the drawing:
 no shadow maps (the default light's three shadow cascades re-render the scene three times per
@@ -20,6 +23,9 @@ sent again.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Optional
 
 import numpy as np
 
@@ -33,6 +39,43 @@ PENDULUM_PIVOT = (1.9, 0.0, 1.2)  # where the pendulum's pivot stands, beside th
 MODEL_LEFT = 1.5  # a robot file's model stands beside the square: its bounding box starts at this x
 MODEL_SIZE = 2.5  # ... and is scaled down to this largest extent (display units) if larger
 SURFACE_RES = 41
+GAMMA_VISIBLE = 0.15  # a gamma that varies by less than this share of its largest value on the slice is
+# not drawn as a surface (a flat sheet over the map says nothing a number cannot): the legend gives its value
+SURFACE_OPACITY = 0.6
+SURFACE_OFFSET = (0.0, 2.7, 0.0)  # the gamma surface stands on its own square behind the map, never over it:
+# its variables need not be the map's (x1, x2), and the map stays readable (display units)
+N_DRAW = 1000  # rollouts drawn by default: every one of a run's 1000, as a density (geometry.rollout_image)
+
+
+@dataclass(frozen=True)
+class Layer:
+    """One scene layer: its View-tab checkbox, the scene nodes it owns and how it is drawn.
+
+    ``draw(app)`` reads the app's results and settings and sends (or removes) its nodes; it is called
+    by :func:`draw_system` (``system=True``: the system's map and bodies) or :func:`draw_results`
+    (everything computed). A new layer (e.g. a controller's invariant set) is one entry here
+    (:func:`register_layer`) and one draw function; the View tab, the visibility flags and the
+    redraws follow from the entry.
+    """
+    key: str
+    label: Optional[str]  # the View tab's checkbox (None: no checkbox, always drawn)
+    nodes: tuple
+    draw: Callable
+    system: bool = False
+    default: bool = True
+
+
+LAYERS: list = []  # in drawing order
+
+
+def register_layer(layer: Layer) -> None:
+    """Add ``layer`` (or replace the one with its key), drawn after the layers already registered."""
+    LAYERS[:] = [lay for lay in LAYERS if lay.key != layer.key] + [layer]
+
+
+def default_visibility() -> dict:
+    """Layer key -> shown at start (the app's ``layers_visible``)."""
+    return {lay.key: lay.default for lay in LAYERS}
 
 
 def _remove(app, name: str) -> None:
@@ -70,28 +113,39 @@ def draw_system(app) -> None:
     sc.add_grid("/grid", width=2.0, height=2.0, cell_size=0.25, plane="xy", position=(0.0, 0.0, -0.004),
                 cell_color=(215, 215, 215), section_color=(170, 170, 170))
     draw_axes(app)
-    draw_map(app)
-    draw_bodies(app)
+    for lay in LAYERS:
+        if lay.system:
+            lay.draw(app)
     fit_camera(app)
 
 
 def draw_axes(app) -> None:
-    """Tick labels in state units along the square's edges (x1 along x, x2 along y)."""
-    sc = app.server.scene
+    """Tick labels in state units along the map square's edges (x1 along x, x2 along y)."""
     _remove(app, "/axes")
     s = app.system
     names = [labelled(n, u) for n, u in zip(s.state_names, units(s)[0])] + ([""] if s.n < 2 else [])
     frame = G.Frame(s)
+    _square_axes(app.server.scene, "/axes", frame.lo, frame.hi, names[:2])
+
+
+def _square_axes(sc, prefix: str, lo, hi, names, offset=(0.0, 0.0, 0.0)) -> None:
+    """Ticks of two variables over [lo, hi] (2,) along the front and left edges of the square
+    [-1, 1]^2 + ``offset``; each axis' name past its far end (never on a tick); the second axis'
+    tick at the corner shared with the first is left out."""
+    ox, oy, oz = (float(v) for v in offset)
     for d, axis in ((0, "x"), (1, "y")):
-        lo, hi = float(frame.lo[d]), float(frame.hi[d])
-        for k, t in enumerate(G.nice_ticks(lo, hi, 5)):
-            u = 2 * (t - frame.center[d]) / (hi - lo)
-            pos = (u, -1.06, 0.0) if axis == "x" else (-1.06, u, 0.0)
-            sc.add_label(f"/axes/{axis}{k}", text=f"{t:.3g}", position=pos,
+        a, b = float(lo[d]), float(hi[d])
+        for k, t in enumerate(G.nice_ticks(a, b, 5)):
+            u = 2 * (t - 0.5 * (a + b)) / (b - a) if b > a else 0.0
+            if axis == "y" and u < -0.9:  # would crowd the first axis' first tick at the corner
+                continue
+            pos = (ox + u, oy - 1.06, oz) if axis == "x" else (ox - 1.06, oy + u, oz)
+            sc.add_label(f"{prefix}/{axis}{k}", text=f"{t:.3g}", position=pos,
                          anchor="top-center" if axis == "x" else "center-right", font_screen_scale=0.7)
         if names[d]:
-            pos = (0.0, -1.2, 0.0) if axis == "x" else (-1.25, 0.0, 0.0)
-            sc.add_label(f"/axes/{axis}_name", text=names[d], position=pos, anchor="center-center")
+            pos, anchor = (((ox + 1.16, oy - 1.06, oz), "top-left") if axis == "x"
+                           else ((ox - 1.06, oy + 1.14, oz), "bottom-right"))
+            sc.add_label(f"{prefix}/{axis}_name", text=names[d], position=pos, anchor=anchor)
 
 
 def draw_map(app) -> None:
@@ -255,11 +309,12 @@ def pose_bodies(app, x) -> None:
 def draw_gamma(app) -> dict:
     """Gamma surface of the selected dimension over the selected variables, and the data gaps.
 
-    The height scale z = gamma / top is recomputed whenever the certificate, the dimension or
-    the variables change (not for slider moves, so a fixed-variable change is visible), with
-    top = the largest of gamma on the slice and the gaps shown. The surface is colored by gamma
-    over its own range on the slice (colorbar in the View tab). Returns dict(vertices, faces,
-    points, range, top, margin) ("range"/"top" only with a certificate).
+    Heights and colors z = gamma / top, ``top`` one scale per data set and slice for the session
+    (it only grows; the legend and a vertical axis give it). The surface is sent only when gamma
+    varies by at least ``GAMMA_VISIBLE`` of its largest value on the slice (or the View tab asks
+    for flat ones too, ``view["flat_gamma"]``); the data gaps only with the surface (or before any
+    certificate). Returns dict(vertices, faces, points, range, top, margin, shown) ("range"/"top"
+    only with a certificate; "shown": the surface was sent).
     """
     sc = app.server.scene
     v = app.view
@@ -290,24 +345,40 @@ def draw_gamma(app) -> dict:
     v["zscale"] = z = 1.0 / top
     su = units(s)[0][v["dim"]]
     legend = {"dim": s.state_names[v["dim"]], "top": top, "unit": f"{su}/step" if su else ""}
+    shown = False
     if surf is not None:
         verts = surf["vertices"].copy()
         verts[:, 2] *= z
         vals = surf["values"]
         lo, hi = float(vals.min()), float(vals.max())
         constant = hi - lo <= 1e-9 * max(abs(hi), 1e-300)
-        # unlit vertex colors on the session scale (the legend's colors exactly); a constant gamma
-        # (e.g. the TurtleBot's over (x, y)) is a flat plane: nearly clear, so the map stays readable
-        sc.add_glb("/gamma/surface", G.glb(verts, G.colormap(vals / top), surf["faces"], unlit=True,
-                                           opacity=0.3 if constant else 0.85),
-                   cast_shadow=False, receive_shadow=False, visible=app.layers_visible["gamma"])
+        varies = hi > 0 and (hi - lo) / hi >= GAMMA_VISIBLE
+        # only a gamma that varies enough to see is a surface (translucent, unlit vertex colors on the
+        # session scale, the legend's colors exactly); a nearly flat one would be a sheet over the map
+        # that says no more than its value, which the legend prints
+        shown = app.layers_visible["gamma"] and (varies or bool(v.get("flat_gamma")))
+        if shown:
+            sc.add_glb("/gamma/surface", G.glb(verts, G.colormap(vals / top), surf["faces"], unlit=True,
+                                               opacity=SURFACE_OPACITY),
+                       cast_shadow=False, receive_shadow=False, position=SURFACE_OFFSET)
+            rng = G.variable_ranges(s)
+            vnames, vunits = G.variable_names(s), list(units(s)[0]) + list(units(s)[1])
+            _remove(app, "/gamma/axes")
+            _square_axes(sc, "/gamma/axes", rng[[v["a"], v["b"]], 0], rng[[v["a"], v["b"]], 1],
+                         [labelled(vnames[j], vunits[j]) for j in (v["a"], v["b"])], SURFACE_OFFSET)
+        else:
+            _remove(app, "/gamma/surface")
+            _remove(app, "/gamma/axes")
         out["vertices"], out["faces"] = verts, surf["faces"]
         out["range"] = legend["range"] = (lo, hi)
         out["constant"] = legend["constant"] = constant
+        legend["varies"] = varies
         out["top"] = top
     else:
         _remove(app, "/gamma/surface")
-    if pts is not None and pts["points"].shape[0]:
+    out["shown"] = legend["shown"] = shown
+    # the data gaps are heights on the surface's scale: drawn with the surface (or before any certificate)
+    if pts is not None and pts["points"].shape[0] and app.layers_visible["data"] and (shown or gamma is None):
         p = pts["points"].copy()
         p[:, 2] *= z
         if gamma is not None:
@@ -320,45 +391,49 @@ def draw_gamma(app) -> dict:
         else:
             colors = pts["colors"]
         sc.add_point_cloud("/gamma/data", points=p, colors=colors, point_size=0.007, point_shape="circle",
-                           visible=app.layers_visible["data"])
+                           position=SURFACE_OFFSET if shown else (0.0, 0.0, 0.0))
         out["points"] = p
         legend["points"] = int(p.shape[0])
         app.last_data_covered = pts["covered"]
     else:
         _remove(app, "/gamma/data")
-    _draw_zaxis(app, top, legend["dim"] + (f" [{legend['unit']}]" if legend["unit"] else ""),
-                visible=app.layers_visible["gamma"])
+    if shown:
+        _draw_zaxis(app, top, legend["dim"] + (f" [{legend['unit']}]" if legend["unit"] else ""))
+    else:
+        _remove(app, "/zaxis")
+    was = (app.legend or {}).get("shown")
     app.legend = legend
+    if was is not None and was != shown:  # the scene's height changed: refit the camera
+        fit_camera(app)
     return out
 
 
-def _draw_zaxis(app, top: float, name: str, visible: bool = True) -> None:
-    """A vertical axis at the square's far corner with gamma ticks (state units of ``name``)."""
+def _draw_zaxis(app, top: float, name: str) -> None:
+    """A vertical axis at the surface square's far corner with gamma ticks (state units of ``name``)."""
     sc = app.server.scene
     _remove(app, "/zaxis")
-    x, y = 1.0, 1.0
+    x, y = 1.0 + SURFACE_OFFSET[0], 1.0 + SURFACE_OFFSET[1]
     ticks = G.nice_ticks(0.0, top, 4)
     segs = [[[x, y, 0.0], [x, y, 1.0]]] + [[[x, y, t / top], [x + 0.04, y, t / top]] for t in ticks]
     sc.add_line_segments("/zaxis/line", points=np.asarray(segs, np.float32), colors=(60, 60, 60), thickness=2.0,
-                         thickness_units="screen", visible=visible)
+                         thickness_units="screen")
     for k, t in enumerate(ticks):
         sc.add_label(f"/zaxis/t{k}", text=f"{t:.3g}", position=(x + 0.06, y, t / top), anchor="center-left",
-                     font_screen_scale=0.7, visible=visible)
-    sc.add_label("/zaxis/name", text=f"gamma_{name}", position=(x, y, 1.08), anchor="bottom-center",
-                 visible=visible)
+                     font_screen_scale=0.7)
+    sc.add_label("/zaxis/name", text=f"gamma_{name}", position=(x, y, 1.08), anchor="bottom-center")
 
 
 # ----- winning domain --------------------------------------------------------------------------
 def draw_winning(app) -> int:
     """The winning domain as ONE opaque image just below the surface (see geometry.winning_map).
 
-    Returns the number of winning (x1, x2) columns drawn."""
+    Returns the number of winning (x1, x2) columns drawn (target columns not counted)."""
     res = app.results.get("synthesize")
-    if res is None or res.controller.size_with_target == 0:
+    if res is None or res.controller.size_with_target == 0 or not app.layers_visible["winning"]:
         _remove(app, "/winning")
         app.winning_counts = None
         return 0
-    if _unchanged(app, "/winning", res, app.layers_visible["winning"]):
+    if _unchanged(app, "/winning", res):
         return app.winning_counts["winning"]
     blocked, allowed = engine.cell_labels(res)
     wm = G.winning_map(res.controller, blocked, allowed)
@@ -367,8 +442,9 @@ def draw_winning(app) -> int:
     app.server.scene.add_image("/winning", wm["image"], render_width=float(b[0] - a[0]),
                                render_height=float(b[1] - a[1]), format="png",
                                position=(float(a[0] + b[0]) / 2, float(a[1] + b[1]) / 2, 0.002), wxyz=G.IMAGE_UP,
-                               cast_shadow=False, receive_shadow=False, visible=app.layers_visible["winning"])
-    app.winning_counts = {**wm["counts"], "max_steps": wm["max_steps"], "reduced_dims": wm["reduced_dims"]}
+                               cast_shadow=False, receive_shadow=False)
+    app.winning_counts = {**wm["counts"], "max_steps": wm["max_steps"], "reduced_dims": wm["reduced_dims"],
+                          "kind": res.controller.kind}
     return wm["counts"]["winning"]
 
 
@@ -378,36 +454,37 @@ def draw_rollouts(app) -> int:
     image on the plane (every step), failures red; the mean (or mean-map) and nominal
     trajectories bold. Returns the number of trajectory segments in the image."""
     res = app.results.get("rollout")
-    if res is None:
+    if res is None or not app.layers_visible["rollouts"]:
         _remove(app, "/rollouts")
         app.rollout_drawn = None
         return 0
-    if _unchanged(app, "/rollouts", res, int(app.view.get("n_draw", 100)), app.layers_visible["rollouts"]):
+    if _unchanged(app, "/rollouts", res, int(app.view.get("n_draw", N_DRAW))):
         show_time(app, app.view.get("t", None))
         return app.rollout_drawn["segments"]
     frame = G.Frame(app.system)
     traj, failed, mean, nominal = engine.rollout_arrays(res)
-    idx = G.rollout_subset(failed, int(app.view.get("n_draw", 100)))
+    idx = G.rollout_subset(failed, int(app.view.get("n_draw", N_DRAW)))
     sc = app.server.scene
-    vis = app.layers_visible["rollouts"]
     if idx.size:  # one image on the plane (see geometry.rollout_image), every step of every drawn rollout
         sc.add_image("/rollouts/all", G.rollout_image(frame, traj[idx], failed[idx]), render_width=2.0,
                      render_height=2.0, format="png", position=(0.0, 0.0, 0.004), wxyz=G.IMAGE_UP, cast_shadow=False,
-                     receive_shadow=False, visible=vis)
+                     receive_shadow=False)
         nseg = int(idx.size) * (traj.shape[1] - 1)
     else:
         _remove(app, "/rollouts/all")
         nseg = 0
-    # thin enough that the rollouts' spread shows beside them
-    for name, path, color, width in (("mean", mean, G.YELLOW, 2.5), ("nominal", nominal, (20, 20, 20), 1.5),
-                                     ("mean_map", engine.mean_map_trajectory(res), (200, 40, 200), 2.0)):
+    # thin, and the mean and nominal dashed, so that the rollouts' density shows beside and between them
+    for name, path, color, width, dash in (
+            ("mean_map", engine.mean_map_trajectory(res), (200, 40, 200), 1.5, None),
+            ("mean", mean, G.YELLOW, 2.5, (0.025, 0.045, 0.0)), ("nominal", nominal, (20, 20, 20), 1.5,
+                                                                  (0.025, 0.045, 0.035))):
         if path is None:
             _remove(app, f"/rollouts/{name}")
             continue
-        P = G.polyline_segments(frame, path)
+        P = G.polyline_segments(frame, path) if dash is None else G.dashed_segments(frame, path, *dash)
         P[..., 2] = 0.008
         sc.add_line_segments(f"/rollouts/{name}", points=P, colors=color, thickness=width,
-                             thickness_units="screen", visible=vis)
+                             thickness_units="screen")
     app.rollout_drawn = {"drawn": int(idx.size), "total": int(failed.size), "failed": int(failed.sum()),
                          "failed_drawn": int(failed[idx].sum()), "segments": nseg}
     show_time(app, app.view.get("t", None))
@@ -424,7 +501,7 @@ def show_time(app, t) -> None:
         return
     traj, failed, _, _ = engine.rollout_arrays(res)
     t = int(np.clip(t, 0, traj.shape[1] - 1))
-    idx = G.rollout_subset(failed, int(app.view.get("n_draw", 100)))
+    idx = G.rollout_subset(failed, int(app.view.get("n_draw", N_DRAW)))
     frame = G.Frame(app.system)
     P = frame.xy(traj[idx, t]).astype(np.float32)
     P[:, 2] = 0.012
@@ -439,7 +516,10 @@ def show_time(app, t) -> None:
 def scene_bounds(app) -> tuple:
     """(lo (3,), hi (3,)) of everything drawn: the square, the surface's [0, 1] heights, the
     pendulum beside it, the refinement plane."""
-    lo, hi = np.array([-1.1, -1.1, 0.0]), np.array([1.1, 1.1, 1.05])
+    surface = bool((getattr(app, "legend", None) or {}).get("shown"))
+    lo, hi = np.array([-1.1, -1.1, 0.0]), np.array([1.1, 1.1, 0.1])
+    if surface:  # the surface's square behind the map, heights up to 1 and the axis name above
+        hi[1], hi[2] = SURFACE_OFFSET[1] + 1.1, 1.15
     base = engine.base_system(app.system)
     if base.name == "pendulum" and app.layers_visible.get("bodies", True):
         hi[0] = max(hi[0], PENDULUM_PIVOT[0] + 0.2)
@@ -462,12 +542,13 @@ def fit_camera(app, clients=None) -> None:
     lo, hi = scene_bounds(app)
     c = 0.5 * (lo + hi)
     r = 0.5 * float(np.linalg.norm(hi - lo))
-    d = np.array([-0.3, -1.0, 1.0])
+    surface = bool((getattr(app, "legend", None) or {}).get("shown"))
+    d = np.array([-0.3, -1.0, 1.0]) if surface else np.array([-0.08, -0.4, 1.0])  # the flat map: from high above
     d /= np.linalg.norm(d)
     right = np.cross(-d, [0.0, 0.0, 1.0])
     right /= np.linalg.norm(right)
     look = c + 0.3 * r * right  # the control panel covers the canvas' right third
-    pos = look + d * r * 1.55
+    pos = look + d * r * (1.75 if surface else 1.12)
     app.server.initial_camera.position = tuple(pos)
     app.server.initial_camera.look_at = tuple(look)
     app.server.initial_camera.up = (0.0, 0.0, 1.0)
@@ -529,11 +610,18 @@ def draw_residuals(app, state: int = None, var: str = None, max_points: int = 20
 
 
 def draw_results(app) -> None:
-    draw_gamma(app)
-    draw_winning(app)
-    draw_rollouts(app)
-    draw_residuals(app)
+    """Every result layer, in registration order (the gamma layer also draws the data gaps)."""
+    for lay in LAYERS:
+        if not lay.system and lay.key != "data":
+            lay.draw(app)
 
 
-LAYER_NODES = {"gamma": ("/gamma/surface", "/zaxis"), "data": ("/gamma/data",), "map": ("/map",),
-               "winning": ("/winning",), "rollouts": ("/rollouts",), "bodies": ("/bodies",)}
+for _layer in (Layer("winning", "Winning domain", ("/winning",), draw_winning),
+               Layer("map", "Map / spec", ("/map",), draw_map, system=True),
+               Layer("rollouts", "Rollouts", ("/rollouts",), draw_rollouts),
+               Layer("gamma", "Gamma surface", ("/gamma/surface", "/gamma/axes", "/zaxis"), draw_gamma),
+               Layer("data", "Data gaps", ("/gamma/data",), draw_gamma),
+               Layer("bodies", "Simulator bodies", ("/bodies",), draw_bodies, system=True),
+               Layer("refine", None, ("/refine",), draw_residuals)):
+    register_layer(_layer)
+LAYER_NODES = {lay.key: lay.nodes for lay in LAYERS}

@@ -5,11 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..layers import scene
 from ..layers.geometry import colorbar, variable_names, variable_ranges
 from .base import Panel
-
-LAYERS = (("gamma", "Gamma surface"), ("data", "Data gaps"), ("map", "Map / spec"),
-          ("winning", "Winning domain"), ("rollouts", "Rollouts"), ("bodies", "Simulator bodies"))
 
 
 class ViewPanel(Panel):
@@ -18,10 +16,16 @@ class ViewPanel(Panel):
         gui = app.server.gui
         self.checks = {}
         with gui.add_folder("Layers"):
-            for key, label in LAYERS:
-                h = gui.add_checkbox(label, initial_value=app.layers_visible[key])
-                h.on_update(lambda _e, key=key, h=h: app.set_layer_visible(key, bool(h.value)))
-                self.checks[key] = h
+            for lay in scene.LAYERS:
+                if lay.label is None:
+                    continue
+                h = gui.add_checkbox(lay.label, initial_value=app.layers_visible[lay.key])
+                h.on_update(lambda _e, key=lay.key, h=h: app.set_layer_visible(key, bool(h.value)))
+                self.checks[lay.key] = h
+            self.flat = gui.add_checkbox("Flat gamma too", initial_value=bool(app.view.get("flat_gamma")),
+                                         hint=f"draw gamma as a surface even where it varies by less than "
+                                              f"{100 * scene.GAMMA_VISIBLE:.0f} % on the slice")
+            self.flat.on_update(lambda _e: app.set_flat_gamma(bool(self.flat.value)))
         with gui.add_folder("Legend"):
             self.colorbar = gui.add_image(colorbar(256, 12), format="png")
             self.legend = gui.add_markdown("*no certificate yet*")
@@ -31,7 +35,8 @@ class ViewPanel(Panel):
             self.time = gui.add_slider("Time step", min=0, max=100, step=1, initial_value=0,
                                        hint="marks the drawn rollouts' states and poses the simulator bodies")
             self.rollout_index = gui.add_number("Bodies follow rollout", initial_value=0, min=0, step=1)
-            self.n_draw.on_update(lambda _e: app.set_time(n_draw=int(self.n_draw.value)))
+            self.n_draw.on_update(lambda _e: None if getattr(app, "_syncing", False)
+                                  else app.set_time(n_draw=int(self.n_draw.value)))
             self.time.on_update(lambda _e: app.set_time(t=int(self.time.value)))
             self.rollout_index.on_update(lambda _e: app.guarded(app.set_time, rollout_index=int(self.rollout_index.value)))
         self.folder = gui.add_folder("Gamma surface")
@@ -40,47 +45,75 @@ class ViewPanel(Panel):
         self.rebuild_sliders()
 
     def show_legend(self) -> None:
-        """The color map's range, the height scale, the data-gap colors, the winning-map colors and
-        the rollout counts, as a table that fits the panel."""
+        """What is drawn, and only that: the winning map's colors (the winning-cell count as the CLI
+        table gives it), the rollouts, the bold lines, gamma (a surface with its scale, or its value
+        when it is too flat to draw) and the data gaps, as a table that fits the panel."""
         app = self.app
         lg = app.legend
         rows = []
-        if lg is not None:
-            d, u = lg["dim"], (f" {lg['unit']}" if lg.get("unit") else "")
-            rows.append(f"| color and height | gamma_{d} = 0 (dark blue, 0) .. {lg['top']:.4g}{u} (yellow, 1): "
-                        "one scale for the session, widened only when a larger gamma comes |")
-            if "range" in lg:
-                lo, hi = lg["range"]
-                rows.append(f"| gamma_{d} on this slice | **constant: {hi:.4g}{u}** (a flat plane, drawn translucent) |"
-                            if lg.get("constant") else
-                            f"| gamma_{d} on this slice | {lo:.4g} .. {hi:.4g}{u} (varies by "
-                            f"{100 * (hi - lo) / hi:.2g} % of its largest value) |")
-            if "margin_scale" in lg:
-                rows.append(f"| data gaps ({lg['points']}) | margin gamma - gap: orange 0 .. grey-blue "
-                            f">= {lg['margin_scale']:.3g}; red < 0: {lg['uncovered']} |")
-            elif "points" in lg:
-                rows.append(f"| data gaps ({lg['points']}) | grey: no certificate yet |")
         wc = app.winning_counts
         if wc is not None:
-            shade = (f" (dark = near the target .. light = {wc['max_steps']} steps to go)" if wc.get("max_steps")
-                     else " (shade: share of winning cells over the other dimensions)" if wc.get("reduced_dims")
+            reach = wc.get("kind") == "reach_avoid"
+            shade = ("dark near the target, light " + (f"{wc['max_steps']} steps away" if wc.get("max_steps") else "far")
+                     if reach else "paler: a smaller share of the other dimensions' cells" if wc.get("reduced_dims")
                      else "")
-            rows.append(f"| winning map | green {wc['winning']} winning{shade}, beige {wc['losing']} safe but "
-                        f"losing, red {wc['unsafe']} unsafe, blue target |")
+            cols = f"; {wc['reduced_dims'] + 2}-D grid seen from above" if wc.get("reduced_dims") else ""
+            parts = [f"green: **{wc['winning_cells']:,} winning cells**" + (f" ({shade})" if shade else "") + cols]
+            if wc.get("losing"):
+                parts.append("beige: safe but losing")
+            if wc.get("unsafe_inner"):
+                parts.append("red-brown: unsafe (obstacle" + ("" if reach else " or outside the safe set") + ")")
+            elif wc.get("unsafe"):
+                parts.append("red-brown edge: cells that straddle X's border")
+            if reach and wc.get("target"):
+                parts.append("blue: target")
+            rows.append("| winning map | " + "; ".join(parts) + " |")
+        if app.layers_visible.get("map"):
+            try:
+                spec = app.current_spec()
+            except Exception:  # no specification for this system: no outlines drawn (scene.draw_map)
+                spec = None
+            if spec is not None:
+                outl = ["blue: safe set"] + (["green: target"] if getattr(spec, "target", None) is not None else []) \
+                    + (["red: obstacles (grown by the robot)"] if getattr(spec, "obstacles", None) else [])
+                rows.append("| outlines | " + ", ".join(outl) + " |")
         if getattr(app.run, "per_run", None) is not None and app.perrun_view["map"]:
             rows.append("| p_cert map | drawn over the winning map (Per run tab: colors, toggle) |")
         rd = app.rollout_drawn
         res = app.results.get("rollout")
         if rd is not None and res is not None:
-            rows.append(f"| rollouts | {rd['drawn']} of {rd['total']} drawn; failures (red) {rd['failed']} of "
-                        f"{rd['total']}, {rd['failed_drawn']} drawn |")
-            rows.append("| bold | yellow: mean trajectory, black: nominal model"
-                        + (", magenta: mean map" if getattr(res, "mean_map_trajectory", None) is not None else "")
-                        + " |")
+            fail = f"; red: failures, {rd['failed']} of {rd['total']}" if rd["failed"] else f"; no failure of {rd['total']}"
+            rows.append(f"| rollouts | dark blue, translucent: {rd['drawn']} of {rd['total']} drawn (darker where "
+                        f"more pass){fail} |")
+            bold = ["yellow: mean", "black: nominal model"]
+            if getattr(res, "mean_map_trajectory", None) is not None:
+                bold.append("magenta: mean map (the guarantee)")
+            rows.append("| bold | " + ", ".join(bold) + " |")
             T = int(res.trajectories.shape[1]) - 1
             self.time.max = max(T, 1)
             self.n_draw.max = max(int(rd["total"]), 1)
+            self.set_quiet(self.n_draw, min(int(app.view["n_draw"]), int(rd["total"])))
             self.rollout_index.max = int(rd["total"]) - 1
+        self.colorbar.visible = bool(lg is not None and lg.get("shown"))
+        if lg is not None:
+            d, u = lg["dim"], (f" {lg['unit']}" if lg.get("unit") else "")
+            if "range" in lg:
+                lo, hi = lg["range"]
+                var = "constant" if lg.get("constant") else f"varies by {100 * (hi - lo) / hi:.2g} %"
+                if lg.get("shown"):
+                    rows.append(f"| gamma_{d} surface | {lo:.4g} .. {hi:.4g}{u} on this slice ({var}); height and "
+                                f"color: 0 (dark blue) .. {lg['top']:.4g}{u} (yellow), one scale for the session |")
+                else:
+                    val = f"{hi:.4g}{u}" if lg.get("constant") else f"{lo:.4g} .. {hi:.4g}{u}"
+                    why = "layer hidden" if not app.layers_visible.get("gamma") else \
+                        f"under {100 * scene.GAMMA_VISIBLE:.0f} %: not drawn; *Flat gamma too* draws it"
+                    rows.append(f"| gamma_{d} | **{val}** on this slice ({var}; {why}) |")
+            if "margin_scale" in lg:
+                rows.append(f"| data gaps ({lg['points']}) | margin gamma - gap: orange 0 .. grey-blue "
+                            f">= {lg['margin_scale']:.3g}" + (f"; red < 0: {lg['uncovered']}" if lg["uncovered"] else "")
+                            + " |")
+            elif "points" in lg:
+                rows.append(f"| data gaps ({lg['points']}) | grey: no certificate yet |")
         self.legend.content = ("| layer | shows |\n|---|---|\n" + "\n".join(rows)) if rows else "*nothing drawn yet*"
 
     def rebuild_sliders(self) -> None:

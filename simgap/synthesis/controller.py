@@ -186,18 +186,23 @@ class Controller:
             raise SimgapError(f"controller file {str(path)!r} does not exist")
         try:
             with np.load(path, allow_pickle=False) as z:
-                arrays = {k: z[k] for k in ("steps", "valid", "chosen", "target", "inputs", "meta")}
+                try:
+                    meta = json.loads(str(z["meta"]))
+                except ValueError as e:
+                    raise SimgapError(f"controller file {str(path)!r}: its metadata is not JSON ({e})") from None
+                if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+                    raise SimgapError(f"controller file {str(path)!r} is not a simgap controller (format tag)")
+                if meta.get("version") != VERSION:
+                    raise SimgapError(f"controller file version {meta.get('version')} is not supported (need "
+                                      f"{VERSION}: files without a content digest are refused; synthesize again)")
+                if meta.get("kind") == "invariant_set":  # u = u* + K (x - x*) on an ellipsoid
+                    from .ellipsoid_controller import EllipsoidController
+                    return EllipsoidController.from_arrays(path, z, meta, system)
+                arrays = {k: z[k] for k in ("steps", "valid", "chosen", "target", "inputs")}
+        except SimgapError:
+            raise
         except (*BAD_FILE_ERRORS, KeyError) as e:
             raise SimgapError(f"controller file {str(path)!r} is not a simgap controller ({e})") from None
-        try:
-            meta = json.loads(str(arrays.pop("meta")))
-        except ValueError as e:
-            raise SimgapError(f"controller file {str(path)!r}: its metadata is not JSON ({e})") from None
-        if not isinstance(meta, dict) or meta.get("format") != FORMAT:
-            raise SimgapError(f"controller file {str(path)!r} is not a simgap controller (format tag)")
-        if meta.get("version") != VERSION:
-            raise SimgapError(f"controller file version {meta.get('version')} is not supported (need {VERSION}: "
-                              f"files without a content digest are refused; synthesize again)")
         want = meta.get("digest")
         have = fileio.content_digest({k: v for k, v in meta.items() if k != "digest"}, arrays)
         if want != have:

@@ -133,6 +133,7 @@ def test_proved_set_holds_fresh_points_and_worst_case_gap(cubic, tmp_path):
     assert isinstance(back, EllipsoidController)
     assert np.array_equal(back.P, ctrl.P) and np.array_equal(back.K, ctrl.K)
     assert back.meta["margins"]["gap_scale"] == pytest.approx(v.gap_scale)
+    assert res.stats["gap_scale"] == pytest.approx(v.gap_scale)
     assert back.system is not None and back.system.name == "cubicpend"
 
 
@@ -246,3 +247,45 @@ def test_builtin_system_without_formulas_is_refused():
     s = resolve_system("pendulum")
     with pytest.raises(SimgapError, match="not a system file"):
         iv.synthesize_invariant_set(s, Spec(kind="invariance", safe=Box(s.x_lo, s.x_hi)))
+
+
+# ----- the controller in the rest of simgap ----------------------------------------------
+
+def test_cli_synthesize_then_rollout(tmp_path, capsys):
+    import json
+
+    from simgap.cli import main
+    (tmp_path / "cubic.toml").write_text(CUBIC)
+    sysf, ctrl = str(tmp_path / "cubic.toml"), str(tmp_path / "c.npz")
+    rc = main(["synthesize", "--method", "invariant_set", "--system", sysf, "--no-gap",
+               "--safe", "-1,1,-2,2", "--x0", "0.05,0", "--out", ctrl])
+    out = capsys.readouterr().out
+    assert rc == 0 and "contraction" in out and "wrote" in out
+    sim = json.dumps({"kind": "numpy", "system": sysf, "noise": {"actuation_std": 0.05}})
+    rc = main(["rollout", "--controller", ctrl, "--simulator", sim, "--n", "50", "--horizon", "60",
+               "--out", str(tmp_path / "r.json"), "--mean-map-runs", "20"])
+    rep = json.loads((tmp_path / "r.json").read_text())
+    assert rc == 0 and rep["n_rollouts"] == 50
+    assert rep["left_domain"] == 0 and rep["failures"] == 0 and rep["mean_map"]["satisfied"]
+    # a gap too large: exit 1, the reason printed, nothing written
+    rc = main(["synthesize", "--method", "invariant_set", "--system", sysf, "--gamma", "0.05,0.2",
+               "--safe", "-1,1,-2,2", "--out", str(tmp_path / "none.npz")])
+    out = capsys.readouterr().out
+    assert rc == 1 and "gamma would have to be at most" in out and not (tmp_path / "none.npz").exists()
+    # reach-avoid: refused with a message
+    spec = tmp_path / "ra.json"
+    spec.write_text(json.dumps(Spec(kind="reach_avoid", target=Box([0.5, -1], [0.9, 1])).to_dict()))
+    rc = main(["synthesize", "--method", "invariant_set", "--system", sysf, "--no-gap", "--spec", str(spec),
+               "--out", str(tmp_path / "ra.npz")])
+    assert rc == 2 and "invariance" in capsys.readouterr().err and not (tmp_path / "ra.npz").exists()
+
+
+def test_edited_controller_file_is_refused(cubic, tmp_path):
+    res = iv.synthesize_invariant_set(cubic, _spec(cubic))
+    path = res.controller.save(tmp_path / "c.npz")
+    with np.load(path) as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays["K"] = arrays["K"] * 1.5   # a stronger gain than the proof was made for
+    np.savez(tmp_path / "edited.npz", **arrays)
+    with pytest.raises(SimgapError, match="modified after it was written"):
+        Controller.load(tmp_path / "edited.npz")

@@ -634,7 +634,7 @@ def synthesize_invariant_set(system: System, spec: Spec, gap=None, *, x_star=Non
     stats["semi_axes"] = np.sort(1.0 / np.sqrt(np.linalg.eigvalsh(P)))[::-1].round(6).tolist()
     from math import gamma as _G, pi
     stats["volume"] = float(pi ** (n / 2) / _G(n / 2 + 1) / np.sqrt(np.linalg.det(P)))
-    stats["gap_scale"] = v.gap_scale
+    stats["gap_scale"] = None if np.isinf(v.gap_scale) else v.gap_scale  # None: no gap (strict JSON)
     stats["gap_scale_text"] = "any factor (no gap)" if np.isinf(v.gap_scale) else f"{v.gap_scale:.4g}"
     ctrl = None
     if v.ok:

@@ -42,6 +42,7 @@ are tried; only a candidate that passes :func:`verify_invariant` is kept.
 
 from __future__ import annotations
 
+import functools
 import resource
 import time
 from dataclasses import dataclass, field
@@ -180,11 +181,17 @@ def spectral_radius(A) -> float:
 # P-norms of boxes
 # ---------------------------------------------------------------------------------------
 
+@functools.lru_cache(maxsize=8)
 def _signs(n: int) -> np.ndarray:
     """(2^(n-1), n) sign patterns with the first entry +1 (v and -v have the same P-norm)."""
     k = np.arange(2 ** (n - 1))[:, None]
     bits = (k >> np.arange(n - 1)[None, :]) & 1
     return np.concatenate([np.ones((k.shape[0], 1)), 1.0 - 2.0 * bits], axis=1)
+
+
+def _quad(V, P, W) -> np.ndarray:
+    """(k,) rows v_k^T P w_k (a BLAS product; einsum over three operands is far slower here)."""
+    return ((V @ P) * W).sum(axis=1)
 
 
 def box_pnorm(P, b) -> float:
@@ -195,7 +202,7 @@ def box_pnorm(P, b) -> float:
         return np.inf
     if b.size <= MAX_VERTEX_DIM:
         V = _signs(b.size) * b
-        return float(np.sqrt(max(0.0, np.einsum("ki,ij,kj->k", V, P, V).max())))
+        return float(np.sqrt(max(0.0, _quad(V, P, V).max())))
     return float(np.sqrt(b @ np.abs(P) @ b))
 
 
@@ -210,9 +217,9 @@ def gap_scale(P, a, c, budget) -> float:
     if a.size <= MAX_VERTEX_DIM:
         S = _signs(a.size)
         A_, C_ = S * a, S * c
-        qa = np.einsum("ki,ij,kj->k", C_, P, C_)
-        qb = 2 * np.einsum("ki,ij,kj->k", A_, P, C_)
-        qc = np.einsum("ki,ij,kj->k", A_, P, A_) - budget ** 2
+        qa = _quad(C_, P, C_)
+        qb = 2 * _quad(A_, P, C_)
+        qc = _quad(A_, P, A_) - budget ** 2
     else:
         Pa = np.abs(P)
         qa, qb, qc = np.array([c @ Pa @ c]), np.array([2 * a @ Pa @ c]), np.array([a @ Pa @ a - budget ** 2])
@@ -408,33 +415,46 @@ def _check(system, x_star, u_star, P, h, hu, lo, hi, u_lo, u_hi, Jc, Jr, A_lin, 
 # ---------------------------------------------------------------------------------------
 
 def design_ellipsoid(A_cl, K, x_star, u_star, lo, hi, u_lo, u_hi, rho: float, d, solver: str = "CLARABEL",
-                     objective: str = "volume"):
+                     objective: str = "volume", cache: Optional[dict] = None):
     """(P or None, solver status): the largest-volume ellipsoid (module docstring's program), or with
     ``objective="gap"`` the one that tolerates the largest multiple t of the disturbance d
-    (maximize t subject to Q >= t (n / beta^2) diag(d^2) and the same constraints)."""
+    (maximize t subject to Q >= t (n / beta^2) diag(d^2) and the same constraints).
+
+    ``cache``: a dict kept by the caller across calls with the same A_cl, K, boxes and solver; rho
+    and d are cvxpy parameters, so each program is compiled once and solved again with new values.
+    """
     import cvxpy as cp
     n = A_cl.shape[0]
     room = np.minimum(x_star - lo, hi - x_star)
     uroom = np.minimum(u_star - u_lo, u_hi - u_star)
     if np.any(room <= 0):
         return None, "x* on the boundary of the safe set"
-    Q = cp.Variable((n, n), symmetric=True)
-    AQ = A_cl @ Q
-    cons = [cp.bmat([[rho ** 2 * Q, AQ], [AQ.T, Q]]) >> 0, cp.diag(Q) <= room ** 2]
-    for j in range(K.shape[0]):
-        if np.any(K[j] != 0):
-            cons.append(K[j] @ Q @ K[j] <= uroom[j] ** 2)
     d = np.asarray(d, dtype=float)
     nz = d > 0
-    Dd = np.diag(np.where(nz, nz.sum() / (1.0 - rho) ** 2 * d ** 2, 0.0))
-    if objective == "gap" and nz.any():
-        t = cp.Variable(nonneg=True)
-        cons.append(Q - t * Dd >> 0)
-        prob = cp.Problem(cp.Maximize(t), cons)
-    else:
-        if nz.any():
-            cons.append(Q >> Dd)
-        prob = cp.Problem(cp.Maximize(cp.log_det(Q)), cons)
+    objective = objective if nz.any() else "volume"
+    key = (objective, bool(nz.any()))
+    cache = {} if cache is None else cache
+    if key not in cache:
+        Q = cp.Variable((n, n), symmetric=True)
+        rho2 = cp.Parameter(nonneg=True)
+        Dd = cp.Parameter((n, n), PSD=True)
+        AQ = A_cl @ Q
+        cons = [cp.bmat([[rho2 * Q, AQ], [AQ.T, Q]]) >> 0, cp.diag(Q) <= room ** 2]
+        for j in range(K.shape[0]):
+            if np.any(K[j] != 0):
+                cons.append(K[j] @ Q @ K[j] <= uroom[j] ** 2)
+        if objective == "gap":
+            t = cp.Variable(nonneg=True)
+            cons.append(Q - t * Dd >> 0)
+            prob = cp.Problem(cp.Maximize(t), cons)
+        else:
+            if nz.any():
+                cons.append(Q >> Dd)
+            prob = cp.Problem(cp.Maximize(cp.log_det(Q)), cons)
+        cache[key] = (prob, Q, rho2, Dd)
+    prob, Q, rho2, Dd = cache[key]
+    rho2.value = rho ** 2
+    Dd.value = np.diag(np.where(nz, nz.sum() / (1.0 - rho) ** 2 * d ** 2, 0.0))
     try:
         prob.solve(solver=solver)
     except cp.error.SolverError as e:
@@ -584,8 +604,11 @@ def synthesize_invariant_set(system: System, spec: Spec, gap=None, *, x_star=Non
 
     cands, statuses = [], []
 
+    programs: dict = {}  # compiled once per objective, solved again for each rho and d
+
     def attempt(rho, d, objective):
-        P, status = design_ellipsoid(A_cl, K, x_star, u_star, lo, hi, u_lo, u_hi, rho, d, solver, objective)
+        P, status = design_ellipsoid(A_cl, K, x_star, u_star, lo, hi, u_lo, u_hi, rho, d, solver, objective,
+                                     programs)
         statuses.append(status)
         if P is None:
             return None

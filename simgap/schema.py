@@ -93,8 +93,11 @@ class SimulatorSection(Section):
 
 
 class CollectSection(Section):
-    """``[collect]``: the cover, N1hat, the seed, chunking and where to run (:mod:`simgap.collect`)."""
-    epsilon: Positive
+    """``[collect]``: the cover, N1hat, the seed, chunking and where to run (:mod:`simgap.collect`).
+
+    ``epsilon``: the cover radius, or one radius per covered dimension (a grid of spacing 2 eps_j,
+    Euclidean radius ||eps||; not together with ``spacing``)."""
+    epsilon: Union[Positive, list[Positive]]
     n_runs: Annotated[int, Field(ge=2, description="N1hat")]
     seed: Int0 = 0
     spacing: Optional[list[Positive]] = None
@@ -107,6 +110,18 @@ class CollectSection(Section):
     workers: Optional[Int0] = None
     address: Optional[str] = None
     out: Optional[Annotated[str, AfterValidator(relative_path)]] = None
+
+    @model_validator(mode="after")
+    def _radii(self):
+        if isinstance(self.epsilon, list):
+            if self.spacing is not None:
+                raise ValueError("epsilon: give one radius per covered dimension or a spacing, not both")
+            if not self.epsilon:
+                raise ValueError("epsilon: an empty list (need one radius per covered dimension)")
+            self.spacing = [2.0 * e for e in self.epsilon]
+            # the Euclidean radius of the grid's cells, a hair above so that rounding cannot refuse it
+            self.epsilon = float(sum(e * e for e in self.epsilon) ** 0.5) * (1 + 1e-12)
+        return self
 
 
 class CertifySection(Section):
@@ -128,6 +143,8 @@ class CertifySection(Section):
     lhat: Literal["data", "simulator"] = "data"
     lhat_pairs: Int1 = 2000
     lhat_runs: Annotated[int, Field(ge=2)] = 100
+    lipschitz_term: Literal["paper", "gap"] = "paper"
+    continuous_inputs: bool = False
     solver: Literal["CLARABEL", "HIGHS"] = "CLARABEL"
     seed: Int0 = 0
 

@@ -363,13 +363,18 @@ class Basis:
 
     def grad_x_bound(self, q: np.ndarray, zlo: np.ndarray, zhi: np.ndarray) -> np.ndarray:
         """Sound bound on |d (q^T p) / d x_j| over boxes -> (B, n)."""
-        n = self.system.n
+        return self.grad_bound(q, zlo, zhi, range(self.system.n))
+
+    def grad_bound(self, q: np.ndarray, zlo: np.ndarray, zhi: np.ndarray, dims) -> np.ndarray:
+        """Sound bound on |d (q^T p) / d z_j| over boxes for z = (x, u) and j in ``dims`` -> (B, len(dims))."""
+        dims = list(dims)
+        n = len(dims)
         dl = np.zeros((zlo.shape[0], n))
         dh = np.zeros((zlo.shape[0], n))
         for l, t in enumerate(self.terms):
             if q[l] == 0:
                 continue
-            _, _, gl, gh = t.interval_grad(zlo, zhi, range(n))
+            _, _, gl, gh = t.interval_grad(zlo, zhi, dims)
             a, b = q[l] * gl, q[l] * gh
             dl += np.minimum(a, b)
             dh += np.maximum(a, b)

@@ -83,6 +83,13 @@ class DimCertificate:
     gap_max: float
     scp: dict
     basis: Basis = field(repr=False, default=None)
+    # beyond the paper (None when not computed): the gap's own Lipschitz row L_gap[j] = sup |d g_i/d x_j|,
+    # the fit's partials L2_x[j] = sup |d q^T p/d x_j|, and in u (continuous inputs) L_gap_u, L2_u
+    L_gap: Optional[List[float]] = None
+    L2_x: Optional[List[float]] = None
+    L_gap_u: Optional[List[float]] = None
+    L2_u: Optional[List[float]] = None
+    gap_how: Optional[dict] = None
 
     @property
     def L_x(self) -> float:
@@ -99,7 +106,9 @@ class DimCertificate:
                 "beta1": self.beta1, "beta2": self.beta2, "beta_v": self.beta_v, "Mhat": self.Mhat,
                 "L_f": self.L_f, "L_fhat": self.L_fhat, "L_2": self.L_2, "L_x": self.L_x,
                 "lipschitz_how": self.lipschitz_how, "repair": self.repair, "eta": self.eta,
-                "gap_max": self.gap_max, "scp": self.scp, "confidence": self.confidence}
+                "gap_max": self.gap_max, "scp": self.scp, "confidence": self.confidence,
+                **({} if self.L_gap is None else {"L_gap": self.L_gap, "L2_x": self.L2_x, "L_gap_u": self.L_gap_u,
+                                                  "L2_u": self.L2_u, "gap_how": self.gap_how})}
 
 
 @dataclass
@@ -121,6 +130,10 @@ class Certificate:
     inputs: Optional[np.ndarray] = None   # (M, m) the inputs the data covered: gamma is certified for these
     system_digest: Optional[str] = None   # simgap.systems.system_digest of the nominal model
     system_ref: Optional[dict] = None     # embedded system file / refined system (simgap.systems.system_ref)
+    lipschitz_term: str = "paper"         # "paper": L_x eps; "gap": sum_j (L_gap_ij + L2_x,ij) radii_j
+    radii: Optional[np.ndarray] = None    # (n,) the cover's radius per dimension eps_j (0: not covered)
+    input_radii: Optional[np.ndarray] = None  # (m,) half the input grid's spacing (continuous inputs)
+    input_box: Optional[tuple] = None     # ((m,), (m,)) the input box gamma holds on (continuous inputs)
 
     # ----- shape -----------------------------------------------------------------------
     @property
@@ -170,9 +183,35 @@ class Certificate:
                 f"simultaneous (all K = {self.K} cover rows at once, union bound: what synthesis over every cell "
                 f"relies on) {sim_txt}")
 
+    def paper_terms(self) -> np.ndarray:
+        """The paper's Lipschitz term (L_f + Lhat_fhat + L_2) eps per dimension, (n,)."""
+        return np.array([d.L_x * self.epsilon for d in self.dims])
+
+    def gap_terms(self) -> Optional[np.ndarray]:
+        """The gap's own term sum_j (L_gap_ij + L2_x,ij) eps_j per dimension, (n,); None if not computed."""
+        if self.radii is None or any(d.L_gap is None for d in self.dims):
+            return None
+        return np.array([float(np.dot(np.add(d.L_gap, d.L2_x), self.radii)) for d in self.dims])
+
+    def lipschitz_terms(self) -> np.ndarray:
+        """The Lipschitz term gamma uses (``lipschitz_term``), (n,)."""
+        return self.gap_terms() if self.lipschitz_term == "gap" else self.paper_terms()
+
+    @property
+    def continuous(self) -> bool:
+        """True when gamma is also certified between the input grid's values (``input_box``)."""
+        return self.input_box is not None
+
+    def input_terms(self) -> np.ndarray:
+        """sum_k (L_gap_u,ik + L2_u,ik) eps^u_k per dimension, (n,): what an input between grid values adds."""
+        if not self.continuous:
+            raise SimgapError("this certificate holds only at the inputs its data covered; certify with "
+                              "continuous_inputs = true (--continuous-inputs) for inputs between them")
+        return np.array([float(np.dot(np.add(d.L_gap_u, d.L2_u), self.input_radii)) for d in self.dims])
+
     def constant(self) -> np.ndarray:
-        """The x-independent part of gamma per dimension: L_x eps + delta_2 + repair, (n,)."""
-        return np.array([d.L_x * self.epsilon + d.delta2 + d.repair for d in self.dims])
+        """The x-independent part of gamma per dimension: Lipschitz term + delta_2 + repair, (n,)."""
+        return self.lipschitz_terms() + np.array([d.delta2 + d.repair for d in self.dims])
 
     # ----- evaluation ------------------------------------------------------------------
     def _check_xu(self, x, u, what="x"):
@@ -193,24 +232,53 @@ class Certificate:
         x, u = self._check_xu(x, u)
         return np.stack([d.basis.design(x, u) @ d.q for d in self.dims], axis=1)
 
-    def gamma(self, x, u) -> np.ndarray:
-        """gamma_i(x, u) = L_x^(i) eps + q_i^T p_i(x, u) + delta_2i (+ repair_i); x (B,n), u (B,m) -> (B,n)."""
-        return self.fit(x, u) + self.constant()
+    def _check_box_inputs(self, u_lo, u_hi):
+        lo, hi = self.input_box
+        if np.any(u_lo < np.asarray(lo) - 1e-12) or np.any(u_hi > np.asarray(hi) + 1e-12):
+            raise SimgapError(f"inputs outside the certified input box [{np.asarray(lo).tolist()}, "
+                              f"{np.asarray(hi).tolist()}]")
 
-    def gamma_upper_box(self, lo, hi, u) -> np.ndarray:
+    def gamma(self, x, u, continuous: bool = False) -> np.ndarray:
+        """gamma_i(x, u) = Lipschitz term + q_i^T p_i(x, u) + delta_2i (+ repair_i); x (B,n), u (B,m) -> (B,n).
+
+        ``continuous``: u anywhere in the input box (adds :meth:`input_terms`); otherwise gamma is
+        certified only at the data's inputs."""
+        g = self.fit(x, u) + self.constant()
+        if continuous:
+            self._check_box_inputs(*(2 * [np.atleast_2d(u)]))
+            g = g + self.input_terms()
+        return g
+
+    def gamma_upper_box(self, lo, hi, u, continuous: bool = False) -> np.ndarray:
         """Sound upper bound of gamma_i over the box [lo, hi] x {u}: lo, hi (B,n), u (B,m) -> (B,n).
 
         Interval arithmetic per basis term (monomials and the whitelisted functions), then
         q_l * [p_l lo, p_l hi] summed with the sign of q_l. +inf where a term is unbounded.
+        ``continuous`` as in :meth:`gamma`.
         """
         lo, u = self._check_xu(lo, u, "lo")
         hi, _ = self._check_xu(hi, u, "hi")
-        if lo.shape != hi.shape or np.any(lo > hi):
-            raise SimgapError("gamma_upper_box: need lo <= hi with equal shapes")
-        zlo = np.concatenate([lo, u], axis=1)
-        zhi = np.concatenate([hi, u], axis=1)
+        return self._upper(lo, hi, u, u, continuous)
+
+    def gamma_sup(self, x_lo, x_hi, u_lo, u_hi) -> np.ndarray:
+        """Sound sup of gamma_i over the state box [x_lo, x_hi] and the input box [u_lo, u_hi] (continuous
+        inputs, :meth:`input_terms` included): (n,) or (B, n) for (B, n) / (B, m) boxes."""
+        x_lo, u_lo = self._check_xu(x_lo, u_lo, "x_lo")
+        x_hi, u_hi = self._check_xu(x_hi, u_hi, "x_hi")
+        out = self._upper(x_lo, x_hi, u_lo, u_hi, True)
+        return out[0] if out.shape[0] == 1 else out
+
+    def _upper(self, lo, hi, ulo, uhi, continuous):
+        if lo.shape != hi.shape or np.any(lo > hi) or np.any(ulo > uhi):
+            raise SimgapError("gamma bound over a box: need lo <= hi with equal shapes")
+        extra = 0.0
+        if continuous:
+            extra = self.input_terms()
+            self._check_box_inputs(ulo, uhi)
+        zlo = np.concatenate([lo, ulo], axis=1)
+        zhi = np.concatenate([hi, uhi], axis=1)
         out = np.stack([d.basis.upper_box(d.q, zlo, zhi) for d in self.dims], axis=1)
-        return out + self.constant()
+        return out + self.constant() + extra
 
     # ----- compatibility ---------------------------------------------------------------
     def check_system(self, system) -> None:
@@ -259,7 +327,14 @@ class Certificate:
             "confidence_scope": self.scope, "pointwise_joint_confidence": sc["pointwise"],
             "simultaneous_joint_confidence": sc["simultaneous"], "statement": self.statement(),
             "gamma_constant": self.constant().tolist(), "provenance": self.provenance,
+            "lipschitz_term": self.lipschitz_term,
         }
+        if self.radii is not None:
+            d["radii"] = np.asarray(self.radii, float).tolist()
+        if self.continuous:
+            d["input_box"] = [np.asarray(b, float).tolist() for b in self.input_box]
+            d["input_radii"] = np.asarray(self.input_radii, float).tolist()
+            d["input_terms"] = self.input_terms().tolist()
         d["digest"] = fileio.content_digest(d)
         return d
 
@@ -318,7 +393,7 @@ class Certificate:
                     Mhat=None if e["Mhat"] is None else float(e["Mhat"]), L_f=float(e["L_f"]),
                     L_fhat=float(e["L_fhat"]), L_2=float(e["L_2"]), lipschitz_how=e["lipschitz_how"],
                     repair=float(e["repair"]), eta=float(e["eta"]), gap_max=float(e["gap_max"]), scp=e["scp"],
-                    basis=basis))
+                    basis=basis, **_gap_fields(e, names)))
             if len(dims) != names.n:
                 raise SimgapError(f"certificate: {len(dims)} dimension entries for {names.n} states")
             return cls(system_name=s["name"], steps=int(s["steps"]), state_names=tuple(s["state_names"]),
@@ -328,7 +403,8 @@ class Certificate:
                        options=d["options"], dims=dims, provenance=d["provenance"],
                        inputs=None if s.get("inputs") is None else np.asarray(s["inputs"], float).reshape(-1, names.m),
                        system_digest=s.get("digest"),
-                       system_ref=s.get("ref") if isinstance(s.get("ref"), dict) else None)
+                       system_ref=s.get("ref") if isinstance(s.get("ref"), dict) else None,
+                       **_term_fields(d, names))
         except SimgapError:
             raise
         except KeyError as e:
@@ -349,23 +425,88 @@ class Certificate:
             lines.append("note: " + note)
         cols = ["dim", "max gap", "delta1", "delta2", "beta1", "beta2", "Mhat", "L_f", "Lhat_fhat", "L_2",
                 "Lx*eps", "gamma min", "gamma max", "conf"]
+        if self.lipschitz_term == "gap":
+            cols[10] = "L term"
         w = [10] + [11] * (len(cols) - 1)
         fmt = lambda v: "-" if v is None else (v if isinstance(v, str) else f"{v:.4g}")
         row = lambda vals: "".join(f"{fmt(v):<{w[0]}}" if k == 0 else f"{fmt(v):>{w[k]}}" for k, v in enumerate(vals))
         hdr = row(cols)
         lines += [hdr, "-" * len(hdr)]
-        for name, d in zip(self.state_names, self.dims):
+        lt = self.lipschitz_terms()
+        for i, (name, d) in enumerate(zip(self.state_names, self.dims)):
             lo, hi = d.scp.get("gamma_range_on_data", [float("nan")] * 2)
             lines.append(row([name, d.gap_max, d.delta1, d.delta2, d.beta1, d.beta2, d.Mhat, d.L_f, d.L_fhat, d.L_2,
-                              d.L_x * self.epsilon, lo, hi, d.confidence]))
+                              lt[i], lo, hi, d.confidence]))
+        gt = self.gap_terms()
+        if gt is not None:
+            used = self.lipschitz_term
+            lines.append("")
+            lines.append(f"Lipschitz term side by side (gamma uses the {'gap' if used == 'gap' else 'paper'}'s; the gap's "
+                         f"own term is beyond the paper): paper (L_f + Lhat_fhat + L_2) eps with eps = "
+                         f"{self.epsilon:g}; gap sum_j (L_ij + L_2,ij) eps_j with eps_j = "
+                         + ", ".join(f"{nm} {r:.4g}" for nm, r in zip(self.state_names, self.radii)))
+            cols2 = ["dim", "paper term", "gap term", "gamma max", "gamma max"] + [f"L[{nm}]" for nm in self.state_names]
+            sub = ["", "", "", "(paper)", "(gap)"] + [""] * self.n
+            w2 = [10] + [12] * (len(cols2) - 1)
+            row2 = lambda vals: "".join(f"{fmt(v):<{w2[0]}}" if k == 0 else f"{fmt(v):>{w2[k]}}"
+                                        for k, v in enumerate(vals))
+            lines += [row2(cols2), row2(sub), "-" * sum(w2)]
+            pt = self.paper_terms()
+            for i, (name, d) in enumerate(zip(self.state_names, self.dims)):
+                hi = d.scp.get("gamma_range_on_data", [float("nan")] * 2)[1]
+                paper_hi, gap_hi = (hi - gt[i] + pt[i], hi) if used == "gap" else (hi, hi - pt[i] + gt[i])
+                lines.append(row2([name, pt[i], gt[i], paper_hi, gap_hi, *d.L_gap]))
+            if self.continuous:
+                lines.append("continuous inputs (beyond the paper): u anywhere in ["
+                             + ", ".join(f"{a:g}..{b:g}" for a, b in zip(*self.input_box)) + "] adds "
+                             + ", ".join(f"{nm} {v:.4g}" for nm, v in zip(self.state_names, self.input_terms())))
         jc = self.joint_confidence
         lines.append("joint confidence (Theorem 2): " + ("not stated (deterministic baseline)" if jc is None
                                                          else f"{jc:.4f} ({100 * jc:.2f} %), {self.scope}"))
         lines.append(self.statement())
-        for name, d in zip(self.state_names, self.dims):
+        const = self.constant()
+        for i, (name, d) in enumerate(zip(self.state_names, self.dims)):
             terms = " ".join(f"{c:+.4g}*{t}" if t != "1" else f"{c:+.4g}" for c, t in zip(d.q, d.terms) if c != 0)
-            lines.append(f"gamma_{name}(x,u) = {d.L_x * self.epsilon + d.delta2 + d.repair:.4g} + [{terms}]")
+            lines.append(f"gamma_{name}(x,u) = {const[i]:.4g} + [{terms}]")
         return "\n".join(lines)
+
+
+def _finite_list(v, size: int, what: str) -> List[float]:
+    a = np.asarray(v, dtype=float)
+    if a.shape != (size,) or not np.all(np.isfinite(a)) or np.any(a < 0):
+        raise SimgapError(f"certificate is malformed: {what} must be {size} finite numbers >= 0")
+    return a.tolist()
+
+
+def _gap_fields(e: dict, names) -> dict:
+    """The per-dimension entries of the gap's own Lipschitz term, checked (absent in paper-only files)."""
+    if e.get("L_gap") is None:
+        return {}
+    out = {"L_gap": _finite_list(e["L_gap"], names.n, "L_gap"), "L2_x": _finite_list(e["L2_x"], names.n, "L2_x"),
+           "L_gap_u": _finite_list(e["L_gap_u"], names.m, "L_gap_u"), "gap_how": e.get("gap_how")}
+    out["L2_u"] = None if e.get("L2_u") is None else _finite_list(e["L2_u"], names.m, "L2_u")
+    return out
+
+
+def _term_fields(d: dict, names) -> dict:
+    term = d.get("lipschitz_term", "paper")
+    if term not in ("paper", "gap"):
+        raise SimgapError(f"certificate is malformed: lipschitz_term {term!r}")
+    out = {"lipschitz_term": term}
+    if d.get("radii") is not None:
+        out["radii"] = np.asarray(_finite_list(d["radii"], names.n, "radii"))
+    if d.get("input_box") is not None:
+        box = d["input_box"]
+        if not (isinstance(box, list) and len(box) == 2):
+            raise SimgapError("certificate is malformed: input_box must be [lo, hi]")
+        lo, hi = (np.asarray(b, float) for b in box)
+        if lo.shape != (names.m,) or hi.shape != (names.m,) or not np.all(np.isfinite(lo + hi)) or np.any(lo > hi):
+            raise SimgapError("certificate is malformed: input_box needs finite lo <= hi per input")
+        out["input_box"] = (lo, hi)
+        out["input_radii"] = np.asarray(_finite_list(d.get("input_radii"), names.m, "input_radii"))
+    if term == "gap" and "radii" not in out:
+        raise SimgapError("certificate is malformed: lipschitz_term 'gap' without radii")
+    return out
 
 
 def verify(d: dict, cert: Certificate, source: str = "certificate") -> None:
@@ -377,9 +518,9 @@ def verify(d: dict, cert: Certificate, source: str = "certificate") -> None:
     derived = cert.to_dict()
     bad = []
     for k in ("per_dim_confidence", "joint_confidence", "pointwise_joint_confidence",
-              "simultaneous_joint_confidence", "gamma_constant"):
-        if not _same(d.get(k), derived[k]):
-            bad.append(f"{k} is {d.get(k)!r} in the file but {derived[k]!r} from its parts")
+              "simultaneous_joint_confidence", "gamma_constant", "input_terms"):
+        if not _same(d.get(k), derived.get(k)):
+            bad.append(f"{k} is {d.get(k)!r} in the file but {derived.get(k)!r} from its parts")
     want = d.get("digest")
     have = fileio.content_digest({k: v for k, v in d.items() if k not in ("digest", "signature")})
     if not isinstance(want, str):

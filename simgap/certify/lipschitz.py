@@ -160,11 +160,170 @@ def fhat_slopes_crn(sim, rng: np.random.Generator, h: float, n_pairs: int = 2000
     x2 = x + h * d
     U = s.inputs if inputs is None else np.atleast_2d(np.asarray(inputs, float))
     u = U[rng.integers(0, len(U), n_pairs)]
-    X = np.repeat(np.concatenate([x, x2]), runs, axis=0)
-    U = np.repeat(np.concatenate([u, u]), runs, axis=0)
-    noise = sim.draw_noise(n_pairs * runs, rng)
+    m1, m2 = crn_pair_means(sim, x, x2, u, u, runs, rng, increment)
+    return np.abs(s.diff(m1, m2)) / h
+
+
+# ----- the gap's own Lipschitz matrix (beyond the paper) -----------------------------------------
+#
+# Theorem 1 only needs |g_i(x) - g_i(x_r)| for the gap g_i = E fhat_i - f_i itself. On a grid
+# cover every x in X lies in a cell of its cover point x_r: |x_j - x_r,j| <= eps_j per covered
+# dimension j (half the cell width; 0 along declared-invariant dimensions, along which x is moved
+# onto the cover). Moving one coordinate at a time inside that cell (mean-value theorem),
+#     |g_i(x) - g_i(x_r)| <= sum_j L_ij eps_j,   L_ij = sup |d g_i / d x_j|,
+# and L_ij <= L_f + Lhat_fhat (each side of the gap is Lipschitz with those constants). Both sides
+# follow the same physics, so their slopes largely cancel in g: L_ij is often far below them.
+
+
+@dataclass
+class AxisGrid:
+    """The data's cover as a grid: per covered dimension its sorted values and radius eps_j.
+
+    ``radii`` (n,): eps_j = the largest distance from a point of X to the nearest grid value
+    along j (half the largest gap between neighbouring values, the distance to X's edges, the
+    seam gap for a full-turn angle); 0 along dimensions that are not covered.
+    ``neighbours[j]`` = (ra, rb, h): rows that differ only in dimension j, by one grid step h
+    (same input), the seam pair included for a full-turn angle.
+    """
+
+    dims: list
+    radii: np.ndarray
+    neighbours: dict
+    values: dict
+    input_radii: np.ndarray
+
+
+def axis_grid(dataset, dims, input_dims=()) -> AxisGrid:
+    """Read the data's rows as a grid over the covered state ``dims`` (see :class:`AxisGrid`) and,
+    for continuous inputs, over the input dimensions ``input_dims`` too (keys n + k in ``radii``'s
+    extension ``input_radii`` and in ``neighbours``). Inputs not in the grid are matched exactly
+    (neighbours share the input)."""
+    s = dataset.system
+    n = s.n
+    Z = np.concatenate([dataset.x, dataset.u], axis=1)
+    cols = list(dims) + [n + k for k in input_dims]
+    radii = np.zeros(n + s.m)
+    values, inv = {}, {}
+    for j in cols:
+        v, k = np.unique(Z[:, j], return_inverse=True)
+        values[j], inv[j] = v, k.ravel()
+        gaps = np.diff(v)
+        if _full_turn(s, j):
+            radii[j] = 0.5 * np.append(gaps, v[0] + 2 * np.pi - v[-1]).max()
+        elif j < n:
+            radii[j] = max(0.5 * gaps.max(initial=0.0), v[0] - s.x_lo[j], s.x_hi[j] - v[-1])
+        else:  # an input: the continuous range is the grid's hull
+            radii[j] = 0.5 * gaps.max(initial=0.0)
+    shape = [len(values[j]) for j in cols]
+    lin = np.ravel_multi_index([inv[j] for j in cols], shape) if cols else np.zeros(len(Z), np.int64)
+    other = np.zeros(len(Z), np.int64) if input_dims else dataset.input_index.astype(np.int64)
+    rowmap = np.full((int(np.prod(shape)), int(other.max()) + 1), -1, dtype=np.int64)
+    rowmap[lin, other] = np.arange(len(Z))
+    if np.count_nonzero(rowmap >= 0) != len(Z):
+        raise SimgapError("the data's rows are not one per (cover point, input) on a grid: the gap's Lipschitz "
+                          "matrix needs a grid cover")
+    neighbours = {}
+    for a, j in enumerate(cols):
+        c, k, per = shape[a], inv[j], _full_turn(s, j)
+        step = np.prod(shape[a + 1:], dtype=np.int64)
+        nxt = np.where(k + 1 < c, lin + step, (lin - (c - 1) * step) if (per and c > 2) else -1)
+        ra = np.nonzero(nxt >= 0)[0]
+        rb = rowmap[nxt[ra], other[ra]]
+        ra, rb = ra[rb >= 0], rb[rb >= 0]
+        d = Z[rb, j] - Z[ra, j]
+        h = np.abs(s.diff(dataset.x[rb], dataset.x[ra])[:, j]) if j < n else np.abs(d)
+        neighbours[j] = (ra, rb, h)
+    return AxisGrid(dims=cols, radii=radii[:n], neighbours=neighbours, values=values,
+                    input_radii=radii[n:])
+
+
+def _full_turn(system, j: int) -> bool:
+    return j < system.n and j in system.angle_dims and bool(np.isclose(system.x_hi[j] - system.x_lo[j], 2 * np.pi))
+
+
+def gap_slopes_data(dataset, grid: AxisGrid, j: int) -> tuple:
+    """Slopes |g(a) - g(b)| / h of the observed gap between axis neighbours along j, (P, n), and
+    the noise-only slopes sqrt((s_a^2 + s_b^2) / N1hat) / h, (P, n): the sd of a pair's slope
+    when g is flat (empirical means carry independent noise per row)."""
+    s = dataset.system
+    ra, rb, h = grid.neighbours[j]
+    g = s.diff(dataset.mean, dataset.f_nom)
+    sl = np.abs(g[ra] - g[rb]) / h[:, None]
+    noise = np.sqrt((dataset.var[ra] + dataset.var[rb]) / max(int(dataset.n_runs), 1)) / h[:, None]
+    return sl, noise
+
+
+def crn_pair_means(sim, x1, x2, u1, u2, runs: int, rng: np.random.Generator, increment: bool = True):
+    """Means of fhat (or of fhat - x) at (x1, u1) and (x2, u2) over ``runs`` COMMON noise draws per pair."""
+    s = sim.system
+    P = len(x1)
+    X = np.repeat(np.concatenate([x1, x2]), runs, axis=0)
+    U = np.repeat(np.concatenate([u1, u2]), runs, axis=0)
+    noise = sim.draw_noise(P * runs, rng)
     noise = {k: np.concatenate([v, v]) for k, v in noise.items()}  # the same draws at both ends
     nxt = sim.step_with_noise(X, U, noise)
     base = s.diff(nxt, X) if increment else nxt
-    m = base.reshape(2, n_pairs, runs, s.n).mean(axis=2)
-    return np.abs(s.diff(m[0], m[1])) / h
+    m = base.reshape(2, P, runs, s.n).mean(axis=2)
+    return m[0], m[1]
+
+
+def gap_slopes_crn(sim, nominal, rng: np.random.Generator, direction: str, k: int, h_max: float, n_pairs: int,
+                   runs: int, inputs: np.ndarray, lo=None, hi=None) -> np.ndarray:
+    """Slopes of the gap g = E fhat - f (f the ``nominal`` model) along state (``direction="x"``) or
+    input (``"u"``) axis k, from pairs simulated with common random numbers, (n_pairs, n); and,
+    from the same runs, the slopes of the mean increment E fhat - x (n_pairs, n).
+
+    Pair distances are log-uniform in [h_max / 8, h_max] (several distances, so a slope that only
+    shows at one scale is not missed by construction); x uniform in X (shrunk by h along k), u
+    drawn from ``inputs`` (for ``"u"``: uniform in the input box [lo, hi] shrunk by h)."""
+    s = sim.system
+    h = h_max * 2.0 ** (-3.0 * rng.random(n_pairs))
+    xlo, xhi = s.x_lo.copy(), s.x_hi.copy()
+    x1 = xlo + rng.random((n_pairs, s.n)) * (xhi - xlo)
+    if direction == "x":
+        x1[:, k] = xlo[k] + rng.random(n_pairs) * (xhi[k] - xlo[k] - h)
+        x2 = x1.copy()
+        x2[:, k] += h
+        u1 = inputs[rng.integers(0, len(inputs), n_pairs)]
+        u2 = u1
+    else:
+        x2 = x1
+        u1 = lo + rng.random((n_pairs, len(lo))) * (hi - lo)
+        u1[:, k] = lo[k] + rng.random(n_pairs) * (hi[k] - lo[k] - h)
+        u2 = u1.copy()
+        u2[:, k] += h
+    m1, m2 = crn_pair_means(sim, x1, x2, u1, u2, runs, rng, increment=False)
+    g1 = s.diff(m1, nominal.f(x1, u1))
+    g2 = s.diff(m2, nominal.f(x2, u2))
+    incr = s.diff(s.diff(m2, x2), s.diff(m1, x1))  # slopes of the mean increment fhat - x, for Lhat_fhat
+    return np.abs(g2 - g1) / h[:, None], np.abs(incr) / h[:, None]
+
+
+def l2_partials(basis, q: np.ndarray, system, inputs, splits: int | None = None, u_box=None) -> tuple:
+    """Sound sup over X x U of |d (q^T p) / d x_j| per j, (n,), and of |d (q^T p) / d u_k| per k, (m,).
+
+    Interval forward differentiation on sub-boxes of X (as :func:`l2_analytic`). The input
+    partials are taken over the whole input box ``u_box`` = (lo, hi) when given (continuous
+    inputs), else at the finite ``inputs``."""
+    n, m = system.n, system.m
+    if splits is None:
+        splits = max(2, int(round(4096 ** (1.0 / n))))
+    edges = [np.linspace(l, h, splits + 1) for l, h in zip(system.x_lo, system.x_hi)]
+    grids = np.meshgrid(*[np.arange(splits)] * n, indexing="ij")
+    cell = np.stack([g.ravel() for g in grids], axis=1)
+    lo = np.stack([edges[j][cell[:, j]] for j in range(n)], axis=1)
+    hi = np.stack([edges[j][cell[:, j] + 1] for j in range(n)], axis=1)
+    if u_box is None:
+        U = np.atleast_2d(inputs)
+        ulo = uhi = U
+    else:
+        ulo, uhi = np.atleast_2d(u_box[0]), np.atleast_2d(u_box[1])
+    S, M = len(lo), len(ulo)
+    zlo = np.concatenate([np.repeat(lo, M, axis=0), np.tile(ulo, (S, 1))], axis=1)
+    zhi = np.concatenate([np.repeat(hi, M, axis=0), np.tile(uhi, (S, 1))], axis=1)
+    best = np.zeros(n + m)
+    step = 200_000
+    for a in range(0, len(zlo), step):
+        g = basis.grad_bound(q, zlo[a:a + step], zhi[a:a + step], range(n + m))
+        best = np.maximum(best, g.max(axis=0))
+    return best[:n], best[n:]

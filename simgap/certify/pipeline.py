@@ -12,6 +12,7 @@ Per state dimension i:
 
 from __future__ import annotations
 
+import dataclasses
 import platform
 import time
 from collections import OrderedDict
@@ -25,7 +26,8 @@ from ..systems import embedded_ref, system_digest
 from .basis import Basis
 from .bounds import BoundOptions, beta_from_delta, delta_from_beta, required_runs
 from .certificate import Certificate, DimCertificate
-from .lipschitz import fhat_slopes_crn, l2_analytic, neighbour_pairs, slopes_of, wood_zhang
+from .lipschitz import (axis_grid, fhat_slopes_crn, gap_slopes_crn, gap_slopes_data, l2_analytic, l2_partials,
+                        neighbour_pairs, slopes_of, wood_zhang)
 from .scp import solve_scp
 from .variance import variance_bound
 
@@ -54,6 +56,14 @@ class CertifyOptions:
         cover points) or "simulator" (common random numbers, see lipschitz.fhat_slopes_crn;
         rebuilds the simulator from the manifest unless ``simulator`` is passed to certify).
     lhat_pairs, lhat_runs : pairs and runs per pair of the "simulator" estimate.
+    lipschitz_term : "paper" (default: (L_f + Lhat_fhat + L_2) eps, one Euclidean radius) or "gap"
+        (beyond the paper: sum_j (L_ij + L_2,ij) eps_j with L_ij the Lipschitz constant of the gap
+        g_i = E fhat_i - f_i itself in x_j and eps_j the cover's radius per dimension; estimated
+        from slopes of g between axis neighbours of the cover, or with common random numbers when
+        lhat = "simulator"). Both terms are computed and shown; this picks the one gamma uses.
+    continuous_inputs : also certify gamma between the input grid's values (beyond the paper): a
+        term sum_k (L^u_ik + L^u_2,ik) eps^u_k (gap and fit slopes in u_k, half the input spacing)
+        that callers add for inputs anywhere in the grid's box (Certificate.gamma(..., continuous=True)).
     scp_method, solver, secondary : see scp.solve_scp.
     seed : seeds the Lipschitz batches and the constraint-generation start set.
     """
@@ -75,6 +85,8 @@ class CertifyOptions:
     lhat: str = "data"
     lhat_pairs: int = 2000
     lhat_runs: int = 100
+    lipschitz_term: str = "paper"
+    continuous_inputs: bool = False
     scp_method: str = "cg"
     solver: str = "CLARABEL"
     secondary: bool = True
@@ -186,6 +198,8 @@ def certify(dataset, options: Optional[CertifyOptions] = None, simulator=None, *
         raise SimgapError(f"l2 must be 'analytic' or 'estimated', got {o.l2!r}")
     if o.lhat not in ("data", "simulator"):
         raise SimgapError(f"lhat must be 'data' or 'simulator', got {o.lhat!r}")
+    if o.lipschitz_term not in ("paper", "gap"):
+        raise SimgapError(f"lipschitz_term must be 'paper' or 'gap', got {o.lipschitz_term!r}")
     o.bounds.validate()
     inv = invariant_dims(ds)
     bases = bases_for(s, o.degree, o.terms, inv)
@@ -258,7 +272,19 @@ def certify(dataset, options: Optional[CertifyOptions] = None, simulator=None, *
                          f"{N} runs (the predecessor work used one run)")
 
     # ----- Lipschitz constants from the data (no dependence on delta or the basis) --------
-    pairs, lip, U_data = _data_lipschitz(ds, o, simulator)  # U_data: the inputs gamma is certified for
+    # With the gap's term and lhat = "simulator", the paper's Lhat_fhat (shown beside it) comes from the
+    # same common-random-number runs along the axes (sqrt(sum_j Lhat_j^2) >= the Euclidean constant):
+    # one simulation instead of two.
+    shared_crn = o.lipschitz_term == "gap" and o.lhat == "simulator"
+    gl = _gap_lipschitz(ds, o, simulator) if (o.lipschitz_term == "gap" or o.continuous_inputs) else None
+    pairs, lip, U_data = _data_lipschitz(ds, dataclasses.replace(o, lhat="data") if shared_crn else o, simulator)
+    if shared_crn:
+        lip = [(L_f, how_f, float(np.linalg.norm(gl["Lfhat_axes"][i])),
+                {"how": "sqrt(sum_j Lhat_j^2) over the covered axes, Lhat_j the Wood-Zhang estimate on slopes of "
+                        "the mean increment (mean - x) from the gap term's common-random-number pairs along x_j "
+                        "(simulator); >= the Euclidean Lipschitz constant",
+                 "per_axis": gl["Lfhat_axes"][i].tolist()})
+               for i, (L_f, how_f, _, _) in enumerate(lip)]
     warnings = []  # notes that likely cost the user: also shown by `simgap run`
     for i, (_, _, L_fhat, how_fhat) in enumerate(lip):
         share = how_fhat.get("noise_share", 0.0)
@@ -266,6 +292,14 @@ def certify(dataset, options: Optional[CertifyOptions] = None, simulator=None, *
             warnings.append(f"Lhat_fhat[{s.state_names[i]}] = {L_fhat:.4g} is mostly the noise of the empirical means: "
                          f"noise alone gives {share:.0%} of the largest slope (N1hat = {N}); lhat = \"simulator\" "
                          f"(--lhat simulator) estimates it with common random numbers, usually far smaller")
+    if gl is not None:
+        for i in range(n):
+            for j, share in gl["noise_share"][i].items():
+                if share > NOISE_SHARE_NOTE:
+                    warnings.append(f"L_gap[{s.state_names[i]}, {s.state_names[j] if j < n else s.input_names[j - n]}]"
+                                    f" is mostly the noise of the empirical means (noise alone gives {share:.0%} of the "
+                                    f"largest slope, N1hat = {N}); lhat = \"simulator\" (--lhat simulator) "
+                                    f"estimates it with common random numbers")
     rng = np.random.default_rng(o.seed)  # only for l2 = "estimated"
 
     dims = []
@@ -288,14 +322,27 @@ def certify(dataset, options: Optional[CertifyOptions] = None, simulator=None, *
                               f"unbounded derivative there, e.g. sqrt or sign at 0); use l2='estimated' or change terms")
         fit = P @ res.q
         scp = res.to_dict()
-        const = (L_f + L_fhat + L_2) * ds.epsilon + float(d2[i]) + res.repair
+        paper_term = (L_f + L_fhat + L_2) * ds.epsilon
+        gapd = {}
+        if gl is not None:
+            ubox = gl["input_box"] if o.continuous_inputs else None
+            L2x, L2u = l2_partials(bases[i], res.q, s, U_data, u_box=ubox)
+            gapd = dict(L_gap=gl["L"][i].tolist(), L2_x=L2x.tolist(), L_gap_u=gl["Lu"][i].tolist(),
+                        L2_u=L2u.tolist() if o.continuous_inputs else None, gap_how=gl["how"][i])
+            gap_term = float(np.dot(gl["L"][i] + L2x, gl["radii"]))
+            scp["lipschitz_terms"] = {"paper": paper_term, "gap": gap_term}
+        term = gap_term if o.lipschitz_term == "gap" else paper_term
+        const = term + float(d2[i]) + res.repair
         scp["gamma_range_on_data"] = [float(fit.min() + const), float(fit.max() + const)]
+        if gl is not None:
+            other = (paper_term if o.lipschitz_term == "gap" else gap_term) + float(d2[i]) + res.repair
+            scp["gamma_range_on_data_other_term"] = [float(fit.min() + other), float(fit.max() + other)]
         dims.append(DimCertificate(
             terms=bases[i].names, q=res.q, delta1=float(d1[i]), delta2=float(d2[i]),
             beta1=None if beta1 is None else float(beta1[i]), beta2=None if beta2 is None else float(beta2[i]),
             beta_v=float(bv[i]), Mhat=None if M is None else float(M[i]), L_f=L_f, L_fhat=L_fhat, L_2=L_2,
             lipschitz_how=how, repair=res.repair, eta=res.eta, gap_max=float(g[:, i].max()), scp=scp,
-            basis=bases[i]))
+            basis=bases[i], **gapd))
 
     opts = o.to_dict()
     opts["beyond_paper"] = beyond_paper(o)
@@ -309,7 +356,10 @@ def certify(dataset, options: Optional[CertifyOptions] = None, simulator=None, *
                        input_names=tuple(s.input_names), x_lo=s.x_lo.copy(), x_hi=s.x_hi.copy(),
                        angle_dims=tuple(s.angle_dims), epsilon=float(ds.epsilon), n_runs=N, K=K,
                        method=o.method, options=opts, dims=dims, provenance=prov, inputs=U_data,
-                       system_digest=system_digest(s), system_ref=embedded_ref(s))
+                       system_digest=system_digest(s), system_ref=embedded_ref(s),
+                       lipschitz_term=o.lipschitz_term, radii=None if gl is None else gl["radii"],
+                       input_radii=gl["input_radii"] if o.continuous_inputs else None,
+                       input_box=gl["input_box"] if o.continuous_inputs else None)
 
 
 
@@ -334,9 +384,15 @@ def mean_noise_share(ds, pairs, i: int, slopes: np.ndarray, rng: np.random.Gener
 
 def beyond_paper(o: CertifyOptions) -> List[str]:
     """Labels of every choice in ``o`` that the paper does not make (stored in the certificate)."""
+    out = []
+    if o.lipschitz_term == "gap":
+        out.append("Lipschitz term from the gap itself: sum_j L_ij eps_j with L_ij the slope of g_i = E fhat_i - f_i "
+                   "in x_j and eps_j the cover's radius per dimension (the paper: (L_f + Lhat_fhat + L_2) eps)")
+    if o.continuous_inputs:
+        out.append("gamma certified between the input grid's values: + sum_k L^u_ik eps^u_k for continuous inputs")
     if o.method != "stochastic":
-        return []
-    out = list(o.bounds.beyond_paper())
+        return out
+    out += list(o.bounds.beyond_paper())
     if o.variance == "empirical" and o.safety != 10.0:
         out.append(f"variance safety factor {o.safety:g} (the paper takes 10 x the largest sample variance)")
     if o.variance != "empirical":
@@ -412,6 +468,90 @@ def _data_lipschitz(ds, o: CertifyOptions, simulator=None):
     while len(_LIP_CACHE) > 4:
         _LIP_CACHE.popitem(last=False)
     return _LIP_CACHE[key]
+
+def input_grid_of(system, U: np.ndarray) -> tuple:
+    """(lo, hi) of the input box when U is a full grid of >= 2 values per input, else SimgapError."""
+    if (system.params or {}).get("inputs") == "categorical":
+        raise SimgapError(f"continuous inputs: the inputs of {system.name!r} are categorical (e.g. switch modes "
+                          f"{np.unique(U, axis=0).ravel().tolist()[:6]}): there is nothing between their values "
+                          f"to certify; drop continuous_inputs")
+    vals = [np.unique(U[:, k]) for k in range(U.shape[1])]
+    few = [system.input_names[k] for k, v in enumerate(vals) if len(v) < 2]
+    if few or len(np.unique(U, axis=0)) != int(np.prod([len(v) for v in vals])):
+        why = (f"input {', '.join(few)} takes a single value" if few else
+               "the input set is not the full grid of its per-input values")
+        raise SimgapError(f"continuous inputs need the data's inputs on a grid (input_grid): {why}")
+    return np.array([v[0] for v in vals]), np.array([v[-1] for v in vals])
+
+
+def _gap_lipschitz(ds, o: CertifyOptions, simulator=None) -> dict:
+    """The gap's own Lipschitz matrix L (n, n) in x and Lu (n, m) in u, with the radii (beyond the paper).
+
+    L_ij: Wood-Zhang on slopes |g_i(a) - g_i(b)| / h between rows that differ only in x_j by one
+    grid step (lhat = "data"), or on common-random-number pairs along x_j at log-uniform distances
+    up to 2 eps_j (lhat = "simulator"); 0 along declared-invariant dimensions (not covered: x is
+    moved along them onto the cover, and the gap is declared independent of them). Lu likewise
+    along u_k (continuous inputs). With data slopes, the noise floor per (i, j) is stated: the
+    means of two rows carry independent noise, sd sqrt(s_a^2 + s_b^2) / (sqrt(N1hat) h) per slope,
+    which inflates the estimate (conservative); its share of the estimate is recorded and a share
+    above one half is warned about."""
+    s = ds.system
+    n, m = s.n, s.m
+    cov = [j for j in range(n) if j not in invariant_dims(ds)]
+    ubox = input_grid_of(s, np.unique(ds.u, axis=0)) if o.continuous_inputs else None
+    grid = axis_grid(ds, cov, range(m) if o.continuous_inputs else ())
+    for j in grid.dims:
+        if grid.neighbours[j][0].size == 0 or len(grid.values[j]) < 2:
+            nm = s.state_names[j] if j < n else s.input_names[j - n]
+            raise SimgapError(f"the gap's Lipschitz term needs cover points with neighbours along every covered "
+                              f"dimension, but {nm} has {len(grid.values[j])} value(s) in the data: use a finer "
+                              f"spacing along {nm} (or lipschitz_term = \"paper\")")
+    L, Lu, Lfhat_axes = np.zeros((n, n)), np.zeros((n, m)), np.zeros((n, n))
+    how = [dict() for _ in range(n)]
+    share = [dict() for _ in range(n)]
+    sim_ctx = None
+    if o.lhat == "simulator":
+        from ..simulators import make_simulator
+        cfg = ds.manifest.get("simulator")
+        if simulator is None and not cfg:
+            raise SimgapError("lhat='simulator' needs the data manifest's simulator config or a simulator")
+        sim_ctx = simulator if simulator is not None else make_simulator(cfg, system=s)
+        per_axis = max(100, o.lhat_pairs // max(1, len(grid.dims)))
+    try:
+        for a, j in enumerate(grid.dims):
+            rng = np.random.default_rng([o.seed, 5, j])
+            eps_j = grid.radii[j] if j < n else grid.input_radii[j - n]
+            if sim_ctx is None:
+                sl, noise = gap_slopes_data(ds, grid, j)
+                src = "slopes of the observed gap between axis neighbours of the cover (independent draws per row)"
+            else:
+                direction, k = ("x", j) if j < n else ("u", j - n)
+                lo, hi = (ubox if ubox is not None else (None, None))
+                sl, sl_fhat = gap_slopes_crn(sim_ctx, s, rng, direction, k, 2.0 * eps_j, per_axis, o.lhat_runs,
+                                             np.unique(ds.u, axis=0), lo, hi)
+                if j < n:
+                    Lfhat_axes[:, j] = [wood_zhang(sl_fhat[:, i], np.random.default_rng([o.seed, 7, i, j])).estimate
+                                        for i in range(n)]
+                noise = None
+                src = (f"{per_axis} common-random-number pairs along it at distances log-uniform in "
+                       f"[{eps_j / 4:.3g}, {2 * eps_j:.3g}], {o.lhat_runs} runs each (simulator)")
+            for i in range(n):
+                wz = wood_zhang(sl[:, i], np.random.default_rng([o.seed, 6, i, j]))
+                nm = s.state_names[j] if j < n else s.input_names[j - n]
+                entry = {"how": "Wood-Zhang estimate on " + src, "radius": float(eps_j), **wz.to_dict()}
+                if noise is not None and wz.estimate > 0:
+                    floor = float(np.max(np.abs(rng.standard_normal(len(noise))) * noise[:, i]))
+                    entry["noise_floor"] = floor
+                    entry["noise_share"] = min(1.0, floor / wz.estimate)
+                    share[i][j] = entry["noise_share"]
+                how[i][nm] = entry
+                (L if j < n else Lu)[i, j if j < n else j - n] = wz.estimate
+    finally:
+        if sim_ctx is not None and simulator is None:
+            sim_ctx.close()
+    return {"L": L, "Lu": Lu, "radii": grid.radii, "input_radii": grid.input_radii,
+            "input_box": ubox, "how": how, "noise_share": share, "Lfhat_axes": Lfhat_axes}
+
 
 def compare_options(dataset, base: Optional[CertifyOptions] = None) -> list:
     """Certify ``dataset`` under the paper's bounds and each option beyond it, at the same betas.

@@ -88,6 +88,11 @@ def add_parser(subparsers) -> None:
     b.add_argument("--l2", choices=["analytic", "estimated"], default="analytic")
     b.add_argument("--lhat", choices=["data", "simulator"], default="data",
                    help="Lhat_fhat from the data's means (default) or from the simulator with common random numbers")
+    b.add_argument("--lipschitz-term", choices=["paper", "gap"], default="paper",
+                   help="the Lipschitz term of gamma: the paper's (L_f + Lhat_fhat + L_2) eps, or the gap's own slopes "
+                        "times the cover's radius per dimension, sum_j L_ij eps_j (both are computed and shown)")
+    b.add_argument("--continuous-inputs", action="store_true",
+                   help="also certify gamma between the input grid's values (for controllers with any u in the box)")
     s = p.add_argument_group("solver")
     s.add_argument("--solver", choices=["CLARABEL", "HIGHS"], default="CLARABEL")
     s.add_argument("--scp", choices=["cg", "full"], default="cg", help="constraint generation or the whole LP")
@@ -120,7 +125,8 @@ def options_from_args(args, system):
         variance=args.variance, safety=args.safety, value_range=args.value_range, beta_v=args.beta_v,
         bounds=BoundOptions(concentration=args.concentration, lemma2_factor=args.lemma2_factor,
                             uniform=args.uniform, value_range=args.value_range),
-        lipschitz_mode=args.lipschitz, l2=args.l2, lhat=args.lhat, scp_method=args.scp, solver=args.solver, seed=args.seed)
+        lipschitz_mode=args.lipschitz, l2=args.l2, lhat=args.lhat, lipschitz_term=args.lipschitz_term,
+        continuous_inputs=args.continuous_inputs, scp_method=args.scp, solver=args.solver, seed=args.seed)
 
 
 def check_certify_size(opts, ds) -> None:

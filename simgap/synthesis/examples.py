@@ -146,7 +146,8 @@ def dcdc_system(x_lo=(1.15, 5.45), x_hi=(1.55, 5.85)) -> System:
     On [1.15, 1.55] x [5.45, 5.85] with eta = 2/4000 the grid has 801 x 801 = 641,601 cells.
     """
     return System(name="dcdc", state_names=("il", "vc"), input_names=("mode",), x_lo=x_lo, x_hi=x_hi,
-                  inputs=np.array([[1.0], [2.0]]), base_tau=DCDC_TAU, step=rk4_step(_dcdc_rhs, nint=5))
+                  inputs=np.array([[1.0], [2.0]]), base_tau=DCDC_TAU, step=rk4_step(_dcdc_rhs, nint=5),
+                  params={"inputs": "categorical"})  # switch modes: nothing lies between 1 and 2
 
 
 def dcdc_growth():

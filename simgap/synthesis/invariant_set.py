@@ -236,8 +236,8 @@ def gap_bound(gap, n: int, lo, hi, u_lo, u_hi):
     """(w_max (n,), how): a sound upper bound of gamma_i over [lo, hi] x [u_lo, u_hi].
 
     ``gap``: None (nominal: 0), a constant vector, or a certificate: its ``gamma_sup`` (inputs
-    between grid values covered) when it has one for continuous inputs, else the fallback
-    GAP_FALLBACK_NOTE describes.
+    between grid values covered) when it was certified for continuous inputs, else the fallback
+    GAP_FALLBACK_NOTE describes (labelled: it does not cover the inputs between grid values).
     """
     if gap is None:
         return np.zeros(n), "none (nominal model)"
@@ -249,12 +249,10 @@ def gap_bound(gap, n: int, lo, hi, u_lo, u_hi):
         return g, "a given constant bound per period (not a certificate)"
     lo, hi = np.asarray(lo, float)[None], np.asarray(hi, float)[None]
     u_lo, u_hi = np.asarray(u_lo, float), np.asarray(u_hi, float)
-    if hasattr(gap, "gamma_sup"):
-        try:
-            return np.asarray(gap.gamma_sup(lo[0], hi[0], u_lo, u_hi), dtype=float).ravel(), \
-                "gamma_sup over E's bounding box and u(E)'s range (inputs between grid values included)"
-        except SimgapError:
-            pass  # a certificate not made for continuous inputs: the fallback below, labelled
+    if getattr(gap, "continuous", False):  # certified between the grid's inputs too (its input Lipschitz term)
+        return np.asarray(gap.gamma_sup(lo[0], hi[0], u_lo, u_hi), dtype=float).ravel(), \
+            "gamma_sup over E's bounding box and u(E)'s range (inputs between grid values included)"
+    # a certificate made for its grid inputs only: the fallback below, labelled
     U = np.atleast_2d(np.asarray(gap.inputs, dtype=float))
     keep = np.ones(U.shape[0], dtype=bool)
     for j in range(U.shape[1]):  # per input dimension the grid values that bracket [u_lo, u_hi]

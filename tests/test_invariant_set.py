@@ -289,3 +289,33 @@ def test_edited_controller_file_is_refused(cubic, tmp_path):
     np.savez(tmp_path / "edited.npz", **arrays)
     with pytest.raises(SimgapError, match="modified after it was written"):
         Controller.load(tmp_path / "edited.npz")
+
+
+def test_gap_from_gamma_sup_or_labelled_fallback():
+    calls = []
+
+    class Continuous:                       # a certificate made for continuous inputs
+        continuous = True
+        inputs = np.array([[-1.0], [0.0], [1.0]])
+
+        def gamma_upper_box(self, lo, hi, u):
+            raise AssertionError("a continuous-input certificate is read with gamma_sup")
+
+        def gamma_sup(self, x_lo, x_hi, u_lo, u_hi):
+            calls.append((x_lo, x_hi, u_lo, u_hi))
+            return np.abs(x_hi) + u_hi
+
+    w, how = iv.gap_bound(Continuous(), 2, [-0.1, -0.2], [0.1, 0.2], [-0.3], [0.4])
+    assert np.allclose(w, [0.5, 0.6]) and "gamma_sup" in how
+    assert np.allclose(calls[0][0], [-0.1, -0.2]) and np.allclose(calls[0][3], [0.4])
+
+    class GridOnly:                          # certified at its grid inputs only
+        continuous = False
+        inputs = np.array([[-1.0], [0.0], [1.0], [2.0]])
+
+        def gamma_upper_box(self, lo, hi, u):
+            return np.repeat(np.abs(u), 2, axis=1) + 0.0 * lo
+
+    w, how = iv.gap_bound(GridOnly(), 2, [-0.1, -0.2], [0.1, 0.2], [-0.3], [0.4])
+    # the grid values bracketing [-0.3, 0.4] are -1 .. 1: max |u| = 1 (2 is not used)
+    assert np.allclose(w, [1.0, 1.0]) and "NOT covered" in how

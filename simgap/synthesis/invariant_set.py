@@ -45,6 +45,7 @@ from __future__ import annotations
 import functools
 import resource
 import time
+import warnings
 from dataclasses import dataclass, field
 from typing import Optional
 
@@ -454,7 +455,9 @@ def design_ellipsoid(A_cl, K, x_star, u_star, lo, hi, u_lo, u_hi, rho: float, d,
     rho2.value = rho ** 2
     Dd.value = np.diag(np.where(nz, nz.sum() / (1.0 - rho) ** 2 * d ** 2, 0.0))
     try:
-        prob.solve(solver=solver)
+        with warnings.catch_warnings():  # "may be inaccurate": the status says it, and the proof decides
+            warnings.simplefilter("ignore", UserWarning)
+            prob.solve(solver=solver)
     except cp.error.SolverError as e:
         return None, f"solver error ({e})"
     if prob.status not in ("optimal", "optimal_inaccurate") or Q.value is None:

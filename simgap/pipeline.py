@@ -266,7 +266,7 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
         def roll_out(method, sres, entry):
             """R rollouts from x0 (and, for an invariant set, from states drawn in E) into ``entry``."""
             if sres.empty or not bool(sres.controller.winning(x0[None, :])[0]):
-                why = (("no invariant set proved: " + sres.stats.get("diagnosis", "")) if invariant else
+                why = (sres.stats.get("diagnosis", "no invariant set proved") if invariant else
                        "empty winning domain") if sres.empty else \
                     f"x0 is outside the {'invariant set' if invariant else 'winning domain'}"
                 entry["rollouts"] = {"skipped": why}

@@ -319,3 +319,74 @@ def test_gap_from_gamma_sup_or_labelled_fallback():
     w, how = iv.gap_bound(GridOnly(), 2, [-0.1, -0.2], [0.1, 0.2], [-0.3], [0.4])
     # the grid values bracketing [-0.3, 0.4] are -1 .. 1: max |u| = 1 (2 is not used)
     assert np.allclose(w, [1.0, 1.0]) and "NOT covered" in how
+
+
+# ----- simgap run with method = "invariant_set" ------------------------------------------
+
+EXPERIMENT = """
+system = "cubic.toml"
+[simulator]
+kind = "numpy"
+noise = { actuation_std = 0.01 }
+[collect]
+epsilon = 0.2
+n_runs = 8
+seed = 1
+executor = "serial"
+[certify]
+degree = 1
+[audit]
+points = 20
+runs = 20
+[synthesis]
+spec = "invariance"
+method = "invariant_set"
+set_states = 2
+[rollout]
+n = 20
+horizon = 30
+x0 = [0.01, 0.0]
+[profiles.small.collect]
+n_runs = 8
+"""
+
+
+def test_run_experiment_with_invariant_sets(tmp_path):
+    from simgap.config import load_experiment
+    from simgap.pipeline import comparison_table, run_experiment
+    from simgap_viz.results import load_run
+    (tmp_path / "cubic.toml").write_text(CUBIC)
+    (tmp_path / "exp.toml").write_text(EXPERIMENT)
+    exp = load_experiment(tmp_path / "exp.toml", "small")
+    out = tmp_path / "run"
+    summary = run_experiment(exp, out, log=lambda m: None)
+    nominal = summary["methods"]["nominal"]
+    assert nominal["winning_cells"] == 1 and (out / "controller_nominal.npz").is_file()
+    assert nominal["failures"] == 0 and nominal["n_rollouts"] == 20
+    assert nominal["rollouts_in_set"]["states"] == 2 and nominal["rollouts_in_set"]["n_rollouts"] == 40
+    for m in ("deterministic", "stochastic"):
+        e = summary["methods"][m]
+        # a controller file exactly when a set was proved; otherwise the reason
+        assert (out / f"controller_{m}.npz").is_file() == bool(e["winning_cells"])
+        if not e["winning_cells"]:
+            assert "gamma would have to be at most" in e["rollouts"]["skipped"]
+    table = comparison_table(summary)
+    assert "invariant set proved" in table and "nominal" in table and "failures from states in E" in table
+    run = load_run(out)                      # the viewer's loader degrades: no grid controller to draw
+    assert set(run.methods) == {"deterministic", "stochastic"}
+    assert all(mr.synthesis is None for mr in run.methods.values())
+
+
+def test_run_checks_before_any_work(tmp_path):
+    from simgap.config import load_experiment
+    from simgap.pipeline import run_experiment
+    (tmp_path / "cubic.toml").write_text(CUBIC)
+    (tmp_path / "exp.toml").write_text(EXPERIMENT.replace('set_states = 2', 'set_states = 2\nK = [[1.0, 2.0, 3.0]]'))
+    exp = load_experiment(tmp_path / "exp.toml", "small")
+    with pytest.raises(SimgapError, match="K must have shape 1 x 2"):
+        run_experiment(exp, tmp_path / "run", log=lambda m: None)
+    assert not (tmp_path / "run").exists()   # nothing written
+    (tmp_path / "exp2.toml").write_text(EXPERIMENT.replace('set_states = 2', 'set_states = 2\nhold = 2'))
+    with pytest.raises(SimgapError, match="hold must be 1"):
+        run_experiment(load_experiment(tmp_path / "exp2.toml", "small"), tmp_path / "run2", log=lambda m: None)
+    assert not (tmp_path / "run2").exists()

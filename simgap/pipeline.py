@@ -404,8 +404,10 @@ def comparison_table(summary: dict) -> str:
                                       else "-")))
     else:
         rows.append(("winning cells", *both(lambda e: f"{e['winning_cells']:,}")))
-    rows.append(("failures", *both(lambda e: f"{e['failures']} / {e['n_rollouts']}" if "failures" in e
-                                   else e["rollouts"].get("skipped", "-")[:40])))
+    rows.append(("failures" + (" from x0" if invariant else ""),
+                 *both(lambda e: f"{e['failures']} / {e['n_rollouts']}" if "failures" in e else
+                       ("no set (reason below)" if invariant and not e["winning_cells"] else
+                        e["rollouts"].get("skipped", "-")[:40]))))
     if any("rollouts_in_set" in summary["methods"][m] for m in cols):
         rows.append(("failures from states in E", *both(
             lambda e: f"{e['rollouts_in_set']['failures']} / {e['rollouts_in_set']['n_rollouts']} "

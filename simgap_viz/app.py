@@ -340,7 +340,7 @@ class SimgapApp:
         self.panels["perrun"].show()
         self.set_status(f"run **{run.path.name}** ({method}): data K = {m.dataset.K}, "
                         + (f"{m.synthesis.controller.size_with_target} winning cells" if m.synthesis is not None
-                           else "invariant-set controller (E not drawn yet)")
+                           else "invariant-set run (see the summary; E is not drawn here yet)")
                         + (f", {m.rollouts.n_rollouts} rollouts" if m.rollouts is not None else ""))
 
     def _show_results(self) -> None:

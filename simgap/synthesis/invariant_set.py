@@ -454,14 +454,23 @@ def design_ellipsoid(A_cl, K, x_star, u_star, lo, hi, u_lo, u_hi, rho: float, d,
     prob, Q, rho2, Dd = cache[key]
     rho2.value = rho ** 2
     Dd.value = np.diag(np.where(nz, nz.sum() / (1.0 - rho) ** 2 * d ** 2, 0.0))
-    try:
-        with warnings.catch_warnings():  # "may be inaccurate": the status says it, and the proof decides
-            warnings.simplefilter("ignore", UserWarning)
-            prob.solve(solver=solver)
-    except cp.error.SolverError as e:
-        return None, f"solver error ({e})"
-    if prob.status not in ("optimal", "optimal_inaccurate") or Q.value is None:
-        return None, str(prob.status)
+    tried = []
+    for name in (solver,) + tuple(x for x in SOLVERS if x != solver and x in cp.installed_solvers()):
+        # the other solver when the first one fails (Clarabel stops with "insufficient progress" on some
+        # badly conditioned programs that SCS solves); the proof decides either way
+        try:
+            with warnings.catch_warnings():  # "may be inaccurate": the status says it, and the proof decides
+                warnings.simplefilter("ignore", UserWarning)
+                prob.solve(solver=name)
+        except cp.error.SolverError:
+            tried.append(f"{name}: solver error")
+            continue
+        if prob.status in ("optimal", "optimal_inaccurate") and Q.value is not None:
+            break
+        tried.append(f"{name}: {prob.status}")
+    else:
+        return None, "; ".join(tried)
+    status = str(prob.status) + (f" ({name}; {'; '.join(tried)})" if tried else "")
     Qv = 0.5 * (Q.value + Q.value.T)
     # the solver meets the box constraints to its tolerance only: scale E into them exactly
     hu2 = np.einsum("ji,ik,jk->j", K, Qv, K)
@@ -472,7 +481,7 @@ def design_ellipsoid(A_cl, K, x_star, u_star, lo, hi, u_lo, u_hi, rho: float, d,
     ev = np.linalg.eigvalsh(Qv)
     if ev.min() <= 1e-14 * max(1.0, ev.max()):
         return None, "degenerate ellipsoid (P^-1 not positive definite)"
-    return np.linalg.inv(Qv), str(prob.status)
+    return np.linalg.inv(Qv), status
 
 
 # ---------------------------------------------------------------------------------------
@@ -642,6 +651,7 @@ def synthesize_invariant_set(system: System, spec: Spec, gap=None, *, x_star=Non
              "u_star": np.round(u_star, 9).tolist(), "residual_max": float(np.abs(r).max()),
              "K": np.round(K, 6).tolist(), "K_how": K_how, "spectral_radius": rho0, "solver": solver,
              "candidates": len(cands), "proved": len(proved), "spec_kind": "invariance",
+             "solver_statuses": sorted(set(statuses)),
              "A": A.tolist(), "B": B.tolist()}
     if not cands:
         raise SimgapError(f"invariant set: solver {solver} found no ellipsoid (statuses: "

@@ -35,13 +35,15 @@ from .errors import SimgapError
 # the specification of an experiment lives in simgap.experiment_spec (the per-run stage needs it too);
 # re-exported here, its old home
 from .experiment_spec import experiment_spec  # noqa: F401
+from . import invariant_stage
 from .simulators import make_simulator
 
 METHODS = ("deterministic", "stochastic")
 #: every result file a run may write into its folder (a foreign file under one of these names is refused)
 RESULT_NAMES = tuple(f"{kind}_{m}.{ext}" for m in METHODS for kind, ext in
                      (("cert", "json"), ("audit", "json"), ("controller", "npz"), ("rollouts", "npz"))) + (
-    "summary.json", "run.rrd", "perrun.rrd", "cert_run.json", "controller_run_baseline.npz", "controller_perrun.npz")
+    "summary.json", "run.rrd", "perrun.rrd", "cert_run.json", "controller_run_baseline.npz", "controller_perrun.npz",
+    "controller_nominal.npz", "rollouts_nominal.npz")  # the invariant-set run's nominal-model set
 
 def baseline_experiment(exp: ExperimentConfig) -> ExperimentConfig:
     """The deterministic baseline's collection: noise and randomization off, N1hat = 2 identical runs."""
@@ -96,13 +98,17 @@ def check_experiment(exp: ExperimentConfig, out: Optional[str | Path] = None, *,
             raise SimgapError(f"[{section}] {key}: need one value or {n} (one per state {', '.join(s.state_names)}), "
                               f"got {value!r}")
 
-    if "eta" not in syn:
+    grid = invariant_stage.method_of(syn) == "grid"
+    if grid and "eta" not in syn:
         raise SimgapError("[synthesis] eta (grid cell widths) is required")
-    per_dim("synthesis", "eta", syn["eta"])
+    if "eta" in syn:
+        per_dim("synthesis", "eta", syn["eta"])
     for k in ("safe_lo", "safe_hi"):
         if k in syn and len(syn[k]) != n:
             raise SimgapError(f"[synthesis] {k}: need {n} values, got {syn[k]!r}")
     spec, map_x0, _ = experiment_spec(exp)
+    if not grid:
+        invariant_stage.check_section(s, syn, spec)
     x0 = np.asarray(ro["x0"], dtype=float) if "x0" in ro else map_x0
     if x0 is None:
         raise SimgapError("[rollout] x0 is required (no map gives an initial state)")
@@ -132,7 +138,8 @@ def check_experiment(exp: ExperimentConfig, out: Optional[str | Path] = None, *,
                             plan.keep_samples, Path(out) if out is not None else Path("."))
     with make_simulator(exp.simulator, s):
         pass  # the simulator's kind, noise, effects and options are valid
-    return {"spec": spec, "x0": x0, "eta": syn["eta"], "hold": int(syn.get("hold", 1)), "n_rollouts": R}
+    return {"spec": spec, "x0": x0, "eta": syn.get("eta"), "hold": int(syn.get("hold", 1)), "n_rollouts": R,
+            "method": invariant_stage.method_of(syn)}
 
 
 def closest_approach(arena, rr) -> dict:
@@ -274,36 +281,14 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
                 for m, e in (("stochastic", exp), ("deterministic", baseline_experiment(exp)))}
         sim = sims["stochastic"]  # audits and rollouts run against the stochastic simulator
         controllers = {}
-        for method in METHODS:
-            ds = data[method]
-            opts = certify_options(cert_section, method, exp.system)
-            cert = stage(f"certify/{method}", lambda: certify(ds, opts, simulator=sims[method]))
-            cert.save(out / f"cert_{method}.json")
-            wrote(f"cert_{method}.json")
-            rep = stage(f"audit/{method}", lambda: audit(cert, sim, points=int(au.get("points", 200)),
-                                                         runs=int(au.get("runs", 2000)), seed=int(au.get("seed", 7)),
-                                                         dataset=data["stochastic"]))
-            fileio.write_json(out / f"audit_{method}.json", rep)
-            wrote(f"audit_{method}.json")
-            sres = stage(f"synthesize/{method}", lambda: synthesize(exp.system, spec, syn["eta"], gap=cert, hold=hold,
-                                                                    x0=x0))
-            sres.controller.save(out / f"controller_{method}.npz")
-            wrote(f"controller_{method}.npz")
-            if not sres.empty:
-                controllers[method] = sres.controller
-            entry = {
-                "gamma": _gamma_stats(cert, data["stochastic"]),
-                "confidence_per_dim": cert.per_dim_confidence, "confidence_joint": cert.joint_confidence,
-                "confidence_scope": cert.scope, "confidence_joint_pointwise": cert.scope_confidences()["pointwise"],
-                "confidence_joint_simultaneous": cert.scope_confidences()["simultaneous"],
-                "audit_pass_rate_per_dim": {k: v["fraction_holds"] for k, v in rep["per_dim"].items()},
-                "audit_pass_rate_joint": rep["joint"]["fraction_holds"],
-                "audit_violated_joint": rep["joint"]["fraction_violated"],
-                "winning_cells": int(sres.stats["winning"]), "synthesis": sres.stats,
-                "dataset_hash": ds.hash, "warnings": list(cert.options.get("warnings") or []),
-            }
+        invariant = checked["method"] == "invariant_set"
+
+        def roll_out(method, sres, entry):
+            """R rollouts from x0 (and, for an invariant set, from states drawn in E) into ``entry``."""
             if sres.empty or not bool(sres.controller.winning(x0[None, :])[0]):
-                why = "empty winning domain" if sres.empty else "x0 is outside the winning domain"
+                why = (sres.stats.get("diagnosis", "no invariant set proved") if invariant else
+                       "empty winning domain") if sres.empty else \
+                    f"x0 is outside the {'invariant set' if invariant else 'winning domain'}"
                 entry["rollouts"] = {"skipped": why}
                 log(f"[rollout/{method}] skipped: {why}")
             else:
@@ -320,7 +305,60 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
                 entry["per_run_empirical"] = per_run_empirical(rr)
                 if arena is not None:
                     entry["closest_approach"] = closest_approach(arena, rr)
+            k = int(syn.get("set_states", 20))
+            if invariant and not sres.empty and k:
+                entry["rollouts_in_set"] = stage(f"rollout-in-E/{method}", lambda: invariant_stage.rollouts_in_set(
+                    sres.controller, sim, k, R, ro.get("horizon"), int(ro.get("seed", 11)) + 1000,
+                    ro.get("on_exit", "hold"), log))
+        for method in METHODS:
+            ds = data[method]
+            opts = certify_options(cert_section, method, exp.system)
+            cert = stage(f"certify/{method}", lambda: certify(ds, opts, simulator=sims[method]))
+            cert.save(out / f"cert_{method}.json")
+            wrote(f"cert_{method}.json")
+            rep = stage(f"audit/{method}", lambda: audit(cert, sim, points=int(au.get("points", 200)),
+                                                         runs=int(au.get("runs", 2000)), seed=int(au.get("seed", 7)),
+                                                         dataset=data["stochastic"]))
+            fileio.write_json(out / f"audit_{method}.json", rep)
+            wrote(f"audit_{method}.json")
+            if invariant:
+                sres = stage(f"synthesize/{method}", lambda: invariant_stage.synthesize(exp.system, spec, cert, syn,
+                                                                                       x0=x0))
+                if not sres.empty:  # no set proved: nothing written (the summary says why)
+                    sres.controller.save(out / f"controller_{method}.npz")
+                    wrote(f"controller_{method}.npz")
+            else:
+                sres = stage(f"synthesize/{method}", lambda: synthesize(exp.system, spec, syn["eta"], gap=cert,
+                                                                        hold=hold, x0=x0))
+                sres.controller.save(out / f"controller_{method}.npz")
+                wrote(f"controller_{method}.npz")
+            if not sres.empty:
+                controllers[method] = sres.controller
+            entry = {
+                "gamma": _gamma_stats(cert, data["stochastic"]),
+                "confidence_per_dim": cert.per_dim_confidence, "confidence_joint": cert.joint_confidence,
+                "confidence_scope": cert.scope, "confidence_joint_pointwise": cert.scope_confidences()["pointwise"],
+                "confidence_joint_simultaneous": cert.scope_confidences()["simultaneous"],
+                "audit_pass_rate_per_dim": {k: v["fraction_holds"] for k, v in rep["per_dim"].items()},
+                "audit_pass_rate_joint": rep["joint"]["fraction_holds"],
+                "audit_violated_joint": rep["joint"]["fraction_violated"],
+                "winning_cells": int(not sres.empty) if invariant else int(sres.stats["winning"]),
+                "synthesis": sres.stats,
+                "dataset_hash": ds.hash, "warnings": list(cert.options.get("warnings") or []),
+            }
             summary["methods"][method] = entry
+            roll_out(method, sres, entry)
+        if invariant and syn.get("nominal", True):
+            # the nominal model without any gap: what the set and the rollouts look like when the proof
+            # ignores the simulation gap (no guarantee about the simulator)
+            sres = stage("synthesize/nominal", lambda: invariant_stage.synthesize(exp.system, spec, None, syn, x0=x0))
+            if not sres.empty:
+                sres.controller.save(out / "controller_nominal.npz")
+                wrote("controller_nominal.npz")
+            entry = {"gap": "none (nominal model; no statement about the simulator)", "synthesis": sres.stats,
+                     "winning_cells": int(not sres.empty)}
+            summary["methods"]["nominal"] = entry
+            roll_out("nominal", sres, entry)
         if per_run:
             from .perrun.stage import run_stage
             summary["per_run"] = stage("perrun", lambda: run_stage(exp, out, data["stochastic"], controllers, spec, x0,
@@ -350,34 +388,57 @@ def _simultaneous(c) -> str:
 
 
 def comparison_table(summary: dict) -> str:
-    """The readable comparison table of a summary (deterministic vs stochastic)."""
+    """The readable comparison table of a summary (deterministic vs stochastic; with an invariant-set
+    synthesis also the nominal model without a gap)."""
     names = summary["system"]["state_names"]
-    rows = [("", "deterministic", "stochastic")]
+    cols = [m for m in METHODS + ("nominal",) if m in summary["methods"]]
+    rows = [("",) + tuple(cols)]
+    invariant = (summary.get("sections", {}).get("synthesis") or {}).get("method") == "invariant_set"
 
     def fmt(v, f="{:.4g}"):
         return "-" if v is None else f.format(v)
 
     def both(fn):
-        return [fn(summary["methods"][m]) for m in METHODS]
+        return [fn(summary["methods"][m]) for m in cols]
 
     gap_term = any(summary["methods"][m]["gamma"].get("lipschitz_term") == "gap" for m in METHODS)
     for i, nm in enumerate(names):
         rows.append((f"gamma max [{nm}]" + (" (gap's term)" if gap_term else ""),
-                     *both(lambda e: fmt(e["gamma"]["max"][i]))))
+                     *both(lambda e: fmt(e["gamma"]["max"][i]) if isinstance(e.get("gamma"), dict) else "-")))
     if gap_term:  # the same certificates with the paper's Lipschitz term, side by side
         for i, nm in enumerate(names):
             rows.append((f"gamma max [{nm}] (paper's term)",
-                         *both(lambda e: fmt(e["gamma"].get("max_paper_term", [None] * len(names))[i]))))
+                         *both(lambda e: fmt(e["gamma"].get("max_paper_term", [None] * len(names))[i])
+                               if isinstance(e.get("gamma"), dict) else "-")))
     for i, nm in enumerate(names):
-        rows.append((f"confidence [{nm}]", *both(lambda e: fmt(e["confidence_per_dim"][i]))))
+        rows.append((f"confidence [{nm}]", *both(lambda e: fmt((e.get("confidence_per_dim") or [None] * len(names))[i]))))
     rows.append(("joint conf. pointwise", *both(lambda e: fmt(e.get("confidence_joint_pointwise")))))
     rows.append(("joint conf. all rows", *both(lambda e: _simultaneous(e.get("confidence_joint_simultaneous")))))
-    rows.append(("audit pass rate (joint)", *both(lambda e: fmt(e["audit_pass_rate_joint"], "{:.3f}"))))
-    rows.append(("audit violated (joint)", *both(lambda e: fmt(e["audit_violated_joint"], "{:.3f}"))))
-    rows.append(("winning cells", *both(lambda e: f"{e['winning_cells']:,}")))
-    rows.append(("failures", *both(lambda e: f"{e['failures']} / {e['n_rollouts']}" if "failures" in e
-                                   else e["rollouts"].get("skipped", "-"))))
-    if any("per_run_empirical" in summary["methods"][m] for m in METHODS):
+    rows.append(("audit pass rate (joint)", *both(lambda e: fmt(e.get("audit_pass_rate_joint"), "{:.3f}"))))
+    rows.append(("audit violated (joint)", *both(lambda e: fmt(e.get("audit_violated_joint"), "{:.3f}"))))
+    if invariant:
+        def proved(e):
+            return "yes" if e["winning_cells"] else "no"
+        rows.append(("invariant set proved", *both(proved)))
+        rows.append(("gap over E [max]", *both(lambda e: fmt(max(e["synthesis"].get("verification", {}).get("w_max", [0]))))))
+        rows.append(("gap margin s (invariant if <= s x gap)",
+                     *both(lambda e: e["synthesis"].get("gap_scale_text", "-") if e["winning_cells"] else
+                           ("-" if e["synthesis"].get("gap_scale") is None else f"{e['synthesis']['gap_scale']:.3g} < 1"))))
+        rows.append(("E half-widths", *both(lambda e: str(e["synthesis"].get("half_widths")) if e["winning_cells"]
+                                            else "-")))
+        rows.append(("x0 in E", *both(lambda e: str(e["synthesis"].get("x0_inside", "-")) if e["winning_cells"]
+                                      else "-")))
+    else:
+        rows.append(("winning cells", *both(lambda e: f"{e['winning_cells']:,}")))
+    rows.append(("failures" + (" from x0" if invariant else ""),
+                 *both(lambda e: f"{e['failures']} / {e['n_rollouts']}" if "failures" in e else
+                       ("no set (reason below)" if invariant and not e["winning_cells"] else
+                        e["rollouts"].get("skipped", "-")[:40]))))
+    if any("rollouts_in_set" in summary["methods"][m] for m in cols):
+        rows.append(("failures from states in E", *both(
+            lambda e: f"{e['rollouts_in_set']['failures']} / {e['rollouts_in_set']['n_rollouts']} "
+                      f"({e['rollouts_in_set']['states']} states)" if "rollouts_in_set" in e else "-")))
+    if any("per_run_empirical" in summary["methods"][m] for m in cols):
         def pe(e):
             r = e.get("per_run_empirical")
             return "-" if r is None else f"{r['p_emp']:.4f} +- {r['se']:.4f}"
@@ -387,16 +448,22 @@ def comparison_table(summary: dict) -> str:
                                                   else f"{e['per_run_empirical']['p_cert']:.4f}"))))
     rows.append(("mean map satisfies (guarantee)", *both(lambda e: str(e.get("mean_map_satisfies", "-")))))
     rows.append(("rollout average satisfies", *both(lambda e: str(e.get("rollout_average_satisfies", "-")))))
-    if any("closest_approach" in summary["methods"][m] for m in METHODS):
+    if any("closest_approach" in summary["methods"][m] for m in cols):
         def ca(key):
             return lambda e: fmt(e.get("closest_approach", {}).get(key), "{:.3f}")
         rows.append(("closest approach min [m]", *both(ca("min"))))
         rows.append(("closest approach 5 % quantile [m]", *both(ca("q05"))))
         rows.append(("closest approach, mean map [m]", *both(ca("mean_map"))))
-    w = [max(len(str(r[c])) for r in rows) for c in range(3)]
-    lines = ["  ".join(str(r[c]).ljust(w[c]) if c == 0 else str(r[c]).rjust(w[c]) for c in range(3)) for r in rows]
+    nc = len(rows[0])
+    w = [max(len(str(r[c])) for r in rows) for c in range(nc)]
+    lines = ["  ".join(str(r[c]).ljust(w[c]) if c == 0 else str(r[c]).rjust(w[c]) for c in range(nc)) for r in rows]
     lines.insert(1, "-" * len(lines[0]))
     warnings = [(m, w) for m in METHODS for w in summary["methods"][m].get("warnings", [])]
+    if invariant:
+        for m in cols:
+            d = summary["methods"][m]["synthesis"].get("diagnosis")
+            if d:
+                lines += ["", f"{m}: {d}"]
     if warnings:
         lines.append("")
         lines += [f"warning ({m} certificate): {w}" for m, w in warnings]

@@ -170,13 +170,26 @@ class AuditSection(Section):
 
 
 class SynthesisSection(Section):
-    """``[synthesis]``: the specification, grid cell widths eta, and the input hold."""
+    """``[synthesis]``: the specification, grid cell widths eta, and the input hold; with
+    ``method = "invariant_set"`` a linear feedback on a proved ellipsoid instead of the grid
+    (equilibrium ``x_star``/``u_star`` and gain ``K`` optional, LQR weights ``lqr_q``/``lqr_r``,
+    cvxpy ``solver``, ``set_states`` states drawn in E for extra rollouts, ``nominal`` also
+    synthesizes on the nominal model without a gap; docs/synthesis.md)."""
     spec: Literal["invariance", "reach_avoid"] = "invariance"
+    method: Literal["grid", "invariant_set"] = "grid"
     eta: Optional[Union[Positive, list[Positive]]] = None
     hold: Int1 = 1
     safe_lo: Optional[list[Finite]] = None
     safe_hi: Optional[list[Finite]] = None
     map: Optional[str] = None
+    x_star: Optional[list[Finite]] = None
+    u_star: Optional[list[Finite]] = None
+    K: Optional[list[list[Finite]]] = None
+    lqr_q: Optional[list[Positive]] = None
+    lqr_r: Optional[list[Positive]] = None
+    solver: Literal["CLARABEL", "SCS"] = "CLARABEL"
+    set_states: Int0 = 20
+    nominal: bool = True
 
 
 class RolloutSection(Section):

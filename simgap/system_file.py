@@ -151,14 +151,8 @@ def system_from_spec(spec: dict, where: str = "embedded system file") -> System:
         if d in states or d in inputs or d in params:
             raise SimgapError(f"{where}: definition {d!r} has the name of a state, input or parameter")
     K = len(defs)
-    # columns of z: x (n), u (m), dt, definitions (K); parameters get columns after z and are
-    # folded into constants
     wz = n + m + 1 + K
-    variables = expr.VarSpace(dict({s: i for i, s in enumerate(states)},
-                                   **{s: n + j for j, s in enumerate(inputs)}, dt=n + m,
-                                   **{d: n + m + 1 + k for k, d in enumerate(defs)},
-                                   **{p: wz + j for j, p in enumerate(params)}), wz)
-    consts = {wz + j: v for j, v in enumerate(params.values())}
+    variables, consts = _variable_space(states, inputs, list(defs), params)
     dyn = spec.get("dynamics")
     if not isinstance(dyn, dict):
         raise SimgapError(f"{where}: needs a [dynamics] table with kind and one formula per state")
@@ -229,6 +223,50 @@ def units(system: System) -> dict:
     """Units the system file gives per variable name ({} if none)."""
     spec = system.params.get("_system_file")
     return dict(spec.get("units", {})) if is_spec(spec) else {}
+
+
+def _variable_space(states, inputs, defs, params):
+    """Columns of z: x (n), u (m), dt, definitions (K); parameters get columns after z and are
+    folded into constants. Returns (VarSpace, {column: parameter value})."""
+    n, m, wz = len(states), len(inputs), len(states) + len(inputs) + 1 + len(defs)
+    variables = expr.VarSpace(dict({s: i for i, s in enumerate(states)},
+                                   **{s: n + j for j, s in enumerate(inputs)}, dt=n + m,
+                                   **{d: n + m + 1 + k for k, d in enumerate(defs)},
+                                   **{p: wz + j for j, p in enumerate(params)}), wz)
+    return variables, {wz + j: v for j, v in enumerate(params.values())}
+
+
+def model_trees(system: System) -> dict:
+    """The expression trees of a system-file model, for interval analysis of its map.
+
+    Returns {"trees": one tree per state over z = [x (n), u (m), dt] (parameters folded in,
+    ``[definitions]`` substituted), "continuous": bool, "substeps": int, "tau": base period}.
+    The model was checked when it was built; a system that is not a plain system file (a
+    built-in, or a refined system whose effects are not expressions of this table) is refused.
+    """
+    spec = system.params.get("_system_file")
+    if not is_spec(spec) or "_refined_json" in system.params:
+        raise SimgapError(f"system {system.name!r} is not a system file (a built-in, a plugin or a refined system): "
+                          f"its formulas are not available for interval analysis")
+    states, inputs = list(spec["states"]), list(spec["inputs"])
+    defs = dict(spec.get("definitions", {}))
+    params = _params(spec.get("params", {}), "system file")
+    variables, consts = _variable_space(states, inputs, list(defs), params)
+    n, m = len(states), len(inputs)
+    dyn = spec["dynamics"]
+    continuous = dyn["kind"] == "continuous"
+    parse = lambda text, what: _formula(text, variables, consts, what, allow_dt=not continuous,
+                                        uses=range(n + m + 1 + len(defs))).tree
+    first = n + m + 1
+    def_trees = {first + k: parse(t, f"definitions.{d}") for k, (d, t) in enumerate(defs.items())}
+
+    def inline(t):
+        if t[0] == "var":
+            return inline(def_trees[t[1]]) if t[1] in def_trees else t
+        return (t[0],) + tuple(inline(c) if isinstance(c, tuple) else c for c in t[1:])
+    trees = [inline(parse(dyn[s], f"dynamics.{s}")) for s in states]
+    return {"trees": trees, "continuous": continuous, "substeps": int(dyn.get("substeps", 10)) if continuous else 1,
+            "tau": float(spec["tau"])}
 
 
 # ----- checks of the table --------------------------------------------------------------------

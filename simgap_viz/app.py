@@ -320,8 +320,11 @@ class SimgapApp:
             self.settings = st.replace(use_gap=True, x0=None if x0 is None else tuple(float(v) for v in x0),
                                        n_rollouts=int(ro.get("n", st.n_rollouts)),
                                        horizon=int(m.rollouts.horizon) if m.rollouts is not None else st.horizon,
-                                       rollout_seed=int(ro.get("seed", 11)), hold=int(m.synthesis.controller.hold),
-                                       eta=tuple(float(e) for e in m.synthesis.controller.grid.eta))
+                                       rollout_seed=int(ro.get("seed", 11)),
+                                       # an invariant-set run has no grid controller to take them from
+                                       hold=int(m.synthesis.controller.hold) if m.synthesis is not None else st.hold,
+                                       eta=tuple(float(e) for e in m.synthesis.controller.grid.eta)
+                                       if m.synthesis is not None else st.eta)
         self.set_dataset(m.dataset)
         with self.lock:
             for stage, res in (("certify", m.certificate), ("synthesize", m.synthesis), ("rollout", m.rollouts)):
@@ -336,7 +339,8 @@ class SimgapApp:
         self._show_results()
         self.panels["perrun"].show()
         self.set_status(f"run **{run.path.name}** ({method}): data K = {m.dataset.K}, "
-                        f"{m.synthesis.controller.size:,} winning cells"
+                        + (f"{m.synthesis.controller.size:,} winning cells" if m.synthesis is not None
+                           else "invariant-set run (see the summary; E is not drawn here yet)")
                         + (f", {m.rollouts.n_rollouts} rollouts" if m.rollouts is not None else ""))
 
     def _show_results(self) -> None:

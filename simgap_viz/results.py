@@ -130,10 +130,14 @@ def load_run(path) -> RunResults:
         if ap.is_file():
             audit = read_json(ap, "audit report")
         cp = _inside(root, f"controller_{m}.npz")
-        if not cp.is_file():
+        invariant = (summary.get("sections", {}).get("synthesis") or {}).get("method") == "invariant_set"
+        if not cp.is_file() and not (invariant and not summary["methods"][m].get("winning_cells")):
             raise SimgapError(f"results folder {root}: {cp.name} is missing")
-        ctrl = Controller.load(cp, system=exp.system)
-        syn = SynthesisResult(ctrl, dict(ctrl.meta.get("stats", {})))
+        syn = None  # an invariant-set run: no set proved (no file), or E, which the views do not draw yet
+        if cp.is_file():
+            ctrl = Controller.load(cp, system=exp.system)
+            if not getattr(ctrl, "continuous_input", False):
+                syn = SynthesisResult(ctrl, dict(ctrl.meta.get("stats", {})))
         rp = _inside(root, f"rollouts_{m}.npz")
         ro = load_rollout(rp) if rp.is_file() else None
         # each file's own checks ran first (their messages are the more specific); then: is it

@@ -91,6 +91,10 @@ def add_parser(subparsers) -> None:
     p.add_argument("--out", required=True, help="controller file to write (.npz)")
     p.add_argument("--x0", default=None, help="initial state to record and check (default: the map's)")
     p.add_argument("--json", default=None, help="also write the statistics as JSON here")
+    p.add_argument("--method", choices=["grid", "invariant_set"], default=None,
+                   help="grid: abstraction and game (default); invariant_set: a linear feedback on an ellipsoid "
+                        "proved invariant under the gap (invariance specs; docs/synthesis.md). Default: the "
+                        "experiment's [synthesis] method, else grid")
     p.add_argument("--no-strict-domain", action="store_true",
                    help="let cells stick out of X by eta/2 (SCOTS's convention) instead of blocking them")
     p.set_defaults(func=run, outputs=("out", "json"), output_dirs=("store",))
@@ -209,6 +213,9 @@ def run(args) -> int:
     if args.x0 is not None:
         x0 = _floats(args.x0, "--x0")
         system.check_states(x0[None], what="--x0")
+    method = args.method or syn.get("method", "grid")
+    if method == "invariant_set":
+        return _invariant_set(args, system, spec, gap, syn, x0)
     if args.eta is not None:
         eta = _floats(args.eta, "--eta")
     elif "eta" in syn:
@@ -244,6 +251,26 @@ def run(args) -> int:
             print(f"result: x0 {np.asarray(x0).tolist()} is OUTSIDE the winning domain: the controller is written "
                   "(its domain can be looked at) but rollouts from x0 are refused (exit status 3)")
             return X0_OUTSIDE
+    return 0
+
+
+def _invariant_set(args, system, spec, gap, syn, x0) -> int:
+    """--method invariant_set: design, prove, write (nothing written when no set is proved)."""
+    from .. import invariant_stage
+    if args.hold not in (None, 1):
+        raise SimgapError("--method invariant_set applies u(x) every period: --hold must be 1")
+    invariant_stage.check_section(system, dict(syn, hold=1), spec)
+    res = invariant_stage.synthesize(system, spec, gap, syn, x0=x0)
+    print(res.summary())
+    if args.json:
+        _write_json(args.json, res.stats)
+    if res.empty:
+        print("result: no invariant set proved, no controller written")
+        return 1
+    res.controller.save(args.out)
+    print(f"wrote         {args.out}")
+    if x0 is not None and not res.controller.winning(x0[None])[0]:
+        print(f"warning: x0 {np.asarray(x0).tolist()} is outside E; rollouts from it will be refused")
     return 0
 
 

@@ -117,6 +117,8 @@ def _run(controller, sim, spec: Spec, x0: np.ndarray, R: int, T: int, hold: int,
 
     robot_steps = 0
     t_sim = t_ctrl = 0.0
+    continuous = bool(getattr(controller, "continuous_input", False))
+    cur_u = np.zeros((R, system.m))  # the held input values (a continuous-input controller)
     for t in range(T):
         act = np.flatnonzero(alive)
         if act.size == 0:
@@ -127,6 +129,7 @@ def _run(controller, sim, spec: Spec, x0: np.ndarray, R: int, T: int, hold: int,
                 q = np.asarray(controller.input_index(x[act]), dtype=np.int64).reshape(-1)
             else:
                 q = np.array([int(np.asarray(controller.input_index(x[i:i + 1])).reshape(-1)[0]) for i in act])
+            uq = controller.input(x[act], strict=False) if continuous else None
             t_ctrl += time.perf_counter() - c0
             out = q < 0
             if out.any():
@@ -136,16 +139,21 @@ def _run(controller, sim, spec: Spec, x0: np.ndarray, R: int, T: int, hold: int,
                     outcome[lost] = LEFT_DOMAIN
                     alive[lost] = False
                     act, q = act[~out], q[~out]
+                    uq = uq[~out] if continuous else None
                     if act.size == 0:
                         break
                 else:  # fallback: keep the previous input (x0 is in the domain, so one exists)
                     q[out] = cur[lost]
+                    if continuous:
+                        uq[out] = cur_u[lost]
             cur[act] = q
+            if continuous:
+                cur_u[act] = uq
         # noise for all R rows, so rollout i's draws do not depend on the others
         noise = sim.draw_noise(R, rng)
         if episode:
             noise = sim.with_episode(noise, episode)
-        u = U[cur[act]]
+        u = cur_u[act] if continuous else U[cur[act]]
         s0 = time.perf_counter()
         if batched:
             xn = sim.step_with_noise(x[act], u, {k: v[act] for k, v in noise.items()})
@@ -223,7 +231,9 @@ def rollout(controller, simulator, x0=None, n_rollouts: int = 1000, horizon: Opt
     ----------
     controller
         Anything with ``input_index(x (B,n)) -> (B,) int`` (row of ``controller.system.inputs``,
-        -1 outside the winning domain), ``system`` and ``spec``; optional ``hold``.
+        -1 outside the winning domain), ``system`` and ``spec``; optional ``hold``. A controller
+        with ``continuous_input = True`` (the invariant-set controller) gives its input values by
+        ``input(x, strict=False)``; its ``input_index`` is 0 inside its set and -1 outside.
     simulator
         A :class:`~simgap.simulators.base.Simulator` (``draw_noise``, ``step_with_noise``, ``system``).
     x0 : (n,) array

@@ -18,7 +18,9 @@ mean (circular mean for angles), the reported trajectory. Two standard errors pe
 
 * ``std_error`` (propagated): in the same simulator calls, G = min(10, runs // 2) independent
   repetitions of the whole sequence with runs // G runs each, every one propagated from its OWN
-  mean m^(g)_k with the same inputs u(m_k); std_g(m^(g)_t) / sqrt(G) estimates the spread of m_t
+  mean m^(g)_k with the same inputs u(m_k) (a continuous-input controller: with its own input
+  u(m^(g)_k), since open-loop repetitions of an unstable plant drift apart exponentially);
+  std_g(m^(g)_t) / sqrt(G) estimates the spread of m_t
   over repetitions of the sequence (the variance of a mean of runs // G runs is G times that of
   runs). Each repetition carries its own estimation error from step to step, so this includes
   the error propagated through the dynamics. It does not cover the bias of pushing a
@@ -131,6 +133,8 @@ def mean_map(controller, sim, spec: Spec, x0: np.ndarray, runs: int, T: int, hol
     reps = np.repeat(m[None], G, axis=0)                    # m^(g): each repetition's own mean
     reach_avoid = spec.kind == "reach_avoid"
     t, cur, ltime, steps = 0, -1, -1, 0
+    continuous = bool(getattr(controller, "continuous_input", False))
+    u_cur = None
     outcome = "success" if (not reach_avoid or spec.reached(m[None])[0]) else "timeout"
     done = reach_avoid and outcome == "success"
     B = runs + G * rg
@@ -142,9 +146,19 @@ def mean_map(controller, sim, spec: Spec, x0: np.ndarray, runs: int, T: int, hol
                 outcome, done = "left_domain", True
                 break
             q = cur
+        else:
+            # a continuous-input controller (invariant set): its value at the mean, held until the next query
+            u_cur = controller.input(m[None], strict=False)[0] if continuous else U[q]
         cur = q
         X = np.concatenate([np.repeat(m[None], runs, axis=0), np.repeat(reps, rg, axis=0)])
-        u = np.repeat(U[q][None], B, axis=0)
+        u = np.repeat(u_cur[None], B, axis=0)
+        if continuous:
+            # each repetition's own mean gets its own feedback value: held at u(m), the repetitions of an
+            # open-loop unstable plant would drift apart exponentially (their spread is what the standard
+            # error measures); outside the set a repetition keeps u(m)
+            ur = controller.input(reps, strict=False)
+            ur = np.where(np.isfinite(ur), ur, u_cur)
+            u[runs:] = np.repeat(ur, rg, axis=0)
         for _ in range(min(hold, T - t)):
             X = np.asarray(sim.step_with_noise(X, u, sim.draw_noise(B, rng)), dtype=float)
             if not np.all(np.isfinite(X)):

@@ -47,7 +47,8 @@ class RolloutResult:
     violation_kind : (R,) int8   code into VIOLATION_KINDS (none, obstacle, outside_X, unsafe)
     reach_time : (R,)            step of reaching the target, -1 if never (reach-avoid)
     left_domain_time : (R,)      first query outside the winning domain, -1 if never
-    input_index : (R, T) int32   applied input (row of system.inputs), -1 after stopping
+    input_index : (R, T) int32   applied input (row of system.inputs), -1 after stopping (an
+                                 invariant-set controller: 0 = its feedback law u* + K (x - x*))
     mean_trajectory : (T+1, n)   the rollout average: mean over the R rollouts (circular mean
                                  for angles); NOT the sequence the guarantee is about
     nominal_trajectory : (T+1, n) the nominal model's closed loop (same padding rule)

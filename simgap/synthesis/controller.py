@@ -189,15 +189,20 @@ class Controller:
         regular_file(path, "controller file")
         try:
             with np.load(path, allow_pickle=False) as z:
-                arrays = {k: z[k] for k in ("steps", "valid", "chosen", "target", "inputs", "meta")}
+                meta = loads_json(str(z["meta"]), f"controller file {str(path)!r}: its metadata")
+                if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+                    raise SimgapError(f"controller file {str(path)!r} is not a simgap controller (format tag)")
+                if meta.get("version") != VERSION:
+                    raise SimgapError(f"controller file version {meta.get('version')} is not supported (need "
+                                      f"{VERSION}: files without a content digest are refused; synthesize again)")
+                if meta.get("kind") == "invariant_set":  # u = u* + K (x - x*) on an ellipsoid
+                    from .ellipsoid_controller import EllipsoidController
+                    return EllipsoidController.from_arrays(path, z, meta, system)
+                arrays = {k: z[k] for k in ("steps", "valid", "chosen", "target", "inputs")}
+        except SimgapError:
+            raise
         except (*BAD_FILE_ERRORS, KeyError) as e:
             raise SimgapError(f"controller file {str(path)!r} is not a simgap controller ({e})") from None
-        meta = loads_json(str(arrays.pop("meta")), f"controller file {str(path)!r}: its metadata")
-        if not isinstance(meta, dict) or meta.get("format") != FORMAT:
-            raise SimgapError(f"controller file {str(path)!r} is not a simgap controller (format tag)")
-        if meta.get("version") != VERSION:
-            raise SimgapError(f"controller file version {meta.get('version')} is not supported (need {VERSION}: "
-                              f"files without a content digest are refused; synthesize again)")
         want = meta.get("digest")
         have = fileio.content_digest({k: v for k, v in meta.items() if k != "digest"}, arrays)
         if want != have:

@@ -1,0 +1,154 @@
+"""The invariant-set controller: u(x) = u* + K (x - x*) on E = {x : (x - x*)^T P (x - x*) <= 1}.
+
+It answers the grid :class:`~simgap.synthesis.controller.Controller`'s queries (``input``,
+``winning``, ``check_winning``, ``size``, ``describe``, ``system``, ``spec``, ``hold``, ``x0``)
+so that rollouts, the mean map and ``simgap run`` use it unchanged; ``continuous_input`` tells
+them that the input is a value, not a row of ``system.inputs`` (``input_index`` is -1 outside E
+and 0 inside: "the feedback law").
+
+File format (``.npz``, no pickle, the grid controller's conventions): arrays ``K`` (m, n),
+``P`` (n, n), ``x_star`` (n,), ``u_star`` (m,), and ``meta`` (a JSON string: format
+``simgap-controller``, version, kind ``invariant_set``, system.describe(), spec.to_dict(), the
+gap's provenance (a certificate's digest), the design and proof statistics, the margins, and
+``digest`` = sha256 of the meta without it and of every array). :meth:`load` recomputes the
+digest and refuses an edited file.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from .. import fileio
+from ..errors import BAD_FILE_ERRORS, SimgapError
+from ..systems import System
+from .spec import Spec
+
+KIND = "invariant_set"
+ARRAYS = ("K", "P", "x_star", "u_star")
+
+
+class EllipsoidController:
+    """A linear feedback on a proved invariant ellipsoid (module docstring)."""
+
+    continuous_input = True
+    kind = KIND
+
+    def __init__(self, x_star, u_star, K, P, system: Optional[System] = None, spec: Optional[Spec] = None,
+                 meta: Optional[dict] = None, hold: int = 1):
+        self.x_star = np.asarray(x_star, dtype=float).ravel()
+        self.u_star = np.asarray(u_star, dtype=float).ravel()
+        n, m = self.x_star.size, self.u_star.size
+        self.K = np.asarray(K, dtype=float).reshape(m, n)
+        self.P = np.asarray(P, dtype=float).reshape(n, n)
+        self.system, self.spec, self.hold = system, spec, int(hold)
+        self.meta = dict(meta or {})
+        x0 = self.meta.get("x0")
+        self.x0 = None if x0 is None else np.asarray(x0, dtype=float)
+
+    # ----- the set ---------------------------------------------------------------------
+    @property
+    def half_widths(self) -> np.ndarray:
+        """(n,) half-widths of E's bounding box: sqrt(diag P^-1)."""
+        return np.sqrt(np.diag(np.linalg.inv(self.P)))
+
+    @property
+    def size(self) -> int:
+        """1: one set (the grid controller counts winning cells)."""
+        return 1
+
+    size_with_target = size
+
+    def level(self, x) -> np.ndarray:
+        """(B,) (x - x*)^T P (x - x*): <= 1 inside E."""
+        e = np.atleast_2d(np.asarray(x, dtype=float)) - self.x_star
+        return np.einsum("bi,ij,bj->b", e, self.P, e)
+
+    def winning(self, x) -> np.ndarray:
+        """(B,) bool: x lies in E."""
+        return self.level(x) <= 1.0
+
+    def check_winning(self, x, what: str = "initial state") -> None:
+        """Raise SimgapError if any x (B, n) lies outside E, naming it."""
+        x = np.atleast_2d(np.asarray(x, dtype=float))
+        lv = self.level(x)
+        if np.any(lv > 1.0):
+            i = int(np.flatnonzero(lv > 1.0)[0])
+            raise SimgapError(f"{what} {x[i].tolist()} is outside the controller's invariant set E "
+                              f"((x - x*)^T P (x - x*) = {lv[i]:.4g} > 1; E's half-widths "
+                              f"{np.round(self.half_widths, 6).tolist()} around x* = {self.x_star.tolist()})")
+
+    # ----- inputs ----------------------------------------------------------------------
+    def input(self, x, strict: bool = True) -> np.ndarray:
+        """(B, m) u* + K (x - x*). Outside E: SimgapError with ``strict``, else NaN rows."""
+        x = np.atleast_2d(np.asarray(x, dtype=float))
+        if strict:
+            self.check_winning(x, "state")
+        u = self.u_star + (x - self.x_star) @ self.K.T
+        u[~self.winning(x)] = np.nan
+        return u
+
+    def input_index(self, x) -> np.ndarray:
+        """(B,) 0 inside E (the feedback law applies), -1 outside (the grid controller's 'no input')."""
+        return np.where(self.winning(x), 0, -1).astype(np.int64)
+
+    # ----- description -----------------------------------------------------------------
+    def describe(self) -> dict:
+        return {"kind": KIND, "n": int(self.x_star.size), "m": int(self.u_star.size), "hold": self.hold,
+                "x_star": self.x_star.tolist(), "u_star": self.u_star.tolist(),
+                "half_widths": self.half_widths.tolist(), "margins": self.meta.get("margins")}
+
+    def summary(self) -> str:
+        st = self.meta.get("stats", {})
+        return (f"invariant-set controller: u = u* + K (x - x*), K = {np.round(self.K, 4).tolist()}, "
+                f"x* = {self.x_star.tolist()}, u* = {self.u_star.tolist()}; E half-widths "
+                f"{np.round(self.half_widths, 6).tolist()}; margin: gamma x {st.get('gap_scale_text', '?')}")
+
+    # ----- files -----------------------------------------------------------------------
+    def save(self, path) -> Path:
+        """Write the controller as .npz (temp file, then rename)."""
+        from .controller import FORMAT, VERSION, _json_default
+        path = Path(path)
+        meta = dict(self.meta)
+        meta.update({"format": FORMAT, "version": VERSION, "kind": KIND, "hold": self.hold})
+        if self.system is not None:
+            meta["system"] = self.system.describe()
+        if self.spec is not None:
+            meta["spec"] = self.spec.to_dict()
+        meta.pop("digest", None)
+        meta = json.loads(json.dumps(meta, default=_json_default))
+        arrays = {"K": self.K, "P": self.P, "x_star": self.x_star, "u_star": self.u_star}
+        meta["digest"] = fileio.content_digest(meta, arrays)
+        (path.parent if str(path.parent) else Path(".")).mkdir(parents=True, exist_ok=True)
+        return fileio.savez(path, compressed=True, **arrays, meta=np.array(json.dumps(meta)))
+
+    @classmethod
+    def from_arrays(cls, path, z, meta: dict, system: Optional[System] = None) -> "EllipsoidController":
+        """Build from an open .npz whose meta says kind invariant_set (called by Controller.load)."""
+        try:
+            arrays = {k: np.asarray(z[k], dtype=float) for k in ARRAYS}
+        except (*BAD_FILE_ERRORS, KeyError) as e:
+            raise SimgapError(f"controller file {str(path)!r} is not an invariant-set controller ({e})") from None
+        want = meta.get("digest")
+        have = fileio.content_digest({k: v for k, v in meta.items() if k != "digest"}, arrays)
+        if want != have:
+            raise SimgapError(f"controller file {str(path)!r} was modified after it was written (refused): its "
+                              f"content digest is {have[:16]}... but the file records {str(want)[:16]}...")
+        K, P, xs, us = (arrays[k] for k in ARRAYS)
+        n, m = xs.size, us.size
+        if K.shape != (m, n) or P.shape != (n, n) or not all(np.all(np.isfinite(a)) for a in arrays.values()) \
+                or np.any(np.linalg.eigvalsh(0.5 * (P + P.T)) <= 0):
+            raise SimgapError(f"controller file {str(path)!r}: K, P, x_star, u_star do not fit together "
+                              f"(shapes {list(K.shape)}, {list(P.shape)}, {n}, {m}; P must be positive definite)")
+        spec = Spec.from_dict(meta["spec"]) if meta.get("spec") else None
+        if system is None and meta.get("system"):
+            from ..systems import ref_of_description, resolve_system
+            try:
+                system = resolve_system(ref_of_description(meta["system"]), int(meta["system"].get("steps", 1)),
+                                        paths=False)
+            except SimgapError:
+                system = None
+        return cls(xs, us, K, P, system=system, spec=spec, meta=meta, hold=meta.get("hold", 1))

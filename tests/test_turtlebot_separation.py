@@ -171,3 +171,25 @@ def test_table_separation_rule_and_figure_from_a_fake_table(sep, tmp_path):
     assert sep.main(["--out", str(out), "--table-only"]) == 0
     assert json.loads((out / sep.TABLE).read_text())["rows"] == json.loads(json.dumps(table["rows"]))
     assert all((out / f"separation.{ext}").stat().st_size > 10_000 for ext in ("png", "pdf"))
+
+
+def test_readme_numbers_puts_the_scan_table_between_the_markers(sep, tmp_path):
+    spec = importlib.util.spec_from_file_location("readme_numbers", ROOT / "bench" / "readme_numbers.py")
+    rn = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(rn)
+    readme = (ROOT / "README.md").read_text()
+    assert all(readme.count(m) == 1 for m in rn.SEPARATION_MARKERS)
+    out = tmp_path / "scan"
+    _write_point(sep, out, _config(sep, level=0.5), det=(True, 44), sto=(True, 0))
+    table = sep.build_table(out, [])
+    new, diffs = rn.apply_separation(readme, table)
+    assert len(diffs) == 1 and "| 0.5 | 100 | gap | 44/1000 | yes | 0/1000 |" in new
+    assert new.replace(sep.markdown_table(table), "").count("44/1000") == 0  # the table went in once
+    assert rn.apply_separation(new, table) == (new, [])  # in step: nothing to change
+    # the command line: --check exits 1 while the README lags, 0 after --write
+    (out / sep.TABLE).write_text(json.dumps(table))
+    rd = tmp_path / "README.md"
+    rd.write_text(readme)
+    assert rn.main([str(out), "--readme", str(rd), "--check"]) == 1
+    assert rn.main([str(out), "--readme", str(rd), "--write"]) == 0 and rd.read_text() == new
+    assert rn.main([str(out), "--readme", str(rd), "--check"]) == 0

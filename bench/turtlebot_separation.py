@@ -79,8 +79,9 @@ def noise_at(level: float, base: dict, stress: dict) -> tuple:
     return noise, randomize
 
 
-def experiments(level: float, n1hat: int) -> dict:
-    """The point's experiment per gap term (the gazebo profile with this noise and N1hat)."""
+def experiments(level: float, n1hat: int, audit: dict | None = None, lhat_pairs: int | None = None) -> dict:
+    """The point's experiment per gap term (the gazebo profile with this noise and N1hat; ``audit``
+    overrides keys of its [audit] section, ``lhat_pairs`` its [certify] lhat_pairs: reduced runs)."""
     from simgap.config import load_experiment
 
     exp = load_experiment(EXPERIMENT, BASE)
@@ -92,6 +93,9 @@ def experiments(level: float, n1hat: int) -> dict:
     for term in TERMS:
         sections = dict(exp.sections)
         sections["certify"] = {**exp.section("certify"), "lipschitz_term": term}
+        if lhat_pairs is not None:
+            sections["certify"]["lhat_pairs"] = int(lhat_pairs)
+        sections["audit"] = {**exp.section("audit"), **(audit or {})}
         out[term] = dataclasses.replace(exp, sections=sections)
     return out
 
@@ -100,7 +104,7 @@ def point_config(level: float, n1hat: int, rollouts: int, exps: dict) -> dict:
     """What identifies a point: its results are reused only for exactly this configuration."""
     e = exps["paper"]
     return {"level": float(level), "n1hat": int(n1hat), "rollouts": int(rollouts),
-            "simulator": json.loads(json.dumps(e.simulator.to_dict())),
+            "simulator": json.loads(json.dumps(e.simulator.to_dict())), "audit": e.section("audit"),
             "certify": {t: json.loads(json.dumps(exps[t].section("certify"))) for t in TERMS}}
 
 
@@ -131,6 +135,7 @@ def finished(folder: Path, config: dict, term: str) -> bool:
     return (all(isinstance(s["methods"].get(m), dict) for m in METHODS)
             and s.get("simulator") == config["simulator"]
             and (s.get("sections") or {}).get("certify") == config["certify"][term]
+            and (s.get("sections") or {}).get("audit") == config["audit"]
             and (s.get("collect") or {}).get("n_runs") == config["n1hat"]
             and s.get("n_rollouts") == config["rollouts"])
 
@@ -347,15 +352,22 @@ def main(argv=None) -> int:
                     help="runs per (heading, input) pair; 400 and 1000 on request (default 100)")
     ap.add_argument("--rollouts", type=int, default=1000, help="closed-loop runs per controller (default 1000)")
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--audit-points", type=int, help="audit points per certificate (default: the gazebo profile's 100)")
+    ap.add_argument("--audit-runs", type=int, help="simulator runs per audit point (default: the profile's 200)")
+    ap.add_argument("--lhat-pairs", type=int, help="pairs for Lhat_fhat (default: the profile's 300); reduced runs only")
     ap.add_argument("--max-hours", type=float, default=2.0, help="points projected longer are not run (default 2)")
     ap.add_argument("--table-only", action="store_true", help="only rebuild the table and figure from --out")
     ap.add_argument("--no-figure", action="store_true")
     a = ap.parse_args(argv)
     bad = [lv for lv in a.levels if not (math.isfinite(lv) and 0 <= lv <= 5)]
-    if bad or any(n < 2 for n in a.n1hat) or a.rollouts < 1 or a.max_hours <= 0:
+    small = [f"--{k.replace('_', '-')} {v}" for k, v in (("audit_points", a.audit_points), ("audit_runs", a.audit_runs),
+                                                          ("lhat_pairs", a.lhat_pairs)) if v is not None and v < 2]
+    if bad or any(n < 2 for n in a.n1hat) or a.rollouts < 1 or a.max_hours <= 0 or small:
         print(f"error: need noise levels in [0, 5] (got {bad or a.levels}), N1hat >= 2 (got {a.n1hat}), "
-              f"--rollouts >= 1 (got {a.rollouts}), --max-hours > 0 (got {a.max_hours})", file=sys.stderr)
+              f"--rollouts >= 1 (got {a.rollouts}), --max-hours > 0 (got {a.max_hours}), audit points, runs "
+              f"and Lhat pairs >= 2 (got {', '.join(small) or 'fine'})", file=sys.stderr)
         return 2
+    audit = {k: v for k, v in (("points", a.audit_points), ("runs", a.audit_runs)) if v is not None}
     out = Path(a.out)
     if a.table_only:
         if not out.is_dir():
@@ -372,7 +384,7 @@ def main(argv=None) -> int:
     points = [(lv, n) for n in sorted(set(a.n1hat)) for lv in sorted(set(a.levels))]
     plan = []
     for lv, n in points:
-        exps = experiments(lv, n)
+        exps = experiments(lv, n, audit, a.lhat_pairs)
         cfg = point_config(lv, n, a.rollouts, exps)
         folder = out / point_name(lv, n)
         left = [t for t in TERMS if not finished(folder / t, cfg, t)]
@@ -381,7 +393,7 @@ def main(argv=None) -> int:
     rate, stages, how = calibration(out, n_pairs)
     total = sum(project_seconds(n_pairs, n, a.rollouts, len(left), "paper" in left, rate, stages)
                 for lv, n, _, _, _, left in plan)
-    print(f"scan: {len(points)} points ({', '.join(f'{lv:g}' for lv in sorted(set(a.levels)))} x N1hat "
+    print(f"scan: {len(points)} point(s) ({', '.join(f'{lv:g}' for lv in sorted(set(a.levels)))} x N1hat "
           f"{sorted(set(a.n1hat))}), {sum(not p[5] for p in plan)} finished; projected wall time of the rest "
           f"{total / 3600:.2f} h ({how})", flush=True)
     projections = []

@@ -54,7 +54,8 @@ def _summary(cfg, term, det=(True, 44), sto=(True, 0), hashes=("hs", "hd")):
         else:
             e["rollouts"] = {"skipped": "x0 is outside the winning domain"}
         return e
-    return {"run_id": "r", "simulator": cfg["simulator"], "sections": {"certify": cfg["certify"][term]},
+    return {"run_id": "r", "simulator": cfg["simulator"],
+            "sections": {"certify": cfg["certify"][term], "audit": cfg["audit"]},
             "collect": {"n_runs": cfg["n1hat"]}, "n_rollouts": cfg["rollouts"],
             "seconds": {"collect/stochastic": 120.0, "audit/stochastic": 30.0},
             "stores_from": None if term == "paper" else "x",
@@ -77,7 +78,11 @@ def test_a_point_is_finished_only_for_its_own_configuration(sep, tmp_path):
     assert sep.finished(folder / "paper", cfg, "paper") and sep.finished(folder / "gap", cfg, "gap")
     # the paper term's summary is not the gap term's (its certify section differs)
     assert not sep.finished(folder / "paper", cfg, "gap")
-    for other in (_config(sep, level=0.25), _config(sep, n1hat=400), _config(sep, rollouts=200)):
+    reduced = sep.point_config(0.0, 100, 1000, sep.experiments(0.0, 100, {"points": 20}))
+    assert reduced["audit"]["points"] == 20 and reduced["audit"]["runs"] == cfg["audit"]["runs"]
+    fewer_lhat = sep.point_config(0.0, 100, 1000, sep.experiments(0.0, 100, lhat_pairs=30))
+    assert fewer_lhat["certify"]["gap"]["lhat_pairs"] == 30
+    for other in (_config(sep, level=0.25), _config(sep, n1hat=400), _config(sep, rollouts=200), reduced, fewer_lhat):
         assert not sep.finished(folder / "paper", other, "paper")
     s = json.loads((folder / "gap" / "summary.json").read_text())
     # the gap term must have certified the paper term's data (one collection for both)
@@ -143,6 +148,8 @@ def test_bad_arguments_are_refused_by_name(sep, tmp_path, capsys):
     assert sep.main(["--out", str(tmp_path / "o"), "--levels", "-1"]) == 2
     assert "noise levels" in capsys.readouterr().err
     assert sep.main(["--out", str(tmp_path / "o"), "--n1hat", "1"]) == 2
+    assert sep.main(["--out", str(tmp_path / "o"), "--audit-points", "0"]) == 2
+    assert "--audit-points 0" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
     assert sep.main(["--out", str(tmp_path / "none"), "--table-only"]) == 2
 

@@ -140,11 +140,21 @@ def finished(folder: Path, config: dict, term: str) -> bool:
             and s.get("n_rollouts") == config["rollouts"])
 
 
-def project_seconds(n_pairs: int, n1hat: int, rollouts: int, terms_left: int, collect_left: bool,
+def collected(store: Path) -> float:
+    """Share of a store's chunks already on disk (0 without a readable manifest): for projections only."""
+    m = read_json(Path(store) / "manifest.json")
+    try:
+        n = int(m["config"]["n_chunks"])
+    except (TypeError, KeyError, ValueError):
+        return 0.0
+    return min(1.0, len(list((Path(store) / "chunks").glob("c*.npz"))) / max(n, 1))
+
+
+def project_seconds(n_pairs: int, n1hat: int, rollouts: int, terms_left: int, collect_left: float,
                     rate: float, stages: float) -> float:
-    """Projected wall time of a point: its collection at ``rate`` runs/s plus ``stages`` s per term
-    (scaled with the rollouts, the largest part of them)."""
-    t = n_pairs * n1hat / rate if collect_left else 0.0
+    """Projected wall time of a point: the share ``collect_left`` of its collection at ``rate`` runs/s
+    plus ``stages`` s per term (scaled with the rollouts, the largest part of them)."""
+    t = collect_left * n_pairs * n1hat / rate
     return t + terms_left * stages * (0.4 + 0.6 * rollouts / 1000)
 
 
@@ -391,8 +401,11 @@ def main(argv=None) -> int:
         plan.append((lv, n, exps, cfg, folder, left))
     n_pairs = plan[0][2]["paper"].plan().n_pairs
     rate, stages, how = calibration(out, n_pairs)
-    total = sum(project_seconds(n_pairs, n, a.rollouts, len(left), "paper" in left, rate, stages)
-                for lv, n, _, _, _, left in plan)
+    def left_to_collect(folder, left):
+        return 1.0 - collected(folder / "paper" / "data") if "paper" in left else 0.0
+
+    total = sum(project_seconds(n_pairs, n, a.rollouts, len(left), left_to_collect(folder, left), rate, stages)
+                for lv, n, _, _, folder, left in plan)
     print(f"scan: {len(points)} point(s) ({', '.join(f'{lv:g}' for lv in sorted(set(a.levels)))} x N1hat "
           f"{sorted(set(a.n1hat))}), {sum(not p[5] for p in plan)} finished; projected wall time of the rest "
           f"{total / 3600:.2f} h ({how})", flush=True)
@@ -403,7 +416,7 @@ def main(argv=None) -> int:
             print(f"[{point_name(lv, n)}] finished earlier: skipped", flush=True)
             continue
         rate, stages, how = calibration(out, n_pairs)
-        sec = project_seconds(n_pairs, n, a.rollouts, len(left), "paper" in left, rate, stages)
+        sec = project_seconds(n_pairs, n, a.rollouts, len(left), left_to_collect(folder, left), rate, stages)
         if sec > a.max_hours * 3600:
             projections.append({"level": lv, "n1hat": n, "hours": round(sec / 3600, 2), "max_hours": a.max_hours,
                                 "how": how})

@@ -200,3 +200,17 @@ def test_readme_numbers_puts_the_scan_table_between_the_markers(sep, tmp_path):
     assert rn.main([str(out), "--readme", str(rd), "--check"]) == 1
     assert rn.main([str(out), "--readme", str(rd), "--write"]) == 0 and rd.read_text() == new
     assert rn.main([str(out), "--readme", str(rd), "--check"]) == 0
+
+
+def test_projection_counts_only_what_is_left(sep, tmp_path):
+    store = tmp_path / "data"
+    assert sep.collected(store) == 0.0  # nothing yet
+    (store / "chunks").mkdir(parents=True)
+    (store / "manifest.json").write_text(json.dumps({"config": {"n_chunks": 4}}))
+    for i in range(3):
+        (store / "chunks" / f"c{i:06d}.npz").write_bytes(b"x")
+    assert sep.collected(store) == 0.75
+    full = sep.project_seconds(2625, 100, 1000, 2, 1.0, 1000.0, 90.0)
+    assert full == pytest.approx(262.5 + 180.0)
+    assert sep.project_seconds(2625, 100, 1000, 2, 0.25, 1000.0, 90.0) == pytest.approx(262.5 / 4 + 180.0)
+    assert sep.project_seconds(2625, 100, 200, 1, 0.0, 1000.0, 90.0) == pytest.approx(90.0 * (0.4 + 0.12))

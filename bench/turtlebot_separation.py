@@ -401,6 +401,7 @@ def main(argv=None) -> int:
         plan.append((lv, n, exps, cfg, folder, left))
     n_pairs = plan[0][2]["paper"].plan().n_pairs
     rate, stages, how = calibration(out, n_pairs)
+
     def left_to_collect(folder, left):
         return 1.0 - collected(folder / "paper" / "data") if "paper" in left else 0.0
 
@@ -438,6 +439,10 @@ def main(argv=None) -> int:
             except SimgapError as e:
                 print(f"error: {point_name(lv, n)}, {term}'s term: {e}", file=sys.stderr)
                 return 1
+            except KeyboardInterrupt:
+                print(f"interrupted in {point_name(lv, n)}, {term}'s term: run the same command again to resume "
+                      "(finished points are skipped, the collection resumes from its stores)", file=sys.stderr)
+                return 130
             write_outputs(out, projections, plot=False)
         print(f"[{point_name(lv, n)}] done in {(time.perf_counter() - t0) / 60:.1f} min", flush=True)
     print(f"scan wall time this call: {(time.perf_counter() - t_scan) / 60:.1f} min", flush=True)

@@ -364,7 +364,8 @@ def main(argv=None) -> int:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--audit-points", type=int, help="audit points per certificate (default: the gazebo profile's 100)")
     ap.add_argument("--audit-runs", type=int, help="simulator runs per audit point (default: the profile's 200)")
-    ap.add_argument("--lhat-pairs", type=int, help="pairs for Lhat_fhat (default: the profile's 300); reduced runs only")
+    ap.add_argument("--lhat-pairs", type=int,
+                    help="pairs for Lhat_fhat (default: the profile's 300); reduced runs only")
     ap.add_argument("--max-hours", type=float, default=2.0, help="points projected longer are not run (default 2)")
     ap.add_argument("--table-only", action="store_true", help="only rebuild the table and figure from --out")
     ap.add_argument("--no-figure", action="store_true")

@@ -222,7 +222,7 @@ def build_table(out: Path, projections: list) -> dict:
         for term in TERMS:
             if finished(pj.parent / term, cfg, term):
                 rows.append(row_from(read_json(pj.parent / term / "summary.json"), cfg, term))
-    rows.sort(key=lambda r: (r["n1hat"], r["term"], r["level"]))
+    rows.sort(key=lambda r: (r["n1hat"], TERMS.index(r["term"]), r["level"]))
     return {"experiment": str(EXPERIMENT.relative_to(ROOT)), "base_profile": BASE, "stress_profile": STRESS,
             "paper": PAPER, "separation_rule": f"deterministic >= {SEPARATION_DET * 1000:g} / 1000, stochastic wins "
             "x0 with 0 collisions", "rows": rows, "projected_not_run": projections}
@@ -325,8 +325,10 @@ def figure(table: dict, out_dir: Path, name: str = FIGURE) -> list:
                 textcoords="offset points", fontsize=7, ha="right", color="0.4")
     ax.set_ylabel("collisions per 1000 runs from x0")
     ax.set_ylim(bottom=-0.12 * max(50.0, ax.get_ylim()[1]))
+    Rs = sorted({r["rollouts"] for r in rows})
+    runs = "" if Rs in ([], [1000]) else f"; scaled from {', '.join(map(str, Rs))} runs per controller"
     ax.set_title("TurtleBot: deterministic vs stochastic gap across simulator noise\n"
-                 "(no point: the certificate does not win x0)", fontsize=10)
+                 f"(no point: the certificate does not win x0{runs})", fontsize=10)
     ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     ax.grid(alpha=0.3)
     bx.set_yticks([0, 1], ["no", "yes"])

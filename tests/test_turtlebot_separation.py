@@ -125,8 +125,8 @@ def test_rerun_skips_finished_points_and_runs_the_rest_from_one_collection(sep, 
     printed = capsys.readouterr().out
     assert "[noise0_n100] finished earlier: skipped" in printed and "projected wall time" in printed
     table = json.loads((out / sep.TABLE).read_text())
-    assert [(r["level"], r["term"]) for r in table["rows"]] == [(0.0, "gap"), (1.0, "gap"), (1.5, "gap"),
-                                                                (0.0, "paper"), (1.0, "paper"), (1.5, "paper")]
+    assert [(r["level"], r["term"]) for r in table["rows"]] == [(0.0, "paper"), (1.0, "paper"), (1.5, "paper"),
+                                                                (0.0, "gap"), (1.0, "gap"), (1.5, "gap")]
     calls.clear()
     assert sep.main(argv) == 0 and calls == []  # everything finished: nothing runs again
 

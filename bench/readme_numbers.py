@@ -3,12 +3,15 @@
     python bench/readme_numbers.py results/pendulum-small results/turtlebot-small            # print
     python bench/readme_numbers.py results/pendulum-small results/turtlebot-small --check    # exit 1 on drift
     python bench/readme_numbers.py results/pendulum-small results/turtlebot-small --write    # update README.md
+    python bench/readme_numbers.py results/turtlebot-separation --check   # the separation scan's table
 
 What it covers: the block under "What `simgap run pendulum` prints" (the comparison table of the
 pendulum's small profile) and the numeric cells of the Results table's rows for the runs given
 (matched by experiment and profile; the row's label text is kept). Everything is read from each
 folder's summary.json; nothing is recomputed. tests/test_pipeline.py runs the check for the
 pendulum's small profile on the run it makes, so that row and block cannot drift unnoticed.
+A folder holding ``separation.json`` (bench/turtlebot_separation.py) is a scan: its Markdown
+table goes between the README's ``turtlebot-separation`` markers.
 """
 
 from __future__ import annotations
@@ -27,6 +30,35 @@ ROW_LABELS = {("pendulum", "small"): "pendulum, small", ("pendulum", "paper"): "
               ("cartpole", "small"): "cart-pole, Gymnasium", ("cartpole", "tight"): "cart-pole, tight",
               ("cartpole", "refined"): "cart-pole, refined"}
 PRINTED_RUN = ("pendulum", "small")  # the run whose printed table the README shows
+# the README's block of the TurtleBot separation scan (bench/turtlebot_separation.py)
+SEPARATION_MARKERS = ("<!-- turtlebot-separation table (bench/readme_numbers.py) -->",
+                      "<!-- end turtlebot-separation table -->")
+
+
+def separation_table(table: dict) -> str:
+    """The scan's Markdown table, made by the scan's own bench script from its separation.json."""
+    import importlib.util
+    spec = importlib.util.spec_from_file_location("turtlebot_separation", ROOT / "bench" / "turtlebot_separation.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod.markdown_table(table)
+
+
+def apply_separation(readme: str, table: dict) -> tuple:
+    """(new README text, differences) with the scan's table between the markers."""
+    lines = readme.split("\n")
+    try:
+        a = lines.index(SEPARATION_MARKERS[0]) + 1
+        b = lines.index(SEPARATION_MARKERS[1], a)
+    except ValueError:
+        return readme, ["README has no turtlebot-separation markers"]
+    want = separation_table(table).split("\n")
+    if lines[a:b] == want:
+        return readme, []
+    diff = ("the separation scan's table differs:\n  README: " + "\n          ".join(lines[a:b])
+            + "\n  scan:   " + "\n          ".join(want))
+    lines[a:b] = want
+    return "\n".join(lines), [diff]
 
 
 def printed_table(summary: dict) -> str:
@@ -97,8 +129,15 @@ def main(argv=None) -> int:
     g.add_argument("--check", action="store_true", help="exit 1 if the README differs from the runs")
     g.add_argument("--write", action="store_true", help="put the runs' numbers into the README")
     args = p.parse_args(argv)
-    summaries = []
+    summaries, scans = [], []
     for r in args.runs:
+        if (Path(r) / "separation.json").is_file():
+            try:
+                scans.append(json.loads((Path(r) / "separation.json").read_text()))
+            except (OSError, ValueError) as e:
+                print(f"error: {Path(r) / 'separation.json'} is not readable JSON: {e}", file=sys.stderr)
+                return 2
+            continue
         f = Path(r) / "summary.json"
         if not f.is_file():
             print(f"error: {f} does not exist (run `simgap run` first)", file=sys.stderr)
@@ -106,6 +145,10 @@ def main(argv=None) -> int:
         summaries.append(json.loads(f.read_text()))
     readme = Path(args.readme)
     new, diffs = apply(readme.read_text(), summaries)
+    for t in scans:
+        new, d = apply_separation(new, t)
+        diffs += d
+        print(separation_table(t))
     for s in summaries:
         print(f"{s['experiment']} {s.get('profile')}: " + " | ".join(row_cells(s)))
         if (s["experiment"], s.get("profile")) == PRINTED_RUN:

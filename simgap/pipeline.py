@@ -193,7 +193,8 @@ def _gamma_stats(cert, ds) -> dict:
 
 def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional[str] = None,
                    workers: Optional[int] = None, address: Optional[str] = None, n_rollouts: Optional[int] = None,
-                   log: Callable[[str], None] = print, progress: Optional[Callable] = None) -> dict:
+                   log: Callable[[str], None] = print, progress: Optional[Callable] = None,
+                   stores_from: Optional[str | Path] = None) -> dict:
     """Run the deterministic-vs-stochastic comparison of ``exp`` into ``out``; return the summary.
 
     Writes ``out/data`` and ``out/data_deterministic`` (resumable stores), ``cert_<method>.json``,
@@ -230,10 +231,14 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
     if per_run:  # a reach-avoid horizon shorter than one hold certifies nothing: refused before any work
         from .perrun.value_iteration import check_horizon
         check_horizon(spec.kind, int(per_run["horizon"]), int(per_run["hold"]))
+    if stores_from is not None and not Path(stores_from).is_dir():
+        raise SimgapError(f"stores_from: {str(stores_from)!r} is not a folder (it should hold the data/ and "
+                          "data_deterministic/ stores of an earlier run)")
+    store_root = out if stores_from is None else Path(stores_from)
     # the stores must be resumable and the folder's files ours to replace before anything is removed:
     # a refused run leaves an earlier run's results and the user's own files as they were
     for e, sub in ((exp, "data"), (baseline_experiment(exp), "data_deterministic")):
-        check_fillable(out / sub, e.plan().config())
+        check_fillable(store_root / sub, e.plan().config())
     results_folder.claim(out, RESULT_NAMES)
     out.mkdir(parents=True, exist_ok=True)  # after validation: bad input leaves no folder behind
     run_id = results_folder.new_run_id()
@@ -254,7 +259,11 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
                          "run_id": run_id, "config_file": str(exp.path.resolve()), "experiment_toml": toml_text,
                          "sections": {k: exp.section(k) for k in ("certify", "audit", "synthesis", "rollout")},
                          "simulator": exp.simulator.to_dict(), "system": exp.system.describe(),
-                         "x0": x0.tolist(), "methods": {}}
+                         "x0": x0.tolist(), "n_rollouts": R,
+                         "collect": {"epsilon": exp.collect.epsilon, "n_runs": exp.collect.n_runs,
+                                     "seed": exp.collect.seed},
+                         "stores_from": None if stores_from is None else str(Path(stores_from).resolve()),
+                         "methods": {}}
 
         def stage(name, fn):
             log(f"[{name}] ...")
@@ -268,12 +277,12 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
         for method, e, sub in (("stochastic", exp, "data"), ("deterministic", baseline_experiment(exp),
                                                               "data_deterministic")):
             plan = e.plan()
-            res = stage(f"collect/{method}", lambda: collect(plan, out / sub, executor=ex, workers=wk or None,
+            res = stage(f"collect/{method}", lambda: collect(plan, store_root / sub, executor=ex, workers=wk or None,
                                                              address=address or exp.collect.address,
                                                              on_progress=progress and progress(method, "pairs")))
             if not res.complete:
-                raise SimgapError(f"collection of {out / sub} did not finish (cancelled); run again to resume")
-            data[method] = load_store(out / sub, system=e.system)
+                raise SimgapError(f"collection of {store_root / sub} did not finish (cancelled); run again to resume")
+            data[method] = load_store(store_root / sub, system=e.system)
 
         # one simulator per data set for the stages that call it directly (Lhat_fhat, audit, rollouts),
         # each batch spread over the collection's cores (the same results as in one process)

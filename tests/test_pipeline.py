@@ -175,3 +175,24 @@ def test_per_run_empirical_is_the_success_fraction_with_its_standard_error():
     table = comparison_table(s)
     assert "p_emp(x0) per run +- SE" in table and "0.9560 +- 0.0065" in table and "none stated" in table
     assert "mean map" in per_run_note(s) and per_run_note({"methods": {"deterministic": e, "stochastic": e}}) is None
+
+
+def test_a_second_run_reads_the_first_runs_stores(small_run, tmp_path):
+    """`stores_from`: another run on the same collection (e.g. another Lipschitz term) collects nothing
+    new, certifies the very same data and says where they are; a missing folder is refused first."""
+    from simgap.config import load_experiment
+    from simgap.pipeline import run_experiment
+    out, s = small_run
+    exp = load_experiment("pendulum", "small")
+    with pytest.raises(SimgapError, match="stores_from"):
+        run_experiment(exp, tmp_path / "refused", n_rollouts=20, stores_from=tmp_path / "nowhere", log=lambda m: None)
+    assert not (tmp_path / "refused").exists()
+    before = sorted(p.name for p in (out / "data" / "chunks").iterdir())
+    s2 = run_experiment(exp, tmp_path / "second", n_rollouts=20, stores_from=out, log=lambda m: None)
+    assert not (tmp_path / "second" / "data").exists() and not (tmp_path / "second" / "data_deterministic").exists()
+    assert sorted(p.name for p in (out / "data" / "chunks").iterdir()) == before
+    assert s2["stores_from"] == str(out.resolve()) and s2["collect"]["n_runs"] == exp.collect.n_runs
+    assert s2["n_rollouts"] == 20 and s["n_rollouts"] == 1000 and s["stores_from"] is None
+    for m in ("deterministic", "stochastic"):
+        assert s2["methods"][m]["dataset_hash"] == s["methods"][m]["dataset_hash"]
+        assert s2["methods"][m]["gamma"]["max"] == s["methods"][m]["gamma"]["max"]

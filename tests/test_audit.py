@@ -110,7 +110,7 @@ def test_cli_certify_and_audit(tmp_path, capsys):
     assert "sub-Gaussian" in out and "uniform" in out
     # bad inputs -> exit 2 with a message
     for argv, msg in [(["certify", str(data), "--term", "2:cos(x3)"], "unknown variable"),
-                      (["certify", str(data), "--term", "9:x1"], "out of range"),
+                      (["certify", str(data), "--term", "9:x1"], "is not 1..2"),
                       (["certify", str(data), "--delta", "0"], "delta must be > 0"),
                       (["certify", str(data), "--delta", "0.0001", "--beta", "0.01"], "too small"),
                       (["certify", str(tmp_path / "missing.npz")], "does not exist"),

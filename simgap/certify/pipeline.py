@@ -229,8 +229,8 @@ def check_recorded(ds) -> None:
             what = "rows (x_r, u) pairs" if key == "n_pairs" else key
             raise SimgapError(f"dataset: {what} is {have:g} but its manifest's collection configuration says "
                               f"{key} = {want!r} (the data set was edited; refused)")
-    if int(ds.n_runs) < 2:
-        raise SimgapError(f"dataset: N1hat (n_runs) must be >= 2, got {ds.n_runs}")
+    if int(ds.n_runs) < 1:
+        raise SimgapError(f"dataset: N1hat (n_runs) must be >= 1, got {ds.n_runs}")
 
 
 def certify(dataset, options: Optional[CertifyOptions] = None, simulator=None, on_progress=None,
@@ -251,6 +251,9 @@ def certify(dataset, options: Optional[CertifyOptions] = None, simulator=None, o
     check_dataset(ds)
     if o.method not in ("stochastic", "deterministic"):
         raise SimgapError(f"unknown method {o.method!r}; choose 'stochastic' or 'deterministic'")
+    if o.method == "stochastic" and int(ds.n_runs) < 2:
+        raise SimgapError(f"dataset: the stochastic certificate needs N1hat >= 2 runs per pair (sample variances), got "
+                          f"{ds.n_runs}; the deterministic baseline (--method deterministic) takes one run")
     if o.lipschitz_mode not in ("increment", "state"):
         raise SimgapError(f"lipschitz_mode must be 'increment' or 'state', got {o.lipschitz_mode!r}")
     if o.l2 not in ("analytic", "estimated"):

@@ -184,9 +184,10 @@ def check_complete(root: Path, summary: dict) -> None:
         return
     gone = sorted(n for n in files if not (Path(root) / n).is_file())
     if gone:
-        raise SimgapError(f"results folder {str(root)!r}: summary.json (run {printable(summary.get('run_id', '?'))}) "
-                          f"lists {', '.join(printable(n) for n in gone)} but the folder has no such file (deleted "
-                          "or moved?); run the experiment again or restore the file (refused)")
+        raise SimgapError(f"results folder {str(root)!r}: {', '.join(printable(n) for n in gone)} "
+                          f"{'is' if len(gone) == 1 else 'are'} missing, though summary.json (run "
+                          f"{printable(summary.get('run_id', '?'))}) lists {'it' if len(gone) == 1 else 'them'} "
+                          "(deleted or moved?); run the experiment again or restore the file (refused)")
 
 
 def add_files(out: Path, names) -> None:

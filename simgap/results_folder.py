@@ -71,8 +71,9 @@ def _owned(out: Path) -> tuple:
         for name, e in (man or {}).get("files", {}).items() if man else ():
             if isinstance(e, dict) and isinstance(e.get("sha256"), str) and "/" not in name and name not in (".", ".."):
                 listed.setdefault(name, set()).add(e["sha256"])
-    present = sorted({p.name for pat in RESULT_PATTERNS for p in out.glob(pat)
-                      if p.is_file() or p.is_symlink()} | (set(listed) & {p.name for p in out.iterdir()}))
+    # only names simgap writes can be owned: a manifest listing any other file (forged, or another
+    # tool's) never gets it deleted
+    present = sorted({p.name for pat in RESULT_PATTERNS for p in out.glob(pat) if p.is_file() or p.is_symlink()})
     owned, foreign = [], {}
     for name in present:
         p = out / name

@@ -323,3 +323,16 @@ def test_a_stopped_runs_files_are_its_own_to_replace_while_unchanged(tmp_path):
     (tmp_path / "cert_stochastic.json").write_text('{"edited": 1}')
     with pytest.raises(SimgapError, match="changed since simgap wrote it"):
         rf.claim(tmp_path, ["cert_stochastic.json"])
+
+
+def test_a_manifest_never_owns_a_file_simgap_does_not_write(tmp_path):
+    """A forged summary.json listing the user's notes.txt with its exact sha256 still cannot get it deleted."""
+    from simgap import results_folder as rf
+    (tmp_path / "notes.txt").write_text("mine")
+    digest = hashlib.sha256(b"mine").hexdigest()
+    (tmp_path / "summary.json").write_text(json.dumps({"run_id": "x", "methods": {},
+                                                       "files": {"notes.txt": {"sha256": digest}}}))
+    c = rf.claim(tmp_path, ["summary.json"])
+    assert c.owned == ["summary.json"]
+    c.release("new-run")
+    assert (tmp_path / "notes.txt").read_text() == "mine" and not (tmp_path / "summary.json").exists()

@@ -71,8 +71,9 @@ def _owned(out: Path) -> tuple:
         for name, e in (man or {}).get("files", {}).items() if man else ():
             if isinstance(e, dict) and isinstance(e.get("sha256"), str) and "/" not in name and name not in (".", ".."):
                 listed.setdefault(name, set()).add(e["sha256"])
-    present = sorted({p.name for pat in RESULT_PATTERNS for p in out.glob(pat)
-                      if p.is_file() or p.is_symlink()} | (set(listed) & {p.name for p in out.iterdir()}))
+    # only names simgap writes can be owned: a manifest listing any other file (forged, or another
+    # tool's) never gets it deleted
+    present = sorted({p.name for pat in RESULT_PATTERNS for p in out.glob(pat) if p.is_file() or p.is_symlink()})
     owned, foreign = [], {}
     for name in present:
         p = out / name
@@ -184,9 +185,10 @@ def check_complete(root: Path, summary: dict) -> None:
         return
     gone = sorted(n for n in files if not (Path(root) / n).is_file())
     if gone:
-        raise SimgapError(f"results folder {str(root)!r}: summary.json (run {printable(summary.get('run_id', '?'))}) "
-                          f"lists {', '.join(printable(n) for n in gone)} but the folder has no such file (deleted "
-                          "or moved?); run the experiment again or restore the file (refused)")
+        raise SimgapError(f"results folder {str(root)!r}: {', '.join(printable(n) for n in gone)} "
+                          f"{'is' if len(gone) == 1 else 'are'} missing, though summary.json (run "
+                          f"{printable(summary.get('run_id', '?'))}) lists {'it' if len(gone) == 1 else 'them'} "
+                          "(deleted or moved?); run the experiment again or restore the file (refused)")
 
 
 def add_files(out: Path, names) -> None:

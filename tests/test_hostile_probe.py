@@ -175,7 +175,7 @@ CASES = {
     # readers verify the folder against its summary
     "view_refuses_a_recording_of_another_run": (_stray_recording, ["run.rrd", "differs from the file this run wrote"],
                                                 120),
-    "plot_names_a_listed_file_that_is_missing": (_missing_listed, ["audit_deterministic.json", "no such file"], 120),
+    "plot_names_a_listed_file_that_is_missing": (_missing_listed, ["audit_deterministic.json is missing", "summary.json"], 120),
     "plot_refuses_deeply_nested_summary": (_deep_summary, ["summary.json", "levels"], 120),
     # data sets
     "cover_point_outside_X": (
@@ -304,3 +304,35 @@ def test_a_folder_keeps_an_earlier_run_and_foreign_files_through_a_refused_and_a
     assert "run.rrd" in earlier["files"] and not (res / "run.rrd").exists()
     from simgap_viz.results import load_run
     load_run(res)  # the new run's folder opens beside the user's files
+
+
+def test_a_stopped_runs_files_are_its_own_to_replace_while_unchanged(tmp_path):
+    """A run killed before its summary: the journal lists what it wrote, so the next run may replace
+    those files (and only while their digests match); a file it never recorded stays foreign."""
+    from simgap import results_folder as rf
+    from simgap.errors import SimgapError
+
+    rf.claim(tmp_path, ["cert_stochastic.json"]).release("stopped-run")
+    (tmp_path / "cert_stochastic.json").write_text("{}")
+    rf.record(tmp_path, ["cert_stochastic.json"])
+    (tmp_path / "audit_stochastic.json").write_text("{}")  # written, but killed before it was recorded
+    c = rf.claim(tmp_path, ["cert_stochastic.json"])
+    assert c.owned == ["cert_stochastic.json"] and set(c.foreign) == {"audit_stochastic.json"}
+    with pytest.raises(SimgapError, match="audit_stochastic.json .not listed"):
+        rf.claim(tmp_path, ["cert_stochastic.json", "audit_stochastic.json"])
+    (tmp_path / "cert_stochastic.json").write_text('{"edited": 1}')
+    with pytest.raises(SimgapError, match="changed since simgap wrote it"):
+        rf.claim(tmp_path, ["cert_stochastic.json"])
+
+
+def test_a_manifest_never_owns_a_file_simgap_does_not_write(tmp_path):
+    """A forged summary.json listing the user's notes.txt with its exact sha256 still cannot get it deleted."""
+    from simgap import results_folder as rf
+    (tmp_path / "notes.txt").write_text("mine")
+    digest = hashlib.sha256(b"mine").hexdigest()
+    (tmp_path / "summary.json").write_text(json.dumps({"run_id": "x", "methods": {},
+                                                       "files": {"notes.txt": {"sha256": digest}}}))
+    c = rf.claim(tmp_path, ["summary.json"])
+    assert c.owned == ["summary.json"]
+    c.release("new-run")
+    assert (tmp_path / "notes.txt").read_text() == "mine" and not (tmp_path / "summary.json").exists()

@@ -229,8 +229,6 @@ def check_recorded(ds) -> None:
             what = "rows (x_r, u) pairs" if key == "n_pairs" else key
             raise SimgapError(f"dataset: {what} is {have:g} but its manifest's collection configuration says "
                               f"{key} = {want!r} (the data set was edited; refused)")
-    if int(ds.n_runs) < 1:
-        raise SimgapError(f"dataset: N1hat (n_runs) must be >= 1, got {ds.n_runs}")
 
 
 def certify(dataset, options: Optional[CertifyOptions] = None, simulator=None, on_progress=None,

@@ -466,7 +466,9 @@ def design_ellipsoid(A_cl, K, x_star, u_star, lo, hi, u_lo, u_hi, rho: float, d,
         try:
             with warnings.catch_warnings():  # "may be inaccurate": the status says it, and the proof decides
                 warnings.simplefilter("ignore", UserWarning)
-                prob.solve(solver=name)
+                # as a fallback SCS gets a bounded number of iterations (unbounded, it took 75 s on a
+                # program near the contraction limit); an inaccurate design is still checked by the proof
+                prob.solve(solver=name, **({"max_iters": 2000} if name == "SCS" and name != solver else {}))
         except cp.error.SolverError:
             tried.append(f"{name}: solver error")
             continue

@@ -32,7 +32,7 @@ and the second term is a convex function's maximum over a box, attained at one o
 (enumerated for n <= 16; for larger n bounded by sqrt(b^T |P| b)). (3) holds when the sum is <= 1.
 The margin is the largest factor s by which w_max could be multiplied with the sum still <= 1.
 
-The design (:func:`design_ellipsoid`) is a convex program in cvxpy: Q = P^-1 maximizing log det Q
+The design (:func:`design_ellipsoid`) is a convex program in cvxpy: Q = P^-1 maximizing det Q (as det(Q)^(1/n))
 subject to the contraction A Q A^T <= rho^2 Q of the linearization A = A_f + B_f K (an LMI),
 Q_ii <= (half-width of S around x*)^2, (K Q K^T)_jj <= (input half-range around u*)^2 and
 Q >= (n / beta^2) diag(d^2) (then ||d'||_P <= beta for every |d'| <= d), with d the disturbance
@@ -449,7 +449,12 @@ def design_ellipsoid(A_cl, K, x_star, u_star, lo, hi, u_lo, u_hi, rho: float, d,
         else:
             if nz.any():
                 cons.append(Q >> Dd)
-            prob = cp.Problem(cp.Maximize(cp.log_det(Q)), cons)
+            # max det(Q)^(1/n) (the log det's maximizer) through a lower-triangular L with
+            # [[Q, L], [L^T, diag(L)]] >= 0, det Q >= prod diag(L): power cones instead of log_det's
+            # exponential cones, on which Clarabel stops without progress for some systems
+            L = cp.Variable((n, n))
+            cons += [cp.upper_tri(L) == 0, cp.bmat([[Q, L], [L.T, cp.diag(cp.diag(L))]]) >> 0]
+            prob = cp.Problem(cp.Maximize(cp.geo_mean(cp.diag(L))), cons)
         cache[key] = (prob, Q, rho2, Dd)
     prob, Q, rho2, Dd = cache[key]
     rho2.value = rho ** 2
@@ -461,7 +466,9 @@ def design_ellipsoid(A_cl, K, x_star, u_star, lo, hi, u_lo, u_hi, rho: float, d,
         try:
             with warnings.catch_warnings():  # "may be inaccurate": the status says it, and the proof decides
                 warnings.simplefilter("ignore", UserWarning)
-                prob.solve(solver=name)
+                # as a fallback SCS gets a bounded number of iterations (unbounded, it took 75 s on a
+                # program near the contraction limit); an inaccurate design is still checked by the proof
+                prob.solve(solver=name, **({"max_iters": 2000} if name == "SCS" and name != solver else {}))
         except cp.error.SolverError:
             tried.append(f"{name}: solver error")
             continue

@@ -169,8 +169,9 @@ def calibration(out: Path, n_pairs: int) -> tuple:
             continue
         sec = s["seconds"]
         c = float(sec.get("collect/stochastic", 0.0))
-        if s.get("stores_from") is None and c > 30:  # a collection that ran here (not a resumed remnant)
-            runs += n_pairs * float((s.get("collect") or {}).get("n_runs", 0))
+        new = (s.get("collected_runs") or {}).get("stochastic")
+        if isinstance(new, (int, float)) and new > 0 and c > 0:  # runs simulated in this call (not resumed ones)
+            runs += float(new)
             csec += c
         R = float(s.get("n_rollouts") or 1000)
         ssec += sum(v for k, v in sec.items() if not k.startswith("collect/")) / (0.4 + 0.6 * R / 1000)

@@ -264,16 +264,18 @@ def text_table(table: dict) -> str:
 def markdown_table(table: dict) -> str:
     """The table as Markdown (README and docs/case-studies.md, kept in step by bench/readme_numbers.py)."""
     lines = ["| noise level | N1hat | gap term | deterministic collisions | stochastic wins x0 | stochastic "
-             "collisions | closest approach det. / sto. [m] | audit pass det. / sto. | wall time |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "collisions | gamma max det. (x, y, theta) | gamma max sto. (x, y, theta) | closest approach det. / sto. "
+             "[m] | audit pass det. / sto. | wall time |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in table["rows"]:
         d, s = r["deterministic"], r["stochastic"]
         ca = " / ".join("-" if not e.get("closest_approach") else f"{e['closest_approach']['min']:.3f}" for e in (d, s))
+        gd, gs = (", ".join(f"{g:.3g}" for g in e["gamma_max"]) for e in (d, s))
         lines.append(f"| {r['level']:g} | {r['n1hat']} | {r['term']} | {_fmt_fail(d)} | "
-                     f"{'yes' if s['x0_won'] else 'no'} | {_fmt_fail(s) if s['x0_won'] else '-'} | {ca} | "
-                     f"{d['audit_pass_joint']:.2f} / {s['audit_pass_joint']:.2f} | {r['seconds'] / 60:.1f} min |")
+                     f"{'yes' if s['x0_won'] else 'no'} | {_fmt_fail(s) if s['x0_won'] else '-'} | {gd} | {gs} | "
+                     f"{ca} | {d['audit_pass_joint']:.2f} / {s['audit_pass_joint']:.2f} | {r['seconds'] / 60:.1f} min |")
     for p in table["projected_not_run"]:
-        lines.append(f"| {p['level']:g} | {p['n1hat']} | both | not run: projected {p['hours']:.1f} h | | | | | |")
+        lines.append(f"| {p['level']:g} | {p['n1hat']} | both | not run: projected {p['hours']:.1f} h | | | | | | | |")
     return "\n".join(lines)
 
 

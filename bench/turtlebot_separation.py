@@ -273,7 +273,8 @@ def markdown_table(table: dict) -> str:
         gd, gs = (", ".join(f"{g:.3g}" for g in e["gamma_max"]) for e in (d, s))
         lines.append(f"| {r['level']:g} | {r['n1hat']} | {r['term']} | {_fmt_fail(d)} | "
                      f"{'yes' if s['x0_won'] else 'no'} | {_fmt_fail(s) if s['x0_won'] else '-'} | {gd} | {gs} | "
-                     f"{ca} | {d['audit_pass_joint']:.2f} / {s['audit_pass_joint']:.2f} | {r['seconds'] / 60:.1f} min |")
+                     f"{ca} | {d['audit_pass_joint']:.2f} / {s['audit_pass_joint']:.2f} | "
+                     f"{r['seconds'] / 60:.1f} min |")
     for p in table["projected_not_run"]:
         lines.append(f"| {p['level']:g} | {p['n1hat']} | both | not run: projected {p['hours']:.1f} h | | | | | | | |")
     return "\n".join(lines)

@@ -169,8 +169,9 @@ def calibration(out: Path, n_pairs: int) -> tuple:
             continue
         sec = s["seconds"]
         c = float(sec.get("collect/stochastic", 0.0))
-        if s.get("stores_from") is None and c > 30:  # a collection that ran here (not a resumed remnant)
-            runs += n_pairs * float((s.get("collect") or {}).get("n_runs", 0))
+        new = (s.get("collected_runs") or {}).get("stochastic")
+        if isinstance(new, (int, float)) and new > 0 and c > 0:  # runs simulated in this call (not resumed ones)
+            runs += float(new)
             csec += c
         R = float(s.get("n_rollouts") or 1000)
         ssec += sum(v for k, v in sec.items() if not k.startswith("collect/")) / (0.4 + 0.6 * R / 1000)
@@ -263,16 +264,19 @@ def text_table(table: dict) -> str:
 def markdown_table(table: dict) -> str:
     """The table as Markdown (README and docs/case-studies.md, kept in step by bench/readme_numbers.py)."""
     lines = ["| noise level | N1hat | gap term | deterministic collisions | stochastic wins x0 | stochastic "
-             "collisions | closest approach det. / sto. [m] | audit pass det. / sto. | wall time |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "collisions | gamma max det. (x, y, theta) | gamma max sto. (x, y, theta) | closest approach det. / sto. "
+             "[m] | audit pass det. / sto. | wall time |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in table["rows"]:
         d, s = r["deterministic"], r["stochastic"]
         ca = " / ".join("-" if not e.get("closest_approach") else f"{e['closest_approach']['min']:.3f}" for e in (d, s))
+        gd, gs = (", ".join(f"{g:.3g}" for g in e["gamma_max"]) for e in (d, s))
         lines.append(f"| {r['level']:g} | {r['n1hat']} | {r['term']} | {_fmt_fail(d)} | "
-                     f"{'yes' if s['x0_won'] else 'no'} | {_fmt_fail(s) if s['x0_won'] else '-'} | {ca} | "
-                     f"{d['audit_pass_joint']:.2f} / {s['audit_pass_joint']:.2f} | {r['seconds'] / 60:.1f} min |")
+                     f"{'yes' if s['x0_won'] else 'no'} | {_fmt_fail(s) if s['x0_won'] else '-'} | {gd} | {gs} | "
+                     f"{ca} | {d['audit_pass_joint']:.2f} / {s['audit_pass_joint']:.2f} | "
+                     f"{r['seconds'] / 60:.1f} min |")
     for p in table["projected_not_run"]:
-        lines.append(f"| {p['level']:g} | {p['n1hat']} | both | not run: projected {p['hours']:.1f} h | | | | | |")
+        lines.append(f"| {p['level']:g} | {p['n1hat']} | both | not run: projected {p['hours']:.1f} h | | | | | | | |")
     return "\n".join(lines)
 
 

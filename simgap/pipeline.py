@@ -263,7 +263,7 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
                          "collect": {"epsilon": exp.collect.epsilon, "n_runs": exp.collect.n_runs,
                                      "seed": exp.collect.seed},
                          "stores_from": None if stores_from is None else str(Path(stores_from).resolve()),
-                         "methods": {}}
+                         "collected_runs": {}, "methods": {}}
 
         def stage(name, fn):
             log(f"[{name}] ...")
@@ -282,6 +282,7 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
                                                              on_progress=progress and progress(method, "pairs")))
             if not res.complete:
                 raise SimgapError(f"collection of {store_root / sub} did not finish (cancelled); run again to resume")
+            summary["collected_runs"][method] = int(res.runs)  # new this call (a resumed store's earlier chunks not)
             data[method] = load_store(store_root / sub, system=e.system)
 
         # one simulator per data set for the stages that call it directly (Lhat_fhat, audit, rollouts),

@@ -193,6 +193,9 @@ def test_a_second_run_reads_the_first_runs_stores(small_run, tmp_path):
     assert sorted(p.name for p in (out / "data" / "chunks").iterdir()) == before
     assert s2["stores_from"] == str(out.resolve()) and s2["collect"]["n_runs"] == exp.collect.n_runs
     assert s2["n_rollouts"] == 20 and s["n_rollouts"] == 1000 and s["stores_from"] is None
+    plan = exp.plan()
+    assert s["collected_runs"]["stochastic"] == plan.n_pairs * plan.n_runs  # the first run simulated them all
+    assert s2["collected_runs"] == {"stochastic": 0, "deterministic": 0}  # the second none
     for m in ("deterministic", "stochastic"):
         assert s2["methods"][m]["dataset_hash"] == s["methods"][m]["dataset_hash"]
         assert s2["methods"][m]["gamma"]["max"] == s["methods"][m]["gamma"]["max"]

@@ -40,7 +40,9 @@ urdf = "husky.urdf"
 base_pose = true
 inputs = ["front_left_wheel", "front_right_wheel", "rear_left_wheel", "rear_right_wheel"]
 input_mode = "velocity"
+max_force = 50
 ground = true
+substeps = 100
 copies = 4
 base_height = 0.2
 [collect]
@@ -82,7 +84,7 @@ def test_links_without_inertial_data_are_summarized_once(tmp_path):
     shutil.copytree(src, d)
     (d / "unicycle.toml").write_text(HUSKY_SYSTEM)
     (d / "exp.toml").write_text(HUSKY_EXPERIMENT)
-    r = simgap("collect", "exp.toml", "--dry-run", cwd=d, timeout=300)
+    r = simgap("collect", "exp.toml", "--dry-run", cwd=d, timeout=300)  # builds, calibrates (~1 s), estimates
     assert r.returncode == 0, r.stderr
     err = r.stderr
     assert "No inertial data" not in err and "b3Warning" not in err, err
@@ -153,3 +155,63 @@ def test_a_velocity_state_on_a_fixed_joint_is_refused(tmp_path):
     (d / "exp.toml").write_text(HUSKY_EXPERIMENT.replace("base_pose = true", 'base_pose = true\nvelocities = ["imu_joint"]'))
     refused(simgap("collect", "exp.toml", "--dry-run", cwd=d, timeout=300),
             "no revolute/prismatic joint 'imu_joint'", "options.velocities", "front_left_wheel")
+
+
+VW_SYSTEM = """
+name = "husky_vw"
+states = ["x", "y", "theta"]
+inputs = ["v", "w"]
+x_lo = [-2.0, -2.0, -3.14159]
+x_hi = [2.0, 2.0, 3.14159]
+tau = 0.5
+angles = ["theta"]
+input_set = [[0, 0], [0.5, 0], [0, 1.0], [0.5, 1.0]]
+[dynamics]
+kind = "discrete"
+x = "x + dt*v*cos(theta)"
+y = "y + dt*v*sin(theta)"
+theta = "theta + dt*w"
+"""
+#: (v, w) -> (front left, front right, rear left, rear right) wheel speeds [rad/s]: (v -+ w b / 2) / r
+VW_MAP = "[[6.06, -1.68], [6.06, 1.68], [6.06, -1.68], [6.06, 1.68]]"
+
+
+def _husky(tmp_path, system: str, experiment: str):
+    pybullet_data = pytest.importorskip("pybullet_data")
+    d = tmp_path / "husky"
+    if not d.exists():
+        shutil.copytree(Path(pybullet_data.getDataPath()) / "husky", d)
+    (d / "unicycle.toml").write_text(system)
+    (d / "exp.toml").write_text(experiment)
+    from simgap.config import load_experiment
+    return load_experiment(d / "exp.toml", "base")
+
+
+def test_an_input_map_drives_several_joints_as_the_same_targets_would(tmp_path):
+    """(v, w) through input_map gives bit for bit what four inputs set to the mapped wheel speeds give."""
+    import numpy as np
+    from simgap.simulators import make_simulator
+    mapped = _husky(tmp_path, VW_SYSTEM, HUSKY_EXPERIMENT.replace(
+        'input_mode = "velocity"', f'input_mode = "velocity"\ninput_map = {VW_MAP}'))
+    direct = _husky(tmp_path, HUSKY_SYSTEM, HUSKY_EXPERIMENT)
+    A = np.array(eval(VW_MAP))  # noqa: S307  (the test's own literal)
+    x = np.array([[0.0, 0.0, 0.0], [0.5, -0.3, 1.0], [-1.0, 1.0, -2.0]])
+    vw = np.array([[0.5, 0.0], [0.0, 1.0], [0.5, 1.0]])
+    with make_simulator(mapped.simulator, mapped.system) as a, make_simulator(direct.simulator, direct.system) as b:
+        ya = a.step(x, vw, np.random.default_rng(0))
+        yb = b.step(x, vw @ A.T, np.random.default_rng(0))
+    assert np.array_equal(ya, yb)
+    assert ya[0, 0] > 0.05 and ya[1, 2] > 0.0  # forward moves forward, a positive w turns left
+
+
+@pytest.mark.parametrize("value,words", [
+    ("[[6.06, -1.68], [6.06, 1.68], [6.06, -1.68]]", ["options.input_map is 3x2 but must be 4 x 2",
+                                                      "front_left_wheel, front_right_wheel"]),
+    ("[[1, 2], [1, 2], [1, 2], [1, 2]]", ["rank 1 < 2 inputs"]),
+    (None, ["options.inputs names 4 joints but system 'husky_vw' has m=2", "options.input_map"]),
+])
+def test_a_bad_input_map_is_refused(tmp_path, value, words):
+    exp = HUSKY_EXPERIMENT if value is None else HUSKY_EXPERIMENT.replace(
+        'input_mode = "velocity"', f'input_mode = "velocity"\ninput_map = {value}')
+    _husky(tmp_path, VW_SYSTEM, exp)
+    refused(simgap("collect", "exp.toml", "--dry-run", cwd=tmp_path / "husky", timeout=300), *words)

@@ -89,6 +89,32 @@ def name_list(value, what: str) -> List[str]:
     return list(value)
 
 
+def input_map(value, joints: List[str], system):
+    """The (joints, m) matrix of ``options.input_map`` (joint target = row . u), or None when the
+    inputs drive one joint each (then ``options.inputs`` names exactly m joints)."""
+    m, J = system.m, len(joints)
+    if value is None:
+        if J != m:
+            raise SimgapError(f"pybullet_urdf: options.inputs names {J} joints but system {system.name!r} has m={m} "
+                              f"inputs; to drive {J} joints from {m} inputs give options.input_map, one row of {m} "
+                              "coefficients per joint")
+        return None
+    try:
+        A = np.array(value, dtype=float)
+    except (TypeError, ValueError):
+        raise SimgapError(f"pybullet_urdf: options.input_map must be a matrix of numbers, got {value!r}") from None
+    if A.shape != (J, m):
+        raise SimgapError(f"pybullet_urdf: options.input_map is {'x'.join(map(str, A.shape)) or 'a scalar'} but must be "
+                          f"{J} x {m}: one row per joint of options.inputs ({', '.join(joints)}), one column per input "
+                          f"of {system.name!r} ({', '.join(system.input_names)})")
+    if not np.all(np.isfinite(A)):
+        raise SimgapError("pybullet_urdf: options.input_map has a NaN or infinite entry")
+    if np.linalg.matrix_rank(A) < m:
+        raise SimgapError(f"pybullet_urdf: options.input_map has rank {np.linalg.matrix_rank(A)} < {m} inputs: two "
+                          "inputs would move the joints alike (their gap could not be told apart)")
+    return A
+
+
 _REPORTED: set = set()
 
 
@@ -112,7 +138,7 @@ class UrdfSimulator(BulletSimulator):
     RANDOMIZE_KEYS = ("mass", "joint_damping", "friction")
     PARAMETER_DRAWS = ("mass", "damping", "friction")  # draw_noise keys held for an episode (randomize.per)
     EFFECT_KEYS = ("joint_damping", "actuator_gain")
-    OPTION_KEYS = ("urdf", "urdf_sha256", "positions", "velocities", "inputs", "input_mode", "max_force",
+    OPTION_KEYS = ("urdf", "urdf_sha256", "positions", "velocities", "inputs", "input_map", "input_mode", "max_force",
                    "base_pose", "base_height", "fixed_base", "ground", "substeps", "copies", "gravity")
     #: options naming a file: resolved against (and confined to) the experiment's folder
     PATH_OPTIONS = ("urdf",)
@@ -136,9 +162,7 @@ class UrdfSimulator(BulletSimulator):
             raise SimgapError(f"pybullet_urdf: the state has {n} components (base pose {3 * self.base_pose}, "
                               f"{len(self.pos_names)} positions, {len(self.vel_names)} velocities) but system "
                               f"{s.name!r} has n={s.n}")
-        if len(self.in_names) != s.m:
-            raise SimgapError(f"pybullet_urdf: options.inputs names {len(self.in_names)} joints but system "
-                              f"{s.name!r} has m={s.m} inputs")
+        self.input_map = input_map(op.get("input_map"), self.in_names, s)
         self.mode = op.get("input_mode", "torque")
         if self.mode not in ("torque", "velocity"):
             raise SimgapError(f"pybullet_urdf: options.input_mode must be 'torque' or 'velocity', got {self.mode!r}")
@@ -246,6 +270,8 @@ class UrdfSimulator(BulletSimulator):
         if x.shape != (B, s.n) or u.shape != (B, s.m):
             raise SimgapError(f"pybullet_urdf: need x (B,{s.n}) and u (B,{s.m}), got {x.shape} and {u.shape}")
         drive = self.gain * (u + noise["act"])
+        if self.input_map is not None:  # joint targets from the inputs (actuation noise on the inputs)
+            drive = drive @ self.input_map.T
         out = np.empty((B, s.n))
         for r0 in range(0, B, self.copies):
             r1 = min(B, r0 + self.copies)

@@ -215,3 +215,25 @@ def test_a_bad_input_map_is_refused(tmp_path, value, words):
         'input_mode = "velocity"', f'input_mode = "velocity"\ninput_map = {value}')
     _husky(tmp_path, VW_SYSTEM, exp)
     refused(simgap("collect", "exp.toml", "--dry-run", cwd=tmp_path / "husky", timeout=300), *words)
+
+
+def test_an_input_map_in_mujoco_sets_the_mapped_ctrl(tmp_path):
+    """MuJoCo: input_map [[2]] gives bit for bit what the doubled ctrl gives (noise off); a wrong
+    shape is refused naming the actuators."""
+    import dataclasses
+    import numpy as np
+    pytest.importorskip("mujoco")
+    from simgap.config import load_experiment
+    from simgap.simulators import make_simulator
+    d = tmp_path / "arm"
+    shutil.copytree(REPO / "examples" / "arm", d)
+    exp = load_experiment(d / "arm_mujoco.toml")
+    plain = dataclasses.replace(exp.simulator, noise={}, randomize={})
+    mapped = dataclasses.replace(plain, options={**plain.options, "input_map": [[2.0]]})
+    x, u = np.array([[0.2, 0.5], [-0.1, 0.0]]), np.array([[0.3], [-0.4]])
+    with make_simulator(mapped, exp.system) as a, make_simulator(plain, exp.system) as b:
+        assert np.array_equal(a.step(x, u, np.random.default_rng(0)), b.step(x, 2 * u, np.random.default_rng(0)))
+    bad = dataclasses.replace(plain, options={**plain.options, "input_map": [[1.0], [1.0]]})
+    from simgap.errors import SimgapError
+    with pytest.raises(SimgapError, match=r"options.input_map is 2x1 but must be 1 x 1.*\(torque\)"):
+        make_simulator(bad, exp.system)

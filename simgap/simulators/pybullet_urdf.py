@@ -89,29 +89,29 @@ def name_list(value, what: str) -> List[str]:
     return list(value)
 
 
-def input_map(value, joints: List[str], system):
-    """The (joints, m) matrix of ``options.input_map`` (joint target = row . u), or None when the
-    inputs drive one joint each (then ``options.inputs`` names exactly m joints)."""
+def input_map(value, joints: List[str], system, backend: str = "pybullet_urdf", what: str = "joints"):
+    """The (joints, m) matrix of ``options.input_map`` (a joint's target or an actuator's ctrl =
+    its row . u), or None when the inputs drive one each (``options.inputs`` then names m)."""
     m, J = system.m, len(joints)
     if value is None:
         if J != m:
-            raise SimgapError(f"pybullet_urdf: options.inputs names {J} joints but system {system.name!r} has m={m} "
-                              f"inputs; to drive {J} joints from {m} inputs give options.input_map, one row of {m} "
-                              "coefficients per joint")
+            raise SimgapError(f"{backend}: options.inputs names {J} {what} but system {system.name!r} has m={m} "
+                              f"inputs; to drive {J} {what} from {m} inputs give options.input_map, one row of {m} "
+                              f"coefficients per entry of options.inputs")
         return None
     try:
         A = np.array(value, dtype=float)
     except (TypeError, ValueError):
-        raise SimgapError(f"pybullet_urdf: options.input_map must be a matrix of numbers, got {value!r}") from None
+        raise SimgapError(f"{backend}: options.input_map must be a matrix of numbers, got {value!r}") from None
     if A.shape != (J, m):
-        raise SimgapError(f"pybullet_urdf: options.input_map is {'x'.join(map(str, A.shape)) or 'a scalar'} but must be "
-                          f"{J} x {m}: one row per joint of options.inputs ({', '.join(joints)}), one column per input "
-                          f"of {system.name!r} ({', '.join(system.input_names)})")
+        raise SimgapError(f"{backend}: options.input_map is {'x'.join(map(str, A.shape)) or 'a scalar'} but must be "
+                          f"{J} x {m}: one row per entry of options.inputs ({', '.join(joints)}), one column per "
+                          f"input of {system.name!r} ({', '.join(system.input_names)})")
     if not np.all(np.isfinite(A)):
-        raise SimgapError("pybullet_urdf: options.input_map has a NaN or infinite entry")
+        raise SimgapError(f"{backend}: options.input_map has a NaN or infinite entry")
     if np.linalg.matrix_rank(A) < m:
-        raise SimgapError(f"pybullet_urdf: options.input_map has rank {np.linalg.matrix_rank(A)} < {m} inputs: two "
-                          "inputs would move the joints alike (their gap could not be told apart)")
+        raise SimgapError(f"{backend}: options.input_map has rank {np.linalg.matrix_rank(A)} < {m} inputs: two "
+                          f"inputs would move the {what} alike (their gap could not be told apart)")
     return A
 
 

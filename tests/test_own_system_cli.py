@@ -237,3 +237,60 @@ def test_an_input_map_in_mujoco_sets_the_mapped_ctrl(tmp_path):
     from simgap.errors import SimgapError
     with pytest.raises(SimgapError, match=r"options.input_map is 2x1 but must be 1 x 1.*\(torque\)"):
         make_simulator(bad, exp.system)
+
+
+VW5_SYSTEM = """
+name = "husky_vw5"
+states = ["x", "y", "theta", "v", "w"]
+inputs = ["vc", "wc"]
+x_lo = [-2.0, -2.0, -3.14159, -1, -2]
+x_hi = [2.0, 2.0, 3.14159, 1, 2]
+tau = 0.5
+angles = ["theta"]
+input_set = [[0, 0], [0.5, 0], [0, 1.0], [0.5, 1.0]]
+[dynamics]
+kind = "discrete"
+x = "x + dt*vc*cos(theta)"
+y = "y + dt*vc*sin(theta)"
+theta = "theta + dt*wc"
+v = "vc"
+w = "wc"
+"""
+#: the husky's wheels: radius 0.17775 m, track 2 x 0.2854 m: (v -+ w b / 2) / r
+VW5_MAP = "[[5.626, -1.606], [5.626, 1.606], [5.626, -1.606], [5.626, 1.606]]"
+
+
+def test_a_base_in_steady_motion_follows_v_tau_within_2_percent(tmp_path):
+    """With the base's velocity in the state and the wheels starting at their targets, a base moving
+    at the commanded speed covers v tau per period (within 2 %), period after period, at any heading;
+    started at rest (the default), it covers far less."""
+    import numpy as np
+    from simgap.simulators import make_simulator
+    moving = HUSKY_EXPERIMENT.replace('base_pose = true', 'base_pose = true\nbase_velocity = true\n'
+                                      'driven_start = "target"').replace(
+        'input_mode = "velocity"', f'input_mode = "velocity"\ninput_map = {VW5_MAP}')
+    exp = _husky(tmp_path, VW5_SYSTEM, moving)
+    with make_simulator(exp.simulator, exp.system) as sim:
+        for v, heading in ((0.5, 0.0), (0.5, 2.0), (0.3, -1.0)):
+            z, u = np.array([[0.0, 0.0, heading, v, 0.0]]), np.array([[v, 0.0]])
+            for k in range(3):
+                z2 = sim.step(z, u, np.random.default_rng(k))
+                step = z2[0, :2] - z[0, :2]
+                assert abs(np.hypot(*step) / (v * 0.5) - 1) < 0.02, (v, heading, k, z2)
+                assert abs(np.arctan2(step[1], step[0]) - heading) < 0.01
+                z = z2
+    at_rest = _husky(tmp_path, VW_SYSTEM, HUSKY_EXPERIMENT.replace(
+        'input_mode = "velocity"', f'input_mode = "velocity"\ninput_map = {VW5_MAP}'))
+    with make_simulator(at_rest.simulator, at_rest.system) as sim:
+        y = sim.step(np.zeros((1, 3)), np.array([[0.5, 0.0]]), np.random.default_rng(0))
+    assert y[0, 0] < 0.9 * 0.25  # it spends the period reaching the speed
+
+
+@pytest.mark.parametrize("change,words", [
+    (('base_pose = true', 'base_velocity = true'), ["base_velocity", "needs base_pose = true"]),
+    (('input_mode = "velocity"', 'input_mode = "torque"\ndriven_start = "target"'),
+     ["driven_start = 'target'", "needs input_mode = 'velocity'"]),
+])
+def test_moving_start_options_are_checked(tmp_path, change, words):
+    _husky(tmp_path, HUSKY_SYSTEM, HUSKY_EXPERIMENT.replace(*change))
+    refused(simgap("collect", "exp.toml", "--dry-run", cwd=tmp_path / "husky", timeout=300), *words)

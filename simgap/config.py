@@ -189,6 +189,10 @@ def load_experiment(path_or_name: str | Path, profile: Optional[str] = DEFAULT_P
         merged["synthesis"]["map"] = str(confined(syn_map, folder, f"{where}: synthesis.map"))
     if system is None:
         system = _system(model.system, where, folder)
+    terms = (merged.get("certify") or {}).get("terms")
+    if terms:  # keys name the system's states (or all, or 0-based numbers): checked with the system
+        from .certify.basis import terms_by_dimension
+        terms_by_dimension(terms, system, f"{where}: [certify] terms")
     simulator = _simulator(model.simulator, merged["simulator"], system, where, folder)
     collect = _collect(model.collect, out)
     return ExperimentConfig(name=path.stem, profile=profile, path=path, system=system, simulator=simulator,

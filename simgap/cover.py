@@ -289,20 +289,24 @@ def format_duration(s: float) -> str:
 def calibrate_rate(simulator, n_runs: int = 4096, seed: int = 0, budget: float = 0.5) -> float:
     """Simulator runs per second in this process: time ``simulator.step`` on random states of X.
 
-    One untimed warm-up call, then repeated batches of ``n_runs`` until ``budget`` seconds pass.
+    One untimed warm-up call of 64 runs, then batches growing from 64 runs (x4) up to ``n_runs``
+    until one takes a quarter of ``budget`` or ``budget`` seconds have passed; the rate is the
+    last batch's. A slow simulator (a robot with many substeps) is thus measured within about
+    the budget, not after a whole batch of ``n_runs``.
     """
     s = simulator.system
     rng = np.random.default_rng(seed)
     x = s.x_lo + rng.random((n_runs, s.n)) * (s.x_hi - s.x_lo)
     u = s.inputs[rng.integers(0, s.inputs.shape[0], n_runs)]
     simulator.step(x[:64], u[:64], rng)
-    done, t0 = 0, time.perf_counter()
+    b, start = min(64, n_runs), time.perf_counter()
     while True:
-        simulator.step(x, u, rng)
-        done += n_runs
-        dt = time.perf_counter() - t0
-        if dt >= budget:
-            return done / dt
+        t0 = time.perf_counter()
+        simulator.step(x[:b], u[:b], rng)
+        dt = max(time.perf_counter() - t0, 1e-9)
+        if b >= n_runs or dt >= budget / 4 or time.perf_counter() - start >= budget:
+            return b / dt
+        b = min(n_runs, 4 * b)
 
 
 def estimate_cost(cover: Cover, n_runs: int, rate_per_worker: Optional[float] = None,

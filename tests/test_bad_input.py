@@ -376,7 +376,7 @@ def test_simulator_refuses_urdf_outside_assets():
     (lambda t: t.replace("beta1 = 0.01", "beta1 = 0.01\ndegree = 40"), [], ["[certify] degree", "12,341"]),
     (lambda t: t.replace("beta1 = 0.01", "beta1 = 0.01\nterms = { \"0\" = [\"__import__('os')\"] }"), [],
      ["__import__", "not allowed"]),
-    (lambda t: t.replace("beta1 = 0.01", "beta1 = 0.01\nterms = { \"5\" = [\"x1\"] }"), [], ["dimension 6"]),
+    (lambda t: t.replace("beta1 = 0.01", "beta1 = 0.01\nterms = { \"5\" = [\"x1\"] }"), [], ["terms key '5'", "not 0..1 or -1"]),
     (lambda t: t.replace("eta = [0.004, 0.01]", "eta = [0.004, 0.01, 0.1]"), [], ["[synthesis] eta"]),
     (lambda t: t.replace("eta = [0.004, 0.01]", "hold = 1"), [], ["[synthesis] eta", "required"]),
     (lambda t: t.replace("x0 = [0.05, 0.1]", "x0 = [5.0, 0.1]"), [], ["[rollout] x0", "outside X"]),

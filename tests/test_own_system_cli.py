@@ -40,7 +40,9 @@ urdf = "husky.urdf"
 base_pose = true
 inputs = ["front_left_wheel", "front_right_wheel", "rear_left_wheel", "rear_right_wheel"]
 input_mode = "velocity"
+max_force = 50
 ground = true
+substeps = 100
 copies = 4
 base_height = 0.2
 [collect]
@@ -82,7 +84,7 @@ def test_links_without_inertial_data_are_summarized_once(tmp_path):
     shutil.copytree(src, d)
     (d / "unicycle.toml").write_text(HUSKY_SYSTEM)
     (d / "exp.toml").write_text(HUSKY_EXPERIMENT)
-    r = simgap("collect", "exp.toml", "--dry-run", cwd=d, timeout=300)
+    r = simgap("collect", "exp.toml", "--dry-run", cwd=d, timeout=300)  # builds, calibrates (~1 s), estimates
     assert r.returncode == 0, r.stderr
     err = r.stderr
     assert "No inertial data" not in err and "b3Warning" not in err, err
@@ -153,3 +155,142 @@ def test_a_velocity_state_on_a_fixed_joint_is_refused(tmp_path):
     (d / "exp.toml").write_text(HUSKY_EXPERIMENT.replace("base_pose = true", 'base_pose = true\nvelocities = ["imu_joint"]'))
     refused(simgap("collect", "exp.toml", "--dry-run", cwd=d, timeout=300),
             "no revolute/prismatic joint 'imu_joint'", "options.velocities", "front_left_wheel")
+
+
+VW_SYSTEM = """
+name = "husky_vw"
+states = ["x", "y", "theta"]
+inputs = ["v", "w"]
+x_lo = [-2.0, -2.0, -3.14159]
+x_hi = [2.0, 2.0, 3.14159]
+tau = 0.5
+angles = ["theta"]
+input_set = [[0, 0], [0.5, 0], [0, 1.0], [0.5, 1.0]]
+[dynamics]
+kind = "discrete"
+x = "x + dt*v*cos(theta)"
+y = "y + dt*v*sin(theta)"
+theta = "theta + dt*w"
+"""
+#: (v, w) -> (front left, front right, rear left, rear right) wheel speeds [rad/s]: (v -+ w b / 2) / r
+VW_MAP = "[[6.06, -1.68], [6.06, 1.68], [6.06, -1.68], [6.06, 1.68]]"
+
+
+def _husky(tmp_path, system: str, experiment: str):
+    pybullet_data = pytest.importorskip("pybullet_data")
+    d = tmp_path / "husky"
+    if not d.exists():
+        shutil.copytree(Path(pybullet_data.getDataPath()) / "husky", d)
+    (d / "unicycle.toml").write_text(system)
+    (d / "exp.toml").write_text(experiment)
+    from simgap.config import load_experiment
+    return load_experiment(d / "exp.toml", "base")
+
+
+def test_an_input_map_drives_several_joints_as_the_same_targets_would(tmp_path):
+    """(v, w) through input_map gives bit for bit what four inputs set to the mapped wheel speeds give."""
+    import numpy as np
+    from simgap.simulators import make_simulator
+    mapped = _husky(tmp_path, VW_SYSTEM, HUSKY_EXPERIMENT.replace(
+        'input_mode = "velocity"', f'input_mode = "velocity"\ninput_map = {VW_MAP}'))
+    direct = _husky(tmp_path, HUSKY_SYSTEM, HUSKY_EXPERIMENT)
+    A = np.array(eval(VW_MAP))  # noqa: S307  (the test's own literal)
+    x = np.array([[0.0, 0.0, 0.0], [0.5, -0.3, 1.0], [-1.0, 1.0, -2.0]])
+    vw = np.array([[0.5, 0.0], [0.0, 1.0], [0.5, 1.0]])
+    with make_simulator(mapped.simulator, mapped.system) as a, make_simulator(direct.simulator, direct.system) as b:
+        ya = a.step(x, vw, np.random.default_rng(0))
+        yb = b.step(x, vw @ A.T, np.random.default_rng(0))
+    assert np.array_equal(ya, yb)
+    assert ya[0, 0] > 0.05 and ya[1, 2] > 0.0  # forward moves forward, a positive w turns left
+
+
+@pytest.mark.parametrize("value,words", [
+    ("[[6.06, -1.68], [6.06, 1.68], [6.06, -1.68]]", ["options.input_map is 3x2 but must be 4 x 2",
+                                                      "front_left_wheel, front_right_wheel"]),
+    ("[[1, 2], [1, 2], [1, 2], [1, 2]]", ["rank 1 < 2 inputs"]),
+    (None, ["options.inputs names 4 joints but system 'husky_vw' has m=2", "options.input_map"]),
+])
+def test_a_bad_input_map_is_refused(tmp_path, value, words):
+    exp = HUSKY_EXPERIMENT if value is None else HUSKY_EXPERIMENT.replace(
+        'input_mode = "velocity"', f'input_mode = "velocity"\ninput_map = {value}')
+    _husky(tmp_path, VW_SYSTEM, exp)
+    refused(simgap("collect", "exp.toml", "--dry-run", cwd=tmp_path / "husky", timeout=300), *words)
+
+
+def test_an_input_map_in_mujoco_sets_the_mapped_ctrl(tmp_path):
+    """MuJoCo: input_map [[2]] gives bit for bit what the doubled ctrl gives (noise off); a wrong
+    shape is refused naming the actuators."""
+    import dataclasses
+    import numpy as np
+    pytest.importorskip("mujoco")
+    from simgap.config import load_experiment
+    from simgap.simulators import make_simulator
+    d = tmp_path / "arm"
+    shutil.copytree(REPO / "examples" / "arm", d)
+    exp = load_experiment(d / "arm_mujoco.toml")
+    plain = dataclasses.replace(exp.simulator, noise={}, randomize={})
+    mapped = dataclasses.replace(plain, options={**plain.options, "input_map": [[2.0]]})
+    x, u = np.array([[0.2, 0.5], [-0.1, 0.0]]), np.array([[0.3], [-0.4]])
+    with make_simulator(mapped, exp.system) as a, make_simulator(plain, exp.system) as b:
+        assert np.array_equal(a.step(x, u, np.random.default_rng(0)), b.step(x, 2 * u, np.random.default_rng(0)))
+    bad = dataclasses.replace(plain, options={**plain.options, "input_map": [[1.0], [1.0]]})
+    from simgap.errors import SimgapError
+    with pytest.raises(SimgapError, match=r"options.input_map is 2x1 but must be 1 x 1.*\(torque\)"):
+        make_simulator(bad, exp.system)
+
+
+VW5_SYSTEM = """
+name = "husky_vw5"
+states = ["x", "y", "theta", "v", "w"]
+inputs = ["vc", "wc"]
+x_lo = [-2.0, -2.0, -3.14159, -1, -2]
+x_hi = [2.0, 2.0, 3.14159, 1, 2]
+tau = 0.5
+angles = ["theta"]
+input_set = [[0, 0], [0.5, 0], [0, 1.0], [0.5, 1.0]]
+[dynamics]
+kind = "discrete"
+x = "x + dt*vc*cos(theta)"
+y = "y + dt*vc*sin(theta)"
+theta = "theta + dt*wc"
+v = "vc"
+w = "wc"
+"""
+#: the husky's wheels: radius 0.17775 m, track 2 x 0.2854 m: (v -+ w b / 2) / r
+VW5_MAP = "[[5.626, -1.606], [5.626, 1.606], [5.626, -1.606], [5.626, 1.606]]"
+
+
+def test_a_base_in_steady_motion_follows_v_tau_within_2_percent(tmp_path):
+    """With the base's velocity in the state and the wheels starting at their targets, a base moving
+    at the commanded speed covers v tau per period (within 2 %), period after period, at any heading;
+    started at rest (the default), it covers far less."""
+    import numpy as np
+    from simgap.simulators import make_simulator
+    moving = HUSKY_EXPERIMENT.replace('base_pose = true', 'base_pose = true\nbase_velocity = true\n'
+                                      'driven_start = "target"').replace(
+        'input_mode = "velocity"', f'input_mode = "velocity"\ninput_map = {VW5_MAP}')
+    exp = _husky(tmp_path, VW5_SYSTEM, moving)
+    with make_simulator(exp.simulator, exp.system) as sim:
+        for v, heading in ((0.5, 0.0), (0.5, 2.0), (0.3, -1.0)):
+            z, u = np.array([[0.0, 0.0, heading, v, 0.0]]), np.array([[v, 0.0]])
+            for k in range(3):
+                z2 = sim.step(z, u, np.random.default_rng(k))
+                step = z2[0, :2] - z[0, :2]
+                assert abs(np.hypot(*step) / (v * 0.5) - 1) < 0.02, (v, heading, k, z2)
+                assert abs(np.arctan2(step[1], step[0]) - heading) < 0.01
+                z = z2
+    at_rest = _husky(tmp_path, VW_SYSTEM, HUSKY_EXPERIMENT.replace(
+        'input_mode = "velocity"', f'input_mode = "velocity"\ninput_map = {VW5_MAP}'))
+    with make_simulator(at_rest.simulator, at_rest.system) as sim:
+        y = sim.step(np.zeros((1, 3)), np.array([[0.5, 0.0]]), np.random.default_rng(0))
+    assert y[0, 0] < 0.9 * 0.25  # it spends the period reaching the speed
+
+
+@pytest.mark.parametrize("change,words", [
+    (('base_pose = true', 'base_velocity = true'), ["base_velocity", "needs base_pose = true"]),
+    (('input_mode = "velocity"', 'input_mode = "torque"\ndriven_start = "target"'),
+     ["driven_start = 'target'", "needs input_mode = 'velocity'"]),
+])
+def test_moving_start_options_are_checked(tmp_path, change, words):
+    _husky(tmp_path, HUSKY_SYSTEM, HUSKY_EXPERIMENT.replace(*change))
+    refused(simgap("collect", "exp.toml", "--dry-run", cwd=tmp_path / "husky", timeout=300), *words)

@@ -45,7 +45,7 @@ import numpy as np
 from ..errors import SimgapError
 from ._bullet import check_std, int_option, relative_factors
 from .base import Simulator, as_vector
-from .pybullet_urdf import model_file, name_list
+from .pybullet_urdf import input_map, model_file, name_list
 
 
 def mujoco_module():
@@ -66,7 +66,7 @@ class MujocoSimulator(Simulator):
     RANDOMIZE_KEYS = ("mass", "damping")
     PARAMETER_DRAWS = ("mass", "damping")  # draw_noise keys held for an episode (randomize.per)
     EFFECT_KEYS = ()
-    OPTION_KEYS = ("model", "model_sha256", "positions", "velocities", "inputs", "substeps", "threads",
+    OPTION_KEYS = ("model", "model_sha256", "positions", "velocities", "inputs", "input_map", "substeps", "threads",
                    "models_per_batch")
     #: options naming a file: resolved against (and confined to) the experiment's folder
     PATH_OPTIONS = ("model",)
@@ -91,9 +91,7 @@ class MujocoSimulator(Simulator):
         if len(pos_names) + len(vel_names) != s.n:
             raise SimgapError(f"mujoco: the state has {len(pos_names)} positions + {len(vel_names)} velocities "
                               f"but system {s.name!r} has n={s.n}")
-        if len(in_names) != s.m:
-            raise SimgapError(f"mujoco: options.inputs names {len(in_names)} actuators but system "
-                              f"{s.name!r} has m={s.m} inputs")
+        self.input_map = input_map(op.get("input_map"), in_names, s, "mujoco", "actuators")
         self.pos_adr = [self._joint(m, nm, "positions")[0] for nm in pos_names]
         self.vel_adr = [self._joint(m, nm, "velocities")[1] for nm in vel_names]
         self.force_dof = [self._joint(m, nm, "positions")[1] for nm in pos_names]
@@ -184,7 +182,8 @@ class MujocoSimulator(Simulator):
         state = np.tile(self.state0, (B, 1))
         state[:, self.x_cols] = x
         control = np.zeros((B, 1, m.nu + m.nv))
-        control[:, 0, self.act_id] = u + noise["act"]
+        ctrl = u + noise["act"]
+        control[:, 0, self.act_id] = ctrl if self.input_map is None else ctrl @ self.input_map.T
         control[:, 0, m.nu + np.asarray(self.force_dof, dtype=int)] = noise["force"]
         control = np.repeat(control, self.nstep, axis=1)  # held for the whole period
         out = np.empty((B, s.n))

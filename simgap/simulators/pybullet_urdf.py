@@ -5,7 +5,8 @@ folder, see :func:`simgap.config.load_experiment`) and which of its joints make 
 the input. The state vector x is, in this order,
 
 * the planar base pose (x [m], y [m], yaw [rad]) when ``options.base_pose = true`` (a mobile
-  base; the base is then not fixed),
+  base; the base is then not fixed), then its forward speed along the heading [m/s] and yaw
+  rate [rad/s] when ``options.base_velocity = true`` (the base starts each period moving so),
 * the positions of the joints named in ``options.positions`` [rad or m],
 * the velocities of the joints named in ``options.velocities`` [rad/s or m/s];
 
@@ -19,7 +20,9 @@ a mobile base is placed at (x, y, yaw) at ``options.base_height`` at rest, the i
 ``steps * substeps`` Bullet steps of dt = base_tau / substeps, and the state is read back (and
 wrapped where the system says a dimension is an angle). Degrees of freedom that are not in the
 state (base velocity, other joints) start at rest in every period: a URDF whose behaviour over
-one period depends on them needs them in the state.
+one period depends on them needs them in the state. With ``options.driven_start = "target"``
+(velocity mode) the driven joints start each period at their velocity targets instead of at
+rest (a wheel already turning as commanded, consistent with a base in ``base_velocity``).
 
 Batching: ``options.copies`` copies of the robot share one world, all at the same place, with
 collisions between copies filtered out (with ``options.ground`` they still touch the ground
@@ -89,6 +92,32 @@ def name_list(value, what: str) -> List[str]:
     return list(value)
 
 
+def input_map(value, joints: List[str], system, backend: str = "pybullet_urdf", what: str = "joints"):
+    """The (joints, m) matrix of ``options.input_map`` (a joint's target or an actuator's ctrl =
+    its row . u), or None when the inputs drive one each (``options.inputs`` then names m)."""
+    m, J = system.m, len(joints)
+    if value is None:
+        if J != m:
+            raise SimgapError(f"{backend}: options.inputs names {J} {what} but system {system.name!r} has m={m} "
+                              f"inputs; to drive {J} {what} from {m} inputs give options.input_map, one row of {m} "
+                              f"coefficients per entry of options.inputs")
+        return None
+    try:
+        A = np.array(value, dtype=float)
+    except (TypeError, ValueError):
+        raise SimgapError(f"{backend}: options.input_map must be a matrix of numbers, got {value!r}") from None
+    if A.shape != (J, m):
+        raise SimgapError(f"{backend}: options.input_map is {'x'.join(map(str, A.shape)) or 'a scalar'} but must be "
+                          f"{J} x {m}: one row per entry of options.inputs ({', '.join(joints)}), one column per "
+                          f"input of {system.name!r} ({', '.join(system.input_names)})")
+    if not np.all(np.isfinite(A)):
+        raise SimgapError(f"{backend}: options.input_map has a NaN or infinite entry")
+    if np.linalg.matrix_rank(A) < m:
+        raise SimgapError(f"{backend}: options.input_map has rank {np.linalg.matrix_rank(A)} < {m} inputs: two "
+                          f"inputs would move the {what} alike (their gap could not be told apart)")
+    return A
+
+
 _REPORTED: set = set()
 
 
@@ -112,8 +141,9 @@ class UrdfSimulator(BulletSimulator):
     RANDOMIZE_KEYS = ("mass", "joint_damping", "friction")
     PARAMETER_DRAWS = ("mass", "damping", "friction")  # draw_noise keys held for an episode (randomize.per)
     EFFECT_KEYS = ("joint_damping", "actuator_gain")
-    OPTION_KEYS = ("urdf", "urdf_sha256", "positions", "velocities", "inputs", "input_mode", "max_force",
-                   "base_pose", "base_height", "fixed_base", "ground", "substeps", "copies", "gravity")
+    OPTION_KEYS = ("urdf", "urdf_sha256", "positions", "velocities", "inputs", "input_map", "input_mode", "max_force",
+                   "base_pose", "base_velocity", "driven_start", "base_height", "fixed_base", "ground", "substeps",
+                   "copies", "gravity")
     #: options naming a file: resolved against (and confined to) the experiment's folder
     PATH_OPTIONS = ("urdf",)
 
@@ -131,17 +161,27 @@ class UrdfSimulator(BulletSimulator):
         self.fixed_base = bool(op.get("fixed_base", not self.base_pose))
         if self.base_pose and self.fixed_base:
             raise SimgapError("pybullet_urdf: base_pose needs a mobile base (fixed_base = false)")
-        n = 3 * self.base_pose + len(self.pos_names) + len(self.vel_names)
+        self.base_velocity = bool(op.get("base_velocity", False))
+        if self.base_velocity and not self.base_pose:
+            raise SimgapError("pybullet_urdf: base_velocity (forward speed and yaw rate in the state) needs "
+                              "base_pose = true")
+        self.nb = 3 * self.base_pose + 2 * self.base_velocity  # base components at the front of x
+        n = self.nb + len(self.pos_names) + len(self.vel_names)
         if n != s.n:
-            raise SimgapError(f"pybullet_urdf: the state has {n} components (base pose {3 * self.base_pose}, "
+            raise SimgapError(f"pybullet_urdf: the state has {n} components (base {self.nb}, "
                               f"{len(self.pos_names)} positions, {len(self.vel_names)} velocities) but system "
                               f"{s.name!r} has n={s.n}")
-        if len(self.in_names) != s.m:
-            raise SimgapError(f"pybullet_urdf: options.inputs names {len(self.in_names)} joints but system "
-                              f"{s.name!r} has m={s.m} inputs")
+        self.input_map = input_map(op.get("input_map"), self.in_names, s)
         self.mode = op.get("input_mode", "torque")
         if self.mode not in ("torque", "velocity"):
             raise SimgapError(f"pybullet_urdf: options.input_mode must be 'torque' or 'velocity', got {self.mode!r}")
+        self.driven_start = op.get("driven_start", "rest")
+        if self.driven_start not in ("rest", "target"):
+            raise SimgapError(f"pybullet_urdf: options.driven_start must be 'rest' or 'target', got "
+                              f"{self.driven_start!r}")
+        if self.driven_start == "target" and self.mode != "velocity":
+            raise SimgapError("pybullet_urdf: driven_start = 'target' (driven joints start at their velocity "
+                              "targets) needs input_mode = 'velocity'")
         self.max_force = check_std(op.get("max_force", 10.0), "options.max_force")
         self.act_std = as_vector(nz.get("actuation_std", 0.0), s.m, "noise.actuation_std")
         self.sens_std = as_vector(nz.get("sensor_std", 0.0), s.n, "noise.sensor_std")
@@ -246,19 +286,26 @@ class UrdfSimulator(BulletSimulator):
         if x.shape != (B, s.n) or u.shape != (B, s.m):
             raise SimgapError(f"pybullet_urdf: need x (B,{s.n}) and u (B,{s.m}), got {x.shape} and {u.shape}")
         drive = self.gain * (u + noise["act"])
+        if self.input_map is not None:  # joint targets from the inputs (actuation noise on the inputs)
+            drive = drive @ self.input_map.T
         out = np.empty((B, s.n))
         for r0 in range(0, B, self.copies):
             r1 = min(B, r0 + self.copies)
             out[r0:r1] = self._run_round(x[r0:r1], drive[r0:r1], {k: v[r0:r1] for k, v in noise.items()})
         return s.wrap(out + noise["sens"])
 
-    def _set_state(self, bodies, x):
-        """Reset each body's state dofs to a row of x; other movable joints to 0 at rest."""
+    def _set_state(self, bodies, x, targets=None):
+        """Reset each body's state dofs to a row of x; other movable joints to 0 at rest (driven
+        joints to their velocity ``targets`` with ``driven_start = "target"``)."""
         pb, cid = self._pb, self._cid
-        nb, npos = 3 * self.base_pose, len(self.pos_idx)
+        nb, npos = self.nb, len(self.pos_idx)
         J = len(self.movable)
-        for b, row in zip(bodies, x.tolist()):
+        slot = {j: k for k, j in enumerate(self.movable)}
+        for i, (b, row) in enumerate(zip(bodies, x.tolist())):
             q, qd = [[0.0] for _ in range(J)], [[0.0] for _ in range(J)]
+            if targets is not None and self.driven_start == "target":
+                for j, v in zip(self.in_idx, targets[i]):
+                    qd[slot[j]] = [v]
             for k, v in zip(self._pos_slot, row[nb:nb + npos]):
                 q[k] = [v]
             for k, v in zip(self._vel_slot, row[nb + npos:]):
@@ -267,7 +314,7 @@ class UrdfSimulator(BulletSimulator):
                 pos = [row[0], row[1], self._base0[0][2]]
                 pb.resetBasePositionAndOrientation(b, pos, pb.getQuaternionFromEuler([0, 0, row[2]]),
                                                    physicsClientId=cid)
-                pb.resetBaseVelocity(b, [0, 0, 0], [0, 0, 0], physicsClientId=cid)
+                pb.resetBaseVelocity(b, *self._base_velocity(row), physicsClientId=cid)
             elif not self.fixed_base:
                 pb.resetBasePositionAndOrientation(b, *self._base0, physicsClientId=cid)
                 pb.resetBaseVelocity(b, [0, 0, 0], [0, 0, 0], physicsClientId=cid)
@@ -276,6 +323,14 @@ class UrdfSimulator(BulletSimulator):
                 for l in [-1] + list(range(pb.getNumJoints(b, physicsClientId=cid))):
                     pb.setCollisionFilterGroupMask(b, l, 2, 1, physicsClientId=cid)
 
+    def _base_velocity(self, row):
+        """(linear, angular) base velocity of a state row: (v cos yaw, v sin yaw, 0), (0, 0, omega) with
+        ``base_velocity``, else at rest."""
+        if not self.base_velocity:
+            return [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]
+        yaw, v, w = row[2], row[3], row[4]
+        return [v * np.cos(yaw), v * np.sin(yaw), 0.0], [0.0, 0.0, w]
+
     def _get_state(self, bodies) -> np.ndarray:
         pb, cid = self._pb, self._cid
         rows = []
@@ -283,7 +338,11 @@ class UrdfSimulator(BulletSimulator):
             row = []
             if self.base_pose:
                 pos, orn = pb.getBasePositionAndOrientation(b, physicsClientId=cid)
-                row += [pos[0], pos[1], pb.getEulerFromQuaternion(orn)[2]]
+                yaw = pb.getEulerFromQuaternion(orn)[2]
+                row += [pos[0], pos[1], yaw]
+                if self.base_velocity:  # forward speed along the heading, yaw rate
+                    lin, ang = pb.getBaseVelocity(b, physicsClientId=cid)
+                    row += [lin[0] * np.cos(yaw) + lin[1] * np.sin(yaw), ang[2]]
             st = pb.getJointStates(b, self.movable, physicsClientId=cid)
             slot = {j: k for k, j in enumerate(self.movable)}
             row += [st[slot[j]][0] for j in self.pos_idx] + [st[slot[j]][1] for j in self.vel_idx]
@@ -305,8 +364,8 @@ class UrdfSimulator(BulletSimulator):
                 for k, j in enumerate(self.movable):
                     pb.changeDynamics(b, j, jointDamping=float(self.damping0[k] * noise["damping"][i, k]),
                                       physicsClientId=cid)
-        self._set_state(bodies, x)
         targets = drive.tolist()
+        self._set_state(bodies, x, targets)
         if self.mode == "velocity":
             for b, t in zip(bodies, targets):
                 pb.setJointMotorControlArray(b, self.in_idx, pb.VELOCITY_CONTROL, targetVelocities=t,
@@ -326,12 +385,13 @@ class UrdfSimulator(BulletSimulator):
     def _set_state_keep_rest(self, bodies, x):
         """Reset only the state dofs to x (process noise between base periods)."""
         pb, cid = self._pb, self._cid
-        nb, npos = 3 * self.base_pose, len(self.pos_idx)
+        nb, npos = self.nb, len(self.pos_idx)
         for b, row in zip(bodies, x.tolist()):
             if self.base_pose:
                 pos, orn = pb.getBasePositionAndOrientation(b, physicsClientId=cid)
                 rpy = pb.getEulerFromQuaternion(orn)
-                lin, ang = pb.getBaseVelocity(b, physicsClientId=cid)
+                lin, ang = self._base_velocity(row) if self.base_velocity else \
+                    pb.getBaseVelocity(b, physicsClientId=cid)
                 pb.resetBasePositionAndOrientation(b, [row[0], row[1], pos[2]],
                                                    pb.getQuaternionFromEuler([rpy[0], rpy[1], row[2]]),
                                                    physicsClientId=cid)

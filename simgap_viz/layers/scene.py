@@ -203,7 +203,7 @@ def draw_bodies(app) -> None:
         app.body_frame = sc.add_frame("/bodies/pendulum", show_axes=False, position=PENDULUM_PIVOT, visible=vis)
         for name, mesh, _pos in bodies:
             _add_mesh(sc, f"/bodies/pendulum/{name}", mesh)
-        sc.add_label("/bodies/label", text="PyBullet pendulum (1 m rod)", anchor="bottom-center",
+        sc.add_label("/bodies/label", text="PyBullet pendulum (1 m rod)", anchor="bottom-right",
                      position=(PENDULUM_PIVOT[0], 0.0, PENDULUM_PIVOT[2] + 0.12), visible=vis)
     elif base.name == "turtlebot":
         frame = G.Frame(base)

@@ -55,6 +55,7 @@ def _inset_cover(fig) -> list:
 
 
 def test_plot_run_figures(run_dir, tmp_path, captured):  # noqa: F811
+    from matplotlib.colors import to_hex
     from PIL import Image
 
     from simgap_viz.figures import METHOD_STYLE, plot_run
@@ -87,14 +88,13 @@ def test_plot_run_figures(run_dir, tmp_path, captured):  # noqa: F811
         assert a["lines"] == R + 3 and a["rasterized"] == R
         fails = int((~np.asarray(ro.success)).sum())
         assert a["title"] == f"{m} gap: {fails} of {R} runs fail"
-        assert set(a["colors"]) <= {__import__("matplotlib.colors").colors.to_hex(METHOD_STYLE[m]), "#ff0000"}
+        assert set(a["colors"]) <= {to_hex(METHOD_STYLE[m]), "#ff0000"}  # the method's color, failures red
     assert main[0]["ylabel"] == "omega [rad/s]"
     assert f"stochastic gap: {R} rollouts" in traj["legends"][0] and "mean map (the guarantee)" in traj["legends"][0]
     assert all(c <= 0.02 for c in traj["inset_cover"]), traj["inset_cover"]  # insets where no data run
     st = captured["states_time"]
     assert {a["ylabel"] for a in st["axes"] if a["ylabel"]} == {"theta [rad]", "omega [rad/s]"}
     assert "time [s]" in {a["xlabel"] for a in st["axes"]}
-    from matplotlib.colors import to_hex
     for a in st["axes"]:  # the same method colors as the trajectories
         m = a["title"].split(" gap")[0] if a["title"] else None
         if m:

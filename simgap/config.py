@@ -96,10 +96,11 @@ class ExperimentConfig:
                               keep_samples=c.keep_samples)
 
     def store_dir(self) -> Path:
-        """Where the data go: ``collect.out`` or ``runs/<name>-<profile>/data`` (relative to cwd)."""
+        """Where the data go: ``collect.out`` or ``results/<name>-<profile>/data`` (relative to cwd), the
+        folder ``simgap run`` collects into, so a ``simgap collect`` is resumed (or reused) by ``simgap run``."""
         if self.collect.out:
             return Path(self.collect.out)
-        return Path("runs") / f"{self.name}-{self.profile or 'base'}" / "data"
+        return Path("results") / f"{self.name}-{self.profile or 'base'}" / "data"
 
 
 def _merge(base: dict, over: dict) -> dict:
@@ -112,6 +113,11 @@ def _merge(base: dict, over: dict) -> dict:
     return out
 
 
+def builtin_experiments() -> list:
+    """Names of the experiments shipped in ``assets/experiments`` (sorted)."""
+    return sorted(x.stem for x in EXPERIMENTS_DIR.glob("*.toml"))
+
+
 def resolve_experiment(path_or_name: str | Path) -> Path:
     """A TOML path, or a bare name resolved to ``assets/experiments/<name>.toml``."""
     p = Path(path_or_name)
@@ -122,7 +128,7 @@ def resolve_experiment(path_or_name: str | Path) -> Path:
         q = EXPERIMENTS_DIR / f"{s}.toml"
         if q.is_file():
             return q
-        known = sorted(x.stem for x in EXPERIMENTS_DIR.glob("*.toml"))
+        known = builtin_experiments()
         raise SimgapError(f"unknown experiment {s!r}; built-in experiments: {', '.join(known) or 'none'} "
                           "(or give a path to a .toml file)")
     raise SimgapError(f"experiment file {s!r} does not exist")

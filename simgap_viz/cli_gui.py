@@ -6,6 +6,7 @@ import argparse
 import time
 
 from simgap.checks import check_bindable, host, port
+from simgap.systems import BUILTIN
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
@@ -24,7 +25,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--profile", default=None, help="experiment profile (e.g. small)")
     p.add_argument("--dataset", default=None, help="load this dataset (.npz or store directory) at start")
     p.add_argument("--system", default=None,
-                   help="start with this system: a built-in or plugin name (pendulum, turtlebot; see simgap plugins), "
+                   help="start with this system: a built-in or plugin name (" + ", ".join(sorted(BUILTIN)) + "; see simgap plugins), "
                         "a system file (.toml) or a refined-system JSON")
     p.add_argument("--executor", default="local", choices=("serial", "local"),
                    help="how the collect button runs the simulator (default: local process pool)")

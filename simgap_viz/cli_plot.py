@@ -14,6 +14,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                     "system's units.")
     p.add_argument("run", help="a `simgap run` results folder (e.g. results/pendulum-small)")
     p.add_argument("--out", default=None, help="output folder (default RUN/figures)")
+    p.add_argument("--style", choices=("paper", "slide"), default="paper",
+                   help="paper: 7 in wide, 8 pt text, a two-column paper's text width (default); slide: 11 in, 14 pt")
     p.add_argument("--max-drawn", type=int, default=1000, help="rollouts drawn per method (failures first; default 1000)")
     p.set_defaults(func=run)
     return p
@@ -26,7 +28,7 @@ def run(args) -> int:
 
     if args.max_drawn < 1:
         raise SimgapError(f"--max-drawn must be >= 1, got {args.max_drawn}")
-    written = plot_run(args.run, args.out, max_drawn=args.max_drawn)
+    written = plot_run(args.run, args.out, max_drawn=args.max_drawn, style=args.style)
     for p in written:
         print(p)
     return 0

@@ -416,12 +416,15 @@ def certificate_markdown(cert) -> str:
     def f(v, p=3):
         return "-" if v is None else f"{v:.{p}g}"
 
-    rows = ["| dim | max gap | delta1 | delta2 | beta1 | beta2 | gamma on data | conf |",
-            "|---|---|---|---|---|---|---|---|"]
-    for name, d in zip(cert.state_names, cert.dims):
-        lo, hi = d.scp.get("gamma_range_on_data", [None, None])
-        rows.append(f"| {name} | {f(d.gap_max)} | {f(d.delta1)} | {f(d.delta2)} | {f(d.beta1)} | {f(d.beta2)} | "
-                    f"{f(lo)} - {f(hi)} | {f(d.confidence, 4)} |")
+    # one column per state dimension, one row per quantity: short cells that fit the panel
+    rng = [d.scp.get("gamma_range_on_data", [None, None]) for d in cert.dims]
+    quantities = (("max observed gap", [f(d.gap_max) for d in cert.dims]),
+                  ("delta_1", [f(d.delta1) for d in cert.dims]), ("delta_2", [f(d.delta2) for d in cert.dims]),
+                  ("beta_1", [f(d.beta1) for d in cert.dims]), ("beta_2", [f(d.beta2) for d in cert.dims]),
+                  ("gamma on data, min", [f(r[0]) for r in rng]), ("gamma on data, max", [f(r[1]) for r in rng]),
+                  ("confidence", [f(d.confidence, 4) for d in cert.dims]))
+    rows = ["| | " + " | ".join(cert.state_names) + " |", "|---|" + "---|" * len(cert.dims)]
+    rows += [f"| {q} | " + " | ".join(v) + " |" for q, v in quantities]
     jc = cert.joint_confidence
     rows.append("")
     rows.append(f"**joint confidence**: {'not stated (deterministic)' if jc is None else f'{jc:.4f}'}  ")

@@ -26,8 +26,13 @@ import numpy as np
 from simgap.errors import SimgapError
 from simgap.systems import labelled, units
 
-METHOD_STYLE = {"deterministic": "tab:blue", "stochastic": "tab:orange"}
+METHOD_STYLE = {"deterministic": "tab:blue", "stochastic": "tab:orange"}  # one color per method, every figure
+MEAN_MAP, AVERAGE = dict(color="k", lw=1.0), dict(color="0.35", lw=0.8, ls=(0, (3, 2)))
 FORMATS = ("png", "pdf")
+# figure sizes [in] and fonts [pt]: "paper" fits a two-column paper's text width (7 in; a panel per
+# method is one column wide), "slide" a 16:9 slide
+STYLES = {"paper": {"width": 7.0, "row": 2.4, "font": 8, "small": 6.5, "dpi": 300},
+          "slide": {"width": 11.0, "row": 3.6, "font": 14, "small": 11, "dpi": 150}}
 
 
 def _plt():
@@ -37,20 +42,85 @@ def _plt():
     return plt
 
 
+def _rc(style: str) -> dict:
+    st = STYLES[style]
+    return {"font.size": st["font"], "axes.titlesize": st["font"], "axes.labelsize": st["font"],
+            "xtick.labelsize": st["small"], "ytick.labelsize": st["small"], "legend.fontsize": st["small"],
+            "figure.titlesize": st["font"], "pdf.fonttype": 42, "lines.linewidth": 1.0}
+
+
+def _styled(fn):
+    """Draw ``fn``'s figure with its ``style``'s fonts (matplotlib resolves text sizes when an artist is made)."""
+    import functools
+
+    @functools.wraps(fn)
+    def wrapper(*args, style: str = "paper", **kw):
+        with _plt().rc_context(_rc(style)):
+            return fn(*args, style=style, **kw)
+    return wrapper
+
+
+def _figure(style: str, rows: int, cols: int, height_rows: float | None = None, **kw):
+    """A figure of the style's width with ``rows`` x ``cols`` axes (constrained layout, legend below)."""
+    st = STYLES[style]
+    fig, axes = _plt().subplots(rows, cols, figsize=(st["width"], st["row"] * (height_rows or rows) + 0.5),
+                                squeeze=False, layout="constrained", **kw)
+    fig._simgap_style = style
+    return fig, axes
+
+
 def save(fig, out_dir: Path, name: str) -> list:
-    """Write ``name``.png and .pdf into ``out_dir`` atomically; return the paths."""
+    """Write ``name``.png and .pdf into ``out_dir`` atomically; return the paths. Rasterized artists
+    (the dense rollouts) are embedded as images in the PDF at the style's dpi, the rest stays vector."""
     paths = []
-    for ext in FORMATS:
-        final = out_dir / f"{name}.{ext}"
-        tmp = out_dir / f".{name}.{os.getpid()}.tmp.{ext}"
-        try:
-            fig.savefig(tmp, dpi=150, bbox_inches="tight")
-            tmp.replace(final)
-        finally:
-            tmp.unlink(missing_ok=True)
-        paths.append(final)
+    style = getattr(fig, "_simgap_style", "paper")
+    with _plt().rc_context(_rc(style)):
+        for ext in FORMATS:
+            final = out_dir / f"{name}.{ext}"
+            tmp = out_dir / f".{name}.{os.getpid()}.tmp.{ext}"
+            try:
+                fig.savefig(tmp, dpi=STYLES[style]["dpi"], bbox_inches="tight", pad_inches=0.02)
+                tmp.replace(final)
+            finally:
+                tmp.unlink(missing_ok=True)
+            paths.append(final)
     _plt().close(fig)
     return paths
+
+
+def text_overlaps(fig) -> list:
+    """Pairs of visible, non-empty texts of ``fig`` (tick labels, axis labels, titles, legend and figure
+    texts) whose drawn extents intersect, as (text, text) strings; [] for a figure that reads cleanly."""
+    fig.canvas.draw()
+    r = fig.canvas.get_renderer()
+    texts = list(fig.texts)
+    for ax in fig.axes:
+        texts += [ax.xaxis.label, ax.yaxis.label, ax.title, ax._left_title, ax._right_title, *ax.texts,
+                  ax.xaxis.get_offset_text(), ax.yaxis.get_offset_text()]
+        for axis in (ax.xaxis, ax.yaxis):  # the labels of the ticks drawn (inside the view interval)
+            lo, hi = sorted(axis.get_view_interval())
+            eps = 1e-9 * max(abs(hi - lo), 1e-300)
+            texts += [t.label1 for t in axis.get_major_ticks() if lo - eps <= t.get_loc() <= hi + eps]
+        if ax.get_legend() is not None:
+            texts += ax.get_legend().get_texts()
+    for lg in fig.legends:
+        texts += lg.get_texts()
+    boxes = [(t.get_text(), t.get_window_extent(r)) for t in texts
+             if t.get_visible() and t.get_text().strip() and t.get_figure() is not None]
+    out = []
+    for i in range(len(boxes)):
+        for j in range(i + 1, len(boxes)):
+            a, b = boxes[i][1], boxes[j][1]
+            if a.x0 < b.x1 - 0.5 and b.x0 < a.x1 - 0.5 and a.y0 < b.y1 - 0.5 and b.y0 < a.y1 - 0.5:
+                out.append((boxes[i][0], boxes[j][0]))
+    return out
+
+
+def _few_ticks(ax, n: int = 5) -> None:
+    """At most ``n`` round ticks per axis, so tick labels never run together."""
+    from matplotlib.ticker import MaxNLocator
+    ax.xaxis.set_major_locator(MaxNLocator(n))
+    ax.yaxis.set_major_locator(MaxNLocator(n))
 
 
 def _axis_labels(system):
@@ -69,122 +139,202 @@ def _spec_patches(ax, spec, system) -> None:
     if spec is None:
         return
     for i, b in enumerate(getattr(spec, "obstacles", ()) or ()):
-        _box(ax, b, system, facecolor="0.45", edgecolor="0.2", lw=0.5, label="obstacle grown by the robot radius" if i == 0 else None,
+        _box(ax, b, system, facecolor="0.45", edgecolor="0.2", lw=0.5,
+             label="obstacle grown by the robot radius" if i == 0 else None,
              zorder=3)  # the spec's boxes: the map's obstacles grown by robot_radius (what the centre avoids)
-    if getattr(spec, "target", None) is not None:
-        _box(ax, spec.target, system, facecolor=(0.2, 0.7, 0.3, 0.35), edgecolor="green", lw=1.2, label="target",
+    if getattr(spec, "target", None) is not None and getattr(spec, "kind", "reach_avoid") == "reach_avoid":
+        _box(ax, spec.target, system, facecolor=(0.2, 0.7, 0.3, 0.35), edgecolor="green", lw=1.0, label="target",
              zorder=2)
     if getattr(spec, "safe", None) is not None:
-        _box(ax, spec.safe, system, fill=False, edgecolor="k", lw=1.2, ls="--", label="safe set", zorder=4)
+        _box(ax, spec.safe, system, fill=False, edgecolor="k", lw=1.0, ls="--", label="safe set", zorder=4)
 
 
-def _draw_runs(ax, X, ok, idx, mm, mean, R) -> None:
-    """Rollouts as thin translucent lines (1000 read as a density, 100 as single lines), failures
-    red on top, then the mean map bold and the rollout average dashed."""
+def _draw_runs(ax, X, ok, idx, mm, mean, R, color) -> None:
+    """Rollouts as thin translucent lines in the method's color (1000 read as a density, 100 as single
+    lines; rasterized, so a PDF stays small), failures red on top, then the mean map and the rollout
+    average."""
     alpha = float(np.clip(20.0 / max(R, 1), 0.03, 0.6))
-    ax.plot(X[idx, :, 0].T, X[idx, :, 1].T, color="tab:blue", lw=0.5, alpha=alpha, zorder=1)
+    for line in ax.plot(X[idx, :, 0].T, X[idx, :, 1].T, color=color, lw=0.5, alpha=alpha, zorder=1):
+        line.set_rasterized(True)
     if (~ok).any():
-        ax.plot(X[~ok, :, 0].T, X[~ok, :, 1].T, color="red", lw=0.6, alpha=0.6, zorder=5)
+        for line in ax.plot(X[~ok, :, 0].T, X[~ok, :, 1].T, color="red", lw=0.6, alpha=0.6, zorder=5):
+            line.set_rasterized(True)
     if mm is not None:
-        ax.plot(mm[:, 0], mm[:, 1], color="magenta", lw=1.3, label="mean map (guarantee)", zorder=6)
-    ax.plot(mean[:, 0], mean[:, 1], color="k", lw=0.8, ls="--", label="rollout average", zorder=6)
+        ax.plot(mm[:, 0], mm[:, 1], zorder=6, **MEAN_MAP)
+    ax.plot(mean[:, 0], mean[:, 1], zorder=6, **AVERAGE)
 
 
-def trajectories(run, spec, out_dir: Path, max_drawn: int = 1000) -> list:
+INSET = (0.3, 0.27)  # inset size in axes fractions; its title takes TITLE above it
+TITLE = 0.08
+LABELS = (0.12, 0.09)  # room the inset's tick labels take left of and below it (axes fractions)
+
+
+def inset_place(ax, points: np.ndarray, avoid=()) -> list:
+    """Where an inset of size :data:`INSET` covers the fewest of ``points`` (P, 2) (data coordinates)
+    and none of the ``avoid`` boxes ((lo (2,), hi (2,)) in data coordinates, e.g. the zoomed region):
+    [x0, y0, w, h] in axes fractions, on a 9 x 9 grid of positions (ties: nearer the lower right)."""
+    w, h = INSET
+    m = 0.03
+    cand = sorted(((x, y) for y in np.linspace(m + LABELS[1], 1 - h - TITLE - m, 9)
+                   for x in np.linspace(m + LABELS[0], 1 - w - m, 9)),
+                  key=lambda c: (1 - c[0]) ** 2 + c[1] ** 2)
+    P = ax.transAxes.inverted().transform(ax.transData.transform(np.asarray(points, float).reshape(-1, 2)))
+    boxes = [ax.transAxes.inverted().transform(ax.transData.transform(np.array([lo, hi]))) for lo, hi in avoid]
+    best, score = None, None
+    for x, y in cand:
+        # the inset with its tick labels (left, below) and title (above)
+        x0, x1, y0, y1 = x - LABELS[0], x + w + 0.01, y - LABELS[1], y + h + TITLE
+        inside = np.count_nonzero((P[:, 0] >= x0) & (P[:, 0] <= x1) & (P[:, 1] >= y0) & (P[:, 1] <= y1))
+        hit = any(b[0, 0] < x1 and x0 < b[1, 0] and b[0, 1] < y1 and y0 < b[1, 1] for b in boxes)
+        dx = np.maximum(np.maximum(x0 - P[:, 0], P[:, 0] - x1), 0)
+        dy = np.maximum(np.maximum(y0 - P[:, 1], P[:, 1] - y1), 0)
+        clear = float(np.min(np.hypot(dx, dy))) if P.size else 1.0
+        sc = (hit, inside, -min(clear, 0.1))
+        if score is None or sc < score:
+            best, score = [x, y, w, h], sc
+    return best
+
+
+def _legend(fig, handles, style: str, ncol: int | None = None) -> None:
+    """The figure's one legend, below its axes."""
+    fig.legend(handles=handles, loc="outside lower center", frameon=False,
+               ncol=ncol or min(len(handles), 4 if style == "paper" else 3))
+
+
+def _handles(methods, runs, spec, extra=()) -> list:
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+    hs = [Line2D([], [], color=METHOD_STYLE.get(m, "tab:green"), lw=1.5, label=f"{m} gap: {n} rollouts")
+          for m, n in zip(methods, runs)]
+    hs += [Line2D([], [], label="mean map (the guarantee)", **MEAN_MAP),
+           Line2D([], [], label="rollout average", **AVERAGE)]
+    hs += list(extra)
+    if spec is not None:
+        if getattr(spec, "safe", None) is not None:
+            hs.append(Patch(fill=False, edgecolor="k", ls="--", label="safe set"))
+        if getattr(spec, "target", None) is not None and getattr(spec, "kind", "reach_avoid") == "reach_avoid":
+            hs.append(Patch(facecolor=(0.2, 0.7, 0.3, 0.35), edgecolor="green", label="target"))
+        if getattr(spec, "obstacles", None):
+            hs.append(Patch(facecolor="0.45", edgecolor="0.2", label="obstacle"))
+    return hs
+
+
+def _methods(run) -> list:
+    return [m for m in ("deterministic", "stochastic") if m in run.methods and run.methods[m].rollouts is not None]
+
+
+@_styled
+def trajectories(run, spec, out_dir: Path, max_drawn: int = 1000, style: str = "paper") -> list:
     """Rollouts over (x1, x2), one panel per method (see module docstring)."""
-    plt = _plt()
+    from matplotlib.lines import Line2D
     system = run.experiment.system
     labels, _ = _axis_labels(system)
-    methods = [m for m in ("deterministic", "stochastic") if m in run.methods and run.methods[m].rollouts is not None]
+    methods = _methods(run)
     if not methods:
         return []
-    fig, axes = plt.subplots(1, len(methods), figsize=(5.2 * len(methods), 4.6), squeeze=False,
-                             sharex=True, sharey=True)
+    fig, axes = _figure(style, 1, len(methods), height_rows=1.35, sharex=True, sharey=True)
+    runs, fails = [], 0
     for ax, m in zip(axes[0], methods):
         ro = run.methods[m].rollouts
+        color = METHOD_STYLE.get(m, "tab:green")
         X = np.asarray(ro.trajectories)[:, :, :2]
         ok = np.asarray(ro.success, bool)
         R = X.shape[0]
+        runs.append(R)
+        fails += int((~ok).sum())
         idx = np.flatnonzero(ok)[: max(0, max_drawn - int((~ok).sum()))]
         _spec_patches(ax, spec, system)
         mm = None if ro.mean_map_trajectory is None else np.asarray(ro.mean_map_trajectory)
         mean = np.asarray(ro.mean_trajectory)
-        _draw_runs(ax, X, ok, idx, mm, mean, R)
-        span = np.ptp(X.reshape(-1, 2)[:, :2], axis=0) if X.size else np.zeros(2)
+        _draw_runs(ax, X, ok, idx, mm, mean, R, color)
+        ax.plot(*np.asarray(ro.x0)[:2], "o", color="k", ms=4, zorder=7)
+        ax.set_xlim(system.x_lo[0], system.x_hi[0])
+        ax.set_ylim(system.x_lo[1], system.x_hi[1])
+        _few_ticks(ax)
+        ax.set_xlabel(labels[0])
+        ax.set_title(f"{m} gap: {int((~ok).sum())} of {R} runs fail")
+        if system.state_names[:2] == ("x", "y") or (units(system)[0][:2] == ("m", "m")):
+            ax.set_aspect("equal")
+        span = np.ptp(X.reshape(-1, 2), axis=0) if X.size else np.zeros(2)
         ends = X[:, -1, :2]
         spread = np.ptp(ends, axis=0)
         box = system.x_hi[:2] - system.x_lo[:2]
         if np.all(spread < 0.05 * box) and np.all(span > 0):  # the runs' spread is invisible at this scale: zoom
-            ins = ax.inset_axes([0.52, 0.04, 0.45, 0.36])
-            _draw_runs(ins, X, ok, idx, mm, mean, R)
-            c, h = ends.mean(axis=0), np.maximum(2.5 * spread, 1e-3 * box)
-            ins.set_xlim(c[0] - h[0], c[0] + h[0])
-            ins.set_ylim(c[1] - h[1], c[1] + h[1])
-            ins.tick_params(labelsize=6)
-            ins.set_title("zoom: final states", fontsize=7)
+            c, hw = ends.mean(axis=0), np.maximum(2.5 * spread, 1e-3 * box)
+            pts = np.concatenate([X[idx[:: max(1, idx.size // 200)]].reshape(-1, 2), mean, np.asarray(ro.x0)[None, :2]]
+                                 + ([mm] if mm is not None else []))
+            ins = ax.inset_axes(inset_place(ax, pts, avoid=[(c - hw, c + hw)]))
+            _draw_runs(ins, X, ok, idx, mm, mean, R, color)
+            ins.set_xlim(c[0] - hw[0], c[0] + hw[0])
+            ins.set_ylim(c[1] - hw[1], c[1] + hw[1])
+            from matplotlib.ticker import MaxNLocator
+            ins.xaxis.set_major_locator(MaxNLocator(2))
+            ins.yaxis.set_major_locator(MaxNLocator(3))
+            ins.tick_params(labelsize=STYLES[style]["small"] - 1, pad=1)
+            ins.set_title("zoom: final states", fontsize=STYLES[style]["small"], pad=2)
             ax.indicate_inset_zoom(ins, edgecolor="0.3")
-        ax.plot(*np.asarray(ro.x0)[:2], "o", color="k", ms=5, label="x0", zorder=7)
-        ax.plot([], [], color="tab:blue", lw=1, label=f"{R} rollouts")
-        ax.plot([], [], color="red", lw=1, label=f"failures: {int((~ok).sum())} / {R}")
-        ax.set_xlim(system.x_lo[0], system.x_hi[0])
-        ax.set_ylim(system.x_lo[1], system.x_hi[1])
-        ax.set_xlabel(labels[0])
-        ax.set_title(f"{m} gap")
-        if system.state_names[:2] == ("x", "y") or (units(system)[0][:2] == ("m", "m")):
-            ax.set_aspect("equal")
     axes[0][0].set_ylabel(labels[1])
-    axes[0][-1].legend(loc="best", fontsize=7, framealpha=0.9)
-    fig.suptitle(f"{system.name}: closed-loop rollouts in the stochastic simulator")
+    extra = [Line2D([], [], color="k", marker="o", ls="", ms=4, label="x0")]
+    if fails:
+        extra.append(Line2D([], [], color="red", lw=1, label="failed run"))
+    _legend(fig, _handles(methods, runs, spec, extra), style)
     return save(fig, out_dir, "trajectories")
 
 
-def states_time(run, out_dir: Path, max_drawn: int = 1000) -> list:
+@_styled
+def states_time(run, out_dir: Path, max_drawn: int = 1000, style: str = "paper") -> list:
     """Each state over time, rows = states, columns = methods (see module docstring)."""
-    plt = _plt()
     system = run.experiment.system
     labels, _ = _axis_labels(system)
-    methods = [m for m in ("deterministic", "stochastic") if m in run.methods and run.methods[m].rollouts is not None]
+    methods = _methods(run)
     if not methods:
         return []
     n = system.n
-    fig, axes = plt.subplots(n, len(methods), figsize=(5.2 * len(methods), 2.3 * n), squeeze=False, sharex=True,
-                             sharey="row")
+    fig, axes = _figure(style, n, len(methods), height_rows=0.55 * n + 0.3, sharex=True, sharey="row")
+    runs = []
     for j, m in enumerate(methods):
         ro = run.methods[m].rollouts
         X = np.asarray(ro.trajectories)[:max_drawn]
+        runs.append(X.shape[0])
         t = np.arange(X.shape[1]) * float(ro.tau)
         alpha = float(np.clip(20.0 / max(X.shape[0], 1), 0.03, 0.6))
         for i in range(n):
             ax = axes[i][j]
-            ax.plot(t, X[:, :, i].T, color=METHOD_STYLE.get(m, "tab:blue"), lw=0.5, alpha=alpha)
+            for line in ax.plot(t, X[:, :, i].T, color=METHOD_STYLE.get(m, "tab:green"), lw=0.5, alpha=alpha):
+                line.set_rasterized(True)
             if ro.mean_map_trajectory is not None:
-                ax.plot(t, np.asarray(ro.mean_map_trajectory)[:, i], color="magenta", lw=1.0, label="mean map")
-            ax.plot(t, np.asarray(ro.mean_trajectory)[:, i], color="k", lw=0.7, ls="--", label="rollout average")
+                ax.plot(t, np.asarray(ro.mean_map_trajectory)[:, i], **{**MEAN_MAP, "lw": 0.7})
+            ax.plot(t, np.asarray(ro.mean_trajectory)[:, i], **AVERAGE)
+            _few_ticks(ax, 4)
             if j == 0:
                 ax.set_ylabel(labels[i])
             if i == 0:
-                ax.set_title(f"{m} gap ({X.shape[0]} rollouts)")
+                ax.set_title(f"{m} gap")
             if i == n - 1:
                 ax.set_xlabel("time [s]")
-    axes[0][-1].legend(loc="best", fontsize=7)
-    fig.suptitle(f"{system.name}: states over time, deterministic vs stochastic gap")
+    _legend(fig, _handles(methods, runs, None), style)
     return save(fig, out_dir, "states_time")
 
 
-def gamma_slices(run, out_dir: Path, res: int = 201) -> list:
+@_styled
+def gamma_slices(run, out_dir: Path, res: int = 201, style: str = "paper") -> list:
     """gamma_i along each state variable per method, with the nearby data gaps (see module docstring)."""
-    plt = _plt()
+    from matplotlib.lines import Line2D
     system = run.experiment.system
     labels, su = _axis_labels(system)
     n = system.n
     centre = 0.5 * (system.x_lo + system.x_hi)
     U = system.inputs
     u_mid = U[np.argmin(np.abs(U - U.mean(axis=0)).sum(axis=1))]
-    fig, axes = plt.subplots(n, n, figsize=(3.6 * n, 2.6 * n), squeeze=False)
-    for m, res_m in run.methods.items():
+    fig, axes = _figure(style, n, n, height_rows=0.9 * n if n <= 2 else 0.62 * n)
+    handles = []
+    for m in sorted(run.methods, key=lambda k: (k not in METHOD_STYLE, list(METHOD_STYLE).index(k)
+                                                   if k in METHOD_STYLE else 0, k)):
+        res_m = run.methods[m]
         cert, ds = res_m.certificate, res_m.dataset
         color = METHOD_STYLE.get(m, "tab:green")
         gaps = ds.gap() if ds is not None else None
+        any_near = False
         for j in range(n):  # along x_j
             xs = np.tile(centre, (res, 1))
             xs[:, j] = np.linspace(system.x_lo[j], system.x_hi[j], res)
@@ -197,37 +347,46 @@ def gamma_slices(run, out_dir: Path, res: int = 201) -> list:
                     & np.all(np.isclose(ds.u, u_mid), axis=1)
             for i in range(n):
                 ax = axes[i][j]
-                ax.plot(xs[:, j], g[:, i], color=color, lw=1.5, label=f"gamma, {m}")
+                ax.plot(xs[:, j], g[:, i], color=color, lw=1.2)
                 if near is not None and near.any():
-                    ax.plot(ds.x[near, j], gaps[near, i], ".", color=color, ms=2, alpha=0.6,
-                            label=f"data gap |mean - f|, {m}")
-                ax.set_xlabel(labels[j])
-                unit = f" [{su[i]} per step]" if su[i] else ""
-                ax.set_ylabel(f"gamma_{system.state_names[i]}{unit}")
-                ax.set_ylim(bottom=0)
-    axes[0][-1].legend(fontsize=6, loc="best")
-    fixed = ", ".join(f"{labelled(s, u)} = {c:.3g}" for s, u, c in zip(system.state_names, su, centre))
+                    any_near = True
+                    ax.plot(ds.x[near, j], gaps[near, i], ".", color=color, ms=1.5, alpha=0.6, rasterized=True)
+                _few_ticks(ax, 4)
+                if i == n - 1:
+                    ax.set_xlabel(labels[j])
+                if j == 0:
+                    unit = f" [{su[i]}/step]" if su[i] else ""
+                    ax.set_ylabel(f"gamma_{system.state_names[i]}{unit}")
+        handles.append(Line2D([], [], color=color, lw=1.2, label=f"gamma, {m} gap"))
+        if any_near:
+            handles.append(Line2D([], [], color=color, marker=".", ls="", label=f"data gap |mean - f|, {m}"))
+    for ax in axes.ravel():  # after every method is drawn: set_ylim stops autoscaling
+        ax.set_ylim(bottom=0)
+        ax.ticklabel_format(axis="y", style="sci", scilimits=(-2, 3), useMathText=True)
+    fixed = ", ".join(f"{labelled(s_, u)} = {c:.3g}" for s_, u, c in zip(system.state_names, su, centre))
     inp = ", ".join(f"{labelled(nm, iu)} = {v:.3g}" for nm, iu, v in zip(system.input_names, units(system)[1], u_mid))
-    fig.suptitle(f"{system.name}: gamma along each state (others at the centre of X: {fixed}; {inp})", fontsize=9)
-    fig.tight_layout()
+    fig.suptitle(f"gamma along each state, the others at the centre of X ({fixed}; {inp})",
+                 fontsize=STYLES[style]["small"])
+    _legend(fig, handles, style, ncol=2)
     return save(fig, out_dir, "gamma_slices")
 
 
-def p_cert(run, out_dir: Path) -> list:
+@_styled
+def p_cert(run, out_dir: Path, style: str = "paper") -> list:
     """The per-run p_cert map with the validated initial states (see module docstring)."""
     if run.per_run is None:
         return []
     from .layers.perrun import pcert_map
-    plt = _plt()
     system = run.experiment.system
     labels, _ = _axis_labels(system)
     pm = pcert_map(run.per_run.controller)
-    fig, ax = plt.subplots(figsize=(6.2, 4.8))
+    fig, axs = _figure(style, 1, 1, height_rows=1.5)
+    ax = axs[0][0]
     from matplotlib.colors import LinearSegmentedColormap
     from .layers.perrun import P_STOPS
     cmap = LinearSegmentedColormap.from_list("pcert", np.asarray(P_STOPS, float) / 255.0)
     im = ax.imshow(pm["p"].T, origin="lower", extent=(pm["lo"][0], pm["hi"][0], pm["lo"][1], pm["hi"][1]),
-                   cmap=cmap, vmin=0, vmax=1, aspect="auto", interpolation="nearest")
+                   cmap=cmap, vmin=0, vmax=1, aspect="auto", interpolation="nearest", rasterized=True)
     cb = fig.colorbar(im, ax=ax)
     cb.set_label("p_cert (certified lower bound on P[one run satisfies the spec])")
     marks = {"perrun": "o", "baseline": "s", "stochastic": "^", "deterministic": "v"}
@@ -240,12 +399,17 @@ def p_cert(run, out_dir: Path) -> list:
     # a drawn p_cert says what it rests on, as the table, summary and GUI legend do
     ax.set_title(f"{system.name}: per-run p_cert per cell{extra}, horizon {run.per_run.horizon}\n"
                  "conditional on the estimated Lipschitz constants and the Markov assumption", fontsize=9)
-    ax.legend(fontsize=7, loc="best")
+    _few_ticks(ax)
+    _legend(fig, ax.get_legend_handles_labels()[0], style)
     return save(fig, out_dir, "p_cert")
 
 
-def plot_run(path, out_dir=None, max_drawn: int = 1000) -> list:
-    """Every figure of the run folder ``path`` into ``out_dir`` (default ``path/figures``); the paths written."""
+def plot_run(path, out_dir=None, max_drawn: int = 1000, style: str = "paper") -> list:
+    """Every figure of the run folder ``path`` into ``out_dir`` (default ``path/figures``); the paths written.
+
+    ``style``: "paper" (7 in wide, 8 pt: a two-column paper's text width) or "slide" (11 in, 14 pt)."""
+    if style not in STYLES:
+        raise SimgapError(f"style must be one of {', '.join(STYLES)}, got {style!r}")
     from simgap.pipeline import experiment_spec
 
     from .results import load_run
@@ -259,8 +423,8 @@ def plot_run(path, out_dir=None, max_drawn: int = 1000) -> list:
     spec, _, _ = experiment_spec(run.experiment)
     out.mkdir(exist_ok=True)
     written = []
-    written += trajectories(run, spec, out, max_drawn)
-    written += states_time(run, out, max_drawn)
-    written += gamma_slices(run, out)
-    written += p_cert(run, out)
+    written += trajectories(run, spec, out, max_drawn, style=style)
+    written += states_time(run, out, max_drawn, style=style)
+    written += gamma_slices(run, out, style=style)
+    written += p_cert(run, out, style=style)
     return written

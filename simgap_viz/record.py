@@ -69,28 +69,41 @@ def _xy0(x: np.ndarray) -> np.ndarray:
     return out
 
 
-def blueprint(state_names, methods=("stochastic",), state_units=None) -> "object":
-    """Default layout: one state-space view per method over the time series per state (left);
-    one gamma view per state with every method's surface, and the summary (right)."""
+def blueprint(state_names, methods=("stochastic",), state_units=None, x_lo=None, x_hi=None) -> "object":
+    """Default layout, made to fit a 1280 x 800 window: one state-space view per method over the time
+    series per state (left); one gamma view per state with every method's surface, and the summary
+    (right). View titles are short (the method; the state and its unit); the time series carry no
+    legend over the curves (the summary gives the key: a method's color, the mean map full, the
+    rollout average lighter, the nominal model darker; hovering names a curve); the state-space
+    views look at X (``x_lo``, ``x_hi`` of the first two states) from the front and above, the gamma
+    views at their square [-1, 1]^2 x [0, 1]."""
     import rerun.blueprint as rrb
 
     methods = list(methods)
     su = list(state_units or [""] * len(state_names))
-    worlds = [rrb.Spatial3DView(origin="/world", name=f"state space: {m}",
+    eye = None
+    if x_lo is not None and x_hi is not None:
+        lo, hi = np.asarray(x_lo, float)[:2], np.asarray(x_hi, float)[:2]
+        c, span = 0.5 * (lo + hi), float(np.max(hi - lo))
+        eye = rrb.EyeControls3D(position=(float(c[0]), float(c[1] - 0.45 * span), 1.3 * span),
+                                look_target=(float(c[0]), float(c[1]), 0.0), eye_up=(0.0, 0.0, 1.0))
+    worlds = [rrb.Spatial3DView(origin="/world", name=m, eye_controls=eye,
                                 contents=["+ /world/**", *[f"- /world/{o}/**" for o in methods if o != m]])
               for m in methods]
-    series = [rrb.TimeSeriesView(origin=f"/timeseries/{s}", name=f"{labelled(s, u)}: mean map, mean, nominal")
+    series = [rrb.TimeSeriesView(origin=f"/timeseries/{s}", name=labelled(s, u),
+                                 plot_legend=rrb.PlotLegend(visible=False))
               for s, u in zip(state_names, su)]
-    gammas = [rrb.Spatial3DView(origin="/gamma", name=f"gamma_{s} [{u}/step]" if u else f"gamma_{s}",
+    geye = rrb.EyeControls3D(position=(-0.8, -3.0, 2.4), look_target=(0.0, 0.0, 0.3), eye_up=(0.0, 0.0, 1.0))
+    gammas = [rrb.Spatial3DView(origin="/gamma", name=f"gamma_{s}", eye_controls=geye,
                                 contents=[f"+ /gamma/{m}/{s}/**" for m in methods])
-              for s, u in zip(state_names, su)]
+              for s in state_names]
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Vertical(rrb.Horizontal(*worlds), rrb.Horizontal(*series), row_shares=[3, 2]),
             rrb.Vertical(*gammas, rrb.TextDocumentView(origin="/summary", name="summary")),
             column_shares=[3, 2]),
         rrb.TimePanel(expanded=False),
-        collapse_panels=False)
+        collapse_panels=True)
 
 
 def entity_paths(state_names, methods=("stochastic", "deterministic"), spec_parts=("safe",), rollouts=True) -> list:
@@ -149,7 +162,8 @@ def record_run(out: str | Path, system, *, dataset=None, certificate=None, spec=
         raise SimgapError(f"recording: folder {str(out.parent)!r} does not exist")
     su, _ = units(system)
     t0 = time.perf_counter()
-    rec, mem = open_recording(blueprint(system.state_names, list(methods), su), application_id, recording_id)
+    rec, mem = open_recording(blueprint(system.state_names, list(methods), su, system.x_lo, system.x_hi),
+                              application_id, recording_id)
     info = {"entities": [], "methods": list(methods), "n_rollouts": 0, "n_steps": 0, "gamma_vertices": 0,
             "gamma_triangles": 0, "winning_cells": {}}
 
@@ -161,9 +175,12 @@ def record_run(out: str | Path, system, *, dataset=None, certificate=None, spec=
         x_lo, x_hi = system.x_lo, system.x_hi
         rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         c, h = _boxes2(x_lo[None], x_hi[None], x_lo, x_hi, z=0.0)  # state box X as a flat outline
-        log("world/X", rr.Boxes3D(centers=c, half_sizes=h, colors=[(120, 120, 120)],
-                                  labels=[" x ".join(labelled(s, u) for s, u in zip(system.state_names[:2], su))]))
-        md = [f"# simgap run: {system.name}", ""]
+        log("world/X", rr.Boxes3D(centers=c, half_sizes=h, colors=[(120, 120, 120)]))  # no label over the views
+        md = [f"# simgap run: {system.name}", "",
+              "State space: X in grey, the safe set outlined in blue, the target green, obstacles grey boxes; "
+              + " x ".join(labelled(s_, u) for s_, u in zip(system.state_names[:2], su))
+              + ". Time series: one color per method; the mean map full, the rollout average lighter, the "
+              "nominal model darker (hover a curve for its name).", ""]
         _log_spec(log, rr, spec, x_lo, x_hi)
         # one height scale per state over every method: the surfaces compare by height
         gamma = {m: engine.gamma_function(st["certificate"]) if st["certificate"] is not None else None
@@ -201,11 +218,10 @@ def _log_spec(log, rr, spec, x_lo, x_hi) -> None:
         log("world/obstacles", rr.Boxes3D(centers=c, half_sizes=h, colors=[G.GREY], fill_mode="solid"))
     if getattr(spec, "target", None) is not None:
         c, h = _boxes2(spec.target.lo[None], spec.target.hi[None], x_lo, x_hi, 0.01)
-        log("world/target", rr.Boxes3D(centers=c, half_sizes=h, colors=[G.GREEN], fill_mode="solid",
-                                       labels=["target"]))
+        log("world/target", rr.Boxes3D(centers=c, half_sizes=h, colors=[G.GREEN], fill_mode="solid"))
     if getattr(spec, "safe", None) is not None:
         c, h = _boxes2(spec.safe.lo[None], spec.safe.hi[None], x_lo, x_hi, 0.0)
-        log("world/safe", rr.Boxes3D(centers=c, half_sizes=h, colors=[G.BLUE], labels=["safe"]))
+        log("world/safe", rr.Boxes3D(centers=c, half_sizes=h, colors=[G.BLUE]))  # labels would float over the map
 
 
 def _log_winning(log, rr, system, m: str, synthesis) -> int:

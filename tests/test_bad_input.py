@@ -951,6 +951,32 @@ def test_ctrl_c_during_collection_prints_no_worker_traceback(work, tmp_path):
     assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
 
 
+def test_sigterm_during_collection_exits_cleanly_and_says_how_to_resume(work, tmp_path):
+    """SIGTERM to simgap alone (as `kill PID` sends it) while its worker pool runs: exit status 143,
+    a message that the same command resumes, and no "leaked semaphore objects" warning from the
+    resource tracker (the default SIGTERM killed the parent before the pool was shut down)."""
+    import signal
+    import time
+    env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    p = subprocess.Popen([sys.executable, "-m", "simgap", "collect", str(work / "exp.toml"), "--profile", "base",
+                          "--epsilon", "0.002", "--n-runs", "2", "--chunk-size", "64", "--executor", "local",
+                          "--workers", "2", "--out", str(tmp_path / "st"), "--no-progress"], cwd=tmp_path, env=env,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                         preexec_fn=_terminal_sigint)
+    try:
+        deadline = time.monotonic() + 60
+        while not list((tmp_path / "st" / "chunks").glob("c*.npz")) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        p.send_signal(signal.SIGTERM)
+        out, err = p.communicate(timeout=60)
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+    assert p.returncode == 143, err
+    assert "run the same command again to resume" in err
+    assert "leaked semaphore" not in err and "Traceback" not in err, err
+
+
 def test_gui_malformed_websocket_messages_print_one_line_each(tmp_path):
     import asyncio
     import re

@@ -53,7 +53,7 @@ def test_profiles_overrides_and_other_sections(tmp_path):
     assert e.section("certify") == {"delta1": 0.05} and e.section("synthesis") == {}
     e = load_experiment(p, None, overrides={"collect": {"n_runs": 9, "seed": None}})
     assert e.collect.n_runs == 9 and e.collect.seed == 5
-    assert e.store_dir().as_posix() == "runs/exp-base/data"
+    assert e.store_dir().as_posix() == "results/exp-base/data"  # where simgap run collects
 
 
 def test_cli_collect_runs_and_resumes(tmp_path, capsys):

@@ -1,7 +1,10 @@
-"""`simgap plot RUN`: the paper's figures from a finished run (matplotlib), with units and every rollout."""
+"""`simgap plot RUN`: the paper's figures from a finished run (matplotlib), with units and every rollout,
+ready for a two-column paper: one legend per figure, one color per method, no overlapping labels, an
+inset where no data run, dense rollouts rasterized inside vector PDFs (each <= 1 MB)."""
 
 import subprocess
 import sys
+import types
 
 import numpy as np
 import pytest
@@ -11,25 +14,51 @@ from test_viz_results import run_dir  # noqa: F401  (the tiny real run folder, m
 
 @pytest.fixture
 def captured(monkeypatch):
-    """Figures handed to figures.save, kept open for inspection (then saved as usual)."""
+    """What each figure handed to figures.save shows (read before it is saved and closed)."""
+    from matplotlib.colors import to_hex
+
     from simgap_viz import figures
     figs = {}
     real = figures.save
 
     def keep(fig, out_dir, name):
-        figs[name] = {"axes": [(a.get_xlabel(), a.get_ylabel(), a.get_title(), len(a.get_lines()),
-                                [t.get_text() for t in (a.get_legend().get_texts() if a.get_legend() else [])])
-                               for a in fig.axes]}
+        axes = []
+        for a in fig.axes:
+            lines = a.get_lines()
+            axes.append({"xlabel": a.get_xlabel(), "ylabel": a.get_ylabel(), "title": a.get_title(),
+                         "lines": len(lines), "legend": a.get_legend() is not None, "axes": a,
+                         "colors": [to_hex(ln.get_color()) for ln in lines if ln.get_rasterized()],
+                         "rasterized": sum(ln.get_rasterized() for ln in lines), "insets": a.child_axes})
+        figs[name] = {"axes": axes, "legends": [[t.get_text() for t in lg.get_texts()] for lg in fig.legends],
+                      "overlaps": figures.text_overlaps(fig), "inches": tuple(fig.get_size_inches()), "fig": fig,
+                      "inset_cover": _inset_cover(fig)}
         return real(fig, out_dir, name)
 
     monkeypatch.setattr(figures, "save", keep)
     return figs
 
 
+def _inset_cover(fig) -> list:
+    """Per inset: the share of its parent axes' plotted points (data lines) that fall under the inset
+    or its title, in display coordinates."""
+    fig.canvas.draw()
+    r = fig.canvas.get_renderer()
+    out = []
+    for a in fig.axes:
+        for ins in a.child_axes:
+            bb = ins.get_tightbbox(r)
+            pts = np.concatenate([a.transData.transform(np.column_stack(ln.get_data()).astype(float))
+                                  for ln in a.get_lines() if len(ln.get_xdata()) > 1])
+            inside = (pts[:, 0] >= bb.x0) & (pts[:, 0] <= bb.x1) & (pts[:, 1] >= bb.y0) & (pts[:, 1] <= bb.y1)
+            out.append(float(inside.mean()))
+    return out
+
+
 def test_plot_run_figures(run_dir, tmp_path, captured):  # noqa: F811
+    from matplotlib.colors import to_hex
     from PIL import Image
 
-    from simgap_viz.figures import plot_run
+    from simgap_viz.figures import METHOD_STYLE, plot_run
     from simgap_viz.results import load_run
     run = load_run(run_dir)
     written = plot_run(run_dir, tmp_path / "fig")
@@ -43,32 +72,74 @@ def test_plot_run_figures(run_dir, tmp_path, captured):  # noqa: F811
             assert p.read_bytes()[:5] == b"%PDF-"
     assert not list((tmp_path / "fig").glob(".*tmp*"))
 
-    # units on the axes; every rollout drawn (one line each) plus mean map and rollout average
-    traj = captured["trajectories"]["axes"]
-    main = [a for a in traj if a[2].endswith("gap")]
-    assert [a[2] for a in main] == ["deterministic gap", "stochastic gap"]
-    for (xl, yl, title, lines, legend), m in zip(main, ("deterministic", "stochastic")):
+    for name, f in captured.items():
+        assert f["overlaps"] == [], (name, f["overlaps"])  # no two labels drawn over each other
+        assert len(f["legends"]) == 1 and not any(a["legend"] for a in f["axes"]), name  # one legend per figure
+        assert f["inches"][0] == pytest.approx(7.0), name  # a two-column paper's text width
+    # units on the axes; every rollout drawn (one line each, rasterized, in its method's color) plus the
+    # mean map, the rollout average and x0
+    traj = captured["trajectories"]
+    main = [a for a in traj["axes"] if "runs fail" in a["title"]]
+    assert [a["title"].split(" gap")[0] for a in main] == ["deterministic", "stochastic"]
+    for a, m in zip(main, ("deterministic", "stochastic")):
         ro = run.methods[m].rollouts
         R = ro.trajectories.shape[0]
-        assert xl == "theta [rad]"
-        assert lines == R + 2 + 1 + 2  # rollouts, mean map + average, x0, two legend stubs
-    assert main[0][1] == "omega [rad/s]"
-    fails = int((~np.asarray(run.methods["stochastic"].rollouts.success)).sum())
-    assert f"failures: {fails} / {R}" in main[1][4]
-    st = captured["states_time"]["axes"]
-    assert {a[1] for a in st if a[1]} == {"theta [rad]", "omega [rad/s]"} and "time [s]" in {a[0] for a in st}
-    gs = captured["gamma_slices"]["axes"]
-    assert {a[1] for a in gs} == {"gamma_theta [rad per step]", "gamma_omega [rad/s per step]"}
+        assert a["xlabel"] == "theta [rad]"
+        assert a["lines"] == R + 3 and a["rasterized"] == R
+        fails = int((~np.asarray(ro.success)).sum())
+        assert a["title"] == f"{m} gap: {fails} of {R} runs fail"
+        assert set(a["colors"]) <= {to_hex(METHOD_STYLE[m]), "#ff0000"}  # the method's color, failures red
+    assert main[0]["ylabel"] == "omega [rad/s]"
+    assert f"stochastic gap: {R} rollouts" in traj["legends"][0] and "mean map (the guarantee)" in traj["legends"][0]
+    assert all(c <= 0.02 for c in traj["inset_cover"]), traj["inset_cover"]  # insets where no data run
+    st = captured["states_time"]
+    assert {a["ylabel"] for a in st["axes"] if a["ylabel"]} == {"theta [rad]", "omega [rad/s]"}
+    assert "time [s]" in {a["xlabel"] for a in st["axes"]}
+    for a in st["axes"]:  # the same method colors as the trajectories
+        m = a["title"].split(" gap")[0] if a["title"] else None
+        if m:
+            assert set(a["colors"]) == {to_hex(METHOD_STYLE[m])}
+    gs = captured["gamma_slices"]
+    assert {a["ylabel"] for a in gs["axes"] if a["ylabel"]} == {"gamma_theta [rad/step]", "gamma_omega [rad/s/step]"}
+
+
+def test_dense_rollouts_keep_pdfs_small(run_dir, tmp_path, captured):  # noqa: F811
+    """1000 rollouts x 401 steps per method (the small profile's size) give PDFs <= 1 MB: the rollouts
+    are rasterized inside the vector PDF (as vector paths they made 9.8 MB and 5.6 MB), and the inset
+    still avoids the runs."""
+    from simgap_viz import figures
+    from simgap_viz.results import load_run
+    from simgap.pipeline import experiment_spec
+    run = load_run(run_dir)
+    rng = np.random.default_rng(0)
+    for m, res in run.methods.items():
+        ro = res.rollouts
+        base = np.asarray(ro.mean_trajectory)
+        T = np.interp(np.linspace(0, base.shape[0] - 1, 401), np.arange(base.shape[0]), np.arange(base.shape[0]))
+        path = np.stack([np.interp(T, np.arange(base.shape[0]), base[:, k]) for k in range(base.shape[1])], axis=1)
+        X = path[None] + np.cumsum(rng.normal(0, 2e-4, (1000, 401, path.shape[1])), axis=1)
+        res.rollouts = types.SimpleNamespace(trajectories=X, success=np.ones(1000, bool), mean_trajectory=X.mean(0),
+                                             mean_map_trajectory=path, x0=path[0], tau=float(ro.tau))
+    spec, _, _ = experiment_spec(run.experiment)
+    paths = figures.trajectories(run, spec, tmp_path) + figures.states_time(run, tmp_path)
+    for p in paths:
+        if p.suffix == ".pdf":
+            assert p.stat().st_size <= 1_000_000, (p.name, p.stat().st_size)
+    assert captured["trajectories"]["overlaps"] == [] and captured["states_time"]["overlaps"] == []
+    assert all(c <= 0.02 for c in captured["trajectories"]["inset_cover"])
 
 
 def test_plot_cli_and_bad_input(run_dir, tmp_path):  # noqa: F811
-    r = subprocess.run([sys.executable, "-m", "simgap", "plot", str(run_dir), "--out", str(tmp_path / "f")],
-                       capture_output=True, text=True, timeout=300)
+    r = subprocess.run([sys.executable, "-m", "simgap", "plot", str(run_dir), "--out", str(tmp_path / "f"),
+                        "--style", "slide"], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
     assert "trajectories.pdf" in r.stdout and (tmp_path / "f" / "gamma_slices.png").is_file()
+    from PIL import Image
+    assert Image.open(tmp_path / "f" / "trajectories.png").size[0] > 1500  # 11 in at 150 dpi
     for args, msg in (([str(tmp_path)], "no summary.json"), ([str(run_dir), "--out", str(tmp_path / "no" / "f")],
                                                                "does not exist"),
-                      ([str(run_dir), "--max-drawn", "0"], "--max-drawn")):
+                      ([str(run_dir), "--max-drawn", "0"], "--max-drawn"),
+                      ([str(run_dir), "--style", "poster"], "invalid choice")):
         r = subprocess.run([sys.executable, "-m", "simgap", "plot", *args], capture_output=True, text=True,
                            timeout=300)
         assert r.returncode == 2 and msg in r.stderr and "Traceback" not in r.stderr, (args, r.stderr)

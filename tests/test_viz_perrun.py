@@ -296,6 +296,7 @@ def test_the_p_cert_figure_says_what_it_rests_on(run_dir, tmp_path, monkeypatch)
 
     def capture(fig, out_dir, name):
         seen[name] = " ".join(ax.get_title() for ax in fig.axes)
+        seen["overlaps"] = figures.text_overlaps(fig)
         return real(fig, out_dir, name)
 
     monkeypatch.setattr(figures, "save", capture)
@@ -303,3 +304,4 @@ def test_the_p_cert_figure_says_what_it_rests_on(run_dir, tmp_path, monkeypatch)
     assert sorted(Path(p).suffix for p in paths) == [".pdf", ".png"]
     assert all(Path(p).stat().st_size > 0 for p in paths)
     assert "conditional on the estimated Lipschitz constants" in seen["p_cert"], seen
+    assert seen["overlaps"] == [], seen["overlaps"]  # no label drawn over another

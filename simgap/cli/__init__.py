@@ -36,7 +36,35 @@ def build_parser() -> argparse.ArgumentParser:
     for name in VIZ_SUBCOMMANDS:
         _register(sub, f"simgap_viz.cli_{name}")
     _numbers_are_values(p)
+    _plain_help(p)
     return p
+
+
+_ROLE = re.compile(r":(?:mod|func|class|meth|data|attr):`~?([^`]+)`")
+
+
+def plain(text: str) -> str:
+    """A docstring (reStructuredText) as a help page reads it: ``x`` -> x, :func:`x` -> x,
+    "Examples::" -> "Examples:"."""
+    text = _ROLE.sub(r"\1", text)
+    text = text.replace("``", "")
+    return re.sub(r"::(\s*\n)", r":\1", text)
+
+
+def _plain_help(parser: argparse.ArgumentParser) -> None:
+    """Every (sub)parser's description and argument help as plain text; a description with
+    indented lines (examples) keeps its line breaks (RawDescriptionHelpFormatter)."""
+    if parser.description:
+        parser.description = plain(parser.description)
+        if re.search(r"\n {2,}\S", parser.description):
+            parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    if parser.epilog:
+        parser.epilog = plain(parser.epilog)
+    for action in parser._actions:
+        if action.help and action.help is not argparse.SUPPRESS:
+            action.help = plain(action.help)
+        for child in (getattr(action, "choices", None) or {}).values() if isinstance(action, argparse._SubParsersAction) else ():
+            _plain_help(child)
 
 
 # argparse takes "-0.05,0.1" for an option (only "-5" and "-0.5" count as numbers): every
@@ -61,12 +89,28 @@ def _register(sub, module: str) -> None:
     mod.add_parser(sub)
 
 
+RESUME = "run the same command again to resume (collected data and finished stages are kept)"
+
+
+class Terminated(BaseException):
+    """SIGTERM, raised in the main thread so that pools, stores and temporary files are closed on the
+    way out as for Ctrl-C (killed at once, a worker pool leaves semaphores the resource tracker warns of)."""
+
+
+def _on_sigterm(signum, frame):
+    raise Terminated()
+
+
 def main(argv=None) -> int:
+    import signal
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help()
         return 0
+    old = None
+    if signal.getsignal(signal.SIGTERM) == signal.SIG_DFL and _main_thread():
+        old = signal.signal(signal.SIGTERM, _on_sigterm)
     try:
         from ..file_guard import check_outputs
         check_outputs(args)
@@ -75,13 +119,24 @@ def main(argv=None) -> int:
         print(f"error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
+        print(f"interrupted: {RESUME}", file=sys.stderr)
         return 130
+    except Terminated:
+        print(f"terminated: {RESUME}", file=sys.stderr)
+        return 143
     except BrokenPipeError:
         # the reader went away (e.g. `simgap plugins | head`): stop quietly, as other Unix tools do;
         # stdout goes to devnull so that the interpreter's final flush does not raise again
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 141
+    finally:
+        if old is not None:
+            signal.signal(signal.SIGTERM, old)
+
+
+def _main_thread() -> bool:
+    import threading
+    return threading.current_thread() is threading.main_thread()
 
 
 if __name__ == "__main__":

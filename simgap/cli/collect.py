@@ -12,6 +12,7 @@ import sys
 
 from ..checks import count
 from ..collect import check_collection
+from ..config import builtin_experiments
 from ..file_guard import output_dir
 from ..profiles import DEFAULT_PROFILE
 
@@ -20,13 +21,13 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "collect", help="collect simulator data on an epsilon-cover (resumable)",
         description="Collect N1hat simulator runs for every (cover point, input) pair of an experiment. "
-                    "EXPERIMENT is a TOML file or a built-in name (pendulum, turtlebot). Running the same "
+                    f"EXPERIMENT is a TOML file or a built-in name ({', '.join(builtin_experiments())}). Running the same "
                     "command again resumes an interrupted collection.")
     p.add_argument("experiment", metavar="EXPERIMENT", help="experiment TOML path or built-in name")
     p.add_argument("--profile", default=DEFAULT_PROFILE,
                    help="profile in the TOML (default: small, or the base settings when the file has no small "
                         "profile; e.g. paper; base = no profile)")
-    p.add_argument("--out", help="store directory (default: runs/<experiment>-<profile>/data)")
+    p.add_argument("--out", help="store directory (default: results/<experiment>-<profile>/data, where simgap run collects)")
     p.add_argument("--executor", choices=["local", "ray", "serial"], help="where chunks run (default from TOML)")
     p.add_argument("--workers", type=count(1), help="worker processes / Ray CPUs (default: all cores)")
     p.add_argument("--address", help="Ray cluster address (default: a local Ray instance)")

@@ -43,6 +43,7 @@ from ..profiles import DEFAULT_PROFILE
 #: exit status: a controller was written, but the requested x0 is outside its winning domain
 X0_OUTSIDE = 3
 from ..errors import SimgapError
+from ..systems import BUILTIN
 
 
 def add_parser(subparsers) -> None:
@@ -51,7 +52,7 @@ def add_parser(subparsers) -> None:
         description="Abstraction on a uniform grid (SCOTS conventions) and a reach-avoid or invariance game; "
                     "writes the controller (.npz) and prints grid size, boxes/transitions, winning domain and times.")
     p.add_argument("--system", default=None,
-                   help="built-in or plugin system name (pendulum, turtlebot, emps; see simgap plugins), a system "
+                   help=f"built-in or plugin system name ({', '.join(sorted(BUILTIN))}; see simgap plugins), a system "
                         "file (.toml) or a refined-system JSON; default: the experiment's, else the one the "
                         "certificate records")
     p.add_argument("--steps", type=int, default=None,
@@ -121,9 +122,21 @@ def load_spec(text: str, system):
             return Spec.from_dict(d), None
         except (KeyError, TypeError) as e:
             raise SimgapError(f"spec file {text!r} is not a spec ({e})") from None
-    from ..maps import load_map
-    amap = load_map(text)
+    amap = _load_map(text)
     return amap.spec(system), amap.x0(system)
+
+
+def _load_map(text: str):
+    """The map ``text`` names; an unknown name is answered with the shipped maps and experiments."""
+    from ..config import builtin_experiments
+    from ..maps import load_map
+    try:
+        return load_map(text)
+    except SimgapError as e:
+        if "unknown map" in str(e):
+            raise SimgapError(f"{e}; built-in experiments: {', '.join(builtin_experiments())} (--spec takes a map, "
+                              "an experiment or a spec .json)") from None
+        raise
 
 
 def _experiment_path(text: str):
@@ -185,8 +198,7 @@ def run(args) -> int:
         recorded = cert.nominal_system() if cert is not None and args.system is None else None
         if args.system is None and recorded is None:
             if args.spec and Path(args.spec).suffix != ".json":
-                from ..maps import load_map
-                load_map(args.spec)  # names an unknown map or experiment before asking for --system
+                _load_map(args.spec)  # names an unknown map or experiment before asking for --system
             raise SimgapError("give --system (or an experiment as --spec)")
         steps = args.steps if args.steps is not None else (getattr(cert, "steps", 1) if cert is not None else 1)
         system = resolve_system(args.system, steps) if recorded is None else recorded.with_steps(steps)

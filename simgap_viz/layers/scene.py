@@ -203,7 +203,7 @@ def draw_bodies(app) -> None:
         app.body_frame = sc.add_frame("/bodies/pendulum", show_axes=False, position=PENDULUM_PIVOT, visible=vis)
         for name, mesh, _pos in bodies:
             _add_mesh(sc, f"/bodies/pendulum/{name}", mesh)
-        sc.add_label("/bodies/label", text="PyBullet pendulum (1 m rod)", anchor="bottom-center",
+        sc.add_label("/bodies/label", text="PyBullet pendulum (1 m rod)", anchor="bottom-right",
                      position=(PENDULUM_PIVOT[0], 0.0, PENDULUM_PIVOT[2] + 0.12), visible=vis)
     elif base.name == "turtlebot":
         frame = G.Frame(base)
@@ -548,7 +548,7 @@ def fit_camera(app, clients=None) -> None:
     right = np.cross(-d, [0.0, 0.0, 1.0])
     right /= np.linalg.norm(right)
     look = c + 0.3 * r * right  # the control panel covers the canvas' right third
-    pos = look + d * r * (1.75 if surface else 1.12)
+    pos = look + d * (r * 1.75 if surface else max(r * 1.12, 2.4))  # the flat map: close, but whole
     app.server.initial_camera.position = tuple(pos)
     app.server.initial_camera.look_at = tuple(look)
     app.server.initial_camera.up = (0.0, 0.0, 1.0)

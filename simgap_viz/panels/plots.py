@@ -21,7 +21,7 @@ ORANGE, BLUE, RED, GREEN = "#f07800", "#2850c8", "#d23232", "#28a050"
 
 
 def _axes(x: str, y: str) -> tuple:
-    return ({"label": x, "size": 36}, {"label": y, "size": 64})
+    return ({"label": x, "size": 40}, {"label": y, "size": 72})
 
 
 def _empty(plot) -> None:
@@ -64,12 +64,12 @@ def gamma_slice(app, plot, res: int = 161) -> int:
     plot.data = (xs, gam / 10.0 ** k, gap / 10.0 ** k)
     su, iu = units(s)
     vu = (list(su) + list(iu))[a]
-    plot.axes = _axes(labelled(names[a], vu), f"gamma_{s.state_names[dim]}, gap{unit}"
-                      + (f" [{su[dim]} per step]" if su[dim] else ""))
+    # short: the panel's chart is narrow and uPlot clips a long axis label
+    plot.axes = _axes(labelled(names[a], vu), "gamma, gap" + (f" [{su[dim]}/step]" if su[dim] else "") + unit)
     # from 0: gamma and gaps are >= 0, and a flat gamma (a constant certificate) has no range of
     # its own for uPlot to scale to
     plot.scales = {"x": {"time": False}, "y": {"range": (0.0, 1.1 * top / 10.0 ** k if top > 0 else 1.0)}}
-    plot.title = f"gamma_{s.state_names[dim]} along {names[a]} (others at the View sliders)"
+    plot.title = f"gamma_{s.state_names[dim]} along {names[a]}"
     plot.visible = True
     return int(rows.size)
 
@@ -116,8 +116,9 @@ def audit_margins(app, plot, bins: int = 30) -> bool:
         kind = "margin quantiles"
     plot.series = tuple(series)
     pj = rep.get("joint", {}).get("fraction_holds")
-    plot.title = (f"audit: {kind} at {rep.get('points', '?')} fresh points x {rep.get('runs', '?')} runs"
-                  + (f", joint holds {pj:.3f}" if pj is not None else ""))
+    # short, centred: a long title runs under the chart's fullscreen icon; the rest is in the legend
+    plot.title = f"audit: {kind}" + (f", joint holds {pj:.3f}" if pj is not None else "")
+    series[0]["label"] = f"{series[0]['label']} ({rep.get('points', '?')} points x {rep.get('runs', '?')} runs)"
     plot.visible = True
     return True
 

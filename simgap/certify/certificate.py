@@ -193,8 +193,12 @@ class Certificate:
         return np.array([float(np.dot(np.add(d.L_gap, d.L2_x), self.radii)) for d in self.dims])
 
     def lipschitz_terms(self) -> np.ndarray:
-        """The Lipschitz term gamma uses (``lipschitz_term``), (n,)."""
-        return self.gap_terms() if self.lipschitz_term == "gap" else self.paper_terms()
+        """The Lipschitz term gamma uses, (n,): the paper's, or with ``lipschitz_term = "gap"`` the smaller
+        of the gap's own and the paper's per dimension (both bound |g_i(x) - g_i(x_r)| on a cell; the
+        gap's is the smaller in exact arithmetic, so a larger estimate is noise)."""
+        if self.lipschitz_term == "gap":
+            return np.minimum(self.gap_terms(), self.paper_terms())
+        return self.paper_terms()
 
     @property
     def continuous(self) -> bool:
@@ -440,9 +444,9 @@ class Certificate:
         if gt is not None:
             used = self.lipschitz_term
             lines.append("")
-            lines.append(f"Lipschitz term side by side (gamma uses the {'gap' if used == 'gap' else 'paper'}'s; the gap's "
-                         f"own term is beyond the paper): paper (L_f + Lhat_fhat + L_2) eps with eps = "
-                         f"{self.epsilon:g}; gap sum_j (L_ij + L_2,ij) eps_j with eps_j = "
+            which = "the smaller per dimension" if used == "gap" else "the paper's"
+            lines.append(f"Lipschitz term side by side (gamma uses {which}; the gap's own term is beyond the paper): "
+                         f"paper (L_f + Lhat_fhat + L_2) eps with eps = {self.epsilon:g}; gap sum_j (L_ij + L_2,ij) eps_j with eps_j = "
                          + ", ".join(f"{nm} {r:.4g}" for nm, r in zip(self.state_names, self.radii)))
             cols2 = ["dim", "paper term", "gap term", "gamma max", "gamma max"] + [f"L[{nm}]" for nm in self.state_names]
             sub = ["", "", "", "(paper)", "(gap)"] + [""] * self.n
@@ -450,10 +454,10 @@ class Certificate:
             row2 = lambda vals: "".join(f"{fmt(v):<{w2[0]}}" if k == 0 else f"{fmt(v):>{w2[k]}}"
                                         for k, v in enumerate(vals))
             lines += [row2(cols2), row2(sub), "-" * sum(w2)]
-            pt = self.paper_terms()
+            pt, lt = self.paper_terms(), self.lipschitz_terms()
             for i, (name, d) in enumerate(zip(self.state_names, self.dims)):
-                hi = d.scp.get("gamma_range_on_data", [float("nan")] * 2)[1]
-                paper_hi, gap_hi = (hi - gt[i] + pt[i], hi) if used == "gap" else (hi, hi - pt[i] + gt[i])
+                hi = d.scp.get("gamma_range_on_data", [float("nan")] * 2)[1] - lt[i]
+                paper_hi, gap_hi = hi + pt[i], hi + min(gt[i], pt[i])
                 lines.append(row2([name, pt[i], gt[i], paper_hi, gap_hi, *d.L_gap]))
             if self.continuous:
                 lines.append("continuous inputs (beyond the paper): u anywhere in ["

@@ -291,9 +291,12 @@ def gap_slopes_data(dataset, grid: AxisGrid, j: int) -> tuple:
 
 
 def crn_pair_means(sim, x1, x2, u1, u2, runs: int, rng: np.random.Generator, increment: bool = True,
-                   on_progress=None):
+                   on_progress=None, spread: bool = False):
     """Means of fhat (or of fhat - x) at (x1, u1) and (x2, u2) over ``runs`` COMMON noise draws per pair
-    (``on_progress(rows_done, rows)`` while the runs are simulated)."""
+    (``on_progress(rows_done, rows)`` while the runs are simulated); with ``spread`` also the standard
+    error of their difference, (P, n): the sample sd over the runs of the per-run difference between
+    the two ends, / sqrt(runs). Common random numbers make it small when the simulator responds
+    smoothly to its noise; where it does not (contacts, slip events), it is the noise left in the slopes."""
     s = sim.system
     P = len(x1)
     X = np.repeat(np.concatenate([x1, x2]), runs, axis=0)
@@ -304,16 +307,21 @@ def crn_pair_means(sim, x1, x2, u1, u2, runs: int, rng: np.random.Generator, inc
         nxt = sim.step_with_noise(X, U, noise)
     else:
         nxt = sim.step_with_noise_in_parts(X, U, noise, lambda done: on_progress(done, X.shape[0]))
-    base = s.diff(nxt, X) if increment else nxt
-    m = base.reshape(2, P, runs, s.n).mean(axis=2)
-    return m[0], m[1]
+    base = (s.diff(nxt, X) if increment else nxt).reshape(2, P, runs, s.n)
+    m = base.mean(axis=2)
+    if not spread:
+        return m[0], m[1]
+    d = s.diff(base[1], base[0])
+    se = d.std(axis=1, ddof=1) / np.sqrt(runs) if runs > 1 else np.zeros((P, s.n))
+    return m[0], m[1], se
 
 
 def gap_slopes_crn(sim, nominal, rng: np.random.Generator, direction: str, k: int, h_max: float, n_pairs: int,
                    runs: int, inputs: np.ndarray, lo=None, hi=None) -> np.ndarray:
     """Slopes of the gap g = E fhat - f (f the ``nominal`` model) along state (``direction="x"``) or
-    input (``"u"``) axis k, from pairs simulated with common random numbers, (n_pairs, n); and,
-    from the same runs, the slopes of the mean increment E fhat - x (n_pairs, n).
+    input (``"u"``) axis k, from pairs simulated with common random numbers, (n_pairs, n); from the
+    same runs, the slopes of the mean increment E fhat - x (n_pairs, n); and each slope's standard
+    error from the noise the common draws did not cancel (n_pairs, n).
 
     Pair distances are log-uniform in [h_max / 8, h_max] (several distances, so a slope that only
     shows at one scale is not missed by construction); x uniform in X (shrunk by h along k), u
@@ -334,11 +342,11 @@ def gap_slopes_crn(sim, nominal, rng: np.random.Generator, direction: str, k: in
         u1[:, k] = lo[k] + rng.random(n_pairs) * (hi[k] - lo[k] - h)
         u2 = u1.copy()
         u2[:, k] += h
-    m1, m2 = crn_pair_means(sim, x1, x2, u1, u2, runs, rng, increment=False)
+    m1, m2, se = crn_pair_means(sim, x1, x2, u1, u2, runs, rng, increment=False, spread=True)
     g1 = s.diff(m1, nominal.f(x1, u1))
     g2 = s.diff(m2, nominal.f(x2, u2))
     incr = s.diff(s.diff(m2, x2), s.diff(m1, x1))  # slopes of the mean increment fhat - x, for Lhat_fhat
-    return np.abs(g2 - g1) / h[:, None], np.abs(incr) / h[:, None]
+    return np.abs(g2 - g1) / h[:, None], np.abs(incr) / h[:, None], se / h[:, None]
 
 
 def l2_partials(basis, q: np.ndarray, system, inputs, splits: int | None = None, u_box=None) -> tuple:

@@ -27,7 +27,7 @@ def test_simulator_config_from_json_file_inline_and_experiment(tmp_path):
     assert simulator_config(json.dumps({"simulator": cfg}))["system"] == "turtlebot"
     d = simulator_config("turtlebot")  # the built-in experiment's [simulator] section
     assert d["system"] == "turtlebot" and d["kind"]
-    with pytest.raises(SimgapError, match="not valid JSON"):
+    with pytest.raises(SimgapError, match="not readable JSON"):
         simulator_config("{kind: numpy")
     with pytest.raises(SimgapError, match="unknown keys"):
         simulator_config(json.dumps(dict(cfg, colour=1)))

@@ -164,7 +164,8 @@ def test_cli_synthesize_turtlebot_with_a_small_certificate(tmp_path, capsys):
                "--eta", "0.2,0.2,0.4", "--out", str(out)])
     text = capsys.readouterr().out
     assert "inputs        25 (restricted to the 25 inputs the certificate covers (the system has 441" in text
-    assert rc == 0 and Controller.load(out).n_inputs == 25
+    # exit 3: the controller is written, but the arena's x0 lies outside this small certificate's domain
+    assert rc == 3 and Controller.load(out).n_inputs == 25
 
 
 # ---------------------------------------------------------------------------------------

@@ -14,7 +14,6 @@ Per state dimension i:
 
 from __future__ import annotations
 
-import dataclasses
 import platform
 import time
 from collections import OrderedDict
@@ -332,20 +331,10 @@ def certify(dataset, options: Optional[CertifyOptions] = None, simulator=None, o
                          f"{N} runs (the predecessor work used one run)")
 
     # ----- Lipschitz constants from the data (no dependence on delta or the basis) --------
-    # With the gap's term and lhat = "simulator", the paper's Lhat_fhat (shown beside it) comes from the
-    # same common-random-number runs along the axes (sqrt(sum_j Lhat_j^2) >= the Euclidean constant):
-    # one simulation instead of two.
-    shared_crn = o.lipschitz_term == "gap" and o.lhat == "simulator"
+    # The gap's term and the paper's are estimated independently: gamma takes the smaller per dimension,
+    # so a noise-inflated estimate of one is caught by the other (sharing the runs would inflate both).
     gl = _gap_lipschitz(ds, o, simulator) if (o.lipschitz_term == "gap" or o.continuous_inputs) else None
-    pairs, lip, U_data = _data_lipschitz(ds, dataclasses.replace(o, lhat="none") if shared_crn else o, simulator,
-                                         on_progress)  # U_data: the inputs gamma is certified for
-    if shared_crn:
-        lip = [(L_f, how_f, float(np.linalg.norm(gl["Lfhat_axes"][i])),
-                {"how": "sqrt(sum_j Lhat_j^2) over the covered axes, Lhat_j the Wood-Zhang estimate on slopes of "
-                        "the mean increment (mean - x) from the gap term's common-random-number pairs along x_j "
-                        "(simulator); >= the Euclidean Lipschitz constant",
-                 "per_axis": gl["Lfhat_axes"][i].tolist()})
-               for i, (L_f, how_f, _, _) in enumerate(lip)]
+    pairs, lip, U_data = _data_lipschitz(ds, o, simulator, on_progress)  # U_data: the inputs gamma is certified for
     warnings = []  # notes that likely cost the user: also shown by `simgap run`
     for i, (_, _, L_fhat, how_fhat) in enumerate(lip):
         share = how_fhat.get("noise_share", 0.0)
@@ -474,8 +463,7 @@ _LIP_CACHE: "OrderedDict[tuple, tuple]" = OrderedDict()
 
 
 def _data_lipschitz(ds, o: CertifyOptions, simulator=None, on_progress=None):
-    """(neighbour pairs, [(L_f, how, Lhat_fhat, how)] per dimension, the data's inputs) of a dataset
-    (``o.lhat = "none"``: no Lhat_fhat, None in its place).
+    """(neighbour pairs, [(L_f, how, Lhat_fhat, how)] per dimension, the data's inputs) of a dataset.
 
     These depend only on the data and the Lipschitz options, not on delta or the basis, so the
     result is memoized per dataset (a delta or basis change re-solves only the programs). Each
@@ -489,11 +477,11 @@ def _data_lipschitz(ds, o: CertifyOptions, simulator=None, on_progress=None):
     s = ds.system
     pairs = neighbour_pairs(ds)
     if o.lipschitz_mode == "increment":
-        sl_fhat = slopes_of(s.diff(ds.mean, ds.x), pairs, s) if o.lhat != "none" else None  # the increment
+        sl_fhat = slopes_of(s.diff(ds.mean, ds.x), pairs, s)  # mean fhat - x (wrapped): the increment
         sl_f = slopes_of(s.diff(ds.f_nom, ds.x), pairs, s)
         Lf_analytic = None
     else:
-        sl_fhat = slopes_of(ds.mean, pairs, s) if o.lhat != "none" else None
+        sl_fhat = slopes_of(ds.mean, pairs, s)
         sl_f = slopes_of(ds.f_nom, pairs, s)
         Lf_analytic = s.lipschitz_f()
     if o.lhat == "simulator":
@@ -526,9 +514,6 @@ def _data_lipschitz(ds, o: CertifyOptions, simulator=None, on_progress=None):
             L_f = wz.estimate
             how_f = {"how": f"Wood-Zhang estimate on slopes of f_{i + 1}" + (" - x" if incr else "")
                      + " over neighbouring cover points", **wz.to_dict()}
-        if sl_fhat is None:  # lhat = "none": Lhat_fhat comes from elsewhere (the gap term's runs)
-            out.append((L_f, how_f, None, None))
-            continue
         wz = wood_zhang(sl_fhat[:, i], np.random.default_rng([o.seed, 3, i]))
         how_fhat = {"how": "Wood-Zhang estimate on slopes of the empirical mean"
                     + (" increment (mean - x)" if incr else "") + src, **wz.to_dict()}
@@ -577,7 +562,7 @@ def _gap_lipschitz(ds, o: CertifyOptions, simulator=None) -> dict:
             raise SimgapError(f"the gap's Lipschitz term needs cover points with neighbours along every covered "
                               f"dimension, but {nm} has {len(grid.values[j])} value(s) in the data: use a finer "
                               f"spacing along {nm} (or lipschitz_term = \"paper\")")
-    L, Lu, Lfhat_axes = np.zeros((n, n)), np.zeros((n, m)), np.zeros((n, n))
+    L, Lu = np.zeros((n, n)), np.zeros((n, m))
     how = [dict() for _ in range(n)]
     share = [dict() for _ in range(n)]
     sim_ctx = None
@@ -598,11 +583,8 @@ def _gap_lipschitz(ds, o: CertifyOptions, simulator=None) -> dict:
             else:
                 direction, k = ("x", j) if j < n else ("u", j - n)
                 lo, hi = (ubox if ubox is not None else (None, None))
-                sl, sl_fhat, noise = gap_slopes_crn(sim_ctx, s, rng, direction, k, 2.0 * eps_j, per_axis,
-                                                    o.lhat_runs, np.unique(ds.u, axis=0), lo, hi)
-                if j < n:
-                    Lfhat_axes[:, j] = [wood_zhang(sl_fhat[:, i], np.random.default_rng([o.seed, 7, i, j])).estimate
-                                        for i in range(n)]
+                sl, noise = gap_slopes_crn(sim_ctx, s, rng, direction, k, 2.0 * eps_j, per_axis,
+                                           o.lhat_runs, np.unique(ds.u, axis=0), lo, hi)
                 src = (f"{per_axis} common-random-number pairs along it at distances log-uniform in "
                        f"[{eps_j / 4:.3g}, {2 * eps_j:.3g}], {o.lhat_runs} runs each (simulator)")
             for i in range(n):
@@ -620,7 +602,7 @@ def _gap_lipschitz(ds, o: CertifyOptions, simulator=None) -> dict:
         if sim_ctx is not None and simulator is None:
             sim_ctx.close()
     return {"L": L, "Lu": Lu, "radii": grid.radii, "input_radii": grid.input_radii,
-            "input_box": ubox, "how": how, "noise_share": share, "Lfhat_axes": Lfhat_axes}
+            "input_box": ubox, "how": how, "noise_share": share}
 
 
 def compare_options(dataset, base: Optional[CertifyOptions] = None) -> list:

@@ -36,22 +36,8 @@ def _quiet_c_output():
     PyBullet's C library prints "pybullet build time: ..." on stderr at import and "argv[0]="
     on stdout at connect; neither says anything a user can act on.
     """
-    saved = []
-    try:
-        for fd, stream in ((1, sys.stdout), (2, sys.stderr)):
-            try:
-                stream.flush()
-                saved.append((fd, os.dup(fd)))
-            except (OSError, ValueError, AttributeError):  # no real descriptor (e.g. captured)
-                pass
-        with open(os.devnull, "w") as null:
-            for fd, _ in saved:
-                os.dup2(null.fileno(), fd)
-            yield
-    finally:
-        for fd, copy in saved:
-            os.dup2(copy, fd)
-            os.close(copy)
+    with open(os.devnull, "w") as null, _fds_to(null.fileno()):
+        yield
 
 
 @contextlib.contextmanager
@@ -60,24 +46,34 @@ def capture_c_output():
     behind both); yields a list that holds the text afterwards, as its one element."""
     import tempfile
     out: list = []
-    saved = []
     with tempfile.TemporaryFile(mode="w+b") as tmp:
         try:
-            for fd, stream in ((1, sys.stdout), (2, sys.stderr)):
-                try:
-                    stream.flush()
-                    saved.append((fd, os.dup(fd)))
-                except (OSError, ValueError, AttributeError):  # no real descriptor (e.g. captured)
-                    pass
-            for fd, _ in saved:
-                os.dup2(tmp.fileno(), fd)
-            yield out
+            with _fds_to(tmp.fileno()):
+                yield out
         finally:
-            for fd, copy in saved:
-                os.dup2(copy, fd)
-                os.close(copy)
             tmp.seek(0)
             out.append(tmp.read().decode("utf-8", "replace"))
+
+
+@contextlib.contextmanager
+def _fds_to(target: int):
+    """Point file descriptors 1 and 2 at ``target`` during the block (what C code writes goes there);
+    a stream without a real descriptor (e.g. captured by pytest) is left alone."""
+    saved = []
+    try:
+        for fd, stream in ((1, sys.stdout), (2, sys.stderr)):
+            try:
+                stream.flush()
+                saved.append((fd, os.dup(fd)))
+            except (OSError, ValueError, AttributeError):
+                pass
+        for fd, _ in saved:
+            os.dup2(target, fd)
+        yield
+    finally:
+        for fd, copy in saved:
+            os.dup2(copy, fd)
+            os.close(copy)
 
 
 _NO_INERTIA = "No inertial data for link"

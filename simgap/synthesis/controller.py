@@ -203,11 +203,7 @@ class Controller:
             raise
         except (*BAD_FILE_ERRORS, KeyError) as e:
             raise SimgapError(f"controller file {str(path)!r} is not a simgap controller ({e})") from None
-        want = meta.get("digest")
-        have = fileio.content_digest({k: v for k, v in meta.items() if k != "digest"}, arrays)
-        if want != have:
-            raise SimgapError(f"controller file {str(path)!r} was modified after it was written (refused): its "
-                              f"content digest is {have[:16]}... but the file records {str(want)[:16]}...")
+        check_digest(path, meta, arrays)
         grid = UniformGrid.from_dict(meta["grid"])
         if arrays["steps"].shape != (grid.size,):
             raise SimgapError(f"controller file {str(path)!r}: arrays do not match the grid size {grid.size}")
@@ -240,6 +236,15 @@ def check_input_indices(idx, inputs, what: str) -> None:
     if bad.any():
         raise SimgapError(f"{what}: {int(bad.sum())} input index(es) outside -1..{inputs.shape[0] - 1} (the file has "
                           f"{inputs.shape[0]} inputs), e.g. {int(idx[bad].flat[0])} (refused)")
+
+
+def check_digest(path, meta: dict, arrays: dict) -> None:
+    """Refuse a controller file whose meta and arrays no longer match the digest it records."""
+    want = meta.get("digest")
+    have = fileio.content_digest({k: v for k, v in meta.items() if k != "digest"}, arrays)
+    if want != have:
+        raise SimgapError(f"controller file {str(path)!r} was modified after it was written (refused): its "
+                          f"content digest is {have[:16]}... but the file records {str(want)[:16]}...")
 
 
 def _json_default(o):

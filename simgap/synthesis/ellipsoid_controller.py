@@ -132,11 +132,8 @@ class EllipsoidController:
             arrays = {k: np.asarray(z[k], dtype=float) for k in ARRAYS}
         except (*BAD_FILE_ERRORS, KeyError) as e:
             raise SimgapError(f"controller file {str(path)!r} is not an invariant-set controller ({e})") from None
-        want = meta.get("digest")
-        have = fileio.content_digest({k: v for k, v in meta.items() if k != "digest"}, arrays)
-        if want != have:
-            raise SimgapError(f"controller file {str(path)!r} was modified after it was written (refused): its "
-                              f"content digest is {have[:16]}... but the file records {str(want)[:16]}...")
+        from .controller import check_digest
+        check_digest(path, meta, arrays)
         K, P, xs, us = (arrays[k] for k in ARRAYS)
         n, m = xs.size, us.size
         if K.shape != (m, n) or P.shape != (n, n) or not all(np.all(np.isfinite(a)) for a in arrays.values()) \

@@ -245,25 +245,7 @@ def run(args) -> int:
                          on_progress=bar)
     finally:
         bar.close()
-    print(res.summary())
-    if args.json:
-        _write_json(args.json, res.stats)
-    if res.empty:
-        print("result: EMPTY winning domain, no controller written")
-        return 1
-    ctrl = res.controller
-    ctrl.save(args.out)
-    print(f"wrote         {args.out}")
-    if x0 is not None:
-        if ctrl.winning(x0[None])[0]:
-            print(f"x0            {np.asarray(x0).tolist()}: winning, {int(ctrl.steps_to_go(x0[None])[0])} "
-                  f"abstract steps to go (worst case)" if spec.kind == "reach_avoid" else
-                  f"x0            {np.asarray(x0).tolist()}: winning")
-        else:
-            print(f"result: x0 {np.asarray(x0).tolist()} is OUTSIDE the winning domain: the controller is written "
-                  "(its domain can be looked at) but rollouts from x0 are refused (exit status 3)")
-            return X0_OUTSIDE
-    return 0
+    return _finish(args, res, x0, spec, "EMPTY winning domain", "the winning domain")
 
 
 def _invariant_set(args, system, spec, gap, syn, x0) -> int:
@@ -273,16 +255,32 @@ def _invariant_set(args, system, spec, gap, syn, x0) -> int:
         raise SimgapError("--method invariant_set applies u(x) every period: --hold must be 1")
     invariant_stage.check_section(system, dict(syn, hold=1), spec)
     res = invariant_stage.synthesize(system, spec, gap, syn, x0=x0)
+    return _finish(args, res, x0, spec, "no invariant set proved", "the invariant set E")
+
+
+def _finish(args, res, x0, spec, empty: str, domain: str) -> int:
+    """Print the result, write the stats and the controller; exit 1 when nothing was won, 3 when the
+    controller is written but x0 lies outside its domain (rollouts from x0 are refused)."""
     print(res.summary())
     if args.json:
         _write_json(args.json, res.stats)
     if res.empty:
-        print("result: no invariant set proved, no controller written")
+        print(f"result: {empty}, no controller written")
         return 1
-    res.controller.save(args.out)
+    ctrl = res.controller
+    ctrl.save(args.out)
     print(f"wrote         {args.out}")
-    if x0 is not None and not res.controller.winning(x0[None])[0]:
-        print(f"warning: x0 {np.asarray(x0).tolist()} is outside E; rollouts from it will be refused")
+    if x0 is None:
+        return 0
+    if not ctrl.winning(x0[None])[0]:
+        print(f"result: x0 {np.asarray(x0).tolist()} is OUTSIDE {domain}: the controller is written (its domain "
+              "can be looked at) but rollouts from x0 are refused (exit status 3)")
+        return X0_OUTSIDE
+    if hasattr(ctrl, "steps_to_go") and spec.kind == "reach_avoid":
+        print(f"x0            {np.asarray(x0).tolist()}: winning, {int(ctrl.steps_to_go(x0[None])[0])} "
+              f"abstract steps to go (worst case)")
+    else:
+        print(f"x0            {np.asarray(x0).tolist()}: winning")
     return 0
 
 

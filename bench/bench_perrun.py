@@ -44,7 +44,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(1, str(Path(__file__).resolve().parent))
 
-from simgap.perrun.imdp import IMDPOptions, build_imdp, reallocate  # noqa: E402
+from simgap.perrun.imdp import IMDPOptions, reallocate  # noqa: E402
+from simgap.perrun.sampling import build_imdp  # noqa: E402
 from simgap.perrun.validation import empirical, sample_in_cells, success_counts  # noqa: E402
 from simgap.perrun.value_iteration import synthesize_imdp  # noqa: E402
 from simgap.simulators.base import make_simulator  # noqa: E402

@@ -8,7 +8,8 @@ import pytest
 
 import simgap.perrun.imdp as imdp_mod
 from simgap.perrun.containment import check_containment
-from simgap.perrun.imdp import IMDPOptions, build_imdp, trajectory_lipschitz
+from simgap.perrun.imdp import IMDPOptions, trajectory_lipschitz
+from simgap.perrun.sampling import build_imdp
 from simgap.simulators.base import SimulatorConfig
 from simgap.simulators.numpy_sim import NumpySimulator
 from simgap.synthesis.spec import Box, Spec

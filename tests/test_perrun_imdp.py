@@ -7,7 +7,8 @@ from scipy.optimize import linprog
 
 from simgap.errors import SimgapError
 from simgap.perrun import value_iteration as vi
-from simgap.perrun.imdp import IMDP, Allocation, IMDPOptions, build_imdp, reallocate
+from simgap.perrun.imdp import IMDP, Allocation, IMDPOptions, reallocate
+from simgap.perrun.sampling import build_imdp
 from simgap.perrun.validation import empirical, sample_in_cells, success_counts
 from simgap.simulators.base import SimulatorConfig
 from simgap.simulators.numpy_sim import NumpySimulator

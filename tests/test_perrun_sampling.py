@@ -14,8 +14,8 @@ import pytest
 
 from simgap.errors import SimgapError
 from simgap.perrun import cost
-from simgap.perrun.imdp import IMDPOptions, build_imdp
-from simgap.perrun.sampling import RUNS_ARRAYS
+from simgap.perrun.imdp import IMDPOptions
+from simgap.perrun.sampling import RUNS_ARRAYS, build_imdp
 from simgap.simulators import make_simulator
 from simgap.simulators.base import SimulatorConfig
 from simgap.synthesis.spec import Box, Spec
@@ -108,7 +108,7 @@ def test_kill_9_mid_sampling_and_resume_is_bit_identical(sim, serial, tmp_path):
     Fails if resumed chunks were drawn from a stream that depends on what ran before."""
     store = tmp_path / "killed"
     script = CASE + f"""
-from simgap.perrun.imdp import build_imdp
+from simgap.perrun.sampling import build_imdp
 build_imdp(sim, spec, IMDPOptions(eta=[0.05, 0.125], hold=10, n_runs=300, pilot_runs=50, seed=1, chunk_size=2),
            executor="local", workers=2, store={str(store)!r})
 print("finished")

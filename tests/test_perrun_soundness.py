@@ -14,7 +14,8 @@ import pytest
 
 from simgap.errors import SimgapError
 from simgap.perrun import value_iteration as vi
-from simgap.perrun.imdp import IMDPOptions, box_unsafe, build_imdp, cell_labels
+from simgap.perrun.imdp import IMDPOptions, box_unsafe, cell_labels
+from simgap.perrun.sampling import build_imdp
 from simgap.perrun.translation import build_imdp_translation
 from simgap.perrun.validation import empirical, sample_in_cells, success_counts
 from simgap.simulators.base import SimulatorConfig

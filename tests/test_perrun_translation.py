@@ -7,7 +7,8 @@ import pytest
 
 from simgap.errors import SimgapError
 from simgap.maps import load_map
-from simgap.perrun.imdp import IMDPOptions, build_imdp
+from simgap.perrun.imdp import IMDPOptions
+from simgap.perrun.sampling import build_imdp
 from simgap.perrun.translation import build_imdp_translation
 from simgap.simulators import make_simulator
 from simgap.systems import get_system

@@ -472,7 +472,7 @@ def _simulate(sim, spec, x, u, hold, rho, rng, x_lo, x_hi, angle_dims):
 
 @dataclass
 class IMDPOptions:
-    """Options of :func:`build_imdp`.
+    """Options of :func:`simgap.perrun.sampling.build_imdp`.
 
     eta : cell widths (state units); hold : k periods per abstract step; n_runs : N main runs per
     (cell, input); pilot_runs : N0 support runs; beta : failure probability of all intervals;
@@ -683,22 +683,3 @@ def count_pairs(sim, spec: Spec, lay: Layout, widening: dict, pp: np.ndarray, o:
     return {"key": support.astype(np.int64), "n_hit": n_hit.astype(np.int32), "n_in": n_in.astype(np.int32),
             "pairs": np.asarray(pp, np.int64), "n_sink": n_sink.astype(np.int32),
             "single_seen": np.bool_(single_seen), "simulated": np.int64(simulated[0])}
-
-
-def build_imdp(sim, spec: Spec, options: "IMDPOptions", log=None, on_progress=None, executor=None,
-               workers: Optional[int] = None, address: Optional[str] = None, store=None, should_stop=None,
-               replace_other: bool = False) -> IMDP:
-    """Sample ``sim`` and build the interval MDP of ``spec`` (see module docstring).
-
-    The simulator work (Lipschitz secants, pilot and main runs) is cut into chunks, each drawing
-    from its own seeded generator, and run by ``executor`` (``serial`` in this process with ``sim``
-    when None; ``local`` or ``ray`` rebuild the simulator from its config in their workers); with
-    ``store`` (a folder) every finished chunk is kept, verified and resumed
-    (:mod:`simgap.perrun.sampling`). The interval MDP does not depend on the executor, the number
-    of workers or interruptions. A store of another configuration is refused, or with
-    ``replace_other`` removed first.
-
-    ``on_progress(done, total)``: after every chunk, in (cell, input) pairs of both passes (2 x pairs)."""
-    from .sampling import sample_imdp
-    return sample_imdp(sim, spec, options, log=log, on_progress=on_progress, executor=executor, workers=workers,
-                       address=address, store=store, should_stop=should_stop, replace_other=replace_other)

@@ -1,6 +1,6 @@
 """Interval-MDP sampling through the executors: chunked, resumable, the same bits on every executor.
 
-The simulator work of :func:`simgap.perrun.imdp.build_imdp` runs as chunks of
+The simulator work of :func:`build_imdp` runs as chunks of
 :mod:`simgap.executors`, as a collection does (:mod:`simgap.collect`):
 
 * phase ``lipschitz`` (when the constants are not given): chunk j = the common-random-number
@@ -219,14 +219,21 @@ def _run_phase(cfg: dict, fn, sim, spec, o, ex: Executor, folder: Optional[Path]
     return lambda c, names=names: read_chunk(folder, c, h, names)
 
 
-def sample_imdp(sim, spec, options: IMDPOptions, log=None, on_progress=None, executor=None,
-                workers: Optional[int] = None, address: Optional[str] = None, store=None,
-                should_stop=None, replace_other: bool = False) -> IMDP:
-    """The interval MDP of ``spec`` sampled through an executor (module docstring); what
-    :func:`simgap.perrun.imdp.build_imdp` runs. ``executor``: a name (``serial``, ``local``,
-    ``ray``), an :class:`~simgap.executors.Executor`, or None for ``serial`` with ``sim`` itself.
-    ``replace_other``: a store of another configuration in ``store`` is removed (``simgap run`` after
-    the ``[perrun]`` options changed) instead of refused."""
+def build_imdp(sim, spec, options: IMDPOptions, log=None, on_progress=None, executor=None,
+               workers: Optional[int] = None, address: Optional[str] = None, store=None,
+               should_stop=None, replace_other: bool = False) -> IMDP:
+    """Sample ``sim`` and build the interval MDP of ``spec`` (:mod:`simgap.perrun.imdp`).
+
+    The simulator work (Lipschitz secants, pilot and main runs) is cut into chunks, each drawing
+    from its own seeded generator, and run by ``executor``: a name (``serial``, ``local``, ``ray``),
+    an :class:`~simgap.executors.Executor`, or None for ``serial`` in this process with ``sim``
+    itself (``local`` and ``ray`` rebuild the simulator from its config in their workers). With
+    ``store`` (a folder) every finished chunk is kept, verified and resumed. The interval MDP does
+    not depend on the executor, the number of workers or interruptions. A store of another
+    configuration is refused, or with ``replace_other`` (``simgap run`` after the ``[perrun]``
+    options changed) removed first.
+
+    ``on_progress(done, total)``: after every chunk, in (cell, input) pairs of both passes (2 x pairs)."""
     t0 = time.perf_counter()
     s, o = sim.system, options
     lay = layout(s, spec, o)

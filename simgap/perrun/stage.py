@@ -105,7 +105,8 @@ def build(sim, spec, o: dict, log, on_progress=None, executor=None, workers=None
     recorded in the meta as ``containment`` (``passed`` None when not run) and logged, with a
     warning when it fails."""
     from .containment import check_containment
-    from .imdp import IMDPOptions, build_imdp
+    from .imdp import IMDPOptions
+    from .sampling import build_imdp
     from .translation import build_imdp_translation
 
     opts = IMDPOptions(eta=o["eta"], hold=int(o["hold"]), n_runs=int(o["n_runs"]), pilot_runs=int(o["pilot_runs"]),

@@ -27,7 +27,7 @@ boxes touching the reference offsets o (cells x_ref + o):
   of its offsets o;
 * n_hit(c, c + o) = #runs touching o (the same for every c), n_in(c, c + o) = #runs touching o
   only and not a sink run for c, n_sink(c) = #sink runs for c;
-* intervals and the union bound's split exactly as :func:`simgap.perrun.imdp.build_imdp` (each
+* intervals and the union bound's split exactly as :func:`simgap.perrun.sampling.build_imdp` (each
   bound uses N i.i.d. runs of its own cell; Bonferroni needs no independence between bounds).
 
 The widening constants: along an invariant dimension j the trajectory is shifted exactly, so

@@ -4,7 +4,8 @@ Pipeline: System -> Dataset -> Certificate -> Abstraction -> Controller -> Rollo
 """
 
 from .errors import SimgapError
-from .systems import System, get_system, input_grid, resolve_system
+from .systems import System, get_system, input_grid
+from .system_ref import resolve_system
 
 __version__ = "0.1.0"
 __all__ = ["SimgapError", "System", "get_system", "input_grid", "resolve_system", "__version__"]

@@ -40,7 +40,8 @@ from .errors import SimgapError
 from .paths import ASSETS_DIR
 from .profiles import DEFAULT_PROFILE, DefaultProfile
 from .simulators.base import SimulatorConfig, simulator_class
-from .systems import BUILTIN, System, get_system, input_grid, is_named, resolve_system
+from .systems import BUILTIN, System, get_system, input_grid, is_named
+from .system_ref import resolve_system
 
 EXPERIMENTS_DIR = ASSETS_DIR / "experiments"
 

@@ -35,7 +35,8 @@ import numpy as np
 
 from . import fileio, store
 from .errors import BAD_FILE_ERRORS, SimgapError
-from .systems import System, resolve_system, system_ref
+from .systems import System
+from .system_ref import resolve_system, system_ref
 
 ARRAYS = ("x", "u", "f_nom", "mean", "var", "lo", "hi", "cover_index", "input_index")
 

@@ -32,7 +32,8 @@ import numpy as np
 
 from . import fileio
 from .errors import SimgapError
-from .systems import System, ref_of_description, resolve_system
+from .systems import System
+from .system_ref import ref_of_description, resolve_system
 
 STORE_FORMAT = "simgap-store/1"
 MANIFEST = "manifest.json"

@@ -32,9 +32,7 @@ and differences between states must use :meth:`System.diff`.
 from __future__ import annotations
 
 import dataclasses
-import importlib
 import itertools
-import os
 from dataclasses import dataclass, field
 from typing import Callable, Optional, Sequence
 
@@ -431,94 +429,3 @@ def load_plugin_system(name: str):
         raise SimgapError(f"plugin system {name!r} ({plugin.origin()}) builds a system named {obj.name!r}; "
                           f"the entry-point name and System.name must agree")
     return obj
-
-
-#: Builders of the systems other modules define on top of :class:`System`, named ("module:function")
-#: and imported only when a reference needs one, as the simulator backends are: the refined system
-#: (:mod:`simgap.refine.refined`) is built on this module, so this module names it instead of importing
-#: it (no import circle: tests/test_layout.py).
-SYSTEM_BUILDERS = {
-    "refined_object": "simgap.refine.refined:system_from_dict",  # an embedded refined-system JSON object
-    "refined_file": "simgap.refine.refined:load_refined",        # the path of a refined-system JSON file
-}
-
-
-def system_builder(kind: str) -> Callable:
-    """The builder :data:`SYSTEM_BUILDERS` names for ``kind``."""
-    mod, fn = SYSTEM_BUILDERS[kind].split(":")
-    return getattr(importlib.import_module(mod), fn)
-
-
-def resolve_system(ref, steps: Optional[int] = None, paths: bool = True) -> System:
-    """The one way to turn a system reference into a :class:`System`.
-
-    ``ref`` is a built-in or plugin name (``pendulum``, ``turtlebot``, ``emps``, see ``simgap
-    plugins``), an embedded system file or refined system (the JSON objects with ``format:
-    simgap-system`` / ``simgap-refined-system`` recorded in manifests, data sets, certificates
-    and controllers), the path of a system file (``.toml``) or refined-system JSON (command line,
-    experiment TOML), or a System (returned as is). Files are parsed with the expression
-    allow-list, never executed. ``steps`` (k base periods per sampling period) overrides the
-    reference's own. ``paths=False`` for references read from a file: data never make simgap
-    open another file.
-    """
-    from . import system_file
-    if isinstance(ref, System):
-        s = ref
-    elif is_named(ref):
-        s = get_system(ref)
-    elif system_file.is_spec(ref):
-        s = system_file.system_from_spec(ref).with_steps(int(ref.get("steps", 1)))
-    elif paths and isinstance(ref, (str, os.PathLike)) and str(ref).endswith(".toml") and os.path.isfile(ref):
-        s = system_file.load_system_file(ref)
-    else:
-        if isinstance(ref, dict):
-            s = system_builder("refined_object")(ref)
-        elif paths and isinstance(ref, (str, os.PathLike)) and os.path.isfile(ref):
-            s = system_builder("refined_file")(ref)
-        else:
-            raise SimgapError(f"unknown system {str(ref)[:200]!r}: not a built-in ({', '.join(sorted(BUILTIN))})"
-                              + (", no such system file (.toml) or refined-system JSON file" if paths else
-                                 " or an embedded system") + _plugins_note())
-    return s.with_steps(steps) if steps is not None else s
-
-
-def system_ref(system: System):
-    """What :func:`resolve_system` rebuilds ``system`` from: the refined system's JSON object or
-    the system file's table (self-contained, not tied to a file), or a built-in or plugin name;
-    ``None`` for a system defined in Python only."""
-    d = system.params.get("_refined_json")
-    if d is not None:
-        return dict(d, steps=int(system.steps), name=system.name)
-    f = system.params.get("_system_file")
-    if f is not None:
-        return dict(f, steps=int(system.steps))
-    return system.name if is_named(system.name) else None
-
-
-def embedded_ref(system: System) -> Optional[dict]:
-    """:func:`system_ref` when it is an embedded object (system file or refined system), else None:
-    what certificates carry so that later commands rebuild the model without its file."""
-    ref = system_ref(system)
-    return ref if isinstance(ref, dict) else None
-
-
-def ref_of_description(desc: dict):
-    """The reference a manifest's system description (:meth:`System.describe`) rebuilds from."""
-    params = desc.get("params") or {}
-    return params.get("_refined_json") or params.get("_system_file") or desc.get("name")
-
-
-def system_digest(system: System) -> Optional[str]:
-    """sha256 of what the model computes: the built-in's (or plugin's) name, the system file's
-    table (:func:`simgap.system_file.spec_digest`) or the refined system's JSON (base and effects
-    with coefficients; name and steps are compared separately). Certificates record it, so a
-    certificate is never used with a different model of the same name. ``None`` for a system
-    defined in Python only."""
-    from .fileio import content_digest
-    from .system_file import is_spec, spec_digest
-    ref = system_ref(system)
-    if is_spec(ref):
-        return spec_digest(ref)
-    if isinstance(ref, dict):
-        ref = {"base": ref.get("base"), "effects": ref.get("effects")}
-    return None if ref is None else content_digest({"system": ref})

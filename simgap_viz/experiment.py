@@ -39,7 +39,8 @@ def _selectable(system) -> str:
     """The app's name of a system given by name, system file, refined-system JSON or System: a
     refined model is registered with its base (the simulator runs the base system), a system-file
     model as it is, so the app can select it by name."""
-    from simgap.systems import is_named, resolve_system
+    from simgap.systems import is_named
+    from simgap.system_ref import resolve_system
 
     if is_named(system):
         return system

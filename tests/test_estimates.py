@@ -81,7 +81,7 @@ def test_audit_reads_the_experiment_and_prints_its_estimate_first(duffing):
 def test_audit_over_memory_is_refused_before_any_run(duffing):
     from simgap.checks import available_memory
     from simgap.certify.audit import audit_cost
-    from simgap.systems import resolve_system
+    from simgap.system_ref import resolve_system
     runs = 10 ** 9  # one point's runs go at once: a chunk of 10^9 rows
     need = audit_cost(1, runs, resolve_system(str(duffing / "duffing.toml")))["memory"]
     if need <= available_memory():
@@ -120,7 +120,7 @@ def test_synthesis_estimate_matches_the_built_abstraction():
     from simgap.synthesis.boxes import pair_volumes
     from simgap.synthesis.cost import synthesis_cost
     from simgap.synthesis.grid import UniformGrid
-    from simgap.systems import resolve_system
+    from simgap.system_ref import resolve_system
     s = resolve_system(str(DUFFING / "duffing.toml"))
     for eta, gap in (([0.02, 0.02], np.array([0.002, 0.01])), ([0.01, 0.05], None)):
         grid = UniformGrid(s.x_lo, s.x_hi, eta)
@@ -153,7 +153,7 @@ def test_the_game_reports_its_iterations(kind):
     import simgap.synthesis.controller as controller
     from simgap.synthesis.fixed_point import game_progress
     from simgap.synthesis.spec import Box, Spec
-    from simgap.systems import resolve_system
+    from simgap.system_ref import resolve_system
     s = resolve_system(str(DUFFING / "duffing.toml"))
     spec = (Spec(kind="invariance", safe=Box(np.array([-0.8, -1.2]), np.array([0.8, 1.2]))) if kind == "invariance"
             else Spec(kind="reach_avoid", target=Box(np.array([-0.1, -0.1]), np.array([0.1, 0.1]))))

@@ -243,7 +243,7 @@ def test_spec_other_than_invariance(cubic):
 
 
 def test_builtin_system_without_formulas_is_refused():
-    from simgap.systems import resolve_system
+    from simgap.system_ref import resolve_system
     s = resolve_system("pendulum")
     with pytest.raises(SimgapError, match="not a system file"):
         iv.synthesize_invariant_set(s, Spec(kind="invariance", safe=Box(s.x_lo, s.x_hi)))

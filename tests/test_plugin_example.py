@@ -14,7 +14,8 @@ from simgap.certify.certificate import load as load_cert
 from simgap.cli import main
 from simgap.collect import load_store
 from simgap.synthesis.controller import Controller
-from simgap.systems import get_system, system_ref
+from simgap.systems import get_system
+from simgap.system_ref import system_ref
 
 REPO = Path(__file__).resolve().parents[1]
 EXAMPLE = REPO / "examples" / "plugin"
@@ -119,7 +120,7 @@ def test_broken_and_shadowing_plugins_are_named(monkeypatch):
     from importlib import metadata
 
     from simgap.errors import SimgapError
-    from simgap.systems import resolve_system
+    from simgap.system_ref import resolve_system
 
     eps = [metadata.EntryPoint("broken", "no_such_module_xyz:factory", plugins.SYSTEM_GROUP),
            metadata.EntryPoint("not_a_system", "json:dumps", plugins.SYSTEM_GROUP),

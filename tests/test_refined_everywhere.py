@@ -14,7 +14,8 @@ from simgap.errors import SimgapError
 from simgap.refine.effects import effect_from_spec
 from simgap.refine.refined import build_refined, save_refined
 from simgap.synthesis.controller import Controller
-from simgap.systems import get_system, resolve_system, system_digest, system_ref
+from simgap.systems import get_system
+from simgap.system_ref import resolve_system, system_digest, system_ref
 
 C = -2.0  # strong viscous friction: f' differs from f by tau * 2 * omega per step
 

@@ -15,7 +15,7 @@ from simgap.errors import SimgapError
 from simgap.synthesis.controller import Controller
 from simgap.synthesis.runge_kutta import rk4_integrate
 from simgap.system_file import load_system_file, system_from_spec
-from simgap.systems import resolve_system, system_digest, system_ref
+from simgap.system_ref import resolve_system, system_digest, system_ref
 
 DUFFING = """
 # a damped Duffing oscillator, unit mass:  x'' = -k x - k3 x^3 - d x' + F

@@ -79,7 +79,8 @@ def test_units_of_builtins_params_and_system_files():
     """Axis labels take units from the system: the built-ins' table, params['units'], a system file's."""
     from pathlib import Path
 
-    from simgap.systems import get_system, labelled, resolve_system, units
+    from simgap.systems import get_system, labelled, units
+    from simgap.system_ref import resolve_system
     assert units(get_system("pendulum")) == (("rad", "rad/s"), ("N m",))
     assert units(get_system("turtlebot"))[0] == ("m", "m", "rad")
     cart = System(name="cart", state_names=("p", "v"), input_names=("F",), x_lo=(-1, -1), x_hi=(1, 1),

@@ -201,7 +201,7 @@ def test_urdf_base_visual_is_placed_from_the_link_frame_not_the_centre_of_mass(t
     plus the visual origin (PyBullet's base pose is the centre of mass: the offset must be undone),
     the child's sphere at the joint origin plus its visual origin turned by the joint angle."""
     from simgap.simulators.base import SimulatorConfig
-    from simgap.systems import resolve_system
+    from simgap.system_ref import resolve_system
 
     f = tmp_path / "offset.urdf"
     f.write_text(URDF_OFFSET_BASE)

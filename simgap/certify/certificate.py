@@ -127,8 +127,8 @@ class Certificate:
     dims: List[DimCertificate]
     provenance: dict
     inputs: Optional[np.ndarray] = None   # (M, m) the inputs the data covered: gamma is certified for these
-    system_digest: Optional[str] = None   # simgap.systems.system_digest of the nominal model
-    system_ref: Optional[dict] = None     # embedded system file / refined system (simgap.systems.system_ref)
+    system_digest: Optional[str] = None   # simgap.system_ref.system_digest of the nominal model
+    system_ref: Optional[dict] = None     # embedded system file / refined system (simgap.system_ref.system_ref)
     lipschitz_term: str = "paper"         # "paper": L_x eps; "gap": sum_j (L_gap_ij + L2_x,ij) radii_j
     radii: Optional[np.ndarray] = None    # (n,) the cover's radius per dimension eps_j (0: not covered)
     input_radii: Optional[np.ndarray] = None  # (m,) half the input grid's spacing (continuous inputs)
@@ -286,7 +286,7 @@ class Certificate:
     # ----- compatibility ---------------------------------------------------------------
     def check_system(self, system) -> None:
         """Raise unless the certificate was made for ``system`` (name, steps, dimensions)."""
-        from ..systems import system_digest
+        from ..system_ref import system_digest
         if system.name != self.system_name or system.steps != self.steps or system.n != self.n \
                 or system.m != self.m:
             raise SimgapError(f"certificate is for system {self.system_name!r} (steps={self.steps}, n={self.n}, "
@@ -301,7 +301,8 @@ class Certificate:
         """The nominal model the certificate was made for, rebuilt from what it records (a built-in
         or plugin name, or the embedded system file / refined system; never a file path), checked
         against the recorded digest; None for a system defined in Python only."""
-        from ..systems import is_named, resolve_system
+        from ..systems import is_named
+        from ..system_ref import resolve_system
         ref = self.system_ref if self.system_ref is not None else self.system_name
         if not (isinstance(ref, dict) or is_named(ref)):
             return None

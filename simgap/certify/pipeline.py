@@ -23,7 +23,7 @@ from typing import Dict, List, Optional, Sequence, Union
 import numpy as np
 
 from ..errors import SimgapError
-from ..systems import embedded_ref, system_digest
+from ..system_ref import embedded_ref, system_digest
 from .basis import Basis
 from .bounds import BoundOptions, beta_from_delta, delta_from_beta, required_runs
 from .certificate import Certificate, DimCertificate

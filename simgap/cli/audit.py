@@ -92,7 +92,7 @@ def run(args) -> int:
         check_audit_cost(cost)
         from ..certify import load
         from ..certify.audit import audit, save_report
-        from ..systems import resolve_system
+        from ..system_ref import resolve_system
         nominal = ds if args.system is None else ds.with_nominal(resolve_system(args.system))
         cert = load(args.cert, dataset=nominal)
         if cert.method == "run" and args.alpha is not None:

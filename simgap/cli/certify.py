@@ -185,7 +185,7 @@ def _certify_with_simulator(args, ds):
 def _data(args):
     """The data set, against ``--system`` when given (:meth:`simgap.dataset.Dataset.with_nominal`)."""
     from ..dataset import load_dataset
-    from ..systems import resolve_system
+    from ..system_ref import resolve_system
 
     ds = load_dataset(args.data)
     return ds if args.system is None else ds.with_nominal(resolve_system(args.system))

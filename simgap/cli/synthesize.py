@@ -163,7 +163,7 @@ def run(args) -> int:
         return _run_level(args)
     if not (args.cert or args.gamma or args.no_gap):
         raise SimgapError("give one of --cert, --gamma or --no-gap (how the simulation gap enters)")
-    from ..systems import resolve_system
+    from ..system_ref import resolve_system
     from ..synthesis.controller import synthesize
     from ..synthesis.spec import Box, Spec
 

@@ -40,7 +40,7 @@ from ..certify.lipschitz import l2_analytic, neighbour_pairs, slopes_of, wood_zh
 from ..certify.pipeline import _versions, bases_for, check_dataset, invariant_dims
 from ..certify.scp import solve_scp
 from ..errors import SimgapError
-from ..systems import embedded_ref, system_digest
+from ..system_ref import embedded_ref, system_digest
 from .orderstats import alpha_min, order_index
 
 ASSUMPTION = ("per realization: for every noise draw w, x -> fhat(x,u,w) - x is Lhat-Lipschitz (common random "

@@ -40,7 +40,8 @@ from typing import Optional, Sequence
 import numpy as np
 
 from ..errors import SimgapError
-from ..systems import BUILTIN, System, get_system, is_named, resolve_system
+from ..systems import BUILTIN, System, get_system, is_named
+from ..system_ref import resolve_system
 from .effects import Effect, carry_matrix, effect_from_spec, integration_effect
 
 FORMAT = "simgap-refined-system"
@@ -232,5 +233,5 @@ def load_refined(path: str | Path) -> System:
 
 def load_system(name_or_path, steps: Optional[int] = None) -> System:
     """A system by built-in name, refined-system JSON (path or object) or System:
-    :func:`simgap.systems.resolve_system`."""
+    :func:`simgap.system_ref.resolve_system`."""
     return resolve_system(name_or_path, steps)

@@ -27,7 +27,7 @@ from typing import Dict, Optional
 
 import numpy as np
 
-from ..systems import system_ref
+from ..system_ref import system_ref
 from .base import Simulator, SimulatorConfig, build_simulator
 
 #: batches smaller than this many rows per process run in the calling process only
@@ -41,7 +41,7 @@ _HELPER: Optional[Simulator] = None  # the simulator of a helper process
 def _start_helper(config: dict, system, parent: int) -> None:
     global _HELPER
     from ..executors import exit_with_parent
-    from ..systems import resolve_system
+    from ..system_ref import resolve_system
     exit_with_parent(parent)
     _HELPER = build_simulator(config, None if system is None else resolve_system(system, paths=False))
 

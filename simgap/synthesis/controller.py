@@ -254,7 +254,8 @@ def _json_default(o):
 
 
 def _rebuild_system(d: dict, inputs: np.ndarray) -> Optional[System]:
-    from ..systems import is_named, ref_of_description, resolve_system
+    from ..systems import is_named
+    from ..system_ref import ref_of_description, resolve_system
     name = d.get("name")
     ref = ref_of_description(d)
     if name == "scots_vehicle":

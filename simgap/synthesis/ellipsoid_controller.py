@@ -142,7 +142,7 @@ class EllipsoidController:
                               f"(shapes {list(K.shape)}, {list(P.shape)}, {n}, {m}; P must be positive definite)")
         spec = Spec.from_dict(meta["spec"]) if meta.get("spec") else None
         if system is None and meta.get("system"):
-            from ..systems import ref_of_description, resolve_system
+            from ..system_ref import ref_of_description, resolve_system
             try:
                 system = resolve_system(ref_of_description(meta["system"]), int(meta["system"].get("steps", 1)),
                                         paths=False)

@@ -157,3 +157,46 @@ def test_gui_opens_stage_outputs_without_their_data(stages, capsys):
                         "--port", "0", "--exit-after", "0.5")
     assert rc == 0, err
     assert "simgap gui: data set: absent" in out and "simgap gui: controller: " in out and "open http" in out
+
+
+@pytest.mark.browser
+def test_gui_on_stage_outputs_shows_the_winning_domain_in_a_browser(stages, tmp_path):
+    """Opened on a certificate, controller and rollouts (no data), the page says which stages it shows
+    and which is absent, and the canvas shows the winning domain (its greens over > 5000 px), which
+    the winning layer alone accounts for (the same view without it has almost none)."""
+    from test_browser_app import _need_browser, _rgb
+    _need_browser()
+    import time
+
+    from playwright.sync_api import sync_playwright
+
+    from simgap_viz import screenshot as S
+    from simgap_viz.app import SimgapApp
+    from simgap_viz.results import load_stages
+
+    app = SimgapApp(port=0, executor="serial")
+    try:
+        run = load_stages(None, cert=stages / "cert.json", controller=stages / "ctrl.npz",
+                          rollouts=stages / "rollouts.npz")
+        cells = run.methods["stochastic"].synthesis.controller.size
+        app.load_run(run)
+        with sync_playwright() as pw:
+            b = pw.chromium.launch(executable_path=S.CHROMIUM, args=S.ARGS)
+            try:
+                page = S.open_page(b, app.url + "/?fixedDpr=1", 1280, 800)
+                page.get_by_text("data set: absent", exact=False).first.wait_for(timeout=30_000)
+                text = page.inner_text("body")
+                S.show_tab(page, "View", settle=3.0)
+                page.screenshot(path=str(tmp_path / "page.png"))
+                A = _rgb(S.canvas_png(page, tmp_path / "A.png"))
+                app.set_layer_visible("winning", False)
+                time.sleep(2.5)
+                R = _rgb(S.canvas_png(page, tmp_path / "R.png"))
+            finally:
+                b.close()
+    finally:
+        app.stop()
+    assert "stage outputs" in text and "ctrl.npz" in text and f"{cells:,} winning cells" in text
+    greens = lambda im: ((im[..., 1] > im[..., 0] + 40) & (im[..., 1] > im[..., 2] + 40)).sum()  # noqa: E731
+    assert greens(A) > 5000, f"the winning domain is hardly visible ({greens(A)} px)"
+    assert greens(R) < 0.1 * greens(A), (greens(R), greens(A))

@@ -1,6 +1,7 @@
 """Paper-style figures of a finished run (``simgap plot RUN``), drawn with matplotlib.
 
-Every figure is read from the run's files (:func:`simgap_viz.results.load_run`); nothing is
+Every figure is read from the run's files (:func:`simgap_viz.results.load_run`, or stage-by-stage
+outputs, :func:`simgap_viz.results.load_stages`); nothing is
 recomputed but gamma on a line (the certificate's own function) and the specification's boxes.
 Each is written as PNG and PDF, atomically (temporary name, then renamed):
 
@@ -409,7 +410,9 @@ def p_cert(run, out_dir: Path, style: str = "paper") -> list:
 
 
 def plot_run(path, out_dir=None, max_drawn: int = 1000, style: str = "paper") -> list:
-    """Every figure of the run folder ``path`` into ``out_dir`` (default ``path/figures``); the paths written.
+    """Every figure of the run folder ``path`` (or of a loaded :class:`~simgap_viz.results.RunResults`,
+    e.g. stage outputs from :func:`~simgap_viz.results.load_stages`: the figures their stages allow)
+    into ``out_dir`` (default ``path/figures``); the paths written.
 
     ``style``: "paper" (7 in wide, 8 pt: a two-column paper's text width) or "slide" (11 in, 14 pt)."""
     if style not in STYLES:

@@ -232,8 +232,11 @@ def stage_files(folder) -> tuple:
     one role are refused, naming both (the flags then say which one)."""
     from simgap.file_guard import printable
     root = Path(folder)
+    if not root.exists():
+        raise SimgapError(f"{str(root)!r} does not exist")
     if not root.is_dir():
-        raise SimgapError(f"{str(root)!r} is not a folder")
+        raise SimgapError(f"{str(root)!r} is not a folder (name a single stage file with --dataset/--cert/"
+                          "--controller/--rollouts)")
     found: dict = {r: [] for r in ROLES}
     notes = []
     for p in sorted(root.iterdir()):

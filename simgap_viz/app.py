@@ -303,15 +303,14 @@ class SimgapApp:
         The loaded results are cached under the settings' stage keys, so every knob works from
         here (a changed delta re-certifies from the run's data).
         """
-        from simgap.pipeline import experiment_spec
-
-        from .experiment import from_experiment
+        from .experiment import from_experiment, from_stages
+        from .results import run_spec
         if method not in run.methods:
             raise SimgapError(f"the run has no {method!r} results; it has {', '.join(run.methods)}")
         m = run.methods[method]
         exp = run.experiment
-        st, _, _ = from_experiment(exp)
-        spec, x0, arena = experiment_spec(exp)
+        st = from_experiment(exp)[0] if exp is not None else from_stages(run)  # stage outputs: no experiment
+        spec, x0, arena = run_spec(run)
         ro = run.summary.get("sections", {}).get("rollout", {})
         x0 = run.summary.get("x0", x0)
         with self.lock:
@@ -325,7 +324,12 @@ class SimgapApp:
                                        hold=int(m.synthesis.controller.hold) if m.synthesis is not None else st.hold,
                                        eta=tuple(float(e) for e in m.synthesis.controller.grid.eta)
                                        if m.synthesis is not None else st.eta)
-        self.set_dataset(m.dataset)
+        if m.dataset is not None:
+            self.set_dataset(m.dataset)
+        else:  # stage outputs without their data: the model is theirs
+            with self.lock:
+                self.system = engine.make_system(self.settings, exp)
+                self._on_system_changed()
         with self.lock:
             for stage, res in (("certify", m.certificate), ("synthesize", m.synthesis), ("rollout", m.rollouts)):
                 if res is None:
@@ -338,6 +342,10 @@ class SimgapApp:
             p.sync_from_settings()
         self._show_results()
         self.panels["perrun"].show()
+        if run.stages is not None:
+            from .results import describe_stages
+            self.set_status("**stage outputs** (" + method + "):\n\n" + "\n".join(f"* {line}" for line in describe_stages(run)))
+            return
         self.set_status(f"run **{run.path.name}** ({method}): data K = {m.dataset.K}, "
                         + (f"{m.synthesis.controller.size:,} winning cells" if m.synthesis is not None
                            else "invariant-set run (see the summary; E is not drawn here yet)")

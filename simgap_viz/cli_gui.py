@@ -8,6 +8,8 @@ import time
 from simgap.checks import check_bindable, host, port
 from simgap.systems import BUILTIN
 
+from .results import add_stage_arguments
+
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
@@ -15,7 +17,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         description="Start the simgap web app and print the URL to open in a browser. "
                     "Binds 127.0.0.1 unless --host says otherwise.")
     p.add_argument("results", nargs="?", default=None,
-                   help="a finished `simgap run` folder (e.g. results/pendulum-small): open it fully loaded")
+                   help="a finished `simgap run` folder (e.g. results/pendulum-small): open it fully loaded; or a "
+                        "folder of stage outputs (a data store or .npz, a certificate, a controller, rollouts .npz)")
     p.add_argument("--method", default="stochastic", choices=("stochastic", "deterministic"),
                    help="which certificate's results of RESULTS to show first (default: stochastic)")
     p.add_argument("--host", type=host, default="127.0.0.1",
@@ -23,7 +26,10 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--port", type=port, default=8080, help="port (default 8080; 0 picks a free one)")
     p.add_argument("--experiment", default=None, help="experiment name or TOML file (e.g. pendulum)")
     p.add_argument("--profile", default=None, help="experiment profile (e.g. small)")
-    p.add_argument("--dataset", default=None, help="load this dataset (.npz or store directory) at start")
+    p.add_argument("--dataset", default=None, help="load this dataset (.npz or store directory) at start; with "
+                                                   "--cert/--controller/--rollouts or a stage folder: the data set of "
+                                                   "those stage outputs")
+    add_stage_arguments(p)
     p.add_argument("--system", default=None,
                    help="start with this system: a built-in or plugin name (" + ", ".join(sorted(BUILTIN)) + "; see simgap plugins), "
                         "a system file (.toml) or a refined-system JSON")
@@ -39,14 +45,23 @@ def run(args) -> int:
 
     from .app import SimgapApp
     from .experiment import app_inputs
-    from .results import load_run
+    from .results import describe_stages, is_run_dir, load_run, load_stages
 
     check_bindable(args.host)  # an address of this machine? (the server skips a taken port itself)
     run_results = None
-    if args.results is not None:
+    stages = any(v is not None for v in (args.cert, args.controller, args.rollouts))
+    if args.results is not None and is_run_dir(args.results) and not stages:
         if args.experiment or args.dataset or args.system:
             raise SimgapError("give either a results folder or --experiment/--dataset/--system, not both")
         run_results = load_run(args.results)
+    elif stages or args.results is not None:  # stage-by-stage outputs, each checked against the others
+        if args.experiment or args.system:
+            raise SimgapError("stage outputs carry their own model: drop --experiment/--system")
+        run_results = load_stages(args.results, dataset=args.dataset, cert=args.cert, controller=args.controller,
+                                  rollouts=args.rollouts)
+        args.dataset = None
+        for line in describe_stages(run_results):
+            print(f"simgap gui: {line}", flush=True)
     settings, dataset, spec, arena, exp = app_inputs(experiment=args.experiment, profile=args.profile,
                                                 dataset=args.dataset, system=args.system)
     app = SimgapApp(host=args.host, port=args.port, settings=settings, dataset=dataset, spec=spec, arena=arena,

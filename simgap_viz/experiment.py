@@ -55,6 +55,20 @@ def _selectable(system) -> str:
     return s.name
 
 
+def from_stages(run) -> Settings:
+    """Settings for stage-by-stage outputs (:func:`simgap_viz.results.load_stages`): their model
+    (registered so the app can select it), the data's epsilon and N1hat when the data are there,
+    the default grid (the controller's eta and hold are set by the app)."""
+    s = run.system
+    name = _selectable(s)
+    st = Settings(system=name, steps=int(s.steps), simulator=engine.default_simulator(name, Settings().simulator),
+                  eta=engine.default_eta(s))
+    ds = next(iter(run.methods.values())).dataset
+    if ds is not None:
+        st = st.replace(epsilon=float(ds.epsilon), n_runs=int(ds.n_runs))
+    return st
+
+
 def settings_from_experiment(name: str, profile: Optional[str]):
     try:
         from simgap.config import load_experiment

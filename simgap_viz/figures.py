@@ -1,6 +1,7 @@
 """Paper-style figures of a finished run (``simgap plot RUN``), drawn with matplotlib.
 
-Every figure is read from the run's files (:func:`simgap_viz.results.load_run`); nothing is
+Every figure is read from the run's files (:func:`simgap_viz.results.load_run`, or stage-by-stage
+outputs, :func:`simgap_viz.results.load_stages`); nothing is
 recomputed but gamma on a line (the certificate's own function) and the specification's boxes.
 Each is written as PNG and PDF, atomically (temporary name, then renamed):
 
@@ -227,7 +228,7 @@ def _methods(run) -> list:
 def trajectories(run, spec, out_dir: Path, max_drawn: int = 1000, style: str = "paper") -> list:
     """Rollouts over (x1, x2), one panel per method (see module docstring)."""
     from matplotlib.lines import Line2D
-    system = run.experiment.system
+    system = run.system
     labels, _ = _axis_labels(system)
     methods = _methods(run)
     if not methods:
@@ -284,7 +285,7 @@ def trajectories(run, spec, out_dir: Path, max_drawn: int = 1000, style: str = "
 @_styled
 def states_time(run, out_dir: Path, max_drawn: int = 1000, style: str = "paper") -> list:
     """Each state over time, rows = states, columns = methods (see module docstring)."""
-    system = run.experiment.system
+    system = run.system
     labels, _ = _axis_labels(system)
     methods = _methods(run)
     if not methods:
@@ -320,9 +321,11 @@ def states_time(run, out_dir: Path, max_drawn: int = 1000, style: str = "paper")
 def gamma_slices(run, out_dir: Path, res: int = 201, style: str = "paper") -> list:
     """gamma_i along each state variable per method, with the nearby data gaps (see module docstring)."""
     from matplotlib.lines import Line2D
-    system = run.experiment.system
+    system = run.system
     labels, su = _axis_labels(system)
     n = system.n
+    if not any(r.certificate is not None for r in run.methods.values()):
+        return []
     centre = 0.5 * (system.x_lo + system.x_hi)
     U = system.inputs
     u_mid = U[np.argmin(np.abs(U - U.mean(axis=0)).sum(axis=1))]
@@ -332,6 +335,8 @@ def gamma_slices(run, out_dir: Path, res: int = 201, style: str = "paper") -> li
                                                    if k in METHOD_STYLE else 0, k)):
         res_m = run.methods[m]
         cert, ds = res_m.certificate, res_m.dataset
+        if cert is None:  # stage outputs without a certificate: no gamma to draw
+            continue
         color = METHOD_STYLE.get(m, "tab:green")
         gaps = ds.gap() if ds is not None else None
         any_near = False
@@ -377,7 +382,7 @@ def p_cert(run, out_dir: Path, style: str = "paper") -> list:
     if run.per_run is None:
         return []
     from .layers.perrun import pcert_map
-    system = run.experiment.system
+    system = run.system
     labels, _ = _axis_labels(system)
     pm = pcert_map(run.per_run.controller)
     fig, axs = _figure(style, 1, 1, height_rows=1.5)
@@ -405,22 +410,26 @@ def p_cert(run, out_dir: Path, style: str = "paper") -> list:
 
 
 def plot_run(path, out_dir=None, max_drawn: int = 1000, style: str = "paper") -> list:
-    """Every figure of the run folder ``path`` into ``out_dir`` (default ``path/figures``); the paths written.
+    """Every figure of the run folder ``path`` (or of a loaded :class:`~simgap_viz.results.RunResults`,
+    e.g. stage outputs from :func:`~simgap_viz.results.load_stages`: the figures their stages allow)
+    into ``out_dir`` (default ``path/figures``); the paths written.
 
     ``style``: "paper" (7 in wide, 8 pt: a two-column paper's text width) or "slide" (11 in, 14 pt)."""
     if style not in STYLES:
         raise SimgapError(f"style must be one of {', '.join(STYLES)}, got {style!r}")
-    from simgap.pipeline import experiment_spec
+    from .results import RunResults, describe_stages, load_run, run_spec
 
-    from .results import load_run
-
-    run = load_run(path)
-    out = Path(out_dir) if out_dir is not None else Path(path) / "figures"
+    run = path if isinstance(path, RunResults) else load_run(path)  # a run folder, or loaded stage outputs
+    if run.stages is not None and not any(m.rollouts is not None or m.certificate is not None
+                                          for m in run.methods.values()):
+        raise SimgapError("nothing to draw: the figures need rollouts (--rollouts) or a certificate (--cert); "
+                          + "; ".join(describe_stages(run)))
+    out = Path(out_dir) if out_dir is not None else run.path / "figures"
     if out.exists() and not out.is_dir():
         raise SimgapError(f"{str(out)!r} exists and is not a folder")
     if not out.parent.is_dir():
         raise SimgapError(f"folder {str(out.parent)!r} does not exist")
-    spec, _, _ = experiment_spec(run.experiment)
+    spec = run_spec(run)[0]
     out.mkdir(exist_ok=True)
     written = []
     written += trajectories(run, spec, out, max_drawn, style=style)

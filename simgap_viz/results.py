@@ -6,6 +6,15 @@ The folder layout is the pipeline's (:func:`simgap.pipeline.run_experiment`): ``
 rollouts ran, ``rollouts_<m>.npz``; with a ``[perrun]`` section, the per-run results
 (:mod:`.results_perrun`). Everything is read with the engine's own loaders (no
 pickle; the stores verify their digests); only files inside the folder are opened.
+
+Stage-by-stage outputs (``simgap collect``, ``certify``, ``synthesize``, ``rollout`` run one by
+one) load with :func:`load_stages`: a data set (store folder or .npz), a certificate, a
+controller and rollouts (the ``--trajectories`` .npz of ``simgap rollout``), any of them absent,
+given as files or found in one folder. They are checked against each other before anything is
+shown: the certificate's data hash against the data set, the controller's gap against the
+certificate (its digest) and its system against the certificate's, the rollouts' controller digest
+(or, for files written before rollouts recorded it, system and specification) against the
+controller.
 """
 
 from __future__ import annotations
@@ -40,6 +49,16 @@ class RunResults:
     experiment: object = None  # simgap.config.ExperimentConfig, when its TOML is still readable
     methods: dict = field(default_factory=dict)  # method -> MethodResults
     per_run: object = None  # results_perrun.PerRunResults, when the run had a [perrun] section
+    # stage-by-stage outputs (load_stages): {role: path or None (absent)}; None for a run folder
+    stages: Optional[dict] = None
+    stage_system: object = None  # their nominal model (no experiment)
+    spec: object = None  # their specification (the controller's or the rollouts'), or None
+    notes: list = field(default_factory=list)  # what a folder held that is not shown, and why
+
+    @property
+    def system(self):
+        """The nominal model of the results: the experiment's, else the stage outputs' own."""
+        return self.experiment.system if self.experiment is not None else self.stage_system
 
 
 def is_run_dir(path) -> bool:
@@ -150,3 +169,238 @@ def load_run(path) -> RunResults:
         raise SimgapError(f"{root / 'summary.json'} lists no method results")
     run.per_run = load_per_run(root, summary, exp.system)
     return run
+
+
+# ----- stage-by-stage outputs ----------------------------------------------------------------
+
+#: the stage outputs, by the flag that names each (simgap gui / simgap plot)
+ROLES = ("dataset", "cert", "controller", "rollouts")
+ROLE_WHAT = {"dataset": "data set", "cert": "certificate", "controller": "controller", "rollouts": "rollouts"}
+ROLE_MAKES = {"dataset": "simgap collect EXPERIMENT --out DIR", "cert": "simgap certify DATA --out cert.json",
+              "controller": "simgap synthesize ... --out ctrl.npz",
+              "rollouts": "simgap rollout ... --out report.json --trajectories rollouts.npz"}
+
+
+def add_stage_arguments(parser) -> None:
+    """The flags that name stage outputs (``simgap gui``, ``simgap plot``)."""
+    parser.add_argument("--cert", default=None, metavar="FILE", help="a certificate JSON (simgap certify --out)")
+    parser.add_argument("--controller", default=None, metavar="FILE", help="a controller .npz (simgap synthesize --out)")
+    parser.add_argument("--rollouts", default=None, metavar="FILE",
+                        help="rollouts .npz (simgap rollout --trajectories; the JSON report has no trajectories)")
+
+
+def _sniff(p: Path):
+    """The role of one entry of a stage folder (a ROLES name, "report" for a rollout's JSON report,
+    or None for anything else); reads headers only, never unpickles."""
+    from simgap.dataset import ARRAYS
+    from simgap.errors import BAD_FILE_ERRORS
+    from simgap.file_guard import loads_json
+    from simgap.store import MANIFEST
+    if p.is_dir():
+        return "dataset" if (p / MANIFEST).is_file() else None
+    if not p.is_file():
+        return None
+    if p.suffix == ".npz":
+        import numpy as np
+        try:
+            with np.load(p, allow_pickle=False) as z:
+                names = set(z.files)
+                if "meta" in names and "simgap-controller" in str(z["meta"])[:100000]:
+                    meta = loads_json(str(z["meta"]), f"{p}: its metadata")
+                    if isinstance(meta, dict) and meta.get("format") == "simgap-controller":
+                        return "controller"
+        except BAD_FILE_ERRORS as e:
+            raise SimgapError(f"{str(p)!r} in the stage folder is not a readable .npz ({e}); move it away or name "
+                              "the stage files with --dataset/--cert/--controller/--rollouts") from None
+        if "meta_json" in names and "trajectories" in names:
+            return "rollouts"
+        return "dataset" if set(ARRAYS) <= names else None
+    if p.suffix == ".json":
+        try:
+            d = read_json(p, "JSON file")
+        except SimgapError:
+            return None
+        if isinstance(d, dict) and "dims" in d and "provenance" in d and "digest" in d:
+            return "cert"
+        if isinstance(d, dict) and "n_rollouts" in d and "outcomes" in d:
+            return "report"
+    return None
+
+
+def stage_files(folder) -> tuple:
+    """({role: path} of the stage outputs in ``folder``, notes on entries not shown). Two files of
+    one role are refused, naming both (the flags then say which one)."""
+    from simgap.file_guard import printable
+    root = Path(folder)
+    if not root.exists():
+        raise SimgapError(f"{str(root)!r} does not exist")
+    if not root.is_dir():
+        raise SimgapError(f"{str(root)!r} is not a folder (name a single stage file with --dataset/--cert/"
+                          "--controller/--rollouts)")
+    found: dict = {r: [] for r in ROLES}
+    notes = []
+    for p in sorted(root.iterdir()):
+        if p.name.startswith("."):
+            continue
+        role = _sniff(p)
+        if role in found:
+            found[role].append(p)
+        elif role == "report":
+            notes.append(f"{p.name} is a rollout report (JSON): the rollouts are drawn from the .npz `simgap rollout "
+                         "--trajectories` writes")
+    out = {}
+    for r, ps in found.items():
+        if len(ps) > 1:
+            raise SimgapError(f"{str(root)!r} holds {len(ps)} {ROLE_WHAT[r]}s ({', '.join(printable(q.name) for q in ps)}): "
+                              f"name the one to show with --{r} FILE")
+        if ps:
+            out[r] = ps[0]
+    return out, notes
+
+
+def load_stages(folder=None, dataset=None, cert=None, controller=None, rollouts=None) -> RunResults:
+    """Stage-by-stage outputs as one :class:`RunResults` (one method: the certificate's, else
+    stochastic), each loaded with the engine's own loader (digests verified, no pickle) and checked
+    against the others (module docstring). Files given by name take the place of the folder's.
+
+    Raises SimgapError naming the file that is missing, unreadable or belongs to something else.
+    """
+    from simgap.certify.certificate import load as load_certificate
+    from simgap.dataset import load_dataset
+    from simgap.rollout import load_rollout
+    from simgap.synthesis.controller import Controller, SynthesisResult
+
+    paths, notes = stage_files(folder) if folder is not None else ({}, [])
+    for role, given in zip(ROLES, (dataset, cert, controller, rollouts)):
+        if given is not None:
+            paths[role] = Path(given)
+    if not paths:
+        where = (f"{str(folder)!r} is neither a `simgap run` folder (no summary.json) nor holds stage outputs"
+                 if folder is not None else "no stage output given")
+        raise SimgapError(f"{where}: give a data set (--dataset), certificate (--cert), controller (--controller) or "
+                          "rollouts (--rollouts, the .npz of simgap rollout --trajectories)")
+    for role, p in paths.items():
+        if not p.exists():
+            raise SimgapError(f"--{role} {str(p)!r}: no such file or folder")
+    if "rollouts" in paths and paths["rollouts"].suffix == ".json":
+        raise SimgapError(f"--rollouts {str(paths['rollouts'])!r} is a JSON report; the rollouts are drawn from the "
+                          ".npz that `simgap rollout --trajectories FILE.npz` writes")
+    ds = load_dataset(paths["dataset"]) if "dataset" in paths else None
+    ce = load_certificate(paths["cert"]) if "cert" in paths else None
+    ctrl = Controller.load(paths["controller"]) if "controller" in paths else None
+    ro = load_rollout(paths["rollouts"]) if "rollouts" in paths else None
+    if ce is not None and ce.method not in METHODS:
+        raise SimgapError(f"certificate {str(paths['cert'])!r} is a {ce.method}-level certificate; the views show "
+                          f"mean-level ones ({', '.join(METHODS)})")
+    _check_together(paths, ds, ce, ctrl, ro)
+
+    if ds is not None:
+        system = ds.system
+    elif ce is not None and ce.nominal_system() is not None:
+        system = ce.nominal_system()
+    elif ctrl is not None and ctrl.system is not None:
+        system = ctrl.system
+    else:
+        from simgap.systems import resolve_system
+        try:
+            system = resolve_system(ro.system, paths=False)
+        except SimgapError:
+            raise SimgapError(f"rollouts {str(paths['rollouts'])!r} name the system {ro.system!r} only: give its "
+                              "controller (--controller) or data (--dataset) too") from None
+    syn = None
+    if ctrl is not None and not getattr(ctrl, "continuous_input", False):
+        syn = SynthesisResult(ctrl, dict(ctrl.meta.get("stats", {})))
+    elif ctrl is not None:
+        notes.append(f"{paths['controller'].name} is an invariant-set controller: its ellipsoid E is not drawn")
+    spec = getattr(ctrl, "spec", None) if ctrl is not None else None
+    spec = spec if spec is not None else (ro.spec if ro is not None else None)
+    x0 = (ctrl.meta.get("x0") if ctrl is not None else None)
+    x0 = x0 if x0 is not None else (ro.x0.tolist() if ro is not None else None)
+    summary = {"x0": x0, "sections": {"rollout": {"n": ro.n_rollouts, "seed": ro.seed}} if ro is not None else {}}
+    method = ce.method if ce is not None else "stochastic"
+    first = next(iter(paths.values()))
+    run = RunResults(path=Path(folder) if folder is not None else first.parent, summary=summary,
+                     stages={r: (str(paths[r]) if r in paths else None) for r in ROLES}, stage_system=system,
+                     spec=spec, notes=notes)
+    run.methods[method] = MethodResults(dataset=ds, certificate=ce, audit=None, synthesis=syn, rollouts=ro)
+    return run
+
+
+def _check_together(paths: dict, ds, ce, ctrl, ro) -> None:
+    """Refuse stage outputs that do not belong together, naming both files."""
+    from simgap.synthesis.controller import gap_source
+
+    def name(role):
+        return f"{ROLE_WHAT[role]} {str(paths[role])!r}"
+
+    if ds is not None and ce is not None:
+        want = ce.provenance.get("dataset_hash")
+        if want and want != ds.hash:
+            raise SimgapError(f"{name('cert')} was made from the data set with content hash {str(want)[:12]}..., not "
+                              f"from {name('dataset')} (hash {ds.hash[:12]}...): give the data it certifies (refused)")
+    if ce is not None and ctrl is not None:
+        if ctrl.system is not None:
+            try:
+                ce.check_system(ctrl.system)
+            except SimgapError as e:
+                raise SimgapError(f"{name('cert')} does not belong to {name('controller')}: {e} (refused)") from None
+        kind, digest = gap_source(ctrl.meta)
+        if kind != "certificate":
+            how = "on the nominal model alone" if kind == "none" else f"with a {kind} gap"
+            raise SimgapError(f"{name('controller')} was synthesized {how}, not with {name('cert')}: drop --cert or "
+                              "give the controller synthesized with it (refused)")
+        if digest != ce.digest:
+            raise SimgapError(f"{name('controller')} was synthesized with another certificate (digest "
+                              f"{str(digest)[:16]}...) than {name('cert')} (digest {ce.digest[:16]}...) (refused)")
+    if ds is not None and ctrl is not None and ctrl.system is not None and ctrl.system.name != ds.system.name:
+        raise SimgapError(f"{name('controller')} is for system {ctrl.system.name!r}, {name('dataset')} for "
+                          f"{ds.system.name!r} (refused)")
+    if ro is not None and ctrl is not None:
+        have = ctrl.meta.get("digest")
+        if ro.controller_digest is not None:
+            if ro.controller_digest != have:
+                raise SimgapError(f"{name('rollouts')} are of another controller (digest {ro.controller_digest[:16]}...) "
+                                  f"than {name('controller')} (digest {str(have)[:16]}...) (refused)")
+        elif (ctrl.system is not None and ro.system != ctrl.system.name) or \
+                (ctrl.spec is not None and ro.spec.to_dict() != ctrl.spec.to_dict()):
+            raise SimgapError(f"{name('rollouts')} (system {ro.system!r}) do not match {name('controller')} (system "
+                              f"{getattr(ctrl.system, 'name', '?')!r}): another system or specification (refused)")
+    for role, obj in (("dataset", ds), ("cert", ce)):
+        if ro is not None and obj is not None:
+            other = obj.system.name if role == "dataset" else obj.system_name
+            if ro.system != other:
+                raise SimgapError(f"{name('rollouts')} are of system {ro.system!r}, {name(role)} of {other!r} (refused)")
+
+
+def describe_stages(run: RunResults) -> list:
+    """One line per stage output of ``run`` (:func:`load_stages`): what is shown, or that it is absent
+    and which command writes it."""
+    if run.stages is None:
+        return []
+    m = next(iter(run.methods.values()))
+    lines = []
+    for role in ROLES:
+        p = run.stages[role]
+        if p is None:
+            lines.append(f"{ROLE_WHAT[role]}: absent (written by `{ROLE_MAKES[role]}`)")
+            continue
+        if role == "dataset":
+            what = f"K = {m.dataset.K} pairs, N1hat = {m.dataset.n_runs}, epsilon = {m.dataset.epsilon:g}"
+        elif role == "cert":
+            what = f"{m.certificate.method}, system {m.certificate.system_name}"
+        elif role == "controller":
+            what = (f"{m.synthesis.controller.size:,} winning cells" if m.synthesis is not None
+                    else "invariant-set controller (E not drawn)")
+        else:
+            what = f"{m.rollouts.n_rollouts} rollouts, {m.rollouts.n_failures} failed"
+        lines.append(f"{ROLE_WHAT[role]}: {p} ({what})")
+    return lines + list(run.notes)
+
+
+def run_spec(run: RunResults) -> tuple:
+    """(spec, x0, arena map) of a run folder (its experiment's) or of stage outputs (the
+    controller's or rollouts' spec and x0; no arena)."""
+    if run.experiment is not None:
+        from simgap.pipeline import experiment_spec
+        return experiment_spec(run.experiment)
+    return run.spec, run.summary.get("x0"), None

@@ -232,6 +232,148 @@ def test_mujoco_damping_randomization_per_row_on_the_cartpole(rng):
         assert np.array_equal(y[i], np.r_[d.qpos, d.qvel]), i
 
 
+# a body on a slide joint driven by a velocity servo (kv 10, gear 2), one period tau = 0.1 s; a welded
+# body "lamp" (no joint) and a motor "push" for the refusals
+SLIDE_MJCF = """<mujoco><option timestep="0.01" gravity="0 0 0"/>
+<worldbody><body name="cart"><joint name="slide" type="slide" axis="1 0 0"/>
+<geom type="box" size="0.1 0.1 0.1" mass="1"/>
+<body name="lamp" pos="0 0 0.2"><geom type="sphere" size="0.02" mass="0.01"/></body></body></worldbody>
+<actuator><velocity name="drive" joint="slide" kv="10" gear="2"/><motor name="push" joint="slide"/></actuator>
+</mujoco>"""
+SLIDE_SYSTEM = """name = "slide1"
+states = ["p"]
+inputs = ["v"]
+x_lo = [-10]
+x_hi = [10]
+tau = 0.1
+input_set = [[0], [1]]
+[dynamics]
+kind = "discrete"
+p = "p + dt*v"
+"""
+UNICYCLE5 = """name = "unicycle5"
+states = ["x", "y", "theta", "v", "w"]
+inputs = ["vc", "wc"]
+x_lo = [-5, -5, -3.14159, -1, -2]
+x_hi = [5, 5, 3.14159, 1, 2]
+tau = 0.01
+angles = ["theta"]
+input_set = [[0, 0], [0.5, 0], [0, 1.0], [0.5, 1.0]]
+[dynamics]
+kind = "discrete"
+x = "x + dt*vc*cos(theta)"
+y = "y + dt*vc*sin(theta)"
+theta = "theta + dt*wc"
+v = "vc"
+w = "wc"
+"""
+DIFFBOT_MJ = REPO / "assets" / "urdf" / "diffbot.xml"
+
+
+def _user_system(tmp_path, text, steps=1):
+    from simgap.systems import resolve_system
+    f = tmp_path / (text.split('"')[1] + ".toml")
+    f.write_text(text)
+    return resolve_system(str(f), steps)
+
+
+def _slide(tmp_path, **options):
+    (tmp_path / "slide.xml").write_text(SLIDE_MJCF)
+    s = _user_system(tmp_path, SLIDE_SYSTEM)
+    return {"kind": "mujoco", "system": s.name, "options": {"model": str(tmp_path / "slide.xml"),
+                                                            "positions": ["slide"], "inputs": ["drive"], **options}}, s
+
+
+def test_mujoco_velocity_driven_body_in_steady_motion_covers_v_tau(tmp_path):
+    """driven_start = "target": the slide starts each period at ctrl / gear and covers v tau within 2 %,
+    period after period; started at rest (the default) it covers about 85 % of it (time constant m / (kv gear^2) = 0.025 s)."""
+    pytest.importorskip("mujoco")
+    for start, lo, hi in (("target", 0.98, 1.02), ("rest", 0.5, 0.9)):
+        c, s = _slide(tmp_path, driven_start=start)
+        with make_simulator(c, s) as sim:
+            x = np.zeros((1, 1))
+            for k in range(3):
+                y = sim.step(x, np.array([[2.0]]), np.random.default_rng(k))  # ctrl 2, gear 2: 1 m/s
+                assert lo < (y - x)[0, 0] / (1.0 * 0.1) < hi, (start, k, y)
+                x = y
+
+
+@pytest.mark.parametrize("base", ["planar", "free"])
+def test_mujoco_mobile_base_in_steady_motion_follows_v_tau_within_2_percent(tmp_path, rng, base):
+    """assets/urdf/diffbot.xml (a planar base on slides and a yaw hinge, wheels on tendons) and the
+    same robot on a free joint: with the base's forward speed and yaw rate in the state and the wheels
+    starting at their (tendon) targets, a base moving at the commanded speed covers v tau per period
+    within 2 % along its heading, at any heading; started at rest the cover depends on the heading
+    (the old behaviour). Noisy rows are bit-identical batched and one at a time, on 2 threads."""
+    pytest.importorskip("mujoco")
+    model = DIFFBOT_MJ
+    options = {"base_joints": ["root_x", "root_y", "root_yaw"]}
+    if base == "free":
+        text = DIFFBOT_MJ.read_text().replace('<joint name="root_x" type="slide" axis="1 0 0"/>',
+                                              '<freejoint name="root"/>')
+        text = "\n".join(line for line in text.splitlines()
+                         if not any(f'name="root_{k}"' in line for k in ("y", "z", "yaw")))
+        model = tmp_path / "diffbot_free.xml"
+        model.write_text(text)
+        options = {}
+    s = _user_system(tmp_path, UNICYCLE5, steps=30)
+    c = {"kind": "mujoco", "system": s.name, "steps": 30,
+         "options": {"model": str(model), "threads": 2, "base_pose": True, "base_velocity": True,
+                     "driven_start": "target", "positions": [], "velocities": [], "inputs": ["v", "omega"],
+                     **options}}
+    tau = 0.3
+    with make_simulator(c, s) as sim:
+        for v, heading in ((0.5, 0.0), (0.5, 2.0), (0.3, -1.0)):
+            z = np.array([[0.0, 0.0, heading, v, 0.0]])
+            for k in range(3):
+                z2 = sim.step(z, np.array([[v, 0.0]]), np.random.default_rng(k))
+                step = z2[0, :2] - z[0, :2]
+                assert abs(np.hypot(*step) / (v * tau) - 1) < 0.02, (base, v, heading, k, z2)
+                assert abs(np.arctan2(step[1], step[0]) - heading) < 0.01
+                z = z2
+        # turning: the yaw servo (kv 0.5 N m s) settles 3.5 % below the commanded rate under wheel slip
+        z = np.array([[0.0, 0.0, 0.3, 0.5, 1.0]])
+        z2 = sim.step(z, np.array([[0.5, 1.0]]), np.random.default_rng(0))
+        assert abs((z2[0, 2] - 0.3) / tau - 1) < 0.05 and abs(z2[0, 4] - 1.0) < 0.05, z2
+        x = np.column_stack([rng.uniform(-1, 1, (9, 2)), rng.uniform(-3, 3, 9), rng.uniform(0, 0.5, 9),
+                             rng.uniform(-1, 1, 9)])
+        u = np.column_stack([rng.uniform(0, 0.5, 9), rng.uniform(-1, 1, 9)])
+        noise = sim.draw_noise(9, rng)
+        noise["act"] = 0.05 * rng.standard_normal((9, 2))
+        assert np.array_equal(sim.step_with_noise(x, u, noise), one_at_a_time(sim, x, u, noise))
+    if base == "planar":  # at rest: the cover depends on the heading by far more than 2 %
+        t = get_system("turtlebot", steps=30)
+        rest = {"kind": "mujoco", "system": "turtlebot", "steps": 30,
+                "options": {"model": str(DIFFBOT_MJ), "threads": 1, "positions": ["root_x", "root_y", "root_yaw"],
+                            "velocities": [], "inputs": ["v", "omega"]}}
+        with make_simulator(rest, t) as sim:
+            y = sim.step(np.array([[0, 0, 0.0], [0, 0, 2.0]]), np.array([[0.5, 0], [0.5, 0]]),
+                         np.random.default_rng(0))
+        cover = np.hypot(y[:, 0], y[:, 1]) / (0.5 * tau)
+        assert np.max(np.abs(cover - 1)) > 0.05, cover
+
+
+@pytest.mark.parametrize("options,words", [
+    ({"base_velocity": True}, ["base_velocity", "needs base_pose = true"]),
+    ({"base_pose": True}, ["base_pose needs the model's one free joint", "options.base_joints"]),
+    ({"base_pose": True, "base_joints": ["slide"]}, ["needs three"]),
+    ({"base_pose": True, "base_joints": ["slide", "slide", "slide"]}, ["'slide' twice"]),
+    ({"driven_start": "moving"}, ["driven_start must be 'rest' or 'target'"]),
+    ({"inputs": ["push"], "driven_start": "target"}, ["needs velocity actuators", "'push'"]),
+    ({"velocities": ["lamp"], "positions": []}, ["'lamp'", "fixed to its parent", "no velocity"]),
+])
+def test_mujoco_moving_start_options_are_checked(tmp_path, options, words):
+    """A velocity state for a welded body (MJCF's fixed joint), driven_start without velocity
+    actuators, a base without a free joint or base_joints: each refused, naming it."""
+    pytest.importorskip("mujoco")
+    c, s = _slide(tmp_path)
+    c["options"].update(options)
+    with pytest.raises(SimgapError) as e:
+        make_simulator(c, s)
+    for w in words:
+        assert w in str(e.value), (w, str(e.value))
+
+
 def test_mujoco_missing_extra_names_it(monkeypatch):
     """Without the mujoco package the backend says which extra to install."""
     real = builtins.__import__

@@ -350,4 +350,5 @@ def rollout(controller, simulator, x0=None, n_rollouts: int = 1000, horizon: Opt
         nominal_trajectory=nt.traj[0], nominal=nominal, spec=spec, tau=float(system.tau), hold=hold,
         horizon=horizon, seed=seed, on_exit=on_exit, system=system.name,
         simulator=cfg.to_dict() if hasattr(cfg, "to_dict") else {}, timing=timing,
-        mean_map_trajectory=None if mm is None else mm.trajectory, mean_map=None if mm is None else mm.to_dict())
+        mean_map_trajectory=None if mm is None else mm.trajectory, mean_map=None if mm is None else mm.to_dict(),
+        controller_digest=(getattr(controller, "meta", None) or {}).get("digest"))

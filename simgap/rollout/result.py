@@ -80,6 +80,7 @@ class RolloutResult:
     timing: dict = field(default_factory=dict)
     mean_map_trajectory: Optional[np.ndarray] = None
     mean_map: Optional[dict] = None
+    controller_digest: Optional[str] = None  # the content digest of the controller file rolled out
 
     @property
     def n_rollouts(self) -> int:
@@ -119,6 +120,7 @@ class RolloutResult:
             "mean_map": self.mean_map,
             "rollout_average": self.rollout_average_verdict,
             "timing": self.timing,
+            "controller_digest": self.controller_digest,
         }
         if per_rollout:
             d["per_rollout"] = {"outcome": [OUTCOMES[int(o)] for o in self.outcome],
@@ -205,5 +207,6 @@ def load_rollout(path) -> RolloutResult:
     nominal["x_hi"] = [float(v) for v in nominal["x_hi"]]
     return RolloutResult(**a, nominal=nominal, spec=Spec.from_dict(meta["spec"]), tau=meta["tau"], hold=meta["hold"],
                          horizon=meta["horizon"], seed=meta["seed"], on_exit=meta["on_exit"], system=meta["system"],
-                         simulator=meta["simulator"], timing=meta["timing"], mean_map=meta.get("mean_map"))
+                         simulator=meta["simulator"], timing=meta["timing"], mean_map=meta.get("mean_map"),
+                         controller_digest=meta.get("controller_digest"))
 

@@ -7,14 +7,23 @@ experiment's folder, see :func:`simgap.config.load_experiment`) and
 * ``options.positions``: joints whose qpos are state components (hinge [rad] or slide [m]),
 * ``options.velocities``: joints whose qvel are state components [rad/s or m/s],
 * ``options.inputs``: actuators whose ctrl are the input components (the actuator's own units;
-  MuJoCo clamps ctrl to a ``ctrlrange`` the MJCF declares).
+  MuJoCo clamps ctrl to a ``ctrlrange`` the MJCF declares),
+* ``options.base_pose`` (a mobile base): the planar pose (x [m], y [m], yaw [rad]) of the model's
+  one free joint, or of ``options.base_joints`` = [slide along x, slide along y, hinge about z]
+  (a planar base as in assets/urdf/diffbot.xml), first in the state; with
+  ``options.base_velocity`` its forward speed along the heading [m/s] and yaw rate [rad/s]
+  follow the pose (the base starts each period moving so),
+* ``options.driven_start = "target"``: the joints the input actuators drive start each period at
+  the velocity the actuators command (velocity actuators, ``<velocity>``: joint velocity ctrl /
+  gear, or through a fixed tendon, the least-norm joint velocities whose tendon velocities are
+  ctrl / gear) instead of at rest; ``"rest"`` (default).
 
-State x = (positions..., velocities...), in the order named. One sampling period tau = steps *
+State x = (base pose, base velocity, positions..., velocities...), in the order named. One sampling period tau = steps *
 base_tau is ``steps * substeps`` MuJoCo steps of timestep base_tau / substeps (this *replaces*
 the MJCF's ``timestep``; ``substeps`` defaults to base_tau / timestep when that is an integer)
 with the ctrl held. Every period starts from the model's reference configuration ``qpos0`` at
-rest with the state joints set to x (joints not in the state start there in every period) and a
-zero constraint-solver warm start, so each row's result depends on its own (x, u, noise) only.
+rest with the state joints set to x (joints not in the state start there in every period; driven
+joints at their targets with ``driven_start = "target"``) and a zero constraint-solver warm start, so each row's result depends on its own (x, u, noise) only.
 
 Batches go through MuJoCo's multithreaded ``mujoco.rollout`` (a persistent ``Rollout`` thread
 pool of ``options.threads`` threads, one ``MjData`` per thread); rows never share state, so
@@ -48,6 +57,12 @@ from .base import Simulator, as_vector
 from .pybullet_urdf import input_map, model_file, name_list
 
 
+def _flag(v, what: str) -> bool:
+    if not isinstance(v, bool):
+        raise SimgapError(f"mujoco: {what} must be true or false, got {v!r}")
+    return v
+
+
 def mujoco_module():
     """The ``mujoco`` module; a SimgapError naming the extra to install when it is missing."""
     try:
@@ -67,7 +82,7 @@ class MujocoSimulator(Simulator):
     PARAMETER_DRAWS = ("mass", "damping")  # draw_noise keys held for an episode (randomize.per)
     EFFECT_KEYS = ()
     OPTION_KEYS = ("model", "model_sha256", "positions", "velocities", "inputs", "input_map", "substeps", "threads",
-                   "models_per_batch")
+                   "models_per_batch", "base_pose", "base_joints", "base_velocity", "driven_start")
     #: options naming a file: resolved against (and confined to) the experiment's folder
     PATH_OPTIONS = ("model",)
 
@@ -88,14 +103,34 @@ class MujocoSimulator(Simulator):
         pos_names = name_list(op.get("positions", []), "options.positions")
         vel_names = name_list(op.get("velocities", []), "options.velocities")
         in_names = name_list(op.get("inputs", []), "options.inputs")
-        if len(pos_names) + len(vel_names) != s.n:
-            raise SimgapError(f"mujoco: the state has {len(pos_names)} positions + {len(vel_names)} velocities "
-                              f"but system {s.name!r} has n={s.n}")
+        self.base_pose = _flag(op.get("base_pose", False), "options.base_pose")
+        self.base_velocity = _flag(op.get("base_velocity", False), "options.base_velocity")
+        if self.base_velocity and not self.base_pose:
+            raise SimgapError("mujoco: base_velocity (forward speed and yaw rate in the state) needs base_pose = true")
+        if "base_joints" in op and not self.base_pose:
+            raise SimgapError("mujoco: options.base_joints names the planar base of base_pose = true; set base_pose")
+        self.base = self._base(m, op.get("base_joints")) if self.base_pose else None
+        self.nb = 3 * self.base_pose + 2 * self.base_velocity  # base components at the front of x
+        if self.nb + len(pos_names) + len(vel_names) != s.n:
+            raise SimgapError(f"mujoco: the state has {self.nb + len(pos_names) + len(vel_names)} components (base "
+                              f"{self.nb}, {len(pos_names)} positions, {len(vel_names)} velocities) but system "
+                              f"{s.name!r} has n={s.n}")
         self.input_map = input_map(op.get("input_map"), in_names, s, "mujoco", "actuators")
         self.pos_adr = [self._joint(m, nm, "positions")[0] for nm in pos_names]
         self.vel_adr = [self._joint(m, nm, "velocities")[1] for nm in vel_names]
         self.force_dof = [self._joint(m, nm, "positions")[1] for nm in pos_names]
         self.act_id = [self._actuator(m, nm) for nm in in_names]
+        if self.base is not None and self.base[0] == "planar":
+            twice = sorted(set(op["base_joints"]) & (set(pos_names) | set(vel_names)))
+            if twice:
+                raise SimgapError(f"mujoco: {', '.join(twice)} in options.base_joints and in options.positions/"
+                                  "velocities: the base's state comes from base_pose (and base_velocity) alone")
+        self.driven_start = op.get("driven_start", "rest")
+        if self.driven_start not in ("rest", "target"):
+            raise SimgapError(f"mujoco: options.driven_start must be 'rest' or 'target', got {self.driven_start!r}")
+        # (driven dofs, dofs x actuators): the joint velocities that meet the actuators' velocity targets
+        self.drive_dofs, self.drive_of_ctrl = self._drive_targets(m, in_names) if self.driven_start == "target" \
+            else (None, None)
 
         steps_default = s.base_tau / m.opt.timestep
         if "substeps" in op:
@@ -129,6 +164,7 @@ class MujocoSimulator(Simulator):
         mujoco.mj_getState(m, d, self.state0, self.spec)
         off_q = mujoco.mj_stateSize(m, S.mjSTATE_TIME)
         off_v = off_q + mujoco.mj_stateSize(m, S.mjSTATE_QPOS)
+        self.off_q, self.off_v = off_q, off_v
         self.x_cols = np.array([off_q + a for a in self.pos_adr] + [off_v + a for a in self.vel_adr], dtype=int)
         self.mass0, self.inertia0 = m.body_mass.copy(), m.body_inertia.copy()
         self.damping0 = m.dof_damping.copy()
@@ -140,6 +176,11 @@ class MujocoSimulator(Simulator):
         mj = self._mj
         names = [m.joint(i).name for i in range(m.njnt)]
         if name not in names:
+            bodies = [m.body(i).name for i in range(m.nbody)]
+            if name in bodies and m.body_jntnum[bodies.index(name)] == 0:  # welded: MJCF's fixed joint
+                raise SimgapError(f"mujoco: {name!r} (named in options.{what}) is a body of {self.path.name} fixed to "
+                                  f"its parent (no joint): it has no {'velocity' if what == 'velocities' else 'motion'}"
+                                  f" to be a state; its joints: {', '.join(names) or 'none'}")
             raise SimgapError(f"mujoco: {self.path.name} has no joint {name!r} (named in options.{what}); "
                               f"its joints: {', '.join(names) or 'none'}")
         j = m.joint(name)
@@ -154,6 +195,74 @@ class MujocoSimulator(Simulator):
             raise SimgapError(f"mujoco: {self.path.name} has no actuator {name!r} (named in options.inputs); "
                               f"its actuators: {', '.join(names) or 'none'}")
         return int(m.actuator(name).id)
+
+    def _base(self, m, names):
+        """The mobile base: ("free", qpos adr, dof adr) of the model's one free joint, or ("planar",
+        qpos adrs, dof adrs) of ``base_joints`` [slide along x, slide along y, hinge about z]."""
+        mj = self._mj
+        if names is None:
+            free = [i for i in range(m.njnt) if int(m.jnt_type[i]) == int(mj.mjtJoint.mjJNT_FREE)]
+            if len(free) != 1:
+                raise SimgapError(f"mujoco: base_pose needs the model's one free joint (a floating base), but "
+                                  f"{self.path.name} has {len(free)}; for a base on joints name them in "
+                                  "options.base_joints = [slide along x, slide along y, hinge about z]")
+            j = free[0]
+            return ("free", int(m.jnt_qposadr[j]), int(m.jnt_dofadr[j]))
+        names = name_list(names, "options.base_joints")
+        if len(names) != 3:
+            raise SimgapError(f"mujoco: options.base_joints names {len(names)} joints; it needs three: a slide along "
+                              "x, a slide along y and a hinge about z")
+        want = [(mj.mjtJoint.mjJNT_SLIDE, (1, 0, 0)), (mj.mjtJoint.mjJNT_SLIDE, (0, 1, 0)),
+                (mj.mjtJoint.mjJNT_HINGE, (0, 0, 1))]
+        qa, da = [], []
+        for nm, (kind, axis) in zip(names, want):
+            q, d = self._joint(m, nm, "base_joints")
+            j = m.joint(nm).id
+            if int(m.jnt_type[j]) != int(kind) or not np.allclose(m.jnt_axis[j], axis) \
+                    or m.jnt_bodyid[j] != m.jnt_bodyid[m.joint(names[0]).id]:
+                raise SimgapError(f"mujoco: options.base_joints: {nm!r} must be a {kind.name[6:].lower()} along "
+                                  f"{axis} of the same body as {names[0]!r} (x slide, y slide, yaw hinge)")
+            qa.append(q)
+            da.append(d)
+        return ("planar", qa, da)
+
+    def _drive_targets(self, m, in_names):
+        """(driven dofs, (dofs x actuators) matrix P): with ctrl c of the input actuators, qvel[dofs] =
+        P c meets every actuator's velocity target (the least-norm solution through fixed tendons).
+        Refused unless every input actuator is a velocity actuator on a 1-dof joint or a fixed tendon."""
+        mj = self._mj
+        rows = []
+        for nm in in_names:
+            a = m.actuator(nm).id
+            kv = float(m.actuator_gainprm[a, 0])
+            velocity = (int(m.actuator_gaintype[a]) == int(mj.mjtGain.mjGAIN_FIXED)
+                        and int(m.actuator_biastype[a]) == int(mj.mjtBias.mjBIAS_AFFINE) and kv != 0
+                        and m.actuator_biasprm[a, 0] == 0 and m.actuator_biasprm[a, 1] == 0
+                        and np.isclose(m.actuator_biasprm[a, 2], -kv))
+            if not velocity:
+                raise SimgapError(f"mujoco: driven_start = 'target' (driven joints start at their velocity targets) "
+                                  f"needs velocity actuators (<velocity>: force kv (ctrl - velocity)); actuator {nm!r} "
+                                  f"of {self.path.name} is not one")
+            gear, row = float(m.actuator_gear[a, 0]), np.zeros(m.nv)
+            trn, tid = int(m.actuator_trntype[a]), int(m.actuator_trnid[a, 0])
+            if trn == int(mj.mjtTrn.mjTRN_JOINT) and int(m.jnt_type[tid]) in (int(mj.mjtJoint.mjJNT_HINGE),
+                                                                           int(mj.mjtJoint.mjJNT_SLIDE)):
+                row[int(m.jnt_dofadr[tid])] = gear
+            elif trn == int(mj.mjtTrn.mjTRN_TENDON) and all(
+                    int(m.wrap_type[w]) == int(mj.mjtWrap.mjWRAP_JOINT)
+                    for w in range(m.tendon_adr[tid], m.tendon_adr[tid] + m.tendon_num[tid])):
+                for w in range(m.tendon_adr[tid], m.tendon_adr[tid] + m.tendon_num[tid]):
+                    row[int(m.jnt_dofadr[m.wrap_objid[w]])] += gear * float(m.wrap_prm[w])
+            else:
+                raise SimgapError(f"mujoco: driven_start = 'target': actuator {nm!r} of {self.path.name} drives "
+                                  "neither a hinge/slide joint nor a fixed tendon of such joints")
+            rows.append(row)
+        A = np.array(rows)
+        dofs = np.flatnonzero(np.any(A != 0, axis=0))
+        if np.linalg.matrix_rank(A[:, dofs]) < len(in_names):
+            raise SimgapError("mujoco: driven_start = 'target': the input actuators' velocity targets cannot all be "
+                              "met at once (two actuators drive the same motion)")
+        return dofs, np.linalg.pinv(A[:, dofs])
 
     # ----- randomness ----------------------------------------------------------------------
     def draw_noise(self, B: int, rng: np.random.Generator) -> Dict[str, np.ndarray]:
@@ -180,10 +289,20 @@ class MujocoSimulator(Simulator):
         if B == 0:
             return np.empty((0, s.n))
         state = np.tile(self.state0, (B, 1))
-        state[:, self.x_cols] = x
+        nb = self.nb
+        state[:, self.x_cols] = x[:, nb:]
         control = np.zeros((B, 1, m.nu + m.nv))
         ctrl = u + noise["act"]
-        control[:, 0, self.act_id] = ctrl if self.input_map is None else ctrl @ self.input_map.T
+        ctrl = ctrl if self.input_map is None else ctrl @ self.input_map.T
+        control[:, 0, self.act_id] = ctrl
+        if self.drive_dofs is not None:  # driven joints start at the velocity the (clamped) ctrl commands
+            lim = m.actuator_ctrllimited[self.act_id].astype(bool)
+            lo, hi = m.actuator_ctrlrange[self.act_id, 0], m.actuator_ctrlrange[self.act_id, 1]
+            c = np.where(lim, np.clip(ctrl, lo, hi), ctrl)
+            # row by row (a matrix product's rounding may depend on the batch size: batched == one at a time)
+            state[:, self.off_v + self.drive_dofs] = (c[:, None, :] * self.drive_of_ctrl[None]).sum(axis=2)
+        if self.base_pose:
+            self._set_base(state, x)
         control[:, 0, m.nu + np.asarray(self.force_dof, dtype=int)] = noise["force"]
         control = np.repeat(control, self.nstep, axis=1)  # held for the whole period
         out = np.empty((B, s.n))
@@ -211,7 +330,50 @@ class MujocoSimulator(Simulator):
                               control_spec=self.control_spec, nstep=self.nstep,
                               initial_warmstart=np.zeros((B, m.nv)), state=res, sensordata=sensors,
                               skip_checks=True)
-        return res[:, -1, :][:, self.x_cols]
+        last = res[:, -1, :]
+        x = last[:, self.x_cols]
+        return np.concatenate([self._get_base(last), x], axis=1) if self.base_pose else x
+
+    def _set_base(self, state, x):
+        """Write the base pose (and velocity) of rows x into full physics states (in place)."""
+        yaw = x[:, 2]
+        v, w = (x[:, 3], x[:, 4]) if self.base_velocity else (0.0, 0.0)
+        kind, qa, da = self.base
+        oq, ov = self.off_q, self.off_v
+        if kind == "free":  # qpos: position, quaternion (w, x, y, z); qvel: world linear, local angular
+            state[:, oq + qa] = x[:, 0]
+            state[:, oq + qa + 1] = x[:, 1]
+            state[:, oq + qa + 3:oq + qa + 7] = 0.0
+            state[:, oq + qa + 3] = np.cos(yaw / 2)
+            state[:, oq + qa + 6] = np.sin(yaw / 2)
+            state[:, ov + da:ov + da + 6] = 0.0
+            state[:, ov + da] = v * np.cos(yaw)
+            state[:, ov + da + 1] = v * np.sin(yaw)
+            state[:, ov + da + 5] = w  # the body's z axis is the world's (upright)
+        else:
+            state[:, oq + np.asarray(qa)] = x[:, :3]
+            state[:, ov + da[0]] = v * np.cos(yaw)
+            state[:, ov + da[1]] = v * np.sin(yaw)
+            state[:, ov + da[2]] = w
+
+    def _get_base(self, last):
+        """(B, nb) base pose (and forward speed, yaw rate) from full physics states."""
+        kind, qa, da = self.base
+        oq, ov = self.off_q, self.off_v
+        if kind == "free":
+            qw, qx, qy, qz = (last[:, oq + qa + 3 + k] for k in range(4))
+            yaw = np.arctan2(2 * (qw * qz + qx * qy), 1 - 2 * (qy * qy + qz * qz))
+            vx, vy = last[:, ov + da], last[:, ov + da + 1]
+            wl = last[:, ov + da + 3:ov + da + 6]  # local frame: the world z row of the rotation matrix
+            rz = np.stack([2 * (qx * qz - qw * qy), 2 * (qy * qz + qw * qx), 1 - 2 * (qx * qx + qy * qy)], axis=1)
+            cols = [last[:, oq + qa], last[:, oq + qa + 1], yaw]
+            w = np.sum(rz * wl, axis=1)
+        else:
+            cols = [last[:, oq + a] for a in qa]
+            yaw, vx, vy, w = cols[2], last[:, ov + da[0]], last[:, ov + da[1]], last[:, ov + da[2]]
+        if self.base_velocity:
+            cols += [vx * np.cos(yaw) + vy * np.sin(yaw), w]
+        return np.stack(cols, axis=1)
 
     def _row_models(self, mass, damping):
         """One model per row with that row's masses, inertias and damping (a reused pool of copies)."""

@@ -173,6 +173,7 @@ class Controller:
         arrays = dict(steps=self.steps, valid=self.valid_packed, chosen=self.chosen, target=self.target,
                       inputs=self.inputs)
         meta["digest"] = fileio.content_digest(meta, arrays)
+        self.meta["digest"] = meta["digest"]  # what the file records: rollouts name the controller by it
         folder = path.parent if str(path.parent) else Path(".")
         folder.mkdir(parents=True, exist_ok=True)
         return fileio.savez(path, compressed=True, **arrays, meta=np.array(json.dumps(meta)))
@@ -236,6 +237,20 @@ def check_input_indices(idx, inputs, what: str) -> None:
     if bad.any():
         raise SimgapError(f"{what}: {int(bad.sum())} input index(es) outside -1..{inputs.shape[0] - 1} (the file has "
                           f"{inputs.shape[0]} inputs), e.g. {int(idx[bad].flat[0])} (refused)")
+
+
+def gap_source(meta: dict) -> tuple:
+    """How the gap entered a controller, from its file's meta: ("certificate", the certificate's
+    digest), ("none", None) for the nominal model alone, or (the gap's kind, None) for a constant
+    or other gap (grid controllers record ``{"type", "info"}``, invariant-set ones ``{"kind", ...}``)."""
+    g = (meta or {}).get("gap")
+    if not g:
+        return ("none", None)
+    if "kind" in g:
+        return (str(g["kind"]), g.get("digest"))
+    if g.get("type") == "Certificate":
+        return ("certificate", (g.get("info") or {}).get("digest"))
+    return (str(g.get("type", "unknown")), None)
 
 
 def check_digest(path, meta: dict, arrays: dict) -> None:

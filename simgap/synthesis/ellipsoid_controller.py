@@ -122,6 +122,7 @@ class EllipsoidController:
         meta = json.loads(json.dumps(meta, default=_json_default))
         arrays = {"K": self.K, "P": self.P, "x_star": self.x_star, "u_star": self.u_star}
         meta["digest"] = fileio.content_digest(meta, arrays)
+        self.meta["digest"] = meta["digest"]  # what the file records: rollouts name the controller by it
         (path.parent if str(path.parent) else Path(".")).mkdir(parents=True, exist_ok=True)
         return fileio.savez(path, compressed=True, **arrays, meta=np.array(json.dumps(meta)))
 

@@ -301,7 +301,7 @@ def load_stages(folder=None, dataset=None, cert=None, controller=None, rollouts=
     elif ctrl is not None and ctrl.system is not None:
         system = ctrl.system
     else:
-        from simgap.systems import resolve_system
+        from simgap.system_ref import resolve_system
         try:
             system = resolve_system(ro.system, paths=False)
         except SimgapError:

@@ -271,7 +271,7 @@ DIFFBOT_MJ = REPO / "assets" / "urdf" / "diffbot.xml"
 
 
 def _user_system(tmp_path, text, steps=1):
-    from simgap.systems import resolve_system
+    from simgap.system_ref import resolve_system
     f = tmp_path / (text.split('"')[1] + ".toml")
     f.write_text(text)
     return resolve_system(str(f), steps)

@@ -35,7 +35,7 @@ def stages(tmp_path_factory):
     from simgap.simulators import make_simulator
     from simgap.synthesis.controller import Controller, synthesize
     from simgap.synthesis.spec import Box, Spec
-    from simgap.systems import resolve_system
+    from simgap.system_ref import resolve_system
     ctrl = Controller.load(d / "ctrl.npz")
     s = ctrl.system
     # a certificate of other data (another seed, coarser cover) and a controller synthesized with it

@@ -31,6 +31,7 @@ class MethodResults:
     audit: Optional[dict]
     synthesis: object
     rollouts: object = None
+    invariant_set: object = None  # an invariant-set run: the proved E (EllipsoidController), else None
 
 
 @dataclass
@@ -40,6 +41,8 @@ class RunResults:
     experiment: object = None  # simgap.config.ExperimentConfig, when its TOML is still readable
     methods: dict = field(default_factory=dict)  # method -> MethodResults
     per_run: object = None  # results_perrun.PerRunResults, when the run had a [perrun] section
+    nominal: object = None  # an invariant-set run: the nominal model's E and rollouts (MethodResults
+    # without dataset, certificate or audit), when it proved one
 
 
 def is_run_dir(path) -> bool:
@@ -92,6 +95,23 @@ def _experiment(summary: dict, root: Path):
                       + "; ".join(errors))
 
 
+def _nominal(root: Path, summary: dict, system) -> Optional[MethodResults]:
+    """An invariant-set run's nominal-model set (``controller_nominal.npz``) and its rollouts, when proved."""
+    if not isinstance(summary["methods"].get("nominal"), dict) or not (root / "controller_nominal.npz").is_file():
+        return None
+    from simgap.rollout import load_rollout
+    from simgap.synthesis.controller import Controller
+    for name in ("controller_nominal.npz", "rollouts_nominal.npz"):
+        if (root / name).is_file():
+            check_listed(root, summary, name)
+    ctrl = Controller.load(_inside(root, "controller_nominal.npz"), system=system)
+    if not getattr(ctrl, "continuous_input", False):
+        raise SimgapError(f"results folder {root}: controller_nominal.npz is not an invariant-set controller")
+    rp = _inside(root, "rollouts_nominal.npz")
+    return MethodResults(dataset=None, certificate=None, audit=None, synthesis=None,
+                         rollouts=load_rollout(rp) if rp.is_file() else None, invariant_set=ctrl)
+
+
 def load_run(path) -> RunResults:
     """Load every stage output of a finished run (see module docstring).
 
@@ -133,10 +153,12 @@ def load_run(path) -> RunResults:
         invariant = (summary.get("sections", {}).get("synthesis") or {}).get("method") == "invariant_set"
         if not cp.is_file() and not (invariant and not summary["methods"][m].get("winning_cells")):
             raise SimgapError(f"results folder {root}: {cp.name} is missing")
-        syn = None  # an invariant-set run: no set proved (no file), or E, which the views do not draw yet
+        syn = ell = None  # an invariant-set run: no set proved (no file), or E
         if cp.is_file():
             ctrl = Controller.load(cp, system=exp.system)
-            if not getattr(ctrl, "continuous_input", False):
+            if getattr(ctrl, "continuous_input", False):
+                ell = ctrl
+            else:
                 syn = SynthesisResult(ctrl, dict(ctrl.meta.get("stats", {})))
         rp = _inside(root, f"rollouts_{m}.npz")
         ro = load_rollout(rp) if rp.is_file() else None
@@ -145,8 +167,10 @@ def load_run(path) -> RunResults:
         for name in (f"cert_{m}.json", f"audit_{m}.json", f"controller_{m}.npz", f"rollouts_{m}.npz"):
             if (root / name).is_file():
                 check_listed(root, summary, name)
-        run.methods[m] = MethodResults(dataset=ds, certificate=cert, audit=audit, synthesis=syn, rollouts=ro)
+        run.methods[m] = MethodResults(dataset=ds, certificate=cert, audit=audit, synthesis=syn, rollouts=ro,
+                                       invariant_set=ell)
     if not run.methods:
         raise SimgapError(f"{root / 'summary.json'} lists no method results")
+    run.nominal = _nominal(root, summary, exp.system)
     run.per_run = load_per_run(root, summary, exp.system)
     return run

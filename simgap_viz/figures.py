@@ -389,26 +389,16 @@ def state_pairs(n: int, most: int = 6) -> list:
 
 def _set_methods(run) -> list:
     """(name, MethodResults) of every method with a proved invariant set, the nominal model last."""
-    out = [(m, run.methods[m]) for m in ("deterministic", "stochastic")
-           if m in run.methods and getattr(run.methods[m], "invariant_set", None) is not None]
-    nom = getattr(run, "nominal", None)
-    if nom is not None and nom.invariant_set is not None:
-        out.append(("nominal", nom))
-    return out
+    from .results import proved_sets
+    return [(m, run.nominal if m == "nominal" else run.methods[m]) for m, _ in proved_sets(run)]
 
 
 def _no_set_notes(run) -> list:
     """One line per method of an invariant-set run whose proof failed: its name and margin s."""
-    notes = []
-    for m in ("deterministic", "stochastic", "nominal"):
-        e = (run.summary or {}).get("methods", {}).get(m)
-        if not isinstance(e, dict) or e.get("winning_cells"):
-            continue
-        st = e.get("synthesis") or {}
-        s_ = st.get("gap_scale")
-        notes.append(f"{m} gap: no set proved" + (f" (margin s = {float(s_):.2g}: invariant only if gamma were "
-                                                   f"<= s x its size)" if isinstance(s_, (int, float)) else ""))
-    return notes
+    from .results import unproved_sets
+    return [f"{m} gap: no set proved" + ("" if s_ is None else f" (margin s = {s_:.2g}: invariant only if gamma "
+                                                               f"were <= s x its size)")
+            for m, s_ in unproved_sets(run)]
 
 
 @_styled

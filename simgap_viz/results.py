@@ -95,6 +95,33 @@ def _experiment(summary: dict, root: Path):
                       + "; ".join(errors))
 
 
+def proved_sets(run) -> list:
+    """(method, EllipsoidController) of every invariant set an invariant-set run proved, the nominal
+    model's last (none for a grid run)."""
+    out = [(m, run.methods[m].invariant_set) for m in METHODS
+           if m in run.methods and getattr(run.methods[m], "invariant_set", None) is not None]
+    nom = getattr(run, "nominal", None)
+    if nom is not None and nom.invariant_set is not None:
+        out.append(("nominal", nom.invariant_set))
+    return out
+
+
+def unproved_sets(run) -> list:
+    """(method, gap margin s or None) of every method of an invariant-set run whose proof failed."""
+    summary = getattr(run, "summary", None) or {}
+    if (summary.get("sections", {}).get("synthesis") or {}).get("method") != "invariant_set" \
+            and not any(isinstance(e, dict) and "gap_scale" in (e.get("synthesis") or {})
+                        for e in summary.get("methods", {}).values()):
+        return []
+    out = []
+    for m in (*METHODS[::-1], "nominal"):
+        e = summary.get("methods", {}).get(m)
+        if isinstance(e, dict) and not e.get("winning_cells"):
+            s_ = (e.get("synthesis") or {}).get("gap_scale")
+            out.append((m, float(s_) if isinstance(s_, (int, float)) else None))
+    return out
+
+
 def _nominal(root: Path, summary: dict, system) -> Optional[MethodResults]:
     """An invariant-set run's nominal-model set (``controller_nominal.npz``) and its rollouts, when proved."""
     if not isinstance(summary["methods"].get("nominal"), dict) or not (root / "controller_nominal.npz").is_file():

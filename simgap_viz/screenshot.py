@@ -59,6 +59,9 @@ def main(argv=None) -> int:
     p.add_argument("--tabs", default="Synthesis,Rollouts,View", help="further tabs, one PNG each")
     p.add_argument("--no-main", action="store_true", help="skip the main picture")
     p.add_argument("--dim", type=int, default=2, help="gamma of state dimension (1-based)")
+    p.add_argument("--method", default="stochastic",
+                   help="the run's results to show (stochastic, deterministic; nominal: an invariant-set run's "
+                        "nominal-model set and rollouts)")
     p.add_argument("--width", type=int, default=1280)
     p.add_argument("--height", type=int, default=800)
     args = p.parse_args(argv)
@@ -71,7 +74,7 @@ def main(argv=None) -> int:
     out = Path(args.out)
     written = []
     try:
-        app.load_run(load_run(args.results))
+        app.load_run(load_run(args.results), args.method)
         app.set_view(dim=args.dim - 1)
         tabs = [t for t in args.tabs.split(",") if t] + ([] if args.no_main else ["Certificate"])
         with sync_playwright() as pw:

@@ -382,6 +382,25 @@ def test_run_experiment_with_invariant_sets(tmp_path):
     from simgap_viz.figures import plot_run
     written = {p.name for p in plot_run(out, tmp_path / "fig")}
     assert {"invariant_sets.png", "invariant_sets.pdf"} <= written   # E drawn by `simgap plot`
+    # the GUI: the nominal model's set with its rollouts; the layer draws E's projection on the map's
+    # two states (the engine's outline: half-widths sqrt((P^-1)_ii), not a slice's 1 / sqrt(P_ii))
+    from simgap_viz.app import SimgapApp
+    app = SimgapApp(port=0, executor="serial")
+    try:
+        app.load_run(run, "nominal")
+        assert app.results["rollout"] is run.nominal.rollouts and app.rollout_drawn["total"] == 20
+        assert not app.settings.use_gap
+        drawn = dict(app.invariant_drawn)
+        E = run.nominal.invariant_set
+        want = np.sqrt(np.diag(np.linalg.inv(E.P)))[:2]
+        assert drawn["nominal"] == pytest.approx(want, rel=1e-3)
+        assert "invariant sets E" in app.panels["view"].legend.content
+        app.set_layer_visible("invariant", False)
+        assert app.invariant_drawn == []
+        app.panels["system"].run_method.value = "stochastic"   # back to a method's own results
+        assert app.run_method == "stochastic"
+    finally:
+        app.stop()
 
 
 def test_run_checks_before_any_work(tmp_path):

@@ -210,7 +210,7 @@ def _legend(fig, handles, style: str, ncol: int | None = None) -> None:
 def _handles(methods, runs, spec, extra=()) -> list:
     from matplotlib.lines import Line2D
     from matplotlib.patches import Patch
-    hs = [Line2D([], [], color=METHOD_STYLE.get(m, "tab:green"), lw=1.5, label=f"{m} gap: {n} rollouts")
+    hs = [Line2D([], [], color=METHOD_STYLE.get(m, "tab:green"), lw=1.5, label=f"{_name(m)}: {n} rollouts")
           for m, n in zip(methods, runs)]
     hs += [Line2D([], [], label="mean map (the guarantee)", **MEAN_MAP),
            Line2D([], [], label="rollout average", **AVERAGE)]
@@ -226,7 +226,20 @@ def _handles(methods, runs, spec, extra=()) -> list:
 
 
 def _methods(run) -> list:
-    return [m for m in ("deterministic", "stochastic") if m in run.methods and run.methods[m].rollouts is not None]
+    """The methods with rollouts: deterministic, stochastic and (an invariant-set run) the nominal model."""
+    out = [m for m in ("deterministic", "stochastic") if m in run.methods and run.methods[m].rollouts is not None]
+    nom = getattr(run, "nominal", None)
+    return out + (["nominal"] if nom is not None and nom.rollouts is not None else [])
+
+
+def _result(run, m):
+    """The MethodResults of ``m`` (an invariant-set run's nominal model: ``run.nominal``)."""
+    return run.nominal if m == "nominal" else run.methods[m]
+
+
+def _name(m: str) -> str:
+    """A method as the figures name it: "stochastic gap", ..., "nominal model (no gap)"."""
+    return "nominal model (no gap)" if m == "nominal" else f"{m} gap"
 
 
 @_styled
@@ -241,7 +254,7 @@ def trajectories(run, spec, out_dir: Path, max_drawn: int = 1000, style: str = "
     fig, axes = _figure(style, 1, len(methods), height_rows=1.35, sharex=True, sharey=True)
     runs, fails = [], 0
     for ax, m in zip(axes[0], methods):
-        ro = run.methods[m].rollouts
+        ro = _result(run, m).rollouts
         color = METHOD_STYLE.get(m, "tab:green")
         X = np.asarray(ro.trajectories)[:, :, :2]
         ok = np.asarray(ro.success, bool)
@@ -258,7 +271,7 @@ def trajectories(run, spec, out_dir: Path, max_drawn: int = 1000, style: str = "
         ax.set_ylim(system.x_lo[1], system.x_hi[1])
         _few_ticks(ax)
         ax.set_xlabel(labels[0])
-        ax.set_title(f"{m} gap: {int((~ok).sum())} of {R} runs fail")
+        ax.set_title(f"{_name(m)}: {int((~ok).sum())} of {R} runs fail")
         if system.state_names[:2] == ("x", "y") or (units(system)[0][:2] == ("m", "m")):
             ax.set_aspect("equal")
         span = np.ptp(X.reshape(-1, 2), axis=0) if X.size else np.zeros(2)
@@ -299,7 +312,7 @@ def states_time(run, out_dir: Path, max_drawn: int = 1000, style: str = "paper")
     fig, axes = _figure(style, n, len(methods), height_rows=0.55 * n + 0.3, sharex=True, sharey="row")
     runs = []
     for j, m in enumerate(methods):
-        ro = run.methods[m].rollouts
+        ro = _result(run, m).rollouts
         X = np.asarray(ro.trajectories)[:max_drawn]
         runs.append(X.shape[0])
         t = np.arange(X.shape[1]) * float(ro.tau)
@@ -315,7 +328,7 @@ def states_time(run, out_dir: Path, max_drawn: int = 1000, style: str = "paper")
             if j == 0:
                 ax.set_ylabel(labels[i])
             if i == 0:
-                ax.set_title(f"{m} gap")
+                ax.set_title(_name(m))
             if i == n - 1:
                 ax.set_xlabel("time [s]")
     _legend(fig, _handles(methods, runs, None), style)
@@ -453,7 +466,7 @@ def invariant_sets(run, spec, out_dir: Path, max_drawn: int = 1000, style: str =
         ax.set_xlabel(labels[a])
         ax.set_ylabel(labels[b])
     hs = [Line2D([], [], color=METHOD_STYLE.get(m, "tab:green"), lw=1.4,
-                 label=f"E, {m} " + ("model (no gap)" if m == "nominal" else "gap")
+                 label=f"E, {_name(m)}"
                  + (f": {runs[m]} rollouts" if m in runs else "")) for m, _ in sets]
     hs += [Line2D([], [], label="mean map", **MEAN_MAP), Line2D([], [], label="rollout average", **AVERAGE),
            Line2D([], [], color="k", marker="o", ls="", ms=3, label="x0"),

@@ -44,7 +44,19 @@ def close_toasts(page) -> None:
 def show_tab(page, tab: str, settle: float = 2.5) -> None:
     page.get_by_role("tab", name=tab).click(force=True, no_wait_after=True)
     time.sleep(settle)
+    redraw(page)
     close_toasts(page)
+
+
+def redraw(page, settle: float = 6.0) -> None:
+    """Resize the viewport by a pixel and back: a chart drawn while its tab was hidden (zero width,
+    its title wrapped word by word) and the scene's tick labels are laid out again (as a person's
+    window would be; the labels take a few seconds to come back)."""
+    vp = page.viewport_size
+    page.set_viewport_size({"width": vp["width"] + 1, "height": vp["height"]})
+    time.sleep(1.0)
+    page.set_viewport_size(vp)
+    time.sleep(settle)
 
 
 def canvas_png(page, path=None) -> bytes:

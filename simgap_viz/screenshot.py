@@ -41,10 +41,12 @@ def close_toasts(page) -> None:
             pass
 
 
-def show_tab(page, tab: str, settle: float = 2.5) -> None:
+def show_tab(page, tab: str, settle: float = 2.5, relayout: bool = False) -> None:
+    """Click ``tab``; with ``relayout`` (the docs' pictures) also :func:`redraw` (about 7 s more)."""
     page.get_by_role("tab", name=tab).click(force=True, no_wait_after=True)
     time.sleep(settle)
-    redraw(page)
+    if relayout:
+        redraw(page)
     close_toasts(page)
 
 
@@ -96,7 +98,7 @@ def main(argv=None) -> int:
             for tab in tabs:
                 for layer in ("gamma", "data"):  # the surface and the gaps would hide the p_cert map
                     app.panels["view"].checks[layer].value = tab != "Per run"
-                show_tab(page, tab)
+                show_tab(page, tab, relayout=True)
                 name = tab.lower().replace(" ", "-")
                 path = out if tab == "Certificate" else out.with_name(f"{out.stem}-{name}{out.suffix}")
                 page.screenshot(path=str(path), timeout=180_000)

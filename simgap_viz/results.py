@@ -3,7 +3,9 @@
 The folder layout is the pipeline's (:func:`simgap.pipeline.run_experiment`): ``summary.json``,
 ``data`` and ``data_deterministic`` (collection stores), and per method (``stochastic``,
 ``deterministic``) ``cert_<m>.json``, ``audit_<m>.json``, ``controller_<m>.npz`` and, when the
-rollouts ran, ``rollouts_<m>.npz``; with a ``[perrun]`` section, the per-run results
+rollouts ran, ``rollouts_<m>.npz`` (an invariant-set run: the controller file holds E, kept as
+``MethodResults.invariant_set``, and ``controller_nominal.npz`` / ``rollouts_nominal.npz`` the
+nominal model's set, ``RunResults.nominal``); with a ``[perrun]`` section, the per-run results
 (:mod:`.results_perrun`). Everything is read with the engine's own loaders (no
 pickle; the stores verify their digests); only files inside the folder are opened.
 """

@@ -305,9 +305,18 @@ class SimgapApp:
         """
         from .experiment import from_experiment, from_stages
         from .results import run_spec
-        if method not in run.methods:
-            raise SimgapError(f"the run has no {method!r} results; it has {', '.join(run.methods)}")
-        m = run.methods[method]
+        if method == "nominal" and getattr(run, "nominal", None) is not None:
+            # an invariant-set run's nominal-model set (no gap, use_gap off) and its rollouts, beside the
+            # run's data and their certificate (shown, not used: without it the app would re-certify)
+            from .results import MethodResults
+            src = run.methods.get("stochastic") or next(iter(run.methods.values()))
+            m = MethodResults(dataset=src.dataset, certificate=src.certificate, audit=src.audit, synthesis=None,
+                              rollouts=run.nominal.rollouts, invariant_set=run.nominal.invariant_set)
+        elif method not in run.methods:
+            raise SimgapError(f"the run has no {method!r} results; it has "
+                              f"{', '.join(list(run.methods) + (['nominal'] if getattr(run, 'nominal', None) else []))}")
+        else:
+            m = run.methods[method]
         exp = run.experiment
         st = from_experiment(exp)[0] if exp is not None else from_stages(run)  # stage outputs: no experiment
         spec, x0, arena = run_spec(run)
@@ -316,7 +325,7 @@ class SimgapApp:
         with self.lock:
             self.experiment, self.spec, self.arena = exp, spec, arena
             self.run, self.run_method, self.audit = run, method, m.audit
-            self.settings = st.replace(use_gap=True, x0=None if x0 is None else tuple(float(v) for v in x0),
+            self.settings = st.replace(use_gap=method != "nominal", x0=None if x0 is None else tuple(float(v) for v in x0),
                                        n_rollouts=int(ro.get("n", st.n_rollouts)),
                                        horizon=int(m.rollouts.horizon) if m.rollouts is not None else st.horizon,
                                        rollout_seed=int(ro.get("seed", 11)),
@@ -348,7 +357,8 @@ class SimgapApp:
             return
         self.set_status(f"run **{run.path.name}** ({method}): data K = {m.dataset.K}, "
                         + (f"{m.synthesis.controller.size:,} winning cells" if m.synthesis is not None
-                           else "invariant-set run (see the summary; E is not drawn here yet)")
+                           else f"invariant-set run: {'E proved' if m.invariant_set is not None else 'no set proved'}"
+                           " (layer *Invariant sets E*)")
                         + (f", {m.rollouts.n_rollouts} rollouts" if m.rollouts is not None else ""))
 
     def _show_results(self) -> None:

@@ -19,8 +19,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("results", nargs="?", default=None,
                    help="a finished `simgap run` folder (e.g. results/pendulum-small): open it fully loaded; or a "
                         "folder of stage outputs (a data store or .npz, a certificate, a controller, rollouts .npz)")
-    p.add_argument("--method", default="stochastic", choices=("stochastic", "deterministic"),
-                   help="which certificate's results of RESULTS to show first (default: stochastic)")
+    p.add_argument("--method", default="stochastic", choices=("stochastic", "deterministic", "nominal"),
+                   help="which certificate's results of RESULTS to show first (default: stochastic; nominal: an "
+                        "invariant-set run's set and rollouts for the nominal model, no gap)")
     p.add_argument("--host", type=host, default="127.0.0.1",
                    help="address to bind (default 127.0.0.1; 0.0.0.0 exposes it)")
     p.add_argument("--port", type=port, default=8080, help="port (default 8080; 0 picks a free one)")
@@ -68,7 +69,9 @@ def run(args) -> int:
                     experiment=exp)
     app.executor = args.executor
     if run_results is not None:
-        app.load_run(run_results, args.method if args.method in run_results.methods else next(iter(run_results.methods)))
+        app.load_run(run_results, args.method if args.method in run_results.methods
+                     or (args.method == "nominal" and run_results.nominal is not None)
+                     else next(iter(run_results.methods)))
     if args.host in ("0.0.0.0", "::", ""):
         print(f"simgap gui: WARNING: --host {args.host} serves the app to every machine that can reach this one; "
               f"anyone who can connect can run stages and read files the app can read", flush=True)

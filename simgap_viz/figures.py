@@ -13,6 +13,11 @@ Each is written as PNG and PDF, atomically (temporary name, then renamed):
   (for the pendulum the omega row is the paper's Fig. 5, deterministic vs stochastic);
 * ``gamma_slices`` -- gamma_i of each method along each state variable, the others at the
   centre of X and the input at the middle of U, with the data gaps near that line;
+* ``invariant_sets`` -- for an invariant-set run (``[synthesis] method = "invariant_set"``): the
+  PROJECTION of each proved ellipsoid E onto pairs of states (the shadow of E, the set of (x_a, x_b)
+  of its points: the ellipse of the block of P^-1, not the slice through x*), each method's rollouts
+  over the same pair thin and translucent, the mean map bold, x0 and the safe set; a method whose
+  proof failed is named with its margin;
 * ``p_cert`` -- for a run with ``[perrun]``: the certified per-run success probability per
   interval-MDP cell with the validated initial states colored by p_emp.
 """
@@ -27,7 +32,8 @@ import numpy as np
 from simgap.errors import SimgapError
 from simgap.systems import labelled, units
 
-METHOD_STYLE = {"deterministic": "tab:blue", "stochastic": "tab:orange"}  # one color per method, every figure
+METHOD_STYLE = {"deterministic": "tab:blue", "stochastic": "tab:orange",  # one color per method, every figure
+                "nominal": "tab:green"}  # an invariant-set run's nominal model (no gap)
 MEAN_MAP, AVERAGE = dict(color="k", lw=1.0), dict(color="0.35", lw=0.8, ls=(0, (3, 2)))
 FORMATS = ("png", "pdf")
 # figure sizes [in] and fonts [pt]: "paper" fits a two-column paper's text width (7 in; a panel per
@@ -205,7 +211,7 @@ def _legend(fig, handles, style: str, ncol: int | None = None) -> None:
 def _handles(methods, runs, spec, extra=()) -> list:
     from matplotlib.lines import Line2D
     from matplotlib.patches import Patch
-    hs = [Line2D([], [], color=METHOD_STYLE.get(m, "tab:green"), lw=1.5, label=f"{m} gap: {n} rollouts")
+    hs = [Line2D([], [], color=METHOD_STYLE.get(m, "tab:green"), lw=1.5, label=f"{_name(m)}: {n} rollouts")
           for m, n in zip(methods, runs)]
     hs += [Line2D([], [], label="mean map (the guarantee)", **MEAN_MAP),
            Line2D([], [], label="rollout average", **AVERAGE)]
@@ -221,7 +227,20 @@ def _handles(methods, runs, spec, extra=()) -> list:
 
 
 def _methods(run) -> list:
-    return [m for m in ("deterministic", "stochastic") if m in run.methods and run.methods[m].rollouts is not None]
+    """The methods with rollouts: deterministic, stochastic and (an invariant-set run) the nominal model."""
+    out = [m for m in ("deterministic", "stochastic") if m in run.methods and run.methods[m].rollouts is not None]
+    nom = getattr(run, "nominal", None)
+    return out + (["nominal"] if nom is not None and nom.rollouts is not None else [])
+
+
+def _result(run, m):
+    """The MethodResults of ``m`` (an invariant-set run's nominal model: ``run.nominal``)."""
+    return run.nominal if m == "nominal" else run.methods[m]
+
+
+def _name(m: str) -> str:
+    """A method as the figures name it: "stochastic gap", ..., "nominal model (no gap)"."""
+    return "nominal model (no gap)" if m == "nominal" else f"{m} gap"
 
 
 @_styled
@@ -236,7 +255,7 @@ def trajectories(run, spec, out_dir: Path, max_drawn: int = 1000, style: str = "
     fig, axes = _figure(style, 1, len(methods), height_rows=1.35, sharex=True, sharey=True)
     runs, fails = [], 0
     for ax, m in zip(axes[0], methods):
-        ro = run.methods[m].rollouts
+        ro = _result(run, m).rollouts
         color = METHOD_STYLE.get(m, "tab:green")
         X = np.asarray(ro.trajectories)[:, :, :2]
         ok = np.asarray(ro.success, bool)
@@ -253,7 +272,7 @@ def trajectories(run, spec, out_dir: Path, max_drawn: int = 1000, style: str = "
         ax.set_ylim(system.x_lo[1], system.x_hi[1])
         _few_ticks(ax)
         ax.set_xlabel(labels[0])
-        ax.set_title(f"{m} gap: {int((~ok).sum())} of {R} runs fail")
+        ax.set_title(f"{_name(m)}: {int((~ok).sum())} of {R} runs fail")
         if system.state_names[:2] == ("x", "y") or (units(system)[0][:2] == ("m", "m")):
             ax.set_aspect("equal")
         span = np.ptp(X.reshape(-1, 2), axis=0) if X.size else np.zeros(2)
@@ -294,7 +313,7 @@ def states_time(run, out_dir: Path, max_drawn: int = 1000, style: str = "paper")
     fig, axes = _figure(style, n, len(methods), height_rows=0.55 * n + 0.3, sharex=True, sharey="row")
     runs = []
     for j, m in enumerate(methods):
-        ro = run.methods[m].rollouts
+        ro = _result(run, m).rollouts
         X = np.asarray(ro.trajectories)[:max_drawn]
         runs.append(X.shape[0])
         t = np.arange(X.shape[1]) * float(ro.tau)
@@ -310,7 +329,7 @@ def states_time(run, out_dir: Path, max_drawn: int = 1000, style: str = "paper")
             if j == 0:
                 ax.set_ylabel(labels[i])
             if i == 0:
-                ax.set_title(f"{m} gap")
+                ax.set_title(_name(m))
             if i == n - 1:
                 ax.set_xlabel("time [s]")
     _legend(fig, _handles(methods, runs, None), style)
@@ -376,6 +395,100 @@ def gamma_slices(run, out_dir: Path, res: int = 201, style: str = "paper") -> li
     return save(fig, out_dir, "gamma_slices")
 
 
+def state_pairs(n: int, most: int = 6) -> list:
+    """The pairs of states an n-D set is drawn over: every pair while there are at most ``most``
+    (a 4-state system's six), else consecutive ones (0, 1), (2, 3), ..."""
+    import itertools
+    pairs = list(itertools.combinations(range(n), 2))
+    if len(pairs) > most:
+        pairs = [(i, i + 1) for i in range(0, n - 1, 2)]
+    return pairs
+
+
+def _set_methods(run) -> list:
+    """(name, MethodResults) of every method with a proved invariant set, the nominal model last."""
+    from .results import proved_sets
+    return [(m, run.nominal if m == "nominal" else run.methods[m]) for m, _ in proved_sets(run)]
+
+
+def _no_set_notes(run) -> list:
+    """One line per method of an invariant-set run whose proof failed: its name and margin s."""
+    from .results import unproved_sets
+    return [f"{m} gap: no set proved" + ("" if s_ is None else f" (margin s = {s_:.2g}: invariant only if gamma "
+                                                               f"were <= s x its size)")
+            for m, s_ in unproved_sets(run)]
+
+
+@_styled
+def invariant_sets(run, spec, out_dir: Path, max_drawn: int = 1000, style: str = "paper") -> list:
+    """The proved invariant ellipsoids' projections with the rollouts (see module docstring)."""
+    from matplotlib.lines import Line2D
+    sets = _set_methods(run)
+    if not sets:
+        return []
+    system = run.system
+    labels, _ = _axis_labels(system)
+    pairs = state_pairs(system.n)
+    cols = min(3, len(pairs))
+    rows = -(-len(pairs) // cols)
+    fig, axes = _figure(style, rows, cols, height_rows=rows * (1.0 if cols > 1 else 1.4))
+    for ax in axes.ravel()[len(pairs):]:
+        ax.set_visible(False)
+    runs, safe_seen = {}, False
+    for ax, (a, b) in zip(axes.ravel(), pairs):
+        lo, hi = [], []
+        for m, res in sets:
+            color = METHOD_STYLE.get(m, "tab:green")
+            ro = res.rollouts
+            if ro is not None:
+                X = np.asarray(ro.trajectories)[:max_drawn][:, :, [a, b]]
+                ok = np.asarray(ro.success, bool)[:max_drawn]
+                runs[m] = X.shape[0]
+                mm = None if ro.mean_map_trajectory is None else np.asarray(ro.mean_map_trajectory)[:, [a, b]]
+                _draw_runs(ax, X, ok, np.flatnonzero(ok), mm, np.asarray(ro.mean_trajectory)[:, [a, b]],
+                           X.shape[0], color)
+                ax.plot(*np.asarray(ro.x0)[[a, b]], "o", color="k", ms=3, zorder=7)
+                lo.append(X.reshape(-1, 2).min(axis=0))
+                hi.append(X.reshape(-1, 2).max(axis=0))
+            E = res.invariant_set.projection_outline((a, b))
+            ax.plot(E[:, 0], E[:, 1], color=color, lw=1.4, zorder=8, gid=f"E:{m}:{a},{b}")
+            ax.plot(*res.invariant_set.x_star[[a, b]], "+", color=color, ms=5, zorder=8)
+            lo.append(E.min(axis=0))
+            hi.append(E.max(axis=0))
+        lo, hi = np.min(lo, axis=0), np.max(hi, axis=0)
+        pad = 0.12 * np.maximum(hi - lo, 1e-9)
+        if spec is not None and getattr(spec, "safe", None) is not None:
+            from matplotlib.patches import Rectangle
+            slo = np.maximum(np.asarray(spec.safe.lo, float)[[a, b]], system.x_lo[[a, b]])
+            shi = np.minimum(np.asarray(spec.safe.hi, float)[[a, b]], system.x_hi[[a, b]])
+            ax.add_patch(Rectangle(slo, *(shi - slo), fill=False, edgecolor="k", lw=1.0, ls="--", zorder=4))
+            # an edge of S inside the view (else S lies beyond the frame, around everything drawn)
+            safe_seen |= bool(np.any((slo > lo - pad) & (slo < hi + pad)) or np.any((shi > lo - pad) & (shi < hi + pad)))
+        ax.set_xlim(lo[0] - pad[0], hi[0] + pad[0])
+        ax.set_ylim(lo[1] - pad[1], hi[1] + pad[1])
+        _few_ticks(ax, 4)
+        ax.ticklabel_format(style="sci", scilimits=(-2, 3), useMathText=True)
+        ax.set_xlabel(labels[a])
+        ax.set_ylabel(labels[b])
+    hs = [Line2D([], [], color=METHOD_STYLE.get(m, "tab:green"), lw=1.4,
+                 label=f"E, {_name(m)}"
+                 + (f": {runs[m]} rollouts" if m in runs else "")) for m, _ in sets]
+    hs += [Line2D([], [], label="mean map", **MEAN_MAP), Line2D([], [], label="rollout average", **AVERAGE),
+           Line2D([], [], color="k", marker="o", ls="", ms=3, label="x0"),
+           Line2D([], [], color="0.3", marker="+", ls="", ms=5, label="x* (centre of E)")]
+    title = "invariant sets E: projections onto pairs of states (the shadow of E, not its slice through x*)"
+    if spec is not None and getattr(spec, "safe", None) is not None:
+        from matplotlib.patches import Patch
+        if safe_seen:
+            hs.append(Patch(fill=False, edgecolor="k", ls="--", label="safe set"))
+        else:
+            title += "; the safe set lies beyond every frame"
+    notes = _no_set_notes(run)
+    fig.suptitle("\n".join([title] + notes), fontsize=STYLES[style]["small"])
+    _legend(fig, hs, style, ncol=3)
+    return save(fig, out_dir, "invariant_sets")
+
+
 @_styled
 def p_cert(run, out_dir: Path, style: str = "paper") -> list:
     """The per-run p_cert map with the validated initial states (see module docstring)."""
@@ -435,5 +548,6 @@ def plot_run(path, out_dir=None, max_drawn: int = 1000, style: str = "paper") ->
     written += trajectories(run, spec, out, max_drawn, style=style)
     written += states_time(run, out, max_drawn, style=style)
     written += gamma_slices(run, out, style=style)
+    written += invariant_sets(run, spec, out, max_drawn, style=style)
     written += p_cert(run, out, style=style)
     return written

@@ -3,7 +3,9 @@
 The folder layout is the pipeline's (:func:`simgap.pipeline.run_experiment`): ``summary.json``,
 ``data`` and ``data_deterministic`` (collection stores), and per method (``stochastic``,
 ``deterministic``) ``cert_<m>.json``, ``audit_<m>.json``, ``controller_<m>.npz`` and, when the
-rollouts ran, ``rollouts_<m>.npz``; with a ``[perrun]`` section, the per-run results
+rollouts ran, ``rollouts_<m>.npz`` (an invariant-set run: the controller file holds E, kept as
+``MethodResults.invariant_set``, and ``controller_nominal.npz`` / ``rollouts_nominal.npz`` the
+nominal model's set, ``RunResults.nominal``); with a ``[perrun]`` section, the per-run results
 (:mod:`.results_perrun`). Everything is read with the engine's own loaders (no
 pickle; the stores verify their digests); only files inside the folder are opened.
 
@@ -40,6 +42,7 @@ class MethodResults:
     audit: Optional[dict]
     synthesis: object
     rollouts: object = None
+    invariant_set: object = None  # an invariant-set run: the proved E (EllipsoidController), else None
 
 
 @dataclass
@@ -59,6 +62,8 @@ class RunResults:
     def system(self):
         """The nominal model of the results: the experiment's, else the stage outputs' own."""
         return self.experiment.system if self.experiment is not None else self.stage_system
+    nominal: object = None  # an invariant-set run: the nominal model's E and rollouts (MethodResults
+    # without dataset, certificate or audit), when it proved one
 
 
 def is_run_dir(path) -> bool:
@@ -111,6 +116,50 @@ def _experiment(summary: dict, root: Path):
                       + "; ".join(errors))
 
 
+def proved_sets(run) -> list:
+    """(method, EllipsoidController) of every invariant set an invariant-set run proved, the nominal
+    model's last (none for a grid run)."""
+    out = [(m, run.methods[m].invariant_set) for m in METHODS
+           if m in run.methods and getattr(run.methods[m], "invariant_set", None) is not None]
+    nom = getattr(run, "nominal", None)
+    if nom is not None and nom.invariant_set is not None:
+        out.append(("nominal", nom.invariant_set))
+    return out
+
+
+def unproved_sets(run) -> list:
+    """(method, gap margin s or None) of every method of an invariant-set run whose proof failed."""
+    summary = getattr(run, "summary", None) or {}
+    if (summary.get("sections", {}).get("synthesis") or {}).get("method") != "invariant_set" \
+            and not any(isinstance(e, dict) and "gap_scale" in (e.get("synthesis") or {})
+                        for e in summary.get("methods", {}).values()):
+        return []
+    out = []
+    for m in (*METHODS[::-1], "nominal"):
+        e = summary.get("methods", {}).get(m)
+        if isinstance(e, dict) and not e.get("winning_cells"):
+            s_ = (e.get("synthesis") or {}).get("gap_scale")
+            out.append((m, float(s_) if isinstance(s_, (int, float)) else None))
+    return out
+
+
+def _nominal(root: Path, summary: dict, system) -> Optional[MethodResults]:
+    """An invariant-set run's nominal-model set (``controller_nominal.npz``) and its rollouts, when proved."""
+    if not isinstance(summary["methods"].get("nominal"), dict) or not (root / "controller_nominal.npz").is_file():
+        return None
+    from simgap.rollout import load_rollout
+    from simgap.synthesis.controller import Controller
+    for name in ("controller_nominal.npz", "rollouts_nominal.npz"):
+        if (root / name).is_file():
+            check_listed(root, summary, name)
+    ctrl = Controller.load(_inside(root, "controller_nominal.npz"), system=system)
+    if not getattr(ctrl, "continuous_input", False):
+        raise SimgapError(f"results folder {root}: controller_nominal.npz is not an invariant-set controller")
+    rp = _inside(root, "rollouts_nominal.npz")
+    return MethodResults(dataset=None, certificate=None, audit=None, synthesis=None,
+                         rollouts=load_rollout(rp) if rp.is_file() else None, invariant_set=ctrl)
+
+
 def load_run(path) -> RunResults:
     """Load every stage output of a finished run (see module docstring).
 
@@ -152,10 +201,12 @@ def load_run(path) -> RunResults:
         invariant = (summary.get("sections", {}).get("synthesis") or {}).get("method") == "invariant_set"
         if not cp.is_file() and not (invariant and not summary["methods"][m].get("winning_cells")):
             raise SimgapError(f"results folder {root}: {cp.name} is missing")
-        syn = None  # an invariant-set run: no set proved (no file), or E, which the views do not draw yet
+        syn = ell = None  # an invariant-set run: no set proved (no file), or E
         if cp.is_file():
             ctrl = Controller.load(cp, system=exp.system)
-            if not getattr(ctrl, "continuous_input", False):
+            if getattr(ctrl, "continuous_input", False):
+                ell = ctrl
+            else:
                 syn = SynthesisResult(ctrl, dict(ctrl.meta.get("stats", {})))
         rp = _inside(root, f"rollouts_{m}.npz")
         ro = load_rollout(rp) if rp.is_file() else None
@@ -164,9 +215,11 @@ def load_run(path) -> RunResults:
         for name in (f"cert_{m}.json", f"audit_{m}.json", f"controller_{m}.npz", f"rollouts_{m}.npz"):
             if (root / name).is_file():
                 check_listed(root, summary, name)
-        run.methods[m] = MethodResults(dataset=ds, certificate=cert, audit=audit, synthesis=syn, rollouts=ro)
+        run.methods[m] = MethodResults(dataset=ds, certificate=cert, audit=audit, synthesis=syn, rollouts=ro,
+                                       invariant_set=ell)
     if not run.methods:
         raise SimgapError(f"{root / 'summary.json'} lists no method results")
+    run.nominal = _nominal(root, summary, exp.system)
     run.per_run = load_per_run(root, summary, exp.system)
     return run
 
@@ -307,11 +360,11 @@ def load_stages(folder=None, dataset=None, cert=None, controller=None, rollouts=
         except SimgapError:
             raise SimgapError(f"rollouts {str(paths['rollouts'])!r} name the system {ro.system!r} only: give its "
                               "controller (--controller) or data (--dataset) too") from None
-    syn = None
+    syn = ell = None
     if ctrl is not None and not getattr(ctrl, "continuous_input", False):
         syn = SynthesisResult(ctrl, dict(ctrl.meta.get("stats", {})))
     elif ctrl is not None:
-        notes.append(f"{paths['controller'].name} is an invariant-set controller: its ellipsoid E is not drawn")
+        ell = ctrl  # an invariant-set controller: its E is drawn (layer "Invariant sets E")
     spec = getattr(ctrl, "spec", None) if ctrl is not None else None
     spec = spec if spec is not None else (ro.spec if ro is not None else None)
     x0 = (ctrl.meta.get("x0") if ctrl is not None else None)
@@ -322,7 +375,8 @@ def load_stages(folder=None, dataset=None, cert=None, controller=None, rollouts=
     run = RunResults(path=Path(folder) if folder is not None else first.parent, summary=summary,
                      stages={r: (str(paths[r]) if r in paths else None) for r in ROLES}, stage_system=system,
                      spec=spec, notes=notes)
-    run.methods[method] = MethodResults(dataset=ds, certificate=ce, audit=None, synthesis=syn, rollouts=ro)
+    run.methods[method] = MethodResults(dataset=ds, certificate=ce, audit=None, synthesis=syn, rollouts=ro,
+                                        invariant_set=ell)
     return run
 
 
@@ -390,7 +444,7 @@ def describe_stages(run: RunResults) -> list:
             what = f"{m.certificate.method}, system {m.certificate.system_name}"
         elif role == "controller":
             what = (f"{m.synthesis.controller.size:,} winning cells" if m.synthesis is not None
-                    else "invariant-set controller (E not drawn)")
+                    else "invariant-set controller (its E: layer Invariant sets E)")
         else:
             what = f"{m.rollouts.n_rollouts} rollouts, {m.rollouts.n_failures} failed"
         lines.append(f"{ROLE_WHAT[role]}: {p} ({what})")

@@ -41,10 +41,24 @@ def close_toasts(page) -> None:
             pass
 
 
-def show_tab(page, tab: str, settle: float = 2.5) -> None:
+def show_tab(page, tab: str, settle: float = 2.5, relayout: bool = False) -> None:
+    """Click ``tab``; with ``relayout`` (the docs' pictures) also :func:`redraw` (about 7 s more)."""
     page.get_by_role("tab", name=tab).click(force=True, no_wait_after=True)
     time.sleep(settle)
+    if relayout:
+        redraw(page)
     close_toasts(page)
+
+
+def redraw(page, settle: float = 6.0) -> None:
+    """Resize the viewport by a pixel and back: a chart drawn while its tab was hidden (zero width,
+    its title wrapped word by word) and the scene's tick labels are laid out again (as a person's
+    window would be; the labels take a few seconds to come back)."""
+    vp = page.viewport_size
+    page.set_viewport_size({"width": vp["width"] + 1, "height": vp["height"]})
+    time.sleep(1.0)
+    page.set_viewport_size(vp)
+    time.sleep(settle)
 
 
 def canvas_png(page, path=None) -> bytes:
@@ -59,6 +73,9 @@ def main(argv=None) -> int:
     p.add_argument("--tabs", default="Synthesis,Rollouts,View", help="further tabs, one PNG each")
     p.add_argument("--no-main", action="store_true", help="skip the main picture")
     p.add_argument("--dim", type=int, default=2, help="gamma of state dimension (1-based)")
+    p.add_argument("--method", default="stochastic",
+                   help="the run's results to show (stochastic, deterministic; nominal: an invariant-set run's "
+                        "nominal-model set and rollouts)")
     p.add_argument("--width", type=int, default=1280)
     p.add_argument("--height", type=int, default=800)
     args = p.parse_args(argv)
@@ -71,7 +88,7 @@ def main(argv=None) -> int:
     out = Path(args.out)
     written = []
     try:
-        app.load_run(load_run(args.results))
+        app.load_run(load_run(args.results), args.method)
         app.set_view(dim=args.dim - 1)
         tabs = [t for t in args.tabs.split(",") if t] + ([] if args.no_main else ["Certificate"])
         with sync_playwright() as pw:
@@ -81,7 +98,7 @@ def main(argv=None) -> int:
             for tab in tabs:
                 for layer in ("gamma", "data"):  # the surface and the gaps would hide the p_cert map
                     app.panels["view"].checks[layer].value = tab != "Per run"
-                show_tab(page, tab)
+                show_tab(page, tab, relayout=True)
                 name = tab.lower().replace(" ", "-")
                 path = out if tab == "Certificate" else out.with_name(f"{out.stem}-{name}{out.suffix}")
                 page.screenshot(path=str(path), timeout=180_000)

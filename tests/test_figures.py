@@ -144,3 +144,74 @@ def test_plot_cli_and_bad_input(run_dir, tmp_path):  # noqa: F811
                            timeout=300)
         assert r.returncode == 2 and msg in r.stderr and "Traceback" not in r.stderr, (args, r.stderr)
     assert not (tmp_path / "no").exists()
+
+
+def _ellipsoid_run(P, x_star, with_rollouts=True):
+    """A synthetic invariant-set run: a 3-state system, E = {(x - x*)^T P (x - x*) <= 1}, 50 rollouts
+    that stay near x* (what the figure reads: experiment.system, methods, nominal, summary)."""
+    from simgap.synthesis.ellipsoid_controller import EllipsoidController
+    from simgap.systems import System
+    s = System(name="e3", state_names=("a", "b", "c"), input_names=("u",), x_lo=np.array([-2.0, -2.0, -2.0]),
+               x_hi=np.array([2.0, 2.0, 2.0]), inputs=np.zeros((1, 1)), base_tau=0.1, step=lambda x, u: x)
+    ctrl = EllipsoidController(x_star, [0.0], np.zeros((1, 3)), P, system=s)
+    rng = np.random.default_rng(3)
+    ro = None
+    if with_rollouts:
+        X = np.asarray(x_star) + 0.05 * np.cumsum(rng.normal(size=(50, 20, 3)), axis=1) / 20
+        ro = types.SimpleNamespace(trajectories=X, success=np.ones(50, bool), mean_trajectory=X.mean(0),
+                                   mean_map_trajectory=X.mean(0), x0=X[0, 0], tau=0.1)
+    res = types.SimpleNamespace(invariant_set=ctrl, rollouts=ro)
+    summary = {"methods": {"stochastic": {"winning_cells": 0, "synthesis": {"gap_scale": 0.0047}},
+                           "nominal": {"winning_cells": 1}}}
+    return types.SimpleNamespace(experiment=types.SimpleNamespace(system=s), methods={}, nominal=res,
+                                 summary=summary, path=None), ctrl
+
+
+def test_invariant_set_figure_draws_projections(tmp_path, captured):
+    """The figure of an invariant-set run draws E's PROJECTION on each pair of states: its extent is
+    x* +- sqrt((P^-1)_ii) exactly, which a slice through x* (extent 1 / sqrt(P_ii), smaller for this
+    correlated P) or the wrong block of P^-1 would not give; a failed method is named with its margin;
+    the labels do not overlap."""
+    from simgap_viz import figures
+    A = np.array([[1.0, 0.9, 0.3], [0.0, 0.5, -0.4], [0.0, 0.0, 0.3]])
+    Q = A @ A.T  # P^-1: strongly correlated states
+    P = np.linalg.inv(Q)
+    xs = np.array([0.3, -0.2, 0.1])
+    run, ctrl = _ellipsoid_run(P, xs)
+    paths = figures.invariant_sets(run, None, tmp_path)
+    assert {p.name for p in paths} == {"invariant_sets.png", "invariant_sets.pdf"}
+    f = captured["invariant_sets"]
+    assert f["overlaps"] == [], f["overlaps"]
+    assert len(f["legends"]) == 1 and any("E, nominal model (no gap): 50 rollouts" in t for t in f["legends"][0])
+    assert "stochastic gap: no set proved (margin s = 0.0047" in f["fig"]._suptitle.get_text()
+    h = np.sqrt(np.diag(Q))
+    assert np.all(1 / np.sqrt(np.diag(P)) < 0.9 * h)  # the slice would be visibly smaller
+    seen = set()
+    for a in f["axes"]:
+        for ln in a["axes"].get_lines():
+            gid = ln.get_gid() or ""
+            if not gid.startswith("E:"):
+                continue
+            i, j = (int(v) for v in gid.split(":")[2].split(","))
+            seen.add((i, j))
+            x, y = np.asarray(ln.get_xdata()), np.asarray(ln.get_ydata())
+            assert x.min() == pytest.approx(xs[i] - h[i], rel=1e-3) and x.max() == pytest.approx(xs[i] + h[i], rel=1e-3)
+            assert y.min() == pytest.approx(xs[j] - h[j], rel=1e-3) and y.max() == pytest.approx(xs[j] + h[j], rel=1e-3)
+            # every outline point is on the projection's boundary: (y - c)^T P2 (y - c) = 1
+            c, P2 = ctrl.projection((i, j))
+            e = np.column_stack([x, y]) - c
+            assert np.allclose(np.einsum("bi,ij,bj->b", e, P2, e), 1.0)
+    assert seen == {(0, 1), (0, 2), (1, 2)}
+    # the projection contains every point of E (sampled), which a slice does not
+    from simgap.invariant_stage import states_in_set
+    pts = states_in_set(ctrl, 4000, 0)
+    for d in ((0, 1), (0, 2), (1, 2)):
+        c, P2 = ctrl.projection(d)
+        e = pts[:, d] - c
+        lv = np.einsum("bi,ij,bj->b", e, P2, e)
+        assert lv.max() <= 1 + 1e-9 and lv.max() > 0.9
+    with pytest.raises(Exception, match="two different state indices"):
+        ctrl.projection((1, 1))
+    # a run without any proved set: no figure
+    run.nominal = None
+    assert figures.invariant_sets(run, None, tmp_path / "none") == []

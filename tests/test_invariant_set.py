@@ -372,9 +372,35 @@ def test_run_experiment_with_invariant_sets(tmp_path):
             assert "gamma would have to be at most" in e["rollouts"]["skipped"]
     table = comparison_table(summary)
     assert "invariant set proved" in table and "nominal" in table and "failures from states in E" in table
-    run = load_run(out)                      # the viewer's loader degrades: no grid controller to draw
+    run = load_run(out)                      # no grid controller; the proved sets and the nominal model's
     assert set(run.methods) == {"deterministic", "stochastic"}
     assert all(mr.synthesis is None for mr in run.methods.values())
+    for m, mr in run.methods.items():
+        assert (mr.invariant_set is not None) == bool(summary["methods"][m]["winning_cells"])
+    assert run.nominal is not None and run.nominal.rollouts.n_rollouts == 20
+    assert np.allclose(run.nominal.invariant_set.P, Controller.load(out / "controller_nominal.npz").P)
+    from simgap_viz.figures import plot_run
+    written = {p.name for p in plot_run(out, tmp_path / "fig")}
+    assert {"invariant_sets.png", "invariant_sets.pdf"} <= written   # E drawn by `simgap plot`
+    # the GUI: the nominal model's set with its rollouts; the layer draws E's projection on the map's
+    # two states (the engine's outline: half-widths sqrt((P^-1)_ii), not a slice's 1 / sqrt(P_ii))
+    from simgap_viz.app import SimgapApp
+    app = SimgapApp(port=0, executor="serial")
+    try:
+        app.load_run(run, "nominal")
+        assert app.results["rollout"] is run.nominal.rollouts and app.rollout_drawn["total"] == 20
+        assert not app.settings.use_gap
+        drawn = dict(app.invariant_drawn)
+        E = run.nominal.invariant_set
+        want = np.sqrt(np.diag(np.linalg.inv(E.P)))[:2]
+        assert drawn["nominal"] == pytest.approx(want, rel=1e-3)
+        assert "invariant sets E" in app.panels["view"].legend.content
+        app.set_layer_visible("invariant", False)
+        assert app.invariant_drawn == []
+        app.panels["system"].run_method.value = "stochastic"   # back to a method's own results
+        assert app.run_method == "stochastic"
+    finally:
+        app.stop()
 
 
 def test_run_checks_before_any_work(tmp_path):

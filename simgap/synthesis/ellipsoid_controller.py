@@ -62,6 +62,27 @@ class EllipsoidController:
 
     size_with_target = size
 
+    def projection(self, dims) -> tuple:
+        """E's shadow on the coordinates ``dims`` (two state indices): (centre (2,), P2 (2, 2)) with
+        {y : (y - c)^T P2 (y - c) <= 1} the set of (x_a, x_b) of all x in E.
+
+        The projection of an ellipsoid is the ellipse of the matching block of the inverse:
+        P2 = ((P^-1)[dims, dims])^-1 (the slice through x*, P[dims, dims], is smaller when the
+        coordinates correlate with the others)."""
+        d = [int(i) for i in dims]
+        if len(d) != 2 or d[0] == d[1] or not all(0 <= i < self.x_star.size for i in d):
+            raise SimgapError(f"projection: need two different state indices in 0..{self.x_star.size - 1}, got {dims!r}")
+        Q = np.linalg.inv(self.P)[np.ix_(d, d)]
+        return self.x_star[d].copy(), np.linalg.inv(0.5 * (Q + Q.T))
+
+    def projection_outline(self, dims, points: int = 181) -> np.ndarray:
+        """(points, 2) the boundary of :meth:`projection` (closed: the last point is the first):
+        c + L u for u on the unit circle, L L^T = (P^-1)[dims, dims]."""
+        c, P2 = self.projection(dims)
+        L = np.linalg.cholesky(np.linalg.inv(P2))
+        t = np.linspace(0.0, 2 * np.pi, int(points))
+        return c + np.stack([np.cos(t), np.sin(t)], axis=1) @ L.T
+
     def level(self, x) -> np.ndarray:
         """(B,) (x - x*)^T P (x - x*): <= 1 inside E."""
         e = np.atleast_2d(np.asarray(x, dtype=float)) - self.x_star

@@ -11,7 +11,8 @@ listed in :data:`LAYERS` (:class:`Layer`): the View tab's checkboxes and the red
 A TurtleBot's arena and robot are drawn in the same frame (metres mapped like x, y), so the map
 appears once at one scale; the pendulum's rod, which has no place in the (theta, omega) plane,
 stands beside the square. Node names: ``/grid``, ``/axes``, ``/map``, ``/winning``,
-``/gamma/surface``, ``/gamma/axes``, ``/gamma/data``, ``/zaxis``, ``/rollouts/{all,mean,nominal,now}``, ``/bodies``, ``/refine``.
+``/gamma/surface``, ``/gamma/axes``, ``/gamma/data``, ``/zaxis``, ``/invariant`` (an invariant-set run's
+ellipsoids, projected onto the map's two states), ``/rollouts/{all,mean,nominal,now}``, ``/bodies``, ``/refine``.
 
 Frame cost in software WebGL (SwiftShader, bench/bench_viz.py --browser) decides the drawing:
 no shadow maps (the default light's three shadow cascades re-render the scene three times per
@@ -448,6 +449,44 @@ def draw_winning(app) -> int:
     return wm["counts"]["winning"]
 
 
+# ----- invariant sets ---------------------------------------------------------------------------
+SET_COLORS = {"deterministic": (31, 119, 180), "stochastic": (255, 127, 14), "nominal": (44, 160, 44)}  # the figures'
+
+
+def draw_invariant_sets(app) -> list:
+    """Each invariant set E a loaded invariant-set run proved (the methods' and the nominal model's), as
+    its PROJECTION onto the map's two states (the engine's ``EllipsoidController.projection_outline``:
+    every (x1, x2) of a point of E, not the slice through x*), a closed line in the method's color with
+    its centre x* marked. Returns [(method, half-widths of the projection (2,))] drawn."""
+    from ..results import proved_sets
+    run = getattr(app, "run", None)
+    sets = proved_sets(run) if run is not None and app.layers_visible.get("invariant", True) else []
+    if app.system.n < 2:
+        sets = []
+    key = tuple(m for m, _ in sets)
+    if getattr(app, "invariant_drawn", None) is not None and _unchanged(app, "/invariant", run, key):
+        return app.invariant_drawn
+    _remove(app, "/invariant")
+    _unchanged(app, "/invariant", run, key)  # recorded again (_remove forgets it)
+    drawn = []
+    frame = G.Frame(app.system)
+    sc = app.server.scene
+    for m, ctrl in sets:
+        outline = ctrl.projection_outline((0, 1))
+        P = G.polyline_segments(frame, outline)
+        P[..., 2] = 0.009
+        color = SET_COLORS.get(m, G.GREEN)
+        sc.add_line_segments(f"/invariant/{m}", points=P, colors=color, thickness=3.0, thickness_units="screen")
+        c = frame.xy(ctrl.x_star[None])[0]
+        cross = np.array([[[c[0] - 0.03, c[1], 0.009], [c[0] + 0.03, c[1], 0.009]],
+                          [[c[0], c[1] - 0.03, 0.009], [c[0], c[1] + 0.03, 0.009]]], np.float32)
+        sc.add_line_segments(f"/invariant/{m}_centre", points=cross, colors=color, thickness=2.0,
+                             thickness_units="screen")
+        drawn.append((m, 0.5 * np.ptp(outline, axis=0)))
+    app.invariant_drawn = drawn
+    return drawn
+
+
 # ----- rollouts ---------------------------------------------------------------------------------
 def draw_rollouts(app) -> int:
     """A subset of the rollouts (every failure first, up to ``app.view["n_draw"]``) as ONE
@@ -618,6 +657,7 @@ def draw_results(app) -> None:
 
 for _layer in (Layer("winning", "Winning domain", ("/winning",), draw_winning),
                Layer("map", "Map / spec", ("/map",), draw_map, system=True),
+               Layer("invariant", "Invariant sets E", ("/invariant",), draw_invariant_sets),
                Layer("rollouts", "Rollouts", ("/rollouts",), draw_rollouts),
                Layer("gamma", "Gamma surface", ("/gamma/surface", "/gamma/axes", "/zaxis"), draw_gamma),
                Layer("data", "Data gaps", ("/gamma/data",), draw_gamma),

@@ -82,7 +82,9 @@ def audit_margins(app, plot, bins: int = 30) -> bool:
     rep = app.audit
     run = app.run
     shown = app.results.get("certify")
-    if rep is None or run is None or shown is not run.methods[app.run_method].certificate:
+    # the nominal model of an invariant-set run shows the stochastic certificate and its audit
+    src = None if run is None else run.methods.get(app.run_method, run.methods.get("stochastic"))
+    if rep is None or src is None or shown is not src.certificate:
         _empty(plot)
         return False
     dims = list(rep.get("per_dim", {}))

@@ -64,7 +64,7 @@ class SystemDataPanel(Panel):
             self.set_quiet(h, v)
         run = self.app.run
         if run is not None:
-            self.run_method.options = tuple(run.methods)
+            self.run_method.options = tuple(run.methods) + (("nominal",) if getattr(run, "nominal", None) else ())
             self.set_quiet(self.run_method, self.app.run_method)
         self.run_method.visible = run is not None
         d = self.app.results.get("collect")

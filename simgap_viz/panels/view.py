@@ -77,6 +77,16 @@ class ViewPanel(Panel):
                 outl = ["blue: safe set"] + (["green: target"] if getattr(spec, "target", None) is not None else []) \
                     + (["red: obstacles (grown by the robot)"] if getattr(spec, "obstacles", None) else [])
                 rows.append("| outlines | " + ", ".join(outl) + " |")
+        sets = getattr(app, "invariant_drawn", None) or []
+        if sets:
+            from ..results import unproved_sets
+            names = app.system.state_names[:2]
+            col = {"deterministic": "blue", "stochastic": "orange", "nominal": "green"}
+            parts = [f"{col.get(m, 'green')}: {m}" + (" model (no gap)" if m == "nominal" else " gap")
+                     + f", half-widths {hw[0]:.3g}, {hw[1]:.3g}" for m, hw in sets]
+            fails = [m + ("" if s_ is None else f" (gap margin s = {s_:.2g})") for m, s_ in unproved_sets(app.run)]
+            rows.append(f"| invariant sets E | projection onto ({', '.join(names)}), + at x*; " + "; ".join(parts)
+                        + (f"; no set proved: {', '.join(fails)}" if fails else "") + " |")
         if getattr(app.run, "per_run", None) is not None and app.perrun_view["map"]:
             rows.append("| p_cert map | drawn over the winning map (Per run tab: colors, toggle) |")
         rd = app.rollout_drawn

@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import json
 import resource
 import time
 from dataclasses import dataclass, field
@@ -34,19 +33,18 @@ from typing import Optional
 
 import numpy as np
 
-from .. import fileio
 from ..errors import BAD_FILE_ERRORS, SimgapError
 from ..systems import System
 from .abstraction import (COMPOSED_HOLD_LABEL, as_gap, build_abstraction, certified_input_mask, check_hold,
                           describe_gap, growth_function, uncertified_inputs_message)
+from .controller_file import FORMAT, VERSION, check_digest, write_controller
 from .cost import check_synthesis_cost, synthesis_cost, synthesis_cost_text
+from .ellipsoid_controller import EllipsoidController
 from .fixed_point import game_progress
 from .games import METHODS, GameResult, solve_invariance, solve_reach
 from .grid import UniformGrid
 from .spec import Spec
 
-FORMAT = "simgap-controller"
-VERSION = 2
 
 #: systems whose f(x, u) - x and Jacobian growth bound do not depend on these state dimensions
 TRANSLATION_INVARIANT = {"turtlebot": (0, 1), "scots_vehicle": (0, 1)}
@@ -159,24 +157,11 @@ class Controller:
 
     # ----- files -----------------------------------------------------------------------
     def save(self, path) -> Path:
-        """Write the controller as .npz (written to a temp file, then renamed)."""
-        path = Path(path)
-        meta = dict(self.meta)
-        meta.update({"format": FORMAT, "version": VERSION, "kind": self.kind, "hold": self.hold,
-                     "grid": self.grid.describe()})
-        if self.system is not None:
-            meta["system"] = self.system.describe()
-        if self.spec is not None:
-            meta["spec"] = self.spec.to_dict()
-        meta.pop("digest", None)
-        meta = json.loads(json.dumps(meta, default=_json_default))  # the JSON the file holds
+        """Write the controller as .npz (written to a temp file, then renamed; :mod:`.controller_file`)."""
         arrays = dict(steps=self.steps, valid=self.valid_packed, chosen=self.chosen, target=self.target,
                       inputs=self.inputs)
-        meta["digest"] = fileio.content_digest(meta, arrays)
-        self.meta["digest"] = meta["digest"]  # what the file records: rollouts name the controller by it
-        folder = path.parent if str(path.parent) else Path(".")
-        folder.mkdir(parents=True, exist_ok=True)
-        return fileio.savez(path, compressed=True, **arrays, meta=np.array(json.dumps(meta)))
+        self.meta["grid"] = self.grid.describe()
+        return write_controller(path, self.meta, self.kind, self.hold, self.system, self.spec, arrays)
 
     @classmethod
     def load(cls, path, system: Optional[System] = None) -> "Controller":
@@ -197,7 +182,6 @@ class Controller:
                     raise SimgapError(f"controller file version {meta.get('version')} is not supported (need "
                                       f"{VERSION}: files without a content digest are refused; synthesize again)")
                 if meta.get("kind") == "invariant_set":  # u = u* + K (x - x*) on an ellipsoid
-                    from .ellipsoid_controller import EllipsoidController
                     return EllipsoidController.from_arrays(path, z, meta, system)
                 arrays = {k: z[k] for k in ("steps", "valid", "chosen", "target", "inputs")}
         except SimgapError:
@@ -251,21 +235,6 @@ def gap_source(meta: dict) -> tuple:
     if g.get("type") == "Certificate":
         return ("certificate", (g.get("info") or {}).get("digest"))
     return (str(g.get("type", "unknown")), None)
-
-
-def check_digest(path, meta: dict, arrays: dict) -> None:
-    """Refuse a controller file whose meta and arrays no longer match the digest it records."""
-    want = meta.get("digest")
-    have = fileio.content_digest({k: v for k, v in meta.items() if k != "digest"}, arrays)
-    if want != have:
-        raise SimgapError(f"controller file {str(path)!r} was modified after it was written (refused): its "
-                          f"content digest is {have[:16]}... but the file records {str(want)[:16]}...")
-
-
-def _json_default(o):
-    if hasattr(o, "tolist"):
-        return o.tolist()
-    return str(o)
 
 
 def _rebuild_system(d: dict, inputs: np.ndarray) -> Optional[System]:

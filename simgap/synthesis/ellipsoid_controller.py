@@ -16,15 +16,14 @@ digest and refuses an edited file.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Optional
 
 import numpy as np
 
-from .. import fileio
 from ..errors import BAD_FILE_ERRORS, SimgapError
 from ..systems import System
+from .controller_file import check_digest, write_controller
 from .spec import Spec
 
 KIND = "invariant_set"
@@ -130,22 +129,9 @@ class EllipsoidController:
 
     # ----- files -----------------------------------------------------------------------
     def save(self, path) -> Path:
-        """Write the controller as .npz (temp file, then rename)."""
-        from .controller import FORMAT, VERSION, _json_default
-        path = Path(path)
-        meta = dict(self.meta)
-        meta.update({"format": FORMAT, "version": VERSION, "kind": KIND, "hold": self.hold})
-        if self.system is not None:
-            meta["system"] = self.system.describe()
-        if self.spec is not None:
-            meta["spec"] = self.spec.to_dict()
-        meta.pop("digest", None)
-        meta = json.loads(json.dumps(meta, default=_json_default))
+        """Write the controller as .npz (temp file, then rename; :mod:`.controller_file`)."""
         arrays = {"K": self.K, "P": self.P, "x_star": self.x_star, "u_star": self.u_star}
-        meta["digest"] = fileio.content_digest(meta, arrays)
-        self.meta["digest"] = meta["digest"]  # what the file records: rollouts name the controller by it
-        (path.parent if str(path.parent) else Path(".")).mkdir(parents=True, exist_ok=True)
-        return fileio.savez(path, compressed=True, **arrays, meta=np.array(json.dumps(meta)))
+        return write_controller(path, self.meta, KIND, self.hold, self.system, self.spec, arrays)
 
     @classmethod
     def from_arrays(cls, path, z, meta: dict, system: Optional[System] = None) -> "EllipsoidController":
@@ -154,7 +140,6 @@ class EllipsoidController:
             arrays = {k: np.asarray(z[k], dtype=float) for k in ARRAYS}
         except (*BAD_FILE_ERRORS, KeyError) as e:
             raise SimgapError(f"controller file {str(path)!r} is not an invariant-set controller ({e})") from None
-        from .controller import check_digest
         check_digest(path, meta, arrays)
         K, P, xs, us = (arrays[k] for k in ARRAYS)
         n, m = xs.size, us.size

@@ -12,8 +12,13 @@ abstraction's build time (the sample's time per pair), and the peak memory of th
   at most 2^26 pairs): about 4 + n bytes per pair while it is built and 5 per indexed pair;
 * the game and the controller: per cell the labels, steps, chosen input, frontier buffers and
   the packed valid inputs (about 24 + ceil(M / 8) bytes);
-* the worklist game's predecessor lists when there is no corner index: one entry per transition
-  (8 bytes, bounded by :data:`~.fixed_point._WORKLIST_MAX_PAIRS` pairs).
+* the worklist game's predecessor lists when there is no corner index and the game chosen is the
+  worklist (:func:`~.fixed_point.choose_method`: boxes of at most 1.25 x 2^n cells on average with
+  one class per cell, 4 x 2^n with shared boxes, and at most
+  :data:`~.fixed_point._WORKLIST_MAX_PAIRS` pairs): one int32 per transition with one class per
+  cell; with shared boxes one per (class, input, class-dimension index its box covers)
+  (:class:`~.predecessors.Predecessors`), far fewer. Otherwise the summed-area-table game: two
+  int64 tables of the grid.
 
 These are estimates (the sample's boxes stand for all cells); the refusal compares the memory
 with what is available, as collection does.
@@ -85,8 +90,17 @@ def synthesis_cost(system, grid: UniformGrid, gap=None, hold: int = 1, invariant
     abstraction = pairs_stored * (2 * n * width + 1) + (pairs_stored * 4 * n if hold > 1 else 0)
     index = (4 + n + 5) * pairs_stored if not inv and pairs_stored <= CornerIndex.MAX_PAIRS else 0
     game = N * (24 + (M + 7) // 8)
-    if not index and N * M <= _WORKLIST_MAX_PAIRS:
-        game += 8.0 * transitions
+    if not index:  # the game choose_method("auto") picks, and what it keeps beyond the per-cell arrays
+        shared = bool(inv)
+        worklist = N * M <= _WORKLIST_MAX_PAIRS and mean_vol <= (4 if shared else 1.25) * 2 ** n
+        if worklist and shared:
+            cls = [d for d in range(n) if d not in inv]
+            per_pair = float(np.prod(cells_wide[ok][:, cls], axis=1).mean()) if ok.any() and cls else 1.0
+            game += 4.0 * frac * pairs_stored * per_pair
+        elif worklist:
+            game += 4.0 * transitions
+        else:
+            game += 16.0 * N
     memory = BASE_BYTES + abstraction + index + game
     return {"cells": N, "classes": K, "inputs": M, "pairs": N * M, "boxes": boxes, "transitions": transitions,
             "mean_box_cells": mean_vol, "sampled_cells": S, "memory": memory,

@@ -179,9 +179,10 @@ def test_shared_boxes_with_a_wide_gap_are_not_refused():
     from simgap.synthesis.controller import synthesize
     from simgap.synthesis.cost import synthesis_cost
     from simgap.synthesis.grid import UniformGrid
+    from simgap.config import load_experiment
     from simgap.synthesis.spec import Box, Spec
-    from simgap.system_ref import resolve_system
-    s = resolve_system("turtlebot", steps=30)  # the experiment's 0.3 s period
+    s = load_experiment(REPO / "assets" / "experiments" / "turtlebot.toml", "gazebo").system  # 25 inputs, 0.3 s
+    assert len(s.inputs) == 25
     gap = np.array([0.3, 0.3, 0.3])
     big = synthesis_cost(s, UniformGrid(s.x_lo, s.x_hi, [0.05, 0.05, 0.0997331]), gap, 1, (0, 1))
     assert big["mean_box_cells"] > 1000 and big["transitions"] > 1e9, big

@@ -15,6 +15,13 @@ import numpy as np
 
 from simgap.config import load_experiment
 from simgap.simulators import make_simulator
+from simgap.system_file import system_from_spec
+
+
+def with_params(system, params: dict):
+    """The system file's model with some of its [params] replaced (the formulas fold them in when loaded)."""
+    spec = system.params["_system_file"]
+    return system_from_spec({**spec, "params": {**spec.get("params", {}), **params}})
 
 
 def fit(experiment: Path, headings: int = 72):
@@ -40,7 +47,7 @@ def fit(experiment: Path, headings: int = 72):
               np.c_[tau * v * np.sin(th0 + turn / 2), np.sin(th0 + turn) - np.sin(th0)]]
     kv, r = np.linalg.lstsq(A, np.r_[d[:, 0], d[:, 1]], rcond=None)[0]
     gains = {"kv": float(kv), "kw": float(kw), "kwv": float(kwv), "d": float(r)}
-    model = dataclasses.replace(s, params={**s.params, **gains})
+    model = with_params(s, gains)
     gap = y - model.f(x, u)
     gap[:, 2] = (gap[:, 2] + np.pi) % (2 * np.pi) - np.pi
     return gains, np.abs(gap).max(axis=0)

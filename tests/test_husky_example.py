@@ -98,7 +98,7 @@ def test_cone_friction_switches_bullets_friction_model(exp):
 
 
 @pytest.mark.parametrize("value,words", [
-    ("pybullet_data:../../../../etc/passwd", ["no absolute path, no ..", "pybullet_data:../"]),
+    ("pybullet_data:../../../../etc/passwd", ["no absolute path, no ..", "pybullet_data:<path> for a file of the installed pybullet_data", "pybullet_data:../"]),
     ("pybullet_data:husky/no_such.urdf", ["does not exist", "no_such.urdf"]),
 ])
 def test_a_pybullet_data_path_is_confined_and_checked(tmp_path, value, words):

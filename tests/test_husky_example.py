@@ -121,7 +121,7 @@ def test_a_pybullet_data_path_cannot_leave_its_folder(tmp_path):
 
 @pytest.mark.slow
 def test_the_case_study_reaches_the_target_around_the_wall(tmp_path):
-    """The whole run (about 20 min on 2 cores): the stochastic controller wins x0 and none of its
+    """The whole run (7-17 min on 2 shared cores): the stochastic controller wins x0 and none of its
     1000 rollouts hits the wall; both audits pass."""
     r = simgap("run", HUSKY / "experiment.toml", "--profile", "base", "--out", tmp_path / "run", "--no-record",
                cwd=tmp_path, timeout=3600)

@@ -296,12 +296,33 @@ def _model_files(kind: str, options: dict, folder: Path, where: str) -> dict:
             continue
         if not isinstance(options[key], str) or not options[key]:
             raise SimgapError(f"{where}: simulator.options.{key} must be a file name, got {options[key]!r}")
-        p = confined(options[key], folder, f"{where}: simulator.options.{key}")
+        p = _model_path(options[key], folder, f"{where}: simulator.options.{key}")
         if not p.is_file():
             raise SimgapError(f"{where}: simulator.options.{key}: model file {str(p)!r} does not exist")
         options[key] = str(p)
         options[f"{key}_sha256"] = hashlib.sha256(p.read_bytes()).hexdigest()
     return options
+
+
+#: a model-file option starting so names a file of the installed pybullet_data package
+PYBULLET_DATA = "pybullet_data:"
+
+
+def _model_path(value: str, folder: Path, what: str) -> Path:
+    """A model file inside the experiment's folder, or, spelled ``pybullet_data:<path>``, inside the
+    installed ``pybullet_data`` package (PyBullet's robot files, meshes next to them), confined there."""
+    if not value.startswith(PYBULLET_DATA):
+        return confined(value, folder, what)
+    try:
+        import pybullet_data
+    except ImportError:
+        raise SimgapError(f"{what} {value!r} needs the pybullet_data package (installed with pybullet: "
+                          "pip install pybullet)") from None
+    root = Path(pybullet_data.getDataPath()).resolve()
+    p = (root / value[len(PYBULLET_DATA):]).resolve()
+    if not p.is_relative_to(root):
+        raise SimgapError(f"{what} {value!r} leads outside pybullet_data's folder {str(root)!r}")
+    return p
 
 
 def _collect(d: schema.CollectSection, out: Optional[str]) -> CollectSettings:

@@ -40,11 +40,12 @@ def relative_path(value: str) -> str:
 
 
 def urdf_name(value: str) -> str:
-    """A URDF file under ``assets/urdf`` (built-in robots) or in the experiment's folder
-    (``pybullet_urdf``): no absolute path, no ``..``."""
+    """A URDF file under ``assets/urdf`` (built-in robots), in the experiment's folder or, spelled
+    ``pybullet_data:<path>``, in the installed pybullet_data (``pybullet_urdf``): no absolute path, no ``..``."""
     if _escapes(value):
         raise ValueError("must name a file under assets/urdf (built-in robots) or in the experiment's folder "
-                         f"(pybullet_urdf): no absolute path, no .., got {value!r}")
+                         "(pybullet_urdf; or pybullet_data:<path> for a file of the installed pybullet_data): "
+                         f"no absolute path, no .., got {value!r}")
     return value
 
 

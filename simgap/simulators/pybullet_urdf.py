@@ -143,7 +143,7 @@ class UrdfSimulator(BulletSimulator):
     EFFECT_KEYS = ("joint_damping", "actuator_gain")
     OPTION_KEYS = ("urdf", "urdf_sha256", "positions", "velocities", "inputs", "input_map", "input_mode", "max_force",
                    "base_pose", "base_velocity", "driven_start", "base_height", "fixed_base", "ground", "substeps",
-                   "copies", "gravity")
+                   "copies", "gravity", "cone_friction")
     #: options naming a file: resolved against (and confined to) the experiment's folder
     PATH_OPTIONS = ("urdf",)
 
@@ -196,12 +196,17 @@ class UrdfSimulator(BulletSimulator):
         self.base_height = float(op.get("base_height", 0.0))
         self.g = check_std(op.get("gravity", s.params.get("g", 9.81)), "options.gravity")
         self.dt = s.base_tau / self.substeps
+        self.cone_friction = op.get("cone_friction", True)
+        if not isinstance(self.cone_friction, bool):
+            raise SimgapError(f"pybullet_urdf: options.cone_friction must be true or false, got {self.cone_friction!r}")
         self._build(bool(op.get("ground", False)))
 
     # ----- construction ------------------------------------------------------------------
     def _build(self, ground: bool) -> None:
         pb = pybullet_module()
         c = self._client = bullet_client(self.dt, self.g, deterministic_pairs=ground)
+        if not self.cone_friction:  # Bullet's pyramid approximation: two friction directions per contact
+            c.setPhysicsEngineParameter(enableConeFriction=0)
         self._pb, self._cid = pb, c._client
         flags = pb.URDF_USE_INERTIA_FROM_FILE
         try:

@@ -256,8 +256,9 @@ def text_table(table: dict) -> str:
     if not table["rows"]:
         lines.append("(no finished point)")
     for p in table["projected_not_run"]:
+        why = "--project-only" if p.get("project_only") else f"> {p['max_hours']:g} h"
         lines.append(f"not run: noise {p['level']:g}, N1hat {p['n1hat']}: projected {p['hours']:.1f} h "
-                     f"> {p['max_hours']:g} h ({p['how']})")
+                     f"({why}; {p['how']})")
     return "\n".join(lines)
 
 
@@ -351,7 +352,13 @@ def write_outputs(out: Path, projections: list, plot: bool = True) -> dict:
     """Rewrite OUT/separation.json from the finished points; print the text table; draw the figure."""
     from simgap import fileio
 
-    table = build_table(out, projections)
+    # projections of earlier calls stay until their point is run (a call covers only its own points)
+    prev = (read_json(Path(out) / TABLE) or {}).get("projected_not_run") or []
+    keep = {(p["level"], p["n1hat"]): p for p in prev if isinstance(p, dict) and "level" in p and "n1hat" in p}
+    keep.update({(p["level"], p["n1hat"]): p for p in projections})
+    table = build_table(out, [])
+    done = {(r["level"], r["n1hat"]) for r in table["rows"]}
+    table["projected_not_run"] = [p for k, p in sorted(keep.items()) if k not in done]
     fileio.write_json(Path(out) / TABLE, table)
     print(text_table(table), flush=True)
     if plot and table["rows"]:
@@ -374,6 +381,9 @@ def main(argv=None) -> int:
                     help="pairs for Lhat_fhat (default: the profile's 300); reduced runs only")
     ap.add_argument("--max-hours", type=float, default=2.0, help="points projected longer are not run (default 2)")
     ap.add_argument("--table-only", action="store_true", help="only rebuild the table and figure from --out")
+    ap.add_argument("--project-only", action="store_true",
+                    help="run nothing: add the points' projected wall times to the table (kept beside the finished "
+                         "points' rows) and rebuild it")
     ap.add_argument("--no-figure", action="store_true")
     a = ap.parse_args(argv)
     bad = [lv for lv in a.levels if not (math.isfinite(lv) and 0 <= lv <= 5)]
@@ -425,10 +435,11 @@ def main(argv=None) -> int:
             continue
         rate, stages, how = calibration(out, n_pairs)
         sec = project_seconds(n_pairs, n, a.rollouts, len(left), left_to_collect(folder, left), rate, stages)
-        if sec > a.max_hours * 3600:
+        if sec > a.max_hours * 3600 or a.project_only:
             projections.append({"level": lv, "n1hat": n, "hours": round(sec / 3600, 2), "max_hours": a.max_hours,
-                                "how": how})
-            print(f"[{point_name(lv, n)}] projected {sec / 3600:.1f} h > {a.max_hours:g} h: not run", flush=True)
+                                "how": how, "project_only": bool(a.project_only and sec <= a.max_hours * 3600)})
+            print(f"[{point_name(lv, n)}] projected {sec / 3600:.1f} h" + ("" if a.project_only else
+                  f" > {a.max_hours:g} h") + ": not run", flush=True)
             continue
         print(f"[{point_name(lv, n)}] noise {cfg['simulator']['noise']}, randomize {cfg['simulator']['randomize']}; "
               f"projected {sec / 60:.0f} min ({how})", flush=True)

@@ -144,6 +144,22 @@ def test_points_projected_over_the_limit_are_not_run(sep, tmp_path, monkeypatch)
     assert "not run: noise 0.5, N1hat 1000" in sep.text_table(table)
 
 
+
+def test_project_only_runs_nothing_and_later_calls_keep_its_projections(sep, tmp_path, monkeypatch):
+    """--project-only records projections without running; a later call for other points keeps them
+    (fails if each call's table replaced the earlier calls' projections)."""
+    import simgap.pipeline as pipeline
+    monkeypatch.setattr(pipeline, "run_experiment", lambda *a, **k: pytest.fail("--project-only ran a point"))
+    out = tmp_path / "scan"
+    assert sep.main(["--out", str(out), "--levels", "0.5", "--n1hat", "400", "--project-only", "--no-figure"]) == 0
+    assert sep.main(["--out", str(out), "--levels", "1", "--n1hat", "1000", "--project-only", "--no-figure"]) == 0
+    table = json.loads((out / sep.TABLE).read_text())
+    assert [(p["level"], p["n1hat"]) for p in table["projected_not_run"]] == [(0.5, 400), (1.0, 1000)]
+    assert all(p["project_only"] for p in table["projected_not_run"])
+    assert "(--project-only;" in sep.text_table(table)
+    assert sep.main(["--out", str(out), "--table-only", "--no-figure"]) == 0
+    assert len(json.loads((out / sep.TABLE).read_text())["projected_not_run"]) == 2
+
 def test_bad_arguments_are_refused_by_name(sep, tmp_path, capsys):
     assert sep.main(["--out", str(tmp_path / "o"), "--levels", "-1"]) == 2
     assert "noise levels" in capsys.readouterr().err

@@ -8,6 +8,9 @@ Entities (``<m>`` a method, ``<s>`` a state name; :func:`entity_paths` lists the
 * ``world/X``, ``world/obstacles``, ``world/target``, ``world/safe`` -- Boxes3D of X and the specification;
 * ``world/<m>/winning`` -- Boxes3D of the winning cells (merged over the projected dimensions,
   colored red -> green by the fraction of winning cells);
+* ``world/<m>/invariant_set`` -- an invariant-set controller's E projected onto (x1, x2) (its
+  shadow, :meth:`~simgap.synthesis.ellipsoid_controller.EllipsoidController.projection_outline`),
+  a LineStrips3D in the method's color (the nominal model's set under ``world/nominal``);
 * ``world/<m>/rollouts/paths`` -- every rollout as one LineStrips3D (failures red), static;
 * ``world/<m>/rollouts/mean_map`` -- the mean map m+ = E fhat(m, u(m)), the sequence the
   guarantee is about (magenta); ``.../mean`` the average of the rollouts (yellow) and
@@ -41,7 +44,7 @@ from .layers import geometry as G
 # surface color per method (other names cycle through the dimension colors)
 METHOD_COLORS = {"stochastic": (230, 120, 40), "deterministic": (70, 130, 230)}
 MAGENTA = (220, 40, 200)
-STAGES = ("dataset", "certificate", "synthesis", "rollouts")
+STAGES = ("dataset", "certificate", "synthesis", "rollouts", "invariant_set")
 
 
 def method_color(name: str, i: int = 0):
@@ -194,6 +197,11 @@ def record_run(out: str | Path, system, *, dataset=None, certificate=None, spec=
             if st["synthesis"] is not None:
                 info["winning_cells"][m] = _log_winning(log, rr, system, m, st["synthesis"])
                 md += [engine.synthesis_markdown(st["synthesis"]), ""]
+            if st["invariant_set"] is not None and system.n >= 2:
+                outline = st["invariant_set"].projection_outline((0, 1))
+                log(f"world/{m}/invariant_set", rr.LineStrips3D([_xy0(outline)], colors=[method_color(m, k)],
+                                                               radii=rr.Radius.ui_points(2.5)))
+                md += [st["invariant_set"].summary(), ""]
             for i, name in enumerate(system.state_names):
                 _log_gamma(log, rr, info, f"gamma/{m}/{name}", layers[m][i], tops[i], method_color(m, k),
                            G.variable_names(system), fixed, su[i])

@@ -163,7 +163,7 @@ def _ellipsoid_run(P, x_star, with_rollouts=True):
     res = types.SimpleNamespace(invariant_set=ctrl, rollouts=ro)
     summary = {"methods": {"stochastic": {"winning_cells": 0, "synthesis": {"gap_scale": 0.0047}},
                            "nominal": {"winning_cells": 1}}}
-    return types.SimpleNamespace(experiment=types.SimpleNamespace(system=s), methods={}, nominal=res,
+    return types.SimpleNamespace(experiment=types.SimpleNamespace(system=s), system=s, methods={}, nominal=res,
                                  summary=summary, path=None), ctrl
 
 

@@ -129,6 +129,29 @@ def test_gamma_heights_share_one_scale_across_methods(tmp_path, run_results):
     assert np.isclose(z["b"].max(), 1.0) and np.allclose(z["b"], 2 * z["a"], rtol=1e-5)
 
 
+
+def test_record_draws_the_invariant_sets_projection(tmp_path):
+    """An invariant-set method's E is drawn on the map as its projection onto (x1, x2): the outline's
+    extent is x* +- sqrt((P^-1)_ii) (a slice through x* would be narrower for this correlated P)."""
+    from simgap.synthesis.ellipsoid_controller import EllipsoidController
+    from simgap.systems import System
+    from simgap_viz.record import read_back, record_run
+
+    s = System(name="e3", state_names=("a", "b", "c"), input_names=("u",), x_lo=np.array([-2.0, -2.0, -2.0]),
+               x_hi=np.array([2.0, 2.0, 2.0]), inputs=np.zeros((1, 1)), base_tau=0.1, step=lambda x, u: x)
+    P = np.array([[4.0, 3.0, 0.5], [3.0, 4.0, 0.0], [0.5, 0.0, 2.0]])
+    x_star = np.array([0.3, -0.2, 0.0])
+    ctrl = EllipsoidController(x_star, [0.0], np.zeros((1, 3)), P, system=s)
+    out = tmp_path / "inv.rrd"
+    info = record_run(out, s, methods={"nominal": {"invariant_set": ctrl}})
+    assert "world/nominal/invariant_set" in info["entities"]
+    rb = read_back(out)
+    pts = np.asarray(rb["/world/nominal/invariant_set"]["chunks"][0].column("LineStrips3D:strips").to_pylist()[0][0])
+    half = np.sqrt(np.diag(np.linalg.inv(P)))[:2]
+    np.testing.assert_allclose(pts[:, :2].max(axis=0), x_star[:2] + half, rtol=1e-3)
+    np.testing.assert_allclose(pts[:, :2].min(axis=0), x_star[:2] - half, rtol=1e-3)
+    assert np.all(half > 1 / np.sqrt(np.diag(P))[:2] * 1.2)  # the slice would be visibly narrower
+
 def test_record_partial_and_bad_paths(tmp_path, run_results):
     from simgap_viz.record import read_back, record_run
 

@@ -85,5 +85,7 @@ def _record(exp, out: Path):
     run = load_run(out)
     spec, _, _ = experiment_spec(exp)
     methods = {m: run.methods[m] for m in ("deterministic", "stochastic") if m in run.methods}
+    if run.nominal is not None:  # an invariant-set run's nominal-model set and rollouts
+        methods["nominal"] = run.nominal
     record_run(out / "run.rrd", exp.system, spec=spec, methods=methods)
     return out / "run.rrd"

@@ -276,8 +276,12 @@ def markdown_table(table: dict) -> str:
                      f"{'yes' if s['x0_won'] else 'no'} | {_fmt_fail(s) if s['x0_won'] else '-'} | {gd} | {gs} | "
                      f"{ca} | {d['audit_pass_joint']:.2f} / {s['audit_pass_joint']:.2f} | "
                      f"{r['seconds'] / 60:.1f} min |")
+    groups: dict = {}  # one row per N1hat and projected time: the levels listed together
     for p in table["projected_not_run"]:
-        lines.append(f"| {p['level']:g} | {p['n1hat']} | both | not run: projected {p['hours']:.1f} h | | | | | | | |")
+        groups.setdefault((p["n1hat"], round(p["hours"], 1)), []).append(p["level"])
+    for (n, h), lvs in sorted(groups.items()):
+        lines.append(f"| {', '.join(f'{lv:g}' for lv in sorted(lvs))} | {n} | both | not run: projected {h:.1f} h "
+                     f"per level | | | | | | | |")
     return "\n".join(lines)
 
 

@@ -230,3 +230,15 @@ def test_projection_counts_only_what_is_left(sep, tmp_path):
     assert full == pytest.approx(262.5 + 180.0)
     assert sep.project_seconds(2625, 100, 1000, 2, 0.25, 1000.0, 90.0) == pytest.approx(262.5 / 4 + 180.0)
     assert sep.project_seconds(2625, 100, 200, 1, 0.0, 1000.0, 90.0) == pytest.approx(90.0 * (0.4 + 0.12))
+
+
+def test_the_readme_table_is_the_committed_scan():
+    """README's separation table is made from bench/results/turtlebot-separation/separation.json (the
+    scan's own output, committed): a hand edit of either makes this fail."""
+    spec = importlib.util.spec_from_file_location("readme_numbers", ROOT / "bench" / "readme_numbers.py")
+    rn = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(rn)
+    scan = ROOT / "bench" / "results" / "turtlebot-separation"
+    assert rn.main([str(scan), "--check"]) == 0
+    table = json.loads((scan / "separation.json").read_text())
+    assert table["rows"] and all(r["stochastic"]["audit_pass_joint"] == 1.0 for r in table["rows"])

@@ -36,6 +36,10 @@ METHOD_STYLE = {"deterministic": "tab:blue", "stochastic": "tab:orange",  # one 
                 "nominal": "tab:green"}  # an invariant-set run's nominal model (no gap)
 MEAN_MAP, AVERAGE = dict(color="k", lw=1.0), dict(color="0.35", lw=0.8, ls=(0, (3, 2)))
 FORMATS = ("png", "pdf")
+#: every figure simgap plot writes (stems; one file per format)
+FIGURES = ("trajectories", "states_time", "gamma_slices", "invariant_sets", "p_cert")
+#: the figures folder's own list of what simgap plot wrote there, with sha256 (what it may replace)
+FIGURE_LIST = ".simgap-figures.json"
 # figure sizes [in] and fonts [pt]: "paper" fits a two-column paper's text width (7 in; a panel per
 # method is one column wide), "slide" a 16:9 slide
 STYLES = {"paper": {"width": 7.0, "row": 2.4, "font": 8, "small": 6.5, "dpi": 300},
@@ -543,6 +547,7 @@ def plot_run(path, out_dir=None, max_drawn: int = 1000, style: str = "paper") ->
     if not out.parent.is_dir():
         raise SimgapError(f"folder {str(out.parent)!r} does not exist")
     spec = run_spec(run)[0]
+    _check_replaceable(out)  # before anything is drawn or written
     out.mkdir(exist_ok=True)
     written = []
     written += trajectories(run, spec, out, max_drawn, style=style)
@@ -550,4 +555,41 @@ def plot_run(path, out_dir=None, max_drawn: int = 1000, style: str = "paper") ->
     written += gamma_slices(run, out, style=style)
     written += invariant_sets(run, spec, out, max_drawn, style=style)
     written += p_cert(run, out, style=style)
+    _list_figures(out, written)
     return written
+
+
+def _check_replaceable(out: Path) -> None:
+    """Refuse to write figures into ``out`` over files simgap plot did not write there: a figure
+    name present but not listed in ``out``/FIGURE_LIST with its current sha256 (a user's own file, or
+    one changed since) is named, and nothing is written."""
+    from simgap.file_guard import printable, read_json
+    from simgap.results_folder import file_digest
+    if not out.is_dir():
+        return
+    try:
+        listed = read_json(out / FIGURE_LIST, "figure list") if (out / FIGURE_LIST).is_file() else {}
+    except SimgapError:
+        listed = {}
+    listed = listed.get("files", {}) if isinstance(listed, dict) and isinstance(listed.get("files"), dict) else {}
+    foreign = [n for n in (f"{s}.{e}" for s in FIGURES for e in FORMATS)
+               if (out / n).exists() and ((out / n).is_symlink() or not (out / n).is_file()
+                                          or listed.get(n) != file_digest(out / n))]
+    if foreign:
+        raise SimgapError(f"{str(out)!r} holds file(s) simgap plot would overwrite that it did not write there (or "
+                          f"that changed since): {', '.join(printable(n) for n in foreign)}. Nothing was written; "
+                          "move them away or give another --out")
+
+
+def _list_figures(out: Path, written: list) -> None:
+    """Add the figures just written to ``out``/FIGURE_LIST with their sha256."""
+    from simgap import fileio
+    from simgap.file_guard import read_json
+    from simgap.results_folder import file_digest
+    try:
+        d = read_json(out / FIGURE_LIST, "figure list") if (out / FIGURE_LIST).is_file() else {}
+    except SimgapError:
+        d = {}
+    files = d.get("files", {}) if isinstance(d, dict) and isinstance(d.get("files"), dict) else {}
+    files.update({Path(p).name: file_digest(Path(p)) for p in written})
+    fileio.write_json(out / FIGURE_LIST, {"format": "simgap-figures", "files": files})

@@ -9,6 +9,8 @@ import types
 import numpy as np
 import pytest
 
+from simgap.errors import SimgapError
+
 from test_viz_results import run_dir  # noqa: F401  (the tiny real run folder, module-scoped fixture)
 
 
@@ -71,6 +73,17 @@ def test_plot_run_figures(run_dir, tmp_path, captured):  # noqa: F811
         else:
             assert p.read_bytes()[:5] == b"%PDF-"
     assert not list((tmp_path / "fig").glob(".*tmp*"))
+    # a figure file simgap plot did not write (or that changed since) is never overwritten: refused
+    # before anything is drawn; its own earlier figures are replaced on a re-plot
+    mine = tmp_path / "fig" / "states_time.pdf"
+    mine.write_bytes(b"a user's own file")
+    before = {q.name: q.stat().st_mtime_ns for q in (tmp_path / "fig").iterdir()}
+    with pytest.raises(SimgapError, match="states_time.pdf"):
+        plot_run(run_dir, tmp_path / "fig")
+    assert mine.read_bytes() == b"a user's own file"
+    assert {q.name: q.stat().st_mtime_ns for q in (tmp_path / "fig").iterdir()} == before
+    mine.unlink()
+    assert {q.name for q in plot_run(run_dir, tmp_path / "fig")} == names
 
     for name, f in captured.items():
         assert f["overlaps"] == [], (name, f["overlaps"])  # no two labels drawn over each other

@@ -66,7 +66,8 @@ def test_plot_draws_the_stage_outputs_of_a_folder(stages, capsys, tmp_path):
     rc, out, err = _cli(capsys, "plot", stages, "--out", tmp_path / "f", "--style", "slide", "--max-drawn", "20")
     assert rc == 0, err
     assert {p.name for p in (tmp_path / "f").iterdir()} == {f"{n}.{e}" for n in ("trajectories", "states_time",
-                                                                                  "gamma_slices") for e in ("png", "pdf")}
+                                                                                  "gamma_slices") for e in ("png", "pdf")
+                                                            } | {".simgap-figures.json"}  # what plot wrote there
     assert "certificate: " + str(stages / "cert.json") in out and "2," in out  # winning cells, thousands
     assert "rollouts: " in out and "50 rollouts, 0 failed" in out
     assert "report.json is a rollout report (JSON)" in out
@@ -75,7 +76,7 @@ def test_plot_draws_the_stage_outputs_of_a_folder(stages, capsys, tmp_path):
 def test_plot_draws_what_is_there_and_names_what_is_absent(stages, capsys, tmp_path):
     rc, out, err = _cli(capsys, "plot", "--cert", stages / "cert.json", "--out", tmp_path / "g")
     assert rc == 0, err
-    assert sorted(p.name for p in (tmp_path / "g").iterdir()) == ["gamma_slices.pdf", "gamma_slices.png"]
+    assert sorted(p.name for p in (tmp_path / "g").iterdir()) == [".simgap-figures.json", "gamma_slices.pdf", "gamma_slices.png"]
     for role in ("data set", "controller", "rollouts"):
         assert f"{role}: absent (written by `simgap" in out, role
     # a controller alone has nothing these figures draw: refused, nothing written

@@ -307,8 +307,12 @@ def crn_pair_means(sim, x1, x2, u1, u2, runs: int, rng: np.random.Generator, inc
         nxt = sim.step_with_noise(X, U, noise)
     else:
         nxt = sim.step_with_noise_in_parts(X, U, noise, lambda done: on_progress(done, X.shape[0]))
-    base = (s.diff(nxt, X) if increment else nxt).reshape(2, P, runs, s.n)
+    # average per-run increments, wrapped one run at a time: a plain mean of wrapped angles is
+    # wrong by up to pi where the runs' next angles straddle the seam (+-pi)
+    base = s.diff(nxt, X).reshape(2, P, runs, s.n)
     m = base.mean(axis=2)
+    if not increment:  # the mean next state, unwrapped about x (s.diff of two of them wraps)
+        m = m + np.stack([x1, x2])
     if not spread:
         return m[0], m[1]
     d = s.diff(base[1], base[0])

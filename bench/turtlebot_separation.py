@@ -51,6 +51,9 @@ SEPARATION_DET = 0.02  # the deterministic-gap controller collides in >= 20 of 1
 # ... while the stochastic certificate wins x0 and its controller collides in 0
 IDLE_RUNS_PER_S = 1790.0  # simulator runs (30 physics steps each) per second on 2 idle cores (docs/case-studies.md)
 IDLE_STAGES_S = 90.0  # certify + audit + synthesize + 1000 rollouts of both methods, one term, idle (the gazebo run)
+# constant gaps (x, y, theta) that win x0 on the gazebo profile's grid and map (`simgap synthesize
+# --gamma`, docs/case-studies.md): what a stochastic certificate has to reach
+WIN_GAMMAS = ((0.0121, 0.0122, 0.2), (0.05, 0.05, 0.1))
 TABLE = "separation.json"
 FIGURE = "separation"
 
@@ -202,7 +205,77 @@ def row_from(summary: dict, config: dict, term: str) -> dict:
                   "audit_pass_per_dim": e["audit_pass_rate_per_dim"],
                   "closest_approach": e.get("closest_approach")}
     row["separation"] = separation(row)
+    row["budget"] = None
     return row
+
+
+FRONTIER = "frontier.json"
+FRONTIER_THETAS = (0.05, 0.075, 0.1, 0.125, 0.15, 0.2, 0.25, 0.3)  # rad per sampling period
+
+
+def win_frontier(thetas=FRONTIER_THETAS, xy_max: float = 0.1, tol: float = 0.0005, log=print) -> dict:
+    """For each constant heading gap gamma_theta: the largest equal gamma_x = gamma_y [m] with which
+    the gazebo profile's synthesis (grid, map, hold, x0) still wins x0, by bisection (a larger gap
+    only shrinks the winning domain). Each synthesis is the pipeline's, with a constant gap."""
+    import numpy as np
+
+    from simgap.config import load_experiment
+    from simgap.pipeline import check_experiment
+    from simgap.synthesis.controller import synthesize
+
+    exp = load_experiment(EXPERIMENT, BASE)
+    c = check_experiment(exp)
+    eta, hold, x0 = np.asarray(c["eta"], float), c["hold"], np.asarray(c["x0"], float)
+    t0 = time.perf_counter()
+    n_syn = 0
+
+    def wins(gxy: float, gth: float) -> bool:
+        nonlocal n_syn
+        n_syn += 1
+        res = synthesize(exp.system, c["spec"], eta, gap=np.array([gxy, gxy, gth]), hold=hold, x0=x0)
+        return (not res.empty) and bool(res.controller.winning(x0[None])[0])
+
+    rows = []
+    for gth in thetas:
+        lo, hi = 0.0, xy_max
+        if not wins(lo, gth):
+            rows.append({"gamma_theta": gth, "gamma_xy_max": None})
+            log(f"frontier: gamma_theta {gth:g}: x0 lost even with gamma_x = gamma_y = 0")
+            continue
+        while hi - lo > tol:
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if wins(mid, gth) else (lo, mid)
+        rows.append({"gamma_theta": gth, "gamma_xy_max": lo})
+        log(f"frontier: gamma_theta {gth:g}: x0 won up to gamma_x = gamma_y = {lo:.4f} m (lost at {hi:.4f})")
+    return {"experiment": str(EXPERIMENT.relative_to(ROOT)), "profile": BASE, "x0": x0.tolist(), "eta": eta.tolist(),
+            "tolerance": tol, "rows": rows, "syntheses": n_syn, "seconds": round(time.perf_counter() - t0, 1)}
+
+
+def budget(cert: dict, term: str) -> dict:
+    """What the stochastic certificate's gamma max is made of, per dimension, from its own file:
+    gamma = observed gap max + (delta_1 + delta_2) + Lipschitz term (the smaller of the two terms
+    with the gap's own, docs/certify.md), with Mhat the largest sample variance."""
+    dims = cert["dims"]
+    lip = [min(d["scp"]["lipschitz_terms"].values()) if term == "gap" else d["L_x"] * cert["epsilon"] for d in dims]
+    return {"n1hat": int(cert["n_runs"]), "gap_max": [d["gap_max"] for d in dims],
+            "delta": [d["delta1"] + d["delta2"] for d in dims], "lipschitz": lip, "Mhat": [d["Mhat"] for d in dims]}
+
+
+def n1hat_needed(b: dict, gammas=WIN_GAMMAS) -> float:
+    """The smallest N1hat at which the certificate could reach one of ``gammas`` (constant gaps that
+    win x0) in the best case: the observed gap all sampling noise (the gap's true mean 0), so that it
+    shrinks as 1 / sqrt(N1hat) with delta_1 + delta_2; the Lipschitz term does not shrink. inf if a
+    target is not above it (:func:`best_case_gamma`)."""
+    best = math.inf
+    for g in gammas:
+        need = 0.0
+        for target, gap, d, lip in zip(g, b["gap_max"], b["delta"], b["lipschitz"]):
+            if target <= lip:
+                need = math.inf
+                break
+            need = max(need, b["n1hat"] * ((gap + d) / (target - lip)) ** 2)
+        best = min(best, need)
+    return best
 
 
 def separation(row: dict) -> bool:
@@ -215,6 +288,8 @@ def separation(row: dict) -> bool:
 
 def build_table(out: Path, projections: list) -> dict:
     """The JSON table of every finished (point, term) under ``out`` plus the projections not run."""
+    fr = read_json(Path(out) / FRONTIER)
+    gammas = win_gammas(fr)
     rows = []
     for pj in sorted(Path(out).glob("noise*_n*/point.json")):
         cfg = read_json(pj)
@@ -223,10 +298,23 @@ def build_table(out: Path, projections: list) -> dict:
         for term in TERMS:
             if finished(pj.parent / term, cfg, term):
                 rows.append(row_from(read_json(pj.parent / term / "summary.json"), cfg, term))
+                cert = read_json(pj.parent / term / "cert_stochastic.json")
+                if isinstance(cert, dict):
+                    rows[-1]["budget"] = budget(cert, term)
+                    rows[-1]["n1hat_needed"] = n1hat_needed(rows[-1]["budget"], gammas)
     rows.sort(key=lambda r: (r["n1hat"], TERMS.index(r["term"]), r["level"]))
     return {"experiment": str(EXPERIMENT.relative_to(ROOT)), "base_profile": BASE, "stress_profile": STRESS,
             "paper": PAPER, "separation_rule": f"deterministic >= {SEPARATION_DET * 1000:g} / 1000, stochastic wins "
-            "x0 with 0 collisions", "rows": rows, "projected_not_run": projections}
+            "x0 with 0 collisions", "rows": rows, "projected_not_run": projections,
+            "frontier": fr if isinstance(fr, dict) else None, "win_gammas": [list(g) for g in gammas]}
+
+
+def win_gammas(frontier) -> list:
+    """Constant gaps known to win x0: the frontier's (gamma_xy, gamma_xy, gamma_theta), else WIN_GAMMAS."""
+    rows = (frontier or {}).get("rows") if isinstance(frontier, dict) else None
+    got = [(r["gamma_xy_max"], r["gamma_xy_max"], r["gamma_theta"]) for r in rows or []
+           if r.get("gamma_xy_max") is not None]
+    return got or list(WIN_GAMMAS)
 
 
 def _fmt_fail(e: dict) -> str:
@@ -282,7 +370,43 @@ def markdown_table(table: dict) -> str:
     for (n, h), lvs in sorted(groups.items()):
         lines.append(f"| {', '.join(f'{lv:g}' for lv in sorted(lvs))} | {n} | both | not run: projected {h:.1f} h "
                      f"per level | | | | | | | |")
+    rows = [r for r in table["rows"] if r.get("budget")]
+    fr = table.get("frontier")
+    wins = ("the constant gaps in the frontier table below" if fr else
+            " or ".join(str(tuple(g)) for g in table.get("win_gammas") or WIN_GAMMAS))
+    if rows:
+        lines += ["", "What the stochastic certificate's gamma max is made of (the larger of x and y / theta, from "
+                  "its file): gamma = observed gap + (delta_1 + delta_2) + Lipschitz term. The last column is the "
+                  f"N1hat at which it could reach a gap that wins x0 ({wins}) in the best case: the gap's true "
+                  "mean 0, so that the observed gap (then sampling noise) shrinks as 1 / sqrt(N1hat) with delta; "
+                  "the Lipschitz term does not.", "",
+                  "| noise level | N1hat | gap term | gamma max [m / rad] | observed gap | delta_1 + delta_2 | "
+                  "Lipschitz term | Mhat [m^2 / rad^2] | N1hat to win x0, best case |",
+                  "|---|---|---|---|---|---|---|---|---|"]
+        for r in rows:
+            b = r["budget"]
+
+            def xt(v, f=".3g"):
+                return f"{max(v[0], v[1]):{f}} / {v[2]:{f}}"
+            gam = [g + d + lip for g, d, lip in zip(b["gap_max"], b["delta"], b["lipschitz"])]
+            need = r["n1hat_needed"]
+            lines.append(f"| {r['level']:g} | {r['n1hat']} | {r['term']} | {xt(gam)} | {xt(b['gap_max'])} | "
+                         f"{xt(b['delta'])} | {xt(b['lipschitz'], '.2g')} | {xt(b['Mhat'], '.2g')} | "
+                         + ("won" if r["stochastic"]["x0_won"] else "never" if math.isinf(need)
+                            else f"{_round2(need):,}") + " |")
+    if fr:
+        lines += ["", f"Constant gaps that win x0 (`--frontier`: {fr['syntheses']} syntheses of the {fr['profile']} "
+                  f"profile's grid and map, bisection to {fr['tolerance']:g} m, {fr['seconds'] / 60:.1f} min):", "",
+                  "| gamma_theta [rad] | largest gamma_x = gamma_y winning x0 [m] |", "|---|---|"]
+        lines += [f"| {r['gamma_theta']:g} | " + ("none (lost at 0)" if r["gamma_xy_max"] is None
+                                                   else f"{r['gamma_xy_max']:.4f}") + " |" for r in fr["rows"]]
     return "\n".join(lines)
+
+
+def _round2(n: float) -> int:
+    """n rounded up to two significant digits (an estimate: no more digits than it has)."""
+    e = 10 ** max(0, int(math.floor(math.log10(max(n, 1.0)))) - 1)
+    return int(math.ceil(n / e) * e)
 
 
 def figure(table: dict, out_dir: Path, name: str = FIGURE) -> list:
@@ -352,6 +476,76 @@ def figure(table: dict, out_dir: Path, name: str = FIGURE) -> list:
     return save(fig, Path(out_dir), name)
 
 
+def best_case_gamma(b: dict, n1hat) -> "np.ndarray":
+    """gamma max per dimension at N1hat = ``n1hat`` values, (len, 3), in :func:`n1hat_needed`'s best
+    case: the observed gap and delta_1 + delta_2 scaled by sqrt(N1hat_0 / N1hat), plus the Lipschitz term."""
+    import numpy as np
+    n = np.asarray(n1hat, float)[:, None]
+    s = (np.asarray(b["gap_max"], float) + np.asarray(b["delta"], float))[None]
+    return s * np.sqrt(b["n1hat"] / n) + np.asarray(b["lipschitz"], float)[None]
+
+
+def budget_figure(table: dict, out_dir: Path, name: str = FIGURE + "_gamma") -> list:
+    """The stochastic certificates' (gamma_xy, gamma_theta) against the constant gaps that win x0,
+    with each N1hat-100 certificate's best-case path as N1hat grows (from the JSON table alone)."""
+    import numpy as np
+
+    from simgap_viz.figures import _plt, save
+
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(7.5, 5.2))
+    rows = [r for r in table["rows"] if r.get("budget") and r["term"] == "gap"]
+    levels = sorted({r["level"] for r in rows})
+    cmap = plt.get_cmap("viridis")
+    color = {lv: cmap(i / max(1, len(levels) - 1)) for i, lv in enumerate(levels)}
+    fr = table.get("frontier")
+    if fr:
+        pts = sorted((r["gamma_theta"], r["gamma_xy_max"]) for r in fr["rows"] if r["gamma_xy_max"] is not None)
+        if pts:
+            th = np.array([p[0] for p in pts])
+            xy = np.array([p[1] for p in pts])
+            ax.fill_betweenx(th, 1e-4, xy, step="post", color="tab:green", alpha=0.15, lw=0,
+                             label="constant gaps that win x0 (synthesis)")
+            ax.step(xy, th, where="post", color="tab:green", lw=1.2)
+    for g in (table.get("win_gammas") or []) if not fr else []:
+        ax.plot(max(g[0], g[1]), g[2], "g*", ms=9)
+    markers = {100: "o", 400: "s", 1000: "D", 2000: "^"}
+    grid = np.geomspace(100, 20000, 200)
+    for r in rows:
+        b = r["budget"]
+        gam = np.array(b["gap_max"]) + np.array(b["delta"]) + np.array(b["lipschitz"])
+        c = color[r["level"]]
+        ax.plot(max(gam[0], gam[1]), gam[2], marker=markers.get(r["n1hat"], "v"), color=c, ms=7, ls="none",
+                mec="k", mew=0.5)
+        if r["n1hat"] == min(x["n1hat"] for x in rows if x["level"] == r["level"]) and not r["stochastic"]["x0_won"]:
+            path = best_case_gamma(b, grid)
+            ax.plot(np.maximum(path[:, 0], path[:, 1]), path[:, 2], ls=":", color=c, lw=1.0)
+            for n in (1000, 10000):
+                p = best_case_gamma(b, [n])[0]
+                ax.plot(max(p[0], p[1]), p[2], marker="|", color=c, ms=8)
+                if r["level"] == levels[-1]:
+                    ax.annotate(f"N1hat {n:,}", (max(p[0], p[1]), p[2]), xytext=(4, 2), textcoords="offset points",
+                                fontsize=7, color="0.3")
+    for lv in levels:
+        ax.plot([], [], "s", color=color[lv], label=f"noise level {lv:g}")
+    for n in sorted({r["n1hat"] for r in rows}):
+        ax.plot([], [], marker=markers.get(n, "v"), color="0.5", ls="none", label=f"N1hat {n} (measured)")
+    ax.plot([], [], ":", color="0.4", label="best case as N1hat grows (true mean gap 0)")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlim(0.005, 0.3)
+    ax.set_ylim(0.02, 1.5)
+    ax.set_xlabel("stochastic gamma max, larger of x and y [m per 0.3 s]")
+    ax.set_ylabel("stochastic gamma max, heading [rad per 0.3 s]")
+    ax.set_title("TurtleBot: the stochastic certificate (gap's Lipschitz term) against the gaps that win x0",
+                 fontsize=10)
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    fig.tight_layout()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    return save(fig, Path(out_dir), name)
+
+
 def write_outputs(out: Path, projections: list, plot: bool = True) -> dict:
     """Rewrite OUT/separation.json from the finished points; print the text table; draw the figure."""
     from simgap import fileio
@@ -367,6 +561,8 @@ def write_outputs(out: Path, projections: list, plot: bool = True) -> dict:
     print(text_table(table), flush=True)
     if plot and table["rows"]:
         print("figure: " + ", ".join(str(p) for p in figure(table, Path(out))), flush=True)
+        if any(r.get("budget") for r in table["rows"]):
+            print("figure: " + ", ".join(str(p) for p in budget_figure(table, Path(out))), flush=True)
     return table
 
 
@@ -388,6 +584,9 @@ def main(argv=None) -> int:
     ap.add_argument("--project-only", action="store_true",
                     help="run nothing: add the points' projected wall times to the table (kept beside the finished "
                          "points' rows) and rebuild it")
+    ap.add_argument("--frontier", action="store_true",
+                    help="only find which constant gaps win x0 (bisection over gamma_x = gamma_y per gamma_theta, "
+                         "syntheses only, no simulation) into OUT/frontier.json, then rebuild the table")
     ap.add_argument("--no-figure", action="store_true")
     a = ap.parse_args(argv)
     bad = [lv for lv in a.levels if not (math.isfinite(lv) and 0 <= lv <= 5)]
@@ -400,6 +599,11 @@ def main(argv=None) -> int:
         return 2
     audit = {k: v for k, v in (("points", a.audit_points), ("runs", a.audit_runs)) if v is not None}
     out = Path(a.out)
+    if a.frontier:
+        from simgap import fileio
+        out.mkdir(parents=True, exist_ok=True)
+        fileio.write_json(out / FRONTIER, win_frontier())
+        a.table_only = True
     if a.table_only:
         if not out.is_dir():
             print(f"error: {out} is not a scan folder", file=sys.stderr)

@@ -242,3 +242,69 @@ def test_the_readme_table_is_the_committed_scan():
     assert rn.main([str(scan), "--check"]) == 0
     table = json.loads((scan / "separation.json").read_text())
     assert table["rows"] and all(r["stochastic"]["audit_pass_joint"] == 1.0 for r in table["rows"])
+
+
+def _cert(gap, delta, lip_paper, lip_gap, n_runs=100, eps=0.03):
+    """A stochastic certificate file's fields the budget reads (delta split as delta_1 = delta_2)."""
+    return {"n_runs": n_runs, "epsilon": eps,
+            "dims": [{"gap_max": g, "delta1": d / 2, "delta2": d / 2, "Mhat": 0.1, "L_x": lp / eps,
+                      "scp": {"lipschitz_terms": {"paper": lp, "gap": lg}}}
+                     for g, d, lp, lg in zip(gap, delta, lip_paper, lip_gap)]}
+
+
+def test_gamma_budget_and_the_n1hat_a_win_needs(sep, tmp_path):
+    # hand computation: N0 (gap + delta)^2 / (target - Lipschitz)^2 per dimension, the largest
+    b = {"n1hat": 100, "gap_max": [0.02, 0.02, 0.1], "delta": [0.02, 0.02, 0.1], "lipschitz": [0.001, 0.001, 0.0]}
+    assert sep.n1hat_needed(b, [(0.011, 0.011, 0.2)]) == pytest.approx(100 * (0.04 / 0.01) ** 2)  # x binds: 1600
+    assert sep.n1hat_needed(b, [(0.011, 0.011, 0.2), (0.041, 0.041, 0.1)]) == pytest.approx(400)  # the best target
+    assert sep.n1hat_needed(b, [(0.001, 0.5, 0.5)]) == float("inf")  # under the Lipschitz term: never
+    # the best-case path passes through the certificate at its own N1hat and meets the need
+    assert sep.best_case_gamma(b, [100])[0] == pytest.approx([0.041, 0.041, 0.2])
+    assert sep.best_case_gamma(b, [1600])[0][0] == pytest.approx(0.011)
+    # from files: gamma = gap + delta + the Lipschitz term the certificate used (the smaller with the gap's)
+    out = tmp_path / "scan"
+    folder = _write_point(sep, out, _config(sep, level=0.5), det=(True, 44), sto=(False, None))
+    c = _cert([0.02, 0.03, 0.1], [0.02, 0.02, 0.5], [0.018, 0.018, 0.007], [0.002, 0.002, 3.4])
+    for t in sep.TERMS:
+        (folder / t / "cert_stochastic.json").write_text(json.dumps(c))
+    table = sep.build_table(out, [])
+    rows = {r["term"]: r for r in table["rows"]}
+    assert rows["paper"]["budget"]["lipschitz"] == pytest.approx([0.018, 0.018, 0.007])
+    assert rows["gap"]["budget"]["lipschitz"] == pytest.approx([0.002, 0.002, 0.007])
+    # without a frontier the two known winning gaps; with one, its rows (a different answer)
+    assert table["win_gammas"] == [list(g) for g in sep.WIN_GAMMAS]
+    need_two = rows["gap"]["n1hat_needed"]
+    assert need_two == pytest.approx(min(max(100 * ((0.03 + 0.02) / (0.0122 - 0.002)) ** 2, 100 * (0.6 / 0.193) ** 2),
+                                         100 * (0.6 / 0.093) ** 2))
+    (out / sep.FRONTIER).write_text(json.dumps({"profile": "gazebo", "syntheses": 9, "tolerance": 0.0005,
+                                                "seconds": 60.0, "rows": [{"gamma_theta": 0.3, "gamma_xy_max": 0.04},
+                                                                           {"gamma_theta": 0.5, "gamma_xy_max": None}]}))
+    table = sep.build_table(out, [])
+    rows = {r["term"]: r for r in table["rows"]}
+    assert rows["gap"]["n1hat_needed"] == pytest.approx(max(100 * (0.05 / 0.038) ** 2, 100 * (0.6 / 0.293) ** 2))
+    md = sep.markdown_table(table)
+    assert "| 0.5 | 100 | gap | 0.052 / 0.607 | 0.03 / 0.1 | 0.02 / 0.5 | 0.002 / 0.007 | 0.1 / 0.1 | 420 |" in md
+    assert "| 0.3 | 0.0400 |" in md and "| 0.5 | none (lost at 0) |" in md
+    assert sep.main(["--out", str(out), "--table-only"]) == 0
+    assert (out / "separation_gamma.png").stat().st_size > 10_000
+
+
+def test_the_win_frontier_bisects_each_heading_gap(sep, monkeypatch):
+    # a fake synthesis that wins x0 iff gamma_xy + 0.1 gamma_theta <= 0.03: the frontier is 0.03 - 0.1 gamma_theta
+    import simgap.synthesis.controller as sc
+
+    class Res:
+        def __init__(self, won):
+            self.empty = not won
+            self.controller = type("C", (), {"winning": lambda _s, x: [won]})()
+    calls = []
+
+    def fake(system, spec, eta, gap=None, hold=1, x0=None, **kw):
+        calls.append(gap)
+        return Res(gap[0] + 0.1 * gap[2] <= 0.03 and gap[0] == gap[1])
+    monkeypatch.setattr(sc, "synthesize", fake)
+    fr = sep.win_frontier(thetas=(0.1, 0.2, 0.5), tol=1e-4, log=lambda m: None)
+    got = {r["gamma_theta"]: r["gamma_xy_max"] for r in fr["rows"]}
+    assert got[0.1] == pytest.approx(0.02, abs=1e-4) and got[0.1] <= 0.02
+    assert got[0.2] == pytest.approx(0.01, abs=1e-4) and got[0.2] <= 0.01
+    assert got[0.5] is None and fr["syntheses"] == len(calls)

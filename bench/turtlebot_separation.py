@@ -251,6 +251,50 @@ def win_frontier(thetas=FRONTIER_THETAS, xy_max: float = 0.1, tol: float = 0.000
             "tolerance": tol, "rows": rows, "syntheses": n_syn, "seconds": round(time.perf_counter() - t0, 1)}
 
 
+WHATIF = "nominal_whatif.json"
+
+
+def nominal_whatif(out: Path, level: float, n1hat: int, system_file: Path, log=print) -> dict:
+    """The point's stochastic data certified against another nominal model (a refined system from
+    `simgap refine`, docs/refine.md) with the gap term's options, and the gazebo profile's synthesis
+    on that model: does the certificate then win x0? The data are the point's ``paper/`` store
+    (simulator runs do not depend on the nominal model: :meth:`simgap.dataset.Dataset.with_nominal`).
+    No rollouts: a won x0 is reported, its closed loop is for `simgap run` with that system."""
+    import numpy as np
+
+    from simgap.certify.pipeline import certify
+    from simgap.dataset import load_store
+    import hashlib
+    from simgap.pipeline import certify_options, check_experiment
+    from simgap.simulators.factory import make_simulator
+    from simgap.synthesis.controller import synthesize
+    from simgap.system_ref import resolve_system
+
+    folder = Path(out) / point_name(level, n1hat)
+    exp = experiments(level, n1hat)["gap"]
+    if not finished(folder / "paper", point_config(level, n1hat, 1000, experiments(level, n1hat)), "paper"):
+        raise SystemExit(f"error: {folder / 'paper'} is not a finished point of this scan (run it first)")
+    nominal = resolve_system(str(system_file), steps=exp.system.steps)
+    c = check_experiment(exp)
+    ds = load_store(folder / "paper" / "data", system=exp.system).with_nominal(nominal)
+    sim = make_simulator(exp.simulator.to_dict(), exp.system, workers=2)
+    t0 = time.perf_counter()
+    try:
+        cert = certify(ds, certify_options(exp.section("certify"), "stochastic", nominal), simulator=sim)
+    finally:
+        sim.close()
+    x0 = np.asarray(c["x0"], float)
+    res = synthesize(nominal, c["spec"], np.asarray(c["eta"], float), gap=cert, hold=c["hold"], x0=x0)
+    won = (not res.empty) and bool(res.controller.winning(x0[None])[0])
+    d = json.loads(json.dumps(cert.to_dict(), default=float))
+    row = {"level": level, "n1hat": n1hat, "system_file": system_file.name, "system_sha256": hashlib.sha256(system_file.read_bytes()).hexdigest(),
+           "budget": budget(d, "gap"), "gamma_max": np.max(cert.gamma(ds.x, ds.u), axis=0).tolist(),
+           "x0_won": won, "winning_cells": int(res.stats["winning"]), "seconds": round(time.perf_counter() - t0, 1)}
+    log(f"[{point_name(level, n1hat)}] against {system_file.name}: gamma max "
+        f"{', '.join(f'{g:.3g}' for g in row['gamma_max'])}, x0 {'won' if won else 'not won'}")
+    return row
+
+
 def budget(cert: dict, term: str) -> dict:
     """What the stochastic certificate's gamma max is made of, per dimension, from its own file:
     gamma = observed gap max + (delta_1 + delta_2) + Lipschitz term (the smaller of the two terms
@@ -306,7 +350,9 @@ def build_table(out: Path, projections: list) -> dict:
     return {"experiment": str(EXPERIMENT.relative_to(ROOT)), "base_profile": BASE, "stress_profile": STRESS,
             "paper": PAPER, "separation_rule": f"deterministic >= {SEPARATION_DET * 1000:g} / 1000, stochastic wins "
             "x0 with 0 collisions", "rows": rows, "projected_not_run": projections,
-            "frontier": fr if isinstance(fr, dict) else None, "win_gammas": [list(g) for g in gammas]}
+            "frontier": fr if isinstance(fr, dict) else None, "win_gammas": [list(g) for g in gammas],
+            "nominal_whatif": [dict(r, n1hat_needed=n1hat_needed(r["budget"], gammas))
+                               for r in (read_json(Path(out) / WHATIF) or {}).get("rows", [])]}
 
 
 def win_gammas(frontier) -> list:
@@ -394,6 +440,23 @@ def markdown_table(table: dict) -> str:
                          f"{xt(b['delta'])} | {xt(b['lipschitz'], '.2g')} | {xt(b['Mhat'], '.2g')} | "
                          + ("won" if r["stochastic"]["x0_won"] else "never" if math.isinf(need)
                             else f"{_round2(need):,}") + " |")
+    if table.get("nominal_whatif"):
+        lines += ["", "The same data certified against a refined nominal model (`--nominal`, the gap term's "
+                  "options; the larger of x and y / theta):", "",
+                  "| noise level | N1hat | nominal model (sha256) | gamma max [m / rad] | observed gap | "
+                  "delta_1 + delta_2 | Lipschitz term | x0 won | N1hat to win x0, best case |",
+                  "|---|---|---|---|---|---|---|---|---|"]
+        for r in table["nominal_whatif"]:
+            b = r["budget"]
+            gam = [g + d + lip for g, d, lip in zip(b["gap_max"], b["delta"], b["lipschitz"])]
+            need = r["n1hat_needed"]
+
+            def xt(v, f=".3g"):
+                return f"{max(v[0], v[1]):{f}} / {v[2]:{f}}"
+            lines.append(f"| {r['level']:g} | {r['n1hat']} | {r['system_file']} ({r['system_sha256'][:12]}) | "
+                         f"{xt(gam)} | {xt(b['gap_max'])} | {xt(b['delta'])} | {xt(b['lipschitz'], '.2g')} | "
+                         f"{'yes' if r['x0_won'] else 'no'} | "
+                         + ("-" if r["x0_won"] else "never" if math.isinf(need) else f"{_round2(need):,}") + " |")
     if fr:
         lines += ["", f"Constant gaps that win x0 (`--frontier`: {fr['syntheses']} syntheses of the {fr['profile']} "
                   f"profile's grid and map, bisection to {fr['tolerance']:g} m, {fr['seconds'] / 60:.1f} min):", "",
@@ -501,12 +564,14 @@ def budget_figure(table: dict, out_dir: Path, name: str = FIGURE + "_gamma") -> 
     fr = table.get("frontier")
     if fr:
         pts = sorted((r["gamma_theta"], r["gamma_xy_max"]) for r in fr["rows"] if r["gamma_xy_max"] is not None)
-        if pts:
-            th = np.array([p[0] for p in pts])
-            xy = np.array([p[1] for p in pts])
-            ax.fill_betweenx(th, 1e-4, xy, step="post", color="tab:green", alpha=0.15, lw=0,
-                             label="constant gaps that win x0 (synthesis)")
-            ax.step(xy, th, where="post", color="tab:green", lw=1.2)
+        if pts:  # between two sampled gamma_theta the larger one's bound holds (the region shrinks upward)
+            th = np.array([0.02] + [p[0] for p in pts])
+            xy = np.array([pts[0][1]] + [p[1] for p in pts])
+            ax.fill_betweenx(th, 1e-4, xy, step="pre", color="tab:green", alpha=0.15, lw=0,
+                             label="constant gaps that win x0 (synthesis, --frontier)")
+            bx_ = np.concatenate([[xy[0]], np.repeat(xy[1:], 2), [1e-4]])  # the region's outline
+            by_ = np.concatenate([[th[0]], np.repeat(th[:-1], 2)[1:], [th[-1], th[-1]]])
+            ax.plot(bx_, by_, color="tab:green", lw=1.2)
     for g in (table.get("win_gammas") or []) if not fr else []:
         ax.plot(max(g[0], g[1]), g[2], "g*", ms=9)
     markers = {100: "o", 400: "s", 1000: "D", 2000: "^"}
@@ -526,6 +591,13 @@ def budget_figure(table: dict, out_dir: Path, name: str = FIGURE + "_gamma") -> 
                 if r["level"] == levels[-1]:
                     ax.annotate(f"N1hat {n:,}", (max(p[0], p[1]), p[2]), xytext=(4, 2), textcoords="offset points",
                                 fontsize=7, color="0.3")
+    for r in table.get("nominal_whatif") or []:
+        b = r["budget"]
+        gam = np.array(b["gap_max"]) + np.array(b["delta"]) + np.array(b["lipschitz"])
+        ax.plot(max(gam[0], gam[1]), gam[2], marker="*", color=color.get(r["level"], "k"), ms=13, ls="none",
+                mec="k", mew=0.5)
+        ax.annotate(f"refined nominal, N1hat {r['n1hat']}", (max(gam[0], gam[1]), gam[2]), xytext=(6, 4),
+                    textcoords="offset points", fontsize=7, color="0.3")
     for lv in levels:
         ax.plot([], [], "s", color=color[lv], label=f"noise level {lv:g}")
     for n in sorted({r["n1hat"] for r in rows}):
@@ -587,6 +659,10 @@ def main(argv=None) -> int:
     ap.add_argument("--frontier", action="store_true",
                     help="only find which constant gaps win x0 (bisection over gamma_x = gamma_y per gamma_theta, "
                          "syntheses only, no simulation) into OUT/frontier.json, then rebuild the table")
+    ap.add_argument("--nominal", type=Path, metavar="SYSTEM.json",
+                    help="only certify the finished points' (--levels x --n1hat) data against this nominal model "
+                         "(a refined system from `simgap refine`) and synthesize: does x0 get won? Into "
+                         "OUT/nominal_whatif.json")
     ap.add_argument("--no-figure", action="store_true")
     a = ap.parse_args(argv)
     bad = [lv for lv in a.levels if not (math.isfinite(lv) and 0 <= lv <= 5)]
@@ -599,6 +675,17 @@ def main(argv=None) -> int:
         return 2
     audit = {k: v for k, v in (("points", a.audit_points), ("runs", a.audit_runs)) if v is not None}
     out = Path(a.out)
+    if a.nominal is not None:
+        from simgap import fileio
+        if not a.nominal.is_file():
+            print(f"error: --nominal {a.nominal}: no such file", file=sys.stderr)
+            return 2
+        prev = read_json(out / WHATIF) or {"rows": []}
+        rows = [r for r in prev["rows"] if not (r["level"] in a.levels and r["n1hat"] in a.n1hat
+                                                and r["system_file"] == a.nominal.name)]
+        rows += [nominal_whatif(out, lv, n, a.nominal) for lv in a.levels for n in a.n1hat]
+        fileio.write_json(out / WHATIF, {"rows": rows})
+        a.table_only = True
     if a.frontier:
         from simgap import fileio
         out.mkdir(parents=True, exist_ok=True)

@@ -285,8 +285,17 @@ def test_gamma_budget_and_the_n1hat_a_win_needs(sep, tmp_path):
     md = sep.markdown_table(table)
     assert "| 0.5 | 100 | gap | 0.052 / 0.607 | 0.03 / 0.1 | 0.02 / 0.5 | 0.002 / 0.007 | 0.1 / 0.1 | 420 |" in md
     assert "| 0.3 | 0.0400 |" in md and "| 0.5 | none (lost at 0) |" in md
+    # a what-if against another nominal model is tabulated with its file's digest and its own need
+    b2 = sep.budget(_cert([0.01, 0.01, 0.1], [0.01, 0.01, 0.1], [0.018, 0.018, 0.007], [0.001, 0.001, 0.003], 400),
+                    "gap")
+    (out / sep.WHATIF).write_text(json.dumps({"rows": [{"level": 0.5, "n1hat": 400, "system_file": "r.json",
+                                                        "system_sha256": "ab" * 32, "budget": b2, "x0_won": False}]}))
+    md = sep.markdown_table(sep.build_table(out, []))
+    assert ("| 0.5 | 400 | r.json (abababababab) | 0.021 / 0.203 | 0.01 / 0.1 | 0.01 / 0.1 | 0.001 / 0.003 | no | "
+            f"{sep._round2(400 * (0.2 / 0.297) ** 2):,} |") in md
     assert sep.main(["--out", str(out), "--table-only"]) == 0
     assert (out / "separation_gamma.png").stat().st_size > 10_000
+    assert sep.main(["--out", str(out), "--nominal", str(tmp_path / "missing.json")]) == 2
 
 
 def test_the_win_frontier_bisects_each_heading_gap(sep, monkeypatch):

@@ -9,7 +9,7 @@ of the stochastic-gap one. This scan asks at which simulator noise that separati
 simgap's TurtleBot. The noise level ``s`` moves every noise setting of the ``gazebo`` profile
 (s = 0: command latency at 30 Hz as a held actuation error of 0.03 m/s, 0.03 rad/s) linearly to
 the ``gazebo_stress`` profile's (s = 1: held actuation error 0.05 m/s, 0.2 rad/s, actuation
-jitter, each wheel slipping in 20 % of the steps, per-run wheel radius and friction spread) and
+jitter, each wheel slipping in 20 % of the runs for the whole period, per-run wheel radius and friction spread) and
 beyond (s > 1: slip probability 0.2 s, the latency terms s times theirs; the per-run parameter
 spread stays at gazebo_stress's, the simulator's largest accepted friction spread being 0.3).
 Physics, grid, cover, inputs and stage options are the ``gazebo`` profile's (one physics substep

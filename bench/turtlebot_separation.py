@@ -287,7 +287,8 @@ def nominal_whatif(out: Path, level: float, n1hat: int, system_file: Path, log=p
     res = synthesize(nominal, c["spec"], np.asarray(c["eta"], float), gap=cert, hold=c["hold"], x0=x0)
     won = (not res.empty) and bool(res.controller.winning(x0[None])[0])
     d = json.loads(json.dumps(cert.to_dict(), default=float))
-    row = {"level": level, "n1hat": n1hat, "system_file": system_file.name, "system_sha256": hashlib.sha256(system_file.read_bytes()).hexdigest(),
+    row = {"level": level, "n1hat": n1hat, "system_file": system_file.name,
+           "system_sha256": hashlib.sha256(system_file.read_bytes()).hexdigest(),
            "budget": budget(d, "gap"), "gamma_max": np.max(cert.gamma(ds.x, ds.u), axis=0).tolist(),
            "x0_won": won, "winning_cells": int(res.stats["winning"]), "seconds": round(time.perf_counter() - t0, 1)}
     log(f"[{point_name(level, n1hat)}] against {system_file.name}: gamma max "
@@ -320,6 +321,16 @@ def n1hat_needed(b: dict, gammas=WIN_GAMMAS) -> float:
             need = max(need, b["n1hat"] * ((gap + d) / (target - lip)) ** 2)
         best = min(best, need)
     return best
+
+
+def budget_gamma(b: dict) -> list:
+    """gamma max per dimension from its parts (observed gap + delta_1 + delta_2 + Lipschitz term)."""
+    return [g + d + lip for g, d, lip in zip(b["gap_max"], b["delta"], b["lipschitz"])]
+
+
+def _xt(v, f: str = ".3g") -> str:
+    """'larger of x and y / theta' of a per-dimension list."""
+    return f"{max(v[0], v[1]):{f}} / {v[2]:{f}}"
 
 
 def separation(row: dict) -> bool:
@@ -431,13 +442,10 @@ def markdown_table(table: dict) -> str:
                   "|---|---|---|---|---|---|---|---|---|"]
         for r in rows:
             b = r["budget"]
-
-            def xt(v, f=".3g"):
-                return f"{max(v[0], v[1]):{f}} / {v[2]:{f}}"
-            gam = [g + d + lip for g, d, lip in zip(b["gap_max"], b["delta"], b["lipschitz"])]
+            gam = budget_gamma(b)
             need = r["n1hat_needed"]
-            lines.append(f"| {r['level']:g} | {r['n1hat']} | {r['term']} | {xt(gam)} | {xt(b['gap_max'])} | "
-                         f"{xt(b['delta'])} | {xt(b['lipschitz'], '.2g')} | {xt(b['Mhat'], '.2g')} | "
+            lines.append(f"| {r['level']:g} | {r['n1hat']} | {r['term']} | {_xt(gam)} | {_xt(b['gap_max'])} | "
+                         f"{_xt(b['delta'])} | {_xt(b['lipschitz'], '.2g')} | {_xt(b['Mhat'], '.2g')} | "
                          + ("won" if r["stochastic"]["x0_won"] else "never" if math.isinf(need)
                             else f"{_round2(need):,}") + " |")
     if table.get("nominal_whatif"):
@@ -448,13 +456,10 @@ def markdown_table(table: dict) -> str:
                   "|---|---|---|---|---|---|---|---|---|"]
         for r in table["nominal_whatif"]:
             b = r["budget"]
-            gam = [g + d + lip for g, d, lip in zip(b["gap_max"], b["delta"], b["lipschitz"])]
+            gam = budget_gamma(b)
             need = r["n1hat_needed"]
-
-            def xt(v, f=".3g"):
-                return f"{max(v[0], v[1]):{f}} / {v[2]:{f}}"
             lines.append(f"| {r['level']:g} | {r['n1hat']} | {r['system_file']} ({r['system_sha256'][:12]}) | "
-                         f"{xt(gam)} | {xt(b['gap_max'])} | {xt(b['delta'])} | {xt(b['lipschitz'], '.2g')} | "
+                         f"{_xt(gam)} | {_xt(b['gap_max'])} | {_xt(b['delta'])} | {_xt(b['lipschitz'], '.2g')} | "
                          f"{'yes' if r['x0_won'] else 'no'} | "
                          + ("-" if r["x0_won"] else "never" if math.isinf(need) else f"{_round2(need):,}") + " |")
     if fr:
@@ -578,7 +583,7 @@ def budget_figure(table: dict, out_dir: Path, name: str = FIGURE + "_gamma") -> 
     grid = np.geomspace(100, 20000, 200)
     for r in rows:
         b = r["budget"]
-        gam = np.array(b["gap_max"]) + np.array(b["delta"]) + np.array(b["lipschitz"])
+        gam = np.array(budget_gamma(b))
         c = color[r["level"]]
         ax.plot(max(gam[0], gam[1]), gam[2], marker=markers.get(r["n1hat"], "v"), color=c, ms=7, ls="none",
                 mec="k", mew=0.5)
@@ -593,7 +598,7 @@ def budget_figure(table: dict, out_dir: Path, name: str = FIGURE + "_gamma") -> 
                                 fontsize=7, color="0.3")
     for r in table.get("nominal_whatif") or []:
         b = r["budget"]
-        gam = np.array(b["gap_max"]) + np.array(b["delta"]) + np.array(b["lipschitz"])
+        gam = np.array(budget_gamma(b))
         ax.plot(max(gam[0], gam[1]), gam[2], marker="*", color=color.get(r["level"], "k"), ms=13, ls="none",
                 mec="k", mew=0.5)
         ax.annotate(f"refined nominal, N1hat {r['n1hat']}", (max(gam[0], gam[1]), gam[2]), xytext=(6, 4),

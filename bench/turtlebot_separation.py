@@ -254,7 +254,7 @@ def win_frontier(thetas=FRONTIER_THETAS, xy_max: float = 0.1, tol: float = 0.000
 WHATIF = "nominal_whatif.json"
 
 
-def nominal_whatif(out: Path, level: float, n1hat: int, system_file: Path, log=print) -> dict:
+def nominal_whatif(out: Path, level: float, n1hat: int, system_file: Path, rollouts: int = 1000, log=print) -> dict:
     """The point's stochastic data certified against another nominal model (a refined system from
     `simgap refine`, docs/refine.md) with the gap term's options, and the gazebo profile's synthesis
     on that model: does the certificate then win x0? The data are the point's ``paper/`` store
@@ -272,8 +272,9 @@ def nominal_whatif(out: Path, level: float, n1hat: int, system_file: Path, log=p
 
     folder = Path(out) / point_name(level, n1hat)
     exp = experiments(level, n1hat)["gap"]
-    if not finished(folder / "paper", point_config(level, n1hat, 1000, experiments(level, n1hat)), "paper"):
-        raise SystemExit(f"error: {folder / 'paper'} is not a finished point of this scan (run it first)")
+    if not finished(folder / "paper", point_config(level, n1hat, rollouts, experiments(level, n1hat)), "paper"):
+        from simgap.errors import SimgapError
+        raise SimgapError(f"{folder / 'paper'} is not a finished point of this scan (run it first)")
     nominal = resolve_system(str(system_file), steps=exp.system.steps)
     c = check_experiment(exp)
     ds = load_store(folder / "paper" / "data", system=exp.system).with_nominal(nominal)
@@ -688,7 +689,12 @@ def main(argv=None) -> int:
         prev = read_json(out / WHATIF) or {"rows": []}
         rows = [r for r in prev["rows"] if not (r["level"] in a.levels and r["n1hat"] in a.n1hat
                                                 and r["system_file"] == a.nominal.name)]
-        rows += [nominal_whatif(out, lv, n, a.nominal) for lv in a.levels for n in a.n1hat]
+        from simgap.errors import SimgapError
+        try:
+            rows += [nominal_whatif(out, lv, n, a.nominal, a.rollouts) for lv in a.levels for n in a.n1hat]
+        except SimgapError as e:
+            print(f"error: --nominal {a.nominal}: {e}", file=sys.stderr)
+            return 2
         fileio.write_json(out / WHATIF, {"rows": rows})
         a.table_only = True
     if a.frontier:

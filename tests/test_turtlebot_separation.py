@@ -296,6 +296,9 @@ def test_gamma_budget_and_the_n1hat_a_win_needs(sep, tmp_path):
     assert sep.main(["--out", str(out), "--table-only"]) == 0
     assert (out / "separation_gamma.png").stat().st_size > 10_000
     assert sep.main(["--out", str(out), "--nominal", str(tmp_path / "missing.json")]) == 2
+    (tmp_path / "r.json").write_text("{}")
+    assert sep.main(["--out", str(out), "--levels", "0.3", "--nominal", str(tmp_path / "r.json")]) == 2  # not run
+    assert json.loads((out / sep.WHATIF).read_text())["rows"][0]["n1hat"] == 400  # refused: nothing rewritten
 
 
 def test_the_win_frontier_bisects_each_heading_gap(sep, monkeypatch):

@@ -292,7 +292,8 @@ def gap_slopes_data(dataset, grid: AxisGrid, j: int) -> tuple:
 
 def crn_pair_means(sim, x1, x2, u1, u2, runs: int, rng: np.random.Generator, increment: bool = True,
                    on_progress=None, spread: bool = False):
-    """Means of fhat (or of fhat - x) at (x1, u1) and (x2, u2) over ``runs`` COMMON noise draws per pair
+    """Means of fhat (angles unwrapped about x: compare them with ``System.diff``) or of fhat - x
+    (``increment``) at (x1, u1) and (x2, u2) over ``runs`` COMMON noise draws per pair
     (``on_progress(rows_done, rows)`` while the runs are simulated); with ``spread`` also the standard
     error of their difference, (P, n): the sample sd over the runs of the per-run difference between
     the two ends, / sqrt(runs). Common random numbers make it small when the simulator responds

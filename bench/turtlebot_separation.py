@@ -3,6 +3,9 @@
     python bench/turtlebot_separation.py --out results/turtlebot-separation           # the full scan
     python bench/turtlebot_separation.py --out results/turtlebot-separation --n1hat 100 400 1000
     python bench/turtlebot_separation.py --out results/turtlebot-separation --table-only   # table + figure
+    python bench/turtlebot_separation.py --out results/turtlebot-separation --frontier     # gaps that win x0
+    python bench/turtlebot_separation.py --out results/turtlebot-separation --levels 0.5 --n1hat 1000 \
+        --nominal refined.json      # that point's data against a refined model (`simgap refine`)
 
 The paper's headline is 44 / 1000 collisions of the deterministic-gap controller against 0 / 1000
 of the stochastic-gap one. This scan asks at which simulator noise that separation appears for
@@ -52,9 +55,13 @@ SEPARATION_DET = 0.02  # the deterministic-gap controller collides in >= 20 of 1
 IDLE_RUNS_PER_S = 1790.0  # simulator runs (30 physics steps each) per second on 2 idle cores (docs/case-studies.md)
 IDLE_STAGES_S = 90.0  # certify + audit + synthesize + 1000 rollouts of both methods, one term, idle (the gazebo run)
 # constant gaps (x, y, theta) that win x0 on the gazebo profile's grid and map (`simgap synthesize
-# --gamma`, docs/case-studies.md): what a stochastic certificate has to reach
+# --gamma`, docs/case-studies.md): what a stochastic certificate has to reach, until --frontier
+# has mapped the boundary
 WIN_GAMMAS = ((0.0121, 0.0122, 0.2), (0.05, 0.05, 0.1))
 TABLE = "separation.json"
+FRONTIER = "frontier.json"  # --frontier
+FRONTIER_THETAS = (0.05, 0.075, 0.1, 0.125, 0.15, 0.2, 0.25, 0.3)  # rad per sampling period
+WHATIF = "nominal_whatif.json"  # --nominal
 FIGURE = "separation"
 
 
@@ -209,10 +216,6 @@ def row_from(summary: dict, config: dict, term: str) -> dict:
     return row
 
 
-FRONTIER = "frontier.json"
-FRONTIER_THETAS = (0.05, 0.075, 0.1, 0.125, 0.15, 0.2, 0.25, 0.3)  # rad per sampling period
-
-
 def win_frontier(thetas=FRONTIER_THETAS, xy_max: float = 0.1, tol: float = 0.0005, log=print) -> dict:
     """For each constant heading gap gamma_theta: the largest equal gamma_x = gamma_y [m] with which
     the gazebo profile's synthesis (grid, map, hold, x0) still wins x0, by bisection (a larger gap
@@ -249,9 +252,6 @@ def win_frontier(thetas=FRONTIER_THETAS, xy_max: float = 0.1, tol: float = 0.000
         log(f"frontier: gamma_theta {gth:g}: x0 won up to gamma_x = gamma_y = {lo:.4f} m (lost at {hi:.4f})")
     return {"experiment": str(EXPERIMENT.relative_to(ROOT)), "profile": BASE, "x0": x0.tolist(), "eta": eta.tolist(),
             "tolerance": tol, "rows": rows, "syntheses": n_syn, "seconds": round(time.perf_counter() - t0, 1)}
-
-
-WHATIF = "nominal_whatif.json"
 
 
 def nominal_whatif(out: Path, level: float, n1hat: int, system_file: Path, rollouts: int = 1000, log=print) -> dict:

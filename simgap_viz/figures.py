@@ -563,15 +563,11 @@ def _check_replaceable(out: Path) -> None:
     """Refuse to write figures into ``out`` over files simgap plot did not write there: a figure
     name present but not listed in ``out``/FIGURE_LIST with its current sha256 (a user's own file, or
     one changed since) is named, and nothing is written."""
-    from simgap.file_guard import printable, read_json
+    from simgap.file_guard import printable
     from simgap.results_folder import file_digest
     if not out.is_dir():
         return
-    try:
-        listed = read_json(out / FIGURE_LIST, "figure list") if (out / FIGURE_LIST).is_file() else {}
-    except SimgapError:
-        listed = {}
-    listed = listed.get("files", {}) if isinstance(listed, dict) and isinstance(listed.get("files"), dict) else {}
+    listed = _listed_figures(out)
     foreign = [n for n in (f"{s}.{e}" for s in FIGURES for e in FORMATS)
                if (out / n).exists() and ((out / n).is_symlink() or not (out / n).is_file()
                                           or listed.get(n) != file_digest(out / n))]
@@ -584,12 +580,19 @@ def _check_replaceable(out: Path) -> None:
 def _list_figures(out: Path, written: list) -> None:
     """Add the figures just written to ``out``/FIGURE_LIST with their sha256."""
     from simgap import fileio
-    from simgap.file_guard import read_json
     from simgap.results_folder import file_digest
+    files = _listed_figures(out)
+    files.update({Path(p).name: file_digest(Path(p)) for p in written})
+    fileio.write_json(out / FIGURE_LIST, {"format": "simgap-figures", "files": files})
+
+
+def _listed_figures(out: Path) -> dict:
+    """{file name: sha256} of ``out``/FIGURE_LIST; empty when it is absent or unreadable (then every
+    figure-named file counts as not ours)."""
+    from simgap.file_guard import read_json
     try:
         d = read_json(out / FIGURE_LIST, "figure list") if (out / FIGURE_LIST).is_file() else {}
     except SimgapError:
-        d = {}
-    files = d.get("files", {}) if isinstance(d, dict) and isinstance(d.get("files"), dict) else {}
-    files.update({Path(p).name: file_digest(Path(p)) for p in written})
-    fileio.write_json(out / FIGURE_LIST, {"format": "simgap-figures", "files": files})
+        return {}
+    files = d.get("files") if isinstance(d, dict) else None
+    return dict(files) if isinstance(files, dict) else {}

@@ -59,6 +59,7 @@ from ..errors import SimgapError
 from ..systems import System
 from .corner_index import CornerIndex
 from .grid import UniformGrid
+from .jit import expected_work
 
 GrowthFn = Callable[[np.ndarray, np.ndarray, np.ndarray, float], np.ndarray]
 
@@ -507,65 +508,67 @@ def build_abstraction(system: System, grid: UniformGrid, *, growth: Optional[Gro
         radii = [np.tile(rr, (cb, 1)) for rr in radii]
 
     disp_needed = bool(pmask.any()) or hold > 1
-    for s in range(0, K, cb):  # blocks bound the memory
-        e = min(K, s + cb)
-        P = (e - s) * M
-        j, u = j_full[:P], u_full[:P]
-        mi_c = rep_mi(np.arange(s, e))
-        mi = np.repeat(mi_c, M, axis=0)
-        x0 = np.repeat(grid.multi_to_points(mi_c), M, axis=0)  # per cell, then per pair (same values)
-        x = x0
-        r = radii[0][:P] if radii is not None else np.broadcast_to(eta / 2 + z, x.shape).copy()
-        disp = np.zeros_like(x) if disp_needed else None
-        if hold > 1:
-            mlo = np.full(x.shape, np.inf)
-            mhi = np.full(x.shape, -np.inf)
-        with np.errstate(all="ignore"):
-            for step in range(hold):
-                if radii is not None:
-                    r_new = radii[step + 1][:P]
-                else:
-                    if gap is not None:
-                        blo, bhi = x - r, x + r
-                        if inv:  # bound gamma over the whole extent of the shared dimensions (sound)
-                            blo[:, inv_mask] = dom_lo[inv_mask]
-                            bhi[:, inv_mask] = dom_hi[inv_mask]
-                        g = gamma_upper_wrapped(gap, blo, bhi, u, grid)
-                    else:
-                        g = 0.0
-                    r_new = np.asarray(growth(r, x, u, system.tau), dtype=float) + g
-                x_new = system.f(x, u)
-                if disp_needed:
-                    disp = disp + system.diff(x_new, x) if pmask.any() else x_new - x0
-                x, r = x_new, r_new
-                if step < hold - 1:
-                    mlo = np.minimum(mlo, disp - r)
-                    mhi = np.maximum(mhi, disp + r)
-            good = np.ones(P, dtype=bool)
-            out = np.zeros(P, dtype=bool)
-            for d in range(n):  # column by column, in place (n is 2-3)
-                xd, rd, zd, ed = x[:, d], r[:, d], z[d], eta[d]
-                good &= np.isfinite(xd)
-                good &= np.isfinite(rd)
-                if pmask[d]:  # relative displacement (the image may have wrapped)
-                    _store(off, "lo", s, e, d, _cell_offset((disp[:, d] - rd - zd) / ed + 0.5, 0))
-                    _store(off, "hi", s, e, d, _cell_offset((disp[:, d] + rd + zd) / ed + 0.5, 0))
-                    continue
-                # SCOTS's formula in absolute coordinates (bit-for-bit parity)
-                left, right = xd - rd - zd, xd + rd + zd
-                if not inv_mask[d]:  # SCOTS's out-of-domain test, exact in the class dimensions
-                    out |= left <= dom_lo[d]
-                    out |= right >= dom_hi[d]
-                _store(off, "lo", s, e, d, _cell_offset((left - grid.first[d] + ed / 2) / ed, mi[:, d]))
-                _store(off, "hi", s, e, d, _cell_offset((right - grid.first[d] + ed / 2) / ed, mi[:, d]))
-            ok[s:e] = (good & ~out).reshape(e - s, M)
+    # the work declared, so that a system step with a compiled twin knows whether it pays (jit.py)
+    with expected_work(K * M * hold * system.steps):
+        for s in range(0, K, cb):  # blocks bound the memory
+            e = min(K, s + cb)
+            P = (e - s) * M
+            j, u = j_full[:P], u_full[:P]
+            mi_c = rep_mi(np.arange(s, e))
+            mi = np.repeat(mi_c, M, axis=0)
+            x0 = np.repeat(grid.multi_to_points(mi_c), M, axis=0)  # per cell, then per pair (same values)
+            x = x0
+            r = radii[0][:P] if radii is not None else np.broadcast_to(eta / 2 + z, x.shape).copy()
+            disp = np.zeros_like(x) if disp_needed else None
             if hold > 1:
-                ml = np.floor(np.nan_to_num((mlo - z) / eta + 0.5))
-                mh = np.floor(np.nan_to_num((mhi + z) / eta + 0.5))
-                mid_lo[s:e] = np.clip(ml, -_OFF_LIMIT, _OFF_LIMIT).reshape(e - s, M, n)
-                mid_hi[s:e] = np.clip(mh, -_OFF_LIMIT, _OFF_LIMIT).reshape(e - s, M, n)
-        if on_progress is not None:
-            on_progress(e, K)
+                mlo = np.full(x.shape, np.inf)
+                mhi = np.full(x.shape, -np.inf)
+            with np.errstate(all="ignore"):
+                for step in range(hold):
+                    if radii is not None:
+                        r_new = radii[step + 1][:P]
+                    else:
+                        if gap is not None:
+                            blo, bhi = x - r, x + r
+                            if inv:  # bound gamma over the whole extent of the shared dimensions (sound)
+                                blo[:, inv_mask] = dom_lo[inv_mask]
+                                bhi[:, inv_mask] = dom_hi[inv_mask]
+                            g = gamma_upper_wrapped(gap, blo, bhi, u, grid)
+                        else:
+                            g = 0.0
+                        r_new = np.asarray(growth(r, x, u, system.tau), dtype=float) + g
+                    x_new = system.f(x, u)
+                    if disp_needed:
+                        disp = disp + system.diff(x_new, x) if pmask.any() else x_new - x0
+                    x, r = x_new, r_new
+                    if step < hold - 1:
+                        mlo = np.minimum(mlo, disp - r)
+                        mhi = np.maximum(mhi, disp + r)
+                good = np.ones(P, dtype=bool)
+                out = np.zeros(P, dtype=bool)
+                for d in range(n):  # column by column, in place (n is 2-3)
+                    xd, rd, zd, ed = x[:, d], r[:, d], z[d], eta[d]
+                    good &= np.isfinite(xd)
+                    good &= np.isfinite(rd)
+                    if pmask[d]:  # relative displacement (the image may have wrapped)
+                        _store(off, "lo", s, e, d, _cell_offset((disp[:, d] - rd - zd) / ed + 0.5, 0))
+                        _store(off, "hi", s, e, d, _cell_offset((disp[:, d] + rd + zd) / ed + 0.5, 0))
+                        continue
+                    # SCOTS's formula in absolute coordinates (bit-for-bit parity)
+                    left, right = xd - rd - zd, xd + rd + zd
+                    if not inv_mask[d]:  # SCOTS's out-of-domain test, exact in the class dimensions
+                        out |= left <= dom_lo[d]
+                        out |= right >= dom_hi[d]
+                    _store(off, "lo", s, e, d, _cell_offset((left - grid.first[d] + ed / 2) / ed, mi[:, d]))
+                    _store(off, "hi", s, e, d, _cell_offset((right - grid.first[d] + ed / 2) / ed, mi[:, d]))
+                ok[s:e] = (good & ~out).reshape(e - s, M)
+                if hold > 1:
+                    ml = np.floor(np.nan_to_num((mlo - z) / eta + 0.5))
+                    mh = np.floor(np.nan_to_num((mhi + z) / eta + 0.5))
+                    mid_lo[s:e] = np.clip(ml, -_OFF_LIMIT, _OFF_LIMIT).reshape(e - s, M, n)
+                    mid_hi[s:e] = np.clip(mh, -_OFF_LIMIT, _OFF_LIMIT).reshape(e - s, M, n)
+            if on_progress is not None:
+                on_progress(e, K)
 
     def small(a):
         if a is None:

@@ -21,7 +21,8 @@ import numpy as np
 from ..systems import System, input_grid
 from .abstraction import state_independent
 from .grid import UniformGrid
-from .runge_kutta import rk4_growth, rk4_integrate, rk4_step
+from .jit import use_compiled
+from .runge_kutta import compiled_args, rk4_growth, rk4_integrate, rk4_step
 from .spec import Box, Spec
 
 VEHICLE_TAU = 0.3
@@ -73,8 +74,21 @@ def _vehicle_rhs_prepared(x, p):
     return out
 
 
+def _vehicle_compiled(x, u, tau):
+    from .kernels import vehicle_rk4  # numba: imported only when a job is large enough (jit.py)
+    return vehicle_rk4(x, u, tau, VEHICLE_NINT)
+
+
+#: step rows from which the compiled RK4 pays for numba's start (about 0.5 us saved per row)
+_vehicle_compiled.min_rows = 1_500_000
+
+
 def vehicle_step(x: np.ndarray, u: np.ndarray, tau: float) -> np.ndarray:
-    """SCOTS ``runge_kutta_fixed4`` with 10 intermediate steps over tau, vectorized over rows."""
+    """SCOTS ``runge_kutta_fixed4`` with 10 intermediate steps over tau, vectorized over rows
+    (compiled for large jobs: :mod:`.kernels`, the same bits)."""
+    xu = compiled_args(x, u)
+    if xu is not None and use_compiled(_vehicle_compiled.min_rows):
+        return _vehicle_compiled(xu[0], xu[1], float(tau))
     return rk4_integrate(_vehicle_rhs_prepared, x, u, tau, VEHICLE_NINT, prepare=_vehicle_input_terms)
 
 
@@ -140,13 +154,23 @@ def _dcdc_rhs(x, u):
     return out
 
 
+def _dcdc_compiled(x, u, tau):
+    from .kernels import dcdc_rk4  # numba: imported only when a job is large enough (jit.py)
+    return dcdc_rk4(x, u, tau, 5, _DCDC_A, float(_DCDC_B[0]))
+
+
+#: about 0.1 us saved per row (the numpy step is cheap): numba's start pays from ~10 M rows
+_dcdc_compiled.min_rows = 10_000_000
+
+
 def dcdc_system(x_lo=(1.15, 5.45), x_hi=(1.55, 5.85)) -> System:
     """Switched linear system x' = A_u x + b (u in {1, 2}), RK4 with 5 substeps over tau = 0.5.
 
     On [1.15, 1.55] x [5.45, 5.85] with eta = 2/4000 the grid has 801 x 801 = 641,601 cells.
     """
     return System(name="dcdc", state_names=("il", "vc"), input_names=("mode",), x_lo=x_lo, x_hi=x_hi,
-                  inputs=np.array([[1.0], [2.0]]), base_tau=DCDC_TAU, step=rk4_step(_dcdc_rhs, nint=5),
+                  inputs=np.array([[1.0], [2.0]]), base_tau=DCDC_TAU,
+                  step=rk4_step(_dcdc_rhs, nint=5, compiled=_dcdc_compiled),
                   params={"inputs": "categorical"})  # switch modes: nothing lies between 1 and 2
 
 

@@ -34,6 +34,7 @@ from typing import Callable, Optional, Union
 import numpy as np
 
 from ..errors import SimgapError
+from .jit import AUTO_WORK, use_compiled
 
 RhsFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
@@ -78,17 +79,39 @@ def rk4_integrate(rhs: RhsFn, x: np.ndarray, u: np.ndarray, tau: float, nint: in
     return x
 
 
-def rk4_step(rhs: RhsFn, nint: int = 10, prepare: Optional[Callable[[np.ndarray], object]] = None
+def rk4_step(rhs: RhsFn, nint: int = 10, prepare: Optional[Callable[[np.ndarray], object]] = None,
+             compiled: Optional[Callable[[np.ndarray, np.ndarray, float], np.ndarray]] = None
              ) -> Callable[[np.ndarray, np.ndarray, float], np.ndarray]:
     """A :class:`~simgap.systems.System` ``step(x, u, tau)`` integrating x' = rhs(x, u) over tau
-    (with ``prepare``: x' = rhs(x, prepare(u)), see :func:`rk4_integrate`)."""
+    (with ``prepare``: x' = rhs(x, prepare(u)), see :func:`rk4_integrate`).
+
+    ``compiled(x (B, n), u (B, m), tau) -> (B, n)``, optional: a compiled twin giving the same
+    bits (e.g. a numba kernel, :mod:`simgap.synthesis.kernels`), used instead of the numpy path
+    when :func:`simgap.synthesis.jit.use_compiled` says so (large jobs; ``SIMGAP_JIT``; an
+    attribute ``compiled.min_rows`` sets its break-even in step rows). It should import its
+    compiler inside, so that building the system costs nothing."""
     nint = _check_nint(nint)
     if prepare is not None and not callable(prepare):
         raise SimgapError("runge-kutta: prepare must be a callable prepare(u) -> terms of the right-hand side")
+    if compiled is not None and not callable(compiled):
+        raise SimgapError("runge-kutta: compiled must be a callable compiled(x, u, tau) -> next states")
 
     def step(x, u, tau):
+        if compiled is not None:
+            xu = compiled_args(x, u)
+            if xu is not None and use_compiled(getattr(compiled, "min_rows", AUTO_WORK)):
+                return compiled(xu[0], xu[1], float(tau))
         return rk4_integrate(rhs, x, u, tau, nint, prepare)
     return step
+
+
+def compiled_args(x, u):
+    """(x, u) as C-contiguous float64 (B, n), (B, m) arrays for a compiled kernel, or None when
+    they are not such a batch (then the numpy path handles broadcasting)."""
+    if not (isinstance(x, np.ndarray) and isinstance(u, np.ndarray)) or x.ndim != 2 or u.ndim != 2 \
+            or x.shape[0] != u.shape[0]:
+        return None
+    return np.ascontiguousarray(x, dtype=np.float64), np.ascontiguousarray(u, dtype=np.float64)
 
 
 def rk4_growth(L: Union[np.ndarray, Callable[[np.ndarray], np.ndarray]], nint: int = 10):

@@ -1,0 +1,142 @@
+"""Compiled RK4 kernels of the reference systems (numba; imported only when :mod:`.jit` says so).
+
+Each kernel integrates x' = F(x, u) over tau with ``nint`` classical RK4 substeps, row by row,
+in exactly the operation order of :func:`~simgap.synthesis.runge_kutta.rk4_integrate` and of the
+numpy right-hand side it replaces (SCOTS's order)::
+
+    k0 = F(x);  k1 = F(k0 (h/2) + x);  k2 = F(k1 (h/2) + x);  k3 = F(k2 h + x)
+    x <- x + ((((k0 + (k1 + k1)) + (k2 + k2)) + k3) (h/6)),     h = tau / nint
+
+so the results are the same bits (no fast-math: no reassociation, no fused multiply-add; the
+transcendental functions are the C library's, as numpy's on this platform; asserted by
+tests/test_compiled_kernels.py). Without the per-element temporaries of the numpy path, the
+vehicle's step is about 2x and the DC-DC converter's about 8x faster per row.
+
+Compiled with ``cache=True``: the machine code is stored next to this file (or in numba's user
+cache when that is not writable) and loaded by later processes instead of compiled again
+(first compile about 1 s per kernel; a cached load about 0.05 s).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+
+def _compiled(fn):
+    try:
+        return njit(cache=True, nogil=True)(fn)
+    except RuntimeError:  # no writable cache location: compiled in every process instead
+        return njit(nogil=True)(fn)
+
+
+@_compiled
+def vehicle_rk4(X, U, tau, nint):
+    """SCOTS vehicle (``examples._vehicle_rhs_prepared`` with ``_vehicle_input_terms``):
+    alpha = atan(tan(u1)/2); x' = (cos(alpha + th) v)/cos(alpha), y' = (sin(alpha + th) v)/cos(alpha),
+    th' = v tan(u1). X (B, 3), U (B, 2) -> (B, 3)."""
+    B = X.shape[0]
+    h = tau / nint
+    h2 = h / 2
+    h6 = h / 6
+    out = np.empty((B, 3))
+    for i in range(B):
+        v = U[i, 0]
+        alpha = math.atan(math.tan(U[i, 1]) / 2.0)
+        ca = math.cos(alpha)
+        dth = v * math.tan(U[i, 1])
+        x0, x1, x2 = X[i, 0], X[i, 1], X[i, 2]
+        for _ in range(nint):
+            a = alpha + x2
+            k0 = math.cos(a) * v / ca
+            k1 = math.sin(a) * v / ca
+            a0, a1, a2 = k0, k1, dth
+            a = alpha + (dth * h2 + x2)
+            k0 = math.cos(a) * v / ca
+            k1 = math.sin(a) * v / ca
+            a0 += k0 + k0
+            a1 += k1 + k1
+            a2 += dth + dth
+            a = alpha + (dth * h2 + x2)
+            k0 = math.cos(a) * v / ca
+            k1 = math.sin(a) * v / ca
+            a0 += k0 + k0
+            a1 += k1 + k1
+            a2 += dth + dth
+            a = alpha + (dth * h + x2)
+            k0 = math.cos(a) * v / ca
+            k1 = math.sin(a) * v / ca
+            a0 += k0
+            a1 += k1
+            a2 += dth
+            x0 += a0 * h6
+            x1 += a1 * h6
+            x2 += a2 * h6
+        out[i, 0] = x0
+        out[i, 1] = x1
+        out[i, 2] = x2
+    return out
+
+
+@_compiled
+def dcdc_rk4(X, U, tau, nint, A, b0):
+    """Boost DC-DC converter (``examples._dcdc_rhs``): mode 2 (u > 1.5) x' = A[1] x + (b0, 0)
+    as (e x0 + f x1) + b0 and g x0 + h x1; mode 1 a x0 + b0 and d x1. A (2, 2, 2), X (B, 2)."""
+    B = X.shape[0]
+    h = tau / nint
+    h2 = h / 2
+    h6 = h / 6
+    out = np.empty((B, 2))
+    for i in range(B):
+        x0, x1 = X[i, 0], X[i, 1]
+        if U[i, 0] > 1.5:
+            e, f, g, hh = A[1, 0, 0], A[1, 0, 1], A[1, 1, 0], A[1, 1, 1]
+            for _ in range(nint):
+                k0 = (e * x0 + f * x1) + b0
+                k1 = g * x0 + hh * x1
+                a0, a1 = k0, k1
+                t0, t1 = k0 * h2 + x0, k1 * h2 + x1
+                k0 = (e * t0 + f * t1) + b0
+                k1 = g * t0 + hh * t1
+                a0 += k0 + k0
+                a1 += k1 + k1
+                t0, t1 = k0 * h2 + x0, k1 * h2 + x1
+                k0 = (e * t0 + f * t1) + b0
+                k1 = g * t0 + hh * t1
+                a0 += k0 + k0
+                a1 += k1 + k1
+                t0, t1 = k0 * h + x0, k1 * h + x1
+                k0 = (e * t0 + f * t1) + b0
+                k1 = g * t0 + hh * t1
+                a0 += k0
+                a1 += k1
+                x0 += a0 * h6
+                x1 += a1 * h6
+        else:
+            a, d = A[0, 0, 0], A[0, 1, 1]
+            for _ in range(nint):
+                k0 = a * x0 + b0
+                k1 = d * x1
+                a0, a1 = k0, k1
+                t0, t1 = k0 * h2 + x0, k1 * h2 + x1
+                k0 = a * t0 + b0
+                k1 = d * t1
+                a0 += k0 + k0
+                a1 += k1 + k1
+                t0, t1 = k0 * h2 + x0, k1 * h2 + x1
+                k0 = a * t0 + b0
+                k1 = d * t1
+                a0 += k0 + k0
+                a1 += k1 + k1
+                t0, t1 = k0 * h + x0, k1 * h + x1
+                k0 = a * t0 + b0
+                k1 = d * t1
+                a0 += k0
+                a1 += k1
+                x0 += a0 * h6
+                x1 += a1 * h6
+        out[i, 0] = x0
+        out[i, 1] = x1
+    return out

@@ -1,0 +1,120 @@
+"""Compiled RK4 kernels (numba) against their numpy twins: the same bits, and the policy that
+picks one (simgap.synthesis.jit)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from simgap.errors import SimgapError
+from simgap.synthesis import UniformGrid, build_abstraction
+from simgap.synthesis import examples as ex
+from simgap.synthesis import jit
+
+pytest.importorskip("numba")
+from simgap.synthesis.kernels import dcdc_rk4, vehicle_rk4  # noqa: E402
+
+
+def _vehicle_batch(rng, B=20000):
+    x = rng.uniform([0, 0, -3.5], [10, 10, 3.5], (B, 3))
+    x[:4, 2] = [1e6, -1e9, 0.0, 3.141592653589793]  # large angles: the C library's reduction
+    u = ex.vehicle_inputs()[rng.integers(0, 49, B)]
+    u[:3] = [[0.7, 1.2], [-0.3, -1.5], [1.0, 0.0]]  # off the grid, steep steering
+    return x, u
+
+
+def test_vehicle_kernel_bit_identical(rng, monkeypatch):
+    x, u = _vehicle_batch(rng)
+    monkeypatch.setenv("SIMGAP_JIT", "0")
+    want = ex.vehicle_step(x, u, 0.3)
+    got = vehicle_rk4(x, u, 0.3, ex.VEHICLE_NINT)
+    assert np.array_equal(got, want)
+    for tau in (0.6, 0.05):  # other periods (with_steps), the same bits
+        assert np.array_equal(vehicle_rk4(x, u, tau, 10), ex.vehicle_step(x, u, tau))
+    monkeypatch.setenv("SIMGAP_JIT", "1")
+    assert np.array_equal(ex.vehicle_step(x, u, 0.3), want)  # the step dispatches to the kernel
+
+
+def test_dcdc_kernel_bit_identical(rng, monkeypatch):
+    s = ex.dcdc_system()
+    x = rng.uniform([1.0, 5.3], [1.7, 6.0], (20000, 2))
+    u = s.inputs[rng.integers(0, 2, 20000)]
+    monkeypatch.setenv("SIMGAP_JIT", "0")
+    want = s.step(x, u, 0.5)
+    monkeypatch.setenv("SIMGAP_JIT", "1")
+    assert np.array_equal(s.step(x, u, 0.5), want)
+    assert np.array_equal(s.step(x, u, 1.5), dcdc_rk4(x, u, 1.5, 5, ex._DCDC_A, float(ex._DCDC_B[0])))
+
+
+def test_equality_is_sensitive_to_the_summation_order(rng):
+    """Mutation check: an RK4 weighting each slope on its own, x + h (k0/6 + k1/3 + k2/3 + k3/6)
+    (the same method, other rounding), differs from the kernel in the last bits, so the
+    equalities above would catch a kernel that reorders its operations."""
+    x, u = _vehicle_batch(rng, 4000)
+
+    def weighted(x, u, tau, nint):
+        h = tau / nint
+        for _ in range(nint):
+            k0 = ex._vehicle_rhs(x, u)
+            k1 = ex._vehicle_rhs(x + h / 2 * k0, u)
+            k2 = ex._vehicle_rhs(x + h / 2 * k1, u)
+            k3 = ex._vehicle_rhs(x + h * k2, u)
+            x = x + h * (k0 / 6 + k1 / 3 + k2 / 3 + k3 / 6)
+        return x
+    other = weighted(x, u, 0.3, 10)
+    got = vehicle_rk4(x, u, 0.3, 10)
+    assert np.allclose(other, got, rtol=0, atol=1e-12)
+    assert not np.array_equal(other, got)
+
+
+@pytest.mark.parametrize("case", ["dcdc", "vehicle"])
+def test_abstraction_same_with_and_without_kernels(case, monkeypatch):
+    """Every cell integrated on a part of each grid: the same offset tables and valid pairs."""
+    if case == "dcdc":
+        s = ex.dcdc_system(x_lo=(1.15, 5.45), x_hi=(1.25, 5.55))
+        g = UniformGrid(s.x_lo, s.x_hi, ex.DCDC_ETA)
+        kw = dict(growth=ex.dcdc_growth())
+    else:
+        s = ex.vehicle_system()
+        g = UniformGrid([0.0, 0.0, -3.5], [2.0, 2.0, 3.5], ex.VEHICLE_ETA)
+        kw = dict(growth=ex.vehicle_growth)
+    out = []
+    for mode in ("0", "1"):
+        monkeypatch.setenv("SIMGAP_JIT", mode)
+        ab = build_abstraction(s, g, **kw)
+        out.append((ab.off_lo, ab.off_hi, ab.ok))
+    assert all(np.array_equal(a, b) for a, b in zip(*out))
+    assert out[0][2].sum() > 100
+
+
+def test_policy(monkeypatch):
+    monkeypatch.setenv("SIMGAP_JIT", "2")
+    with pytest.raises(SimgapError, match="SIMGAP_JIT='2'.*0, 1, auto"):
+        jit.use_compiled()
+    monkeypatch.setenv("SIMGAP_JIT", "0")
+    with jit.expected_work(10 ** 9):
+        assert not jit.use_compiled()
+    monkeypatch.setenv("SIMGAP_JIT", "1")
+    assert jit.use_compiled()
+    monkeypatch.setenv("SIMGAP_JIT", "auto")
+    monkeypatch.setattr(sys, "modules", {k: v for k, v in sys.modules.items() if k != "numba"})
+    assert not jit.use_compiled(100)  # nothing declared
+    with jit.expected_work(99):
+        assert not jit.use_compiled(100)
+    with jit.expected_work(100):
+        assert jit.use_compiled(100)
+    assert not jit.use_compiled(100)  # the declaration ends with its block
+
+
+def test_small_jobs_do_not_import_numba():
+    """A small synthesis (auto mode) stays on the numpy path: numba is never imported."""
+    code = ("import sys\nfrom simgap.synthesis import synthesize\nfrom simgap.synthesis import examples as ex\n"
+            "s = ex.dcdc_system(x_lo=(1.15, 5.45), x_hi=(1.25, 5.55))\n"
+            "r = synthesize(s, ex.dcdc_spec(), ex.DCDC_ETA, growth=ex.dcdc_growth())\n"
+            "print('numba' in sys.modules, r.stats['transitions'] > 1000)\n")
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                       env={**__import__("os").environ, "SIMGAP_JIT": "auto"})
+    assert p.stdout.split() == ["False", "True"]

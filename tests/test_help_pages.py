@@ -60,3 +60,32 @@ def test_unknown_spec_names_the_experiments(spec, tmp_path):
                         str(tmp_path / "c.npz")], capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and "Traceback" not in r.stderr
     assert "built-in experiments: cartpole, pendulum, turtlebot" in r.stderr, r.stderr
+
+
+def test_top_level_summaries_match_the_subcommands():
+    """``simgap --help`` lists the subcommands from SUMMARIES without importing them: each line
+    equals the help its module registers, and every subcommand is listed."""
+    import argparse
+
+    from simgap.cli import SUMMARIES, build_parser, plain
+    full = build_parser()
+    sub = next(a for a in full._actions if isinstance(a, argparse._SubParsersAction))
+    registered = {a.dest: a.help for a in sub._choices_actions}
+    assert set(registered) <= set(SUMMARIES)
+    for name, text in registered.items():
+        assert plain(SUMMARIES[name]) == text, name
+    lazy = build_parser(None)
+    lsub = next(a for a in lazy._actions if isinstance(a, argparse._SubParsersAction))
+    assert {a.dest: a.help for a in lsub._choices_actions} == registered
+    assert lazy.format_help() == full.format_help()
+
+
+def test_help_and_a_command_import_only_what_they_use():
+    code = ("import sys\nfrom simgap.cli import main\ntry:\n    main({argv!r})\nexcept SystemExit:\n    pass\n"
+            "print(sorted(m for m in ('numpy', 'pydantic', 'simgap.cli.collect', 'simgap.cli.synthesize', "
+            "'simgap_viz') if m in sys.modules), file=sys.stderr)\n")
+    def loaded(argv):
+        p = subprocess.run([sys.executable, "-c", code.format(argv=argv)], capture_output=True, text=True)
+        return p.stderr.strip().splitlines()[-1]
+    assert loaded(["--help"]) == "[]"
+    assert loaded(["synthesize", "--help"]) == "['numpy', 'simgap.cli.synthesize']"

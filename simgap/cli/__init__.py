@@ -22,7 +22,41 @@ SUBCOMMANDS = ["collect", "certify", "audit", "synthesize", "rollout", "refine",
 VIZ_SUBCOMMANDS = ["gui", "record", "view", "plot"]
 
 
-def build_parser() -> argparse.ArgumentParser:
+#: the one-line help of every subcommand, for the top-level page: ``simgap --help`` and a command
+#: build only the parser they need and import only that subcommand's module (each pulls numpy,
+#: pydantic, simulators, ...). tests/test_help_pages.py checks these against the modules.
+SUMMARIES = {
+    "collect": "collect simulator data on an epsilon-cover (resumable)",
+    "certify": "compute the stochastic simulation-gap certificate of a data set",
+    "audit": "audit a certificate with fresh simulator runs",
+    "synthesize": "synthesize a symbolic controller that treats the certified gap as a disturbance",
+    "rollout": "closed-loop rollouts of a controller on a stochastic simulator",
+    "refine": "trace the residual of a model to named effects and refine it",
+    "data": "prepare transition data (e.g. from a measured trajectory)",
+    "run": "run a case study end to end: collect, certify (both methods), audit, synthesize, roll out",
+    "key": "make a key pair for signing certificates (needs simgap[sign])",
+    "plugins": "list systems and simulator kinds (built-in and from installed plugins) with their keys",
+    "split": "a system file with a subset of its states, the others fixed",
+    "gui": "interactive web app (viser): collect, certify, synthesize, roll out, refine",
+    "record": "headless Rerun recording (.rrd) of a run: map, winning domain, gamma, data, rollouts",
+    "view": "serve a run's Rerun recording to a browser and print its address (no display needed)",
+    "plot": "paper-style figures of a finished run (PNG and PDF): rollouts, states over time, gamma, p_cert",
+}
+ALL = object()  # build_parser(ALL): every subcommand's full parser
+
+
+def command_of(argv) -> "str | None":
+    """The subcommand named in ``argv`` (the first token that is not an option: the top-level
+    options take no value), or None."""
+    for tok in argv:
+        if not tok.startswith("-"):
+            return tok
+    return None
+
+
+def build_parser(command=ALL) -> argparse.ArgumentParser:
+    """The ``simgap`` parser: every subcommand's full parser (``ALL``), or only ``command``'s
+    (the others as one-line entries, their modules not imported; None: none)."""
     from .. import __version__
 
     p = argparse.ArgumentParser(
@@ -31,10 +65,12 @@ def build_parser() -> argparse.ArgumentParser:
                     "synthesize controllers that respect it, and refine the model.")
     p.add_argument("--version", action="version", version=f"simgap {__version__}")
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
-    for name in SUBCOMMANDS:
-        _register(sub, f"simgap.cli.{name}")
-    for name in VIZ_SUBCOMMANDS:
-        _register(sub, f"simgap_viz.cli_{name}")
+    for name in SUBCOMMANDS + VIZ_SUBCOMMANDS:
+        module = f"simgap.cli.{name}" if name in SUBCOMMANDS else f"simgap_viz.cli_{name}"
+        if command is ALL or name == command:
+            _register(sub, module)
+        elif name in SUBCOMMANDS or _viz_installed():
+            sub.add_parser(name, help=SUMMARIES[name])  # listed only; its module is not imported
     _numbers_are_values(p)
     _plain_help(p)
     return p
@@ -79,6 +115,11 @@ def _numbers_are_values(parser: argparse.ArgumentParser) -> None:
             _numbers_are_values(child)
 
 
+def _viz_installed() -> bool:
+    import importlib.util
+    return importlib.util.find_spec("simgap_viz") is not None
+
+
 def _register(sub, module: str) -> None:
     try:
         mod = importlib.import_module(module)
@@ -103,7 +144,8 @@ def _on_sigterm(signum, frame):
 
 def main(argv=None) -> int:
     import signal
-    parser = build_parser()
+    command = command_of(sys.argv[1:] if argv is None else argv)
+    parser = build_parser(command if command in SUMMARIES else None)
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help()

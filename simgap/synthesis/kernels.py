@@ -1,6 +1,7 @@
-"""Compiled RK4 kernels of the reference systems (numba; imported only when :mod:`.jit` says so).
+"""Compiled kernels (numba; imported only when :mod:`.jit` says so): the RK4 of the reference
+systems and one level of the worklist reach game (:func:`reach_level`).
 
-Each kernel integrates x' = F(x, u) over tau with ``nint`` classical RK4 substeps, row by row,
+Each RK4 kernel integrates x' = F(x, u) over tau with ``nint`` classical RK4 substeps, row by row,
 in exactly the operation order of :func:`~simgap.synthesis.runge_kutta.rk4_integrate` and of the
 numpy right-hand side it replaces (SCOTS's order)::
 
@@ -140,3 +141,48 @@ def dcdc_rk4(X, U, tau, nint, A, b0):
         out[i, 0] = x0
         out[i, 1] = x1
     return out
+
+
+@_compiled
+def reach_level(R, indptr, q, code, offsets, fits, shape, strides, pmask, M, won, cnt):
+    """One level of the worklist reach game on a :class:`~simgap.synthesis.corner_index.CornerIndex`
+    (``reach._reach_worklist``, numpy): for every transition (c, u) -> r with r in ``R`` (the
+    cells won in the last level) and c not won, cnt[c * M + u] -= 1. Returns the pairs whose
+    count reached 0 (unsorted, each once) and the number of transitions visited. The pairs of
+    r are those whose box's lo corner is r - a for an offset a with a < ext(q) (``fits``)."""
+    n = shape.size
+    E = offsets.shape[0]
+    done = np.empty(1024, dtype=np.int64)
+    nd = 0
+    tested = 0
+    for i in range(R.size):
+        r = R[i]
+        for a in range(E):
+            key = 0
+            inside = True
+            for d in range(n):
+                c = (r // strides[d]) % shape[d] - offsets[a, d]
+                if pmask[d]:
+                    c %= shape[d]
+                elif c < 0:
+                    inside = False
+                    break
+                key += c * strides[d]
+            if not inside:
+                continue
+            for e in range(indptr[key], indptr[key + 1]):
+                if not fits[a, code[e]]:
+                    continue
+                p = q[e]
+                if won[p // M]:
+                    continue
+                tested += 1
+                cnt[p] -= 1
+                if cnt[p] == 0:
+                    if nd == done.size:
+                        grown = np.empty(2 * nd, dtype=np.int64)
+                        grown[:nd] = done
+                        done = grown
+                    done[nd] = p
+                    nd += 1
+    return done[:nd], tested

@@ -18,7 +18,9 @@ import numpy as np
 
 from .abstraction import Abstraction
 from .boxes import BoxCounter, PairEvaluator, pair_volumes
+from .corner_index import CornerIndex
 from .fixed_point import GameResult, choose_method, tick
+from .jit import expected_work, use_compiled
 from .live import _per_class, _usable_pairs, _valid_shared, live_pairs
 from .pair_rows import _block_size, _unpack, pack_rows
 from .predecessors import _frontier, _predecessors
@@ -95,15 +97,24 @@ def _reach_worklist(ab: Abstraction, target: np.ndarray, live: np.ndarray, pre):
     packed = np.zeros((N, (M + 7) // 8), dtype=np.uint8)
     R = np.flatnonzero(target)
     it = tested = 0
+    level = _compiled_level(pre, cnt)
     while R.size:
-        p = pre.pairs(R)
-        p = np.compress(~won.take(p // M), p)  # pairs of cells not yet won
-        if p.size == 0:
-            break
-        it += 1
-        tested += p.size
-        np.subtract.at(cnt, p, one)  # one decrement per transition into a newly won cell
-        done = np.unique(np.compress(cnt.take(p) == 0, p))
+        if level is not None:  # the same level, compiled (kernels.reach_level): the same pairs
+            done, n_p = level(R, won)
+            if n_p == 0:
+                break
+            it += 1
+            tested += n_p
+            done = np.unique(done)
+        else:
+            p = pre.pairs(R)
+            p = np.compress(~won.take(p // M), p)  # pairs of cells not yet won
+            if p.size == 0:
+                break
+            it += 1
+            tested += p.size
+            np.subtract.at(cnt, p, one)  # one decrement per transition into a newly won cell
+            done = np.unique(np.compress(cnt.take(p) == 0, p))
         if done.size == 0:
             break
         R, row = np.unique(done // M, return_inverse=True)
@@ -114,6 +125,27 @@ def _reach_worklist(ab: Abstraction, target: np.ndarray, live: np.ndarray, pre):
         won[R] = True
         steps[R] = it
     return steps, packed, it, tested
+
+
+#: transitions from which the compiled level pays for numba's start in auto mode (the numpy
+#: level costs about 40 ns per transition more; numba's start about 0.8 s)
+COMPILED_GAME_TRANSITIONS = 20_000_000
+
+
+def _compiled_level(pre, cnt):
+    """``level(R, won) -> (pairs whose count reached 0, transitions visited)`` compiled
+    (:func:`simgap.synthesis.kernels.reach_level`) when :mod:`.jit` says so for this game's
+    transitions and ``pre`` is a corner index; else None (the numpy level)."""
+    if not isinstance(pre, CornerIndex):
+        return None
+    with expected_work(int(pre.cell_transitions.sum(dtype=np.int64))):
+        if not use_compiled(COMPILED_GAME_TRANSITIONS):
+            return None
+    from .kernels import reach_level
+    args = (pre.indptr, pre.q, pre.code, pre.offsets.astype(np.int64), pre.fits,
+            np.array(pre.shape, dtype=np.int64), np.array(pre.strides, dtype=np.int64),
+            np.asarray(pre.pmask, dtype=np.bool_), np.int64(pre.M))
+    return lambda R, won: reach_level(R.astype(np.int64), *args, won, cnt)
 
 
 def _reach_sat(ab: Abstraction, ev: PairEvaluator, target, blocked, live, group_filter):

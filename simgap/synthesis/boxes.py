@@ -344,15 +344,43 @@ class RowBoxes:
         return np.minimum.reduceat(values[cell], starts)
 
 
-def pair_volumes(ab: Abstraction) -> np.ndarray:
-    """(K, M) int32 cells per box (extent capped at n_d in periodic dimensions)."""
-    vol = np.ones(ab.off_lo.shape[:2], dtype=np.int32)
-    for d in range(ab.grid.n):
-        ext = ab.off_hi[..., d].astype(np.int32) - ab.off_lo[..., d] + 1
-        if ab.grid.periodic_mask[d]:
-            np.minimum(ext, ab.grid.shape[d], out=ext)
-        vol *= np.maximum(ext, 0)
+def pair_volumes(ab: Abstraction, dtype=np.int32, block: int = 1 << 18) -> np.ndarray:
+    """(K, M) cells per box (extent capped at n_d in periodic dimensions), in ``dtype``.
+
+    Computed over blocks of about ``block`` pairs, so that the temporaries stay small (the
+    table itself can be 1 or 2 bytes a pair: :func:`volume_bound` says which dtype holds it)."""
+    K, M, n = ab.off_lo.shape
+    vol = np.empty((K, M), dtype=dtype)
+    cb = max(1, block // max(M, 1))
+    for s in range(0, K, cb):
+        e = min(K, s + cb)
+        v = np.ones((e - s, M), dtype=np.int64)
+        for d in range(n):
+            ext = ab.off_hi[s:e, :, d].astype(np.int32) - ab.off_lo[s:e, :, d] + 1
+            if ab.grid.periodic_mask[d]:
+                np.minimum(ext, ab.grid.shape[d], out=ext)
+            v *= np.maximum(ext, 0)
+        if v.size and v.max() > np.iinfo(dtype).max:
+            raise OverflowError(f"pair_volumes: a box of {int(v.max())} cells does not fit {np.dtype(dtype).name}")
+        vol[s:e] = v
     return vol
+
+
+def volume_bound(ab: Abstraction, block: int = 1 << 20) -> int:
+    """An upper bound on every pair's box volume: the product over the dimensions of the largest
+    extent (capped at n_d in periodic dimensions), over blocks of about ``block`` pairs."""
+    K, M, n = ab.off_lo.shape
+    cb = max(1, block // max(M, 1))
+    bound = 1
+    for d in range(n):
+        emax = 0
+        for s in range(0, K, cb):
+            diff = np.subtract(ab.off_hi[s:s + cb, :, d], ab.off_lo[s:s + cb, :, d], dtype=np.int32)
+            emax = max(emax, int(diff.max(initial=-1)) + 1)
+        if ab.grid.periodic_mask[d]:
+            emax = min(emax, int(ab.grid.shape[d]))
+        bound *= max(emax, 0)
+    return bound
 
 
 class DistinctBoxes:

@@ -17,7 +17,7 @@ from typing import Optional
 import numpy as np
 
 from .abstraction import Abstraction
-from .boxes import BoxCounter, PairEvaluator, pair_volumes
+from .boxes import BoxCounter, PairEvaluator, pair_volumes, volume_bound
 from .corner_index import CornerIndex
 from .fixed_point import GameResult, choose_method, tick
 from .jit import expected_work, use_compiled
@@ -81,8 +81,8 @@ def solve_reach(ab: Abstraction, target: np.ndarray, blocked: np.ndarray,
 def _reach_worklist(ab: Abstraction, target: np.ndarray, live: np.ndarray, pre):
     """SCOTS's reach game, level-synchronous: cnt[c, u] = cells of box(c, u) not yet won."""
     N, M = ab.grid.size, ab.n_inputs
-    vol = pair_volumes(ab)
-    vol = vol.astype(_counter_dtype(int(vol.max(initial=0)) + 1))
+    # straight into the counter's dtype (1 or 2 bytes a pair; no int32 table and its temporaries)
+    vol = pair_volumes(ab, dtype=_counter_dtype(volume_bound(ab) + 1))
     if len(ab.class_dims) == ab.grid.n:
         cnt = vol.reshape(-1)
     else:

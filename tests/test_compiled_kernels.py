@@ -70,24 +70,32 @@ def test_equality_is_sensitive_to_the_summation_order(rng):
     assert not np.array_equal(other, got)
 
 
-@pytest.mark.parametrize("case", ["dcdc", "vehicle"])
+@pytest.mark.parametrize("case", ["dcdc", "vehicle", "vehicle_shared", "dcdc_int16"])
 def test_abstraction_same_with_and_without_kernels(case, monkeypatch):
-    """Every cell integrated on a part of each grid: the same offset tables and valid pairs."""
+    """Every cell integrated on a part of each grid (and the vehicle's shared boxes, and offsets
+    beyond int8): the same offset tables and valid pairs from the compiled RK4 and boxes."""
     if case == "dcdc":
         s = ex.dcdc_system(x_lo=(1.15, 5.45), x_hi=(1.25, 5.55))
         g = UniformGrid(s.x_lo, s.x_hi, ex.DCDC_ETA)
         kw = dict(growth=ex.dcdc_growth())
+    elif case == "dcdc_int16":  # a fine grid: the boxes move by more than 127 cells per step
+        s = ex.dcdc_system(x_lo=(1.15, 5.45), x_hi=(1.152, 5.452))
+        g = UniformGrid(s.x_lo, s.x_hi, (ex.DCDC_ETA[0] / 40, ex.DCDC_ETA[1] / 40))
+        kw = dict(growth=ex.dcdc_growth())
     else:
         s = ex.vehicle_system()
         g = UniformGrid([0.0, 0.0, -3.5], [2.0, 2.0, 3.5], ex.VEHICLE_ETA)
-        kw = dict(growth=ex.vehicle_growth)
+        kw = dict(growth=ex.vehicle_growth, invariant_dims=(0, 1) if case == "vehicle_shared" else ())
     out = []
     for mode in ("0", "1"):
         monkeypatch.setenv("SIMGAP_JIT", mode)
         ab = build_abstraction(s, g, **kw)
         out.append((ab.off_lo, ab.off_hi, ab.ok))
-    assert all(np.array_equal(a, b) for a, b in zip(*out))
-    assert out[0][2].sum() > 100
+    assert all(a.dtype == b.dtype and np.array_equal(a, b) for a, b in zip(*out))
+    if case == "dcdc_int16":  # every box leaves this small domain: the offsets are compared
+        assert out[0][0].dtype == np.int16 and np.abs(out[0][0]).max() > 127
+    else:
+        assert out[0][2].sum() > (100 if case != "vehicle_shared" else 10)
 
 
 def test_policy(monkeypatch):
@@ -172,3 +180,26 @@ def test_reach_kernel_counts_every_transition_once(monkeypatch):
     bits = lambda r: np.unpackbits(r.valid_packed).sum()  # noqa: E731
     assert bits(bad) < bits(good)  # pairs whose count never reaches 0: fewer valid inputs
     assert bad.winning.sum() < good.winning.sum()
+
+
+@pytest.mark.parametrize("case", ["vehicle", "periodic"])
+def test_corner_index_same_with_and_without_kernels(case, monkeypatch):
+    """The compiled two-pass build of the predecessor index gives the numpy build's arrays (the
+    same order of pairs within each corner's row, the same codes, per-cell tables)."""
+    from simgap.synthesis.corner_index import CornerIndex
+    monkeypatch.setenv("SIMGAP_JIT", "0")
+    if case == "vehicle":
+        s = ex.vehicle_system()
+        g = UniformGrid([0.0, 0.0, -3.5], [3.0, 3.0, 3.5], ex.VEHICLE_ETA)
+        ab = build_abstraction(s, g, growth=ex.vehicle_growth)
+    else:
+        s = ex.vortex_system()
+        g = UniformGrid(s.x_lo, [5.0, 5.0, np.pi], ex.VORTEX_ETA, periodic=s.angle_dims)
+        ab = build_abstraction(s, g, growth=ex.vortex_growth())
+    a = CornerIndex.build(ab)
+    monkeypatch.setenv("SIMGAP_JIT", "1")
+    b = CornerIndex.build(ab)
+    for k in ("indptr", "q", "code", "emax", "usable", "cell_boxes", "cell_transitions", "fits"):
+        x, y = getattr(a, k), getattr(b, k)
+        assert x.dtype == y.dtype and np.array_equal(x, y), k
+    assert a.size > 10000

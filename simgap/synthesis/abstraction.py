@@ -59,7 +59,7 @@ from ..errors import SimgapError
 from ..systems import System
 from .corner_index import CornerIndex
 from .grid import UniformGrid
-from .jit import expected_work
+from .jit import expected_work, use_compiled
 
 GrowthFn = Callable[[np.ndarray, np.ndarray, np.ndarray, float], np.ndarray]
 
@@ -544,9 +544,12 @@ def build_abstraction(system: System, grid: UniformGrid, *, growth: Optional[Gro
                     if step < hold - 1:
                         mlo = np.minimum(mlo, disp - r)
                         mhi = np.maximum(mhi, disp + r)
+                if not pmask.any() and use_compiled(1 << 62):  # numba already loaded (or forced)
+                    _boxes_compiled(x, r, z, eta, grid, dom_lo, dom_hi, mi, inv_mask, off, ok, s, e)
+                    x = r = None
                 good = np.ones(P, dtype=bool)
                 out = np.zeros(P, dtype=bool)
-                for d in range(n):  # column by column, in place (n is 2-3)
+                for d in range(n if x is not None else 0):  # column by column, in place (n is 2-3)
                     xd, rd, zd, ed = x[:, d], r[:, d], z[d], eta[d]
                     good &= np.isfinite(xd)
                     good &= np.isfinite(rd)
@@ -561,7 +564,8 @@ def build_abstraction(system: System, grid: UniformGrid, *, growth: Optional[Gro
                         out |= right >= dom_hi[d]
                     _store(off, "lo", s, e, d, _cell_offset((left - grid.first[d] + ed / 2) / ed, mi[:, d]))
                     _store(off, "hi", s, e, d, _cell_offset((right - grid.first[d] + ed / 2) / ed, mi[:, d]))
-                ok[s:e] = (good & ~out).reshape(e - s, M)
+                if x is not None:
+                    ok[s:e] = (good & ~out).reshape(e - s, M)
                 if hold > 1:
                     ml = np.floor(np.nan_to_num((mlo - z) / eta + 0.5))
                     mh = np.floor(np.nan_to_num((mhi + z) / eta + 0.5))
@@ -587,6 +591,22 @@ def build_abstraction(system: System, grid: UniformGrid, *, growth: Optional[Gro
     ab.info = {"invariant_dims": list(inv), "classes": K, "guard": guard, "hold": hold,
                "seconds_index": time.perf_counter() - t1}
     return ab
+
+
+def _boxes_compiled(x, r, z, eta, grid, dom_lo, dom_hi, mi, inv_mask, off, ok, s, e) -> None:
+    """The block's offsets and valid flags by :func:`simgap.synthesis.kernels.box_offsets` (the
+    numpy loop's operations, per pair; no periodic dimension), stored as the loop stores them."""
+    from .kernels import box_offsets
+    P, n = x.shape
+    lo, hi = np.empty((P, n)), np.empty((P, n))
+    good = np.empty(P, dtype=bool)
+    f64 = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
+    box_offsets(f64(x), f64(r), f64(z), f64(eta), f64(grid.first), f64(dom_lo), f64(dom_hi),
+                np.ascontiguousarray(mi), np.asarray(inv_mask, dtype=np.bool_), float(_OFF_LIMIT), lo, hi, good)
+    for d in range(n):
+        _store(off, "lo", s, e, d, lo[:, d])
+        _store(off, "hi", s, e, d, hi[:, d])
+    ok[s:e] = good.reshape(e - s, -1)
 
 
 def _store(off: dict, side: str, s: int, e: int, d: int, v: np.ndarray) -> None:

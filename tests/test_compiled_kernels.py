@@ -42,6 +42,16 @@ def test_vehicle_kernel_bit_identical(rng, monkeypatch):
     assert np.array_equal(ex.vehicle_step(x, u, 0.3), want)  # the step dispatches to the kernel
 
 
+def test_vehicle_kernel_divides_as_numpy():
+    """A zero cos(alpha) (an input term the grid never has) gives numpy's inf/nan, not numba's
+    default ZeroDivisionError (the kernels are compiled with error_model="numpy")."""
+    from simgap.synthesis.kernels import vehicle_rk4
+    x = np.array([[1.0, 2.0, 0.5], [np.nan, 0.0, 0.0]])
+    z = np.zeros(2)
+    got = vehicle_rk4(x, z, z, np.ones(2), z, 0.3, 10)
+    assert not np.isfinite(got[:, :2]).any() and got[0, 2] == 0.5
+
+
 def test_dcdc_kernel_bit_identical(rng, monkeypatch):
     s = ex.dcdc_system()
     x = rng.uniform([1.0, 5.3], [1.7, 6.0], (20000, 2))

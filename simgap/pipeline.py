@@ -205,11 +205,14 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
     ``address`` (default: the experiment's ``[collect]``) say where the collections' chunks and the
     per-run stage's interval-MDP sampling run; ``address`` is a Ray cluster's.
     """
-    from .certify.audit import audit
-    from .certify.pipeline import certify
+    from .certify.audit import audit, audit_cost, audit_cost_text, check_audit_cost
+    from .certify.lipschitz import crn_cost_text
+    from .certify.pipeline import certify, lhat_cost
+    from .cover import calibrate_rate, estimate_cost
     from .synthesis.controller import synthesize
     from .rollout import rollout
 
+    t_start = time.perf_counter()
     out = Path(out)
     per_run = exp.section("perrun")
     if per_run:  # validated before any work: bad input writes nothing
@@ -274,12 +277,18 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
             return r
 
         data = {}
+        with make_simulator(exp.simulator.to_dict(), exp.system) as one:  # one worker's rate, for the estimates
+            rate = calibrate_rate(one, budget=0.3)
+        n_workers = wk or os.cpu_count() or 1
         for method, e, sub in (("stochastic", exp, "data"), ("deterministic", baseline_experiment(exp),
                                                               "data_deterministic")):
             plan = e.plan()
+            log(f"[collect/{method}] " + estimate_cost(plan.cover, plan.n_runs, rate_per_worker=rate, workers=n_workers,
+                                                       rate_source="calibrated here; a resumed store's done chunks "
+                                                                   "are skipped").summary().replace("\n", "; "))
             res = stage(f"collect/{method}", lambda: collect(plan, store_root / sub, executor=ex, workers=wk or None,
                                                              address=address or exp.collect.address,
-                                                             on_progress=progress and progress(method, "pairs")))
+                                                             on_progress=progress and progress(f"collect/{method}", "pairs")))
             if not res.complete:
                 raise SimgapError(f"collection of {store_root / sub} did not finish (cancelled); run again to resume")
             summary["collected_runs"][method] = int(res.runs)  # new this call (a resumed store's earlier chunks not)
@@ -290,6 +299,7 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
         sims = {m: make_simulator(e.simulator.to_dict(), e.system, workers=wk or 0)
                 for m, e in (("stochastic", exp), ("deterministic", baseline_experiment(exp)))}
         sim = sims["stochastic"]  # audits and rollouts run against the stochastic simulator
+        sim_workers = max(1, int(getattr(sim, "workers", 1) or 1))
         controllers = {}
         invariant = checked["method"] == "invariant_set"
 
@@ -302,9 +312,13 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
                 entry["rollouts"] = {"skipped": why}
                 log(f"[rollout/{method}] skipped: {why}")
             else:
+                bar = progress and progress(f"rollout/{method}", "steps")
                 rr = stage(f"rollout/{method}", lambda: rollout(sres.controller, sim, x0, n_rollouts=R,
                                                                 horizon=ro.get("horizon"), seed=int(ro.get("seed", 11)),
-                                                                on_exit=ro.get("on_exit", "hold")))
+                                                                on_exit=ro.get("on_exit", "hold"),
+                                                                on_estimate=lambda t: log(f"[rollout/{method}] {t}"),
+                                                                on_progress=bar))
+                _close(bar)
                 rr.save_npz(out / f"rollouts_{method}.npz")
                 wrote(f"rollouts_{method}.npz")
                 entry["rollouts"] = rr.to_dict(per_rollout=False)
@@ -323,12 +337,23 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
         for method in METHODS:
             ds = data[method]
             opts = certify_options(cert_section, method, exp.system)
-            cert = stage(f"certify/{method}", lambda: certify(ds, opts, simulator=sims[method]))
+            cost = lhat_cost(ds, opts, sims[method])  # the simulator's Lipschitz runs, if any: priced first
+            if cost is not None:
+                log(f"[certify/{method}] {crn_cost_text(cost)}")
+            bar = progress and cost is not None and progress(f"certify/{method}: Lipschitz (simulator)", "runs")
+            cert = stage(f"certify/{method}", lambda: certify(ds, opts, simulator=sims[method], on_progress=bar or None))
+            _close(bar)
             cert.save(out / f"cert_{method}.json")
             wrote(f"cert_{method}.json")
+            acost = audit_cost(int(au.get("points", 200)), int(au.get("runs", 2000)), exp.system, rate,
+                               workers=sim_workers)
+            log(f"[audit/{method}] {audit_cost_text(acost)}")
+            check_audit_cost(acost)
+            bar = progress and progress(f"audit/{method}", "runs")
             rep = stage(f"audit/{method}", lambda: audit(cert, sim, points=int(au.get("points", 200)),
                                                          runs=int(au.get("runs", 2000)), seed=int(au.get("seed", 7)),
-                                                         dataset=data["stochastic"]))
+                                                         dataset=data["stochastic"], on_progress=bar))
+            _close(bar)
             fileio.write_json(out / f"audit_{method}.json", rep)
             wrote(f"audit_{method}.json")
             if invariant:
@@ -338,8 +363,10 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
                     sres.controller.save(out / f"controller_{method}.npz")
                     wrote(f"controller_{method}.npz")
             else:
+                bar = progress and progress(f"synthesize/{method}: abstraction", "classes")
                 sres = stage(f"synthesize/{method}", lambda: synthesize(exp.system, spec, syn["eta"], gap=cert,
-                                                                        hold=hold, x0=x0))
+                                                                        hold=hold, x0=x0, log=log, on_progress=bar))
+                _close(bar)
                 sres.controller.save(out / f"controller_{method}.npz")
                 wrote(f"controller_{method}.npz")
             if not sres.empty:
@@ -377,9 +404,16 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
         for each in sims.values():
             each.close()
         summary["seconds"] = times
+        summary["wall_seconds"] = round(time.perf_counter() - t_start, 3)  # everything, between the stages too
         summary["files"] = results_folder.list_files(out, run_id)
         fileio.write_json(out / "summary.json", summary, default=_json_default)
         return summary
+
+
+def _close(bar) -> None:
+    """Close a stage's progress bar (a callback without ``close`` is the caller's to end)."""
+    if bar and hasattr(bar, "close"):
+        bar.close()
 
 
 def _json_default(o):
@@ -481,4 +515,7 @@ def comparison_table(summary: dict) -> str:
     if secs:
         lines.append("")
         lines.append("wall time per stage: " + ", ".join(f"{k} {v:.1f} s" for k, v in secs.items()))
+    if summary.get("wall_seconds") is not None:
+        lines.append(f"wall time of the whole run: {summary['wall_seconds']:.1f} s (checks, estimates and files "
+                     "included; the recording comes after)")
     return "\n".join(lines)

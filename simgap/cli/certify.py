@@ -158,8 +158,8 @@ def run(args) -> int:
 def _certify_with_simulator(args, ds):
     """certify with ``lhat="simulator"``: the simulator runs' estimate first (before the fitting
     modules are imported), then the options and a progress bar while the runs go."""
-    from ..certify.lipschitz import LHAT_PAIRS, LHAT_RUNS, check_crn_cost, crn_cost, crn_cost_text
-    from ..cover import calibrate_rate
+    from ..certify.lipschitz import crn_cost_text
+    from ..certify.pipeline import lhat_cost
     from ..progress import ProgressBar
     from ..simulators import make_simulator
 
@@ -167,14 +167,15 @@ def _certify_with_simulator(args, ds):
     if not cfg:
         raise SimgapError("--lhat simulator needs the data manifest's simulator config; this data set has none "
                           "(use --lhat data)")
-    bar = None if args.no_progress else ProgressBar(unit="runs", desc="Lhat_fhat (simulator)")
+    opts = options_from_args(args, ds.system)
+    check_certify_size(opts, ds)
     with make_simulator(cfg, system=ds.system) as sim:
-        cost = crn_cost(LHAT_PAIRS, LHAT_RUNS, ds.system, calibrate_rate(sim, budget=0.3))
-        print(crn_cost_text(cost), flush=True)
-        check_crn_cost(cost)
+        cost = lhat_cost(ds, opts, sim)  # every simulator run of this certify call: the gap's term's too
+        if cost is not None:
+            print(crn_cost_text(cost), flush=True)
+        desc = "Lipschitz runs (simulator)" if cost and cost["gap_rows"] else "Lhat_fhat (simulator)"
+        bar = None if args.no_progress else ProgressBar(unit="runs", desc=desc)
         from ..certify import certify
-        opts = options_from_args(args, ds.system)
-        check_certify_size(opts, ds)
         try:
             return certify(ds, opts, simulator=sim, on_progress=bar)
         finally:

@@ -131,6 +131,7 @@ def check_experiment(exp: ExperimentConfig, out: Optional[str | Path] = None, *,
         n_terms = max(len(opts.terms.get(-1, [])) + len(opts.terms.get(i, [])) for i in range(n))
         checks.check_basis(plan.n_pairs, n + s.m - len(inv), degs, n_terms, what="[certify] degree")
         bases_for(s, opts.degree, opts.terms, inv)  # every term parses
+        check_against_cover(s, plan.cover, opts)
 
     c = exp.collect
     wk = workers if workers is not None else c.workers
@@ -140,6 +141,39 @@ def check_experiment(exp: ExperimentConfig, out: Optional[str | Path] = None, *,
         pass  # the simulator's kind, noise, effects and options are valid
     return {"spec": spec, "x0": x0, "eta": syn.get("eta"), "hold": int(syn.get("hold", 1)), "n_rollouts": R,
             "method": invariant_stage.method_of(syn)}
+
+
+def check_against_cover(system, cover, opts, where: str = "[certify]") -> None:
+    """The certify options' refusals that the cover and the input set decide, before any collection.
+
+    - the basis degree against the values each variable will take on the data
+      (:func:`simgap.checks.check_degree_values`);
+    - lhat = "simulator": its pair distance h = the cover's epsilon fits inside X along every covered
+      dimension (:func:`simgap.certify.lipschitz.check_pair_distance`);
+    - the gap's own Lipschitz term (lipschitz_term = "gap" or continuous inputs): at least two cover
+      values along every covered dimension (and input, for continuous inputs): it needs neighbours.
+    Each message names the setting to change."""
+    from . import checks
+    from .certify.lipschitz import check_pair_distance
+
+    cov = list(cover.covered)
+    counts = {system.state_names[j]: int(c) for j, c in zip(cov, cover.counts)}
+    inputs = {nm: len(np.unique(system.inputs[:, k])) for k, nm in enumerate(system.input_names)}
+    remedy = {nm: f"a finer cover along {nm} ([collect] epsilon or spacing, --epsilon)" for nm in counts}
+    remedy.update({nm: f"more values of {nm} in the system's input set" for nm in inputs})
+    degs = list(opts.degree) if np.ndim(opts.degree) else [opts.degree] * system.n
+    checks.check_degree_values([d if d is not None else -1 for d in degs], {**counts, **inputs},
+                               system.state_names, f"{where} degree", remedy)
+    if opts.lhat == "simulator":
+        check_pair_distance(system, float(cover.epsilon), cov)
+    if opts.lipschitz_term == "gap" or opts.continuous_inputs:
+        need = dict(counts, **(inputs if opts.continuous_inputs else {}))
+        for nm, v in need.items():
+            if v < 2:
+                raise SimgapError(f"{where} the gap's own Lipschitz term (lipschitz_term = \"gap\" or continuous "
+                                  f"inputs) needs cover points with neighbours along every covered dimension, but "
+                                  f"the data will have {v} value of {nm}: use "
+                                  f"{remedy[nm]} (at least 2 values), or lipschitz_term = \"paper\"")
 
 
 def closest_approach(arena, rr) -> dict:

@@ -129,6 +129,14 @@ def check_certify_size(opts, ds) -> None:
     terms = opts.terms or {}
     n_terms = max(len(terms.get(-1, [])) + len(terms.get(i, [])) for i in range(s.n))
     check_basis(ds.K, s.n + s.m - len(invariant_dims(ds)), degs, n_terms, what="--degree")
+    import numpy as np
+
+    from ..checks import check_degree_values  # the data's values per variable, as the collection's pre-check
+    inv = invariant_dims(ds)
+    values = {nm: len(np.unique(ds.x[:, j])) for j, nm in enumerate(s.state_names) if j not in inv}
+    values.update({nm: len(np.unique(ds.u[:, k])) for k, nm in enumerate(s.input_names)})
+    check_degree_values([d if d is not None else -1 for d in degs], values, s.state_names, "--degree",
+                        {nm: f"data collected on a finer cover along {nm}" for nm in values})
 
 
 def run(args) -> int:

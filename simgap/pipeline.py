@@ -292,6 +292,7 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
         ex = executor or exp.collect.executor
         wk = workers if workers is not None else exp.collect.workers
         times: dict = {}
+        estimates: dict = {}  # stage -> the seconds its printed estimate said (bench/bench_estimates.py)
         summary: dict = {"experiment": exp.name, "profile": exp.profile, "description": exp.description,
                          "run_id": run_id, "config_file": str(exp.path.resolve()), "experiment_toml": toml_text,
                          "sections": {k: exp.section(k) for k in ("certify", "audit", "synthesis", "rollout")},
@@ -317,9 +318,10 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
         for method, e, sub in (("stochastic", exp, "data"), ("deterministic", baseline_experiment(exp),
                                                               "data_deterministic")):
             plan = e.plan()
-            log(f"[collect/{method}] " + estimate_cost(plan.cover, plan.n_runs, rate_per_worker=rate, workers=n_workers,
-                                                       rate_source="calibrated here; a resumed store's done chunks "
-                                                                   "are skipped").summary().replace("\n", "; "))
+            est = estimate_cost(plan.cover, plan.n_runs, rate_per_worker=rate, workers=n_workers,
+                                rate_source="calibrated here; a resumed store's done chunks are skipped")
+            estimates[f"collect/{method}"] = est.seconds
+            log(f"[collect/{method}] " + est.summary().replace("\n", "; "))
             res = stage(f"collect/{method}", lambda: collect(plan, store_root / sub, executor=ex, workers=wk or None,
                                                              address=address or exp.collect.address,
                                                              on_progress=progress and progress(f"collect/{method}", "pairs")))
@@ -353,6 +355,7 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
                                                                 on_estimate=lambda t: log(f"[rollout/{method}] {t}"),
                                                                 on_progress=bar))
                 _close(bar)
+                estimates[f"rollout/{method}"] = rr.timing.get("estimate_s")
                 rr.save_npz(out / f"rollouts_{method}.npz")
                 wrote(f"rollouts_{method}.npz")
                 entry["rollouts"] = rr.to_dict(per_rollout=False)
@@ -373,6 +376,8 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
             opts = certify_options(cert_section, method, exp.system)
             cost = lhat_cost(ds, opts, sims[method])  # the simulator's Lipschitz runs, if any: priced first
             if cost is not None:
+                estimates[f"certify/{method}"] = cost["seconds"]
+            if cost is not None:
                 log(f"[certify/{method}] {crn_cost_text(cost)}")
             bar = progress and cost is not None and progress(f"certify/{method}: Lipschitz (simulator)", "runs")
             cert = stage(f"certify/{method}", lambda: certify(ds, opts, simulator=sims[method], on_progress=bar or None))
@@ -381,6 +386,7 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
             wrote(f"cert_{method}.json")
             acost = audit_cost(int(au.get("points", 200)), int(au.get("runs", 2000)), exp.system, rate,
                                workers=sim_workers)
+            estimates[f"audit/{method}"] = acost["seconds"]
             log(f"[audit/{method}] {audit_cost_text(acost)}")
             check_audit_cost(acost)
             bar = progress and progress(f"audit/{method}", "runs")
@@ -438,6 +444,7 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
         for each in sims.values():
             each.close()
         summary["seconds"] = times
+        summary["estimated_seconds"] = estimates
         summary["wall_seconds"] = round(time.perf_counter() - t_start, 3)  # everything, between the stages too
         summary["files"] = results_folder.list_files(out, run_id)
         fileio.write_json(out / "summary.json", summary, default=_json_default)

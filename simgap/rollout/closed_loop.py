@@ -350,10 +350,12 @@ def rollout(controller, simulator, x0=None, n_rollouts: int = 1000, horizon: Opt
                        f"the mean map with {int(mean_map_runs):,} runs per step x horizon {horizon:,}",
                        "use fewer --mean-map-runs (the standard error falls as 1/sqrt(runs))",
                        calibrate_rate(simulator, n_runs=65536, budget=0.3) if work > 1e9 else None)
+    estimate_s = None
     if on_estimate is not None:
         from ..cover import calibrate_rate
-        on_estimate(rollout_cost_text(rollout_cost(n_rollouts, horizon, int(mean_map_runs),
-                                                   calibrate_rate(simulator, budget=0.3))))
+        cost = rollout_cost(n_rollouts, horizon, int(mean_map_runs), calibrate_rate(simulator, budget=0.3))
+        estimate_s = cost["seconds"]
+        on_estimate(rollout_cost_text(cost))
     if rng is None:
         rng = np.random.default_rng(seed)
     else:
@@ -391,6 +393,7 @@ def rollout(controller, simulator, x0=None, n_rollouts: int = 1000, horizon: Opt
     cfg = getattr(simulator, "config", None)
     # total_wall_s: everything this call did (checks, rate calibration, rollouts, nominal run, mean map)
     timing = {"mean_map_s": time.perf_counter() - m0, "wall_s": wall, "total_wall_s": time.perf_counter() - start,
+              "estimate_s": estimate_s,
               "simulator_s": tr.sim_seconds, "controller_s": tr.ctrl_seconds,
               "cpu_s": cpu, "robot_steps": int(tr.robot_steps),
               "robot_steps_per_s": tr.robot_steps / wall if wall > 0 else 0.0,

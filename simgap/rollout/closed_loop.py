@@ -206,40 +206,58 @@ def resolve_hold(controller, simulator) -> int:
     return periods // int(ss.steps)
 
 
-def default_horizon(controller, x0: np.ndarray, hold: int) -> int:
-    """A horizon in simulator steps: 2x the controller's steps-to-go at x0 (+1 abstract step) when it
-    reports one (``steps_to_go``/``value``), else DEFAULT_HORIZON."""
+def steps_to_go(controller, x0: np.ndarray) -> Optional[float]:
+    """The controller's (worst-case) abstract steps to go at x0 when it reports them
+    (``steps_to_go``/``value``), else None."""
     for name in ("steps_to_go", "value"):
         fn = getattr(controller, name, None)
         if callable(fn):
             try:
                 v = float(np.asarray(fn(x0[None])).reshape(-1)[0])
-            except Exception:  # an optional hint only; fall back to the fixed default
+            except Exception:  # an optional hint only
                 continue
             if np.isfinite(v) and v >= 0:
-                return int(max(hold * (2 * v + 1), hold))
-    return DEFAULT_HORIZON
+                return v
+    return None
 
 
-def rollout_cost(n_rollouts: int, horizon: int, mean_map_runs: int, rate=None) -> dict:
+def default_horizon(controller, x0: np.ndarray, hold: int) -> int:
+    """A horizon in simulator steps: 2x the controller's steps-to-go at x0 (+1 abstract step) when it
+    reports one (``steps_to_go``/``value``), else DEFAULT_HORIZON."""
+    v = steps_to_go(controller, x0)
+    return DEFAULT_HORIZON if v is None else int(max(hold * (2 * v + 1), hold))
+
+
+def rollout_cost(n_rollouts: int, horizon: int, mean_map_runs: int, rate=None, expected_steps=None) -> dict:
     """Simulator runs and time of :func:`rollout` before it runs.
 
     At most R T runs for the rollouts (every rollout to the horizon; runs that stop early cost
     less) and, with the mean map, T (runs + G floor(runs / G)) <= 2 T runs for its estimate and its
-    G repetitions; ``seconds`` = runs / rate at ``rate`` [simulator runs/s] (None: unknown)."""
+    G repetitions (``rows``, ``max_seconds``). ``expected_steps``: the steps a run is expected to
+    take (a reach-avoid controller's worst-case steps to go from x0 x hold: runs end at the
+    target); ``seconds`` then prices min(T, expected_steps) steps per run, else T.
+    ``seconds`` = runs / rate at ``rate`` [simulator runs/s] (None: unknown)."""
     R, T, mm = int(n_rollouts), int(horizon), int(mean_map_runs)
     G = min(10, mm // 2) if mm else 0
-    mm_rows = float(T) * (mm + G * (mm // G)) if mm else 0.0
-    rows = float(R) * T + mm_rows
-    return {"n_rollouts": R, "horizon": T, "mean_map_runs": mm, "rollout_rows": float(R) * T, "mean_map_rows": mm_rows,
-            "rows": rows, "rate": rate, "seconds": rows / rate if rate else None}
+    per_step = float(R) + ((mm + G * (mm // G)) if mm else 0.0)
+    rows = per_step * T
+    steps = T if expected_steps is None else min(T, max(1, int(np.ceil(expected_steps))))
+    return {"n_rollouts": R, "horizon": T, "mean_map_runs": mm, "rollout_rows": float(R) * T,
+            "mean_map_rows": rows - float(R) * T, "rows": rows, "expected_steps": steps, "rate": rate,
+            "seconds": per_step * steps / rate if rate else None, "max_seconds": rows / rate if rate else None}
 
 
 def rollout_cost_text(c: dict) -> str:
     """:func:`rollout_cost` as the line the commands print before the rollouts start."""
     from ..cover import format_duration
-    t = ("time unknown" if c["seconds"] is None else
-         f"at most about {format_duration(c['seconds'])} at {c['rate']:,.0f} runs/s (calibrated here)")
+    if c["seconds"] is None:
+        t = "time unknown"
+    elif c["expected_steps"] < c["horizon"]:
+        t = (f"about {format_duration(c['seconds'])} if the runs end at the target within the controller's "
+             f"{c['expected_steps']} steps from x0, at most {format_duration(c['max_seconds'])} at the full "
+             f"horizon, at {c['rate']:,.0f} runs/s (calibrated here)")
+    else:
+        t = f"at most about {format_duration(c['seconds'])} at {c['rate']:,.0f} runs/s (calibrated here)"
     mm = (f" + mean map {c['mean_map_runs']:,} runs x 2 x {c['horizon']:,} steps" if c["mean_map_runs"]
           else " (no mean map)")
     return (f"estimate: {c['n_rollouts']:,} rollouts x {c['horizon']:,} steps{mm} = {c['rows']:,.0f} "
@@ -353,7 +371,9 @@ def rollout(controller, simulator, x0=None, n_rollouts: int = 1000, horizon: Opt
     estimate_s = None
     if on_estimate is not None:
         from ..cover import calibrate_rate
-        cost = rollout_cost(n_rollouts, horizon, int(mean_map_runs), calibrate_rate(simulator, budget=0.3))
+        v = steps_to_go(controller, x0) if spec.kind == "reach_avoid" else None
+        cost = rollout_cost(n_rollouts, horizon, int(mean_map_runs), calibrate_rate(simulator, budget=0.3),
+                            expected_steps=None if v is None else hold * (v + 1))
         estimate_s = cost["seconds"]
         on_estimate(rollout_cost_text(cost))
     if rng is None:

@@ -315,6 +315,9 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
         with make_simulator(exp.simulator.to_dict(), exp.system) as one:  # one worker's rate, for the estimates
             rate = calibrate_rate(one, budget=0.3)
         n_workers = wk or os.cpu_count() or 1
+        # the audits' size is known now: an audit over the limits is refused before the collections
+        acost = audit_cost(int(au.get("points", 200)), int(au.get("runs", 2000)), exp.system, rate, workers=n_workers)
+        check_audit_cost(acost)
         for method, e, sub in (("stochastic", exp, "data"), ("deterministic", baseline_experiment(exp),
                                                               "data_deterministic")):
             plan = e.plan()
@@ -335,7 +338,6 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
         sims = {m: make_simulator(e.simulator.to_dict(), e.system, workers=wk or 0)
                 for m, e in (("stochastic", exp), ("deterministic", baseline_experiment(exp)))}
         sim = sims["stochastic"]  # audits and rollouts run against the stochastic simulator
-        sim_workers = max(1, int(getattr(sim, "workers", 1) or 1))
         controllers = {}
         invariant = checked["method"] == "invariant_set"
 
@@ -377,18 +379,14 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
             cost = lhat_cost(ds, opts, sims[method])  # the simulator's Lipschitz runs, if any: priced first
             if cost is not None:
                 estimates[f"certify/{method}"] = cost["seconds"]
-            if cost is not None:
                 log(f"[certify/{method}] {crn_cost_text(cost)}")
             bar = progress and cost is not None and progress(f"certify/{method}: Lipschitz (simulator)", "runs")
             cert = stage(f"certify/{method}", lambda: certify(ds, opts, simulator=sims[method], on_progress=bar or None))
             _close(bar)
             cert.save(out / f"cert_{method}.json")
             wrote(f"cert_{method}.json")
-            acost = audit_cost(int(au.get("points", 200)), int(au.get("runs", 2000)), exp.system, rate,
-                               workers=sim_workers)
             estimates[f"audit/{method}"] = acost["seconds"]
             log(f"[audit/{method}] {audit_cost_text(acost)}")
-            check_audit_cost(acost)
             bar = progress and progress(f"audit/{method}", "runs")
             rep = stage(f"audit/{method}", lambda: audit(cert, sim, points=int(au.get("points", 200)),
                                                          runs=int(au.get("runs", 2000)), seed=int(au.get("seed", 7)),

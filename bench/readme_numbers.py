@@ -64,7 +64,7 @@ def apply_separation(readme: str, table: dict) -> tuple:
 def printed_table(summary: dict) -> str:
     """`simgap run`'s comparison table without the (machine-dependent) wall times."""
     from simgap.pipeline import comparison_table
-    return comparison_table({k: v for k, v in summary.items() if k != "seconds"}).rstrip()
+    return comparison_table({k: v for k, v in summary.items() if k not in ("seconds", "wall_seconds")}).rstrip()
 
 
 def row_cells(summary: dict) -> list:

@@ -185,6 +185,30 @@ def check_basis(n_pairs: int, n_vars: int, degrees: Sequence[int], extra_terms: 
                           "degree (the paper uses 1 or 2) or name the terms you need")
 
 
+def check_degree_values(degrees: Sequence[int], values: dict, state_names: Sequence[str], what: str,
+                        remedy: dict) -> None:
+    """Refuse a polynomial basis degree that the data's grid cannot separate.
+
+    On data where a variable z_j takes only v_j distinct values, prod_a (z_j - a) over those values
+    is zero at every row, so z_j^(v_j) is a combination of 1, z_j, ..., z_j^(v_j - 1): a basis with
+    every monomial of total degree <= d has linearly dependent columns when d >= v_j (the scenario
+    program would refuse it, but only after the collection). ``degrees``: per state dimension
+    (negative: no monomials); ``values``: variable name -> v_j for the variables in the basis;
+    ``remedy``: variable name -> the setting that gives it more values. Known from the cover and
+    the input set alone, so it runs before any collection."""
+    for i, d in enumerate(degrees):
+        if d is None or int(d) < 1:
+            continue
+        for var, v in values.items():
+            if int(d) >= int(v):
+                raise SimgapError(
+                    f"{what} = {int(d)} for {state_names[i]}: the data will have only {int(v)} value(s) of {var}, "
+                    f"so {var}^{int(v)} is a combination of its lower powers on the data and the basis's terms "
+                    f"are linearly dependent (found only after the collection otherwise): use a degree <= "
+                    f"{int(v) - 1} for {state_names[i]}, or {remedy.get(var, f'more values of {var}')} "
+                    f"(at least {int(d) + 1} values)")
+
+
 #: a single command's simulator work estimated above this is refused (override: SIMGAP_NO_SIZE_CHECK=1)
 MAX_COMMAND_SECONDS = 6 * 3600.0
 

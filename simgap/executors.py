@@ -104,13 +104,18 @@ class LocalExecutor(Executor):
                     "finished chunks are kept, run again to resume") from None
 
         try:
-            return _bounded_map(lambda c: submit_without_sigint(pool.submit, fn, job, c),
+            done = _bounded_map(lambda c: submit_without_sigint(pool.submit, fn, job, c),
                                 lambda p: wait(p, return_when=FIRST_COMPLETED)[0],
                                 result, todo, 2 * self.workers, pending, on_result, should_stop)
-        finally:
-            for fut in pending:
-                fut.cancel()
-            pool.shutdown(wait=True, cancel_futures=True)
+        except BaseException:
+            # Ctrl-C, SIGTERM or an error: a busy worker's chunk is lost either way (finished chunks
+            # are stored), so end the workers now instead of waiting for their chunks
+            stop_pool(pool)
+            raise
+        for fut in pending:
+            fut.cancel()
+        pool.shutdown(wait=True, cancel_futures=True)
+        return done
 
 
 class RayExecutor(Executor):
@@ -212,6 +217,31 @@ def _bounded_map(submit, wait_some, result, todo, limit, pending, on_result, sho
             c = pending.pop(h)
             on_result(c, result(h, c))
 
+#: seconds a worker gets to end after SIGTERM before it is killed (the whole stop stays well under 5 s)
+STOP_GRACE = 1.0
+
+
+def stop_pool(pool, grace: float = STOP_GRACE) -> None:
+    """End a ProcessPoolExecutor's workers now, busy or not (interrupt, SIGTERM, error).
+
+    ``shutdown(wait=True)`` would wait for every running task (a simulator chunk can take
+    minutes). The queued tasks are cancelled, each worker gets SIGTERM (their handler is the
+    default one, :func:`exit_with_parent`), then SIGKILL after ``grace`` seconds, and the pool is
+    shut down without waiting. The worker processes are read from the pool's ``_processes``
+    (CPython's ProcessPoolExecutor keeps them there; an empty dict before the first task)."""
+    procs = list((getattr(pool, "_processes", None) or {}).values())
+    pool.shutdown(wait=False, cancel_futures=True)
+    for p in procs:
+        if p.is_alive():
+            p.terminate()
+    deadline = time.monotonic() + grace
+    for p in procs:
+        p.join(max(0.0, deadline - time.monotonic()))
+        if p.is_alive():
+            p.kill()
+            p.join(1.0)
+
+
 def _process_token(pid: int):
     """(alive, start time) of a process from /proc (Linux); None where /proc is not available."""
     if not os.path.exists("/proc/self/stat"):
@@ -238,6 +268,9 @@ def exit_with_parent(pid: int, period: float = 1.0) -> None:
     alone turns it into a clean "interrupted" (the workers printed KeyboardInterrupt tracebacks)
     and ends the pool; a worker whose parent is gone exits through the watch below."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # a forked worker inherits the command's SIGTERM handler (raise, then clean up as the parent does);
+    # the parent's stop_pool ends a worker by SIGTERM, which must end it at once
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
     first = _process_token(pid)
 
     def gone() -> bool:

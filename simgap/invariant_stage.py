@@ -67,8 +67,10 @@ def rollouts_in_set(ctrl, sim, k: int, n_rollouts: int, horizon, seed: int, on_e
     starts = states_in_set(ctrl, k, seed)
     per = []
     for i, x in enumerate(starts):
+        # the first start prices all k (each costs about the same: the same R, horizon and mean map)
         rr = rollout(ctrl, sim, x, n_rollouts=n_rollouts, horizon=horizon, seed=seed + 1 + i, on_exit=on_exit,
-                     mean_map_runs=100)
+                     mean_map_runs=100, on_estimate=(lambda t: log(f"  {t} per start; x {k} starts")) if i == 0
+                     else None)
         per.append({"x0": x.tolist(), "failures": int(rr.n_failures), "n_rollouts": int(rr.n_rollouts),
                     "left_set": int(np.count_nonzero(rr.left_domain_time >= 0)),
                     "mean_map_satisfies": None if rr.mean_map is None else rr.mean_map["satisfied"]})

@@ -131,6 +131,7 @@ def check_experiment(exp: ExperimentConfig, out: Optional[str | Path] = None, *,
         n_terms = max(len(opts.terms.get(-1, [])) + len(opts.terms.get(i, [])) for i in range(n))
         checks.check_basis(plan.n_pairs, n + s.m - len(inv), degs, n_terms, what="[certify] degree")
         bases_for(s, opts.degree, opts.terms, inv)  # every term parses
+        check_against_cover(s, plan.cover, opts)
 
     c = exp.collect
     wk = workers if workers is not None else c.workers
@@ -140,6 +141,39 @@ def check_experiment(exp: ExperimentConfig, out: Optional[str | Path] = None, *,
         pass  # the simulator's kind, noise, effects and options are valid
     return {"spec": spec, "x0": x0, "eta": syn.get("eta"), "hold": int(syn.get("hold", 1)), "n_rollouts": R,
             "method": invariant_stage.method_of(syn)}
+
+
+def check_against_cover(system, cover, opts, where: str = "[certify]") -> None:
+    """The certify options' refusals that the cover and the input set decide, before any collection.
+
+    - the basis degree against the values each variable will take on the data
+      (:func:`simgap.checks.check_degree_values`);
+    - lhat = "simulator": its pair distance h = the cover's epsilon fits inside X along every covered
+      dimension (:func:`simgap.certify.lipschitz.check_pair_distance`);
+    - the gap's own Lipschitz term (lipschitz_term = "gap" or continuous inputs): at least two cover
+      values along every covered dimension (and input, for continuous inputs): it needs neighbours.
+    Each message names the setting to change."""
+    from . import checks
+    from .certify.lipschitz import check_pair_distance
+
+    cov = list(cover.covered)
+    counts = {system.state_names[j]: int(c) for j, c in zip(cov, cover.counts)}
+    inputs = {nm: len(np.unique(system.inputs[:, k])) for k, nm in enumerate(system.input_names)}
+    remedy = {nm: f"a finer cover along {nm} ([collect] epsilon or spacing, --epsilon)" for nm in counts}
+    remedy.update({nm: f"more values of {nm} in the system's input set" for nm in inputs})
+    degs = list(opts.degree) if np.ndim(opts.degree) else [opts.degree] * system.n
+    checks.check_degree_values([d if d is not None else -1 for d in degs], {**counts, **inputs},
+                               system.state_names, f"{where} degree", remedy)
+    if opts.lhat == "simulator":
+        check_pair_distance(system, float(cover.epsilon), cov)
+    if opts.lipschitz_term == "gap" or opts.continuous_inputs:
+        need = dict(counts, **(inputs if opts.continuous_inputs else {}))
+        for nm, v in need.items():
+            if v < 2:
+                raise SimgapError(f"{where} the gap's own Lipschitz term (lipschitz_term = \"gap\" or continuous "
+                                  f"inputs) needs cover points with neighbours along every covered dimension, but "
+                                  f"the data will have {v} value of {nm}: use "
+                                  f"{remedy[nm]} (at least 2 values), or lipschitz_term = \"paper\"")
 
 
 def closest_approach(arena, rr) -> dict:
@@ -205,11 +239,14 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
     ``address`` (default: the experiment's ``[collect]``) say where the collections' chunks and the
     per-run stage's interval-MDP sampling run; ``address`` is a Ray cluster's.
     """
-    from .certify.audit import audit
-    from .certify.pipeline import certify
+    from .certify.audit import audit, audit_cost, audit_cost_text, check_audit_cost
+    from .certify.lipschitz import crn_cost_text
+    from .certify.pipeline import certify, lhat_cost
+    from .cover import calibrate_rate, estimate_cost
     from .synthesis.controller import synthesize
     from .rollout import rollout
 
+    t_start = time.perf_counter()
     out = Path(out)
     per_run = exp.section("perrun")
     if per_run:  # validated before any work: bad input writes nothing
@@ -255,6 +292,7 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
         ex = executor or exp.collect.executor
         wk = workers if workers is not None else exp.collect.workers
         times: dict = {}
+        estimates: dict = {}  # stage -> the seconds its printed estimate said (bench/bench_estimates.py)
         summary: dict = {"experiment": exp.name, "profile": exp.profile, "description": exp.description,
                          "run_id": run_id, "config_file": str(exp.path.resolve()), "experiment_toml": toml_text,
                          "sections": {k: exp.section(k) for k in ("certify", "audit", "synthesis", "rollout")},
@@ -274,12 +312,22 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
             return r
 
         data = {}
+        with make_simulator(exp.simulator.to_dict(), exp.system) as one:  # one worker's rate, for the estimates
+            rate = calibrate_rate(one, budget=0.3)
+        n_workers = wk or os.cpu_count() or 1
+        # the audits' size is known now: an audit over the limits is refused before the collections
+        acost = audit_cost(int(au.get("points", 200)), int(au.get("runs", 2000)), exp.system, rate, workers=n_workers)
+        check_audit_cost(acost)
         for method, e, sub in (("stochastic", exp, "data"), ("deterministic", baseline_experiment(exp),
                                                               "data_deterministic")):
             plan = e.plan()
+            est = estimate_cost(plan.cover, plan.n_runs, rate_per_worker=rate, workers=n_workers,
+                                rate_source="calibrated here; a resumed store's done chunks are skipped")
+            estimates[f"collect/{method}"] = est.seconds
+            log(f"[collect/{method}] " + est.summary().replace("\n", "; "))
             res = stage(f"collect/{method}", lambda: collect(plan, store_root / sub, executor=ex, workers=wk or None,
                                                              address=address or exp.collect.address,
-                                                             on_progress=progress and progress(method, "pairs")))
+                                                             on_progress=progress and progress(f"collect/{method}", "pairs")))
             if not res.complete:
                 raise SimgapError(f"collection of {store_root / sub} did not finish (cancelled); run again to resume")
             summary["collected_runs"][method] = int(res.runs)  # new this call (a resumed store's earlier chunks not)
@@ -302,9 +350,14 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
                 entry["rollouts"] = {"skipped": why}
                 log(f"[rollout/{method}] skipped: {why}")
             else:
+                bar = progress and progress(f"rollout/{method}", "steps")
                 rr = stage(f"rollout/{method}", lambda: rollout(sres.controller, sim, x0, n_rollouts=R,
                                                                 horizon=ro.get("horizon"), seed=int(ro.get("seed", 11)),
-                                                                on_exit=ro.get("on_exit", "hold")))
+                                                                on_exit=ro.get("on_exit", "hold"),
+                                                                on_estimate=lambda t: log(f"[rollout/{method}] {t}"),
+                                                                on_progress=bar))
+                _close(bar)
+                estimates[f"rollout/{method}"] = rr.timing.get("estimate_s")
                 rr.save_npz(out / f"rollouts_{method}.npz")
                 wrote(f"rollouts_{method}.npz")
                 entry["rollouts"] = rr.to_dict(per_rollout=False)
@@ -323,12 +376,22 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
         for method in METHODS:
             ds = data[method]
             opts = certify_options(cert_section, method, exp.system)
-            cert = stage(f"certify/{method}", lambda: certify(ds, opts, simulator=sims[method]))
+            cost = lhat_cost(ds, opts, sims[method])  # the simulator's Lipschitz runs, if any: priced first
+            if cost is not None:
+                estimates[f"certify/{method}"] = cost["seconds"]
+                log(f"[certify/{method}] {crn_cost_text(cost)}")
+            bar = progress and cost is not None and progress(f"certify/{method}: Lipschitz (simulator)", "runs")
+            cert = stage(f"certify/{method}", lambda: certify(ds, opts, simulator=sims[method], on_progress=bar or None))
+            _close(bar)
             cert.save(out / f"cert_{method}.json")
             wrote(f"cert_{method}.json")
+            estimates[f"audit/{method}"] = acost["seconds"]
+            log(f"[audit/{method}] {audit_cost_text(acost)}")
+            bar = progress and progress(f"audit/{method}", "runs")
             rep = stage(f"audit/{method}", lambda: audit(cert, sim, points=int(au.get("points", 200)),
                                                          runs=int(au.get("runs", 2000)), seed=int(au.get("seed", 7)),
-                                                         dataset=data["stochastic"]))
+                                                         dataset=data["stochastic"], on_progress=bar))
+            _close(bar)
             fileio.write_json(out / f"audit_{method}.json", rep)
             wrote(f"audit_{method}.json")
             if invariant:
@@ -338,8 +401,10 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
                     sres.controller.save(out / f"controller_{method}.npz")
                     wrote(f"controller_{method}.npz")
             else:
+                bar = progress and progress(f"synthesize/{method}: abstraction", "classes")
                 sres = stage(f"synthesize/{method}", lambda: synthesize(exp.system, spec, syn["eta"], gap=cert,
-                                                                        hold=hold, x0=x0))
+                                                                        hold=hold, x0=x0, log=log, on_progress=bar))
+                _close(bar)
                 sres.controller.save(out / f"controller_{method}.npz")
                 wrote(f"controller_{method}.npz")
             if not sres.empty:
@@ -377,9 +442,17 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
         for each in sims.values():
             each.close()
         summary["seconds"] = times
+        summary["estimated_seconds"] = estimates
+        summary["wall_seconds"] = round(time.perf_counter() - t_start, 3)  # everything, between the stages too
         summary["files"] = results_folder.list_files(out, run_id)
         fileio.write_json(out / "summary.json", summary, default=_json_default)
         return summary
+
+
+def _close(bar) -> None:
+    """Close a stage's progress bar (a callback without ``close`` is the caller's to end)."""
+    if bar and hasattr(bar, "close"):
+        bar.close()
 
 
 def _json_default(o):
@@ -481,4 +554,7 @@ def comparison_table(summary: dict) -> str:
     if secs:
         lines.append("")
         lines.append("wall time per stage: " + ", ".join(f"{k} {v:.1f} s" for k, v in secs.items()))
+    if summary.get("wall_seconds") is not None:
+        lines.append(f"wall time of the whole run: {summary['wall_seconds']:.1f} s (checks, estimates and files "
+                     "included; the recording comes after)")
     return "\n".join(lines)

@@ -289,7 +289,7 @@ def test_a_base_in_steady_motion_follows_v_tau_within_2_percent(tmp_path):
 @pytest.mark.parametrize("change,words", [
     (('base_pose = true', 'base_velocity = true'), ["base_velocity", "needs base_pose = true"]),
     (('input_mode = "velocity"', 'input_mode = "torque"\ndriven_start = "target"'),
-     ["driven_start = 'target'", "needs input_mode = 'velocity'"]),
+     ["driven_start = 'target'", "needs input_mode 'velocity' or 'position'"]),
 ])
 def test_moving_start_options_are_checked(tmp_path, change, words):
     _husky(tmp_path, HUSKY_SYSTEM, HUSKY_EXPERIMENT.replace(*change))

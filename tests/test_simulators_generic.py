@@ -391,7 +391,7 @@ def test_mujoco_missing_extra_names_it(monkeypatch):
 @pytest.mark.parametrize("base,section,value,match", [
     (PEND_URDF, "options", {"positions": ["elbow"]}, r"no revolute/prismatic joint 'elbow'.*hinge"),
     (PEND_URDF, "options", {"inputs": ["hinge", "other"]}, "names 2 joints"),
-    (PEND_URDF, "options", {"input_mode": "position"}, "input_mode"),
+    (PEND_URDF, "options", {"input_mode": "pos"}, "input_mode"),
     (PEND_URDF, "options", {"urdf": "/nonexistent/robot.urdf"}, "not found"),
     (PEND_URDF, "options", {"urdf_sha256": "0" * 64}, "changed since it was recorded"),
     (PEND_URDF, "randomize", {"length": 0.1}, "unknown randomize keys"),

@@ -132,17 +132,20 @@ def l2_analytic(basis, q: np.ndarray, system, splits: int | None = None, inputs=
     return best
 
 
-def crn_cost(n_pairs: int, runs: int, system, rate_per_worker=None, workers: int = 1) -> dict:
+def crn_cost(n_pairs: int, runs: int, system, rate_per_worker=None, workers: int = 1, gap_rows: float = 0.0) -> dict:
     """Work, peak memory and time of :func:`fhat_slopes_crn` before it runs.
 
     2 x n_pairs x runs simulator rows in one batch (both ends of every pair share their draws):
     states, inputs, next states and noise in float64 (a factor 4 for the simulator's work arrays).
+    ``gap_rows``: the gap's own Lipschitz runs (:func:`gap_slopes_crn`, lipschitz_term = "gap"),
+    one batch per axis, smaller than the first; they add to the time, not to the peak memory.
     ``seconds`` = rows / (rate x workers) at a measured rate [runs/s of one worker]."""
-    rows = 2.0 * float(n_pairs) * float(runs)
-    memory = rows * (3 * system.n + system.m) * 8 * 4
+    fhat_rows = 2.0 * float(n_pairs) * float(runs)
+    rows = fhat_rows + float(gap_rows)
+    memory = fhat_rows * (3 * system.n + system.m) * 8 * 4
     secs = rows / (rate_per_worker * max(1, workers)) if rate_per_worker else None
-    return {"pairs": int(n_pairs), "runs": int(runs), "rows": rows, "memory": memory, "seconds": secs,
-            "rate": rate_per_worker, "workers": int(workers)}
+    return {"pairs": int(n_pairs), "runs": int(runs), "rows": rows, "gap_rows": float(gap_rows), "memory": memory,
+            "seconds": secs, "rate": rate_per_worker, "workers": int(workers)}
 
 
 def crn_cost_text(c: dict) -> str:
@@ -152,7 +155,8 @@ def crn_cost_text(c: dict) -> str:
     t = ("time unknown" if c["seconds"] is None else
          f"about {format_duration(c['seconds'])} at {c['rate']:,.0f} runs/s per worker x {c['workers']} "
          "(calibrated here)")
-    return (f"estimate: Lhat_fhat from the simulator, {c['pairs']:,} pairs x {c['runs']:,} runs x 2 ends = "
+    gap = (f" + {c['gap_rows']:,.0f} for the gap's own Lipschitz term" if c.get("gap_rows") else "")
+    return (f"estimate: Lhat_fhat from the simulator, {c['pairs']:,} pairs x {c['runs']:,} runs x 2 ends{gap} = "
             f"{c['rows']:,.0f} simulator runs; {t}; peak memory about {human_bytes(c['memory'])} "
             f"({human_bytes(available_memory())} available)")
 
@@ -162,6 +166,24 @@ def check_crn_cost(c: dict) -> None:
     from ..checks import check_sim_work
     check_sim_work(c["rows"], c["memory"], f"Lhat_fhat from the simulator ({c['pairs']:,} pairs x {c['runs']:,} runs)",
                    "use --lhat data", c["rate"], c["workers"])
+
+
+def check_pair_distance(system, h: float, dims=None) -> None:
+    """Refuse a pair distance h that leaves no room for a pair (x, x + h d) inside X.
+
+    :func:`fhat_slopes_crn` draws x in X shrunk by h along every covered dimension in ``dims``
+    (default all), so each needs a width x_hi - x_lo > 2 h. h is the cover's epsilon, known before
+    any collection, so this runs before it (:func:`simgap.pipeline.check_experiment`)."""
+    dims = list(range(system.n)) if dims is None else [int(j) for j in dims]
+    width = (system.x_hi - system.x_lo)[dims]
+    bad = [j for j, w in zip(dims, width) if not w > 2 * h]
+    if bad:
+        j = bad[0]
+        w = float(system.x_hi[j] - system.x_lo[j])
+        raise SimgapError(f"lhat = \"simulator\": its pair distance h = the cover's epsilon = {h:g}, but X is only "
+                          f"{w:g} wide along {system.state_names[j]} (pairs need a width > 2 h = {2 * h:g}): set a "
+                          f"smaller epsilon ([collect] epsilon, --epsilon) below {w / 2:g}, or declare "
+                          f"{system.state_names[j]} invariant, or use lhat = \"data\"")
 
 
 def fhat_slopes_crn(sim, rng: np.random.Generator, h: float, n_pairs: int = LHAT_PAIRS, runs: int = LHAT_RUNS,
@@ -185,11 +207,10 @@ def fhat_slopes_crn(sim, rng: np.random.Generator, h: float, n_pairs: int = LHAT
     dims = list(range(s.n)) if dims is None else sorted(int(j) for j in dims)
     if not dims:
         raise SimgapError("Lipschitz (simulator): no covered dimension to draw pairs along")
+    check_pair_distance(s, h, dims)
     lo, hi = s.x_lo.copy(), s.x_hi.copy()
     lo[dims] += h
     hi[dims] -= h
-    if np.any(lo > hi) or np.any(lo[dims] >= hi[dims]):
-        raise SimgapError(f"Lipschitz (simulator): pair distance h={h:g} too large for X")
     x = lo + rng.random((n_pairs, s.n)) * (hi - lo)
     d = np.zeros((n_pairs, s.n))
     d[:, dims] = rng.standard_normal((n_pairs, len(dims)))
@@ -322,14 +343,15 @@ def crn_pair_means(sim, x1, x2, u1, u2, runs: int, rng: np.random.Generator, inc
 
 
 def gap_slopes_crn(sim, nominal, rng: np.random.Generator, direction: str, k: int, h_max: float, n_pairs: int,
-                   runs: int, inputs: np.ndarray, lo=None, hi=None) -> np.ndarray:
+                   runs: int, inputs: np.ndarray, lo=None, hi=None, on_progress=None) -> np.ndarray:
     """Slopes of the gap g = E fhat - f (f the ``nominal`` model) along state (``direction="x"``) or
     input (``"u"``) axis k, from pairs simulated with common random numbers, (n_pairs, n), and each
     slope's standard error from the noise the common draws did not cancel (n_pairs, n).
 
     Pair distances are log-uniform in [h_max / 8, h_max] (several distances, so a slope that only
     shows at one scale is not missed by construction); x uniform in X (shrunk by h along k), u
-    drawn from ``inputs`` (for ``"u"``: uniform in the input box [lo, hi] shrunk by h)."""
+    drawn from ``inputs`` (for ``"u"``: uniform in the input box [lo, hi] shrunk by h).
+    ``on_progress(rows_done, rows)`` while the 2 n_pairs runs rows are simulated."""
     s = sim.system
     h = h_max * 2.0 ** (-3.0 * rng.random(n_pairs))
     xlo, xhi = s.x_lo.copy(), s.x_hi.copy()
@@ -346,7 +368,8 @@ def gap_slopes_crn(sim, nominal, rng: np.random.Generator, direction: str, k: in
         u1[:, k] = lo[k] + rng.random(n_pairs) * (hi[k] - lo[k] - h)
         u2 = u1.copy()
         u2[:, k] += h
-    m1, m2, se = crn_pair_means(sim, x1, x2, u1, u2, runs, rng, increment=False, spread=True)
+    m1, m2, se = crn_pair_means(sim, x1, x2, u1, u2, runs, rng, increment=False, on_progress=on_progress,
+                                spread=True)
     g1 = s.diff(m1, nominal.f(x1, u1))
     g2 = s.diff(m2, nominal.f(x2, u2))
     return np.abs(g2 - g1) / h[:, None], se / h[:, None]

@@ -27,8 +27,9 @@ from ..system_ref import embedded_ref, system_digest
 from .basis import Basis
 from .bounds import BoundOptions, beta_from_delta, delta_from_beta, required_runs
 from .certificate import Certificate, DimCertificate
-from .lipschitz import (LHAT_PAIRS, LHAT_RUNS, axis_grid, fhat_slopes_crn, gap_slopes_crn, gap_slopes_data, l2_analytic,
-                        l2_partials, neighbour_pairs, slopes_of, wood_zhang)
+from .lipschitz import (LHAT_PAIRS, LHAT_RUNS, axis_grid, check_crn_cost, check_pair_distance, crn_cost,
+                        fhat_slopes_crn, gap_slopes_crn, gap_slopes_data, l2_analytic, l2_partials, neighbour_pairs,
+                        slopes_of, wood_zhang)
 from .scp import DependentTerms, solve_scp
 from .variance import variance_bound
 
@@ -333,8 +334,14 @@ def certify(dataset, options: Optional[CertifyOptions] = None, simulator=None, o
     # ----- Lipschitz constants from the data (no dependence on delta or the basis) --------
     # The gap's term and the paper's are estimated independently: gamma takes the smaller per dimension,
     # so a noise-inflated estimate of one is caught by the other (sharing the runs would inflate both).
-    gl = _gap_lipschitz(ds, o, simulator) if (o.lipschitz_term == "gap" or o.continuous_inputs) else None
-    pairs, lip, U_data = _data_lipschitz(ds, o, simulator, on_progress)  # U_data: the inputs gamma is certified for
+    rows = simulator_rows(ds, o)
+    gap_progress = fhat_progress = None
+    if on_progress is not None and rows["rows"]:  # one count over both parts: the gap's axes, then Lhat_fhat's pairs
+        total = int(rows["rows"])
+        gap_progress = lambda a, done, _: on_progress(a * rows["gap_axis_rows"] + done, total)  # noqa: E731
+        fhat_progress = lambda done, _: on_progress(int(rows["gap_rows"]) + done, total)  # noqa: E731
+    gl = _gap_lipschitz(ds, o, simulator, gap_progress) if (o.lipschitz_term == "gap" or o.continuous_inputs) else None
+    pairs, lip, U_data = _data_lipschitz(ds, o, simulator, fhat_progress)  # U_data: the inputs gamma is certified for
     warnings = []  # notes that likely cost the user: also shown by `simgap run`
     for i, (_, _, L_fhat, how_fhat) in enumerate(lip):
         share = how_fhat.get("noise_share", 0.0)
@@ -462,6 +469,11 @@ def beyond_paper(o: CertifyOptions) -> List[str]:
 _LIP_CACHE: "OrderedDict[tuple, tuple]" = OrderedDict()
 
 
+def _lip_key(ds, o: CertifyOptions, own_simulator: bool) -> tuple:
+    return (id(ds), ds.config_hash, ds.K, tuple(invariant_dims(ds)), o.lipschitz_mode, o.lhat, o.lhat_pairs,
+            o.lhat_runs, o.seed, own_simulator)
+
+
 def _data_lipschitz(ds, o: CertifyOptions, simulator=None, on_progress=None):
     """(neighbour pairs, [(L_f, how, Lhat_fhat, how)] per dimension, the data's inputs) of a dataset.
 
@@ -469,8 +481,7 @@ def _data_lipschitz(ds, o: CertifyOptions, simulator=None, on_progress=None):
     result is memoized per dataset (a delta or basis change re-solves only the programs). Each
     estimate has its own seeded generator, so the values do not depend on the call order.
     """
-    key = (id(ds), ds.config_hash, ds.K, tuple(invariant_dims(ds)), o.lipschitz_mode, o.lhat, o.lhat_pairs, o.lhat_runs, o.seed,
-           simulator is None)
+    key = _lip_key(ds, o, simulator is None)
     if key in _LIP_CACHE:
         _LIP_CACHE.move_to_end(key)
         return _LIP_CACHE[key]
@@ -540,7 +551,48 @@ def input_grid_of(system, U: np.ndarray) -> tuple:
     return np.array([v[0] for v in vals]), np.array([v[-1] for v in vals])
 
 
-def _gap_lipschitz(ds, o: CertifyOptions, simulator=None) -> dict:
+def simulator_rows(ds, o: CertifyOptions) -> dict:
+    """Simulator runs ``certify`` makes with ``lhat = "simulator"`` (all 0 with lhat = "data").
+
+    ``fhat_rows`` = 2 lhat_pairs lhat_runs (:func:`fhat_slopes_crn`, both ends of every pair);
+    ``gap_rows`` = axes x 2 per_axis lhat_runs for the gap's own Lipschitz matrix (lipschitz_term =
+    "gap" or continuous inputs: one batch per covered state axis and per input axis), per_axis =
+    max(100, lhat_pairs // axes); ``rows`` their sum. Known from the data's shape alone, so the
+    commands print it before any run (:func:`simgap.certify.lipschitz.crn_cost`)."""
+    zero = {"fhat_rows": 0, "gap_rows": 0, "gap_axis_rows": 0, "axes": 0, "rows": 0}
+    if o.lhat != "simulator":
+        return zero
+    s = ds.system
+    fhat = 2 * int(o.lhat_pairs) * int(o.lhat_runs)
+    gap = axis_rows = axes = 0
+    if o.lipschitz_term == "gap" or o.continuous_inputs:
+        axes = s.n - len(invariant_dims(ds)) + (s.m if o.continuous_inputs else 0)
+        per_axis = max(100, int(o.lhat_pairs) // max(1, axes))
+        axis_rows = 2 * per_axis * int(o.lhat_runs)
+        gap = axes * axis_rows
+    cached = _lip_key(ds, o, True) in _LIP_CACHE or _lip_key(ds, o, False) in _LIP_CACHE
+    if cached:  # an earlier call with these data and options: Lhat_fhat is not simulated again
+        fhat = 0
+    return {"fhat_rows": fhat, "gap_rows": gap, "gap_axis_rows": axis_rows, "axes": axes, "rows": fhat + gap}
+
+
+def lhat_cost(ds, o: CertifyOptions, simulator) -> Optional[dict]:
+    """:func:`simgap.certify.lipschitz.crn_cost` of every simulator run ``certify(ds, o)`` will make,
+    at ``simulator``'s rate measured here (about 0.3 s); None when it makes none. Checks the pair
+    distance first (a refusal costs no run) and refuses work over the memory or time limits."""
+    from ..cover import calibrate_rate
+    rows = simulator_rows(ds, o)
+    if not rows["rows"]:
+        return None
+    if rows["fhat_rows"]:
+        check_pair_distance(ds.system, ds.epsilon, [j for j in range(ds.system.n) if j not in invariant_dims(ds)])
+    cost = crn_cost(o.lhat_pairs if rows["fhat_rows"] else 0, o.lhat_runs, ds.system,
+                    calibrate_rate(simulator, budget=0.3), gap_rows=rows["gap_rows"])
+    check_crn_cost(cost)
+    return cost
+
+
+def _gap_lipschitz(ds, o: CertifyOptions, simulator=None, on_progress=None) -> dict:
     """The gap's own Lipschitz matrix L (n, n) in x and Lu (n, m) in u, with the radii (beyond the paper).
 
     L_ij: Wood-Zhang on slopes |g_i(a) - g_i(b)| / h between rows that differ only in x_j by one
@@ -584,7 +636,9 @@ def _gap_lipschitz(ds, o: CertifyOptions, simulator=None) -> dict:
                 direction, k = ("x", j) if j < n else ("u", j - n)
                 lo, hi = (ubox if ubox is not None else (None, None))
                 sl, noise = gap_slopes_crn(sim_ctx, s, rng, direction, k, 2.0 * eps_j, per_axis,
-                                           o.lhat_runs, np.unique(ds.u, axis=0), lo, hi)
+                                           o.lhat_runs, np.unique(ds.u, axis=0), lo, hi,
+                                           None if on_progress is None else
+                                           (lambda done, rows, a=a: on_progress(a, done, rows)))
                 src = (f"{per_axis} common-random-number pairs along it at distances log-uniform in "
                        f"[{eps_j / 4:.3g}, {2 * eps_j:.3g}], {o.lhat_runs} runs each (simulator)")
             for i in range(n):

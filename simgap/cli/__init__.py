@@ -18,7 +18,7 @@ import sys
 from ..errors import SimgapError
 
 # subcommand module names under simgap.cli (and simgap_viz.cli for the app)
-SUBCOMMANDS = ["collect", "certify", "audit", "synthesize", "rollout", "refine", "data", "run", "key", "plugins", "split"]
+SUBCOMMANDS = ["collect", "certify", "audit", "synthesize", "rollout", "refine", "data", "run", "key", "plugins", "split", "fit"]
 VIZ_SUBCOMMANDS = ["gui", "record", "view", "plot"]
 
 

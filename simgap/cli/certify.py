@@ -129,6 +129,14 @@ def check_certify_size(opts, ds) -> None:
     terms = opts.terms or {}
     n_terms = max(len(terms.get(-1, [])) + len(terms.get(i, [])) for i in range(s.n))
     check_basis(ds.K, s.n + s.m - len(invariant_dims(ds)), degs, n_terms, what="--degree")
+    import numpy as np
+
+    from ..checks import check_degree_values  # the data's values per variable, as the collection's pre-check
+    inv = invariant_dims(ds)
+    values = {nm: len(np.unique(ds.x[:, j])) for j, nm in enumerate(s.state_names) if j not in inv}
+    values.update({nm: len(np.unique(ds.u[:, k])) for k, nm in enumerate(s.input_names)})
+    check_degree_values([d if d is not None else -1 for d in degs], values, s.state_names, "--degree",
+                        {nm: f"data collected on a finer cover along {nm}" for nm in values})
 
 
 def run(args) -> int:
@@ -158,8 +166,8 @@ def run(args) -> int:
 def _certify_with_simulator(args, ds):
     """certify with ``lhat="simulator"``: the simulator runs' estimate first (before the fitting
     modules are imported), then the options and a progress bar while the runs go."""
-    from ..certify.lipschitz import LHAT_PAIRS, LHAT_RUNS, check_crn_cost, crn_cost, crn_cost_text
-    from ..cover import calibrate_rate
+    from ..certify.lipschitz import crn_cost_text
+    from ..certify.pipeline import lhat_cost
     from ..progress import ProgressBar
     from ..simulators import make_simulator
 
@@ -167,14 +175,15 @@ def _certify_with_simulator(args, ds):
     if not cfg:
         raise SimgapError("--lhat simulator needs the data manifest's simulator config; this data set has none "
                           "(use --lhat data)")
-    bar = None if args.no_progress else ProgressBar(unit="runs", desc="Lhat_fhat (simulator)")
+    opts = options_from_args(args, ds.system)
+    check_certify_size(opts, ds)
     with make_simulator(cfg, system=ds.system) as sim:
-        cost = crn_cost(LHAT_PAIRS, LHAT_RUNS, ds.system, calibrate_rate(sim, budget=0.3))
-        print(crn_cost_text(cost), flush=True)
-        check_crn_cost(cost)
+        cost = lhat_cost(ds, opts, sim)  # every simulator run of this certify call: the gap's term's too
+        if cost is not None:
+            print(crn_cost_text(cost), flush=True)
+        desc = "Lipschitz runs (simulator)" if cost and cost["gap_rows"] else "Lhat_fhat (simulator)"
+        bar = None if args.no_progress else ProgressBar(unit="runs", desc=desc)
         from ..certify import certify
-        opts = options_from_args(args, ds.system)
-        check_certify_size(opts, ds)
         try:
             return certify(ds, opts, simulator=sim, on_progress=bar)
         finally:

@@ -13,6 +13,7 @@ import sys
 from ..checks import count
 from ..collect import check_collection
 from ..config import builtin_experiments
+from ..errors import SimgapError
 from ..file_guard import output_dir
 from ..profiles import DEFAULT_PROFILE
 
@@ -73,6 +74,7 @@ def run(args) -> int:
     print(f"N1hat={plan.n_runs}, seed={plan.seed}, {plan.n_chunks} chunks of {plan.chunk_size} pairs")
     check_collection(plan.n_pairs, plan.n_runs, exp.system.n, exp.system.m, exp.system.steps, plan.batch_runs,
                      ex.workers, plan.keep_samples, store, rate)
+    _check_certify_section(exp, plan)
     if args.dry_run:
         print(f"dry run: nothing collected (store would be {store.absolute()})")
         return 0
@@ -99,3 +101,17 @@ def run(args) -> int:
     print(f"data: {store.absolute()} ({plan.n_pairs:,} pairs, hash {res.hash[:12]})")
     print(f"load with: simgap.dataset.load_dataset({str(store)!r})")
     return 0
+
+
+def _check_certify_section(exp, plan) -> None:
+    """Warn, before collecting, when the experiment's own [certify] settings will be refused on these
+    data (``simgap run`` refuses them before its collection; ``simgap certify`` takes its own flags,
+    so here it is a warning)."""
+    if not exp.section("certify"):
+        return
+    from ..pipeline import METHODS, certify_options, check_against_cover
+    try:
+        for method in METHODS:
+            check_against_cover(exp.system, plan.cover, certify_options(exp.section("certify"), method, exp.system))
+    except SimgapError as e:
+        print(f"warning: these data will not certify with the experiment's settings: {e}", file=sys.stderr)

@@ -132,6 +132,8 @@ def run(args) -> int:
         print("note: the PyBullet world has no obstacle bodies; collisions are judged from the controller's "
               "spec only (pass --map to build them)")
     sim = make_simulator(cfg, getattr(ctrl, "system", None))  # the controller's X and inputs
+    from ..progress import ProgressBar
+    bar = ProgressBar(unit="steps", desc="rollouts, then mean map")
     try:
         if args.x0 is not None:
             x0 = parse_vector(args.x0, "--x0")
@@ -142,8 +144,10 @@ def run(args) -> int:
         else:
             raise SimgapError("give --x0 (or --map, whose initial_state is used)")
         res = rollout(ctrl, sim, x0, n_rollouts=n, horizon=horizon, seed=seed, hold=args.hold,
-                      on_exit=args.on_exit, batched=not args.one_at_a_time, mean_map_runs=args.mean_map_runs)
+                      on_exit=args.on_exit, batched=not args.one_at_a_time, mean_map_runs=args.mean_map_runs,
+                      on_estimate=lambda text: print(text, flush=True), on_progress=bar)
     finally:
+        bar.close()
         sim.close()
     res.save_json(args.out)
     if args.trajectories:

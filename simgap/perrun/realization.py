@@ -132,9 +132,9 @@ def per_run_slopes(sim, rng: np.random.Generator, h: float, n_pairs: int, runs: 
     d = fhat(.,u,w) - . is the increment; x' = x + h*direction, u uniform from U, the same w at both ends.
     """
     s = sim.system
+    from ..certify.lipschitz import check_pair_distance
+    check_pair_distance(s, h)
     lo, hi = s.x_lo + h, s.x_hi - h
-    if np.any(lo >= hi):
-        raise SimgapError(f"Lipschitz (simulator): pair distance h={h:g} too large for X")
     x = lo + rng.random((n_pairs, s.n)) * (hi - lo)
     d = rng.standard_normal((n_pairs, s.n))
     d /= np.linalg.norm(d, axis=1, keepdims=True)

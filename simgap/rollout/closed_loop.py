@@ -206,25 +206,69 @@ def resolve_hold(controller, simulator) -> int:
     return periods // int(ss.steps)
 
 
-def default_horizon(controller, x0: np.ndarray, hold: int) -> int:
-    """A horizon in simulator steps: 2x the controller's steps-to-go at x0 (+1 abstract step) when it
-    reports one (``steps_to_go``/``value``), else DEFAULT_HORIZON."""
+def steps_to_go(controller, x0: np.ndarray) -> Optional[float]:
+    """The controller's (worst-case) abstract steps to go at x0 when it reports them
+    (``steps_to_go``/``value``), else None."""
     for name in ("steps_to_go", "value"):
         fn = getattr(controller, name, None)
         if callable(fn):
             try:
                 v = float(np.asarray(fn(x0[None])).reshape(-1)[0])
-            except Exception:  # an optional hint only; fall back to the fixed default
+            except Exception:  # an optional hint only
                 continue
             if np.isfinite(v) and v >= 0:
-                return int(max(hold * (2 * v + 1), hold))
-    return DEFAULT_HORIZON
+                return v
+    return None
+
+
+def default_horizon(controller, x0: np.ndarray, hold: int) -> int:
+    """A horizon in simulator steps: 2x the controller's steps-to-go at x0 (+1 abstract step) when it
+    reports one (``steps_to_go``/``value``), else DEFAULT_HORIZON."""
+    v = steps_to_go(controller, x0)
+    return DEFAULT_HORIZON if v is None else int(max(hold * (2 * v + 1), hold))
+
+
+def rollout_cost(n_rollouts: int, horizon: int, mean_map_runs: int, rate=None, expected_steps=None) -> dict:
+    """Simulator runs and time of :func:`rollout` before it runs.
+
+    At most R T runs for the rollouts (every rollout to the horizon; runs that stop early cost
+    less) and, with the mean map, T (runs + G floor(runs / G)) <= 2 T runs for its estimate and its
+    G repetitions (``rows``, ``max_seconds``). ``expected_steps``: the steps a run is expected to
+    take (a reach-avoid controller's worst-case steps to go from x0 x hold: runs end at the
+    target); ``seconds`` then prices min(T, expected_steps) steps per run, else T.
+    ``seconds`` = runs / rate at ``rate`` [simulator runs/s] (None: unknown)."""
+    R, T, mm = int(n_rollouts), int(horizon), int(mean_map_runs)
+    G = min(10, mm // 2) if mm else 0
+    per_step = float(R) + ((mm + G * (mm // G)) if mm else 0.0)
+    rows = per_step * T
+    steps = T if expected_steps is None else min(T, max(1, int(np.ceil(expected_steps))))
+    return {"n_rollouts": R, "horizon": T, "mean_map_runs": mm, "rollout_rows": float(R) * T,
+            "mean_map_rows": rows - float(R) * T, "rows": rows, "expected_steps": steps, "rate": rate,
+            "seconds": per_step * steps / rate if rate else None, "max_seconds": rows / rate if rate else None}
+
+
+def rollout_cost_text(c: dict) -> str:
+    """:func:`rollout_cost` as the line the commands print before the rollouts start."""
+    from ..cover import format_duration
+    if c["seconds"] is None:
+        t = "time unknown"
+    elif c["expected_steps"] < c["horizon"]:
+        t = (f"about {format_duration(c['seconds'])} if the runs end at the target within the controller's "
+             f"{c['expected_steps']} steps from x0, at most {format_duration(c['max_seconds'])} at the full "
+             f"horizon, at {c['rate']:,.0f} runs/s (calibrated here)")
+    else:
+        t = f"at most about {format_duration(c['seconds'])} at {c['rate']:,.0f} runs/s (calibrated here)"
+    mm = (f" + mean map {c['mean_map_runs']:,} runs x 2 x {c['horizon']:,} steps" if c["mean_map_runs"]
+          else " (no mean map)")
+    return (f"estimate: {c['n_rollouts']:,} rollouts x {c['horizon']:,} steps{mm} = {c['rows']:,.0f} "
+            f"simulator runs; {t}")
 
 
 def rollout(controller, simulator, x0=None, n_rollouts: int = 1000, horizon: Optional[int] = None,
             seed: Optional[int] = 0, rng: Optional[np.random.Generator] = None, hold: Optional[int] = None,
             spec: Optional[Spec] = None, on_exit: str = "hold", batched: bool = True,
-            progress=None, mean_map_runs: Optional[int] = None) -> RolloutResult:
+            progress=None, mean_map_runs: Optional[int] = None, on_estimate=None,
+            on_progress=None) -> RolloutResult:
     """Run ``n_rollouts`` closed-loop rollouts of ``controller`` on ``simulator`` from ``x0``.
 
     Parameters
@@ -259,11 +303,18 @@ def rollout(controller, simulator, x0=None, n_rollouts: int = 1000, horizon: Opt
     mean_map_runs : int, optional
         Simulator runs per step for the mean map m+ = E fhat(m, u(m)) (>= 4; 0 skips it).
         Default: n_rollouts clipped to [100, 1000], so it costs about as much as the rollouts.
+    on_estimate : callable, optional
+        ``on_estimate(text)`` once before any rollout: the work and time of everything this call
+        simulates (:func:`rollout_cost_text`, the simulator's rate measured here in about 0.3 s).
+    on_progress : callable, optional
+        ``on_progress(done, total)`` in simulator steps of the horizon: the rollouts' T steps, then
+        the mean map's T (total = 2 T with the mean map, T without).
 
     Returns
     -------
     RolloutResult
     """
+    start = time.perf_counter()
     system = simulator.system
     if controller.system.n != system.n or controller.system.m != system.m:
         raise SimgapError(f"controller for {controller.system.name!r} (n={controller.system.n}, m={controller.system.m}) "
@@ -317,14 +368,34 @@ def rollout(controller, simulator, x0=None, n_rollouts: int = 1000, horizon: Opt
                        f"the mean map with {int(mean_map_runs):,} runs per step x horizon {horizon:,}",
                        "use fewer --mean-map-runs (the standard error falls as 1/sqrt(runs))",
                        calibrate_rate(simulator, n_runs=65536, budget=0.3) if work > 1e9 else None)
+    estimate_s = None
+    if on_estimate is not None:
+        from ..cover import calibrate_rate
+        v = steps_to_go(controller, x0) if spec.kind == "reach_avoid" else None
+        cost = rollout_cost(n_rollouts, horizon, int(mean_map_runs), calibrate_rate(simulator, budget=0.3),
+                            expected_steps=None if v is None else hold * (v + 1))
+        estimate_s = cost["seconds"]
+        on_estimate(rollout_cost_text(cost))
     if rng is None:
         rng = np.random.default_rng(seed)
     else:
         seed = None
     mm_rng = rng.spawn(1)[0]  # a child stream: the rollouts' draws do not depend on the mean map
+    total = horizon * (2 if mean_map_runs else 1)
+
+    def step_done(offset):
+        if progress is None and on_progress is None:
+            return None
+
+        def report(t, T):
+            if progress is not None and offset == 0:
+                progress(t, T)
+            if on_progress is not None:
+                on_progress(offset + t, total)
+        return report
 
     w0, c0 = time.perf_counter(), time.process_time()
-    tr = _run(controller, simulator, spec, x0, n_rollouts, horizon, hold, rng, on_exit, batched, progress)
+    tr = _run(controller, simulator, spec, x0, n_rollouts, horizon, hold, rng, on_exit, batched, step_done(0))
     wall, cpu = time.perf_counter() - w0, time.process_time() - c0
 
     nom_sys = controller.system.with_steps(system.steps)
@@ -335,10 +406,15 @@ def rollout(controller, simulator, x0=None, n_rollouts: int = 1000, horizon: Opt
                "left_domain_time": int(nt.left_domain_time[0]), "length": int(nt.lengths[0]),
                "x_lo": system.x_lo.tolist(), "x_hi": system.x_hi.tolist()}
     m0 = time.perf_counter()
-    mm = mean_map(controller, simulator, spec, x0, int(mean_map_runs), horizon, hold, mm_rng, on_exit) \
-        if mean_map_runs else None
+    mm = mean_map(controller, simulator, spec, x0, int(mean_map_runs), horizon, hold, mm_rng, on_exit,
+                  progress=step_done(horizon)) if mean_map_runs else None
+    if on_progress is not None:
+        on_progress(total, total)  # runs that all stopped early end the count too
     cfg = getattr(simulator, "config", None)
-    timing = {"mean_map_s": time.perf_counter() - m0,"wall_s": wall, "simulator_s": tr.sim_seconds, "controller_s": tr.ctrl_seconds,
+    # total_wall_s: everything this call did (checks, rate calibration, rollouts, nominal run, mean map)
+    timing = {"mean_map_s": time.perf_counter() - m0, "wall_s": wall, "total_wall_s": time.perf_counter() - start,
+              "estimate_s": estimate_s,
+              "simulator_s": tr.sim_seconds, "controller_s": tr.ctrl_seconds,
               "cpu_s": cpu, "robot_steps": int(tr.robot_steps),
               "robot_steps_per_s": tr.robot_steps / wall if wall > 0 else 0.0,
               "robot_steps_per_cpu_s": tr.robot_steps / cpu if cpu > 0 else 0.0,

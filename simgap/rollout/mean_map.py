@@ -109,13 +109,14 @@ class MeanMap:
 
 
 def mean_map(controller, sim, spec: Spec, x0: np.ndarray, runs: int, T: int, hold: int,
-             rng: np.random.Generator, on_exit: str = "hold") -> MeanMap:
+             rng: np.random.Generator, on_exit: str = "hold", progress=None) -> MeanMap:
     """Run the mean map m_{k+1} = E fhat(m_k, u(m_k)) for T simulator steps (module docstring).
 
     ``runs`` simulator runs per abstract step (>= 4) estimate each mean, and G = min(10, runs // 2)
     repetitions of runs // G runs each the propagated standard error; ``hold`` simulator steps per controller query; ``on_exit`` as for
     rollouts ("hold": keep the previous input when m leaves the winning domain, "stop": stop with
     outcome left_domain). Stops at the first violation or (reach-avoid) when m reaches the target.
+    ``progress(t, T)`` after every simulator step.
     """
     if int(runs) != runs or runs < 4:
         raise SimgapError(f"mean map: runs per step must be an integer >= 4 (at least two repetitions of two), got {runs!r}")
@@ -165,6 +166,8 @@ def mean_map(controller, sim, spec: Spec, x0: np.ndarray, runs: int, T: int, hol
                 raise SimgapError(f"mean map: the simulator returned NaN/inf at step {t + 1}")
             t += 1
             steps += B
+            if progress is not None:
+                progress(t, T)
             mean = circular_mean(X[:runs], angle)
             reps = circular_mean(X[runs:].reshape(G, rg, n), angle, axis=1)
             traj[t], uidx[t - 1] = mean, q

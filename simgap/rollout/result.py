@@ -167,7 +167,11 @@ class RolloutResult:
                      + f" (mean of the {R} rollouts; not what the guarantee is about)")
         tm = self.timing
         if tm:
-            lines.append(f"  time            {tm['wall_s']:.2f} s ({tm.get('cpu_s', 0):.2f} s CPU), {tm['robot_steps']} robot-steps, "
+            total = tm.get("total_wall_s")
+            if total is not None:  # the wall time of everything done, the mean map's runs included
+                lines.append(f"  time            {total:.2f} s wall in all: rollouts {tm['wall_s']:.2f} s, mean map "
+                             f"{tm.get('mean_map_s', 0):.2f} s")
+            lines.append(f"  rollouts        {tm['wall_s']:.2f} s ({tm.get('cpu_s', 0):.2f} s CPU), {tm['robot_steps']} robot-steps, "
                          f"{tm['robot_steps_per_s']:.0f} robot-steps/s ({'batched' if tm['batched'] else 'one at a time'})")
         return lines
 

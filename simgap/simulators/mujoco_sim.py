@@ -14,9 +14,16 @@ experiment's folder, see :func:`simgap.config.load_experiment`) and
   ``options.base_velocity`` its forward speed along the heading [m/s] and yaw rate [rad/s]
   follow the pose (the base starts each period moving so),
 * ``options.driven_start = "target"``: the joints the input actuators drive start each period at
-  the velocity the actuators command (velocity actuators, ``<velocity>``: joint velocity ctrl /
-  gear, or through a fixed tendon, the least-norm joint velocities whose tendon velocities are
-  ctrl / gear) instead of at rest; ``"rest"`` (default).
+  the target the actuators command instead of at rest at qpos0: a velocity actuator
+  (``<velocity>``) its joint velocity ctrl / gear (or, through a fixed tendon, the least-norm
+  joint velocities whose tendon velocities are ctrl / gear), a position actuator
+  (``<position>``, on a hinge or slide joint) its joint position ctrl / gear, at rest; ``"rest"``
+  (default). Position- and velocity-controlled inputs are the MJCF's own actuator types
+  (``<position kp=...>``, ``<velocity kv=...>``; ``ctrl`` is then the target).
+
+A joint keeps its state across periods when it is in the state (``positions``/``velocities``),
+driven or not; a driven joint outside the state starts at its target with ``driven_start =
+"target"`` (what it holds between periods while the input stays the same).
 
 State x = (base pose, base velocity, positions..., velocities...), in the order named. One sampling period tau = steps *
 base_tau is ``steps * substeps`` MuJoCo steps of timestep base_tau / substeps (this *replaces*
@@ -128,9 +135,11 @@ class MujocoSimulator(Simulator):
         self.driven_start = op.get("driven_start", "rest")
         if self.driven_start not in ("rest", "target"):
             raise SimgapError(f"mujoco: options.driven_start must be 'rest' or 'target', got {self.driven_start!r}")
-        # (driven dofs, dofs x actuators): the joint velocities that meet the actuators' velocity targets
-        self.drive_dofs, self.drive_of_ctrl = self._drive_targets(m, in_names) if self.driven_start == "target" \
-            else (None, None)
+        # velocity actuators: (their input indices, driven dofs, dofs x actuators) whose joint velocities meet
+        # their targets; position actuators: (their input indices, qpos addresses, gears)
+        self.drive_vel = self.drive_pos = None
+        if self.driven_start == "target":
+            self.drive_vel, self.drive_pos = self._drive_targets(m, in_names)
 
         steps_default = s.base_tau / m.opt.timestep
         if "substeps" in op:
@@ -227,24 +236,39 @@ class MujocoSimulator(Simulator):
         return ("planar", qa, da)
 
     def _drive_targets(self, m, in_names):
-        """(driven dofs, (dofs x actuators) matrix P): with ctrl c of the input actuators, qvel[dofs] =
-        P c meets every actuator's velocity target (the least-norm solution through fixed tendons).
-        Refused unless every input actuator is a velocity actuator on a 1-dof joint or a fixed tendon."""
+        """((velocity inputs k, driven dofs, (dofs x actuators) matrix P), (position inputs k, qpos addresses,
+        gears)): with ctrl c of the velocity actuators, qvel[dofs] = P c meets every velocity target (the
+        least-norm solution through fixed tendons); a position actuator's joint starts at qpos = c / gear.
+        Refused unless every input actuator is a velocity actuator on a 1-dof joint or a fixed tendon, or a
+        position actuator on a hinge or slide joint."""
         mj = self._mj
-        rows = []
-        for nm in in_names:
+        rows, vel_k, pos_k, pos_adr, pos_gear = [], [], [], [], []
+        for k, nm in enumerate(in_names):
             a = m.actuator(nm).id
-            kv = float(m.actuator_gainprm[a, 0])
-            velocity = (int(m.actuator_gaintype[a]) == int(mj.mjtGain.mjGAIN_FIXED)
-                        and int(m.actuator_biastype[a]) == int(mj.mjtBias.mjBIAS_AFFINE) and kv != 0
-                        and m.actuator_biasprm[a, 0] == 0 and m.actuator_biasprm[a, 1] == 0
-                        and np.isclose(m.actuator_biasprm[a, 2], -kv))
-            if not velocity:
-                raise SimgapError(f"mujoco: driven_start = 'target' (driven joints start at their velocity targets) "
-                                  f"needs velocity actuators (<velocity>: force kv (ctrl - velocity)); actuator {nm!r} "
-                                  f"of {self.path.name} is not one")
-            gear, row = float(m.actuator_gear[a, 0]), np.zeros(m.nv)
+            kg = float(m.actuator_gainprm[a, 0])
+            affine = (int(m.actuator_gaintype[a]) == int(mj.mjtGain.mjGAIN_FIXED)
+                      and int(m.actuator_biastype[a]) == int(mj.mjtBias.mjBIAS_AFFINE) and kg != 0
+                      and m.actuator_biasprm[a, 0] == 0)
+            velocity = affine and m.actuator_biasprm[a, 1] == 0 and np.isclose(m.actuator_biasprm[a, 2], -kg)
+            position = affine and np.isclose(m.actuator_biasprm[a, 1], -kg)  # force kp (ctrl - q) - kv qdot
+            gear = float(m.actuator_gear[a, 0])
             trn, tid = int(m.actuator_trntype[a]), int(m.actuator_trnid[a, 0])
+            if position:
+                if trn != int(mj.mjtTrn.mjTRN_JOINT) or int(m.jnt_type[tid]) not in (int(mj.mjtJoint.mjJNT_HINGE),
+                                                                                  int(mj.mjtJoint.mjJNT_SLIDE)):
+                    raise SimgapError(f"mujoco: driven_start = 'target': position actuator {nm!r} of {self.path.name} "
+                                      "must drive a hinge or slide joint")
+                pos_k.append(k)
+                pos_adr.append(int(m.jnt_qposadr[tid]))
+                pos_gear.append(gear)
+                continue
+            if not velocity:
+                raise SimgapError(f"mujoco: driven_start = 'target' (driven joints start at their targets) needs "
+                                  f"velocity actuators (<velocity>: force kv (ctrl - velocity)) or position actuators "
+                                  f"(<position>: force kp (ctrl - q) - kv qdot); actuator {nm!r} of {self.path.name} "
+                                  "is neither")
+            vel_k.append(k)
+            row = np.zeros(m.nv)
             if trn == int(mj.mjtTrn.mjTRN_JOINT) and int(m.jnt_type[tid]) in (int(mj.mjtJoint.mjJNT_HINGE),
                                                                            int(mj.mjtJoint.mjJNT_SLIDE)):
                 row[int(m.jnt_dofadr[tid])] = gear
@@ -257,12 +281,17 @@ class MujocoSimulator(Simulator):
                 raise SimgapError(f"mujoco: driven_start = 'target': actuator {nm!r} of {self.path.name} drives "
                                   "neither a hinge/slide joint nor a fixed tendon of such joints")
             rows.append(row)
+        if len(set(pos_adr)) != len(pos_adr):
+            raise SimgapError("mujoco: driven_start = 'target': two position actuators drive the same joint")
+        pos = (np.array(pos_k, dtype=int), np.array(pos_adr, dtype=int), np.array(pos_gear)) if pos_k else None
+        if not rows:
+            return None, pos
         A = np.array(rows)
         dofs = np.flatnonzero(np.any(A != 0, axis=0))
-        if np.linalg.matrix_rank(A[:, dofs]) < len(in_names):
+        if np.linalg.matrix_rank(A[:, dofs]) < len(rows):
             raise SimgapError("mujoco: driven_start = 'target': the input actuators' velocity targets cannot all be "
                               "met at once (two actuators drive the same motion)")
-        return dofs, np.linalg.pinv(A[:, dofs])
+        return (np.array(vel_k, dtype=int), dofs, np.linalg.pinv(A[:, dofs])), pos
 
     # ----- randomness ----------------------------------------------------------------------
     def draw_noise(self, B: int, rng: np.random.Generator) -> Dict[str, np.ndarray]:
@@ -295,12 +324,18 @@ class MujocoSimulator(Simulator):
         ctrl = u + noise["act"]
         ctrl = ctrl if self.input_map is None else ctrl @ self.input_map.T
         control[:, 0, self.act_id] = ctrl
-        if self.drive_dofs is not None:  # driven joints start at the velocity the (clamped) ctrl commands
+        if self.driven_start == "target":  # driven joints start at what the (clamped) ctrl commands
             lim = m.actuator_ctrllimited[self.act_id].astype(bool)
             lo, hi = m.actuator_ctrlrange[self.act_id, 0], m.actuator_ctrlrange[self.act_id, 1]
             c = np.where(lim, np.clip(ctrl, lo, hi), ctrl)
-            # row by row (a matrix product's rounding may depend on the batch size: batched == one at a time)
-            state[:, self.off_v + self.drive_dofs] = (c[:, None, :] * self.drive_of_ctrl[None]).sum(axis=2)
+            if self.drive_vel is not None:
+                k, dofs, P = self.drive_vel
+                # row by row (a matrix product's rounding may depend on the batch size: batched == one at a time)
+                state[:, self.off_v + dofs] = (c[:, None, k] * P[None]).sum(axis=2)
+            if self.drive_pos is not None:
+                k, adr, gear = self.drive_pos
+                state[:, self.off_q + adr] = c[:, k] / gear
+            state[:, self.x_cols] = x[:, nb:]  # a driven joint that is also in the state starts at x (as in the URDF backend)
         if self.base_pose:
             self._set_base(state, x)
         control[:, 0, m.nu + np.asarray(self.force_dof, dtype=int)] = noise["force"]

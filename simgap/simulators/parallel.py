@@ -111,10 +111,19 @@ class ParallelSimulator(Simulator):
                                              initializer=_start_helper,
                                              initargs=(self.config.to_dict(), self._system_arg, os.getpid()))
         cuts = np.linspace(0, B, parts + 1).astype(int)
-        futures = [submit_without_sigint(self._pool.submit, _helper_step, x[a:b], u[a:b],
-                                         {k: v[a:b] for k, v in noise.items()}) for a, b in zip(cuts[1:-1], cuts[2:])]
-        own = self.inner.step_with_noise(x[:cuts[1]], u[:cuts[1]], {k: v[:cuts[1]] for k, v in noise.items()})
-        return np.concatenate([own] + [f.result() for f in futures])
+        try:
+            futures = [submit_without_sigint(self._pool.submit, _helper_step, x[a:b], u[a:b],
+                                             {k: v[a:b] for k, v in noise.items()})
+                       for a, b in zip(cuts[1:-1], cuts[2:])]
+            own = self.inner.step_with_noise(x[:cuts[1]], u[:cuts[1]], {k: v[:cuts[1]] for k, v in noise.items()})
+            return np.concatenate([own] + [f.result() for f in futures])
+        except BaseException:
+            # Ctrl-C, SIGTERM or an error: the helpers' shares are lost anyway; end them now rather
+            # than wait for them in close()
+            from ..executors import stop_pool
+            pool, self._pool = self._pool, None
+            stop_pool(pool)
+            raise
 
     def close(self) -> None:
         if self._pool is not None:

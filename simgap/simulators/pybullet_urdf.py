@@ -11,9 +11,14 @@ the input. The state vector x is, in this order,
 * the velocities of the joints named in ``options.velocities`` [rad/s or m/s];
 
 the input u drives the joints named in ``options.inputs``: by torque/force
-(``input_mode = "torque"``, N m or N, re-applied every physics step) or by velocity target
+(``input_mode = "torque"``, N m or N, re-applied every physics step), by velocity target
 (``input_mode = "velocity"``, rad/s or m/s, a velocity motor of maximum force
-``options.max_force``).
+``options.max_force``) or by position target (``input_mode = "position"``, rad or m: Bullet's
+POSITION_CONTROL motor of maximum force ``options.max_force``, position gain
+``options.position_gain`` (default 0.1, Bullet's) and velocity gain ``options.velocity_gain``
+(default 1.0)). ``input_mode`` may also be a list, one mode per entry of ``options.inputs`` (a
+car: its wheels by velocity, its steering hinges by position); ``max_force`` likewise a number or
+one per entry.
 
 One sampling period: every movable joint is reset (state joints to x, the others to 0 at rest),
 a mobile base is placed at (x, y, yaw) at ``options.base_height`` at rest, the input is held for
@@ -29,6 +34,14 @@ collisions between copies filtered out (with ``options.ground`` they still touch
 plane); a batch runs ``copies`` rows at a time. Copies do not interact and every row is reset
 completely (contact caches dropped by re-inserting the collision objects), so each row's result
 depends on its own (x, u, noise) only: batched and one-at-a-time are bit-identical (tested).
+
+Joints that keep their state across periods: a joint named in ``options.positions`` (or
+``velocities``) is part of x, so every period starts where the previous one left it, also a
+joint the input drives (a steering hinge in the state and driven by position: its angle is a
+state dimension and the command moves it). A driven joint outside the state starts each period
+at rest at 0, or, with ``driven_start = "target"``, at its target: a velocity-driven joint
+turning at the commanded speed, a position-driven joint at the commanded position (at rest);
+that is what it keeps between periods when the input stays the same (docs/simulators.md).
 
 Randomness (all drawn by :meth:`draw_noise` from the caller's generator, once per run):
 
@@ -118,6 +131,31 @@ def input_map(value, joints: List[str], system, backend: str = "pybullet_urdf", 
     return A
 
 
+INPUT_MODES = ("torque", "velocity", "position")
+
+
+def input_modes(value, joints: List[str]) -> List[str]:
+    """One drive mode per driven joint from ``options.input_mode`` (one mode for all, or a list)."""
+    if isinstance(value, str):
+        value = [value] * len(joints)
+    if not isinstance(value, (list, tuple)) or len(value) != len(joints):
+        raise SimgapError(f"pybullet_urdf: options.input_mode must be one of {', '.join(INPUT_MODES)} or a list of "
+                          f"them, one per entry of options.inputs ({len(joints)}), got {value!r}")
+    bad = [v for v in value if v not in INPUT_MODES]
+    if bad:
+        raise SimgapError(f"pybullet_urdf: options.input_mode {bad[0]!r} is not one of {', '.join(INPUT_MODES)}")
+    return list(value)
+
+
+def per_input(value, joints: List[str], what: str) -> np.ndarray:
+    """A non-negative number per driven joint from a number or a list of them (one per joint)."""
+    vals = value if isinstance(value, (list, tuple)) else [value] * len(joints)
+    if len(vals) != len(joints):
+        raise SimgapError(f"pybullet_urdf: {what} must be a number or {len(joints)} numbers (one per entry of "
+                          f"options.inputs), got {value!r}")
+    return np.array([check_std(v, what) for v in vals])
+
+
 _REPORTED: set = set()
 
 
@@ -142,6 +180,7 @@ class UrdfSimulator(BulletSimulator):
     PARAMETER_DRAWS = ("mass", "damping", "friction")  # draw_noise keys held for an episode (randomize.per)
     EFFECT_KEYS = ("joint_damping", "actuator_gain")
     OPTION_KEYS = ("urdf", "urdf_sha256", "positions", "velocities", "inputs", "input_map", "input_mode", "max_force",
+                   "position_gain", "velocity_gain",
                    "base_pose", "base_velocity", "driven_start", "base_height", "fixed_base", "ground", "substeps",
                    "copies", "gravity", "cone_friction")
     #: options naming a file: resolved against (and confined to) the experiment's folder
@@ -172,17 +211,20 @@ class UrdfSimulator(BulletSimulator):
                               f"{len(self.pos_names)} positions, {len(self.vel_names)} velocities) but system "
                               f"{s.name!r} has n={s.n}")
         self.input_map = input_map(op.get("input_map"), self.in_names, s)
-        self.mode = op.get("input_mode", "torque")
-        if self.mode not in ("torque", "velocity"):
-            raise SimgapError(f"pybullet_urdf: options.input_mode must be 'torque' or 'velocity', got {self.mode!r}")
+        self.modes = input_modes(op.get("input_mode", "torque"), self.in_names)
+        self.mode = self.modes[0] if len(set(self.modes)) == 1 else "mixed"
         self.driven_start = op.get("driven_start", "rest")
         if self.driven_start not in ("rest", "target"):
             raise SimgapError(f"pybullet_urdf: options.driven_start must be 'rest' or 'target', got "
                               f"{self.driven_start!r}")
-        if self.driven_start == "target" and self.mode != "velocity":
-            raise SimgapError("pybullet_urdf: driven_start = 'target' (driven joints start at their velocity "
-                              "targets) needs input_mode = 'velocity'")
-        self.max_force = check_std(op.get("max_force", 10.0), "options.max_force")
+        if self.driven_start == "target" and "torque" in self.modes:
+            raise SimgapError("pybullet_urdf: driven_start = 'target' (driven joints start at their velocity or "
+                              "position targets) needs input_mode 'velocity' or 'position' for every input; "
+                              f"{self.in_names[self.modes.index('torque')]!r} is torque-driven")
+        self.max_forces = per_input(op.get("max_force", 10.0), self.in_names, "options.max_force")
+        self.max_force = float(self.max_forces.max()) if len(self.max_forces) else 10.0
+        self.position_gain = check_std(op.get("position_gain", 0.1), "options.position_gain")
+        self.velocity_gain = check_std(op.get("velocity_gain", 1.0), "options.velocity_gain")
         self.act_std = as_vector(nz.get("actuation_std", 0.0), s.m, "noise.actuation_std")
         self.sens_std = as_vector(nz.get("sensor_std", 0.0), s.n, "noise.sensor_std")
         self.proc_std = as_vector(nz.get("process_std", 0.0), s.n, "noise.process_std")
@@ -309,8 +351,11 @@ class UrdfSimulator(BulletSimulator):
         for i, (b, row) in enumerate(zip(bodies, x.tolist())):
             q, qd = [[0.0] for _ in range(J)], [[0.0] for _ in range(J)]
             if targets is not None and self.driven_start == "target":
-                for j, v in zip(self.in_idx, targets[i]):
-                    qd[slot[j]] = [v]
+                for j, v, mode in zip(self.in_idx, targets[i], self.modes):
+                    if mode == "velocity":
+                        qd[slot[j]] = [v]
+                    else:  # position: at the commanded position, at rest
+                        q[slot[j]] = [v]
             for k, v in zip(self._pos_slot, row[nb:nb + npos]):
                 q[k] = [v]
             for k, v in zip(self._vel_slot, row[nb + npos:]):
@@ -371,15 +416,25 @@ class UrdfSimulator(BulletSimulator):
                                       physicsClientId=cid)
         targets = drive.tolist()
         self._set_state(bodies, x, targets)
-        if self.mode == "velocity":
-            for b, t in zip(bodies, targets):
-                pb.setJointMotorControlArray(b, self.in_idx, pb.VELOCITY_CONTROL, targetVelocities=t,
-                                             forces=[self.max_force] * len(t), physicsClientId=cid)
+        vel, pos, tor = ([k for k, md in enumerate(self.modes) if md == mode]
+                         for mode in ("velocity", "position", "torque"))
+        for b, t in zip(bodies, targets):
+            if vel:
+                pb.setJointMotorControlArray(b, [self.in_idx[k] for k in vel], pb.VELOCITY_CONTROL,
+                                             targetVelocities=[t[k] for k in vel],
+                                             forces=[float(self.max_forces[k]) for k in vel], physicsClientId=cid)
+            if pos:
+                pb.setJointMotorControlArray(b, [self.in_idx[k] for k in pos], pb.POSITION_CONTROL,
+                                             targetPositions=[t[k] for k in pos], targetVelocities=[0.0] * len(pos),
+                                             forces=[float(self.max_forces[k]) for k in pos],
+                                             positionGains=[self.position_gain] * len(pos),
+                                             velocityGains=[self.velocity_gain] * len(pos), physicsClientId=cid)
+        tor_idx = [self.in_idx[k] for k in tor]
         for k in range(s.steps):
             for _ in range(self.substeps):
-                if self.mode == "torque":  # applied torques are cleared by every step: re-apply
+                if tor:  # applied torques are cleared by every step: re-apply
                     for b, t in zip(bodies, targets):
-                        pb.setJointMotorControlArray(b, self.in_idx, pb.TORQUE_CONTROL, forces=t,
+                        pb.setJointMotorControlArray(b, tor_idx, pb.TORQUE_CONTROL, forces=[t[i] for i in tor],
                                                      physicsClientId=cid)
                 pb.stepSimulation(physicsClientId=cid)
             if self._process and k < s.steps - 1:

@@ -200,6 +200,7 @@ def load_experiment(path_or_name: str | Path, profile: Optional[str] = DEFAULT_P
     if terms:  # keys name the system's states (or all, or 0-based numbers): checked with the system
         from .certify.basis import terms_by_dimension
         terms_by_dimension(terms, system, f"{where}: [certify] terms")
+    _radii_match(merged.get("collect", {}), system, where)
     simulator = _simulator(model.simulator, merged["simulator"], system, where, folder)
     collect = _collect(model.collect, out)
     return ExperimentConfig(name=path.stem, profile=profile, path=path, system=system, simulator=simulator,
@@ -271,6 +272,26 @@ def _system(d: schema.SystemSection, where: str, folder: Path) -> System:
             raise SimgapError(f"{where}: system.input_grid needs lo, hi, counts with {s.m} entries each")
         s = dataclasses.replace(s, inputs=input_grid(g.lo, g.hi, g.counts))
     return s
+
+
+def _radii_match(collect: dict, system: System, where: str) -> None:
+    """``[collect] epsilon`` as a list: one radius per covered dimension, checked here by its own name
+    (the schema turns the list into a ``spacing`` of twice the radii, which a cover would report)."""
+    eps = collect.get("epsilon")
+    if not isinstance(eps, list):
+        return
+    from .cover import _dim_index
+    inv = set()
+    for d in collect.get("invariant_dims", []):
+        try:
+            inv.add(_dim_index(system, d))
+        except SimgapError:
+            return  # the cover names the unknown dimension
+    covered = [system.state_names[i] for i in range(system.n) if i not in inv]
+    if len(eps) != len(covered):
+        raise SimgapError(f"{where}: [collect] epsilon = {eps!r} gives {len(eps)} radii but the cover has "
+                          f"{len(covered)} covered dimension(s) ({', '.join(covered)}): give one radius per covered "
+                          f"dimension in that order, or one number for all")
 
 
 def _simulator(d: schema.SimulatorSection, raw: dict, system: System, where: str, folder: Path) -> SimulatorConfig:

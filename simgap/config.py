@@ -229,10 +229,19 @@ def _validate(table: dict, path: Path, profile: Optional[str], ptable: dict) -> 
 
 def confined(value: str, folder: Path, what: str) -> Path:
     """``folder / value`` resolved; SimgapError if it leaves ``folder`` (also through symlinks)."""
+    _no_nul(value, what)
     p = (folder / value).resolve()
     if not p.is_relative_to(folder):
         raise SimgapError(f"{what} {value!r} leads outside the experiment's folder {str(folder)!r}")
     return p
+
+
+def _no_nul(value: str, what: str) -> None:
+    """No path holds a NUL byte (the operating system cannot name such a file): refused by name."""
+    if "\x00" in value:
+        from .file_guard import printable
+        raise SimgapError(f"{what} '{printable(value)}' contains a NUL byte (\\x00), which no file name can hold: "
+                          "write the file's name without it")
 
 
 def _system(d: schema.SystemSection, where: str, folder: Path) -> System:
@@ -332,6 +341,7 @@ PYBULLET_DATA = "pybullet_data:"
 def _model_path(value: str, folder: Path, what: str) -> Path:
     """A model file inside the experiment's folder, or, spelled ``pybullet_data:<path>``, inside the
     installed ``pybullet_data`` package (PyBullet's robot files, meshes next to them), confined there."""
+    _no_nul(value, what)
     if not value.startswith(PYBULLET_DATA):
         return confined(value, folder, what)
     try:

@@ -248,7 +248,10 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
         toml_text = None
     with results_folder.run_lock(out):
         # again under the lock (the folder may have changed since), then the earlier run's files go
-        results_folder.claim(out, RESULT_NAMES).release(run_id, log)
+        import shlex
+        resume = "simgap run " + " ".join(shlex.quote(a) for a in (str(exp.path.resolve()), "--profile",
+                                                                    exp.profile or "base", "--out", str(out)))
+        results_folder.claim(out, RESULT_NAMES).release(run_id, log, resume=resume)
 
         def wrote(*names):
             results_folder.record(out, names)
@@ -378,6 +381,7 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
             each.close()
         summary["seconds"] = times
         summary["files"] = results_folder.list_files(out, run_id)
+        results_folder.seal(summary)
         fileio.write_json(out / "summary.json", summary, default=_json_default)
         return summary
 

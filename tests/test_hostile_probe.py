@@ -326,12 +326,17 @@ def test_a_stopped_runs_files_are_its_own_to_replace_while_unchanged(tmp_path):
 
 
 def test_a_manifest_never_owns_a_file_simgap_does_not_write(tmp_path):
-    """A forged summary.json listing the user's notes.txt with its exact sha256 still cannot get it deleted."""
+    """A forged summary.json listing the user's notes.txt with its exact sha256 still cannot get it deleted;
+    a sealed one (files_digest matching, as simgap writes it) owns itself but never a name simgap does not write."""
     from simgap import results_folder as rf
+    from simgap.errors import SimgapError
     (tmp_path / "notes.txt").write_text("mine")
     digest = hashlib.sha256(b"mine").hexdigest()
-    (tmp_path / "summary.json").write_text(json.dumps({"run_id": "x", "methods": {},
-                                                       "files": {"notes.txt": {"sha256": digest}}}))
+    forged = {"run_id": "x", "methods": {}, "files": {"notes.txt": {"sha256": digest}}}
+    (tmp_path / "summary.json").write_text(json.dumps(forged))
+    with pytest.raises(SimgapError, match="summary.json .not a summary simgap can verify"):
+        rf.claim(tmp_path, ["summary.json"])  # unverifiable (issue 45): kept, the run refused
+    (tmp_path / "summary.json").write_text(json.dumps(rf.seal(forged)))
     c = rf.claim(tmp_path, ["summary.json"])
     assert c.owned == ["summary.json"]
     c.release("new-run")

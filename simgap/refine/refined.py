@@ -178,6 +178,10 @@ def system_from_dict(d: dict, _depth: int = 0) -> System:
     if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
         raise SimgapError(f"refined system: \"steps\" must be a whole number of base steps >= 1, got "
                           f"{printable(repr(steps))[:80]}")
+    from ..systems import MAX_STEPS
+    if steps > MAX_STEPS:  # checked before the model is built: every transition would take `steps` evaluations
+        raise SimgapError(f"refined system: \"steps\": {steps:,} base steps per sampling period is more than the "
+                          f"{MAX_STEPS:,} simgap accepts (refused before any work); give \"steps\" <= {MAX_STEPS:,}")
     name = d.get("name")
     if name is not None and (not isinstance(name, str) or is_named(name)):
         raise SimgapError(f"refined system: name {printable(repr(name))[:80]} must be a string other than a built-in's "

@@ -106,6 +106,7 @@ def check_experiment(exp: ExperimentConfig, out: Optional[str | Path] = None, *,
     for k in ("safe_lo", "safe_hi"):
         if k in syn and len(syn[k]) != n:
             raise SimgapError(f"[synthesis] {k}: need {n} values, got {syn[k]!r}")
+    invariant_stage.check_method(syn)  # before the spec: a reach-avoid map is not read for it
     spec, map_x0, _ = experiment_spec(exp)
     if not grid:
         invariant_stage.check_section(s, syn, spec)

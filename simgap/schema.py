@@ -17,7 +17,7 @@ from typing import Annotated, Any, Literal, Optional, Union, get_args
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from .errors import SimgapError
-from .typed import SPELLING
+from .typed import must_be
 
 Int1 = Annotated[int, Field(ge=1)]
 Int0 = Annotated[int, Field(ge=0)]
@@ -300,13 +300,12 @@ def _describe(err: dict, origin) -> str:
     fix = _FIX.get(typ)
     if fix:  # a value of the wrong type: say how to write the right one (never guessed from a string)
         key = next((p for p in reversed(loc) if isinstance(p, str)), "key")
-        return f"{what} = {err.get('input')!r} is not {fix[0]}: need " + SPELLING[fix[1]].format(key=key)
+        return must_be(what, key, err.get("input"), fix)
     return f"{what}: {msg}{got}"
 
 
-#: pydantic's type errors -> (what the value is not, typed.SPELLING kind of the fix)
-_FIX = {"bool_type": ("a boolean", "bool"), "int_type": ("a whole number", "int"),
-        "float_type": ("a number", "number"), "string_type": ("a string", "name")}
+#: pydantic's type errors -> the typed.SPELLING kind of the fix
+_FIX = {"bool_type": "bool", "int_type": "int", "float_type": "number", "string_type": "name"}
 
 
 def validate(raw: dict, where: str, origin=lambda loc: loc[0]) -> Experiment:

@@ -28,10 +28,9 @@ KINDS = ("bool", "int", "number", "numbers", "matrix", "name", "names", "boxes",
 
 #: what each kind accepts, as the refusal says it
 SPELLING = {
-    "bool": "true or false, a TOML boolean without quotes (e.g. {key} = true); strings such as \"false\", "
-            "\"yes\" or 1 are not read as booleans",
-    "int": "a whole number without quotes (e.g. {key} = 4)",
-    "number": "a number without quotes (e.g. {key} = 0.5)",
+    "bool": "true or false (a TOML boolean, without quotes: {key} = true or {key} = false)",
+    "int": "a whole number, without quotes (e.g. {key} = 4)",
+    "number": "a number, without quotes (e.g. {key} = 0.5)",
     "numbers": "a number or a list of numbers (e.g. {key} = 0.1 or {key} = [0.1, 0.2])",
     "matrix": "a list of equally long rows of numbers (e.g. {key} = [[1.0, 0.0], [0.0, 1.0]])",
     "name": "a string in quotes (e.g. {key} = \"name\")",
@@ -73,16 +72,19 @@ def is_kind(value, kind: str) -> bool:
     raise ValueError(f"unknown option kind {kind!r} (kinds: {', '.join(KINDS)})")
 
 
+#: said after a refused boolean: why the string is not guessed
+NOT_GUESSED = "; a string such as \"false\" or \"yes\" (or a number) is never read as a boolean"
+
+
+def must_be(what: str, key: str, value, kind: str) -> str:
+    """``<what> must be <spelling>, got <value>`` (and, for a boolean, why the value is not guessed)."""
+    return (f"{what} must be {SPELLING[kind].format(key=key)}, got {value!r}"
+            + (NOT_GUESSED if kind == "bool" else ""))
+
+
 def refusal(where: str, key: str, value, kind: str) -> SimgapError:
     """The error for ``where.key = value`` not being a ``kind``: names the key, the value and the fix."""
-    return SimgapError(f"{where}.{key} = {value!r} is not {_article(kind)}: need "
-                       + SPELLING[kind].format(key=key))
-
-
-def _article(kind: str) -> str:
-    return {"bool": "a boolean", "int": "a whole number", "number": "a number", "numbers": "a number or list of numbers",
-            "matrix": "a matrix of numbers", "name": "a string", "names": "a list of names",
-            "boxes": "a list of boxes", "any": "a value"}[kind]
+    return SimgapError(must_be(f"{where}.{key}", key, value, kind))
 
 
 def check_section(values: dict, types: dict, where: str) -> None:

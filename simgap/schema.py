@@ -17,7 +17,7 @@ from typing import Annotated, Any, Literal, Optional, Union, get_args
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from .errors import SimgapError
-from .typed import must_be
+from .typed import spelling
 
 Int1 = Annotated[int, Field(ge=1)]
 Int0 = Annotated[int, Field(ge=0)]
@@ -300,7 +300,7 @@ def _describe(err: dict, origin) -> str:
     fix = _FIX.get(typ)
     if fix:  # a value of the wrong type: say how to write the right one (never guessed from a string)
         key = next((p for p in reversed(loc) if isinstance(p, str)), "key")
-        return must_be(what, key, err.get("input"), fix)
+        return f"{what}: {msg}{got}; write " + spelling(key, fix)
     return f"{what}: {msg}{got}"
 
 

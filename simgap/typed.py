@@ -76,10 +76,14 @@ def is_kind(value, kind: str) -> bool:
 NOT_GUESSED = "; a string such as \"false\" or \"yes\" (or a number) is never read as a boolean"
 
 
+def spelling(key: str, kind: str) -> str:
+    """How to write a ``kind`` value of ``key`` (and, for a boolean, why a string is not guessed)."""
+    return SPELLING[kind].format(key=key) + (NOT_GUESSED if kind == "bool" else "")
+
+
 def must_be(what: str, key: str, value, kind: str) -> str:
     """``<what> must be <spelling>, got <value>`` (and, for a boolean, why the value is not guessed)."""
-    return (f"{what} must be {SPELLING[kind].format(key=key)}, got {value!r}"
-            + (NOT_GUESSED if kind == "bool" else ""))
+    return f"{what} must be {SPELLING[kind].format(key=key)}, got {value!r}" + (NOT_GUESSED if kind == "bool" else "")
 
 
 def refusal(where: str, key: str, value, kind: str) -> SimgapError:

@@ -621,15 +621,16 @@ def _check_replaceable(out: Path) -> None:
     from simgap.results_folder import file_digest
     if not out.is_dir():
         return
-    _resume(out)
-    listed = _listed_figures(out)
+    t = _figure_table(out)
+    pending = {n: p.get("sha256") for n, p in t["pending"].items()}  # drawn and renamed just before a kill
     foreign = [n for n in (f"{s}.{e}" for s in FIGURES for e in FORMATS)
                if (out / n).exists() and ((out / n).is_symlink() or not (out / n).is_file()
-                                          or listed.get(n) != file_digest(out / n))]
+                                          or file_digest(out / n) not in (t["files"].get(n), pending.get(n)))]
     if foreign:
         raise SimgapError(f"{str(out)!r} holds file(s) simgap plot would overwrite that it did not write there (or "
                           f"that changed since): {', '.join(printable(n) for n in foreign)}. Nothing was written; "
                           "move them away or give another --out")
+    _resume(out)  # only now (nothing refused): a killed plot's leftovers go, its last figure is listed
 
 
 def _list_figures(out: Path, written: list) -> None:

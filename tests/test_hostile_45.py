@@ -424,3 +424,9 @@ def test_an_overflowing_refined_coefficient_is_named(damped, tmp_path):  # noqa:
     p = simgap("refine", "--system", "big.json", "--data", "damped.npz", "--quiet", cwd=tmp_path, timeout=60)
     refused(p, "big.json", "effect 'viscous_friction'", "state 'omega'", '"coefficient": 1e+300')
     assert "RuntimeWarning" not in p.stderr
+
+
+def test_experiment_steps_above_the_bound_are_refused_by_the_schema(tmp_path):
+    _write(tmp_path, "exp.toml", EXP.replace('name = "pendulum"', 'name = "pendulum"\nsteps = 1000000000'))
+    r = simgap("collect", "exp.toml", "--profile", "base", "--dry-run", cwd=tmp_path, timeout=10)
+    refused(r, "[system] steps", "10000", "1000000000")

@@ -50,8 +50,8 @@ def check_section(system, syn: dict, spec) -> None:
         lens = [len(r) if isinstance(r, (list, tuple)) else None for r in rows] if isinstance(rows, (list, tuple)) \
             else None
         if lens is None or None in lens or len(set(lens)) > 1 or len(rows) != m or lens[0] != n:
-            raise SimgapError(f"[synthesis] K = {rows!r} must be {m} x {n} (one row of {n} gains per input, one "
-                              f"column per state {', '.join(system.state_names)}), got "
+            raise SimgapError(f"[synthesis] K must have shape {m} x {n} (inputs x states: one row of {n} gains per "
+                              f"input, one column per state {', '.join(system.state_names)}), got K = {rows!r}: "
                               + ("rows of lengths " + ", ".join(map(str, lens)) if lens and None not in lens
                                  else "no list of rows"))
     for key, size, names in (("lqr_q", n, system.state_names), ("lqr_r", m, system.input_names)):

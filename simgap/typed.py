@@ -45,7 +45,15 @@ def _number(v) -> bool:
 
 
 def _numbers(v) -> bool:
+    if _numeric_array(v):
+        return v.ndim == 1
     return isinstance(v, (list, tuple)) and all(_number(x) for x in v)
+
+
+def _numeric_array(v) -> bool:
+    """A numpy array of numbers (what a Python caller may pass; a TOML or JSON file never holds one)."""
+    import numpy as np
+    return isinstance(v, np.ndarray) and v.dtype.kind in "iuf"
 
 
 def is_kind(value, kind: str) -> bool:
@@ -57,8 +65,10 @@ def is_kind(value, kind: str) -> bool:
     if kind == "number":
         return _number(value)
     if kind == "numbers":
-        return _number(value) or _numbers(value)
+        return _number(value) or _numbers(value) or (_numeric_array(value) and value.ndim == 0)
     if kind == "matrix":
+        if _numeric_array(value):
+            return value.ndim == 2
         return (isinstance(value, (list, tuple)) and all(_numbers(r) for r in value)
                 and len({len(r) for r in value}) <= 1)
     if kind == "name":
@@ -66,7 +76,8 @@ def is_kind(value, kind: str) -> bool:
     if kind == "names":
         return isinstance(value, str) or (isinstance(value, (list, tuple)) and all(isinstance(x, str) for x in value))
     if kind == "boxes":
-        return isinstance(value, (list, tuple)) and all(_numbers(r) for r in value)
+        return (_numeric_array(value) and value.ndim == 2) or (
+            isinstance(value, (list, tuple)) and all(_numbers(r) for r in value))
     if kind == "any":
         return True
     raise ValueError(f"unknown option kind {kind!r} (kinds: {', '.join(KINDS)})")

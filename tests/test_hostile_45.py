@@ -309,7 +309,7 @@ method = "invariant_set"
 
 
 @pytest.mark.parametrize("extra,words", [
-    ("K = [[1.0], [2.0, 3.0]]", ["[synthesis] K", "must be 1 x 2", "rows of lengths 1, 2"]),
+    ("K = [[1.0], [2.0, 3.0]]", ["[synthesis] K must have shape 1 x 2", "[[1.0], [2.0, 3.0]]", "rows of lengths 1, 2"]),
     ("lqr_q = [1.0, 2.0, 3.0]", ["[synthesis] lqr_q", "[1.0, 2.0, 3.0]", "one weight or 2", "theta, omega"]),
     ('spec = "reach_avoid"\nmap = "arena"', ['method = "invariant_set"', 'spec = "invariance" only', "reach_avoid",
                                              'method = "grid"']),

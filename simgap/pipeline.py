@@ -251,7 +251,7 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
         # again under the lock (the folder may have changed since), then the earlier run's files go
         import shlex
         resume = "simgap run " + " ".join(shlex.quote(a) for a in (str(exp.path.resolve()), "--profile",
-                                                                    exp.profile or "base", "--out", str(out)))
+                                                                    exp.profile or "base", "--out", str(out.resolve())))
         results_folder.claim(out, RESULT_NAMES).release(run_id, log, resume=resume)
 
         def wrote(*names):

@@ -200,6 +200,7 @@ def load_experiment(path_or_name: str | Path, profile: Optional[str] = DEFAULT_P
     if terms:  # keys name the system's states (or all, or 0-based numbers): checked with the system
         from .certify.basis import terms_by_dimension
         terms_by_dimension(terms, system, f"{where}: [certify] terms")
+    _radii_match(merged.get("collect", {}), system, where)
     simulator = _simulator(model.simulator, merged["simulator"], system, where, folder)
     collect = _collect(model.collect, out)
     return ExperimentConfig(name=path.stem, profile=profile, path=path, system=system, simulator=simulator,
@@ -228,10 +229,19 @@ def _validate(table: dict, path: Path, profile: Optional[str], ptable: dict) -> 
 
 def confined(value: str, folder: Path, what: str) -> Path:
     """``folder / value`` resolved; SimgapError if it leaves ``folder`` (also through symlinks)."""
+    _no_nul(value, what)
     p = (folder / value).resolve()
     if not p.is_relative_to(folder):
         raise SimgapError(f"{what} {value!r} leads outside the experiment's folder {str(folder)!r}")
     return p
+
+
+def _no_nul(value: str, what: str) -> None:
+    """No path holds a NUL byte (the operating system cannot name such a file): refused by name."""
+    if "\x00" in value:
+        from .file_guard import printable
+        raise SimgapError(f"{what} '{printable(value)}' contains a NUL byte (\\x00), which no file name can hold: "
+                          "write the file's name without it")
 
 
 def _system(d: schema.SystemSection, where: str, folder: Path) -> System:
@@ -273,6 +283,26 @@ def _system(d: schema.SystemSection, where: str, folder: Path) -> System:
     return s
 
 
+def _radii_match(collect: dict, system: System, where: str) -> None:
+    """``[collect] epsilon`` as a list: one radius per covered dimension, checked here by its own name
+    (the schema turns the list into a ``spacing`` of twice the radii, which a cover would report)."""
+    eps = collect.get("epsilon")
+    if not isinstance(eps, list):
+        return
+    from .cover import _dim_index
+    inv = set()
+    for d in collect.get("invariant_dims", []):
+        try:
+            inv.add(_dim_index(system, d))
+        except SimgapError:
+            return  # the cover names the unknown dimension
+    covered = [system.state_names[i] for i in range(system.n) if i not in inv]
+    if len(eps) != len(covered):
+        raise SimgapError(f"{where}: [collect] epsilon = {eps!r} gives {len(eps)} radii but the cover has "
+                          f"{len(covered)} covered dimension(s) ({', '.join(covered)}): give one radius per covered "
+                          f"dimension in that order, or one number for all")
+
+
 def _simulator(d: schema.SimulatorSection, raw: dict, system: System, where: str, folder: Path) -> SimulatorConfig:
     if d.system not in (None, system.name, system.params.get("base_system")):
         raise SimgapError(f"{where}: simulator.system {d.system!r} differs from system.name {system.name!r}")
@@ -311,6 +341,7 @@ PYBULLET_DATA = "pybullet_data:"
 def _model_path(value: str, folder: Path, what: str) -> Path:
     """A model file inside the experiment's folder, or, spelled ``pybullet_data:<path>``, inside the
     installed ``pybullet_data`` package (PyBullet's robot files, meshes next to them), confined there."""
+    _no_nul(value, what)
     if not value.startswith(PYBULLET_DATA):
         return confined(value, folder, what)
     try:

@@ -16,6 +16,16 @@ def method_of(syn: dict) -> str:
     return syn.get("method", "grid")
 
 
+def check_method(syn: dict, method: str | None = None) -> None:
+    """Refuse ``method = "invariant_set"`` with ``spec = "reach_avoid"`` by both names, before the
+    specification is built (a reach-avoid map's start would otherwise be checked first)."""
+    method = method or method_of(syn)
+    if method == "invariant_set" and syn.get("spec", "invariance") != "invariance":
+        raise SimgapError(f"[synthesis] method = \"invariant_set\" handles spec = \"invariance\" only, but the "
+                          f"experiment sets spec = {syn.get('spec')!r}: use method = \"grid\" for reach-avoid, or "
+                          "spec = \"invariance\" with safe_lo/safe_hi")
+
+
 def check_section(system, syn: dict, spec) -> None:
     """Refuse what the invariant-set synthesis cannot do before any stage runs: a spec other than
     invariance or with obstacles, a hold other than 1, a model without formulas for the interval
@@ -36,9 +46,18 @@ def check_section(system, syn: dict, spec) -> None:
     if ("x_star" in syn) != ("u_star" in syn):
         raise SimgapError("[synthesis] give both x_star and u_star, or neither (simgap then finds an equilibrium)")
     if "K" in syn:
-        K = np.asarray(syn["K"], dtype=float)
-        if K.shape != (m, n):
-            raise SimgapError(f"[synthesis] K must have shape {m} x {n} (inputs x states), got {list(K.shape)}")
+        rows = syn["K"]
+        lens = [len(r) if isinstance(r, (list, tuple)) else None for r in rows] if isinstance(rows, (list, tuple)) \
+            else None
+        if lens is None or None in lens or len(set(lens)) > 1 or len(rows) != m or lens[0] != n:
+            raise SimgapError(f"[synthesis] K must have shape {m} x {n} (inputs x states: one row of {n} gains per "
+                              f"input, one column per state {', '.join(system.state_names)}), got K = {rows!r}: "
+                              + ("rows of lengths " + ", ".join(map(str, lens)) if lens and None not in lens
+                                 else "no list of rows"))
+    for key, size, names in (("lqr_q", n, system.state_names), ("lqr_r", m, system.input_names)):
+        if key in syn and np.ndim(syn[key]) and len(syn[key]) not in (1, size):
+            raise SimgapError(f"[synthesis] {key} = {syn[key]!r}: need one weight or {size} (one per "
+                              f"{'state' if key == 'lqr_q' else 'input'}: {', '.join(names)}), got {len(syn[key])}")
     IntervalMap(system)  # a model the proof can differentiate
 
 

@@ -106,6 +106,7 @@ def check_experiment(exp: ExperimentConfig, out: Optional[str | Path] = None, *,
     for k in ("safe_lo", "safe_hi"):
         if k in syn and len(syn[k]) != n:
             raise SimgapError(f"[synthesis] {k}: need {n} values, got {syn[k]!r}")
+    invariant_stage.check_method(syn)  # before the spec: a reach-avoid map is not read for it
     spec, map_x0, _ = experiment_spec(exp)
     if not grid:
         invariant_stage.check_section(s, syn, spec)
@@ -285,7 +286,10 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
         toml_text = None
     with results_folder.run_lock(out):
         # again under the lock (the folder may have changed since), then the earlier run's files go
-        results_folder.claim(out, RESULT_NAMES).release(run_id, log)
+        import shlex
+        resume = "simgap run " + " ".join(shlex.quote(a) for a in (str(exp.path.resolve()), "--profile",
+                                                                    exp.profile or "base", "--out", str(out.resolve())))
+        results_folder.claim(out, RESULT_NAMES).release(run_id, log, resume=resume)
 
         def wrote(*names):
             results_folder.record(out, names)
@@ -445,6 +449,7 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
         summary["estimated_seconds"] = estimates
         summary["wall_seconds"] = round(time.perf_counter() - t_start, 3)  # everything, between the stages too
         summary["files"] = results_folder.list_files(out, run_id)
+        results_folder.seal(summary)
         fileio.write_json(out / "summary.json", summary, default=_json_default)
         return summary
 

@@ -16,6 +16,13 @@ under the run's id (``run_id``). Every reader of the folder (:func:`check_listed
 The collection stores (``data/``, ``data_deterministic/``) are not result files: they are
 resumable and verified by their configuration hash (:mod:`simgap.store`).
 
+A file list is a license to delete only when simgap can verify it wrote the list: the summary and
+the journal carry ``files_digest``, the sha256 of their ``run_id`` and ``files`` table (:func:`seal`),
+renewed with every file recorded. A list without it, or whose digest does not match (a hidden
+``.simgap-files.json`` written by hand to name a user's file with its sha256, an older tool's
+list), owns nothing: the files it names are foreign, kept, and refused if the run would overwrite
+them. Only names simgap writes (:data:`RESULT_PATTERNS`) can be owned at all.
+
 The digests detect accidents and mix-ups, not forgery: whoever edits a file can recompute its
 digest in ``summary.json`` too (README, "What the digests protect against").
 """
@@ -49,15 +56,34 @@ def file_digest(path: Path) -> str:
     return h.hexdigest()
 
 
+def files_digest(run_id: str, files: dict) -> str:
+    """sha256 of a file list (canonical JSON of ``run_id`` and ``files``): what :func:`seal` records."""
+    import json
+    text = json.dumps({"run_id": run_id, "files": files}, sort_keys=True, separators=(",", ":"), ensure_ascii=True)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def seal(manifest: dict) -> dict:
+    """``manifest`` (a summary or journal with ``run_id`` and ``files``) with its ``files_digest`` set."""
+    manifest["files_digest"] = files_digest(manifest["run_id"], manifest["files"])
+    return manifest
+
+
 def _manifest(path: Path):
-    """A manifest's ``files`` table, or None when ``path`` is missing or is no simgap manifest."""
-    if not path.is_file():
+    """A manifest simgap wrote (its ``files_digest`` matches its ``run_id`` and ``files``), or None when
+    ``path`` is missing, is no simgap manifest, or is a list simgap cannot verify."""
+    if not path.is_file() or path.is_symlink():
         return None
     try:
         d = read_json(path, "manifest")
     except SimgapError:
         return None
     if not isinstance(d, dict) or not isinstance(d.get("run_id"), str) or not isinstance(d.get("files"), dict):
+        return None
+    try:
+        if d.get("files_digest") != files_digest(d["run_id"], d["files"]):
+            return None
+    except (TypeError, ValueError):
         return None
     return d
 
@@ -67,10 +93,14 @@ def _owned(out: Path) -> tuple:
     listed: dict = {}
     summary = _manifest(out / "summary.json")
     journal = _manifest(out / JOURNAL)
-    for man in (summary, journal):
+    for man, where in ((summary, "summary.json"), (journal, f"run journal {JOURNAL}")):
         for name, e in (man or {}).get("files", {}).items() if man else ():
             if isinstance(e, dict) and isinstance(e.get("sha256"), str) and "/" not in name and name not in (".", ".."):
-                listed.setdefault(name, set()).add(e["sha256"])
+                listed.setdefault(name, {}).setdefault(e["sha256"], where)
+    unverified = [n for n in ("summary.json", JOURNAL) if (out / n).exists() and _manifest(out / n) is None]
+    nolist = ("not listed in a file list simgap can verify"
+              + (f" ({', '.join(unverified)} {'is' if len(unverified) == 1 else 'are'} not simgap's: no matching "
+                 "files_digest)" if unverified else " (the folder has no summary.json or run journal)"))
     # only names simgap writes can be owned: a manifest listing any other file (forged, or another
     # tool's) never gets it deleted
     present = sorted({p.name for pat in RESULT_PATTERNS for p in out.glob(pat) if p.is_file() or p.is_symlink()})
@@ -81,16 +111,25 @@ def _owned(out: Path) -> tuple:
             if summary is not None and not p.is_symlink():
                 owned.append(name)
             else:
-                foreign[name] = "not a simgap run's summary (no run_id and file list)"
+                foreign[name] = ("not a summary simgap can verify (no run_id and file list with a matching "
+                                 "files_digest)")
         elif p.is_symlink() or not p.is_file():
             foreign[name] = "a link or not a regular file"
         elif name not in listed:
-            foreign[name] = "not listed in the folder's summary.json"
+            foreign[name] = nolist
         elif file_digest(p) not in listed[name]:
-            foreign[name] = "changed since simgap wrote it (sha256 differs from the folder's list)"
+            foreign[name] = (f"changed since simgap wrote it (sha256 differs from the folder's "
+                             f"{' and '.join(sorted(set(listed[name].values())))})")
         else:
             owned.append(name)
     return owned, foreign
+
+
+def _owner(out: Path) -> str:
+    """Which verified list made the owned files simgap's, for the log."""
+    if _manifest(out / "summary.json") is not None:
+        return "listed in its summary.json with matching sha256"
+    return f"listed in the run journal {JOURNAL} of a run that stopped before its summary, with matching sha256"
 
 
 @dataclass
@@ -101,20 +140,22 @@ class Claim:
     owned: list = field(default_factory=list)      # an earlier run's files, listed with matching digests
     foreign: dict = field(default_factory=dict)    # every other result-like file: {name: why it is not owned}
 
-    def release(self, run_id: str, log=None) -> list:
+    def release(self, run_id: str, log=None, resume: str | None = None) -> list:
         """Remove the owned files (the summary first, so a run stopped half-way never leaves an old
         summary beside new files) and start this run's journal. Call only after every check that
-        can refuse the run has passed. Files changed since :func:`claim` looked are kept."""
+        can refuse the run has passed. Files changed since :func:`claim` looked are kept. ``resume``: the
+        command that finishes this run if it stops (kept in the journal, named by :func:`unfinished`)."""
         from . import fileio
         now, _ = _owned(self.out)
+        owner = _owner(self.out)
         gone = []
         for name in sorted(set(self.owned) & set(now), key=lambda n: n != "summary.json"):
             (self.out / name).unlink(missing_ok=True)
             gone.append(name)
-        fileio.write_json(self.out / JOURNAL, {"run_id": run_id, "files": {}})
+        journal = {"run_id": run_id, "files": {}, **({"resume": resume} if resume else {})}
+        fileio.write_json(self.out / JOURNAL, seal(journal))
         if log and gone:
-            log(f"removed {len(gone)} file(s) of the earlier run in {self.out} (listed in its summary.json with "
-                f"matching sha256): {', '.join(gone)}")
+            log(f"removed {len(gone)} file(s) of the earlier run in {self.out} ({owner}): {', '.join(gone)}")
         if log and self.foreign:
             log(f"left {len(self.foreign)} file(s) simgap did not write untouched beside the results in {self.out}: "
                 + ", ".join(printable(n) for n in sorted(self.foreign)))
@@ -146,7 +187,7 @@ def record(out: Path, names) -> None:
     for name in names:
         p = Path(out) / name
         j["files"][name] = {"sha256": file_digest(p), "bytes": p.stat().st_size, "run_id": j["run_id"]}
-    fileio.write_json(path, j)
+    fileio.write_json(path, seal(j))
 
 
 def list_files(out: Path, run_id: str) -> dict:
@@ -191,6 +232,23 @@ def check_complete(root: Path, summary: dict) -> None:
                           "(deleted or moved?); run the experiment again or restore the file (refused)")
 
 
+def unfinished(root: Path):
+    """A message naming ``root`` as a run that did not finish (a run journal, no summary.json) with the
+    command that finishes it, or None for any other folder."""
+    root = Path(root)
+    if (root / "summary.json").exists() or not (root / JOURNAL).is_file():
+        return None
+    try:
+        j = read_json(root / JOURNAL, "run journal")
+    except SimgapError:
+        j = {}
+    resume = j.get("resume") if isinstance(j, dict) and isinstance(j.get("resume"), str) else None
+    how = (f"finish it with: {printable(resume)}" if resume else
+           f"finish it with: simgap run EXPERIMENT --out {str(root)!r} (the experiment and profile it was started with)")
+    return (f"{str(root)!r} is a `simgap run` folder whose run did not finish (it has a run journal {JOURNAL} but no "
+            f"summary.json; stopped or killed before its end): {how}; its collections resume where they stopped")
+
+
 def add_files(out: Path, names) -> None:
     """List files written after the summary (the recordings) in the run's journal and in
     ``out/summary.json``."""
@@ -200,7 +258,7 @@ def add_files(out: Path, names) -> None:
     path = Path(out) / "summary.json"
     summary = read_json(path, "summary")
     summary["files"] = list_files(out, summary.get("run_id"))
-    fileio.write_json(path, summary)
+    fileio.write_json(path, seal(summary))
 
 
 LOCK = ".run.lock"

@@ -17,8 +17,12 @@ from typing import Annotated, Any, Literal, Optional, Union, get_args
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from .errors import SimgapError
+from .systems import MAX_STEPS
+from .typed import spelling
 
 Int1 = Annotated[int, Field(ge=1)]
+#: base periods per sampling period (at most MAX_STEPS: every transition evaluates the model so often)
+Steps = Annotated[int, Field(ge=1, le=MAX_STEPS)]
 Int0 = Annotated[int, Field(ge=0)]
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 Positive = Annotated[float, Field(gt=0, allow_inf_nan=False)]
@@ -63,7 +67,7 @@ class SystemSection(Section):
     """``[system]``: a built-in system by name or a refined-system .json (in the experiment's
     folder); its input set as a list or a grid."""
     name: str
-    steps: Int1 = 1
+    steps: Steps = 1
     inputs: Optional[Union[list[list[Finite]], list[Finite]]] = None
     input_grid: Optional[InputGrid] = None
 
@@ -90,7 +94,7 @@ class SimulatorSection(Section):
     effects: dict[str, Any] = {}
     options: SimulatorOptions = SimulatorOptions()
     system: Optional[str] = None
-    steps: Optional[Int1] = None
+    steps: Optional[Steps] = None
 
 
 class CollectSection(Section):
@@ -296,7 +300,15 @@ def _describe(err: dict, origin) -> str:
     if loc[-1:] == ("n_runs",):
         what += " (N1hat)"
     got = "" if typ == "value_error" or isinstance(err.get("input"), dict) else f", got {err.get('input')!r}"
+    fix = _FIX.get(typ)
+    if fix:  # a value of the wrong type: say how to write the right one (never guessed from a string)
+        key = next((p for p in reversed(loc) if isinstance(p, str)), "key")
+        return f"{what}: {msg}{got}; write " + spelling(key, fix)
     return f"{what}: {msg}{got}"
+
+
+#: pydantic's type errors -> the typed.SPELLING kind of the fix
+_FIX = {"bool_type": "bool", "int_type": "int", "float_type": "number", "string_type": "name"}
 
 
 def validate(raw: dict, where: str, origin=lambda loc: loc[0]) -> Experiment:

@@ -135,6 +135,10 @@ def system_from_spec(spec: dict, where: str = "embedded system file") -> System:
     steps = spec.get("steps", 1)
     if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
         raise SimgapError(f"{where}: steps must be an integer >= 1, got {steps!r}")
+    from .systems import MAX_STEPS
+    if steps > MAX_STEPS:
+        raise SimgapError(f"{where}: steps = {steps:,} base periods per sampling period is more than the {MAX_STEPS:,} "
+                          f"simgap accepts (refused before any work); give steps <= {MAX_STEPS:,}")
     U = _input_set(spec, m, where)
     _units(spec.get("units", {}), states + inputs, where)
     angles = _dims(spec, "angles", states, where)

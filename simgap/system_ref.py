@@ -59,7 +59,11 @@ def resolve_system(ref, steps: Optional[int] = None, paths: bool = True) -> Syst
         if isinstance(ref, dict):
             s = system_builder("refined_object")(ref)
         elif paths and isinstance(ref, (str, os.PathLike)) and os.path.isfile(ref):
-            s = system_builder("refined_file")(ref)
+            try:
+                s = system_builder("refined_file")(ref)
+            except SimgapError as e:  # the file the user named, then what is wrong in it
+                msg = str(e)
+                raise SimgapError(msg if str(ref) in msg else f"{str(ref)!r}: {msg}") from None
         else:
             raise SimgapError(f"unknown system {str(ref)[:200]!r}: not a built-in ({', '.join(sorted(BUILTIN))})"
                               + (", no such system file (.toml) or refined-system JSON file" if paths else

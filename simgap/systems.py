@@ -134,6 +134,11 @@ class System:
             raise SimgapError(f"system {self.name!r}: base_tau must be > 0, got {self.base_tau}")
         if int(self.steps) != self.steps or self.steps < 1:
             raise SimgapError(f"system {self.name!r}: steps must be an integer >= 1, got {self.steps}")
+        if self.steps > MAX_STEPS:  # f applies the base step `steps` times per transition, for every row
+            raise SimgapError(f"system {self.name!r}: steps = {int(self.steps):,} base periods per sampling period is "
+                              f"more than the {MAX_STEPS:,} simgap accepts (every transition would evaluate the model "
+                              f"{int(self.steps):,} times; refused before any work): give steps <= {MAX_STEPS:,} "
+                              f"(tau = steps x base_tau = {self.base_tau:g} s x steps)")
 
     # ----- sizes and names -------------------------------------------------------------
     @property
@@ -375,6 +380,12 @@ def units(system: System) -> tuple:
 def labelled(name: str, unit: str) -> str:
     """``name [unit]`` (just the name when the unit is unknown)."""
     return f"{name} [{unit}]" if unit else name
+
+
+#: most base periods per sampling period: a step count read from a file (a refined system, a data set's
+#: embedded system, a system file) above it is refused before any work instead of running for hours
+#: (10,000 evaluations of the model per transition; the simulators' own substeps stop at 10,000 too)
+MAX_STEPS = 10_000
 
 
 def get_system(name: str, steps: int = 1) -> System:

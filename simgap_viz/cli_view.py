@@ -56,6 +56,9 @@ def recordings(paths) -> list:
     out = []
     for p in map(Path, paths):
         if p.is_dir():
+            from simgap.results_folder import unfinished
+            if unfinished(p):  # no summary to check its recordings against
+                raise SimgapError(unfinished(p))
             files = [f for f in (p / "run.rrd", p / "perrun.rrd") if f.is_file()]
             if not files:
                 raise SimgapError(f"{str(p)!r} holds no run.rrd: record it with `simgap run` (without --no-record) "

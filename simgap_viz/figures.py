@@ -90,8 +90,11 @@ def save(fig, out_dir: Path, name: str) -> list:
             final = out_dir / f"{name}.{ext}"
             tmp = out_dir / f".{name}.{os.getpid()}.tmp.{ext}"
             try:
+                _pending(out_dir, final.name, tmp.name)  # listed before it exists: a kill leaves nothing unowned
                 fig.savefig(tmp, dpi=STYLES[style]["dpi"], bbox_inches="tight", pad_inches=0.02)
+                _pending(out_dir, final.name, tmp.name, tmp)
                 tmp.replace(final)
+                _list_figures(out_dir, [final])
             finally:
                 tmp.unlink(missing_ok=True)
             paths.append(final)
@@ -559,6 +562,57 @@ def plot_run(path, out_dir=None, max_drawn: int = 1000, style: str = "paper") ->
     return written
 
 
+def _figure_table(out: Path) -> dict:
+    """``out``/FIGURE_LIST as a dict with ``files`` {name: sha256} and ``pending`` {name: {tmp, sha256}}
+    (a figure being written: its temporary name, and its sha256 once drawn); empty tables when the list
+    is absent or unreadable."""
+    from simgap.file_guard import read_json
+    try:
+        d = read_json(out / FIGURE_LIST, "figure list") if (out / FIGURE_LIST).is_file() else {}
+    except SimgapError:
+        d = {}
+    d = d if isinstance(d, dict) else {}
+    files = d.get("files") if isinstance(d.get("files"), dict) else {}
+    pending = d.get("pending") if isinstance(d.get("pending"), dict) else {}
+    return {"format": "simgap-figures", "files": dict(files),
+            "pending": {k: v for k, v in pending.items() if isinstance(v, dict)}}
+
+
+def _pending(out: Path, name: str, tmp: str, drawn: Path = None) -> None:
+    """Write ahead in FIGURE_LIST that ``name`` is being written through ``tmp`` (with the drawn file's
+    sha256 once ``drawn``): after a kill at any point, the next ``simgap plot`` knows the temporary file and
+    the figure as its own (resumable) instead of refusing them as a user's."""
+    from simgap import fileio
+    from simgap.results_folder import file_digest
+    t = _figure_table(out)
+    t["pending"][name] = {"tmp": tmp, **({"sha256": file_digest(drawn)} if drawn is not None else {})}
+    fileio.write_json(out / FIGURE_LIST, t)
+
+
+def _resume(out: Path) -> None:
+    """Finish what a killed ``simgap plot`` left: remove the temporary files its list names (only
+    those: hidden, listed as pending) and list a figure renamed just before the kill."""
+    from simgap import fileio
+    from simgap.results_folder import file_digest
+    if not (out / FIGURE_LIST).is_file():
+        return
+    t = _figure_table(out)
+    if not t["pending"]:
+        return
+    names = {f"{s}.{e}" for s in FIGURES for e in FORMATS}
+    for name, p in t.pop("pending").items():
+        tmp = p.get("tmp")
+        if (isinstance(tmp, str) and tmp.startswith(".") and "/" not in tmp and ".tmp." in tmp
+                and (out / tmp).is_file() and not (out / tmp).is_symlink()):
+            (out / tmp).unlink()
+        f = out / name
+        if (name in names and isinstance(p.get("sha256"), str) and f.is_file() and not f.is_symlink()
+                and file_digest(f) == p["sha256"]):
+            t["files"][name] = p["sha256"]
+    t["pending"] = {}
+    fileio.write_json(out / FIGURE_LIST, t)
+
+
 def _check_replaceable(out: Path) -> None:
     """Refuse to write figures into ``out`` over files simgap plot did not write there: a figure
     name present but not listed in ``out``/FIGURE_LIST with its current sha256 (a user's own file, or
@@ -567,32 +621,30 @@ def _check_replaceable(out: Path) -> None:
     from simgap.results_folder import file_digest
     if not out.is_dir():
         return
-    listed = _listed_figures(out)
+    t = _figure_table(out)
+    pending = {n: p.get("sha256") for n, p in t["pending"].items()}  # drawn and renamed just before a kill
     foreign = [n for n in (f"{s}.{e}" for s in FIGURES for e in FORMATS)
                if (out / n).exists() and ((out / n).is_symlink() or not (out / n).is_file()
-                                          or listed.get(n) != file_digest(out / n))]
+                                          or file_digest(out / n) not in (t["files"].get(n), pending.get(n)))]
     if foreign:
         raise SimgapError(f"{str(out)!r} holds file(s) simgap plot would overwrite that it did not write there (or "
                           f"that changed since): {', '.join(printable(n) for n in foreign)}. Nothing was written; "
                           "move them away or give another --out")
+    _resume(out)  # only now (nothing refused): a killed plot's leftovers go, its last figure is listed
 
 
 def _list_figures(out: Path, written: list) -> None:
     """Add the figures just written to ``out``/FIGURE_LIST with their sha256."""
     from simgap import fileio
     from simgap.results_folder import file_digest
-    files = _listed_figures(out)
-    files.update({Path(p).name: file_digest(Path(p)) for p in written})
-    fileio.write_json(out / FIGURE_LIST, {"format": "simgap-figures", "files": files})
+    t = _figure_table(out)
+    for p in written:
+        t["files"][Path(p).name] = file_digest(Path(p))
+        t["pending"].pop(Path(p).name, None)
+    fileio.write_json(out / FIGURE_LIST, t)
 
 
 def _listed_figures(out: Path) -> dict:
     """{file name: sha256} of ``out``/FIGURE_LIST; empty when it is absent or unreadable (then every
     figure-named file counts as not ours)."""
-    from simgap.file_guard import read_json
-    try:
-        d = read_json(out / FIGURE_LIST, "figure list") if (out / FIGURE_LIST).is_file() else {}
-    except SimgapError:
-        return {}
-    files = d.get("files") if isinstance(d, dict) else None
-    return dict(files) if isinstance(files, dict) else {}
+    return _figure_table(out)["files"]

@@ -175,6 +175,9 @@ def load_run(path) -> RunResults:
     root = Path(path)
     if not root.is_dir():
         raise SimgapError(f"results folder {str(root)!r} does not exist")
+    from simgap.results_folder import unfinished
+    if unfinished(root):
+        raise SimgapError(unfinished(root))
     if not (root / "summary.json").is_file():
         raise SimgapError(f"{str(root)!r} has no summary.json: not a finished `simgap run` folder "
                           "(run `simgap run EXPERIMENT` first, or give --experiment/--dataset)")
@@ -290,6 +293,9 @@ def stage_files(folder) -> tuple:
     if not root.is_dir():
         raise SimgapError(f"{str(root)!r} is not a folder (name a single stage file with --dataset/--cert/"
                           "--controller/--rollouts)")
+    from simgap.results_folder import unfinished
+    if unfinished(root):  # not a folder of stage outputs: a run that stopped (its two stores are not a choice)
+        raise SimgapError(unfinished(root))
     found: dict = {r: [] for r in ROLES}
     notes = []
     for p in sorted(root.iterdir()):

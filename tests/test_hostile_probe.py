@@ -230,10 +230,10 @@ CASES = {
         lambda c, d: ["rollout", "--controller", _forged_controller(c, d), "--simulator", _write(d, "exp.toml", EXP),
                       "--profile", "base", "--x0", "0.05", "0.1", "--n", "5", "--horizon", "5", "--out", "r.npz"],
         ["input index", "999"], 120),
-    "refined_model_overflowing_to_inf": (  # finite on X, its residuals overflow: the report cannot be written
+    "refined_model_overflowing_to_inf": (  # finite on X, its residuals overflow: refused on load, the coefficient named
         lambda c, d: ["refine", "--system", _refined(c, d, "big.json", lambda r: r["effects"][0].update(
             coefficient=1e308)), "--data", _copy(c["damped"] / "damped.npz", d), "--out", "rep.json"],
-        ["holds inf", "--system", "nothing was written"], 120),
+        ["big.json", "viscous_friction", "coefficient", "1e+308"], 120),
     # messages that name the flag or field at fault
     "refined_steps_not_a_number": (
         lambda c, d: ["refine", "--system", _refined(c, d, "steps.json", lambda r: r.update(steps="many")),
@@ -326,12 +326,17 @@ def test_a_stopped_runs_files_are_its_own_to_replace_while_unchanged(tmp_path):
 
 
 def test_a_manifest_never_owns_a_file_simgap_does_not_write(tmp_path):
-    """A forged summary.json listing the user's notes.txt with its exact sha256 still cannot get it deleted."""
+    """A forged summary.json listing the user's notes.txt with its exact sha256 still cannot get it deleted;
+    a sealed one (files_digest matching, as simgap writes it) owns itself but never a name simgap does not write."""
     from simgap import results_folder as rf
+    from simgap.errors import SimgapError
     (tmp_path / "notes.txt").write_text("mine")
     digest = hashlib.sha256(b"mine").hexdigest()
-    (tmp_path / "summary.json").write_text(json.dumps({"run_id": "x", "methods": {},
-                                                       "files": {"notes.txt": {"sha256": digest}}}))
+    forged = {"run_id": "x", "methods": {}, "files": {"notes.txt": {"sha256": digest}}}
+    (tmp_path / "summary.json").write_text(json.dumps(forged))
+    with pytest.raises(SimgapError, match="summary.json .not a summary simgap can verify"):
+        rf.claim(tmp_path, ["summary.json"])  # unverifiable (issue 45): kept, the run refused
+    (tmp_path / "summary.json").write_text(json.dumps(rf.seal(forged)))
     c = rf.claim(tmp_path, ["summary.json"])
     assert c.owned == ["summary.json"]
     c.release("new-run")

@@ -20,12 +20,25 @@ from ..profiles import DEFAULT_PROFILE
 POINTS, RUNS, SEED = 200, 2000, 12345
 
 
-def audit_settings(args) -> dict:
-    """points, runs, seed and where they came from: flags, else the experiment's [audit], else the defaults."""
+def audit_settings(args, system=None, simulator: dict | None = None) -> dict:
+    """points, runs, seed and where they came from: flags, else the experiment's [audit], else the defaults.
+
+    ``system`` / ``simulator``: the data set's; an ``--experiment`` of another system (name or steps) or
+    simulator kind is refused: its [audit] settings were chosen for something else."""
     section, src = {}, "defaults"
     if args.experiment:
         from ..config import load_experiment
-        section = load_experiment(args.experiment, args.profile).section("audit")
+        exp = load_experiment(args.experiment, args.profile)
+        ours = (system.name, int(system.steps)) if system is not None else None
+        theirs = (exp.system.name, int(exp.system.steps))
+        kind = (simulator or {}).get("kind")
+        if ours is not None and (ours != theirs or (kind is not None and kind != exp.simulator.kind)):
+            raise SimgapError(
+                f"--experiment {args.experiment!r} is an experiment of system {theirs[0]!r} (steps {theirs[1]}) with "
+                f"simulator {exp.simulator.kind!r}, but the data set is of system {ours[0]!r} (steps {ours[1]}) with "
+                f"simulator {kind!r}: its [audit] settings belong to another experiment; give the certificate's own "
+                "experiment, or --points/--runs/--seed without --experiment")
+        section = exp.section("audit")
         src = f"{args.experiment} [audit]"
     out = {"points": int(section.get("points", POINTS)), "runs": int(section.get("runs", RUNS)),
            "seed": int(section.get("seed", SEED))}
@@ -80,7 +93,7 @@ def run(args) -> int:
     if not sim_cfg:
         raise SimgapError(f"data set {args.against or args.data!r} has no simulator config in its manifest; "
                           f"cannot audit")
-    st = audit_settings(args)
+    st = audit_settings(args, ds.system, sim_cfg)
     print(f"audit settings: {st['points']:,} points x {st['runs']:,} runs, seed {st['seed']} ({st['source']})",
           flush=True)
     bar = None if args.no_progress else ProgressBar(unit="runs", desc="audit")

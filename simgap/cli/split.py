@@ -28,15 +28,25 @@ def add_parser(subparsers) -> None:
 
 
 def _fixed(text: str) -> dict:
+    """{state: value} from ``NAME=VALUE,NAME=VALUE``; a state given two different values is refused."""
+    import math
+
     out = {}
     for item in filter(None, (t.strip() for t in text.split(","))):
         name, sep, value = item.partition("=")
         try:
             if not sep:
                 raise ValueError
-            out[name.strip()] = float(value)
+            v = float(value)
         except ValueError:
             raise SimgapError(f"--fix {item!r}: expected NAME=VALUE, e.g. p=0") from None
+        if not math.isfinite(v):
+            raise SimgapError(f"--fix {item!r}: the value must be a finite number")
+        key = name.strip()
+        if key in out and out[key] != v:  # one value per state: never keep the last silently
+            raise SimgapError(f"--fix gives {key} twice ({key}={out[key]:g} and {key}={v:g}): give each state one "
+                              f"value, e.g. --fix {key}={out[key]:g}")
+        out[key] = v
     return out
 
 

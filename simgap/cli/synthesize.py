@@ -190,6 +190,8 @@ def run(args) -> int:
             raise SimgapError(f"--system {args.system!r} does not match the experiment's system {system.name!r}")
         if args.steps is not None and args.steps != system.steps:
             system = system.with_steps(args.steps)
+        from .. import invariant_stage
+        invariant_stage.check_method(syn, args.method)
         spec, x0, _ = experiment_spec(e)
         if x0 is None and "x0" in e.section("rollout"):  # recorded, so `simgap rollout` needs no --x0
             x0 = _floats(",".join(map(str, np.ravel(e.section("rollout")["x0"]))), "[rollout] x0")

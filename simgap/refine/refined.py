@@ -178,6 +178,10 @@ def system_from_dict(d: dict, _depth: int = 0) -> System:
     if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
         raise SimgapError(f"refined system: \"steps\" must be a whole number of base steps >= 1, got "
                           f"{printable(repr(steps))[:80]}")
+    from ..systems import MAX_STEPS
+    if steps > MAX_STEPS:  # checked before the model is built: every transition would take `steps` evaluations
+        raise SimgapError(f"refined system: \"steps\": {steps:,} base steps per sampling period is more than the "
+                          f"{MAX_STEPS:,} simgap accepts (refused before any work); give \"steps\" <= {MAX_STEPS:,}")
     name = d.get("name")
     if name is not None and (not isinstance(name, str) or is_named(name)):
         raise SimgapError(f"refined system: name {printable(repr(name))[:80]} must be a string other than a built-in's "
@@ -210,9 +214,38 @@ def system_from_dict(d: dict, _depth: int = 0) -> System:
         except (TypeError, ValueError):
             raise SimgapError(f"refined system: effect {printable(repr(spec.get('name')))} has a coefficient or "
                               f"stderr that is not a number") from None
+    _check_terms(base, effects, coefs)
     sysobj = build_refined(base, base_spec, effects, coefs, ses, name=name).with_steps(steps)
     check_values(sysobj, "refined system")
     return sysobj
+
+
+#: largest |term| an effect may add in one base step: its square (residual variances, R^2) stays finite
+MAX_TERM = 1e150
+
+
+def _check_terms(base: System, effects, coefs) -> None:
+    """Refuse, by the effect's name, state and coefficient, a coefficient whose term base_tau c g(x, u)
+    is not finite or so large that its square overflows, at the corners and seeded states of X with
+    each input (up to 16): the model may stay finite on X while every report of it holds inf."""
+    from ..file_guard import printable
+    from ..system_file import _check_states
+    X = _check_states(base.x_lo, base.x_hi)
+    U = base.inputs[:16]
+    Xr, Ur = np.repeat(X, len(U), axis=0), np.tile(U, (len(X), 1))
+    for e, ck in zip(effects, coefs):
+        if e.name == "integration":  # built from the other effects' terms, which are checked
+            continue
+        with np.errstate(all="ignore"):
+            big = float(np.max(np.abs(base.base_tau * ck * np.asarray(e(Xr, Ur), dtype=float)), initial=0.0))
+        if not np.isfinite(ck) or not np.isfinite(big) or big > MAX_TERM:
+            what = "is not finite" if not np.isfinite(ck) else (
+                f"makes its term base_tau c g(x, u) reach {big:.3g} at a state of X" if np.isfinite(big)
+                else "makes its term overflow to inf at a state of X")
+            raise SimgapError(f"refined system: effect {printable(e.name)!r} on state "
+                              f"{base.state_names[e.state]!r}: \"coefficient\": {ck:g} {what} (its square overflows; "
+                              f"at most {MAX_TERM:g} per base step): not a fitted value; fit it again with "
+                              "simgap refine --save-system, or correct it")
 
 
 def check_values(system: System, where: str) -> None:

@@ -1,4 +1,9 @@
-"""The result of a rollout run: arrays, the JSON summary, files (npz without pickle)."""
+"""The result of a rollout run: arrays, the JSON summary, files (npz without pickle).
+
+A rollout file records ``digest``, the sha256 of its metadata (without the digest) and of every
+array (:func:`simgap.fileio.content_digest`); :func:`load_rollout` recomputes it and refuses a file
+whose content no longer matches (e.g. its ``controller_digest`` edited to another controller's, which
+would draw the rollouts as that controller's), a file without a digest, and non-finite states."""
 
 from __future__ import annotations
 
@@ -185,6 +190,8 @@ class RolloutResult:
             arrays["mean_map_trajectory"] = self.mean_map_trajectory
         meta = self.to_dict(per_rollout=False)
         meta["nominal_full"] = _json_safe(self.nominal)
+        meta = json.loads(json.dumps(meta))  # the digest is of the metadata as a reader will see it
+        meta["digest"] = fileio.content_digest(meta, arrays)
         arrays["meta_json"] = np.array(json.dumps(meta))
         path = os.fspath(path)
         fileio.savez(path if path.endswith(".npz") else path + ".npz", compressed=True, **arrays)
@@ -206,6 +213,29 @@ def load_rollout(path) -> RolloutResult:
     if "meta_json" not in a:
         raise SimgapError(f"rollout file {str(path)!r}: not a simgap rollout file (no meta_json)")
     meta = loads_json(str(a.pop("meta_json")), f"rollout file {str(path)!r}: its metadata")
+    if not isinstance(meta, dict):
+        raise SimgapError(f"rollout file {str(path)!r}: its metadata is not a table (not a simgap rollout file)")
+    want = meta.pop("digest", None)
+    if want is None:
+        raise SimgapError(f"rollout file {str(path)!r} records no content digest (written before rollout files "
+                          "carried one, or not by simgap): roll out again (refused)")
+    have = fileio.content_digest(meta, a)
+    if have != want:
+        raise SimgapError(f"rollout file {str(path)!r} was modified after it was written (refused): its content "
+                          f"digest is {have[:16]}... but the file records {str(want)[:16]}...")
+    for name in ("x0", "trajectories", "mean_trajectory", "nominal_trajectory", "mean_map_trajectory"):
+        if name in a and a[name].dtype.kind in "fc" and not np.all(np.isfinite(a[name])):
+            bad = int((~np.isfinite(a[name])).sum())
+            raise SimgapError(f"rollout file {str(path)!r}: {name} holds {bad} NaN or infinite value(s); a simulator "
+                              "never returns them (simgap refuses such a step), so the file was not written by a "
+                              "rollout (refused)")
+    try:
+        return _result(a, meta)
+    except (KeyError, TypeError, ValueError) as e:
+        raise SimgapError(f"rollout file {str(path)!r}: its metadata lacks or mistypes {e} (refused)") from None
+
+
+def _result(a: dict, meta: dict) -> RolloutResult:
     nominal = meta["nominal_full"]
     nominal["x_lo"] = [float(v) for v in nominal["x_lo"]]
     nominal["x_hi"] = [float(v) for v in nominal["x_hi"]]

@@ -32,6 +32,7 @@ import numpy as np
 from .. import entry_points
 from ..errors import SimgapError
 from ..systems import System, get_system
+from ..typed import check_section
 
 
 @dataclass(frozen=True)
@@ -95,12 +96,15 @@ class Simulator(ABC):
     #: keys of :meth:`draw_noise` that are per-run physical parameters (held for an episode with
     #: ``randomize.per = "episode"``); subclasses with ``randomize`` keys override
     PARAMETER_DRAWS: tuple = ()
+    #: the type of each key, {section: {key: kind}} (kinds: :mod:`simgap.typed`), checked
+    #: before the backend reads a value: ``base_pose = "false"`` is refused by name, never read as true
+    TYPES: dict = {}
 
     def __init__(self, config: SimulatorConfig, system: System | None = None):
         self.config = config
         self.system = (system or get_system(config.system)).with_steps(config.steps)
         self.randomize_per = config.randomize.get("per", "period")
-        if self.randomize_per not in RANDOMIZE_PER:
+        if not isinstance(self.randomize_per, str) or self.randomize_per not in RANDOMIZE_PER:
             raise SimgapError(f"simulator {config.kind!r}: randomize.per must be one of {list(RANDOMIZE_PER)}, "
                               f"got {self.randomize_per!r}")
         if self.randomize_per == "episode" and not self.PARAMETER_DRAWS:
@@ -112,6 +116,8 @@ class Simulator(ABC):
             if bad:
                 raise SimgapError(
                     f"simulator {config.kind!r}: unknown {section} keys {sorted(bad)}; allowed: {sorted(allowed)}")
+            check_section(getattr(config, section), {"per": "name", **self.TYPES.get(section, {})}
+                          if section == "randomize" else self.TYPES.get(section, {}), f"simulator.{section}")
 
     @property
     def per_episode(self) -> bool:

@@ -62,12 +62,7 @@ from ..errors import SimgapError
 from ._bullet import check_std, int_option, relative_factors
 from .base import Simulator, as_vector
 from .pybullet_urdf import input_map, model_file, name_list
-
-
-def _flag(v, what: str) -> bool:
-    if not isinstance(v, bool):
-        raise SimgapError(f"mujoco: {what} must be true or false, got {v!r}")
-    return v
+from ..typed import flag
 
 
 def mujoco_module():
@@ -90,6 +85,11 @@ class MujocoSimulator(Simulator):
     EFFECT_KEYS = ()
     OPTION_KEYS = ("model", "model_sha256", "positions", "velocities", "inputs", "input_map", "substeps", "threads",
                    "models_per_batch", "base_pose", "base_joints", "base_velocity", "driven_start")
+    TYPES = {"noise": dict.fromkeys(NOISE_KEYS, "numbers"), "randomize": dict.fromkeys(RANDOMIZE_KEYS, "number"),
+             "options": {"model": "name", "model_sha256": "name", "positions": "names", "velocities": "names",
+                         "inputs": "names", "input_map": "matrix", "substeps": "int", "threads": "int",
+                         "models_per_batch": "int", "base_pose": "bool", "base_joints": "names",
+                         "base_velocity": "bool", "driven_start": "name"}}
     #: options naming a file: resolved against (and confined to) the experiment's folder
     PATH_OPTIONS = ("model",)
 
@@ -110,8 +110,8 @@ class MujocoSimulator(Simulator):
         pos_names = name_list(op.get("positions", []), "options.positions")
         vel_names = name_list(op.get("velocities", []), "options.velocities")
         in_names = name_list(op.get("inputs", []), "options.inputs")
-        self.base_pose = _flag(op.get("base_pose", False), "options.base_pose")
-        self.base_velocity = _flag(op.get("base_velocity", False), "options.base_velocity")
+        self.base_pose = flag(op, "base_pose", False, "simulator.options")
+        self.base_velocity = flag(op, "base_velocity", False, "simulator.options")
         if self.base_velocity and not self.base_pose:
             raise SimgapError("mujoco: base_velocity (forward speed and yaw rate in the state) needs base_pose = true")
         if "base_joints" in op and not self.base_pose:

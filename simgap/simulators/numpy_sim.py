@@ -26,6 +26,8 @@ from .base import Simulator, as_vector
 class NumpySimulator(Simulator):
     NOISE_KEYS = ("actuation_std", "process_std", "sensor_std")
     EFFECT_KEYS = ("bias", "input_gain", "linear")
+    TYPES = {"noise": dict.fromkeys(NOISE_KEYS, "numbers"),
+             "effects": {"bias": "numbers", "input_gain": "number", "linear": "matrix"}}
 
     def __init__(self, config, system=None):
         super().__init__(config, system)

@@ -76,6 +76,9 @@ class PendulumSimulator(BulletSimulator):
     PARAMETER_DRAWS = ("mass", "length")  # draw_noise keys held for an episode (randomize.per)
     EFFECT_KEYS = ("joint_damping", "coulomb_friction", "actuator_gain")
     OPTION_KEYS = ("branches", "substeps", "urdf")
+    TYPES = {"noise": {"actuation_std": "number", "sensor_std": "numbers"},
+             "randomize": dict.fromkeys(RANDOMIZE_KEYS, "number"), "effects": dict.fromkeys(EFFECT_KEYS, "number"),
+             "options": {"branches": "int", "substeps": "int", "urdf": "name"}}
 
     def __init__(self, config, system=None):
         super().__init__(config, system)

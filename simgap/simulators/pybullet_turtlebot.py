@@ -112,6 +112,10 @@ class TurtlebotSimulator(BulletSimulator):
     EFFECT_KEYS = ("actuator_gain", "wheel_radius_error")
     _PHYSICS_DRAWS = ("act", "radius", "mass", "friction", "slip", "jitter")  # what the physics sees (not "sens")
     OPTION_KEYS = ("substeps", "robots", "obstacles", "motor_force", "friction", "solver_iterations", "urdf")
+    TYPES = {"noise": dict.fromkeys(NOISE_KEYS, "numbers"), "randomize": dict.fromkeys(RANDOMIZE_KEYS, "number"),
+             "effects": dict.fromkeys(EFFECT_KEYS, "numbers"),
+             "options": {"substeps": "int", "robots": "int", "obstacles": "boxes", "motor_force": "number",
+                         "friction": "number", "solver_iterations": "int", "urdf": "name"}}
 
     def __init__(self, config, system=None):
         super().__init__(config, system)

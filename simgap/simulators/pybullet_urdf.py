@@ -72,6 +72,7 @@ from ..errors import SimgapError
 from ._bullet import (BulletSimulator, bullet_client, capture_c_output, check_std, inertia_note, int_option,
                       links_without_inertia, pybullet_module, relative_factors)
 from .base import as_vector
+from ..typed import flag
 
 MAX_COPIES = 256
 
@@ -183,6 +184,13 @@ class UrdfSimulator(BulletSimulator):
                    "position_gain", "velocity_gain",
                    "base_pose", "base_velocity", "driven_start", "base_height", "fixed_base", "ground", "substeps",
                    "copies", "gravity", "cone_friction")
+    TYPES = {"noise": dict.fromkeys(NOISE_KEYS, "numbers"), "randomize": dict.fromkeys(RANDOMIZE_KEYS, "number"),
+             "effects": dict.fromkeys(EFFECT_KEYS, "number"),
+             "options": {"urdf": "name", "urdf_sha256": "name", "positions": "names", "velocities": "names",
+                         "inputs": "names", "input_map": "matrix", "input_mode": "name", "max_force": "number",
+                         "base_pose": "bool", "base_velocity": "bool", "driven_start": "name", "base_height": "number",
+                         "fixed_base": "bool", "ground": "bool", "substeps": "int", "copies": "int",
+                         "gravity": "number", "cone_friction": "bool"}}
     #: options naming a file: resolved against (and confined to) the experiment's folder
     PATH_OPTIONS = ("urdf",)
 
@@ -196,11 +204,12 @@ class UrdfSimulator(BulletSimulator):
         self.pos_names = name_list(op.get("positions", []), "options.positions")
         self.vel_names = name_list(op.get("velocities", []), "options.velocities")
         self.in_names = name_list(op.get("inputs", []), "options.inputs")
-        self.base_pose = bool(op.get("base_pose", False))
-        self.fixed_base = bool(op.get("fixed_base", not self.base_pose))
+        where = "simulator.options"  # every value's type was checked by Simulator.__init__ (TYPES); flag() again
+        self.base_pose = flag(op, "base_pose", False, where)
+        self.fixed_base = flag(op, "fixed_base", not self.base_pose, where)
         if self.base_pose and self.fixed_base:
             raise SimgapError("pybullet_urdf: base_pose needs a mobile base (fixed_base = false)")
-        self.base_velocity = bool(op.get("base_velocity", False))
+        self.base_velocity = flag(op, "base_velocity", False, where)
         if self.base_velocity and not self.base_pose:
             raise SimgapError("pybullet_urdf: base_velocity (forward speed and yaw rate in the state) needs "
                               "base_pose = true")
@@ -241,7 +250,7 @@ class UrdfSimulator(BulletSimulator):
         self.cone_friction = op.get("cone_friction", True)
         if not isinstance(self.cone_friction, bool):
             raise SimgapError(f"pybullet_urdf: options.cone_friction must be true or false, got {self.cone_friction!r}")
-        self._build(bool(op.get("ground", False)))
+        self._build(flag(op, "ground", False, where))
 
     # ----- construction ------------------------------------------------------------------
     def _build(self, ground: bool) -> None:

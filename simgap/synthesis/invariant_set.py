@@ -531,11 +531,23 @@ class InvariantSetResult:
         return "\n".join(lines)
 
 
+def _weights(value, size: int, what: str) -> np.ndarray:
+    """One LQR weight or ``size`` of them, as a vector; SimgapError naming ``what`` otherwise."""
+    try:
+        v = np.asarray(value, dtype=float).ravel()
+    except (TypeError, ValueError):
+        raise SimgapError(f"invariant set: {what} must be numbers, got {value!r}") from None
+    if v.size not in (1, size) or not np.all(np.isfinite(v)):
+        raise SimgapError(f"invariant set: {what} = {value!r}: need one finite weight or {size}, got {v.size}")
+    return np.broadcast_to(v, (size,)).copy()
+
+
 def _parse_matrix(K, m, n):
     try:
         Kg = np.asarray(K, dtype=float)
-    except (TypeError, ValueError):
-        raise SimgapError(f"invariant set: K must be a {m} x {n} matrix of numbers") from None
+    except (TypeError, ValueError):  # also a ragged list of rows
+        raise SimgapError(f"invariant set: K must be a {m} x {n} matrix of numbers (rows of equal length), "
+                          f"got {K!r}") from None
     if Kg.ndim == 1 and m == 1:
         Kg = Kg[None]
     if Kg.shape != (m, n):
@@ -606,8 +618,8 @@ def synthesize_invariant_set(system: System, spec: Spec, gap=None, *, x_star=Non
                           f"[{u_lo.tolist()}, {u_hi.tolist()}]: no room for feedback")
     if K is None:
         check_stabilizable(A, B, system.state_names)
-        q = 1.0 / room ** 2 if lqr_q is None else np.broadcast_to(np.asarray(lqr_q, float), (n,))
-        rr = 1.0 / uroom ** 2 if lqr_r is None else np.broadcast_to(np.asarray(lqr_r, float), (m,))
+        q = 1.0 / room ** 2 if lqr_q is None else _weights(lqr_q, n, "lqr_q")
+        rr = 1.0 / uroom ** 2 if lqr_r is None else _weights(lqr_r, m, "lqr_r")
         if np.any(q < 0) or np.any(rr <= 0):
             raise SimgapError("invariant set: LQR weights need q >= 0 and r > 0")
         K, K_how = lqr_gain(A, B, q, rr), "discrete LQR of the linearization"

@@ -342,7 +342,8 @@ class SimgapApp:
                 return
             finally:
                 self._calibrating = False
-            if self.settings is s and not self.jobs.busy:
+            # the same collection still asked for (a typed value may be applied twice: equal, not the same object)
+            if self.settings.stage_key("collect") == s.stage_key("collect") and not self.jobs.busy:
                 self.set_status(self.settings_status(getattr(self, "_changed", [])))
 
         threading.Thread(target=work, name="simgap-calibrate", daemon=True).start()

@@ -133,9 +133,7 @@ class JobRunner:
 
     def _run(self, ctx: JobContext, fn, then) -> None:
         t0 = time.perf_counter()
-        try:
-            if ctx.on_progress:
-                ctx.on_progress(0.0)
+        try:  # no report before fn runs: its first stage reports 0 % under its own name (ctx.begin)
             result = fn(ctx)
             if then is not None:
                 then(result)

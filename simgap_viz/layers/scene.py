@@ -609,7 +609,7 @@ def fit_camera(app, clients=None) -> None:
         win = windows.get(getattr(client, "client_id", None))
         cl_look, cl_pos = look, pos
         if win is not None:  # this window's size and panel: the scene centred in the part the panel leaves
-            cl_look, cl_pos = _fit_to_window(c, d, right, dist, win["size"], win["panel"])
+            cl_look, cl_pos = _fit_to_window(c, d, right, dist, win["size"], win["panel"], closer=not surface)
         try:
             with client.atomic():
                 client.camera.up_direction = (0.0, 0.0, 1.0)
@@ -625,15 +625,16 @@ _FREE_ASPECT = 1.6 * 0.7
 _FOV = np.deg2rad(75.0)  # viser's default vertical field of view
 
 
-def _fit_to_window(c, d, right, dist: float, size, panel: float) -> tuple:
+def _fit_to_window(c, d, right, dist: float, size, panel: float, closer: bool = True) -> tuple:
     """(look_at, position) that centre the scene in the canvas left of the panel: the camera turns
     right by the panel's share of the half width at the look-at distance; the distance grows when the
-    free part is narrower than the one the distances were chosen for and shrinks (at most 15 %) when it
-    is wider, so a wide window shows a larger scene."""
+    free part is narrower than the one the distances were chosen for and, with ``closer`` (the flat
+    map seen from above, not the taller scene with the surface's square, which already fills the
+    height), shrinks by at most 15 % when it is wider, so a wide window shows a larger map."""
     w, h = float(size[0]), float(max(size[1], 1))
     share = min(max(panel / max(w, 1.0), 0.0), 0.6)
     free = (w / h) * (1.0 - share)
-    dist = dist * float(np.clip(_FREE_ASPECT / free, 0.85, 2.0))
+    dist = dist * float(np.clip(_FREE_ASPECT / free, 0.85 if closer else 1.0, 2.0))
     half_width = dist * np.tan(_FOV / 2.0) * (w / h)
     look = c + share * half_width * right
     return look, look + d * dist

@@ -32,6 +32,15 @@ from .settings import STAGES, Settings
 KEEP_STALE = ("synthesize", "rollout")
 STALE_ACTION = {"synthesize": "re-synthesize", "rollout": "roll out again"}
 STALE_WHAT = {"synthesize": "winning domain", "rollout": "rollouts"}
+# the pipeline's stages in order, what each shows (status line) and the button that computes it
+SHOWN = {"collect": "data (data gaps)", "certify": "certificate (gamma)", "synthesize": "winning domain",
+         "rollout": "rollouts"}
+# settings as the panels label them (the status line names what changed)
+LABELS = {"n_runs": "N1hat", "noise_std": "Noise std", "steps": "Steps k", "seed": "Seed", "degree": "Basis degree",
+          "terms": "Extra terms", "concentration": "Concentration", "value_range": "Range b", "hold": "Hold",
+          "use_gap": "Use gamma", "n_rollouts": "Rollouts", "rollout_seed": "Rollout seed", "system": "System",
+          "simulator": "Simulator", "confidence": "Confidence"}
+BUTTON = {"collect": "Collect", "certify": "Certify", "synthesize": "Synthesize", "rollout": "Roll out"}
 
 
 
@@ -55,6 +64,22 @@ def quiet_bad_messages() -> None:
     log = logging.getLogger("websockets.server")
     if not any(isinstance(f, _OneLineHandlerErrors) for f in log.filters):
         log.addFilter(_OneLineHandlerErrors())
+
+#: the control panel's width [px] against the window's: a fixed share with bounds, so that the tabs
+#: fit in one row at 1280 px and the scene keeps most of a wide window
+PANEL_SHARE, PANEL_MIN, PANEL_MAX = 0.27, 440, 600
+
+#: tab labels in one row (viser 1.1 pads each tab by 0.75 em on every side; the panel's width alone
+#: would have to be about 600 px for the seven tabs at that padding)
+TAB_STYLE = ("<style>[role=tablist]{flex-wrap:nowrap !important}"
+             "[role=tab]{padding-left:0.4em !important;padding-right:0.4em !important}</style>")
+
+
+def panel_width(window_px: int) -> int:
+    """The control panel's width [px] in a window ``window_px`` wide: PANEL_SHARE of it within
+    [PANEL_MIN, PANEL_MAX], never more than half the window."""
+    return int(min(max(PANEL_SHARE * window_px, PANEL_MIN), PANEL_MAX, 0.5 * window_px))
+
 
 class SimgapApp:
     """The interactive app (see module docstring).
@@ -87,7 +112,8 @@ class SimgapApp:
         # domain after a re-certification): kept on screen, marked "stale" until recomputed
         self.stale: set = set()
         self.notifications: list = []  # (title, body, color) in order, also for tests
-        self.timings: dict = {}  # stage -> seconds of the last run (or cache hit)
+        self.timings: dict = {}  # stage -> seconds of the last run of that stage alone (or cache hit)
+        self._estimates: dict = {}  # stage -> the engine's estimate [s] for the running job (collection)
         self.auto_certify = True
         from .layers import scene
         self.view = {"dim": 0, "a": 0, "b": 1, "fixed": None, "zscale": None, "n_draw": scene.N_DRAW, "t": None,
@@ -103,6 +129,7 @@ class SimgapApp:
         self.run_method = None
         self.audit = None  # the shown certificate's audit report (from a run folder)
         self.perrun_view = {"map": True, "markers": True, "controller": "perrun"}  # the per-run layer
+        self.windows: dict = {}  # client id -> {"size": (w, h) of its canvas, "panel": panel width [px]}
 
         origin.install()  # refuse websockets from other pages before the server starts
         quiet_bad_messages()  # a malformed client message: one line, not a traceback
@@ -120,6 +147,7 @@ class SimgapApp:
         from .panels import certificate, perrun, refinement, rollouts, synthesis, system_data, view
 
         gui = self.server.gui
+        self.tab_style = gui.add_html(TAB_STYLE, order=-1)
         self.status = gui.add_markdown("**simgap** ready", order=0)
         self.progress = gui.add_progress_bar(0.0, visible=False, animated=False, order=1)
         self.cancel_button = gui.add_button("Cancel", color="red", disabled=True, order=2)
@@ -145,6 +173,27 @@ class SimgapApp:
 
     def _on_connect(self, client) -> None:
         from .layers import scene
+        scene.fit_camera(self, [client])
+        # the canvas size arrives with the client's camera: fit the panel and the scene to the window
+        client.camera.on_update(lambda cam: self._fit_window(client))
+        self._fit_window(client)
+
+    def _fit_window(self, client) -> None:
+        """Size the control panel for the browser window and refit the camera, when the window's size
+        is new (a camera move alone changes nothing): ``panel_width`` of the canvas width."""
+        from .layers import scene
+        try:
+            size = (int(client.camera.image_width), int(client.camera.image_height))
+        except (AssertionError, AttributeError):  # no camera message from this client yet
+            return
+        if size[0] <= 0 or self.windows.get(client.client_id, {}).get("size") == size:
+            return
+        width = panel_width(size[0])
+        self.windows[client.client_id] = {"size": size, "panel": width}
+        try:
+            client.gui.main_panel.set_width(width)
+        except Exception:  # a client that just went away
+            return
         scene.fit_camera(self, [client])
 
     @property
@@ -219,7 +268,101 @@ class SimgapApp:
                 self.set_status(f"{self.jobs.current} running; will re-certify when it is done")
             else:
                 self.certify()
+        elif not self.jobs.busy:
+            self._changed = [LABELS.get(k, k) for k, v in new.to_dict().items()
+                             if old.to_dict().get(k) != v and k != "data_source"]
+            self.set_status(self.settings_status(self._changed))
         return True
+
+    def stale_stages(self) -> list:
+        """The stages whose shown result no longer matches the current settings, in pipeline order:
+        computed with settings since changed (its configuration key differs) or from an upstream
+        result since replaced (``self.stale``)."""
+        s = self.settings
+        out = []
+        for st in SHOWN:
+            if self.results.get(st) is None:
+                continue
+            try:
+                key = s.stage_key(st)
+            except SimgapError:
+                key = None
+            if st in self.stale or self.result_keys.get(st) != key:
+                out.append(st)
+        return out
+
+    def next_action(self) -> Optional[str]:
+        """The stage to run next for the current settings: the first one, in pipeline order, whose
+        result is stale or missing, up to the last stage shown (at least the certificate: data and a
+        certificate are what every session needs); None when everything shown is current."""
+        order = list(SHOWN)
+        stale = set(self.stale_stages())
+        last = max([i for i, st in enumerate(order) if self.results.get(st) is not None] + [1])
+        for st in order[:last + 1]:
+            if st in stale or self.results.get(st) is None:
+                return st
+        return None
+
+    def estimate_text(self, stage: str) -> str:
+        """Time a press of ``stage``'s button will take: a collection's from the engine's cost model
+        (:func:`engine.collect_estimate`; pairs x N1hat / the simulator's rate), the other stages' from
+        their last run in this session; "" when nothing is known. A stage whose data must be collected
+        first adds the collection's estimate."""
+        from simgap.cover import format_duration
+        s = self.settings
+        parts = []
+        need_collect = stage in ("collect", "certify", "refine") and (
+            stage == "collect" or self.cache.get(("collect", s.stage_key("collect"))) is None)
+        if need_collect:
+            try:
+                est = engine.collect_estimate(s, self.system, self.experiment, self.executor)
+            except SimgapError:
+                est = None
+            if est is not None:
+                parts.append("collect: " + engine.collect_estimate_text(est))
+                if est.seconds is None:
+                    self._calibrate_later()
+        if stage != "collect":
+            t = self.timings.get(stage)
+            parts.append(f"{stage}: about {format_duration(t)} (its last run here)" if t is not None
+                         else f"{stage}: no estimate before its first run (the engine has no cost model for it)")
+        return "; ".join(parts)
+
+    def _calibrate_later(self) -> None:
+        """Time the simulator on a background thread (about a second), then show the estimate."""
+        if getattr(self, "_calibrating", False):
+            return
+        self._calibrating = True
+        s = self.settings
+
+        def work():
+            try:
+                engine.collect_estimate(s, self.system, self.experiment, self.executor, calibrate=True)
+            except Exception:  # no estimate is not an error: the status keeps saying so
+                return
+            finally:
+                self._calibrating = False
+            # the same collection still asked for (a typed value may be applied twice: equal, not the same object)
+            if self.settings.stage_key("collect") == s.stage_key("collect") and not self.jobs.busy:
+                self.set_status(self.settings_status(getattr(self, "_changed", [])))
+
+        threading.Thread(target=work, name="simgap-calibrate", daemon=True).start()
+
+    def settings_status(self, changed=()) -> str:
+        """The status line after a settings change: what changed, which shown layers are stale, and
+        the button to press next with its time estimate."""
+        head = ("changed: " + ", ".join(f"**{k}**" for k in changed)) if changed else "settings"
+        stale = self.stale_stages()
+        text = head
+        if stale:
+            text += "; stale (from earlier settings): " + ", ".join(SHOWN[st] for st in stale)
+        nxt = self.next_action()
+        if nxt is not None:
+            est = self.estimate_text(nxt)
+            text += f"; next: press **{BUTTON[nxt]}**" + (f" ({est})" if est else "")
+        elif not stale:
+            text += "; everything shown is current"
+        return text
 
     def _schedule_after_job(self, fn) -> None:
         """Run ``fn`` once the current job has ended (one pending call at most)."""
@@ -242,12 +385,17 @@ class SimgapApp:
         threading.Thread(target=waiter, name="simgap-pending", daemon=True).start()
 
     def stale_status(self) -> str:
-        """What the status line adds while shown results are stale ("" if none)."""
-        stale = [st for st in KEEP_STALE if st in self.stale]
-        if not stale:
-            return ""
-        return ("; **stale: " + ", ".join(STALE_ACTION[st] for st in stale) + "** (the "
-                + " and the ".join(STALE_WHAT[st] for st in stale) + " shown are from earlier settings)")
+        """What the status line adds while shown results are stale or a stage is missing ("" if
+        none): the stale layers and the next button to press."""
+        stale = [st for st in KEEP_STALE if st in self.stale_stages()]
+        text = ""
+        if stale:
+            text = ("; **stale: " + ", ".join(STALE_ACTION[st] for st in stale) + "** (the "
+                    + " and the ".join(STALE_WHAT[st] for st in stale) + " shown are from earlier settings)")
+        nxt = self.next_action()
+        if nxt is not None:
+            text += f"; next: press **{BUTTON[nxt]}**"
+        return text
 
     def stale_note(self, stage: str) -> str:
         """Markdown warning for a panel whose shown result is stale ("" if it is current)."""
@@ -402,24 +550,39 @@ class SimgapApp:
             return hit
         engine.require(stage)
         ctx.check()
+        # upstream results first; then ctx.begin names the stage that runs (the progress bar's label)
         if stage == "collect":
+            ctx.begin(stage)
+            try:
+                self._estimates["collect"] = engine.collect_estimate(s, system, exp, self.executor,
+                                                                     calibrate=True).seconds
+            except Exception:  # a simulator that cannot be timed: progress then says "no estimate yet"
+                self._estimates["collect"] = None
+            ctx.begin(stage)  # the calibration is not part of the collection's elapsed time
             res = engine.collect(s, system, ctx, experiment=exp, executor=self.executor)
         elif stage == "certify":
-            res = engine.certify(self._result_for("collect", s, ctx), s, ctx)
+            data = self._result_for("collect", s, ctx)
+            ctx.begin(stage)
+            res = engine.certify(data, s, ctx)
         elif stage == "synthesize":
             cert = self._result_for("certify", s, ctx) if s.use_gap else None
+            ctx.begin(stage)
             res = engine.synthesize(system, self.current_spec(), cert, s, ctx)
             if res.empty:  # a result, but the user must see it at once
                 self.notify("Empty winning domain", res.stats.get("diagnosis") or "no winning cell")
         elif stage == "rollout":
             syn = self._result_for("synthesize", s, ctx)
+            ctx.begin(stage)
             res = engine.rollout(system, self.current_spec(), syn, s, ctx, experiment=exp,
                                  arena=self.arena if engine.base_system(system).name == "turtlebot" else None)
         elif stage == "refine":
-            res = engine.refine(self._result_for("collect", s, ctx), s, ctx)
+            data = self._result_for("collect", s, ctx)
+            ctx.begin(stage)
+            res = engine.refine(data, s, ctx)
         else:
             raise SimgapError(f"unknown stage {stage!r}")
         ctx.check()
+        self.timings[stage] = ctx.elapsed()  # this stage alone (a job's total would include upstream ones)
         self._accept(stage, key, res)
         return res
 
@@ -436,7 +599,8 @@ class SimgapApp:
             for st in downstream:
                 k = self.settings.stage_key(st)
                 hit = self.cache.get((st, k))
-                if hit is None and st in KEEP_STALE and self.results[st] is not None and stage != "collect":
+                # a new data set too: the winning domain and the rollouts stay, marked, never vanish silently
+                if hit is None and st in KEEP_STALE and self.results[st] is not None:
                     self.stale.add(st)  # keep it on screen, marked, until it is recomputed
                     continue
                 self.results[st] = hit
@@ -519,16 +683,33 @@ class SimgapApp:
 
     # ----- job callbacks (worker thread) -------------------------------------------------
     def _job_progress(self, name: str, frac: float) -> None:
+        """Progress of the stage running now (``name``: a certify job that must collect reports
+        "collect" first) with its elapsed time and the time left: from the rate so far once 2 % is
+        done, before that the engine's estimate (collection) or the stage's last run."""
+        from simgap.cover import format_duration
         self.progress.visible = True
         self.progress.animated = True
         self.progress.value = float(np.clip(100.0 * frac, 0.0, 100.0))
-        self.set_status(f"{name}: {100 * frac:.0f} %")
+        ctx = self.jobs.context
+        el = ctx.elapsed() if ctx is not None else 0.0
+        total = self._estimates.get(name) if name == "collect" else self.timings.get(name)
+        # the estimate until a tenth is done (a pool's start-up would make the first rate far too
+        # slow), then the rate so far
+        if total is not None and (frac < 0.1 or el <= 0.5) and total > el:
+            left = f"about {format_duration(total - el)} left (estimate)"
+        elif frac >= 0.02 and el > 0.5:
+            left = f"about {format_duration(el * (1.0 - frac) / frac)} left"
+        else:
+            left = "no estimate yet"
+        job = f" (then {ctx.name})" if ctx is not None and ctx.name != name else ""
+        self.set_status(f"**{name}**{job}: {100 * frac:.0f} %, {format_duration(el)} elapsed, {left}")
         self._update_buttons()
 
     def _job_finished(self, out) -> None:
         self.progress.visible = False
         self.progress.animated = False
-        self.timings[out.name] = out.seconds
+        if out.name not in STAGES:  # a stage's own time was taken in _result_for
+            self.timings[out.name] = out.seconds
         if out.ok:
             self.set_status(f"{out.name}: done in {out.seconds:.2f} s ({self.result_keys.get(out.name)})"
                             + self.stale_status())

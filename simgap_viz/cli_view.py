@@ -131,6 +131,21 @@ def _die_with_parent() -> None:
         pass
 
 
+def send_recordings(files, grpc_url: str) -> None:
+    """Send each .rrd file to the viewer's gRPC server, which keeps it in memory and serves it to every
+    browser that opens the address (the stream carries the file's application and recording ids)."""
+    import rerun as rr
+    from rerun.chunk import RrdReader
+
+    for f in files:
+        entries = RrdReader(str(f)).recordings()
+        e = entries[0] if entries else None
+        rec = rr.RecordingStream(e.application_id if e else "simgap", recording_id=e.recording_id if e else None)
+        rr.connect_grpc(grpc_url, recording=rec)
+        rec.log_file_from_path(str(f))
+        rec.flush()
+
+
 class WebViewer:
     """The running viewer process (its own session) and the address that shows the recording."""
 
@@ -145,9 +160,12 @@ class WebViewer:
         self.url = f"http://{shown}:{web_port}/?url={quote(self.grpc_url, safe='')}"
         self.web_port, self.grpc_port, self.log = web_port, grpc_port, []
         env = {**os.environ, "DISPLAY": "", "WAYLAND_DISPLAY": ""}  # never a native window
+        # --serve-web, not --web-viewer: the latter also opens a browser, a chromium child that the viewer
+        # never reaps (a defunct process while it runs). No files on its command line: the viewer then
+        # polls their channel in a busy loop (about 0.3 core while idle); they are sent over gRPC instead
         self.proc = subprocess.Popen(
-            [viewer_binary(), "--web-viewer", "--bind", bind, "--port", str(grpc_port),
-             "--web-viewer-port", str(web_port), *map(str, files)],
+            [viewer_binary(), "--serve-web", "--bind", bind, "--port", str(grpc_port),
+             "--web-viewer-port", str(web_port)],
             stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env,
             start_new_session=True, preexec_fn=_die_with_parent)
         ready = threading.Event()
@@ -165,6 +183,11 @@ class WebViewer:
         if not ready.wait(timeout) or self.proc.poll() is not None:
             self.stop()
             raise SimgapError("the Rerun web viewer did not start: " + "".join(self.log[-5:]).strip())
+        try:
+            send_recordings(files, f"rerun+http://{'127.0.0.1' if bind in ('0.0.0.0', '') else shown}:{grpc_port}/proxy")
+        except Exception as e:  # the SDK's own error types: the viewer must not outlive the failure
+            self.stop()
+            raise SimgapError(f"could not send the recordings to the Rerun web viewer: {e}") from None
 
     def stop(self) -> None:
         """Stop the viewer and everything it started (its process group); idempotent."""

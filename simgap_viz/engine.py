@@ -218,22 +218,12 @@ def collect(settings, system: System, ctx, experiment=None, executor: str = "loc
     (noise, effects) and cover options (declared invariances) are used, with the settings'
     epsilon, N1hat and seed; otherwise a plain cover and the settings' noise std.
     """
-    import dataclasses
-
     from simgap.collect import CollectionPlan, collect as run_collect
-    from simgap.cover import CoverSpec, make_cover
 
     if system.name in REFINED:  # collect on the simulated base system, then measure the gap to f'
         return rebase(collect(settings, base_system(system), ctx, experiment, executor), system)
 
-    if experiment is not None and experiment.system.name == system.name \
-            and experiment.simulator.kind == settings.simulator:
-        cspec = dataclasses.replace(experiment.cover_spec(), epsilon=float(settings.epsilon))
-        simcfg = dataclasses.replace(experiment.simulator, steps=int(system.steps))
-    else:
-        cspec = CoverSpec(epsilon=float(settings.epsilon))
-        simcfg = simulator_config(settings, system)
-    cover = make_cover(system, cspec)
+    cover, simcfg = _collect_setup(settings, system, experiment)
     plan = CollectionPlan(system=system, simulator=simcfg, cover=cover,
                           n_runs=int(settings.n_runs), seed=int(settings.seed))
     store = workdir() / f"store-{plan.hash()}"
@@ -241,7 +231,67 @@ def collect(settings, system: System, ctx, experiment=None, executor: str = "loc
     if res.cancelled or not res.complete:
         ctx.check()
         raise SimgapError(f"collection stopped with {res.done}/{res.n_chunks} chunks")
+    if res.runs and res.seconds > 0 and res.computed:  # the measured rate makes the next estimate
+        _RATES[_rate_key(settings, system, executor)] = (res.runs / res.seconds, "measured by the last collection")
     return res.dataset(system)
+
+
+def _collect_setup(settings, system: System, experiment=None):
+    """(cover, simulator config) of a collection for the settings (see :func:`collect`)."""
+    import dataclasses
+
+    from simgap.cover import CoverSpec, make_cover
+    if experiment is not None and experiment.system.name == system.name \
+            and experiment.simulator.kind == settings.simulator:
+        cspec = dataclasses.replace(experiment.cover_spec(), epsilon=float(settings.epsilon))
+        simcfg = dataclasses.replace(experiment.simulator, steps=int(system.steps))
+    else:
+        cspec = CoverSpec(epsilon=float(settings.epsilon))
+        simcfg = simulator_config(settings, system)
+    return make_cover(system, cspec), simcfg
+
+
+# simulator runs per second of all workers, per (simulator, system, steps, noise, executor):
+# calibrated (simgap.cover.calibrate_rate, one process, times the workers) or measured by a collection
+_RATES: dict = {}
+
+
+def _rate_key(settings, system: System, executor: str) -> tuple:
+    return (settings.simulator, base_system(system).name, int(system.steps), float(settings.noise_std),
+            settings.experiment, executor)
+
+
+def collect_estimate(settings, system: System, experiment=None, executor: str = "local", calibrate: bool = False):
+    """The engine's cost estimate of collecting for the settings (:func:`simgap.cover.estimate_cost`):
+    cover points x inputs = (x_r, u) pairs, x N1hat simulator runs, and the time
+
+        seconds = pairs * N1hat / rate,
+
+    ``rate`` the simulator runs per second of all workers: the last collection's measured rate for the
+    same simulator and executor, else (``calibrate``) :func:`simgap.cover.calibrate_rate` on this
+    machine (about a second: the simulator is built and timed) times the executor's workers, else
+    unknown (``seconds`` None). Returns a :class:`simgap.cover.CostEstimate`."""
+    from simgap.cover import calibrate_rate, estimate_cost
+    from simgap.executors import make_executor
+    from simgap.simulators import make_simulator
+
+    sysb = base_system(system)
+    cover, simcfg = _collect_setup(settings, sysb, experiment)
+    key = _rate_key(settings, system, executor)
+    if key not in _RATES and calibrate:
+        workers = make_executor(executor).workers if executor in ("serial", "local") else 1
+        with make_simulator(simcfg, sysb) as sim:
+            _RATES[key] = (calibrate_rate(sim, budget=0.3) * workers, f"calibrated here, {workers} worker(s)")
+    rate, source = _RATES.get(key, (None, ""))
+    return estimate_cost(cover, int(settings.n_runs), rate_per_worker=rate, workers=1, rate_source=source)
+
+
+def collect_estimate_text(est) -> str:
+    """One line: pairs, simulator steps and the estimated time (or why there is none)."""
+    from simgap.cover import format_duration
+    t = f"about {format_duration(est.seconds)}" if est.seconds is not None else "time not estimated yet"
+    return (f"{est.n_pairs:,} (x_r, u) pairs x N1hat {est.n_runs} = {est.sim_steps:,} simulator steps, {t}"
+            + (f" ({est.rate_source})" if est.rate_source else ""))
 
 
 def certify_options(settings, n: int):

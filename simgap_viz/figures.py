@@ -340,7 +340,61 @@ def states_time(run, out_dir: Path, max_drawn: int = 1000, style: str = "paper")
             if i == n - 1:
                 ax.set_xlabel("time [s]")
     _legend(fig, _handles(methods, runs, None), style)
+    note = mean_map_switch_note(run, methods)
+    if note:  # the legend's title: laid out with it, so it can overlap nothing
+        import textwrap
+        lg = fig.legends[0]
+        lg.set_title("\n".join(textwrap.wrap(note, 150 if style == "paper" else 120)),
+                     prop={"size": STYLES[style]["small"]})
+        lg.get_title().set_color("0.25")
     return save(fig, out_dir, "states_time")
+
+
+def mean_map_switch_note(run, methods) -> str:
+    """Why the mean map's curve has steps the runs' average has not, naming its largest one ("" if
+    there is none to name).
+
+    The mean map m+ = E fhat(m, u(m)) applies the controller at ONE state, the mean, and a symbolic
+    controller is constant on each grid cell and may pick a very different valid input in the next
+    cell: where m crosses into such a cell, m+ steps by tau times the change of input's effect (no
+    angle wrap is involved). The runs spread over many cells, so their average changes smoothly. The
+    step named is, per method with a controller, the one in the horizon's second half where the mean
+    map's step differs most from the average's (state units divided by X's width) and the input at m changed.
+    """
+    parts = []
+    for m in methods:
+        res = _result(run, m)
+        ro, syn = res.rollouts, res.synthesis
+        mm = getattr(ro, "mean_map_trajectory", None)
+        ctrl = getattr(syn, "controller", None)
+        if mm is None or ctrl is None or not hasattr(ctrl, "input_index"):
+            continue
+        mm, mt = np.asarray(mm, float), np.asarray(ro.mean_trajectory, float)
+        T = min(mm.shape[0], mt.shape[0]) - 1
+        if T < 4:
+            continue
+        width = np.maximum(run.system.x_hi - run.system.x_lo, 1e-300)
+        dev = np.abs(np.diff(mm[:T + 1], axis=0) - np.diff(mt[:T + 1], axis=0)) / width  # (T, n)
+        try:
+            u_idx = np.asarray(ctrl.input_index(mm[:T]))
+        except Exception:  # a state outside the controller's grid: nothing to name
+            continue
+        switched = np.zeros(T, bool)
+        switched[1:] = (u_idx[1:] != u_idx[:-1]) & (u_idx[1:] >= 0) & (u_idx[:-1] >= 0)
+        late = np.arange(T) >= T // 2
+        score = np.where((switched & late)[:, None], dev, -1.0)
+        k, i = np.unravel_index(int(np.argmax(score)), score.shape)
+        if score[k, i] <= 0:
+            continue
+        u0, u1 = ctrl.inputs[u_idx[k - 1]], ctrl.inputs[u_idx[k]]
+        fmt = lambda u: ", ".join(f"{v:.3g}" for v in np.ravel(u))  # noqa: E731
+        parts.append(f"{_name(m)}, t = {k * float(ro.tau):.3g} s: {run.system.state_names[i]} steps by "
+                     f"{mm[k + 1, i] - mm[k, i]:+.3g} as the input at the mean switches from {fmt(u0)} to {fmt(u1)}")
+    if not parts:
+        return ""
+    return ("Steps of the mean map (bold): it applies the controller at one state, the mean, and the controller is "
+            "constant on each grid cell, so its input changes at once where the mean enters another cell ("
+            + "; ".join(parts) + "); no angle wrap. The runs spread over many cells, so their average moves smoothly.")
 
 
 @_styled

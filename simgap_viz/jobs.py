@@ -24,6 +24,10 @@ class JobCancelled(Exception):
 
 @dataclass
 class JobContext:
+    """A job's cancel flag and progress. ``stage`` is the stage running now, which differs from the
+    job's ``name`` when a job computes missing upstream stages first (a certify job that must collect
+    reports "collect" until the data are in); ``stage_started`` is when it began (``time.monotonic``)."""
+
     name: str
     cancelled: threading.Event = field(default_factory=threading.Event)
     superseded: bool = False  # cancelled because newer settings replace it (no notice to the user)
@@ -31,6 +35,22 @@ class JobContext:
     done: float = 0.0
     total: float = 1.0
     _last: float = 0.0
+    stage: str = ""
+    stage_started: float = field(default_factory=time.monotonic)
+
+    def __post_init__(self):
+        self.stage = self.stage or self.name
+
+    def begin(self, stage: str) -> None:
+        """Mark the start of ``stage`` within this job (progress restarts from 0 under its name)."""
+        self.stage, self.stage_started = stage, time.monotonic()
+        self.done, self.total, self._last = 0.0, 1.0, 0.0
+        if self.on_progress is not None:
+            self.on_progress(0.0)
+
+    def elapsed(self) -> float:
+        """Seconds since the current stage began."""
+        return time.monotonic() - self.stage_started
 
     def progress(self, done, total=None) -> None:
         """Report progress (done of total); raises JobCancelled after cancel."""
@@ -86,6 +106,11 @@ class JobRunner:
         return t is not None and t.is_alive()
 
     @property
+    def context(self) -> Optional[JobContext]:
+        """The running job's context (its stage, progress and timing), or None."""
+        return self._ctx if self.busy else None
+
+    @property
     def current(self) -> Optional[str]:
         return self._ctx.name if self.busy and self._ctx else None
 
@@ -98,8 +123,9 @@ class JobRunner:
         with self._lock:
             if self.busy:
                 raise SimgapError(f"'{self._ctx.name}' is still running; wait or press cancel")
-            ctx = JobContext(name=name, on_progress=(lambda f: self._on_progress(name, f))
-                             if self._on_progress else None)
+            ctx = JobContext(name=name)
+            if self._on_progress:  # reported under the stage running now (ctx.stage), not the job's name
+                ctx.on_progress = lambda f: self._on_progress(ctx.stage, f)
             self._ctx = ctx
             self._thread = threading.Thread(target=self._run, args=(ctx, fn, then), name=f"simgap-{name}",
                                             daemon=True)
@@ -107,9 +133,7 @@ class JobRunner:
 
     def _run(self, ctx: JobContext, fn, then) -> None:
         t0 = time.perf_counter()
-        try:
-            if ctx.on_progress:
-                ctx.on_progress(0.0)
+        try:  # no report before fn runs: its first stage reports 0 % under its own name (ctx.begin)
             result = fn(ctx)
             if then is not None:
                 then(result)

@@ -187,3 +187,121 @@ def test_default_scene_shows_the_map_and_the_runs(run_dir, tmp_path):  # noqa: F
     thin = int(_changed(A, C).sum())
     bold = int(_changed(C, D).sum())
     assert thin >= 200 and thin >= 0.2 * bold, f"thin rollouts show on {thin} px (bold lines {bold} px)"
+
+
+def _tab_boxes(page) -> list:
+    """(label, x, y, width, height) of every tab, and the tab list's (x, width), measured in the page."""
+    return page.evaluate("""() => [[...document.querySelectorAll('[role=tab]')].map(t => {
+        const r = t.getBoundingClientRect(); return [t.innerText.trim(), r.x, r.y, r.width, r.height]; }),
+        (() => { const r = document.querySelector('[role=tablist]').getBoundingClientRect(); return [r.x, r.width]; })()]""")
+
+
+def _label_fits(page, label: str) -> tuple:
+    """(text width of ``label`` in uPlot's axis font, height of the first chart's plot area) [px]: a
+    rotated y label longer than the plot area is clipped by the chart's canvas."""
+    return tuple(page.evaluate("""(label) => {
+        const o = document.querySelector('.uplot .u-over').getBoundingClientRect();
+        const c = document.createElement('canvas').getContext('2d');
+        c.font = 'bold 12px system-ui, -apple-system, "Segoe UI", Roboto, "Helvetica Neue", Arial, "Noto Sans", sans-serif';
+        return [c.measureText(label).width, o.height]; }""", label))
+
+
+def test_status_progress_and_layout_in_the_page(run_dir, tmp_path):  # noqa: F811
+    """What a newcomer meets after loading a run, by what the page shows (issue 44): tabs in ONE row
+    (element boxes) at 1280 x 800 and 1920 x 1080 and a wider panel at 1920; after typing a new N1hat
+    the status names the stale layers and the button to press with the engine's time estimate; a
+    Certify that must collect first is labelled "collect" while it collects (then "certify"), with
+    the time elapsed; afterwards the winning domain and the rollouts are still shown, marked stale;
+    the certificate chart's y label fits its plot area. Screenshots of both sizes are written to
+    tmp_path (and to $SIMGAP_SCREENSHOT_DIR when set)."""
+    _need_browser()
+    from playwright.sync_api import sync_playwright
+
+    from simgap_viz import screenshot as S
+    from simgap_viz.app import SimgapApp, panel_width
+    from simgap_viz.panels.plots import y_label
+    from simgap_viz.results import load_run
+
+    shots = os.environ.get("SIMGAP_SCREENSHOT_DIR")
+    app = SimgapApp(port=0, executor="serial")
+    stages = []  # (stage, status) of every progress report, in order
+    report = app.jobs._on_progress
+
+    def spy(name, frac):
+        report(name, frac)
+        stages.append((name, app.status.content))
+
+    app.jobs._on_progress = spy
+    try:
+        app.load_run(load_run(run_dir))
+        shown_syn, shown_ro = app.results["synthesize"], app.results["rollout"]
+        with sync_playwright() as pw:
+            b = pw.chromium.launch(executable_path=S.CHROMIUM, args=S.ARGS)
+            try:
+                for w, h in ((1920, 1080), (1280, 800)):  # the smaller one goes on with the changes below
+                    page = S.open_page(b, app.url + "/?fixedDpr=1", w, h)
+                    tabs, (list_x, list_w) = _tab_boxes(page)
+                    assert [t[0] for t in tabs] == ["Data", "Certificate", "Synthesis", "Rollouts", "Per run",
+                                                    "Refine", "View"]
+                    assert len({round(t[2]) for t in tabs}) == 1, f"tabs in more than one row at {w}: {tabs}"
+                    assert max(t[1] + t[3] for t in tabs) <= list_x + list_w + 1, f"a tab past the panel at {w}"
+                    assert abs(list_w - panel_width(w)) <= 12, (w, list_w)  # the panel as sized for the window
+                    page.screenshot(path=str(tmp_path / f"app-{w}.png"))
+                    if shots:
+                        page.screenshot(path=os.path.join(shots, f"app-{w}.png"))
+                    if w == 1920:
+                        page.close()
+                assert panel_width(1920) >= 1.15 * panel_width(1280)  # a wide window, a wider panel
+
+                n = _input(page, "N1hat")
+                n.fill(str(int(app.settings.n_runs) + 3))
+                n.press("Tab")
+                page.get_by_text("press Collect").first.wait_for(timeout=30_000)
+                body = page.inner_text("body")
+                status = app.status.content
+                assert "**N1hat**" in status and "winning domain" in status and "rollouts" in status, status
+                assert "data (data gaps)" in status and "certificate (gamma)" in status, status
+                # the estimate: the engine's cost model (pairs x N1hat simulator steps) and a time
+                assert "simulator steps" in body and ("about" in status or "time not estimated yet" in status)
+                deadline = time.time() + 120  # the simulator's rate is timed in the background (slow under load)
+                while "about" not in app.status.content and time.time() < deadline:
+                    time.sleep(0.2)
+                assert "simulator steps, about" in app.status.content, app.status.content
+                if shots:
+                    page.screenshot(path=os.path.join(shots, "app-1280-n1hat.png"))
+
+                S.show_tab(page, "Certificate", settle=1.0)
+                page.get_by_role("button", name="Certify").click(force=True, no_wait_after=True)
+                deadline = time.time() + 300
+                while not stages and time.time() < deadline:
+                    time.sleep(0.05)
+                out = app.wait(300)
+                assert out.ok, out.error
+                names = [s for s, _ in stages]
+                assert names[0] == "collect" and "certify" in names, names
+                assert names.index("certify") > max(i for i, s in enumerate(names) if s == "collect"), names
+                during = [st for s, st in stages if s == "collect"]
+                assert all(st.startswith("**collect** (then certify):") and "elapsed" in st for st in during), during
+                assert any("left" in st for st in during), during  # the time left (estimate, then the rate)
+                # the winning domain and the rollouts are still shown, marked stale; the status says so
+                assert app.results["synthesize"] is shown_syn and app.results["rollout"] is shown_ro
+                assert {"synthesize", "rollout"} <= set(app.stale_stages())
+                page.get_by_text("stale: re-synthesize, roll out again").first.wait_for(timeout=30_000)
+                page.evaluate("() => document.querySelector('.uplot').scrollIntoView({block: 'center'})")
+                time.sleep(1.5)
+                # the label shown and the longest the pendulum's charts can carry (units of 1e-3 rad/s)
+                for label in (app.panels["certificate"].slice_plot.axes[1]["label"], y_label("rad/s", -3)):
+                    width, height = _label_fits(page, label)
+                    assert width <= height, f"y label {label!r} ({width:.0f} px) longer than the plot ({height:.0f} px)"
+                if shots:
+                    page.screenshot(path=os.path.join(shots, "app-1280-after-certify.png"))
+            finally:
+                b.close()
+    finally:
+        app.stop()
+
+
+def test_chart_y_label_is_short():
+    from simgap_viz.panels.plots import y_label
+    assert y_label("rad/s", -3) == "gamma, gap [1e-3 rad/s]"
+    assert y_label("m", 0) == "gamma, gap [m]" and y_label("", 0) == "gamma, gap" and y_label("", 5) == "gamma, gap [1e5]"

@@ -228,3 +228,39 @@ def test_invariant_set_figure_draws_projections(tmp_path, captured):
     # a run without any proved set: no figure
     run.nominal = None
     assert figures.invariant_sets(run, None, tmp_path / "none") == []
+
+
+def test_states_time_names_the_mean_maps_input_switch():
+    """The states_time note names the step where the mean map's input switches (its jump), with the
+    two inputs of the controller at the mean; a method whose mean-map input never switches in the
+    horizon's second half is not named."""
+    from simgap_viz.figures import mean_map_switch_note
+
+    T, tau = 40, 0.01
+    mean = np.zeros((T + 1, 2))
+    mm = mean.copy()
+    mm[31:, 1] = 0.02  # the jump: m_31 - m_30 = 0.02 in the second state
+    inputs = np.array([[-1.0], [0.0], [0.6]])
+
+    class Ctrl:
+        def __init__(self, idx):
+            self.idx, self.inputs = idx, inputs
+
+        def input_index(self, x):
+            assert x.shape == (T, 2)  # the input at every mean-map state that takes a step
+            return self.idx
+
+    switch = np.zeros(T, int)
+    switch[30:] = 2  # the input applied at m_30 (the step to m_31) is 0.6, before it -1
+    system = types.SimpleNamespace(x_lo=np.array([-1.0, -1.0]), x_hi=np.array([1.0, 1.0]), state_names=["theta", "omega"])
+
+    def method(idx):
+        ro = types.SimpleNamespace(mean_map_trajectory=mm, mean_trajectory=mean, tau=tau)
+        return types.SimpleNamespace(rollouts=ro, synthesis=types.SimpleNamespace(controller=Ctrl(idx)))
+
+    run = types.SimpleNamespace(system=system, methods={"deterministic": method(switch),
+                                                        "stochastic": method(np.zeros(T, int))})
+    note = mean_map_switch_note(run, ["deterministic", "stochastic"])
+    assert "deterministic gap, t = 0.3 s: omega steps by +0.02 as the input at the mean switches from -1 to 0.6" in note
+    assert "stochastic gap" not in note and "no angle wrap" in note
+    assert mean_map_switch_note(run, ["stochastic"]) == ""

@@ -293,3 +293,54 @@ def test_view_killed_leaves_no_viewer(tmp_path, run_results):
     while time.time() < deadline and not all(_port_free(p) for p in ports):
         time.sleep(0.5)
     assert all(_port_free(p) for p in ports), "the viewer outlived a killed `simgap view`"
+
+
+def _descendants(pid: int) -> list:
+    """(pid, state, name) of every live descendant of ``pid`` (Linux /proc)."""
+    procs = {}
+    for d in os.listdir("/proc"):
+        if d.isdigit():
+            try:
+                stat = open(f"/proc/{d}/stat").read()
+            except OSError:
+                continue
+            name = stat[stat.index("(") + 1:stat.rindex(")")]
+            state, ppid = stat[stat.rindex(")") + 2:].split()[:2]
+            procs[int(d)] = (int(ppid), state, name)
+    out, todo = [], [pid]
+    while todo:
+        p = todo.pop()
+        kids = [(c, s, n) for c, (pp, s, n) in procs.items() if pp == p]
+        out += kids
+        todo += [c for c, _, _ in kids]
+    return out
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc"), reason="reads the process tree from /proc")
+def test_view_starts_no_browser_and_leaves_no_process(tmp_path, run_results):
+    """`simgap view` runs the viewer alone: no browser child (the viewer's --web-viewer mode opened
+    one, a chromium it never reaped: a defunct process while it ran), no zombie, and after SIGTERM no
+    descendant of it is left. (Its idle CPU is measured by bench/bench_view_cpu.py, not timed here.)"""
+    import signal
+    import time
+
+    from simgap_viz.record import record_run
+    ds, cert, spec, syn, ro, _ = run_results
+    run = tmp_path / "run"
+    run.mkdir()
+    record_run(run / "run.rrd", ds.system, dataset=ds, certificate=cert, spec=spec, synthesis=syn, rollouts=ro,
+               method="stochastic")
+    proc, url = _start_view([run, "--web-port", 0, "--grpc-port", 0], tmp_path)
+    try:
+        time.sleep(6)  # the browser the old command line opened appeared within a few seconds
+        tree = _descendants(proc.pid)
+        assert tree, "no viewer process under simgap view"
+        assert all(n == "rerun" for _, _, n in tree), tree  # the viewer, no browser
+        assert not [t for t in tree if t[1] == "Z"], tree
+        pids = [p for p, _, _ in tree]
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(30)
+    time.sleep(0.5)
+    left = [p for p in pids if os.path.exists(f"/proc/{p}")]
+    assert not left, f"processes left after simgap view ended: {left}"

@@ -563,3 +563,51 @@ def test_newer_settings_supersede_a_running_certify_quietly(app):
     app.cancel()
     app.wait(60)
     assert app.notifications[-1][0] == "Cancelled"
+
+
+def test_status_names_stale_layers_next_button_and_the_running_stage():
+    """Without a browser: after a settings change the status names the stale layers and the button
+    to press with the engine's collection estimate; a Certify that must collect reports progress as
+    "collect" (then "certify"), with the time elapsed; a new collection keeps the winning domain and
+    the rollouts, marked stale; the estimate's numbers are the engine's cost model."""
+    from simgap.cover import estimate_cost
+    from simgap_viz import engine
+    from simgap_viz.app import SimgapApp
+    a = SimgapApp(port=0, executor="serial", settings=Settings(epsilon=0.1, n_runs=5, noise_std=0.05))
+    names = []
+    report = a.jobs._on_progress
+    a.jobs._on_progress = lambda name, f: (names.append((name, a.jobs.context.name)), report(name, f))
+    try:
+        assert "next: press **Collect**" in a.settings_status()
+        a.certify()
+        out = a.wait(120)
+        assert out.ok, out.error
+        stages = [n for n, _ in names]
+        assert stages[0] == "collect" and stages[-1] == "certify" and {j for _, j in names} == {"certify"}, names
+        # the nominal model alone has a winning domain at this grid (as in test_synthesize_and_rollout_layers)
+        a.update_settings(use_gap=False, eta=(0.005, 0.01), hold=1, n_rollouts=50, horizon=100)
+        a.synthesize()
+        assert a.wait(120).ok
+        a.rollout()
+        assert a.wait(300).ok
+        syn, ro = a.results["synthesize"], a.results["rollout"]
+        assert a.stale_stages() == [] and a.next_action() is None
+        a.update_settings(n_runs=6)
+        st = a.status.content
+        assert st.startswith("changed: **N1hat**") and "next: press **Collect**" in st, st
+        for layer in ("data (data gaps)", "certificate (gamma)", "winning domain", "rollouts"):
+            assert layer in st, (layer, st)
+        est = engine.collect_estimate(a.settings, a.system)
+        cover, _ = engine._collect_setup(a.settings, a.system)
+        ref = estimate_cost(cover, 6)
+        assert (est.n_pairs, est.sim_steps) == (ref.n_pairs, ref.sim_steps)
+        assert f"{ref.n_pairs:,} (x_r, u) pairs x N1hat 6 = {ref.sim_steps:,} simulator steps" in st, st
+        a.collect()
+        assert a.wait(120).ok
+        # the new data set keeps the winning domain and the rollouts on screen, marked stale
+        assert a.results["synthesize"] is syn and a.results["rollout"] is ro
+        assert a.stale == {"synthesize", "rollout"} and a.results["certify"] is None
+        assert a.next_action() == "certify" and "next: press **Certify**" in a.status.content, a.status.content
+        assert a.timings["collect"] > 0 and "collect" in a._estimates
+    finally:
+        a.stop()

@@ -378,7 +378,18 @@ def draw_gamma(app) -> dict:
     else:
         _remove(app, "/gamma/surface")
     out["shown"] = legend["shown"] = shown
-    # the data gaps are heights on the surface's scale: drawn with the surface (or before any certificate)
+    # the data gaps are heights on the surface's scale: drawn with the surface (or before any certificate),
+    # always over the surface's square behind the map, with its axes: raised points drawn over the map
+    # itself would spill past the map's square in the view from above and hide the winning domain
+    bare = gamma is None and pts is not None and pts["points"].shape[0] and app.layers_visible["data"]
+    if bare:
+        rng = G.variable_ranges(s)
+        vnames, vunits = G.variable_names(s), list(units(s)[0]) + list(units(s)[1])
+        _remove(app, "/gamma/axes")
+        _square_axes(sc, "/gamma/axes", rng[[v["a"], v["b"]], 0], rng[[v["a"], v["b"]], 1],
+                     [labelled(vnames[j], vunits[j]) for j in (v["a"], v["b"])], SURFACE_OFFSET)
+    elif gamma is None:
+        _remove(app, "/gamma/axes")
     if pts is not None and pts["points"].shape[0] and app.layers_visible["data"] and (shown or gamma is None):
         p = pts["points"].copy()
         p[:, 2] *= z
@@ -392,19 +403,20 @@ def draw_gamma(app) -> dict:
         else:
             colors = pts["colors"]
         sc.add_point_cloud("/gamma/data", points=p, colors=colors, point_size=0.007, point_shape="circle",
-                           position=SURFACE_OFFSET if shown else (0.0, 0.0, 0.0))
+                           position=SURFACE_OFFSET)
         out["points"] = p
         legend["points"] = int(p.shape[0])
         app.last_data_covered = pts["covered"]
     else:
         _remove(app, "/gamma/data")
-    if shown:
+    legend["elevated"] = elevated = bool(shown or bare)  # something stands on the surface's square
+    if elevated:
         _draw_zaxis(app, top, legend["dim"] + (f" [{legend['unit']}]" if legend["unit"] else ""))
     else:
         _remove(app, "/zaxis")
-    was = (app.legend or {}).get("shown")
+    was = (app.legend or {}).get("elevated")
     app.legend = legend
-    if was is not None and was != shown:  # the scene's height changed: refit the camera
+    if was is not None and was != elevated:  # the scene's height changed: refit the camera
         fit_camera(app)
     return out
 
@@ -555,7 +567,7 @@ def show_time(app, t) -> None:
 def scene_bounds(app) -> tuple:
     """(lo (3,), hi (3,)) of everything drawn: the square, the surface's [0, 1] heights, the
     pendulum beside it, the refinement plane."""
-    surface = bool((getattr(app, "legend", None) or {}).get("shown"))
+    surface = bool((getattr(app, "legend", None) or {}).get("elevated"))
     lo, hi = np.array([-1.1, -1.1, 0.0]), np.array([1.1, 1.1, 0.1])
     if surface:  # the surface's square behind the map, heights up to 1 and the axis name above
         hi[1], hi[2] = SURFACE_OFFSET[1] + 1.1, 1.15
@@ -581,24 +593,51 @@ def fit_camera(app, clients=None) -> None:
     lo, hi = scene_bounds(app)
     c = 0.5 * (lo + hi)
     r = 0.5 * float(np.linalg.norm(hi - lo))
-    surface = bool((getattr(app, "legend", None) or {}).get("shown"))
+    surface = bool((getattr(app, "legend", None) or {}).get("elevated"))
     d = np.array([-0.3, -1.0, 1.0]) if surface else np.array([-0.08, -0.4, 1.0])  # the flat map: from high above
     d /= np.linalg.norm(d)
     right = np.cross(-d, [0.0, 0.0, 1.0])
     right /= np.linalg.norm(right)
+    dist = r * 1.75 if surface else max(r * 1.12, 2.4)  # the flat map: close, but whole
     look = c + 0.3 * r * right  # the control panel covers the canvas' right third
-    pos = look + d * (r * 1.75 if surface else max(r * 1.12, 2.4))  # the flat map: close, but whole
+    pos = look + d * dist
     app.server.initial_camera.position = tuple(pos)
     app.server.initial_camera.look_at = tuple(look)
     app.server.initial_camera.up = (0.0, 0.0, 1.0)
+    windows = getattr(app, "windows", {})
     for client in (list(app.server.get_clients().values()) if clients is None else clients):
+        win = windows.get(getattr(client, "client_id", None))
+        cl_look, cl_pos = look, pos
+        if win is not None:  # this window's size and panel: the scene centred in the part the panel leaves
+            cl_look, cl_pos = _fit_to_window(c, d, right, dist, win["size"], win["panel"], closer=not surface)
         try:
             with client.atomic():
                 client.camera.up_direction = (0.0, 0.0, 1.0)
-                client.camera.position = tuple(pos)
-                client.camera.look_at = tuple(look)
+                client.camera.position = tuple(cl_pos)
+                client.camera.look_at = tuple(cl_look)
         except Exception:  # a client that just went away
             pass
+
+
+#: the free canvas' aspect (width left of the panel / height) the distances of fit_camera were chosen
+#: for: 1280 x 800 with the panel covering 30 % of the width
+_FREE_ASPECT = 1.6 * 0.7
+_FOV = np.deg2rad(75.0)  # viser's default vertical field of view
+
+
+def _fit_to_window(c, d, right, dist: float, size, panel: float, closer: bool = True) -> tuple:
+    """(look_at, position) that centre the scene in the canvas left of the panel: the camera turns
+    right by the panel's share of the half width at the look-at distance; the distance grows when the
+    free part is narrower than the one the distances were chosen for and, with ``closer`` (the flat
+    map seen from above, not the taller scene with the surface's square, which already fills the
+    height), shrinks by at most 15 % when it is wider, so a wide window shows a larger map."""
+    w, h = float(size[0]), float(max(size[1], 1))
+    share = min(max(panel / max(w, 1.0), 0.0), 0.6)
+    free = (w / h) * (1.0 - share)
+    dist = dist * float(np.clip(_FREE_ASPECT / free, 0.85 if closer else 1.0, 2.0))
+    half_width = dist * np.tan(_FOV / 2.0) * (w / h)
+    look = c + share * half_width * right
+    return look, look + d * dist
 
 
 # ----- refinement residuals ----------------------------------------------------------------------

@@ -24,6 +24,15 @@ def _axes(x: str, y: str) -> tuple:
     return ({"label": x, "size": 40}, {"label": y, "size": 72})
 
 
+def y_label(unit: str, k: int = 0) -> str:
+    """gamma's axis label: "gamma, gap [1e-3 rad/s]" (values in units of 10^k of the state's unit, a
+    next state's, per step). Short: uPlot clips a rotated label longer than the chart is high, which
+    the earlier "gamma, gap [rad/s/step] [x 1e-3]" was in the panel (tests/test_browser_app.py)."""
+    scale = f"1e{k}" if k else ""
+    inner = " ".join(t for t in (scale, unit) if t)
+    return "gamma, gap" + (f" [{inner}]" if inner else "")
+
+
 def _empty(plot) -> None:
     plot.visible = False
 
@@ -60,12 +69,10 @@ def gamma_slice(app, plot, res: int = 161) -> int:
     top = float(np.nanmax(np.concatenate([gam, gap])))
     k = int(np.floor(np.log10(top))) if top > 0 else 0
     k = k if (k < -2 or k > 3) else 0
-    unit = f" [x 1e{k}]" if k else ""
     plot.data = (xs, gam / 10.0 ** k, gap / 10.0 ** k)
     su, iu = units(s)
     vu = (list(su) + list(iu))[a]
-    # short: the panel's chart is narrow and uPlot clips a long axis label
-    plot.axes = _axes(labelled(names[a], vu), "gamma, gap" + (f" [{su[dim]}/step]" if su[dim] else "") + unit)
+    plot.axes = _axes(labelled(names[a], vu), y_label(su[dim], k))
     # from 0: gamma and gaps are >= 0, and a flat gamma (a constant certificate) has no range of
     # its own for uPlot to scale to
     plot.scales = {"x": {"time": False}, "y": {"range": (0.0, 1.1 * top / 10.0 ** k if top > 0 else 1.0)}}

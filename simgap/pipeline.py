@@ -35,7 +35,7 @@ from .errors import SimgapError
 # the specification of an experiment lives in simgap.experiment_spec (the per-run stage needs it too);
 # re-exported here, its old home
 from .experiment_spec import experiment_spec  # noqa: F401
-from . import invariant_stage
+from .synthesis import invariant_stage
 from .simulators import make_simulator
 
 METHODS = ("deterministic", "stochastic")
@@ -291,7 +291,8 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
                 for m, e in (("stochastic", exp), ("deterministic", baseline_experiment(exp)))}
         sim = sims["stochastic"]  # audits and rollouts run against the stochastic simulator
         controllers = {}
-        invariant = checked["method"] == "invariant_set"
+        invariant = checked["method"] in invariant_stage.SET_METHODS  # a proved set (ellipsoid or box tube)
+        tube = checked["method"] == "box_tube"
 
         def roll_out(method, sres, entry):
             """R rollouts from x0 (and, for an invariant set, from states drawn in E) into ``entry``."""
@@ -315,8 +316,13 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
                 entry["per_run_empirical"] = per_run_empirical(rr)
                 if arena is not None:
                     entry["closest_approach"] = closest_approach(arena, rr)
+                if tube:  # reach and stay: in the terminal box at every period from T0 on
+                    stay = sres.controller.reached_and_stayed(rr.trajectories)
+                    entry["reach_and_stay"] = {"T0": sres.controller.T0, "held": int(stay.sum()), "of": int(stay.size),
+                                               "mean_map_in_tube": None if rr.mean_map is None else
+                                               bool(rr.mean_map["left_domain_time"] < 0)}
             k = int(syn.get("set_states", 20))
-            if invariant and not sres.empty and k:
+            if invariant and not tube and not sres.empty and k:  # a tube is proved from x0 only
                 entry["rollouts_in_set"] = stage(f"rollout-in-E/{method}", lambda: invariant_stage.rollouts_in_set(
                     sres.controller, sim, k, R, ro.get("horizon"), int(ro.get("seed", 11)) + 1000,
                     ro.get("on_exit", "hold"), log))
@@ -403,7 +409,8 @@ def comparison_table(summary: dict) -> str:
     names = summary["system"]["state_names"]
     cols = [m for m in METHODS + ("nominal",) if m in summary["methods"]]
     rows = [("",) + tuple(cols)]
-    invariant = (summary.get("sections", {}).get("synthesis") or {}).get("method") == "invariant_set"
+    method = (summary.get("sections", {}).get("synthesis") or {}).get("method")
+    invariant = method in invariant_stage.SET_METHODS
 
     def fmt(v, f="{:.4g}"):
         return "-" if v is None else f.format(v)
@@ -434,8 +441,17 @@ def comparison_table(summary: dict) -> str:
         rows.append(("gap margin s (invariant if <= s x gap)",
                      *both(lambda e: e["synthesis"].get("gap_scale_text", "-") if e["winning_cells"] else
                            ("-" if e["synthesis"].get("gap_scale") is None else f"{e['synthesis']['gap_scale']:.3g} < 1"))))
-        rows.append(("E half-widths", *both(lambda e: str(e["synthesis"].get("half_widths")) if e["winning_cells"]
-                                            else "-")))
+        if method == "box_tube":
+            rows.append(("terminal box half-widths H", *both(
+                lambda e: str(np.round(e["synthesis"]["H"], 6).tolist()) if e["winning_cells"] else "-")))
+            rows.append(("reach and stay (runs)", *both(
+                lambda e: f"{e['reach_and_stay']['held']} / {e['reach_and_stay']['of']} after period "
+                          f"{e['reach_and_stay']['T0']}" if "reach_and_stay" in e else "-")))
+            rows.append(("mean map inside the tube", *both(
+                lambda e: str(e["reach_and_stay"]["mean_map_in_tube"]) if "reach_and_stay" in e else "-")))
+        else:
+            rows.append(("E half-widths", *both(lambda e: str(e["synthesis"].get("half_widths")) if e["winning_cells"]
+                                                else "-")))
         rows.append(("x0 in E", *both(lambda e: str(e["synthesis"].get("x0_inside", "-")) if e["winning_cells"]
                                       else "-")))
     else:

@@ -183,6 +183,9 @@ class Controller:
                                       f"{VERSION}: files without a content digest are refused; synthesize again)")
                 if meta.get("kind") == "invariant_set":  # u = u* + K (x - x*) on an ellipsoid
                     return EllipsoidController.from_arrays(path, z, meta, system)
+                if meta.get("kind") == "box_tube":  # u = u_nom(t) + K (x - x_nom(t)) on a box tube
+                    from .tube_controller import TubeController
+                    return TubeController.from_arrays(path, z, meta, system)
                 arrays = {k: z[k] for k in ("steps", "valid", "chosen", "target", "inputs")}
         except SimgapError:
             raise

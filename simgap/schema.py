@@ -196,9 +196,10 @@ class SynthesisSection(Section):
     nominal: bool = True
     target_lo: Optional[list[Finite]] = None
     target_hi: Optional[list[Finite]] = None
-    shells: Int1 = 8
+    shells: Int1 = 16
     input_margin: Annotated[float, Field(ge=0.0, lt=1.0)] = 0.3
     margin_search: bool = True
+    terminal: Literal["largest", "smallest"] = "largest"
 
 
 class RolloutSection(Section):

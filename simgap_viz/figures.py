@@ -456,6 +456,12 @@ def invariant_sets(run, spec, out_dir: Path, max_drawn: int = 1000, style: str =
                 hi.append(X.reshape(-1, 2).max(axis=0))
             E = res.invariant_set.projection_outline((a, b))
             ax.plot(E[:, 0], E[:, 1], color=color, lw=1.4, zorder=8, gid=f"E:{m}:{a},{b}")
+            if hasattr(res.invariant_set, "outlines"):  # a box tube: its boxes along the plan, thin
+                tube = res.invariant_set
+                for R_ in tube.outlines((a, b), every=max(1, tube.T0 // 40))[:-1]:
+                    ax.plot(R_[:, 0], R_[:, 1], color=color, lw=0.4, alpha=0.5, zorder=6)
+                    lo.append(R_.min(axis=0))
+                    hi.append(R_.max(axis=0))
             ax.plot(*res.invariant_set.x_star[[a, b]], "+", color=color, ms=5, zorder=8)
             lo.append(E.min(axis=0))
             hi.append(E.max(axis=0))

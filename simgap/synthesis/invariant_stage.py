@@ -50,9 +50,11 @@ def check_section(system, syn: dict, spec) -> None:
         if "target_lo" in syn and any(a >= b for a, b in zip(syn["target_lo"], syn["target_hi"])):
             raise SimgapError(f"[synthesis] target_lo must be below target_hi in every state, got "
                               f"{syn['target_lo']!r} and {syn['target_hi']!r}")
-        sh = syn.get("shells", 8)
+        sh = syn.get("shells", 16)
         if not isinstance(sh, int) or sh < 1:
             raise SimgapError(f"[synthesis] shells: an integer >= 1, got {sh!r}")
+        if syn.get("terminal", "largest") not in ("largest", "smallest"):
+            raise SimgapError(f"[synthesis] terminal: \"largest\" or \"smallest\", got {syn['terminal']!r}")
         im = syn.get("input_margin", 0.3)
         if not isinstance(im, (int, float)) or not 0 <= im < 1:
             raise SimgapError(f"[synthesis] input_margin: a number in [0, 1), got {im!r}")
@@ -81,7 +83,8 @@ def synthesize(system, spec, gap, syn: dict, x0=None):
                                    target_lo=syn.get("target_lo"), target_hi=syn.get("target_hi"),
                                    shells=int(syn.get("shells", SHELLS)),
                                    input_margin=float(syn.get("input_margin", INPUT_MARGIN)),
-                                   margin_search=bool(syn.get("margin_search", True)))
+                                   margin_search=bool(syn.get("margin_search", True)),
+                                   terminal=syn.get("terminal", "largest"))
     from .invariant_set import synthesize_invariant_set
     return synthesize_invariant_set(system, spec, gap, x_star=syn.get("x_star"), u_star=syn.get("u_star"),
                                     K=syn.get("K"), lqr_q=syn.get("lqr_q"), lqr_r=syn.get("lqr_r"),

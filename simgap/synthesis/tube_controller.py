@@ -3,8 +3,9 @@
 A time-varying controller (``time_varying = True``): rollouts and the mean map pass the period
 ``t`` (controller periods since x0) to ``input``, ``input_index`` and ``winning``. Its set at t
 is the proved box x_nom(t) +- h_t for t <= T0, then the terminal box x* +- H
-(:mod:`simgap.synthesis.box_tube`). Outside it, ``input_index`` is -1 and ``input(strict=False)``
-NaN (the rollouts then hold the previous input, as for the other controllers).
+(:mod:`simgap.synthesis.box_tube`). The boxes bound the MEAN state (the paper's Theorem 1); a
+single noisy run may leave them, so the law is applied at every state (``input_index`` is always 0,
+``input(strict=False)`` never NaN): a run that left the tube gets the feedback, not a held input.
 
 File format (``.npz``, no pickle; :mod:`.controller_file`): arrays ``x_nom`` (T0 + 1, n),
 ``u_nom`` (T0, m), ``K`` (m, n), ``x_star`` (n,), ``u_star`` (m,), ``H`` (n,), ``radii``
@@ -107,21 +108,29 @@ class TubeController:
 
     # ----- inputs ---------------------------------------------------------------------
     def input(self, x, strict: bool = True, t: int = 0) -> np.ndarray:
-        """(B, m) u_t(x). Outside the box at t: SimgapError with ``strict``, else NaN rows."""
+        """(B, m) u_t(x). With ``strict``, SimgapError for a state outside the box at t; without, the
+        law at every state (the tube bounds the MEAN state; a single noisy run may leave it and still
+        gets the feedback, never a held input)."""
         x = np.atleast_2d(np.asarray(x, dtype=float))
         if strict:
             self.check_winning(x, "state", t)
         t = int(t)
         if t < self.T0:
-            u = self.u_nom[t] + (x - self.x_nom[t]) @ self.K.T
-        else:
-            u = self.u_star + (x - self.x_star) @ self.K.T
-        u[~self.winning(x, t)] = np.nan
-        return u
+            return self.u_nom[t] + (x - self.x_nom[t]) @ self.K.T
+        return self.u_star + (x - self.x_star) @ self.K.T
 
     def input_index(self, x, t: int = 0) -> np.ndarray:
-        """(B,) 0 inside the box at t (the feedback law applies), -1 outside."""
-        return np.where(self.winning(x, t), 0, -1).astype(np.int64)
+        """(B,) 0: the feedback law applies at every state (see :meth:`input`; membership of the proved
+        boxes is :meth:`winning`, of whole trajectories :meth:`inside`)."""
+        return np.zeros(np.atleast_2d(x).shape[0], dtype=np.int64)
+
+    def inside(self, traj) -> np.ndarray:
+        """(R,) bool: trajectories (R, T + 1, n) (period 0 = x0) inside the proved box of every period."""
+        traj = np.asarray(traj, dtype=float)
+        T = traj.shape[1]
+        c = np.concatenate([self.x_nom[:T], np.repeat(self.x_star[None], max(0, T - self.T0 - 1), axis=0)])
+        r = np.concatenate([self.radii[:T], np.repeat(self.H[None], max(0, T - self.T0 - 1), axis=0)])
+        return np.all(np.abs(traj - c) <= r + TOL * (1.0 + np.abs(c)), axis=(1, 2))
 
     # ----- description ----------------------------------------------------------------
     def outlines(self, dims=(0, 1), every: int = 1) -> list:

@@ -104,6 +104,7 @@ class CollectSection(Section):
     spacing: Optional[list[Positive]] = None
     invariant_dims: list[Union[str, Int0]] = []
     fixed: dict[str, Finite] = {}
+    region: dict[str, Annotated[list[Finite], Field(min_length=2, max_length=2)]] = {}
     chunk_size: Optional[Int1] = None
     batch_runs: Int1 = 1 << 18
     keep_samples: bool = False

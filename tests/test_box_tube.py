@@ -186,7 +186,11 @@ def test_certificate_region_is_respected(cubic, proved):
         def gamma_upper_box(self, *a):  # marks a certificate for gap_bound
             raise AssertionError("not used: continuous certificates answer gamma_sup")
 
-        def gamma_sup(self, x_lo, x_hi, u_lo, u_hi):
+        def gamma_sup(self, x_lo, x_hi, u_lo, u_hi):  # refuses what a certificate refuses
+            if np.any(np.asarray(u_lo) < -4) or np.any(np.asarray(u_hi) > 4):
+                raise SimgapError("inputs outside the certified input box")
+            if np.any(np.asarray(x_lo) < cubic.x_lo) or np.any(np.asarray(x_hi) > cubic.x_hi):
+                raise SimgapError("states outside X")
             return GAP.copy()
 
     c = proved.controller
@@ -197,6 +201,11 @@ def test_certificate_region_is_respected(cubic, proved):
     v = bt.verify_tube(*args, LocalGap([-0.2, -2.0], [0.2, 2.0]))
     bad = {c["name"]: c["what"] for c in v.failed()}
     assert not v.ok and "leaves the certificate's region" in bad["boxes inside the certificate's region"]
+    # the tolerable-gap search grows the boxes past the inputs and states the gap covers: failed proofs,
+    # never the certificate's refusal
+    imap = IntervalMap(cubic)
+    scale = bt.tolerable_scale(*args[:2], *args[2:], LocalGap([-1.0, -2.0], [1.0, 2.0]), imap, bt.SHELLS)
+    assert 1.0 <= scale < 100
 
 
 # ---------------------------------------------------------------------------------------

@@ -135,6 +135,17 @@ def _check_region(gap, lo, hi, what):
     return ""
 
 
+def _gap_over(gap, system: System, blo, bhi, ulo, uhi, u_range):
+    """gap_bound over the state box clipped to X and the input box clipped to ``u_range`` (the certified
+    input range): harmless for the proof, whose conditions separately require the boxes inside the safe
+    set (within X) and the inputs inside the range (a box outside either fails the proof anyway), and
+    a certificate refuses boxes outside what it covers."""
+    blo, bhi = np.clip(blo, system.x_lo, system.x_hi), np.clip(bhi, system.x_lo, system.x_hi)
+    if u_range is not None:
+        ulo, uhi = np.clip(ulo, u_range[0], u_range[1]), np.clip(uhi, u_range[0], u_range[1])
+    return gap_bound(gap, system.n, blo, bhi, ulo, uhi)
+
+
 def terminal_bound(A, d, G0, max_s: int = MAX_S):
     """(need (n,), alpha, s, mrpi (n,)): the bound of (I) in the module docstring for
     e+ = A e + delta, |delta| <= d > 0, from e in the zonotope G0 B (centre 0). Every s with
@@ -228,7 +239,7 @@ def _ratio(width, room):
 
 
 def tube_phases(system: System, plan: TubePlan, gap, imap: IntervalMap, shells: int = SHELLS,
-                factors=(1.0,), keep_sets: bool = False) -> list:
+                factors=(1.0,), keep_sets: bool = False, u_range=None) -> list:
     """(T)'s propagation for each gap factor f (one batched interval evaluation per period):
     Z_0 = {0}, Z_{t+1} = Mc_t Z_t (+) box(Mr_t h_t + |r_t| + f w_t) (module docstring). Returns one
     dict per factor: the last generators G (n, p), the half-widths h_t (T0 + 1, n), the inputs'
@@ -265,7 +276,7 @@ def tube_phases(system: System, plan: TubePlan, gap, imap: IntervalMap, shells: 
                 region[f] = region[f] or msg
                 W[f, t] = np.inf
             else:
-                w, how = gap_bound(gap, n, blo, bhi, u_nom[t] - hu[f], u_nom[t] + hu[f])
+                w, how = _gap_over(gap, system, blo, bhi, u_nom[t] - hu[f], u_nom[t] + hu[f], u_range)
                 hows[f].add(how)
                 W[f, t] = fac[f] * np.asarray(w, float)
         k = idx.size
@@ -286,13 +297,13 @@ def tube_phases(system: System, plan: TubePlan, gap, imap: IntervalMap, shells: 
 
 
 def tube_phase(system: System, plan: TubePlan, gap, imap: IntervalMap, shells: int = SHELLS,
-               gap_factor: float = 1.0, keep_sets: bool = False) -> dict:
+               gap_factor: float = 1.0, keep_sets: bool = False, u_range=None) -> dict:
     """:func:`tube_phases` for one gap factor."""
-    return tube_phases(system, plan, gap, imap, shells, (gap_factor,), keep_sets)[0]
+    return tube_phases(system, plan, gap, imap, shells, (gap_factor,), keep_sets, u_range)[0]
 
 
 def terminal_phases(system: System, plan: TubePlan, Gs, Hs, gap, imap: IntervalMap, shells: int = SHELLS,
-                    factors=(1.0,)) -> list:
+                    factors=(1.0,), u_range=None) -> list:
     """(I)'s bound for the boxes x* +- H_f (Hs (F, n)) from Z'_f = (x_nom(T0) - x*) + G_f B (module
     docstring), one batched interval evaluation; one dict per row."""
     n, m = system.n, system.m
@@ -311,7 +322,7 @@ def terminal_phases(system: System, plan: TubePlan, Gs, Hs, gap, imap: IntervalM
         H, hu_H = Hs[f], HU[f]
         region = _check_region(gap, xs - H, xs + H, "the terminal box")
         w_H, how = (np.full(n, np.inf), "not certified outside the region") if region else \
-            gap_bound(gap, n, xs - H, xs + H, us - hu_H, us + hu_H)
+            _gap_over(gap, system, xs - H, xs + H, us - hu_H, us + hu_H, u_range)
         w_H = fac[f] * np.asarray(w_H, float)
         d = np.maximum(REM[f] + r_star + w_H, D_FLOOR * np.maximum(H, 1e-300))
         G0 = np.concatenate([Gs[f], (x_end - xs)[:, None]], axis=1)
@@ -398,9 +409,10 @@ def verify_tube(system: System, plan: TubePlan, safe_lo, safe_hi, u_lo, u_hi, ga
     lo = np.maximum(np.asarray(safe_lo, float), system.x_lo)
     hi = np.minimum(np.asarray(safe_hi, float), system.x_hi)
     u_lo, u_hi = np.asarray(u_lo, float), np.asarray(u_hi, float)
-    ph = _phase if _phase is not None else tube_phase(system, plan, gap, imap, shells, gap_factor)
+    ph = _phase if _phase is not None else tube_phase(system, plan, gap, imap, shells, gap_factor,
+                                                      u_range=(u_lo, u_hi))
     H = np.asarray(plan.H, float)
-    term = terminal_phases(system, plan, [ph["G"]], H[None], gap, imap, shells, (gap_factor,))[0]
+    term = terminal_phases(system, plan, [ph["G"]], H[None], gap, imap, shells, (gap_factor,), (u_lo, u_hi))[0]
     conds = judge(system, plan, H, ph, term, lo, hi, u_lo, u_hi, target_lo, target_hi)
     return _verification(ph, term, conds, gap_factor)
 
@@ -451,7 +463,8 @@ def design_H_batch(system, plan: TubePlan, lo, hi, u_lo, u_hi, gap, imap, shells
     One batched interval evaluation per round; returns a TubeVerification per factor."""
     fac = np.asarray(factors, float).ravel()
     F = fac.size
-    phases = phases if phases is not None else tube_phases(system, plan, gap, imap, shells, fac)
+    phases = phases if phases is not None else tube_phases(system, plan, gap, imap, shells, fac,
+                                                           u_range=(u_lo, u_hi))
     room = _room(plan, lo, hi, target_lo, target_hi)
     H = np.tile(1e-6 * room, (F, 1))
     done, capped = np.zeros(F, dtype=bool), np.zeros(F, dtype=bool)
@@ -460,7 +473,8 @@ def design_H_batch(system, plan: TubePlan, lo, hi, u_lo, u_hi, gap, imap, shells
         act = np.flatnonzero(~done)
         if act.size == 0:
             break
-        terms = terminal_phases(system, plan, [phases[f]["G"] for f in act], H[act], gap, imap, shells, fac[act])
+        terms = terminal_phases(system, plan, [phases[f]["G"] for f in act], H[act], gap, imap, shells, fac[act],
+                                (u_lo, u_hi))
         for term, f in zip(terms, act):
             conds = judge(system, plan, H[f], phases[f], term, lo, hi, u_lo, u_hi, target_lo, target_hi)
             out[f] = _verification(phases[f], term, conds, fac[f])
@@ -652,10 +666,11 @@ def synthesize_box_tube(system: System, spec: Spec, gap=None, *, x0, x_star=None
     if v.ok and terminal == "largest":
         # the largest box lam x room (lam = 1, 1/2, ..., 1/128) that still proves (one batched evaluation):
         # a weaker claim about the mean than H_min, but noisy runs then rarely leave it
-        ph = tube_phase(system, plan, gap, imap, int(shells))
+        ph = tube_phase(system, plan, gap, imap, int(shells), u_range=(u_lo, u_hi))
         room_t = _room(plan, lo, hi, target_lo, target_hi)
         cands = np.maximum(H_min, (0.5 ** np.arange(8))[:, None] * room_t * (1 - 1e-9))
-        terms = terminal_phases(system, plan, [ph["G"]] * len(cands), cands, gap, imap, int(shells))
+        terms = terminal_phases(system, plan, [ph["G"]] * len(cands), cands, gap, imap, int(shells),
+                                u_range=(u_lo, u_hi))
         for Hc, term in zip(cands, terms):
             if all(c["ok"] for c in judge(system, plan, Hc, ph, term, lo, hi, u_lo, u_hi, target_lo, target_hi)):
                 plan.H = Hc

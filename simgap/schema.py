@@ -190,6 +190,7 @@ class SynthesisSection(Section):
     x_star: Optional[list[Finite]] = None
     u_star: Optional[list[Finite]] = None
     K: Optional[list[list[Finite]]] = None
+    K_plan: Optional[list[list[Finite]]] = None
     lqr_q: Optional[list[Positive]] = None
     lqr_r: Optional[list[Positive]] = None
     solver: Literal["CLARABEL", "SCS"] = "CLARABEL"

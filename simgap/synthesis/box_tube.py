@@ -44,10 +44,10 @@ e_{t+1} = A e_t + delta_t with A = Mc and |delta_t| <= d = Mr H + |r*| + w_H. Pi
 |A^s| d <= alpha d componentwise, alpha < 1. By induction on t >= T0: if e_k in [-H, H] for
 T0 <= k < t, then with j = t - T0
 
-    |e_t| <= |A^j Z'| + sum_{i<j} |A^i| d
-          <= max( max_{i<s} v_i, alpha max_{i<s} c_i d ) + (1 - alpha)^-1 sum_{k<s} |A^k| d  =: need,
+    |e_t| <= |A^j G'| 1 + sum_{i<j} |A^i| d = v_j + S_j,
 
-Z' = (x_nom(T0) - x*) + Z_{T0} (its box hull mapped: v_i = |A^i G'| 1, c_i = max(v_i / d)), since
+Z' = (x_nom(T0) - x*) + Z_{T0} = G' B. need = max over j < J (2000) of v_j + S_j, and for j >= J
+alpha^floor(J/s) max_{i<s} c_i d + (1 - alpha)^-1 S_s (c_i = max(v_i / d)), since
 |A^(qs+i)| <= |A^i| |A^s|^q and |A^s|^q d <= alpha^q d. (I) holds when need <= H.
 
 The tolerable gap: :func:`tolerable_scale` is the largest factor s such that the proof still holds
@@ -84,6 +84,8 @@ PLAN_TOL = 1e-3
 MAX_PLAN = 5000
 #: longest s tried in the terminal bound
 MAX_S = 400
+#: periods after T0 over which the terminal bound follows the initial set and the disturbance sum exactly
+TERMINAL_HORIZON = 2000
 #: design rounds of the terminal box H (a fixed point of H -> need(H))
 H_ROUNDS = 40
 #: the smallest disturbance used in the terminal bound, relative to H (alpha needs d > 0)
@@ -146,39 +148,55 @@ def _gap_over(gap, system: System, blo, bhi, ulo, uhi, u_range):
     return gap_bound(gap, system.n, blo, bhi, ulo, uhi)
 
 
-def terminal_bound(A, d, G0, max_s: int = MAX_S):
-    """(need (n,), alpha, s, mrpi (n,)): the bound of (I) in the module docstring for
-    e+ = A e + delta, |delta| <= d > 0, from e in the zonotope G0 B (centre 0). Every s with
-    alpha_s = max(|A^s| d / d) < 1 gives a valid bound; their elementwise minimum is returned (with
-    the alpha and s of the first that attains the smallest max need / d). inf when no s <= max_s has
-    alpha_s < 1."""
+def terminal_bound(A, d, G0, max_s: int = MAX_S, horizon: int = TERMINAL_HORIZON):
+    """(need (n,), alpha, s, mrpi (n,)): the bound of (I) in the module docstring for e+ = A e + delta,
+    |delta| <= d > 0, from e in the zonotope G0 B (centre 0):
+
+        |e_j| <= v_j + S_j,  v_j = |A^j G0| 1,  S_j = sum_{i<j} |A^i| d,
+
+    taken exactly for j < J = ``horizon``; for j >= J, with any s such that alpha_s = max(|A^s| d / d)
+    < 1: v_j <= alpha_s^floor(J/s) max_{i<s} c_i d (c_i = max(v_i / d)) and S_j <= (1 - alpha_s)^-1
+    S_s (the mRPI set's box hull). Every s gives a valid bound; the elementwise minimum is returned
+    with the alpha and s of the smallest max need / d. inf when no s <= max_s has alpha_s < 1."""
     n = A.shape[0]
     d = np.asarray(d, float)
     if not (np.all(np.isfinite(G0)) and np.all(np.isfinite(d))):
         return np.full(n, np.inf), np.inf, 0, np.full(n, np.inf)
+    J = max(int(horizon), int(max_s))
     Ak = np.eye(n)
     S = np.zeros(n)
-    vmax = np.zeros(n)
-    cmax = 0.0
+    AG = np.asarray(G0, float)
+    prefix = np.zeros(n)       # max_{j < J} (v_j + S_j)
+    cmax = 0.0                 # max_{i < s} c_i, updated as s grows
     need = np.full(n, np.inf)
     mrpi = np.full(n, np.inf)
-    best = (np.inf, np.inf, 0)
-    for s in range(1, max_s + 1):
-        S = S + np.abs(Ak) @ d
-        v = np.abs(Ak @ G0).sum(axis=1)
-        vmax, cmax = np.maximum(vmax, v), max(cmax, float(np.max(v / d)))
-        Ak = A @ Ak
-        if not np.all(np.isfinite(Ak)):
-            break
-        alpha = float(np.max((np.abs(Ak) @ d) / d))
-        if alpha < 1.0:
-            tail = S / (1.0 - alpha)
-            ns = np.maximum(vmax, alpha * cmax * d) + tail
-            need, mrpi = np.minimum(need, ns), np.minimum(mrpi, tail)
-            if float(np.max(ns / d)) < best[0]:
-                best = (float(np.max(ns / d)), alpha, s)
-            if alpha < 1e-3:  # longer s shave at most 0.1 % more
+    tails = []                 # (s, alpha_s, c_s, S_s) for the s with alpha_s < 1
+    for j in range(J):
+        v = np.abs(AG).sum(axis=1)
+        prefix = np.maximum(prefix, v + S)
+        if j < max_s:
+            cmax = max(cmax, float(np.max(v / d)))
+        S = S + np.abs(Ak) @ d          # S_{j+1}
+        Ak = A @ Ak                     # A^(j+1)
+        AG = A @ AG
+        if not (np.all(np.isfinite(Ak)) and np.all(np.isfinite(AG))):
+            return np.full(n, np.inf), np.inf, 0, np.full(n, np.inf)
+        s = j + 1
+        if s <= max_s:
+            alpha = float(np.max((np.abs(Ak) @ d) / d))
+            if alpha < 1.0:
+                tails.append((s, alpha, cmax, S.copy()))
+        if tails and s % 25 == 0:  # stop once some s's bound beyond s is below the exact prefix
+            if any(np.all(a ** (s // s_) * c * d + Ss / (1.0 - a) <= prefix) for s_, a, c, Ss in tails):
+                J = s
                 break
+    best = (np.inf, np.inf, 0)
+    for s, alpha, c, Ss in tails:
+        tail = Ss / (1.0 - alpha)
+        ns = np.maximum(prefix, alpha ** (J // s) * c * d + tail)
+        need, mrpi = np.minimum(need, ns), np.minimum(mrpi, tail)
+        if float(np.max(ns / d)) < best[0]:
+            best = (float(np.max(ns / d)), alpha, s)
     return need, best[1], best[2], mrpi
 
 
@@ -421,6 +439,42 @@ def verify_tube(system: System, plan: TubePlan, safe_lo, safe_hi, u_lo, u_hi, ga
 # design
 # ---------------------------------------------------------------------------------------
 
+#: input-weight factors 10^c tried for the box-tolerant gain
+GAIN_EXPONENTS = (-3.0, -2.0, -1.0, -0.5, 0.0, 0.5, 1.0, 2.0)
+
+
+def box_tolerant_gain(A, B, x_star, u_star, room, uroom, gap, system: System):
+    """(K, how): among the LQR gains with q = 1 / room^2 (Bryson over the target box) and
+    r = 10^c / uroom^2 (c in GAIN_EXPONENTS), the one whose linear loop A + B K tolerates the largest
+    multiple of the gap d at x* (its sup over the target box and the input range) by the box hull of
+    the minimal RPI set, h = sum_k |(A + B K)^k| d (2000 terms): the largest s with s h <= room and
+    s |K| h <= uroom. A design heuristic only: the proof decides."""
+    n = A.shape[0]
+    try:
+        d, _ = _gap_over(gap, system, x_star - room, x_star + room, u_star - uroom, u_star + uroom, None)
+        d = np.asarray(d, float)
+    except SimgapError:
+        d = np.zeros(n)
+    d = np.maximum(np.where(np.isfinite(d), d, 0.0), 1e-6 * room)
+    best = None
+    for c in GAIN_EXPONENTS:
+        K = lqr_gain(A, B, 1.0 / room ** 2, 10.0 ** c / uroom ** 2)
+        Acl = A + B @ K
+        if spectral_radius(Acl) >= 1:
+            continue
+        h, Ak = np.zeros(n), np.eye(n)
+        for _ in range(2000):
+            h += np.abs(Ak) @ d
+            Ak = Acl @ Ak
+        score = min(float(np.min(room / h)), float(np.min(uroom / np.maximum(np.abs(K) @ h, 1e-300))))
+        if best is None or score > best[0]:
+            best = (score, c, K)
+    if best is None:
+        raise SimgapError("box tube: no LQR gain of the family stabilizes the linearization")
+    return best[2], (f"discrete LQR, Bryson's weights over the target box with the input weight x 10^{best[1]:g}, "
+                     f"chosen for box tolerance (linear mRPI estimate: {best[0]:.3g} x the gap at x*)")
+
+
 def plan_nominal(system: System, x0, x_star, u_star, K, u_lo, u_hi, margin: float = INPUT_MARGIN,
                  tol=None, max_steps: int = MAX_PLAN):
     """(x_nom (T0 + 1, n), u_nom (T0, m)): the saturated linear loop u = clip(u* + K (x - x*)) in the
@@ -566,7 +620,7 @@ class BoxTubeResult:
 def synthesize_box_tube(system: System, spec: Spec, gap=None, *, x0, x_star=None, u_star=None, K=None,
                         lqr_q=None, lqr_r=None, target_lo=None, target_hi=None, shells: int = SHELLS,
                         input_margin: float = INPUT_MARGIN, margin_search: bool = True,
-                        terminal: str = "largest") -> BoxTubeResult:
+                        terminal: str = "largest", K_plan=None) -> BoxTubeResult:
     """Design and prove a box tube from x0 to a box around x* (module docstring).
 
     Parameters
@@ -579,9 +633,16 @@ def synthesize_box_tube(system: System, spec: Spec, gap=None, *, x0, x_star=None
         The certified gap gamma per period (state units); None: the nominal model alone.
     x0 : (n,)
         The initial state (the tube starts at it exactly).
-    x_star, u_star, K, lqr_q, lqr_r
-        As for :func:`~simgap.synthesis.invariant_set.synthesize_invariant_set` (LQR with Bryson's
-        weights by default).
+    x_star, u_star
+        The equilibrium (default: least squares inside the target box, else the safe box).
+    K : (m, n), optional
+        The feedback gain. Default: :func:`box_tolerant_gain` (the LQR with Bryson's weights over the
+        target box and the input range, its input weight scaled by the factor 10^c, c in -3..2, that
+        tolerates the most gap by the linear mRPI estimate); with ``lqr_q``/``lqr_r`` the LQR with
+        those weights.
+    K_plan : (m, n), optional
+        The gain of the nominal plan (default: the LQR with Bryson's weights over the safe box, a
+        gentle loop that keeps the plan in X).
     target_lo, target_hi : optional
         The target box the state must reach and stay in (default: no target beyond S; the terminal
         box x* +- H is reported).
@@ -644,21 +705,30 @@ def synthesize_box_tube(system: System, spec: Spec, gap=None, *, x0, x_star=None
     if np.any(room <= 0) or np.any(uroom <= 0):
         raise SimgapError(f"box tube: the equilibrium x* = {x_star.tolist()}, u* = {u_star.tolist()} lies on the "
                           f"boundary of the safe/target box or of the input range: no room")
-    if K is None:
+    sroom = np.minimum(x_star - lo, hi - x_star)
+    if K is None or K_plan is None:
         check_stabilizable(A, B, system.state_names)
-        # Bryson's weights over the safe box (the target's room would make the plan aggressive)
-        sroom = np.minimum(x_star - lo, hi - x_star)
-        q = 1.0 / sroom ** 2 if lqr_q is None else np.broadcast_to(np.asarray(lqr_q, float), (n,))
-        rr = 1.0 / uroom ** 2 if lqr_r is None else np.broadcast_to(np.asarray(lqr_r, float), (m,))
-        if np.any(q < 0) or np.any(rr <= 0):
-            raise SimgapError("box tube: LQR weights need q >= 0 and r > 0")
-        K, K_how = lqr_gain(A, B, q, rr), "discrete LQR of the linearization"
+    if K_plan is None:  # the plan: Bryson's weights over the safe box (gentle: the plan must stay in X)
+        K_plan = lqr_gain(A, B, 1.0 / sroom ** 2, 1.0 / uroom ** 2)
+    else:
+        K_plan = _parse_matrix(K_plan, m, n)
+    if K is None:
+        if lqr_q is not None or lqr_r is not None:
+            q = 1.0 / room ** 2 if lqr_q is None else np.broadcast_to(np.asarray(lqr_q, float), (n,))
+            rr = 1.0 / uroom ** 2 if lqr_r is None else np.broadcast_to(np.asarray(lqr_r, float), (m,))
+            if np.any(q < 0) or np.any(rr <= 0):
+                raise SimgapError("box tube: LQR weights need q >= 0 and r > 0")
+            K, K_how = lqr_gain(A, B, q, rr), "discrete LQR of the linearization (given weights)"
+        else:
+            K, K_how = box_tolerant_gain(A, B, x_star, u_star, room, uroom, gap, system)
     else:
         K, K_how = _parse_matrix(K, m, n), "given"
     rho0 = spectral_radius(A + B @ K)
     if rho0 >= 1:
         raise SimgapError(f"box tube: K does not stabilize the linearization at x*: spectral radius {rho0:.6g} >= 1")
-    x_nom, u_nom = plan_nominal(system, x0, x_star, u_star, K, u_lo, u_hi, float(input_margin),
+    if spectral_radius(A + B @ K_plan) >= 1:
+        raise SimgapError("box tube: K_plan does not stabilize the linearization at x*")
+    x_nom, u_nom = plan_nominal(system, x0, x_star, u_star, K_plan, u_lo, u_hi, float(input_margin),
                                 tol=PLAN_TOL * room)
     plan = TubePlan(x_nom, u_nom, K, x_star, u_star, np.zeros(n))
     v = design_H(system, plan, lo, hi, u_lo, u_hi, gap, imap, int(shells), 1.0, target_lo, target_hi)

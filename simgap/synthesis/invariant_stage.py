@@ -64,10 +64,11 @@ def check_section(system, syn: dict, spec) -> None:
             raise SimgapError(f"[synthesis] {key}: need {size} values, got {syn[key]!r}")
     if ("x_star" in syn) != ("u_star" in syn):
         raise SimgapError("[synthesis] give both x_star and u_star, or neither (simgap then finds an equilibrium)")
-    if "K" in syn:
-        K = np.asarray(syn["K"], dtype=float)
-        if K.shape != (m, n):
-            raise SimgapError(f"[synthesis] K must have shape {m} x {n} (inputs x states), got {list(K.shape)}")
+    for key in ("K", "K_plan"):
+        if key in syn:
+            K = np.asarray(syn[key], dtype=float)
+            if K.shape != (m, n):
+                raise SimgapError(f"[synthesis] {key} must have shape {m} x {n} (inputs x states), got {list(K.shape)}")
     IntervalMap(system)  # a model the proof can differentiate
 
 
@@ -84,7 +85,7 @@ def synthesize(system, spec, gap, syn: dict, x0=None):
                                    shells=int(syn.get("shells", SHELLS)),
                                    input_margin=float(syn.get("input_margin", INPUT_MARGIN)),
                                    margin_search=bool(syn.get("margin_search", True)),
-                                   terminal=syn.get("terminal", "largest"))
+                                   terminal=syn.get("terminal", "largest"), K_plan=syn.get("K_plan"))
     from .invariant_set import synthesize_invariant_set
     return synthesize_invariant_set(system, spec, gap, x_star=syn.get("x_star"), u_star=syn.get("u_star"),
                                     K=syn.get("K"), lqr_q=syn.get("lqr_q"), lqr_r=syn.get("lqr_r"),

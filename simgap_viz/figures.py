@@ -285,8 +285,8 @@ def trajectories(run, spec, out_dir: Path, max_drawn: int = 1000, style: str = "
         box = system.x_hi[:2] - system.x_lo[:2]
         if np.all(spread < 0.05 * box) and np.all(span > 0):  # the runs' spread is invisible at this scale: zoom
             c, hw = ends.mean(axis=0), np.maximum(2.5 * spread, 1e-3 * box)
-            pts = np.concatenate([X[idx[:: max(1, idx.size // 200)]].reshape(-1, 2), mean, np.asarray(ro.x0)[None, :2]]
-                                 + ([mm] if mm is not None else []))
+            pts = np.concatenate([X[idx[:: max(1, idx.size // 200)]].reshape(-1, 2), mean[:, :2],
+                                  np.asarray(ro.x0)[None, :2]] + ([mm[:, :2]] if mm is not None else []))
             ins = ax.inset_axes(inset_place(ax, pts, avoid=[(c - hw, c + hw)]))
             _draw_runs(ins, X, ok, idx, mm, mean, R, color)
             ins.set_xlim(c[0] - hw[0], c[0] + hw[0])

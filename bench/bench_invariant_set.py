@@ -1,6 +1,7 @@
-"""Benchmark: invariant-set synthesis time and memory against the state dimension (issue 33).
+"""Benchmark: invariant-set and box-tube synthesis time and memory against the state dimension
+(issues 33 and 42).
 
-    python bench/bench_invariant_set.py [--dims 2,4,6,8,12] [--seed 0]
+    python bench/bench_invariant_set.py [--dims 2,4,6,8,12] [--seed 0] [--method ellipsoid|box_tube|both]
 
 For each n a random stabilizable system written as a system file (a discrete map, so that its
 formulas go through the interval proof like a user's): x+ = A x + B u + 0.01 sin(x_{i+1}) per
@@ -10,6 +11,13 @@ of 1e-4 per state. Each (n, gap) runs once in a fresh process: the wall time of
 ``synthesize_invariant_set`` (design: LQR, the cvxpy programs, the proof of every candidate scale),
 the number of candidates, whether a set was proved, and the process's peak RSS (interpreter,
 numpy, scipy and cvxpy included). Imports are done before the clock starts.
+
+The box tube (``--method box_tube``) on a chain of n / 2 double integrators (positions p_i,
+velocities v_i, one force each; Euler steps of 0.1 s as a discrete system file): v_i+ = v_i + 0.1
+(-(p_i - p_{i-1}) - (p_i - p_{i+1}) + 0.3 sin(p_i) - 0.1 v_i + u_i) (p_0 = p_{n/2+1} = 0), X = [-1, 1]^n,
+forces in [-2, 2]; from x0 = (0.3 each position, 0 each velocity) to a box around the origin, the design and its proof (``synthesize_box_tube`` with ``margin_search=False``)
+timed apart from the tolerable-gap search (a bisection of whole proofs), with the plan's length T0,
+the terminal box's smallest half-width and the tolerable factor.
 """
 
 from __future__ import annotations
@@ -29,7 +37,7 @@ import numpy as np
 sys.path.insert(0, sys.argv[1])
 n, seed, gap, path = int(sys.argv[2]), int(sys.argv[3]), float(sys.argv[4]), sys.argv[5]
 rng = np.random.default_rng(seed + n)
-m = max(1, n // 4)
+m = max(1, n // 4) if sys.argv[6] != "box_tube" else n // 2
 A = np.eye(n) + 0.05 * rng.normal(size=(n, n))
 B = rng.normal(size=(n, m))
 st = [f"s{i}" for i in range(n)]
@@ -40,6 +48,15 @@ for i in range(n):
     terms = [f"{fmt(A[i, j])}*{st[j]}" for j in range(n)] + [f"{fmt(B[i, j])}*{ins[j]}" for j in range(m)]
     terms.append(f"0.01*sin({st[(i + 1) % n]})")
     rows.append(f'{st[i]} = "' + " + ".join(terms) + '"')
+if sys.argv[6] == "box_tube":  # a chain of double integrators, one force per mass
+    k = n // 2
+    st = [f"p{i}" for i in range(k)] + [f"v{i}" for i in range(k)]
+    ins = [f"a{i}" for i in range(k)]
+    rows = [f'p{i} = "p{i} + 0.1*v{i}"' for i in range(k)]
+    for i in range(k):
+        nb = " ".join(f"- (p{i} - p{j})" for j in (i - 1, i + 1) if 0 <= j < k)
+        wall = " - p{i}".format(i=i) * (2 - sum(0 <= j < k for j in (i - 1, i + 1)))
+        rows.append(f'v{i} = "v{i} + 0.1*({nb}{wall} + 0.3*sin(p{i}) - 0.1*v{i} + a{i})"')
 text = "\n".join([
     'format = "simgap-system"', f'name = "rand{n}"', f"states = {json.dumps(st)}", f"inputs = {json.dumps(ins)}",
     f"x_lo = {[-1.0] * n}", f"x_hi = {[1.0] * n}", "tau = 0.1",
@@ -53,7 +70,27 @@ import cvxpy, scipy.linalg, scipy.optimize  # imported before the clock starts (
 s = load_system_file(path)
 spec = Spec(kind="invariance", safe=Box(s.x_lo, s.x_hi))
 t0 = time.perf_counter()
-res = synthesize_invariant_set(s, spec, gap=None if gap == 0 else np.full(n, gap))
+g = None if gap == 0 else np.full(n, gap)
+if sys.argv[6] == "box_tube":
+    from simgap.synthesis import box_tube as bt
+    from simgap.synthesis.interval_map import IntervalMap
+    x0 = np.concatenate([np.full(n // 2, 0.3), np.zeros(n // 2)])
+    res = bt.synthesize_box_tube(s, spec, g, x0=x0, x_star=np.zeros(n), u_star=np.zeros(m),
+                                 margin_search=False)
+    dt = time.perf_counter() - t0
+    scale, ds = None, 0.0
+    if not res.empty and g is not None:
+        c = res.controller
+        plan = bt.TubePlan(c.x_nom, c.u_nom, c.K, c.x_star, c.u_star, c.H.copy())
+        t1 = time.perf_counter()
+        scale = bt.tolerable_scale(s, plan, s.x_lo, s.x_hi, np.full(m, -2.0), np.full(m, 2.0), g, IntervalMap(s),
+                                   bt.SHELLS)
+        ds = time.perf_counter() - t1
+    print(json.dumps({"n": n, "m": m, "gap": gap, "seconds": dt, "search_seconds": ds, "T0": res.stats["T0"],
+                      "proved": not res.empty, "rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+                      "min_H": min(res.stats["H_min"]), "max_H": max(res.stats["H"]), "gap_scale": scale}))
+    sys.exit(0)
+res = synthesize_invariant_set(s, spec, gap=g)
 dt = time.perf_counter() - t0
 print(json.dumps({"n": n, "m": m, "gap": gap, "seconds": dt, "candidates": res.stats["candidates"],
                   "proved": not res.empty, "rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
@@ -65,25 +102,37 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--dims", default="2,4,6,8,12")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--method", choices=["ellipsoid", "box_tube", "both"], default="both")
     a = ap.parse_args()
-    rows = []
+    methods = ["ellipsoid", "box_tube"] if a.method == "both" else [a.method]
+    rows = {k: [] for k in methods}
     with tempfile.TemporaryDirectory() as tmp:
-        for n in [int(v) for v in a.dims.split(",")]:
-            for gap in (0.0, 1e-4):
-                out = subprocess.run([sys.executable, "-c", SCRIPT, ROOT, str(n), str(a.seed), str(gap),
-                                      os.path.join(tmp, f"rand{n}.toml")], capture_output=True, text=True)
-                if out.returncode:
-                    print(out.stderr, file=sys.stderr)
-                    return 1
-                rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
-                r = rows[-1]
-                print(f"n = {r['n']:2d}, m = {r['m']}, gap {r['gap']:g}: {r['seconds']:.2f} s, {r['rss_mb']:.0f} MB", file=sys.stderr)
-    print("| n | m | gap per state | synthesis [s] | candidates | proved | smallest half-width | gap margin s | peak RSS [MB] |")
-    print("|---|---|---|---|---|---|---|---|---|")
-    for r in rows:
-        s = "-" if r["gap_scale"] is None else f"{r['gap_scale']:.3g}"
-        print(f"| {r['n']} | {r['m']} | {r['gap']:g} | {r['seconds']:.2f} | {r['candidates']} | {r['proved']} | "
-              f"{r['min_half_width']:.3g} | {s} | {r['rss_mb']:.0f} |")
+        for meth in methods:
+            for n in [int(v) for v in a.dims.split(",")]:
+                for gap in (0.0, 1e-4):
+                    out = subprocess.run([sys.executable, "-c", SCRIPT, ROOT, str(n), str(a.seed), str(gap),
+                                          os.path.join(tmp, f"rand{n}.toml"), meth], capture_output=True, text=True)
+                    if out.returncode:
+                        print(out.stderr, file=sys.stderr)
+                        return 1
+                    r = json.loads(out.stdout.strip().splitlines()[-1])
+                    rows[meth].append(r)
+                    print(f"{meth}: n = {r['n']:2d}, m = {r['m']}, gap {r['gap']:g}: {r['seconds']:.2f} s, "
+                          f"{r['rss_mb']:.0f} MB", file=sys.stderr)
+    if "ellipsoid" in rows:
+        print("| n | m | gap per state | synthesis [s] | candidates | proved | smallest half-width | gap margin s | peak RSS [MB] |")
+        print("|---|---|---|---|---|---|---|---|---|")
+        for r in rows["ellipsoid"]:
+            s = "-" if r["gap_scale"] is None else f"{r['gap_scale']:.3g}"
+            print(f"| {r['n']} | {r['m']} | {r['gap']:g} | {r['seconds']:.2f} | {r['candidates']} | {r['proved']} | "
+                  f"{r['min_half_width']:.3g} | {s} | {r['rss_mb']:.0f} |")
+    if "box_tube" in rows:
+        print("| n | m | gap per state | design + proof [s] | T0 | proved | smallest H (min over states) | terminal box used (max) | tolerable factor | search [s] | peak RSS [MB] |")
+        print("|---|---|---|---|---|---|---|---|---|---|---|")
+        for r in rows["box_tube"]:
+            s = "-" if r["gap_scale"] is None else f"{r['gap_scale']:.3g}"
+            print(f"| {r['n']} | {r['m']} | {r['gap']:g} | {r['seconds']:.2f} | {r['T0']} | {r['proved']} | "
+                  f"{r['min_H']:.3g} | {r['max_H']:.3g} | {s} | {r['search_seconds']:.1f} | {r['rss_mb']:.0f} |")
     return 0
 
 

@@ -230,7 +230,8 @@ def _worker_state(job: dict) -> dict:
         system = job["system"] or _system_from_config(cfg["system"], cfg["simulator"]["steps"])
         cv = cfg["cover"]
         cover = make_cover(system, CoverSpec(epsilon=cv["epsilon"], spacing=cv["spacing"],
-                                             invariant_dims=tuple(cv["invariant_dims"]), fixed=cv["fixed"]))
+                                             invariant_dims=tuple(cv["invariant_dims"]), fixed=cv["fixed"],
+                                             region=cv.get("region") or {}))
         sim = make_simulator(cfg["simulator"], system)
         st = {"system": system, "cover": cover, "sim": sim}
         _WORKER_CACHE[h] = st

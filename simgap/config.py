@@ -55,6 +55,7 @@ class CollectSettings:
     spacing: Optional[tuple] = None
     invariant_dims: tuple = ()
     fixed: dict = field(default_factory=dict)
+    region: dict = field(default_factory=dict)   # a sub-box of X covered instead of X (cover.region_box)
     chunk_size: Optional[int] = None
     batch_runs: int = DEFAULT_BATCH_RUNS
     keep_samples: bool = False
@@ -84,7 +85,7 @@ class ExperimentConfig:
     def cover_spec(self) -> CoverSpec:
         c = self.collect
         return CoverSpec(epsilon=c.epsilon, spacing=c.spacing, invariant_dims=tuple(c.invariant_dims),
-                         fixed=dict(c.fixed))
+                         fixed=dict(c.fixed), region={k: list(v) for k, v in c.region.items()})
 
     def cover(self) -> Cover:
         return make_cover(self.system, self.cover_spec())
@@ -360,5 +361,5 @@ def _collect(d: schema.CollectSection, out: Optional[str]) -> CollectSettings:
     return CollectSettings(
         epsilon=float(d.epsilon), n_runs=d.n_runs, seed=d.seed,
         spacing=None if d.spacing is None else tuple(d.spacing), invariant_dims=tuple(d.invariant_dims),
-        fixed=dict(d.fixed), chunk_size=d.chunk_size, batch_runs=d.batch_runs, keep_samples=d.keep_samples,
+        fixed=dict(d.fixed), region={k: list(v) for k, v in d.region.items()}, chunk_size=d.chunk_size, batch_runs=d.batch_runs, keep_samples=d.keep_samples,
         executor=d.executor, workers=d.workers or None, address=d.address, out=out)

@@ -14,6 +14,12 @@ spacing may be given instead (then r, the achieved radius, must not exceed epsil
 Angle dimensions spanning a full turn ([-pi, pi]) are periodic: the cells tile the circle and
 the centers never sit on the seam, so x near +pi and near -pi are both within w/2 of a center.
 
+A region (``CoverSpec.region``, ``[collect] region``): a sub-box of X, given per state name as
+[lo, hi] (other dimensions keep X's bounds), covered instead of X. The data, and so the
+certificate made from them, then speak of the region only: the certificate records it, and
+every consumer that takes gamma's sup over a set refuses a set leaving it
+(:meth:`simgap.certify.certificate.Certificate.require_inside`).
+
 Declared invariances: if the gap is known not to depend on some dimensions (e.g. the
 TurtleBot's position x1, x2 on a uniform floor), those dimensions are not covered; they are
 fixed at a stated representative value (default: the center of X) and the claim is recorded
@@ -71,18 +77,54 @@ class CoverSpec:
     fixed : dict, optional
         Representative value per invariant dimension (name or index -> value); default the
         center of X in that dimension.
+    region : dict, optional
+        A sub-box of X to cover instead of X: state name (or index) -> [lo, hi]; dimensions not
+        named keep X's bounds (module docstring).
     """
 
     epsilon: float
     spacing: Optional[tuple] = None
     invariant_dims: tuple = ()
     fixed: dict = field(default_factory=dict)
+    region: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
-        return {"epsilon": float(self.epsilon),
-                "spacing": None if self.spacing is None else [float(h) for h in self.spacing],
-                "invariant_dims": [d if isinstance(d, str) else int(d) for d in self.invariant_dims],
-                "fixed": {str(k): float(v) for k, v in self.fixed.items()}}
+        out = {"epsilon": float(self.epsilon),
+               "spacing": None if self.spacing is None else [float(h) for h in self.spacing],
+               "invariant_dims": [d if isinstance(d, str) else int(d) for d in self.invariant_dims],
+               "fixed": {str(k): float(v) for k, v in self.fixed.items()}}
+        if self.region:  # only when given: the configuration hash of a collection over X is unchanged
+            out["region"] = {str(k): [float(a) for a in v] for k, v in self.region.items()}
+        return out
+
+
+def region_box(system: System, region) -> tuple:
+    """(lo, hi), (n,) each: X with the dimensions ``region`` names (name or index -> [lo, hi])
+    narrowed to their [lo, hi]. Refused, naming the dimension, unless X_lo <= lo < hi <= X_hi."""
+    lo, hi = system.x_lo.astype(float).copy(), system.x_hi.astype(float).copy()
+    for k, v in (region or {}).items():
+        i = _dim_index(system, k)
+        try:
+            a, b = (float(t) for t in v)
+        except (TypeError, ValueError):
+            raise SimgapError(f"region: {k!r} needs [lo, hi] (two numbers), got {v!r}") from None
+        nm = system.state_names[i]
+        if not (math.isfinite(a) and math.isfinite(b) and a < b):
+            raise SimgapError(f"region: {nm} = [{a:g}, {b:g}] needs finite lo < hi")
+        if a < system.x_lo[i] - 1e-12 or b > system.x_hi[i] + 1e-12:
+            raise SimgapError(f"region: {nm} = [{a:g}, {b:g}] leaves X's [{system.x_lo[i]:g}, {system.x_hi[i]:g}]; "
+                              "a region is a sub-box of X")
+        lo[i], hi[i] = max(a, system.x_lo[i]), min(b, system.x_hi[i])
+    return lo, hi
+
+
+def restrict(system: System, region) -> System:
+    """``system`` with X narrowed to :func:`region_box` (the same model; only the box changes)."""
+    if not region:
+        return system
+    import dataclasses
+    lo, hi = region_box(system, region)
+    return dataclasses.replace(system, x_lo=lo, x_hi=hi)
 
 
 @dataclass(frozen=True, eq=False)
@@ -119,6 +161,7 @@ class Cover:
     fixed: dict
     periodic: tuple
     spec: CoverSpec
+    box_lo: Optional[np.ndarray] = None   # the covered box's lower corner (X's, or the region's)
 
     @property
     def N(self) -> int:
@@ -157,7 +200,7 @@ class Cover:
         x = np.atleast_2d(np.asarray(x, dtype=float))
         idx = np.zeros(x.shape[0], dtype=np.int64)
         for i, c, w, per in zip(self.covered, self.counts, self.widths, self.periodic):
-            t = x[:, i] - s.x_lo[i]
+            t = x[:, i] - (s.x_lo[i] if self.box_lo is None else self.box_lo[i])
             if per:
                 t = np.mod(t, TWO_PI)
             k = np.clip(np.floor(t / w).astype(np.int64), 0, int(c) - 1)
@@ -196,6 +239,8 @@ def make_cover(system: System, spec: CoverSpec | float) -> Cover:
     if not (math.isfinite(eps) and eps > 0):
         raise SimgapError(f"cover: epsilon must be > 0, got {spec.epsilon!r}")
 
+    whole = system
+    system = restrict(system, spec.region)  # a region: cover it instead of X (its checks name the dimension)
     inv = sorted({_dim_index(system, d) for d in spec.invariant_dims})
     covered = tuple(i for i in range(system.n) if i not in inv)
     if not covered:
@@ -210,7 +255,8 @@ def make_cover(system: System, spec: CoverSpec | float) -> Cover:
         fixed.setdefault(i, float(0.5 * (system.x_lo[i] + system.x_hi[i])))
         v = fixed[i]
         if not (math.isfinite(v) and system.x_lo[i] <= v <= system.x_hi[i]):
-            raise SimgapError(f"cover: fixed value {system.state_names[i]}={v!r} is outside X "
+            raise SimgapError(f"cover: fixed value {system.state_names[i]}={v!r} is outside "
+                              f"{'the region' if spec.region else 'X'} "
                               f"[{system.x_lo[i]:g}, {system.x_hi[i]:g}]")
 
     d = len(covered)
@@ -241,8 +287,9 @@ def make_cover(system: System, spec: CoverSpec | float) -> Cover:
         pts[:, i] = mesh[k].ravel()
     for i, v in fixed.items():
         pts[:, i] = v
-    return Cover(system=system, points=pts, epsilon=eps, radius=radius, covered=covered,
-                 counts=counts, widths=widths, fixed=fixed, periodic=periodic, spec=spec)
+    return Cover(system=whole, points=pts, epsilon=eps, radius=radius, covered=covered,
+                 counts=counts, widths=widths, fixed=fixed, periodic=periodic, spec=spec,
+                 box_lo=system.x_lo.copy())
 
 
 # ----------------------------------------------------------------------------------------

@@ -35,7 +35,7 @@ from .errors import SimgapError
 # the specification of an experiment lives in simgap.experiment_spec (the per-run stage needs it too);
 # re-exported here, its old home
 from .experiment_spec import experiment_spec  # noqa: F401
-from . import invariant_stage
+from .synthesis import invariant_stage
 from .simulators import make_simulator
 
 METHODS = ("deterministic", "stochastic")
@@ -110,6 +110,19 @@ def check_experiment(exp: ExperimentConfig, out: Optional[str | Path] = None, *,
     spec, map_x0, _ = experiment_spec(exp)
     if not grid:
         invariant_stage.check_section(s, syn, spec)
+    if exp.collect.region:  # a local certificate: the set synthesis takes gamma over must lie in the region
+        from .cover import region_box
+        rlo, rhi = region_box(s, exp.collect.region)
+        what, lo, hi = (("the grid synthesis's domain X", s.x_lo, s.x_hi) if grid else
+                        ("[synthesis] safe set", np.maximum(spec.safe.lo, s.x_lo), np.minimum(spec.safe.hi, s.x_hi)))
+        out_dims = [s.state_names[i] for i in range(n) if lo[i] < rlo[i] - 1e-12 or hi[i] > rhi[i] + 1e-12]
+        if out_dims:
+            raise SimgapError(f"{what} leaves [collect] region in {', '.join(out_dims)} ("
+                              + "; ".join(f"{s.state_names[i]}: set [{lo[i]:g}, {hi[i]:g}], region [{rlo[i]:g}, "
+                                          f"{rhi[i]:g}]" for i in range(n) if s.state_names[i] in out_dims)
+                              + "): gamma holds on the region only; "
+                              + ("narrow safe_lo / safe_hi to it" if not grid else
+                                 "use method = \"invariant_set\" with a safe set inside it, or no region"))
     x0 = np.asarray(ro["x0"], dtype=float) if "x0" in ro else map_x0
     if x0 is None:
         raise SimgapError("[rollout] x0 is required (no map gives an initial state)")
@@ -343,7 +356,8 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
                 for m, e in (("stochastic", exp), ("deterministic", baseline_experiment(exp)))}
         sim = sims["stochastic"]  # audits and rollouts run against the stochastic simulator
         controllers = {}
-        invariant = checked["method"] == "invariant_set"
+        invariant = checked["method"] in invariant_stage.SET_METHODS  # a proved set (ellipsoid or box tube)
+        tube = checked["method"] == "box_tube"
 
         def roll_out(method, sres, entry):
             """R rollouts from x0 (and, for an invariant set, from states drawn in E) into ``entry``."""
@@ -372,8 +386,16 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
                 entry["per_run_empirical"] = per_run_empirical(rr)
                 if arena is not None:
                     entry["closest_approach"] = closest_approach(arena, rr)
+                if tube:  # reach and stay: in the terminal box at every period from T0 on
+                    c = sres.controller
+                    stay = c.reached_and_stayed(rr.trajectories)
+                    mm = rr.mean_map_trajectory
+                    entry["reach_and_stay"] = {"T0": c.T0, "held": int(stay.sum()), "of": int(stay.size),
+                                               "runs_in_tube": int(c.inside(rr.trajectories).sum()),
+                                               "mean_map_in_tube": None if mm is None else
+                                               bool(c.inside(np.asarray(mm)[None])[0])}
             k = int(syn.get("set_states", 20))
-            if invariant and not sres.empty and k:
+            if invariant and not tube and not sres.empty and k:  # a tube is proved from x0 only
                 entry["rollouts_in_set"] = stage(f"rollout-in-E/{method}", lambda: invariant_stage.rollouts_in_set(
                     sres.controller, sim, k, R, ro.get("horizon"), int(ro.get("seed", 11)) + 1000,
                     ro.get("on_exit", "hold"), log))
@@ -418,6 +440,10 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
                 "confidence_per_dim": cert.per_dim_confidence, "confidence_joint": cert.joint_confidence,
                 "confidence_scope": cert.scope, "confidence_joint_pointwise": cert.scope_confidences()["pointwise"],
                 "confidence_joint_simultaneous": cert.scope_confidences()["simultaneous"],
+                # what the synthesis's proof (gamma's sup over its cells / set) rests on: the all-rows
+                # reading; None = deterministic baseline or vacuous (never the pointwise number)
+                "confidence_proof": cert.sup_confidence(),
+                "region": None if cert.region is None else [np.asarray(b).tolist() for b in cert.region],
                 "audit_pass_rate_per_dim": {k: v["fraction_holds"] for k, v in rep["per_dim"].items()},
                 "audit_pass_rate_joint": rep["joint"]["fraction_holds"],
                 "audit_violated_joint": rep["joint"]["fraction_violated"],
@@ -471,8 +497,9 @@ def _json_default(o):
 
 
 def _simultaneous(c) -> str:
-    """The simultaneous confidence; <= 0 means the certificate states nothing for all rows at once."""
-    return "-" if c is None else (f"{c:.4g}" if c > 0 else "none")
+    """The simultaneous confidence; <= 0 means the certificate states nothing for all rows at once
+    ("vacuous": a union bound above 1 is no statement, never printed as a negative probability)."""
+    return "-" if c is None else (f"{c:.4g}" if c > 0 else "vacuous")
 
 
 def comparison_table(summary: dict) -> str:
@@ -481,7 +508,8 @@ def comparison_table(summary: dict) -> str:
     names = summary["system"]["state_names"]
     cols = [m for m in METHODS + ("nominal",) if m in summary["methods"]]
     rows = [("",) + tuple(cols)]
-    invariant = (summary.get("sections", {}).get("synthesis") or {}).get("method") == "invariant_set"
+    method = (summary.get("sections", {}).get("synthesis") or {}).get("method")
+    invariant = method in invariant_stage.SET_METHODS
 
     def fmt(v, f="{:.4g}"):
         return "-" if v is None else f.format(v)
@@ -500,8 +528,11 @@ def comparison_table(summary: dict) -> str:
                                if isinstance(e.get("gamma"), dict) else "-")))
     for i, nm in enumerate(names):
         rows.append((f"confidence [{nm}]", *both(lambda e: fmt((e.get("confidence_per_dim") or [None] * len(names))[i]))))
-    rows.append(("joint conf. pointwise", *both(lambda e: fmt(e.get("confidence_joint_pointwise")))))
+    rows.append(("joint conf. pointwise", *both(lambda e: _simultaneous(e.get("confidence_joint_pointwise")))))
     rows.append(("joint conf. all rows", *both(lambda e: _simultaneous(e.get("confidence_joint_simultaneous")))))
+    rows.append(("proof confidence (sup over the set)",
+                 *both(lambda e: "-" if e.get("confidence_joint") is None else
+                       _simultaneous(e.get("confidence_joint_simultaneous")))))
     rows.append(("audit pass rate (joint)", *both(lambda e: fmt(e.get("audit_pass_rate_joint"), "{:.3f}"))))
     rows.append(("audit violated (joint)", *both(lambda e: fmt(e.get("audit_violated_joint"), "{:.3f}"))))
     if invariant:
@@ -512,8 +543,20 @@ def comparison_table(summary: dict) -> str:
         rows.append(("gap margin s (invariant if <= s x gap)",
                      *both(lambda e: e["synthesis"].get("gap_scale_text", "-") if e["winning_cells"] else
                            ("-" if e["synthesis"].get("gap_scale") is None else f"{e['synthesis']['gap_scale']:.3g} < 1"))))
-        rows.append(("E half-widths", *both(lambda e: str(e["synthesis"].get("half_widths")) if e["winning_cells"]
-                                            else "-")))
+        if method == "box_tube":
+            rows.append(("terminal box half-widths H", *both(
+                lambda e: str(np.round(e["synthesis"]["H"], 6).tolist()) if e["winning_cells"] else "-")))
+            rows.append(("reach and stay (runs)", *both(
+                lambda e: f"{e['reach_and_stay']['held']} / {e['reach_and_stay']['of']} after period "
+                          f"{e['reach_and_stay']['T0']}" if "reach_and_stay" in e else "-")))
+            rows.append(("runs inside the mean's tube", *both(
+                lambda e: f"{e['reach_and_stay']['runs_in_tube']} / {e['reach_and_stay']['of']}"
+                if "reach_and_stay" in e else "-")))
+            rows.append(("mean map inside the tube", *both(
+                lambda e: str(e["reach_and_stay"]["mean_map_in_tube"]) if "reach_and_stay" in e else "-")))
+        else:
+            rows.append(("E half-widths", *both(lambda e: str(e["synthesis"].get("half_widths")) if e["winning_cells"]
+                                                else "-")))
         rows.append(("x0 in E", *both(lambda e: str(e["synthesis"].get("x0_inside", "-")) if e["winning_cells"]
                                       else "-")))
     else:
@@ -555,6 +598,19 @@ def comparison_table(summary: dict) -> str:
     if warnings:
         lines.append("")
         lines += [f"warning ({m} certificate): {w}" for m, w in warnings]
+    vac = [m for m in METHODS if m in summary["methods"] and (summary["methods"][m].get("confidence_joint_simultaneous")
+                                                              or 1.0) <= 0]
+    if vac:
+        lines += ["", f"vacuous ({', '.join(vac)}): the all-rows reading, a union bound over the K cover rows, sums "
+                  "the failure probabilities to more than 1, so it states nothing; the synthesis takes gamma's sup over "
+                  "many rows at once and needs it. Certify with uniform = true ([certify], --uniform), or collect "
+                  "over a [collect] region (a local certificate is uniform by default)."]
+    regions = {m: summary["methods"][m].get("region") for m in METHODS if summary["methods"].get(m, {}).get("region")}
+    if regions:
+        names = summary["system"]["state_names"]
+        r = next(iter(regions.values()))
+        lines += ["", "local certificate: gamma holds on the region " + " x ".join(
+            f"{nm} [{a:g}, {b:g}]" for nm, a, b in zip(names, r[0], r[1])) + " only"]
     secs = summary.get("seconds", {})
     if secs:
         lines.append("")

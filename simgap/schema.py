@@ -108,6 +108,7 @@ class CollectSection(Section):
     spacing: Optional[list[Positive]] = None
     invariant_dims: list[Union[str, Int0]] = []
     fixed: dict[str, Finite] = {}
+    region: dict[str, Annotated[list[Finite], Field(min_length=2, max_length=2)]] = {}
     chunk_size: Optional[Int1] = None
     batch_runs: Int1 = 1 << 18
     keep_samples: bool = False
@@ -179,9 +180,12 @@ class SynthesisSection(Section):
     ``method = "invariant_set"`` a linear feedback on a proved ellipsoid instead of the grid
     (equilibrium ``x_star``/``u_star`` and gain ``K`` optional, LQR weights ``lqr_q``/``lqr_r``,
     cvxpy ``solver``, ``set_states`` states drawn in E for extra rollouts, ``nominal`` also
-    synthesizes on the nominal model without a gap; docs/synthesis.md)."""
+    synthesizes on the nominal model without a gap); with ``method = "box_tube"`` a time-varying
+    feedback on a proved box tube from [rollout] x0 to a box around x* (``target_lo``/``target_hi``,
+    ``shells`` pieces of the mean-value form, ``input_margin`` kept for the feedback along the plan,
+    ``margin_search`` the tolerable-gap search; docs/synthesis.md)."""
     spec: Literal["invariance", "reach_avoid"] = "invariance"
-    method: Literal["grid", "invariant_set"] = "grid"
+    method: Literal["grid", "invariant_set", "box_tube"] = "grid"
     eta: Optional[Union[Positive, list[Positive]]] = None
     hold: Int1 = 1
     safe_lo: Optional[list[Finite]] = None
@@ -190,11 +194,18 @@ class SynthesisSection(Section):
     x_star: Optional[list[Finite]] = None
     u_star: Optional[list[Finite]] = None
     K: Optional[list[list[Finite]]] = None
+    K_plan: Optional[list[list[Finite]]] = None
     lqr_q: Optional[list[Positive]] = None
     lqr_r: Optional[list[Positive]] = None
     solver: Literal["CLARABEL", "SCS"] = "CLARABEL"
     set_states: Int0 = 20
     nominal: bool = True
+    target_lo: Optional[list[Finite]] = None
+    target_hi: Optional[list[Finite]] = None
+    shells: Int1 = 16
+    input_margin: Annotated[float, Field(ge=0.0, lt=1.0)] = 0.3
+    margin_search: bool = True
+    terminal: Literal["largest", "smallest"] = "largest"
 
 
 class RolloutSection(Section):

@@ -288,8 +288,8 @@ def trajectories(run, spec, out_dir: Path, max_drawn: int = 1000, style: str = "
         box = system.x_hi[:2] - system.x_lo[:2]
         if np.all(spread < 0.05 * box) and np.all(span > 0):  # the runs' spread is invisible at this scale: zoom
             c, hw = ends.mean(axis=0), np.maximum(2.5 * spread, 1e-3 * box)
-            pts = np.concatenate([X[idx[:: max(1, idx.size // 200)]].reshape(-1, 2), mean, np.asarray(ro.x0)[None, :2]]
-                                 + ([mm] if mm is not None else []))
+            pts = np.concatenate([X[idx[:: max(1, idx.size // 200)]].reshape(-1, 2), mean[:, :2],
+                                  np.asarray(ro.x0)[None, :2]] + ([mm[:, :2]] if mm is not None else []))
             ins = ax.inset_axes(inset_place(ax, pts, avoid=[(c - hw, c + hw)]))
             _draw_runs(ins, X, ok, idx, mm, mean, R, color)
             ins.set_xlim(c[0] - hw[0], c[0] + hw[0])
@@ -513,6 +513,12 @@ def invariant_sets(run, spec, out_dir: Path, max_drawn: int = 1000, style: str =
                 hi.append(X.reshape(-1, 2).max(axis=0))
             E = res.invariant_set.projection_outline((a, b))
             ax.plot(E[:, 0], E[:, 1], color=color, lw=1.4, zorder=8, gid=f"E:{m}:{a},{b}")
+            if hasattr(res.invariant_set, "outlines"):  # a box tube: its boxes along the plan, thin
+                tube = res.invariant_set
+                for R_ in tube.outlines((a, b), every=max(1, tube.T0 // 40))[:-1]:
+                    ax.plot(R_[:, 0], R_[:, 1], color=color, lw=0.4, alpha=0.5, zorder=6)
+                    lo.append(R_.min(axis=0))
+                    hi.append(R_.max(axis=0))
             ax.plot(*res.invariant_set.x_star[[a, b]], "+", color=color, ms=5, zorder=8)
             lo.append(E.min(axis=0))
             hi.append(E.max(axis=0))

@@ -201,6 +201,10 @@ def record_run(out: str | Path, system, *, dataset=None, certificate=None, spec=
                 outline = st["invariant_set"].projection_outline((0, 1))
                 log(f"world/{m}/invariant_set", rr.LineStrips3D([_xy0(outline)], colors=[method_color(m, k)],
                                                                radii=rr.Radius.ui_points(2.5)))
+                if hasattr(st["invariant_set"], "outlines"):  # a box tube: its boxes along the plan
+                    boxes = st["invariant_set"].outlines((0, 1))[:-1]
+                    log(f"world/{m}/tube", rr.LineStrips3D([_xy0(b) for b in boxes], colors=[method_color(m, k)],
+                                                           radii=rr.Radius.ui_points(1.0)))
                 md += [st["invariant_set"].summary(), ""]
             for i, name in enumerate(system.state_names):
                 _log_gamma(log, rr, info, f"gamma/{m}/{name}", layers[m][i], tops[i], method_color(m, k),

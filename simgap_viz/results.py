@@ -130,7 +130,7 @@ def proved_sets(run) -> list:
 def unproved_sets(run) -> list:
     """(method, gap margin s or None) of every method of an invariant-set run whose proof failed."""
     summary = getattr(run, "summary", None) or {}
-    if (summary.get("sections", {}).get("synthesis") or {}).get("method") != "invariant_set" \
+    if (summary.get("sections", {}).get("synthesis") or {}).get("method") not in ("invariant_set", "box_tube") \
             and not any(isinstance(e, dict) and "gap_scale" in (e.get("synthesis") or {})
                         for e in summary.get("methods", {}).values()):
         return []
@@ -201,7 +201,7 @@ def load_run(path) -> RunResults:
         if ap.is_file():
             audit = read_json(ap, "audit report")
         cp = _inside(root, f"controller_{m}.npz")
-        invariant = (summary.get("sections", {}).get("synthesis") or {}).get("method") == "invariant_set"
+        invariant = (summary.get("sections", {}).get("synthesis") or {}).get("method") in ("invariant_set", "box_tube")
         if not cp.is_file() and not (invariant and not summary["methods"][m].get("winning_cells")):
             raise SimgapError(f"results folder {root}: {cp.name} is missing")
         syn = ell = None  # an invariant-set run: no set proved (no file), or E

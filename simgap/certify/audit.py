@@ -166,7 +166,9 @@ def audit(cert, simulator, points: int = 200, runs: int = 2000, seed: int = 0, d
         cover = np.unique(dataset.x[:, cov_dims], axis=0)
     # a certificate for continuous inputs is audited between the grid's values too
     cont = bool(getattr(cert, "continuous", False))
-    x, u = draw_points(s, int(points), rng, cover, cov_dims, cert.inputs, cert.input_box if cont else None)
+    # a local certificate is audited where it speaks: fresh points in its region
+    x, u = draw_points(cert.restrict(s) if hasattr(cert, "restrict") else s, int(points), rng, cover, cov_dims,
+                       cert.inputs, cert.input_box if cont else None)
     B, R, n = len(x), int(runs), s.n
     fx = s.f(x, u)
     mean_dev = np.empty((B, n))

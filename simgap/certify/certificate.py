@@ -133,6 +133,7 @@ class Certificate:
     radii: Optional[np.ndarray] = None    # (n,) the cover's radius per dimension eps_j (0: not covered)
     input_radii: Optional[np.ndarray] = None  # (m,) half the input grid's spacing (continuous inputs)
     input_box: Optional[tuple] = None     # ((m,), (m,)) the input box gamma holds on (continuous inputs)
+    region: Optional[tuple] = None        # ((n,), (n,)) the sub-box of X the data covered: gamma holds there only
 
     # ----- shape -----------------------------------------------------------------------
     @property
@@ -172,15 +173,60 @@ class Certificate:
                                  [d.beta_v for d in self.dims], self.K, self.uniform)
 
     def statement(self) -> str:
-        """In words, what the confidence covers."""
+        """In words, what the confidence covers (never a negative number: "vacuous", explained)."""
         if self.joint_confidence is None:
             return "no probability is stated (deterministic baseline)"
         c = self.scope_confidences()
-        sim = c["simultaneous"]
-        sim_txt = f"{sim:.4f}" if sim > 0 else f"none ({sim:.3g} <= 0)"
-        return (f"scope {self.scope}; joint confidence pointwise (one query (x,u) at a time) {c['pointwise']:.4f}, "
-                f"simultaneous (all K = {self.K} cover rows at once, union bound: what synthesis over every cell "
-                f"relies on) {sim_txt}")
+        where = "" if self.region is None else f" over the region {self.region_text()}"
+        return (f"scope {self.scope}; joint confidence pointwise (one query (x,u) at a time) "
+                f"{confidence_text(c['pointwise'])}, simultaneous (all K = {self.K} cover rows at once, union "
+                f"bound: what a sup of gamma over a set relies on: synthesis, invariant sets, tubes){where} "
+                f"{confidence_text(c['simultaneous'], self.K)}")
+
+    def sup_confidence(self) -> Optional[float]:
+        """The confidence of any statement that takes gamma's sup over a set (a synthesis over cells,
+        an invariant set, a tube): the SIMULTANEOUS reading (all K rows at once), never the pointwise
+        one (which is about one query (x, u)). None: deterministic baseline, or vacuous (<= 0)."""
+        c = self.scope_confidences()["simultaneous"]
+        return None if c is None or c <= 0 else float(c)
+
+    # ----- region ------------------------------------------------------------------------
+    def region_text(self, lo=None, hi=None) -> str:
+        """The region (or a given box) as "name [lo, hi] x ...", only the dimensions it narrows from X
+        (all of them for a given box)."""
+        if lo is None:
+            lo, hi = self.region if self.region is not None else (self.x_lo, self.x_hi)
+            dims = [i for i in range(self.n) if lo[i] > self.x_lo[i] or hi[i] < self.x_hi[i]] or list(range(self.n))
+        else:
+            dims = list(range(self.n))
+        return " x ".join(f"{self.state_names[i]} [{lo[i]:.6g}, {hi[i]:.6g}]" for i in dims)
+
+    def require_inside(self, lo, hi, what: str) -> None:
+        """Refuse taking gamma over the box [lo, hi] ("what" names the set) unless it lies in the region
+        the data covered (no-op for a certificate over all of X). Every consumer that takes gamma's sup
+        over a set calls it with its set's name; :meth:`gamma_upper_box` and :meth:`gamma_sup` check the
+        boxes they are given too."""
+        if self.region is None:
+            return
+        lo, hi = np.atleast_2d(np.asarray(lo, float)), np.atleast_2d(np.asarray(hi, float))
+        rlo, rhi = self.region
+        tol = 1e-9 * np.maximum(1.0, np.abs(rhi - rlo))
+        out = (lo < rlo - tol) | (hi > rhi + tol)
+        if np.any(out):
+            b = int(np.argmax(out.any(axis=1)))
+            dims = ", ".join(self.state_names[i] for i in np.flatnonzero(out[b]))
+            raise SimgapError(f"{what} [{self.region_text(lo[b], hi[b])}] leaves the certificate's region "
+                              f"[{self.region_text()}] in {dims}: gamma holds on that region only (its data were "
+                              "collected there, [collect] region); keep the set inside it or collect over a "
+                              "larger region")
+
+    def restrict(self, system):
+        """``system`` with X narrowed to the region (the system itself without one)."""
+        if self.region is None:
+            return system
+        import dataclasses
+        return dataclasses.replace(system, x_lo=np.asarray(self.region[0], float).copy(),
+                                   x_hi=np.asarray(self.region[1], float).copy())
 
     def paper_terms(self) -> np.ndarray:
         """The paper's Lipschitz term (L_f + Lhat_fhat + L_2) eps per dimension, (n,)."""
@@ -274,6 +320,7 @@ class Certificate:
     def _upper(self, lo, hi, ulo, uhi, continuous):
         if lo.shape != hi.shape or np.any(lo > hi) or np.any(ulo > uhi):
             raise SimgapError("gamma bound over a box: need lo <= hi with equal shapes")
+        self.require_inside(lo, hi, "a box gamma is bounded over")  # a consumer should have named its set first
         extra = 0.0
         if continuous:
             extra = self.input_terms()
@@ -335,6 +382,8 @@ class Certificate:
         }
         if self.radii is not None:
             d["radii"] = np.asarray(self.radii, float).tolist()
+        if self.region is not None:  # only when present: certificates over X keep their content
+            d["region"] = [np.asarray(b, float).tolist() for b in self.region]
         if self.continuous:
             d["input_box"] = [np.asarray(b, float).tolist() for b in self.input_box]
             d["input_radii"] = np.asarray(self.input_radii, float).tolist()
@@ -466,13 +515,29 @@ class Certificate:
                              + ", ".join(f"{nm} {v:.4g}" for nm, v in zip(self.state_names, self.input_terms())))
         jc = self.joint_confidence
         lines.append("joint confidence (Theorem 2): " + ("not stated (deterministic baseline)" if jc is None
-                                                         else f"{jc:.4f} ({100 * jc:.2f} %), {self.scope}"))
+                                                         else f"{jc:.4f} ({100 * jc:.2f} %), {self.scope}" if jc > 0
+                                                         else f"{confidence_text(jc)}, {self.scope}"))
+        if self.region is not None:
+            lines.append(f"region (local certificate): gamma holds on {self.region_text()} only (the data's "
+                         "[collect] region); a set leaving it is refused")
         lines.append(self.statement())
         const = self.constant()
         for i, (name, d) in enumerate(zip(self.state_names, self.dims)):
             terms = " ".join(f"{c:+.4g}*{t}" if t != "1" else f"{c:+.4g}" for c, t in zip(d.q, d.terms) if c != 0)
             lines.append(f"gamma_{name}(x,u) = {const[i]:.4g} + [{terms}]")
         return "\n".join(lines)
+
+
+def confidence_text(c: Optional[float], K: Optional[int] = None) -> str:
+    """A confidence for people: the number when it is > 0, else "vacuous" with why (never a negative
+    number: a union bound above 1 states nothing, it is not a negative probability)."""
+    if c is None:
+        return "not stated"
+    if c > 0:
+        return f"{c:.4f}"
+    rows = f" over K = {K} rows" if K else ""
+    return (f"vacuous (the union bound{rows} sums the failure probabilities to more than 1: it states nothing; "
+            "certify with uniform = true (--uniform) for a statement over all rows at once)")
 
 
 def _finite_list(v, size: int, what: str) -> List[float]:
@@ -508,6 +573,14 @@ def _term_fields(d: dict, names) -> dict:
             raise SimgapError("certificate is malformed: input_box needs finite lo <= hi per input")
         out["input_box"] = (lo, hi)
         out["input_radii"] = np.asarray(_finite_list(d.get("input_radii"), names.m, "input_radii"))
+    if d.get("region") is not None:
+        box = d["region"]
+        if not (isinstance(box, list) and len(box) == 2):
+            raise SimgapError("certificate is malformed: region must be [lo, hi]")
+        lo, hi = (np.asarray(b, float) for b in box)
+        if lo.shape != (names.n,) or hi.shape != (names.n,) or not np.all(np.isfinite(lo + hi)) or np.any(lo >= hi):
+            raise SimgapError("certificate is malformed: region needs finite lo < hi per state")
+        out["region"] = (lo, hi)
     if term == "gap" and "radii" not in out:
         raise SimgapError("certificate is malformed: lipschitz_term 'gap' without radii")
     return out

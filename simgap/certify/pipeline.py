@@ -14,6 +14,7 @@ Per state dimension i:
 
 from __future__ import annotations
 
+import dataclasses
 import platform
 import time
 from collections import OrderedDict
@@ -123,6 +124,16 @@ def _versions() -> dict:
     from .. import __version__
     return {"simgap": __version__, "numpy": np.__version__, "scipy": scipy.__version__,
             "cvxpy": cvxpy.__version__, "python": platform.python_version()}
+
+
+def dataset_region(dataset) -> Optional[tuple]:
+    """(lo, hi) of the region the collection covered (manifest "cover" "region", a sub-box of X), or
+    None when it covered X."""
+    reg = (dataset.manifest.get("cover") or {}).get("region")
+    if not reg:
+        return None
+    from ..cover import region_box
+    return region_box(dataset.system, reg)
 
 
 def invariant_dims(dataset) -> List[int]:
@@ -244,6 +255,16 @@ def certify(dataset, options: Optional[CertifyOptions] = None, simulator=None, o
     if options is not None and kw:
         raise SimgapError("certify: give either options or keyword arguments, not both")
     ds = dataset
+    X_lo, X_hi = ds.system.x_lo.copy(), ds.system.x_hi.copy()
+    region = dataset_region(ds)
+    if region is not None:
+        # a local certificate: its data cover the region only, so every estimate (Lipschitz pairs, the
+        # analytic L_2 sweep, the cover radii) is over the region; gamma is stated there only
+        ds = dataclasses.replace(ds, system=dataclasses.replace(ds.system, x_lo=region[0], x_hi=region[1]))
+        if o.method == "stochastic" and not o.bounds.uniform:
+            # gamma's sup over the region (what every consumer takes) is a statement about all its rows
+            # at once: the uniform (union-bounded) deltas, so that the confidence stated is that one
+            o = dataclasses.replace(o, bounds=dataclasses.replace(o.bounds, uniform=True))
     s = ds.system
     n = s.n
     check_dataset(ds)
@@ -269,6 +290,12 @@ def certify(dataset, options: Optional[CertifyOptions] = None, simulator=None, o
     if inv:
         notes.append("declared invariant (not covered, not in the basis): "
                      + ", ".join(s.state_names[j] for j in inv))
+    if region is not None:
+        notes.append("local certificate: data, estimates and gamma over the region "
+                     + " x ".join(f"{s.state_names[i]} [{region[0][i]:g}, {region[1][i]:g}]" for i in range(n)
+                                  if region[0][i] > X_lo[i] or region[1][i] < X_hi[i])
+                     + (" with the uniform (all-rows) confidence a sup over it needs" if o.method == "stochastic"
+                        else ""))
 
     # ----- margins and confidences -----------------------------------------------------
     if o.method == "stochastic":
@@ -416,7 +443,7 @@ def certify(dataset, options: Optional[CertifyOptions] = None, simulator=None, o
             "dataset_seed": ds.manifest.get("seed"), "simulator": ds.manifest.get("simulator"),
             "created_unix": time.time(), "seconds": time.perf_counter() - t0}
     return Certificate(system_name=s.name, steps=int(s.steps), state_names=tuple(s.state_names),
-                       input_names=tuple(s.input_names), x_lo=s.x_lo.copy(), x_hi=s.x_hi.copy(),
+                       input_names=tuple(s.input_names), x_lo=X_lo, x_hi=X_hi, region=region,
                        angle_dims=tuple(s.angle_dims), epsilon=float(ds.epsilon), n_runs=N, K=K,
                        method=o.method, options=opts, dims=dims, provenance=prov, inputs=U_data,
                        system_digest=system_digest(s), system_ref=embedded_ref(s),

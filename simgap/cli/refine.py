@@ -8,6 +8,7 @@ Examples::
     simgap refine --system emps --data emps.npz --term cogging:qd:"sin(2*pi*q/0.01)"
     simgap refine --system emps_refined.json --data DATA_EMPS_PULSES.mat --preset emps
     simgap refine --system emps --data DATA_EMPS.mat --preset emps --validate DATA_EMPS_PULSES.mat
+    simgap refine --system cartpole.toml --data DATA --effects affine_ct --save-system cartpole_ct.toml
 
 The data are an .npz with x (K,n), u (K,m), x_next (K,n), tau (and optional t for a time
 series), a CSV/Parquet with columns x1.., x1_next.., u1.., tau (or state/input names), or a
@@ -35,10 +36,13 @@ def add_parser(subparsers) -> None:
                    help="built-in or plugin system name, a system file (.toml) or a refined-system JSON file")
     p.add_argument("--data", required=True, help="transition data (.npz, .csv, .parquet) or a collected data set")
     p.add_argument("--out", help="write the report JSON here")
-    p.add_argument("--save-system", metavar="FILE", help="write the refined system JSON here")
+    p.add_argument("--save-system", metavar="FILE", help="write the refined system here: a refined-system JSON "
+                                                         "(.json), or with --effects affine_ct a system file (.toml)")
     p.add_argument("--effects", help="comma-separated library effects to consider (default: all): "
                                      "bias, viscous_friction, coulomb_friction, drag, input_gain, deadband, "
-                                     "gravity, integration")
+                                     "gravity, integration; or affine_ct alone: affine continuous-time terms on "
+                                     "the velocity states of a system file (damping through the mass matrix), "
+                                     "saved as a system file")
     p.add_argument("--term", action="append", default=[], metavar="NAME:STATE:EXPR",
                    help="user-named candidate term entering STATE, e.g. cogging:qd:'sin(2*pi*q/0.01)'")
     p.add_argument("--validate", metavar="DATA", help="a second record the fit never sees (same formats as "
@@ -85,6 +89,11 @@ def run(args) -> int:
         names = [e.strip() for e in args.effects.split(",") if e.strip()]
         if not names:
             raise SimgapError("--effects: empty list")
+    if names and "affine_ct" in names:
+        return _affine(args, system, data, names)
+    if args.save_system and Path(args.save_system).suffix.lower() == ".toml":
+        raise SimgapError(f"--save-system {args.save_system!r}: library effects are saved as a refined-system JSON "
+                          "(.json); a system file (.toml) is written for --effects affine_ct")
     if args.bootstrap < 2:
         raise SimgapError("--bootstrap must be >= 2")
     if args.segments < 1:
@@ -128,6 +137,49 @@ def run(args) -> int:
         info = record_refinement(args.record, res, against=args.against)
         if not args.quiet:
             print(f"recording written to {args.record} (residual vs {info['against']}; open with: rerun {args.record})")
+    return 0
+
+
+def _affine(args, system, data, names) -> int:
+    """``--effects affine_ct``: the affine continuous-time fit (simgap.refine.affine_ct), its report
+    and the refined system file."""
+    from ..refine.affine_ct import fit_affine_ct, format_affine_table, save_system_file
+    if names != ["affine_ct"]:
+        raise SimgapError(f"--effects {args.effects!r}: affine_ct is fitted on its own (it holds every affine term "
+                          "of the velocity states); give --effects affine_ct alone")
+    for opt, val, default in (("--term", args.term, []), ("--validate", args.validate, None),
+                              ("--spec", args.spec, None), ("--record", args.record, None)):
+        if val != default:
+            raise SimgapError(f"{opt} is not available with --effects affine_ct")
+    if args.save_system and Path(args.save_system).suffix.lower() != ".toml":
+        raise SimgapError(f"--save-system {args.save_system!r}: --effects affine_ct writes a system file; give a "
+                          "path ending in .toml")
+    if data.is_time_series:
+        data = type(data)(x=data.x, u=data.u, x_next=data.x_next, tau=data.tau, source=data.source)
+    fit = fit_affine_ct(system, data, holdout=args.holdout, seed=args.seed, name=args.name)
+    if args.compare_gap:
+        from ..refine.compare import gap_comparison
+        path = Path(args.data)
+        if not (path.is_dir() or (path.suffix == ".npz" and _is_dataset(path))):
+            raise SimgapError("--compare-gap needs a collected data set (simgap collect output)")
+        from ..dataset import load_dataset
+        fit.report["gap_comparison"] = gap_comparison(load_dataset(path, system=fit.base), fit.system)
+    if not args.quiet:
+        print(format_affine_table(fit.report, system.state_names))
+        if "gap_comparison" in fit.report:
+            from ..refine.report import format_gap_comparison
+            print(format_gap_comparison(fit.report["gap_comparison"], system.state_names))
+    if args.out:
+        bad = _first_nonfinite(fit.report)
+        if bad:
+            raise SimgapError(f"the refinement report holds {bad[1]} at {bad[0]}; nothing was written to {args.out!r}")
+        fileio.write_text(Path(args.out), json.dumps(fit.report, indent=2, allow_nan=False))
+        if not args.quiet:
+            print(f"report written to {args.out}")
+    if args.save_system:
+        save_system_file(fit, args.save_system)
+        if not args.quiet:
+            print(f"refined system file written to {args.save_system}")
     return 0
 
 

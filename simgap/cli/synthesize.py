@@ -92,10 +92,11 @@ def add_parser(subparsers) -> None:
     p.add_argument("--out", required=True, help="controller file to write (.npz)")
     p.add_argument("--x0", default=None, help="initial state to record and check (default: the map's)")
     p.add_argument("--json", default=None, help="also write the statistics as JSON here")
-    p.add_argument("--method", choices=["grid", "invariant_set"], default=None,
+    p.add_argument("--method", choices=["grid", "invariant_set", "box_tube"], default=None,
                    help="grid: abstraction and game (default); invariant_set: a linear feedback on an ellipsoid "
-                        "proved invariant under the gap (invariance specs; docs/synthesis.md). Default: the "
-                        "experiment's [synthesis] method, else grid")
+                        "proved invariant under the gap; box_tube: a time-varying feedback on a box tube from x0 "
+                        "to a box around an equilibrium (reach and stay; needs --x0) (invariance specs; "
+                        "docs/synthesis.md). Default: the experiment's [synthesis] method, else grid")
     p.add_argument("--no-strict-domain", action="store_true",
                    help="let cells stick out of X by eta/2 (SCOTS's convention) instead of blocking them")
     p.set_defaults(func=run, outputs=("out", "json"), output_dirs=("store",))
@@ -228,8 +229,8 @@ def run(args) -> int:
         x0 = _floats(args.x0, "--x0")
         system.check_states(x0[None], what="--x0")
     method = args.method or syn.get("method", "grid")
-    if method == "invariant_set":
-        return _invariant_set(args, system, spec, gap, syn, x0)
+    if method in ("invariant_set", "box_tube"):
+        return _invariant_set(args, system, spec, gap, dict(syn, method=method), x0)
     if args.eta is not None:
         eta = _floats(args.eta, "--eta")
     elif "eta" in syn:
@@ -251,12 +252,15 @@ def run(args) -> int:
 
 
 def _invariant_set(args, system, spec, gap, syn, x0) -> int:
-    """--method invariant_set: design, prove, write (nothing written when no set is proved)."""
-    from .. import invariant_stage
+    """--method invariant_set / box_tube: design, prove, write (nothing written when no set is proved)."""
+    from ..synthesis import invariant_stage
+    meth = syn["method"]
     if args.hold not in (None, 1):
-        raise SimgapError("--method invariant_set applies u(x) every period: --hold must be 1")
+        raise SimgapError(f"--method {meth} applies u(x) every period: --hold must be 1")
     invariant_stage.check_section(system, dict(syn, hold=1), spec)
     res = invariant_stage.synthesize(system, spec, gap, syn, x0=x0)
+    if meth == "box_tube":
+        return _finish(args, res, x0, spec, "no box tube proved", "the box tube")
     return _finish(args, res, x0, spec, "no invariant set proved", "the invariant set E")
 
 

@@ -319,7 +319,8 @@ def library_candidates(system: System, names: Optional[Iterable[str]] = None,
     unknown = [nm for nm in names if nm not in LIBRARY]
     if unknown:
         raise SimgapError(f"unknown effect name(s) {unknown}; the library has: {', '.join(LIBRARY)} "
-                          f"(add your own with a user term NAME:STATE:EXPR)")
+                          f"(add your own with a user term NAME:STATE:EXPR), and affine_ct on its own (affine "
+                          f"continuous-time terms of a system file's velocity states, simgap.refine.affine_ct)")
     s = system
     vdims = velocity_dims(s)
     out = []

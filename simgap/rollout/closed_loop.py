@@ -118,6 +118,7 @@ def _run(controller, sim, spec: Spec, x0: np.ndarray, R: int, T: int, hold: int,
     robot_steps = 0
     t_sim = t_ctrl = 0.0
     continuous = bool(getattr(controller, "continuous_input", False))
+    timed = bool(getattr(controller, "time_varying", False))
     cur_u = np.zeros((R, system.m))  # the held input values (a continuous-input controller)
     for t in range(T):
         act = np.flatnonzero(alive)
@@ -125,11 +126,13 @@ def _run(controller, sim, spec: Spec, x0: np.ndarray, R: int, T: int, hold: int,
             break
         if t % hold == 0:
             c0 = time.perf_counter()
+            # a time-varying controller (the box tube) is told its period since x0
+            kw = {"t": t // hold} if timed else {}
             if batched:
-                q = np.asarray(controller.input_index(x[act]), dtype=np.int64).reshape(-1)
+                q = np.asarray(controller.input_index(x[act], **kw), dtype=np.int64).reshape(-1)
             else:
-                q = np.array([int(np.asarray(controller.input_index(x[i:i + 1])).reshape(-1)[0]) for i in act])
-            uq = controller.input(x[act], strict=False) if continuous else None
+                q = np.array([int(np.asarray(controller.input_index(x[i:i + 1], **kw)).reshape(-1)[0]) for i in act])
+            uq = controller.input(x[act], strict=False, **kw) if continuous else None
             t_ctrl += time.perf_counter() - c0
             out = q < 0
             if out.any():

@@ -135,12 +135,14 @@ def mean_map(controller, sim, spec: Spec, x0: np.ndarray, runs: int, T: int, hol
     reach_avoid = spec.kind == "reach_avoid"
     t, cur, ltime, steps = 0, -1, -1, 0
     continuous = bool(getattr(controller, "continuous_input", False))
+    timed = bool(getattr(controller, "time_varying", False))
     u_cur = None
     outcome = "success" if (not reach_avoid or spec.reached(m[None])[0]) else "timeout"
     done = reach_avoid and outcome == "success"
     B = runs + G * rg
     while t < T and not done:
-        q = int(np.asarray(controller.input_index(m[None])).reshape(-1)[0])
+        kw = {"t": t // hold} if timed else {}  # a time-varying controller: its period since x0
+        q = int(np.asarray(controller.input_index(m[None], **kw)).reshape(-1)[0])
         if q < 0:
             ltime = t if ltime < 0 else ltime
             if on_exit == "stop" or cur < 0:
@@ -149,7 +151,7 @@ def mean_map(controller, sim, spec: Spec, x0: np.ndarray, runs: int, T: int, hol
             q = cur
         else:
             # a continuous-input controller (invariant set): its value at the mean, held until the next query
-            u_cur = controller.input(m[None], strict=False)[0] if continuous else U[q]
+            u_cur = controller.input(m[None], strict=False, **kw)[0] if continuous else U[q]
         cur = q
         X = np.concatenate([np.repeat(m[None], runs, axis=0), np.repeat(reps, rg, axis=0)])
         u = np.repeat(u_cur[None], B, axis=0)
@@ -157,7 +159,7 @@ def mean_map(controller, sim, spec: Spec, x0: np.ndarray, runs: int, T: int, hol
             # each repetition's own mean gets its own feedback value: held at u(m), the repetitions of an
             # open-loop unstable plant would drift apart exponentially (their spread is what the standard
             # error measures); outside the set a repetition keeps u(m)
-            ur = controller.input(reps, strict=False)
+            ur = controller.input(reps, strict=False, **kw)
             ur = np.where(np.isfinite(ur), ur, u_cur)
             u[runs:] = np.repeat(ur, rg, axis=0)
         for _ in range(min(hold, T - t)):

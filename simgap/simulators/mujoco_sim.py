@@ -199,10 +199,19 @@ class MujocoSimulator(Simulator):
         return int(j.qposadr[0]), int(j.dofadr[0])
 
     def _actuator(self, m, name):
+        """The actuator's id: by its name, or "#i" for the i-th actuator of the MJCF (0-based; for
+        MJCFs whose actuators have no name, such as Gymnasium's reacher.xml)."""
         names = [m.actuator(i).name for i in range(m.nu)]
+        if name.startswith("#") and name[1:].isdigit():
+            if int(name[1:]) < m.nu:
+                return int(name[1:])
+            raise SimgapError(f"mujoco: {self.path.name} has no actuator {name!r} (named in options.inputs): it has "
+                              f"{m.nu} actuators, #0..#{m.nu - 1}")
         if name not in names:
+            listed = ", ".join(nm or f"#{i} (no name)" for i, nm in enumerate(names))
             raise SimgapError(f"mujoco: {self.path.name} has no actuator {name!r} (named in options.inputs); "
-                              f"its actuators: {', '.join(names) or 'none'}")
+                              f"its actuators: {listed or 'none'} (an actuator without a name is \"#i\", "
+                              "its 0-based index)")
         return int(m.actuator(name).id)
 
     def _base(self, m, names):
@@ -244,7 +253,7 @@ class MujocoSimulator(Simulator):
         mj = self._mj
         rows, vel_k, pos_k, pos_adr, pos_gear = [], [], [], [], []
         for k, nm in enumerate(in_names):
-            a = m.actuator(nm).id
+            a = self._actuator(m, nm)
             kg = float(m.actuator_gainprm[a, 0])
             affine = (int(m.actuator_gaintype[a]) == int(mj.mjtGain.mjGAIN_FIXED)
                       and int(m.actuator_biastype[a]) == int(mj.mjtBias.mjBIAS_AFFINE) and kg != 0

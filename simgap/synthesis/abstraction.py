@@ -123,6 +123,9 @@ def as_gap(gap, system: System):
                           f"steps={system.steps}; pass --steps {int(steps)} or a matching certificate")
     lo = system.x_lo[None, :]
     hi = system.x_hi[None, :]
+    region = getattr(gap, "region", None)
+    if region is not None:  # a local certificate: the sample evaluation stays where gamma holds
+        lo, hi = np.asarray(region[0], float)[None, :], np.asarray(region[1], float)[None, :]
     try:
         g = np.asarray(gap.gamma_upper_box(lo, hi, system.inputs[:1]), dtype=float)
     except SimgapError:

@@ -183,6 +183,9 @@ class Controller:
                                       f"{VERSION}: files without a content digest are refused; synthesize again)")
                 if meta.get("kind") == "invariant_set":  # u = u* + K (x - x*) on an ellipsoid
                     return EllipsoidController.from_arrays(path, z, meta, system)
+                if meta.get("kind") == "box_tube":  # u = u_nom(t) + K (x - x_nom(t)) on a box tube
+                    from .tube_controller import TubeController
+                    return TubeController.from_arrays(path, z, meta, system)
                 arrays = {k: z[k] for k in ("steps", "valid", "chosen", "target", "inputs")}
         except SimgapError:
             raise
@@ -385,6 +388,8 @@ def synthesize(system: System, spec: Spec, eta, gap=None, hold: int = 1, *, grow
     t0 = time.perf_counter()
     if gap is not None and hasattr(gap, "check_system"):
         gap.check_system(system)
+    if gap is not None and hasattr(gap, "require_inside"):  # the grid covers X: gamma is taken over every cell
+        gap.require_inside(system.x_lo, system.x_hi, "the grid synthesis's domain X")
     gap = as_gap(gap, system)
     check_hold(hold, gap, compose_hold)
     keep = certified_input_mask(system, gap)

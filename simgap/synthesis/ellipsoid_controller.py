@@ -22,6 +22,7 @@ from typing import Optional
 import numpy as np
 
 from ..errors import BAD_FILE_ERRORS, SimgapError
+from ..sets import Ellipsoid
 from ..systems import System
 from .controller_file import check_digest, write_controller
 from .spec import Spec
@@ -77,10 +78,8 @@ class EllipsoidController:
     def projection_outline(self, dims, points: int = 181) -> np.ndarray:
         """(points, 2) the boundary of :meth:`projection` (closed: the last point is the first):
         c + L u for u on the unit circle, L L^T = (P^-1)[dims, dims]."""
-        c, P2 = self.projection(dims)
-        L = np.linalg.cholesky(np.linalg.inv(P2))
-        t = np.linspace(0.0, 2 * np.pi, int(points))
-        return c + np.stack([np.cos(t), np.sin(t)], axis=1) @ L.T
+        self.projection(dims)  # the indices checked, with this class's message
+        return Ellipsoid(self.x_star, self.P).outline([int(i) for i in dims], points)
 
     def level(self, x) -> np.ndarray:
         """(B,) (x - x*)^T P (x - x*): <= 1 inside E."""

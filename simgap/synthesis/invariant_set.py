@@ -250,6 +250,8 @@ def gap_bound(gap, n: int, lo, hi, u_lo, u_hi):
         return g, "a given constant bound per period (not a certificate)"
     lo, hi = np.asarray(lo, float)[None], np.asarray(hi, float)[None]
     u_lo, u_hi = np.asarray(u_lo, float), np.asarray(u_hi, float)
+    if hasattr(gap, "require_inside"):  # gamma's sup over a box outside the certificate's region is refused
+        gap.require_inside(lo[0], hi[0], "the invariant set's bounding box")
     if getattr(gap, "continuous", False):  # certified between the grid's inputs too (its input Lipschitz term)
         return np.asarray(gap.gamma_sup(lo[0], hi[0], u_lo, u_hi), dtype=float).ravel(), \
             "gamma_sup over E's bounding box and u(E)'s range (inputs between grid values included)"
@@ -599,6 +601,9 @@ def synthesize_invariant_set(system: System, spec: Spec, gap=None, *, x_star=Non
                           f"{', '.join(cp.installed_solvers())})")
     if gap is not None and hasattr(gap, "check_system"):
         gap.check_system(system)
+    if gap is not None and hasattr(gap, "require_inside"):  # a local certificate: E lies in S, S in its region
+        gap.require_inside(np.maximum(spec.safe.lo, system.x_lo), np.minimum(spec.safe.hi, system.x_hi),
+                           "the invariant-set synthesis's safe set (E lies in it)")
     imap = IntervalMap(system)  # refuses models without interval derivatives before any work
     n, m = system.n, system.m
     lo = np.maximum(spec.safe.lo, system.x_lo)

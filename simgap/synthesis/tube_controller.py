@@ -1,0 +1,188 @@
+"""The box-tube controller: u_t(x) = u_nom(t) + K (x - x_nom(t)) for t < T0, u* + K (x - x*) after.
+
+A time-varying controller (``time_varying = True``): rollouts and the mean map pass the period
+``t`` (controller periods since x0) to ``input``, ``input_index`` and ``winning``. Its set at t
+is the proved box x_nom(t) +- h_t for t <= T0, then the terminal box x* +- H
+(:mod:`simgap.synthesis.box_tube`). The boxes bound the MEAN state (the paper's Theorem 1); a
+single noisy run may leave them, so the law is applied at every state (``input_index`` is always 0,
+``input(strict=False)`` never NaN): a run that left the tube gets the feedback, not a held input.
+
+File format (``.npz``, no pickle; :mod:`.controller_file`): arrays ``x_nom`` (T0 + 1, n),
+``u_nom`` (T0, m), ``K`` (m, n), ``x_star`` (n,), ``u_star`` (m,), ``H`` (n,), ``radii``
+(T0 + 1, n), and ``meta`` (kind ``box_tube``, the proof's statistics, the gap's provenance, x0,
+the margin, the digest). :meth:`from_arrays` recomputes the digest and refuses an edited file.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from ..errors import BAD_FILE_ERRORS, SimgapError
+from ..sets import Box
+from ..systems import System
+from .controller_file import check_digest, write_controller
+from .spec import Spec
+
+KIND = "box_tube"
+ARRAYS = ("x_nom", "u_nom", "K", "x_star", "u_star", "H", "radii")
+#: relative slack of the membership test (the tube at t = 0 is the single point x0)
+TOL = 1e-9
+
+
+class TubeController:
+    """A time-varying linear feedback on a proved box tube (module docstring)."""
+
+    continuous_input = True
+    time_varying = True
+    kind = KIND
+
+    def __init__(self, plan, radii, system: Optional[System] = None, spec: Optional[Spec] = None,
+                 meta: Optional[dict] = None, hold: int = 1):
+        self.x_nom = np.asarray(plan.x_nom, dtype=float)
+        n = self.x_nom.shape[1]
+        self.K = np.asarray(plan.K, dtype=float).reshape(-1, n)
+        m = self.K.shape[0]
+        self.u_nom = np.asarray(plan.u_nom, dtype=float).reshape(-1, m)
+        self.x_star = np.asarray(plan.x_star, dtype=float).ravel()
+        self.u_star = np.asarray(plan.u_star, dtype=float).ravel()
+        self.H = np.asarray(plan.H, dtype=float).ravel()
+        self.radii = np.asarray(radii, dtype=float).reshape(self.x_nom.shape)
+        self.system, self.spec, self.hold = system, spec, int(hold)
+        self.meta = dict(meta or {})
+        x0 = self.meta.get("x0")
+        self.x0 = self.x_nom[0].copy() if x0 is None else np.asarray(x0, dtype=float)
+
+    @property
+    def T0(self) -> int:
+        return int(self.u_nom.shape[0])
+
+    @property
+    def size(self) -> int:
+        return 1
+
+    size_with_target = size
+
+    # ----- the sets -------------------------------------------------------------------
+    def box_at(self, t: int) -> Box:
+        """The proved box at period t (the tube's for t <= T0, the terminal box after)."""
+        t = int(t)
+        if t < 0:
+            raise SimgapError(f"box tube: period t must be >= 0, got {t}")
+        if t <= self.T0:
+            return Box(self.x_nom[t], self.radii[t])
+        return Box(self.x_star, self.H)
+
+    @property
+    def terminal_box(self) -> Box:
+        return Box(self.x_star, self.H)
+
+    def winning(self, x, t: int = 0) -> np.ndarray:
+        """(B,) bool: x lies in the proved box at period t."""
+        b = self.box_at(t)
+        x = np.atleast_2d(np.asarray(x, dtype=float))
+        return np.all(np.abs(x - b.c) <= b.r + TOL * (1.0 + np.abs(b.c)), axis=-1)
+
+    def check_winning(self, x, what: str = "initial state", t: int = 0) -> None:
+        x = np.atleast_2d(np.asarray(x, dtype=float))
+        ok = self.winning(x, t)
+        if not ok.all():
+            i = int(np.flatnonzero(~ok)[0])
+            b = self.box_at(t)
+            raise SimgapError(f"{what} {x[i].tolist()} is outside the box tube at period {t} (centre "
+                              f"{np.round(b.c, 6).tolist()}, half-widths {np.round(b.r, 6).tolist()}); the tube "
+                              f"starts at x0 = {self.x0.tolist()}")
+
+    def reached_and_stayed(self, traj) -> np.ndarray:
+        """(R,) bool: trajectories (R, T + 1, n) (period 0 = x0) inside the terminal box at every
+        period from T0 on (True when they end before T0)."""
+        traj = np.asarray(traj, dtype=float)
+        tail = traj[:, self.T0:]
+        return np.all(np.abs(tail - self.x_star) <= self.H + TOL * (1.0 + np.abs(self.x_star)), axis=(1, 2))
+
+    def steps_to_go(self, x) -> np.ndarray:
+        """(B,) T0: the periods the plan needs (rollouts default to twice this plus one)."""
+        return np.full(np.atleast_2d(x).shape[0], float(self.T0))
+
+    # ----- inputs ---------------------------------------------------------------------
+    def input(self, x, strict: bool = True, t: int = 0) -> np.ndarray:
+        """(B, m) u_t(x). With ``strict``, SimgapError for a state outside the box at t; without, the
+        law at every state (the tube bounds the MEAN state; a single noisy run may leave it and still
+        gets the feedback, never a held input)."""
+        x = np.atleast_2d(np.asarray(x, dtype=float))
+        if strict:
+            self.check_winning(x, "state", t)
+        t = int(t)
+        if t < self.T0:
+            return self.u_nom[t] + (x - self.x_nom[t]) @ self.K.T
+        return self.u_star + (x - self.x_star) @ self.K.T
+
+    def input_index(self, x, t: int = 0) -> np.ndarray:
+        """(B,) 0: the feedback law applies at every state (see :meth:`input`; membership of the proved
+        boxes is :meth:`winning`, of whole trajectories :meth:`inside`)."""
+        return np.zeros(np.atleast_2d(x).shape[0], dtype=np.int64)
+
+    def inside(self, traj) -> np.ndarray:
+        """(R,) bool: trajectories (R, T + 1, n) (period 0 = x0) inside the proved box of every period."""
+        traj = np.asarray(traj, dtype=float)
+        T = traj.shape[1]
+        c = np.concatenate([self.x_nom[:T], np.repeat(self.x_star[None], max(0, T - self.T0 - 1), axis=0)])
+        r = np.concatenate([self.radii[:T], np.repeat(self.H[None], max(0, T - self.T0 - 1), axis=0)])
+        return np.all(np.abs(traj - c) <= r + TOL * (1.0 + np.abs(c)), axis=(1, 2))
+
+    # ----- description ----------------------------------------------------------------
+    def outlines(self, dims=(0, 1), every: int = 1) -> list:
+        """Closed rectangles (5, 2) of the tube's boxes on two states (every ``every``-th period) and
+        the terminal box last (figures and recordings)."""
+        d = [int(i) for i in dims]
+        out = [self.box_at(t).project(d).outline((0, 1)) for t in range(0, self.T0 + 1, max(1, int(every)))]
+        return out + [self.terminal_box.project(d).outline((0, 1))]
+
+    def projection_outline(self, dims, points: int = 0) -> np.ndarray:
+        """The terminal box's rectangle on two states (what figures draw for a set controller)."""
+        return self.terminal_box.project([int(i) for i in dims]).outline((0, 1))
+
+    def describe(self) -> dict:
+        return {"kind": KIND, "n": int(self.x_star.size), "m": int(self.u_star.size), "hold": self.hold,
+                "T0": self.T0, "x_star": self.x_star.tolist(), "u_star": self.u_star.tolist(),
+                "H": self.H.tolist(), "margins": self.meta.get("margins")}
+
+    def summary(self) -> str:
+        st = self.meta.get("stats", {})
+        return (f"box-tube controller: u = u_nom(t) + K (x - x_nom(t)) for {self.T0} periods, then u* + K (x - x*); "
+                f"K = {np.round(self.K, 4).tolist()}, x* = {self.x_star.tolist()}; terminal box half-widths "
+                f"{np.round(self.H, 6).tolist()}; margin: gamma x {st.get('gap_scale_text', '?')}")
+
+    # ----- files ----------------------------------------------------------------------
+    def save(self, path) -> Path:
+        arrays = {k: getattr(self, k) for k in ARRAYS}
+        return write_controller(path, self.meta, KIND, self.hold, self.system, self.spec, arrays)
+
+    @classmethod
+    def from_arrays(cls, path, z, meta: dict, system: Optional[System] = None) -> "TubeController":
+        """Build from an open .npz whose meta says kind box_tube (called by Controller.load)."""
+        try:
+            arrays = {k: np.asarray(z[k], dtype=float) for k in ARRAYS}
+        except (*BAD_FILE_ERRORS, KeyError) as e:
+            raise SimgapError(f"controller file {str(path)!r} is not a box-tube controller ({e})") from None
+        check_digest(path, meta, arrays)
+        xn, un, K, xs, us, H, radii = (arrays[k] for k in ARRAYS)
+        ok = xn.ndim == 2 and radii.shape == xn.shape and K.ndim == 2 and K.shape[1] == xn.shape[1] \
+            and un.shape == (xn.shape[0] - 1, K.shape[0]) and xs.shape == (xn.shape[1],) and H.shape == xs.shape \
+            and us.shape == (K.shape[0],) and all(np.all(np.isfinite(a)) for a in arrays.values()) \
+            and np.all(H >= 0) and np.all(radii >= 0)
+        if not ok:
+            raise SimgapError(f"controller file {str(path)!r}: the box-tube arrays do not fit together")
+        spec = Spec.from_dict(meta["spec"]) if meta.get("spec") else None
+        if system is None and meta.get("system"):
+            from ..system_ref import ref_of_description, resolve_system
+            try:
+                system = resolve_system(ref_of_description(meta["system"]), int(meta["system"].get("steps", 1)),
+                                        paths=False)
+            except SimgapError:
+                system = None
+        from types import SimpleNamespace
+        plan = SimpleNamespace(x_nom=xn, u_nom=un, K=K, x_star=xs, u_star=us, H=H)
+        return cls(plan, radii, system=system, spec=spec, meta=meta, hold=meta.get("hold", 1))

@@ -150,3 +150,15 @@ def test_sup_statement_uses_the_all_rows_confidence_monte_carlo():
             assert not uniform and holds < 0.1   # vacuous, and rightly so: the event nearly never holds
     # the pointwise reading of the same pointwise certificate would claim 0.8 for an event seen < 10 %
     assert scope_confidences([beta], [beta], [0.0], K, False)["pointwise"] == pytest.approx(0.8)
+
+
+def test_run_level_certificate_records_the_region(local):
+    """The realization-level certificate (certify --level run) of region data records the region too,
+    so its consumers refuse sets leaving it as well."""
+    from simgap.perrun.realization import certify_run
+
+    ds, _ = local
+    rc = certify_run(ds, alpha=0.5, beta=0.05)
+    assert rc.region is not None and np.allclose(rc.region[1], [0.1, 0.2])
+    with pytest.raises(SimgapError, match="leaves the certificate's region"):
+        rc.gamma_upper_box(np.array([[-0.2, 0.0]]), np.array([[0.0, 0.1]]), np.array([[0.0]]))

@@ -188,6 +188,9 @@ class Cover:
         s = self.system
         dims = " x ".join(f"{s.state_names[i]}:{c}" for i, c in zip(self.covered, self.counts))
         out = f"cover: {self.N} points (epsilon={self.epsilon:g}, achieved radius {self.radius:.4g}; grid {dims})"
+        if self.spec.region:
+            out += ("\n  region (a local certificate: gamma will hold there only): "
+                    + " x ".join(f"{k} [{float(v[0]):g}, {float(v[1]):g}]" for k, v in self.spec.region.items()))
         if self.fixed:
             fx = ", ".join(f"{s.state_names[i]}={v:g}" for i, v in sorted(self.fixed.items()))
             out += (f"\n  declared invariance: the gap is assumed independent of "

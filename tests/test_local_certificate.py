@@ -150,3 +150,37 @@ def test_sup_statement_uses_the_all_rows_confidence_monte_carlo():
             assert not uniform and holds < 0.1   # vacuous, and rightly so: the event nearly never holds
     # the pointwise reading of the same pointwise certificate would claim 0.8 for an event seen < 10 %
     assert scope_confidences([beta], [beta], [0.0], K, False)["pointwise"] == pytest.approx(0.8)
+
+
+def test_run_level_certificate_records_the_region(local):
+    """The realization-level certificate (certify --level run) of region data records the region too,
+    so its consumers refuse sets leaving it as well."""
+    from simgap.perrun.realization import certify_run
+
+    ds, _ = local
+    rc = certify_run(ds, alpha=0.5, beta=0.05)
+    assert rc.region is not None and np.allclose(rc.region[1], [0.1, 0.2])
+    with pytest.raises(SimgapError, match="leaves the certificate's region"):
+        rc.gamma_upper_box(np.array([[-0.2, 0.0]]), np.array([[0.0, 0.1]]), np.array([[0.0]]))
+
+
+@pytest.mark.parametrize("region,match", [
+    ('{ omega = [-0.2, 0.9] }', r"region: omega = \[-0.2, 0.9\] leaves X's \[-0.5, 0.5\]"),
+    ('{ omega = [0.2, -0.2] }', r"region: omega = \[0.2, -0.2\] needs finite lo < hi"),
+    ('{ speed = [0.0, 0.1] }', r"unknown state dimension 'speed'"),
+    ('{ omega = [0.1] }', r"\[collect\] region"),
+])
+def test_bad_region_is_refused_before_any_work(tmp_path, capsys, region, match):
+    """`simgap collect` with a bad [collect] region: exit 2, the key named, no traceback, no store."""
+    import re
+
+    from simgap.cli import main
+    p = tmp_path / "exp.toml"
+    p.write_text('[system]\nname = "pendulum"\n[simulator]\nkind = "numpy"\n[collect]\nepsilon = 0.1\nn_runs = 4\n'
+                 f"region = {region}\n")
+    out = tmp_path / "store"
+    rc = main(["collect", str(p), "--profile", "base", "--out", str(out), "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.startswith("error:") and "Traceback" not in err, err
+    assert re.search(match, err), err
+    assert not out.exists()

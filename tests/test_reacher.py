@@ -93,3 +93,18 @@ def test_unnamed_actuators_by_index(exp):
     opts = dict(exp.simulator.options, inputs=["motor", "#1"])
     with pytest.raises(SimgapError, match=r"#0 \(no name\)"):
         make_simulator(replace(exp.simulator, options=opts), exp.system)
+
+
+def test_local_profile_parses_and_its_set_must_lie_in_the_region(tmp_path):
+    """The local profile's region and safe set load; simgap run's checks accept its safe set (inside
+    the region) and refuse a safe set leaving it, naming the region, before any work."""
+    from simgap.pipeline import check_experiment
+
+    e = load_experiment("reacher", profile="local")
+    assert e.collect.region == {"q1": [0.8, 1.2], "v0": [-0.5, 0.5], "v1": [-0.5, 0.5]}
+    assert e.cover().points[:, 1].min() > 0.8 and np.abs(e.cover().points[:, 2:]).max() < 0.5
+    check_experiment(e, tmp_path / "out")
+    wide = load_experiment("reacher", profile="local", overrides={"synthesis": {"safe_lo": [0.3, 0.7, -0.5, -0.5]}})
+    with pytest.raises(SimgapError, match=r"safe set leaves \[collect\] region in q1 \(q1: set \[0.7, 1.2\], "
+                                          r"region \[0.8, 1.2\]\)"):
+        check_experiment(wide, tmp_path / "out2")

@@ -92,6 +92,11 @@ def test_system_file_is_parsed_and_certify_reads_it(fitted, tmp_path):
     assert "ct_omega_omega" in text and "[definitions]" in text and "simgap refine --effects affine_ct" in text
     ct = load_system_file(tmp / "ct.toml")
     assert ct.name == "cartpole_ct" and ct.params["ct_omega_omega"] < -1.9
+    from simgap.synthesis.interval_map import IntervalMap
+    IntervalMap(ct)   # the invariant-set proof differentiates its formulas (refuses a model it cannot)
+    # the growth bound is carried over: omega on omega now includes the fitted damping c_ii < 0
+    G = ct.params["_system_file"]["bounds"]["growth"]
+    assert G[3][3] == pytest.approx(0.06 + ct.params["ct_omega_omega"]) and G[2][3] > 0.03
     s = exp.system
     cover = make_cover(s, CoverSpec(epsilon=0.2, spacing=[0.05, 0.25, 0.25], invariant_dims=("p",), fixed={"p": 0.0}))
     plan = CollectionPlan(system=s, simulator=exp.simulator, cover=cover, n_runs=20, seed=3, chunk_size=2000)

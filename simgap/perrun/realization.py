@@ -29,6 +29,7 @@ Construction from the same N1hat runs per cover pair (x_r, u) the paper uses:
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import asdict, dataclass
 from typing import Optional
@@ -37,7 +38,7 @@ import numpy as np
 
 from ..certify.certificate import Certificate, DimCertificate
 from ..certify.lipschitz import l2_analytic, neighbour_pairs, slopes_of, wood_zhang
-from ..certify.pipeline import _versions, bases_for, check_dataset, invariant_dims
+from ..certify.pipeline import _versions, bases_for, check_dataset, dataset_region, invariant_dims
 from ..certify.scp import solve_scp
 from ..errors import SimgapError
 from ..system_ref import embedded_ref, system_digest
@@ -157,6 +158,11 @@ def certify_run(dataset, options: Optional[RunCertifyOptions] = None, simulator=
     o = options or RunCertifyOptions(**kw)
     o.validate()
     ds, s = dataset, dataset.system
+    X_lo, X_hi = s.x_lo.copy(), s.x_hi.copy()
+    region = dataset_region(ds)
+    if region is not None:  # a local data set: estimates over the region, gamma^alpha stated there only
+        ds = dataclasses.replace(ds, system=dataclasses.replace(s, x_lo=region[0], x_hi=region[1]))
+        s = ds.system
     check_dataset(ds)
     qhat, j, j_used = quantile_bounds(ds, float(o.alpha), float(o.beta))
     K, N, n = ds.K, int(ds.n_runs), s.n
@@ -211,7 +217,7 @@ def certify_run(dataset, options: Optional[RunCertifyOptions] = None, simulator=
             "simulator": ds.manifest.get("simulator"), "created_unix": time.time(),
             "seconds": time.perf_counter() - t0}
     return Certificate(system_name=s.name, steps=int(s.steps), state_names=tuple(s.state_names),
-                       input_names=tuple(s.input_names), x_lo=s.x_lo.copy(), x_hi=s.x_hi.copy(),
+                       input_names=tuple(s.input_names), x_lo=X_lo, x_hi=X_hi, region=region,
                        angle_dims=tuple(s.angle_dims), epsilon=float(ds.epsilon), n_runs=N, K=K, method="run",
                        options=opts, dims=dims, provenance=prov, inputs=U_data,
                        system_digest=system_digest(s), system_ref=embedded_ref(s))

@@ -37,6 +37,7 @@ SUMMARIES = {
     "key": "make a key pair for signing certificates (needs simgap[sign])",
     "plugins": "list systems and simulator kinds (built-in and from installed plugins) with their keys",
     "split": "a system file with a subset of its states, the others fixed",
+    "fit": "fit named parameters of a system file to noise-free simulator transitions",
     "gui": "interactive web app (viser): collect, certify, synthesize, roll out, refine",
     "record": "headless Rerun recording (.rrd) of a run: map, winning domain, gamma, data, rollouts",
     "view": "serve a run's Rerun recording to a browser and print its address (no display needed)",

@@ -108,9 +108,12 @@ def apply(readme: str, summaries: list) -> tuple:
             lines[i] = "| " + " | ".join([cells[0], *want, *cells[7:]]) + " |"
         if key == PRINTED_RUN:
             table = printed_table(s).split("\n")
+            table = table[:table.index("")] if "" in table else table  # notes below the table are not shown
             try:
                 a = lines.index("$ simgap run pendulum") + 1
                 b = lines.index("", a)
+                # the block shows the run's stage lines first; the table starts at its column header
+                a = next(i for i in range(a, b) if lines[i].split() == table[0].split())
             except ValueError:
                 diffs.append("README has no `$ simgap run pendulum` block")
                 continue

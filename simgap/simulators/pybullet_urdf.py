@@ -187,7 +187,7 @@ class UrdfSimulator(BulletSimulator):
     TYPES = {"noise": dict.fromkeys(NOISE_KEYS, "numbers"), "randomize": dict.fromkeys(RANDOMIZE_KEYS, "number"),
              "effects": dict.fromkeys(EFFECT_KEYS, "number"),
              "options": {"urdf": "name", "urdf_sha256": "name", "positions": "names", "velocities": "names",
-                         "inputs": "names", "input_map": "matrix", "input_mode": "name", "max_force": "number",
+                         "inputs": "names", "input_map": "matrix", "input_mode": "names", "max_force": "numbers", "position_gain": "number", "velocity_gain": "number",
                          "base_pose": "bool", "base_velocity": "bool", "driven_start": "name", "base_height": "number",
                          "fixed_base": "bool", "ground": "bool", "substeps": "int", "copies": "int",
                          "gravity": "number", "cone_friction": "bool"}}

@@ -191,7 +191,7 @@ def run(args) -> int:
             raise SimgapError(f"--system {args.system!r} does not match the experiment's system {system.name!r}")
         if args.steps is not None and args.steps != system.steps:
             system = system.with_steps(args.steps)
-        from .. import invariant_stage
+        from ..synthesis import invariant_stage
         invariant_stage.check_method(syn, args.method)
         spec, x0, _ = experiment_spec(e)
         if x0 is None and "x0" in e.section("rollout"):  # recorded, so `simgap rollout` needs no --x0

@@ -18,24 +18,8 @@ from simgap.system_file import load_system_file
 
 # the hardening inverted pendulum of tests/test_invariant_set.py (th + 10 th^3): from th = 0.5 the
 # linearization misses most of the destabilizing term, so a tube without the remainder is too thin
-CUBIC = """
-format = "simgap-system"
-name = "cubicpend"
-states = ["th", "w"]
-inputs = ["u"]
-x_lo = [-1.0, -2.0]
-x_hi = [1.0, 2.0]
-tau = 0.1
-input_grid = {lo = [-4.0], hi = [4.0], counts = [9]}
-[params]
-a = 1.0
-k = 10.0
-[dynamics]
-kind = "continuous"
-substeps = 2
-th = "w"
-w = "a*th + k*th^3 - 0.2*w + u"
-"""
+from test_invariant_set import CUBIC  # noqa: E402
+
 GAP = np.array([2e-3, 2e-2])
 X0 = [0.5, 0.0]
 

@@ -9,10 +9,12 @@ SHARED = REPO.parent / "shared"
 
 def pytest_collection_modifyitems(config, items):
     for item in items:
-        if "ray" in item.keywords:
-            # one local Ray instance at a time: under pytest-xdist (`-n 2 --dist loadgroup`) the
-            # tests that start Ray share one worker instead of racing for its session files
-            item.add_marker(pytest.mark.xdist_group("ray"))
+        # under pytest-xdist (`-n 2 --dist loadgroup`, the README's command) a file's tests stay on one
+        # worker, in file order: a module fixture (a whole `simgap run`) is built once, not once per
+        # worker, and a file's tests see each other as in a serial run; the tests that start a local
+        # Ray instance share one worker, one instance at a time
+        group = "ray" if "ray" in item.keywords else item.nodeid.split("::")[0]
+        item.add_marker(pytest.mark.xdist_group(group))
     if os.environ.get("SIMGAP_SLOW") == "1":
         return
     skip = pytest.mark.skip(reason="paper-scale run: set SIMGAP_SLOW=1 to run")

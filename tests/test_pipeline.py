@@ -83,6 +83,8 @@ def test_bad_experiment_is_a_clear_error(tmp_path, capsys):
     assert "bogus" in capsys.readouterr().err
 
 
+@pytest.mark.slow  # a second whole `simgap run` (1000 rollouts per method); the small profile's run above
+# keeps the chain in the default suite
 def test_noisy_profile_shows_the_papers_claim(tmp_path):
     """The noisy profile as shipped: the deterministic-gap controller fails a visible share of runs,
     the stochastic-gap controller has a winning domain from x0 and does not fail. (The shipped profile

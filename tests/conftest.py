@@ -7,6 +7,7 @@ REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
 
 
+@pytest.hookimpl(tryfirst=True)  # before pytest-xdist's own hook reads the groups
 def pytest_collection_modifyitems(config, items):
     for item in items:
         # under pytest-xdist (`-n 2 --dist loadgroup`, the README's command) a file's tests stay on one

@@ -24,7 +24,8 @@ def drawn(monkeypatch):
 
     def keep(fig, out_dir, name):
         figs[name] = {"axes": [{"title": a.get_title(), "ylabel": a.get_ylabel(), "axes": a, "insets": a.child_axes}
-                               for a in fig.axes]}
+                               for a in fig.axes],
+                      "legends": [t.get_text() for lg in fig.legends for t in lg.get_texts()]}
         return real(fig, out_dir, name)
 
     monkeypatch.setattr(figures, "save", keep)
@@ -340,6 +341,9 @@ def test_every_figure_for_every_method_and_dimension(n, kind, tmp_path, drawn):
             mm, avg = np.asarray(ro.mean_map_trajectory)[:, :2], np.asarray(ro.mean_trajectory)[:, :2]
             assert any(p.shape == mm.shape and np.allclose(p, mm) for p in paths), m
             assert any(p.shape == avg.shape and np.allclose(p, avg) for p in paths), m
+        # the nominal model's mean map is no guarantee about the simulator: the legend says so
+        assert ("mean map (the guarantee; nominal: none)" if kind != "grid" else "mean map (the guarantee)") \
+            in traj["legends"]
         st = drawn["states_time"]
         assert {a["ylabel"].split(" ")[0] for a in st["axes"] if a["ylabel"]} == {f"s{i}" for i in range(n)}
         gs = drawn["gamma_slices"]

@@ -318,7 +318,7 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
                          "collect": {"epsilon": exp.collect.epsilon, "n_runs": exp.collect.n_runs,
                                      "seed": exp.collect.seed},
                          "stores_from": None if stores_from is None else str(Path(stores_from).resolve()),
-                         "collected_runs": {}, "methods": {}}
+                         "collected_runs": {}, "statements": SUMMARY_STATEMENTS, "methods": {}}
 
         def stage(name, fn):
             log(f"[{name}] ...")
@@ -502,9 +502,38 @@ def _simultaneous(c) -> str:
     return "-" if c is None else (f"{c:.4g}" if c > 0 else "vacuous")
 
 
+#: the table's groups: which statement the numbers under each header are (the proof is about the
+#: mean map; the rollouts are single runs, counted, and no proof covers them)
+TABLE_GROUPS = {
+    "certificate": "certificate (gamma bounds the MEAN next state's gap, not single runs)",
+    "proof": "proof (about the MEAN MAP m+ = E fhat(m, u(m)), not single runs)",
+    "proof_nominal": "proof (about the MEAN MAP m+ = E fhat(m, u(m)); nominal: about f only)",
+    "mean_map": "the mean map run in the simulator (the sequence a gap's proof is about)",
+    "runs": "SINGLE RUNS in the simulator (counted; no proof covers them)",
+}
+
+
+#: summary.json's "statements": which statement each number of a method's entry is
+SUMMARY_STATEMENTS = {
+    "gamma, confidence_*, audit_*": "the certificate: gamma bounds the gap of the MEAN next state |E fhat - f| "
+                                    "(audited at fresh points), not the gap of single runs",
+    "winning_cells": "proved on the model: from each winning cell (an invariant-set run: 1 when the set E is "
+                     "proved) the MEAN MAP m+ = E fhat(m, u(m)) satisfies the spec; for the nominal model a "
+                     "statement about f alone, none about the simulator",
+    "mean_map_satisfies": "the mean map run in the simulator from x0 (the sequence a gap's proof is about) "
+                          "satisfies the spec: checked, one sequence",
+    "failures, n_rollouts, per_run_empirical, rollouts_in_set": "SINGLE RUNS in the simulator: counted, not "
+                                                                "proved; no certificate or proof here bounds them",
+    "rollout_average_satisfies": "the average of the single runs satisfies the spec; not the mean map",
+}
+
+
 def comparison_table(summary: dict) -> str:
     """The readable comparison table of a summary (deterministic vs stochastic; with an invariant-set
-    synthesis also the nominal model without a gap)."""
+    synthesis also the nominal model without a gap), in groups headed by :data:`TABLE_GROUPS`: what
+    the certificate bounds, what the synthesis proved (about the mean map), the mean map run in the
+    simulator, and the single runs (counted, not proved), so that a set "proved" and "1000 / 1000"
+    single runs failing read as the two different statements they are."""
     names = summary["system"]["state_names"]
     cols = [m for m in METHODS + ("nominal",) if m in summary["methods"]]
     rows = [("",) + tuple(cols)]
@@ -517,77 +546,92 @@ def comparison_table(summary: dict) -> str:
     def both(fn):
         return [fn(summary["methods"][m]) for m in cols]
 
+    def group(key):  # a header line across the table (a str row, not a cell row)
+        rows.append(TABLE_GROUPS[key])
+
+    def row(label, *cells):
+        rows.append(("  " + label, *cells))
+
+    group("certificate")
     gap_term = any(summary["methods"][m]["gamma"].get("lipschitz_term") == "gap" for m in METHODS)
     for i, nm in enumerate(names):
-        rows.append((f"gamma max [{nm}]" + (" (gap's term)" if gap_term else ""),
-                     *both(lambda e: fmt(e["gamma"]["max"][i]) if isinstance(e.get("gamma"), dict) else "-")))
+        row(f"gamma max [{nm}]" + (" (gap's term)" if gap_term else ""),
+            *both(lambda e: fmt(e["gamma"]["max"][i]) if isinstance(e.get("gamma"), dict) else "-"))
     if gap_term:  # the same certificates with the paper's Lipschitz term, side by side
         for i, nm in enumerate(names):
-            rows.append((f"gamma max [{nm}] (paper's term)",
-                         *both(lambda e: fmt(e["gamma"].get("max_paper_term", [None] * len(names))[i])
-                               if isinstance(e.get("gamma"), dict) else "-")))
+            row(f"gamma max [{nm}] (paper's term)",
+                *both(lambda e: fmt(e["gamma"].get("max_paper_term", [None] * len(names))[i])
+                      if isinstance(e.get("gamma"), dict) else "-"))
     for i, nm in enumerate(names):
-        rows.append((f"confidence [{nm}]", *both(lambda e: fmt((e.get("confidence_per_dim") or [None] * len(names))[i]))))
-    rows.append(("joint conf. pointwise", *both(lambda e: _simultaneous(e.get("confidence_joint_pointwise")))))
-    rows.append(("joint conf. all rows", *both(lambda e: _simultaneous(e.get("confidence_joint_simultaneous")))))
-    rows.append(("proof confidence (sup over the set)",
-                 *both(lambda e: "-" if e.get("confidence_joint") is None else
-                       _simultaneous(e.get("confidence_joint_simultaneous")))))
-    rows.append(("audit pass rate (joint)", *both(lambda e: fmt(e.get("audit_pass_rate_joint"), "{:.3f}"))))
-    rows.append(("audit violated (joint)", *both(lambda e: fmt(e.get("audit_violated_joint"), "{:.3f}"))))
+        row(f"confidence [{nm}]", *both(lambda e: fmt((e.get("confidence_per_dim") or [None] * len(names))[i])))
+    row("joint conf. pointwise", *both(lambda e: _simultaneous(e.get("confidence_joint_pointwise"))))
+    row("joint conf. all rows", *both(lambda e: _simultaneous(e.get("confidence_joint_simultaneous"))))
+    row("proof confidence (sup over the set)", *both(lambda e: "-" if e.get("confidence_joint") is None else
+                                                     _simultaneous(e.get("confidence_joint_simultaneous"))))
+    row("audit pass rate (joint)", *both(lambda e: fmt(e.get("audit_pass_rate_joint"), "{:.3f}")))
+    row("audit violated (joint)", *both(lambda e: fmt(e.get("audit_violated_joint"), "{:.3f}")))
+    group("proof_nominal" if "nominal" in cols else "proof")
+    tube = invariant and method == "box_tube"
     if invariant:
         def proved(e):
             return "yes" if e["winning_cells"] else "no"
-        rows.append(("invariant set proved", *both(proved)))
-        rows.append(("gap over E [max]", *both(lambda e: fmt(max(e["synthesis"].get("verification", {}).get("w_max", [0]))))))
-        rows.append(("gap margin s (invariant if <= s x gap)",
-                     *both(lambda e: e["synthesis"].get("gap_scale_text", "-") if e["winning_cells"] else
-                           ("-" if e["synthesis"].get("gap_scale") is None else f"{e['synthesis']['gap_scale']:.3g} < 1"))))
-        if method == "box_tube":
-            rows.append(("terminal box half-widths H", *both(
-                lambda e: str(np.round(e["synthesis"]["H"], 6).tolist()) if e["winning_cells"] else "-")))
-            rows.append(("reach and stay (runs)", *both(
-                lambda e: f"{e['reach_and_stay']['held']} / {e['reach_and_stay']['of']} after period "
-                          f"{e['reach_and_stay']['T0']}" if "reach_and_stay" in e else "-")))
-            rows.append(("runs inside the mean's tube", *both(
-                lambda e: f"{e['reach_and_stay']['runs_in_tube']} / {e['reach_and_stay']['of']}"
-                if "reach_and_stay" in e else "-")))
-            rows.append(("mean map inside the tube", *both(
-                lambda e: str(e["reach_and_stay"]["mean_map_in_tube"]) if "reach_and_stay" in e else "-")))
+        row("invariant set proved", *both(proved))
+        row("gap over E [max]", *both(lambda e: fmt(max(e["synthesis"].get("verification", {}).get("w_max", [0])))))
+        row("gap margin s (invariant if <= s x gap)",
+            *both(lambda e: e["synthesis"].get("gap_scale_text", "-") if e["winning_cells"] else
+                  ("-" if e["synthesis"].get("gap_scale") is None else f"{e['synthesis']['gap_scale']:.3g} < 1")))
+        if tube:
+            row("terminal box half-widths H", *both(
+                lambda e: str(np.round(e["synthesis"]["H"], 6).tolist()) if e["winning_cells"] else "-"))
         else:
-            rows.append(("E half-widths", *both(lambda e: str(e["synthesis"].get("half_widths")) if e["winning_cells"]
-                                                else "-")))
-        rows.append(("x0 in E", *both(lambda e: str(e["synthesis"].get("x0_inside", "-")) if e["winning_cells"]
-                                      else "-")))
+            row("E half-widths", *both(lambda e: str(e["synthesis"].get("half_widths")) if e["winning_cells"] else "-"))
+        row("x0 in E", *both(lambda e: str(e["synthesis"].get("x0_inside", "-")) if e["winning_cells"] else "-"))
     else:
-        rows.append(("winning cells", *both(lambda e: f"{e['winning_cells']:,}")))
-    rows.append(("failures" + (" from x0" if invariant else ""),
-                 *both(lambda e: f"{e['failures']} / {e['n_rollouts']}" if "failures" in e else
-                       ("no set (reason below)" if invariant and not e["winning_cells"] else
-                        e["rollouts"].get("skipped", "-")[:40]))))
+        row("winning cells", *both(lambda e: f"{e['winning_cells']:,}"))
+    has_ca = any("closest_approach" in summary["methods"][m] for m in cols)
+    group("mean_map")
+    row("mean map satisfies the spec", *both(lambda e: str(e.get("mean_map_satisfies", "-"))))
+    if tube:
+        row("mean map inside the tube", *both(
+            lambda e: str(e["reach_and_stay"]["mean_map_in_tube"]) if "reach_and_stay" in e else "-"))
+    if has_ca:
+        row("closest approach, mean map [m]", *both(lambda e: fmt(e.get("closest_approach", {}).get("mean_map"),
+                                                                 "{:.3f}")))
+    group("runs")
+    row("single runs failing" + (" from x0" if invariant else ""),
+        *both(lambda e: f"{e['failures']} / {e['n_rollouts']}" if "failures" in e else
+              ("no set (reason below)" if invariant and not e["winning_cells"] else
+               e["rollouts"].get("skipped", "-")[:40])))
     if any("rollouts_in_set" in summary["methods"][m] for m in cols):
-        rows.append(("failures from states in E", *both(
+        row("single runs failing from states in E", *both(
             lambda e: f"{e['rollouts_in_set']['failures']} / {e['rollouts_in_set']['n_rollouts']} "
-                      f"({e['rollouts_in_set']['states']} states)" if "rollouts_in_set" in e else "-")))
+                      f"({e['rollouts_in_set']['states']} states)" if "rollouts_in_set" in e else "-"))
     if any("per_run_empirical" in summary["methods"][m] for m in cols):
         def pe(e):
             r = e.get("per_run_empirical")
             return "-" if r is None else f"{r['p_emp']:.4f} +- {r['se']:.4f}"
-        rows.append(("p_emp(x0) per run +- SE", *both(pe)))
-        rows.append(("p_cert(x0) per run", *both(lambda e: "-" if e.get("per_run_empirical") is None else
-                                                 ("none stated" if e["per_run_empirical"]["p_cert"] is None
-                                                  else f"{e['per_run_empirical']['p_cert']:.4f}"))))
-    rows.append(("mean map satisfies (guarantee)", *both(lambda e: str(e.get("mean_map_satisfies", "-")))))
-    rows.append(("rollout average satisfies", *both(lambda e: str(e.get("rollout_average_satisfies", "-")))))
-    if any("closest_approach" in summary["methods"][m] for m in cols):
+        row("p_emp(x0) per run +- SE", *both(pe))
+        row("p_cert(x0) per run", *both(lambda e: "-" if e.get("per_run_empirical") is None else
+                                        ("none stated" if e["per_run_empirical"]["p_cert"] is None
+                                         else f"{e['per_run_empirical']['p_cert']:.4f}")))
+    if tube:
+        row("single runs reaching and staying", *both(
+            lambda e: f"{e['reach_and_stay']['held']} / {e['reach_and_stay']['of']} after period "
+                      f"{e['reach_and_stay']['T0']}" if "reach_and_stay" in e else "-"))
+        row("single runs inside the mean's tube", *both(
+            lambda e: f"{e['reach_and_stay']['runs_in_tube']} / {e['reach_and_stay']['of']}"
+            if "reach_and_stay" in e else "-"))
+    row("rollout average satisfies", *both(lambda e: str(e.get("rollout_average_satisfies", "-"))))
+    if has_ca:
         def ca(key):
             return lambda e: fmt(e.get("closest_approach", {}).get(key), "{:.3f}")
-        rows.append(("closest approach min [m]", *both(ca("min"))))
-        rows.append(("closest approach 5 % quantile [m]", *both(ca("q05"))))
-        rows.append(("closest approach, mean map [m]", *both(ca("mean_map"))))
+        row("closest approach min [m]", *both(ca("min")))
+        row("closest approach 5 % quantile [m]", *both(ca("q05")))
     nc = len(rows[0])
-    w = [max(len(str(r[c])) for r in rows) for c in range(nc)]
-    lines = ["  ".join(str(r[c]).ljust(w[c]) if c == 0 else str(r[c]).rjust(w[c]) for c in range(nc)) for r in rows]
+    cells = [r for r in rows if not isinstance(r, str)]
+    w = [max(len(str(r[c])) for r in cells) for c in range(nc)]
+    lines = [r if isinstance(r, str) else
+             "  ".join(str(r[c]).ljust(w[c]) if c == 0 else str(r[c]).rjust(w[c]) for c in range(nc)) for r in rows]
     lines.insert(1, "-" * len(lines[0]))
     warnings = [(m, w) for m in METHODS for w in summary["methods"][m].get("warnings", [])]
     if invariant:

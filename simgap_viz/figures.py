@@ -220,7 +220,10 @@ def _handles(methods, runs, spec, extra=()) -> list:
     from matplotlib.patches import Patch
     hs = [Line2D([], [], color=METHOD_STYLE.get(m, "tab:green"), lw=1.5, label=f"{_name(m)}: {n} rollouts")
           for m, n in zip(methods, runs)]
-    hs += [Line2D([], [], label="mean map (the guarantee)", **MEAN_MAP),
+    # the nominal model's set is proved for f alone: its mean map is no guarantee about the simulator
+    mm = ("mean map (the guarantee)" if "nominal" not in methods else
+          "mean map (no guarantee: nominal model)" if len(methods) == 1 else "mean map (the guarantee; nominal: none)")
+    hs += [Line2D([], [], label=mm, **MEAN_MAP),
            Line2D([], [], label="rollout average", **AVERAGE)]
     hs += list(extra)
     if spec is not None:
@@ -257,7 +260,7 @@ def trajectories(run, spec, out_dir: Path, max_drawn: int = 1000, style: str = "
     system = run.system
     labels, _ = _axis_labels(system)
     methods = _methods(run)
-    if not methods:
+    if not methods or system.n < 2:  # one state: its time course (states_time) is the picture
         return []
     fig, axes = _figure(style, 1, len(methods), height_rows=1.35, sharex=True, sharey=True)
     runs, fails = [], 0
@@ -271,8 +274,9 @@ def trajectories(run, spec, out_dir: Path, max_drawn: int = 1000, style: str = "
         fails += int((~ok).sum())
         idx = np.flatnonzero(ok)[: max(0, max_drawn - int((~ok).sum()))]
         _spec_patches(ax, spec, system)
-        mm = None if ro.mean_map_trajectory is None else np.asarray(ro.mean_map_trajectory)
-        mean = np.asarray(ro.mean_trajectory)
+        # every path drawn here is over (x1, x2): the mean map and the average hold all n states
+        mm = None if ro.mean_map_trajectory is None else np.asarray(ro.mean_map_trajectory)[:, :2]
+        mean = np.asarray(ro.mean_trajectory)[:, :2]
         _draw_runs(ax, X, ok, idx, mm, mean, R, color)
         ax.plot(*np.asarray(ro.x0)[:2], "o", color="k", ms=4, zorder=7)
         ax.set_xlim(system.x_lo[0], system.x_hi[0])
@@ -284,9 +288,9 @@ def trajectories(run, spec, out_dir: Path, max_drawn: int = 1000, style: str = "
             ax.set_aspect("equal")
         span = np.ptp(X.reshape(-1, 2), axis=0) if X.size else np.zeros(2)
         ends = X[:, -1, :2]
-        spread = np.ptp(ends, axis=0)
+        spread = np.ptp(ends, axis=0) if R else np.zeros(2)
         box = system.x_hi[:2] - system.x_lo[:2]
-        if np.all(spread < 0.05 * box) and np.all(span > 0):  # the runs' spread is invisible at this scale: zoom
+        if R and np.all(spread < 0.05 * box) and np.all(span > 0):  # the runs' spread is invisible at this scale: zoom
             c, hw = ends.mean(axis=0), np.maximum(2.5 * spread, 1e-3 * box)
             pts = np.concatenate([X[idx[:: max(1, idx.size // 200)]].reshape(-1, 2), mean[:, :2],
                                   np.asarray(ro.x0)[None, :2]] + ([mm[:, :2]] if mm is not None else []))
@@ -490,6 +494,8 @@ def invariant_sets(run, spec, out_dir: Path, max_drawn: int = 1000, style: str =
     system = run.system
     labels, _ = _axis_labels(system)
     pairs = state_pairs(system.n)
+    if not pairs:  # one state: no pair to project onto
+        return []
     cols = min(3, len(pairs))
     rows = -(-len(pairs) // cols)
     fig, axes = _figure(style, rows, cols, height_rows=rows * (1.0 if cols > 1 else 1.4))

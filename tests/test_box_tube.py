@@ -358,7 +358,7 @@ def test_run_experiment_with_box_tubes(tmp_path):
         if not e["winning_cells"]:
             assert "no tube proved" in e["rollouts"]["skipped"]
     table = comparison_table(summary)
-    assert "reach and stay (runs)" in table and "terminal box half-widths H" in table
+    assert "single runs reaching and staying" in table and "terminal box half-widths H" in table
     run = load_run(out)
     assert run.nominal is not None and run.nominal.invariant_set.kind == "box_tube"
     written = {p.name for p in plot_run(out, tmp_path / "fig")}

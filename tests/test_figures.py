@@ -15,6 +15,24 @@ from test_viz_results import run_dir  # noqa: F401  (the tiny real run folder, m
 
 
 @pytest.fixture
+def drawn(monkeypatch):
+    """Each figure handed to figures.save (its axes, read before it is saved and closed), without
+    the label-overlap and inset measurements of ``captured`` (a full draw each)."""
+    from simgap_viz import figures
+    figs = {}
+    real = figures.save
+
+    def keep(fig, out_dir, name):
+        figs[name] = {"axes": [{"title": a.get_title(), "ylabel": a.get_ylabel(), "axes": a, "insets": a.child_axes}
+                               for a in fig.axes],
+                      "legends": [t.get_text() for lg in fig.legends for t in lg.get_texts()]}
+        return real(fig, out_dir, name)
+
+    monkeypatch.setattr(figures, "save", keep)
+    return figs
+
+
+@pytest.fixture
 def captured(monkeypatch):
     """What each figure handed to figures.save shows (read before it is saved and closed)."""
     from matplotlib.colors import to_hex
@@ -264,3 +282,111 @@ def test_states_time_names_the_mean_maps_input_switch():
     assert "deterministic gap, t = 0.3 s: omega steps by +0.02 as the input at the mean switches from -1 to 0.6" in note
     assert "stochastic gap" not in note and "no angle wrap" in note
     assert mean_map_switch_note(run, ["stochastic"]) == ""
+
+
+def _synthetic_run(n: int, kind: str, spread: float, tmp_path):
+    """A run of an n-state system as `simgap plot` reads it (RunResults built in memory): for
+    ``kind`` "grid" both methods with a certificate, a data set and rollouts; for "invariant_set"
+    the stochastic certificate's and the nominal model's proved ellipsoids with their rollouts and
+    the deterministic certificate's failed proof. The rollouts settle at x* with a final spread of
+    ``spread`` times the box (0.01: under the 5 % that draws the zoom on the final states)."""
+    from simgap.synthesis.ellipsoid_controller import EllipsoidController
+    from simgap.synthesis.spec import Box, Spec
+    from simgap.systems import System
+    from simgap_viz.results import MethodResults, RunResults
+    rng = np.random.default_rng(n)
+    names = tuple(f"s{i}" for i in range(n))
+    x_lo, x_hi = -np.ones(n), np.ones(n)
+    system = System(name=f"sys{n}", state_names=names, input_names=("u",), x_lo=x_lo, x_hi=x_hi,
+                    inputs=np.linspace(-1, 1, 3)[:, None], base_tau=0.1, step=lambda x, u: x)
+    x_star = np.linspace(-0.2, 0.2, n)
+    R, T = 30, 40
+    decay = np.exp(-np.arange(T) / 8.0)[None, :, None]
+    x0 = x_star + 0.5 * (x_hi - x_star)
+    noise = spread * (x_hi - x_lo) * rng.uniform(-0.5, 0.5, (R, 1, n))
+    X = x_star + (x0 - x_star) * decay + noise * (1 - decay)  # every run leaves x0 and settles near x*
+
+    def rollouts(shift):
+        Y = X + shift
+        return types.SimpleNamespace(trajectories=Y, success=np.ones(R, bool), mean_trajectory=Y.mean(0),
+                                     mean_map_trajectory=(x_star + (x0 - x_star) * decay[0]) + shift, x0=Y[0, 0],
+                                     tau=0.1)
+
+    def certificate(scale):  # gamma_i(x, u) = scale (1 + x_i^2): positive, shaped along its own state
+        return types.SimpleNamespace(gamma=lambda x, u: scale * (1 + np.asarray(x) ** 2))
+
+    xs = rng.uniform(x_lo, x_hi, (200, n))
+    xs[:, 1:] = 0.0  # on the line gamma_slices draws along s0: the data gaps near it are shown
+    us = np.zeros((200, 1))
+    dataset = types.SimpleNamespace(x=xs, u=us, epsilon=0.05, gap=lambda: 0.01 * (1 + xs ** 2) * 0.8)
+    methods, nominal = {}, None
+    if kind == "grid":
+        spec = Spec(kind="reach_avoid", target=Box(x_star - 0.1, x_star + 0.1),
+                    obstacles=(Box(np.full(n, 0.5), np.full(n, 0.7)),))
+        for i, m in enumerate(("deterministic", "stochastic")):
+            methods[m] = MethodResults(dataset=dataset, certificate=certificate(0.01 * (2 - i)), audit=None,
+                                       synthesis=None, rollouts=rollouts(0.01 * i))
+        summary = {"methods": {m: {"winning_cells": 10} for m in methods}}
+    else:
+        spec = Spec(kind="invariance", safe=Box(x_lo * 0.9, x_hi * 0.9))
+        P = np.diag(1.0 / (0.6 * (x_hi - x_lo)) ** 2)
+        ctrl = EllipsoidController(x_star, [0.0], np.zeros((1, n)), P, system=system)
+        methods["deterministic"] = MethodResults(dataset=dataset, certificate=certificate(0.02), audit=None,
+                                                 synthesis=None)
+        methods["stochastic"] = MethodResults(dataset=dataset, certificate=certificate(0.01), audit=None,
+                                              synthesis=None, rollouts=rollouts(0.0), invariant_set=ctrl)
+        nominal = MethodResults(dataset=None, certificate=None, audit=None, synthesis=None,
+                                rollouts=rollouts(0.005), invariant_set=ctrl)
+        summary = {"sections": {"synthesis": {"method": "invariant_set"}},
+                   "methods": {"deterministic": {"winning_cells": 0, "synthesis": {"gap_scale": 0.004}},
+                               "stochastic": {"winning_cells": 1}, "nominal": {"winning_cells": 1}}}
+    run = RunResults(path=tmp_path, summary=summary, methods=methods, stage_system=system, spec=spec)
+    run.nominal = nominal
+    return run, X
+
+
+@pytest.mark.parametrize("kind", ["grid", "invariant_set"])
+@pytest.mark.parametrize("n", [2, 3, 4, 6])
+def test_every_figure_for_every_method_and_dimension(n, kind, tmp_path, drawn):
+    """Every figure of `simgap plot` is drawn for 2, 3, 4 and 6 states, for a grid run and an
+    invariant-set run, with the runs' final spread under 5 % of the box (which draws the zoom on the
+    final states: with 4 states it joined the rollouts' two plotted columns with the 4-state mean
+    trajectory and raised) and over it. Each trajectory panel draws the mean map and the rollout
+    average over the first two states, the same columns as the rollouts."""
+    from PIL import Image
+
+    from simgap_viz.figures import plot_run
+    for spread in ((0.01, 0.2) if n == 4 else (0.01,)):  # with and without the zoom (4 states: the crash)
+        run, X = _synthetic_run(n, kind, spread, tmp_path)
+        out = tmp_path / f"fig-{spread}"
+        written = plot_run(run, out)
+        figs = {"trajectories", "states_time", "gamma_slices"} | ({"invariant_sets"} if kind != "grid" else set())
+        assert {p.name for p in written} == {f"{f}.{e}" for f in figs for e in ("png", "pdf")}
+        for p in written:
+            if p.suffix == ".png":
+                im = np.asarray(Image.open(p).convert("RGB"), float)
+                assert im.shape[0] > 300 and im.std() > 10, p  # a drawn picture, not a blank canvas
+        traj = drawn["trajectories"]
+        main = [a for a in traj["axes"] if "runs fail" in a["title"]]
+        assert len(main) == 2
+        assert all(len(a["insets"]) == (1 if spread < 0.05 else 0) for a in main), spread
+        for a in main:
+            m = a["title"].split(" gap")[0].split(" model")[0]
+            ro = (run.nominal if m == "nominal" else run.methods[m]).rollouts
+            paths = [np.column_stack(ln.get_data()) for ln in a["axes"].get_lines() if not ln.get_rasterized()]
+            mm, avg = np.asarray(ro.mean_map_trajectory)[:, :2], np.asarray(ro.mean_trajectory)[:, :2]
+            assert any(p.shape == mm.shape and np.allclose(p, mm) for p in paths), m
+            assert any(p.shape == avg.shape and np.allclose(p, avg) for p in paths), m
+        # the nominal model's mean map is no guarantee about the simulator: the legend says so
+        assert ("mean map (the guarantee; nominal: none)" if kind != "grid" else "mean map (the guarantee)") \
+            in traj["legends"]
+        st = drawn["states_time"]
+        assert {a["ylabel"].split(" ")[0] for a in st["axes"] if a["ylabel"]} == {f"s{i}" for i in range(n)}
+        gs = drawn["gamma_slices"]
+        assert len([a for a in gs["axes"] if a["axes"].get_lines()]) == n * n
+        if kind != "grid":
+            pairs = {tuple(int(v) for v in (ln.get_gid() or "E:x:").split(":")[2].split(","))
+                     for a in drawn["invariant_sets"]["axes"] for ln in a["axes"].get_lines()
+                     if (ln.get_gid() or "").startswith("E:stochastic")}
+            from simgap_viz.figures import state_pairs
+            assert pairs == set(state_pairs(n))

@@ -211,7 +211,7 @@ def test_the_run_table_shows_both_terms_side_by_side():
                "methods": {m: entry([0.001, 0.002], [0.01, 0.02]) for m in METHODS}}
     table = comparison_table(summary)
     assert "gamma max [v] (gap's term)" in table and "gamma max [v] (paper's term)" in table
-    line = next(l for l in table.splitlines() if l.startswith("gamma max [v] (paper's term)"))
+    line = next(l for l in table.splitlines() if l.strip().startswith("gamma max [v] (paper's term)"))
     assert line.split()[-1] == "0.02"
 
 

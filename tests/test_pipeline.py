@@ -20,6 +20,8 @@ def small_run(tmp_path_factory):
 def test_summary_structure_and_sanity(small_run):
     out, s = small_run
     assert s["experiment"] == "pendulum" and s["profile"] == "small"
+    from simgap.pipeline import SUMMARY_STATEMENTS
+    assert s["statements"] == SUMMARY_STATEMENTS  # which statement each number is, in the file itself
     det, sto = s["methods"]["deterministic"], s["methods"]["stochastic"]
     n = len(s["system"]["state_names"])
     # confidences: stochastic in (0, 1) per dimension and jointly; the deterministic baseline states none
@@ -81,6 +83,8 @@ def test_bad_experiment_is_a_clear_error(tmp_path, capsys):
     assert "bogus" in capsys.readouterr().err
 
 
+@pytest.mark.slow  # a second whole `simgap run` (1000 rollouts per method); the small profile's run above
+# keeps the chain in the default suite
 def test_noisy_profile_shows_the_papers_claim(tmp_path):
     """The noisy profile as shipped: the deterministic-gap controller fails a visible share of runs,
     the stochastic-gap controller has a winning domain from x0 and does not fail. (The shipped profile
@@ -199,3 +203,45 @@ def test_a_second_run_reads_the_first_runs_stores(small_run, tmp_path):
     for m in ("deterministic", "stochastic"):
         assert s2["methods"][m]["dataset_hash"] == s["methods"][m]["dataset_hash"]
         assert s2["methods"][m]["gamma"]["max"] == s["methods"][m]["gamma"]["max"]
+
+
+def test_table_says_which_statement_each_number_is():
+    """A set proved (about the mean map, or for the nominal model about f alone) and 1000 / 1000
+    single runs failing are two statements: the printed table puts every row under the header of
+    the statement it is (certificate, proof, the mean map in the simulator, single runs), and
+    summary.json names them. The case of the double pendulum's nominal set: proved, its mean map
+    satisfies the spec, every single run leaves X."""
+    from simgap.pipeline import SUMMARY_STATEMENTS, TABLE_GROUPS, comparison_table, per_run_empirical
+    from types import SimpleNamespace
+    e = {"gamma": {"max": [0.1] * 2}, "confidence_per_dim": [0.9] * 2, "audit_pass_rate_joint": 1.0,
+         "audit_violated_joint": 0.0, "winning_cells": 0,
+         "synthesis": {"gap_scale": 0.2, "diagnosis": "the gap is too large"}, "rollouts": {"skipped": "no set"}}
+    nominal = {"gap": "none", "winning_cells": 1, "failures": 1000, "n_rollouts": 1000,
+               "synthesis": {"half_widths": [0.1, 0.2], "x0_inside": True, "gap_scale_text": "any factor (no gap)"},
+               "mean_map_satisfies": True, "rollout_average_satisfies": False,
+               "per_run_empirical": per_run_empirical(SimpleNamespace(n_rollouts=1000, n_failures=1000, horizon=9))}
+    s = {"system": {"state_names": ["a", "b"]}, "sections": {"synthesis": {"method": "invariant_set"}},
+         "methods": {"deterministic": e, "stochastic": e, "nominal": nominal}}
+    lines = comparison_table(s).split("\n")
+    heads = {k: lines.index(v) for k, v in TABLE_GROUPS.items() if k != "proof"}  # a nominal column: its header
+    heads["proof"] = heads.pop("proof_nominal")
+    assert heads["certificate"] < heads["proof"] < heads["mean_map"] < heads["runs"]
+
+    def under(label):  # the group a row is printed in
+        i = next(k for k, ln in enumerate(lines) if ln.startswith("  " + label))
+        return max((h, k) for k, h in heads.items() if h < i)[1]
+    assert under("invariant set proved") == "proof" and lines[heads["proof"] + 1].split()[-1] == "yes"
+    assert under("mean map satisfies the spec") == "mean_map"
+    for label in ("single runs failing from x0", "p_emp(x0) per run", "rollout average satisfies"):
+        assert under(label) == "runs", label
+    row = next(ln for ln in lines if ln.startswith("  single runs failing from x0"))
+    assert row.endswith("1000 / 1000")
+    assert "MEAN MAP" in TABLE_GROUPS["proof_nominal"] and "f only" in TABLE_GROUPS["proof_nominal"]
+    assert TABLE_GROUPS["proof"] in comparison_table({**s, "methods": {"deterministic": e, "stochastic": e}})
+    assert "SINGLE RUNS" in TABLE_GROUPS["runs"] and "no proof" in TABLE_GROUPS["runs"]
+    # summary.json names the same statements for its keys
+    keys = ", ".join(SUMMARY_STATEMENTS)
+    for k in ("winning_cells", "mean_map_satisfies", "failures", "rollout_average_satisfies"):
+        assert k in keys
+    assert "SINGLE RUNS" in next(v for k, v in SUMMARY_STATEMENTS.items() if "failures" in k)
+    assert "MEAN MAP" in SUMMARY_STATEMENTS["winning_cells"]

@@ -90,6 +90,8 @@ def test_noisy_rollouts_are_seeded_and_judged(arena, tb_ctrl, tb_system):
         assert not spec.violated(path, tb_system.x_lo, tb_system.x_hi).any()
 
 
+@pytest.mark.slow  # 2 x 3 PyBullet runs through the arena to the target: the longest single test (7.5 min at
+# load 17); PyBullet's physics and obstacles stay in the default suite (next test, test_simulators_pybullet.py)
 def test_pybullet_turtlebot_in_the_arena(arena, tb_ctrl, tb_system):
     cfg = {"kind": "pybullet_turtlebot", "system": "turtlebot", "noise": {"actuation_std": [0.05, 0.1]},
            "options": arena.simulator_options()}

@@ -93,3 +93,37 @@ def test_signal_ends_busy_workers_quickly_and_says_how_to_resume(tmp_path, sig, 
     left = [w for w in workers if os.path.exists(f"/proc/{w}") and
             open(f"/proc/{w}/stat", "rb").read().rsplit(b")", 1)[1].split()[0] != b"Z"]
     assert not left, f"workers still running: {left}"
+
+
+@pytest.mark.parametrize("kind, code, word", [("Terminated", 143, "terminated"), ("KeyboardInterrupt", 130, "interrupted")])
+def test_interruption_inside_a_library_cleanup_is_still_the_interruption(monkeypatch, capsys, kind, code, word):
+    """numpy's savez, interrupted while writing its zip, raises ValueError from its own cleanup over the
+    signal's exception (seen in CI: exit 1 and a traceback instead of 143). The CLI must still see the
+    signal in the exception's context and exit with its code and the resume line."""
+    from simgap import cli
+    from simgap.cli import plugins
+
+    signal_exc = cli.Terminated if kind == "Terminated" else KeyboardInterrupt
+
+    def interrupted_cleanup(args):
+        try:
+            raise signal_exc()
+        finally:
+            raise ValueError("Can't close the ZIP file while there is an open writing handle on it.")
+
+    monkeypatch.setattr(plugins, "run", interrupted_cleanup)
+    assert cli.main(["plugins"]) == code
+    err = capsys.readouterr().err
+    assert err.startswith(f"{word}:") and "resume" in err and "Traceback" not in err
+
+
+def test_an_ordinary_error_is_not_taken_for_an_interruption(monkeypatch):
+    from simgap import cli
+    from simgap.cli import plugins
+
+    def broken(args):
+        raise ValueError("a real bug")
+
+    monkeypatch.setattr(plugins, "run", broken)
+    with pytest.raises(ValueError, match="a real bug"):
+        cli.main(["plugins"])

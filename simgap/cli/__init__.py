@@ -172,9 +172,29 @@ def main(argv=None) -> int:
         # stdout goes to devnull so that the interpreter's final flush does not raise again
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 141
+    except Exception as e:
+        # an interruption that landed inside a library's cleanup (numpy's savez closing its zip
+        # raises ValueError over the Terminated it was handling) is still that interruption
+        cause = _interruption_in(e)
+        if cause is None:
+            raise
+        print(f"{'terminated' if cause is Terminated else 'interrupted'}: {RESUME}", file=sys.stderr)
+        return 143 if cause is Terminated else 130
     finally:
         if old is not None:
             signal.signal(signal.SIGTERM, old)
+
+
+def _interruption_in(e: BaseException):
+    """Terminated or KeyboardInterrupt if one is in ``e``'s context chain, else None."""
+    seen = set()
+    while e is not None and id(e) not in seen:
+        seen.add(id(e))
+        for kind in (Terminated, KeyboardInterrupt):
+            if isinstance(e, kind):
+                return kind
+        e = e.__cause__ or e.__context__
+    return None
 
 
 def _main_thread() -> bool:

@@ -208,24 +208,40 @@ NO_P_CERT = ("the deterministic-gap controller states no probability and the sto
              "stage ([perrun] section, docs/per-run.md) synthesizes its own controller with one")
 
 
-def per_run_empirical(rr) -> dict:
+def per_run_empirical(rr, controller=None) -> dict:
     """p_emp(x0) of one controller from the case study's R rollouts: the success fraction k / R (a run
     succeeds by the spec's verdict within the horizon), its standard error sqrt(p (1 - p) / R) and
-    two-sided 95 % Clopper-Pearson interval; ``p_cert`` None with the reason (:data:`NO_P_CERT`)."""
+    two-sided 95 % Clopper-Pearson interval; ``p_cert`` the box tube's per-run statement for the
+    rollouts' horizon T (:mod:`simgap.synthesis.noise_tube`) with the runs inside its tube, else None
+    with the reason (:data:`NO_P_CERT`)."""
     from .perrun.validation import empirical
     R = int(rr.n_rollouts)
     k = R - int(rr.n_failures)
     e = empirical(np.array([k]), R)
-    return {"p_emp": e["p_emp"][0], "se": e["se"][0], "ci95": e["ci95"][0], "successes": k, "n_rollouts": R,
-            "horizon": int(rr.horizon), "p_cert": None, "p_cert_note": NO_P_CERT}
+    out = {"p_emp": e["p_emp"][0], "se": e["se"][0], "ci95": e["ci95"][0], "successes": k, "n_rollouts": R,
+           "horizon": int(rr.horizon), "p_cert": None, "p_cert_note": NO_P_CERT}
+    nt = getattr(controller, "noise_tube", None)
+    if nt is not None:
+        T = int(rr.horizon)
+        inside = int(controller.inside(rr.trajectories, noise=True).sum())
+        ei = empirical(np.array([inside]), R)
+        out.update(p_cert=nt.p_run(T), p_cert_note=(
+            f"box tube's noise tube: P(a run stays in it for T = {T} periods, then in its terminal box inside the "
+            f"target) >= 1 - beta_noise - beta_cert = 1 - {nt.beta_noise(T):.3g} - {nt.beta_cert:.3g}, noise bound "
+            f"c = {nt.lam:.3g} sqrt(Mhat) per period; assumes {nt.assumption}"),
+            in_noise_tube=inside, p_emp_in_noise_tube=ei["p_emp"][0], se_in_noise_tube=ei["se"][0])
+    return out
 
 
 def per_run_note(summary: dict) -> Optional[str]:
     """What the table's per-run rows mean (printed under it by ``simgap run``); None without them."""
     if not any("per_run_empirical" in summary["methods"][m] for m in METHODS):
         return None
+    notes = {m: summary["methods"][m]["per_run_empirical"] for m in METHODS
+             if summary["methods"][m].get("per_run_empirical", {}).get("p_cert") is not None}
+    p_cert = "; ".join(f"{m}: {e['p_cert_note']}" for m, e in notes.items()) if notes else NO_P_CERT
     return (f"p_emp(x0): successes out of the rollouts from x0 (95 % Clopper-Pearson intervals in summary.json); "
-            f"p_cert: {NO_P_CERT}")
+            f"p_cert: {p_cert}")
 
 
 def _gamma_stats(cert, ds) -> dict:
@@ -383,7 +399,7 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
                 entry["n_rollouts"] = int(rr.n_rollouts)
                 entry["mean_map_satisfies"] = None if rr.mean_map is None else rr.mean_map["satisfied"]
                 entry["rollout_average_satisfies"] = rr.rollout_average_verdict["satisfied"]
-                entry["per_run_empirical"] = per_run_empirical(rr)
+                entry["per_run_empirical"] = per_run_empirical(rr, sres.controller)
                 if arena is not None:
                     entry["closest_approach"] = closest_approach(arena, rr)
                 if tube:  # reach and stay: in the terminal box at every period from T0 on
@@ -421,8 +437,8 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
             fileio.write_json(out / f"audit_{method}.json", rep)
             wrote(f"audit_{method}.json")
             if invariant:
-                sres = stage(f"synthesize/{method}", lambda: invariant_stage.synthesize(exp.system, spec, cert, syn,
-                                                                                       x0=x0))
+                sres = stage(f"synthesize/{method}", lambda: invariant_stage.synthesize(
+                    exp.system, spec, cert, syn, x0=x0, horizon=ro.get("horizon")))
                 if not sres.empty:  # no set proved: nothing written (the summary says why)
                     sres.controller.save(out / f"controller_{method}.npz")
                     wrote(f"controller_{method}.npz")
@@ -621,6 +637,9 @@ def comparison_table(summary: dict) -> str:
         row("single runs inside the mean's tube", *both(
             lambda e: f"{e['reach_and_stay']['runs_in_tube']} / {e['reach_and_stay']['of']}"
             if "reach_and_stay" in e else "-"))
+        row("single runs inside the noise tube (p_cert's event)", *both(
+            lambda e: f"{e['per_run_empirical']['in_noise_tube']} / {e['per_run_empirical']['n_rollouts']}"
+            if "in_noise_tube" in e.get("per_run_empirical", {}) else "-"))
     row("rollout average satisfies", *both(lambda e: str(e.get("rollout_average_satisfies", "-"))))
     if has_ca:
         def ca(key):

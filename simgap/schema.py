@@ -183,7 +183,8 @@ class SynthesisSection(Section):
     synthesizes on the nominal model without a gap); with ``method = "box_tube"`` a time-varying
     feedback on a proved box tube from [rollout] x0 to a box around x* (``target_lo``/``target_hi``,
     ``shells`` pieces of the mean-value form, ``input_margin`` kept for the feedback along the plan,
-    ``margin_search`` the tolerable-gap search; docs/synthesis.md)."""
+    ``margin_search`` the tolerable-gap search, ``per_run`` the per-run statement of the noise tube, ``plan_input_weight`` the plan's pace;
+    docs/synthesis.md)."""
     spec: Literal["invariance", "reach_avoid"] = "invariance"
     method: Literal["grid", "invariant_set", "box_tube"] = "grid"
     eta: Optional[Union[Positive, list[Positive]]] = None
@@ -206,6 +207,8 @@ class SynthesisSection(Section):
     input_margin: Annotated[float, Field(ge=0.0, lt=1.0)] = 0.3
     margin_search: bool = True
     terminal: Literal["largest", "smallest"] = "largest"
+    per_run: bool = True
+    plan_input_weight: Positive = 1.0
 
 
 class RolloutSection(Section):

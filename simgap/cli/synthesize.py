@@ -68,7 +68,9 @@ def add_parser(subparsers) -> None:
                    help="mean: robust game on the certified gap (default); run: interval MDP from the experiment's "
                         "simulator with p_cert per cell (needs an experiment --spec with a [perrun] section)")
     p.add_argument("--horizon", type=int, default=None, help="--level run: horizon in sampling periods "
-                                                                "(default: [perrun] or [rollout] horizon)")
+                                                                "(default: [perrun] or [rollout] horizon); "
+                                                                "--method box_tube: the periods of the per-run "
+                                                                "statement (default 2 T0 + 1)")
     p.add_argument("--executor", choices=["local", "ray", "serial"], default="local",
                    help="--level run: where the interval MDP's sampling chunks run (default: a local pool)")
     p.add_argument("--workers", type=count(1), default=None,
@@ -258,7 +260,7 @@ def _invariant_set(args, system, spec, gap, syn, x0) -> int:
     if args.hold not in (None, 1):
         raise SimgapError(f"--method {meth} applies u(x) every period: --hold must be 1")
     invariant_stage.check_section(system, dict(syn, hold=1), spec)
-    res = invariant_stage.synthesize(system, spec, gap, syn, x0=x0)
+    res = invariant_stage.synthesize(system, spec, gap, syn, x0=x0, horizon=args.horizon)
     if meth == "box_tube":
         return _finish(args, res, x0, spec, "no box tube proved", "the box tube")
     return _finish(args, res, x0, spec, "no invariant set proved", "the invariant set E")

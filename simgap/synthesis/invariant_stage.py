@@ -63,6 +63,8 @@ def check_section(system, syn: dict, spec) -> None:
         sh = syn.get("shells", 16)
         if not isinstance(sh, int) or sh < 1:
             raise SimgapError(f"[synthesis] shells: an integer >= 1, got {sh!r}")
+        if not isinstance(syn.get("per_run", True), bool):
+            raise SimgapError(f"[synthesis] per_run: true or false, got {syn['per_run']!r}")
         if syn.get("terminal", "largest") not in ("largest", "smallest"):
             raise SimgapError(f"[synthesis] terminal: \"largest\" or \"smallest\", got {syn['terminal']!r}")
         im = syn.get("input_margin", 0.3)
@@ -91,9 +93,10 @@ def check_section(system, syn: dict, spec) -> None:
     IntervalMap(system)  # a model the proof can differentiate
 
 
-def synthesize(system, spec, gap, syn: dict, x0=None):
+def synthesize(system, spec, gap, syn: dict, x0=None, horizon=None):
     """:func:`~simgap.synthesis.invariant_set.synthesize_invariant_set` or (``method = "box_tube"``)
-    :func:`~simgap.synthesis.box_tube.synthesize_box_tube` with the section's options."""
+    :func:`~simgap.synthesis.box_tube.synthesize_box_tube` with the section's options (``horizon``:
+    the rollouts' periods, for the box tube's per-run statement)."""
     if method_of(syn) == "box_tube":
         from .box_tube import INPUT_MARGIN, SHELLS, synthesize_box_tube
         if x0 is None:
@@ -104,7 +107,9 @@ def synthesize(system, spec, gap, syn: dict, x0=None):
                                    shells=int(syn.get("shells", SHELLS)),
                                    input_margin=float(syn.get("input_margin", INPUT_MARGIN)),
                                    margin_search=bool(syn.get("margin_search", True)),
-                                   terminal=syn.get("terminal", "largest"), K_plan=syn.get("K_plan"))
+                                   terminal=syn.get("terminal", "largest"), K_plan=syn.get("K_plan"),
+                                   plan_input_weight=float(syn.get("plan_input_weight", 1.0)),
+                                   per_run=bool(syn.get("per_run", True)), horizon=horizon)
     from .invariant_set import synthesize_invariant_set
     return synthesize_invariant_set(system, spec, gap, x_star=syn.get("x_star"), u_star=syn.get("u_star"),
                                     K=syn.get("K"), lqr_q=syn.get("lqr_q"), lqr_r=syn.get("lqr_r"),

@@ -10,7 +10,8 @@ single noisy run may leave them, so the law is applied at every state (``input_i
 File format (``.npz``, no pickle; :mod:`.controller_file`): arrays ``x_nom`` (T0 + 1, n),
 ``u_nom`` (T0, m), ``K`` (m, n), ``x_star`` (n,), ``u_star`` (m,), ``H`` (n,), ``radii``
 (T0 + 1, n), and ``meta`` (kind ``box_tube``, the proof's statistics, the gap's provenance, x0,
-the margin, the digest). :meth:`from_arrays` recomputes the digest and refuses an edited file.
+the margin, the digest); with a per-run statement (:mod:`.noise_tube`) also ``noise_radii``
+(T0 + 1, n) and ``noise_H`` (n,), its numbers in ``meta["noise_tube"]``. :meth:`from_arrays` recomputes the digest and refuses an edited file.
 """
 
 from __future__ import annotations
@@ -24,10 +25,13 @@ from ..errors import BAD_FILE_ERRORS, SimgapError
 from ..sets import Box
 from ..systems import System
 from .controller_file import check_digest, write_controller
+from .noise_tube import NoiseTube
 from .spec import Spec
 
 KIND = "box_tube"
 ARRAYS = ("x_nom", "u_nom", "K", "x_star", "u_star", "H", "radii")
+#: the per-run statement's tube, when there is one
+NOISE_ARRAYS = ("noise_radii", "noise_H")
 #: relative slack of the membership test (the tube at t = 0 is the single point x0)
 TOL = 1e-9
 
@@ -40,7 +44,7 @@ class TubeController:
     kind = KIND
 
     def __init__(self, plan, radii, system: Optional[System] = None, spec: Optional[Spec] = None,
-                 meta: Optional[dict] = None, hold: int = 1):
+                 meta: Optional[dict] = None, hold: int = 1, noise_tube: Optional[NoiseTube] = None):
         self.x_nom = np.asarray(plan.x_nom, dtype=float)
         n = self.x_nom.shape[1]
         self.K = np.asarray(plan.K, dtype=float).reshape(-1, n)
@@ -52,6 +56,9 @@ class TubeController:
         self.radii = np.asarray(radii, dtype=float).reshape(self.x_nom.shape)
         self.system, self.spec, self.hold = system, spec, int(hold)
         self.meta = dict(meta or {})
+        self.noise_tube = noise_tube
+        if noise_tube is not None:
+            self.meta["noise_tube"] = {k: v for k, v in noise_tube.to_dict().items() if k not in ("H", "max_radius")}
         x0 = self.meta.get("x0")
         self.x0 = self.x_nom[0].copy() if x0 is None else np.asarray(x0, dtype=float)
 
@@ -124,12 +131,18 @@ class TubeController:
         boxes is :meth:`winning`, of whole trajectories :meth:`inside`)."""
         return np.zeros(np.atleast_2d(x).shape[0], dtype=np.int64)
 
-    def inside(self, traj) -> np.ndarray:
-        """(R,) bool: trajectories (R, T + 1, n) (period 0 = x0) inside the proved box of every period."""
+    def inside(self, traj, noise: bool = False) -> np.ndarray:
+        """(R,) bool: trajectories (R, T + 1, n) (period 0 = x0) inside the proved box of every period:
+        the mean's tube, or with ``noise`` the per-run statement's wider tube (SimgapError without one)."""
+        radii, H = self.radii, self.H
+        if noise:
+            if self.noise_tube is None:
+                raise SimgapError("this box-tube controller carries no per-run statement (no noise tube)")
+            radii, H = self.noise_tube.radii, self.noise_tube.H
         traj = np.asarray(traj, dtype=float)
         T = traj.shape[1]
         c = np.concatenate([self.x_nom[:T], np.repeat(self.x_star[None], max(0, T - self.T0 - 1), axis=0)])
-        r = np.concatenate([self.radii[:T], np.repeat(self.H[None], max(0, T - self.T0 - 1), axis=0)])
+        r = np.concatenate([radii[:T], np.repeat(H[None], max(0, T - self.T0 - 1), axis=0)])
         return np.all(np.abs(traj - c) <= r + TOL * (1.0 + np.abs(c)), axis=(1, 2))
 
     # ----- description ----------------------------------------------------------------
@@ -158,13 +171,16 @@ class TubeController:
     # ----- files ----------------------------------------------------------------------
     def save(self, path) -> Path:
         arrays = {k: getattr(self, k) for k in ARRAYS}
+        if self.noise_tube is not None:
+            arrays.update(noise_radii=self.noise_tube.radii, noise_H=self.noise_tube.H)
         return write_controller(path, self.meta, KIND, self.hold, self.system, self.spec, arrays)
 
     @classmethod
     def from_arrays(cls, path, z, meta: dict, system: Optional[System] = None) -> "TubeController":
         """Build from an open .npz whose meta says kind box_tube (called by Controller.load)."""
+        names = ARRAYS + (NOISE_ARRAYS if meta.get("noise_tube") else ())
         try:
-            arrays = {k: np.asarray(z[k], dtype=float) for k in ARRAYS}
+            arrays = {k: np.asarray(z[k], dtype=float) for k in names}
         except (*BAD_FILE_ERRORS, KeyError) as e:
             raise SimgapError(f"controller file {str(path)!r} is not a box-tube controller ({e})") from None
         check_digest(path, meta, arrays)
@@ -173,6 +189,18 @@ class TubeController:
             and un.shape == (xn.shape[0] - 1, K.shape[0]) and xs.shape == (xn.shape[1],) and H.shape == xs.shape \
             and us.shape == (K.shape[0],) and all(np.all(np.isfinite(a)) for a in arrays.values()) \
             and np.all(H >= 0) and np.all(radii >= 0)
+        nt = None
+        if ok and meta.get("noise_tube"):
+            nr, nH, d = arrays["noise_radii"], arrays["noise_H"], meta["noise_tube"]
+            try:
+                nt = NoiseTube(lam=float(d["lam"]), sigma=np.asarray(d["sigma"], float), radii=nr, H=nH,
+                               beta_cert=float(d["beta_cert"]), horizon=int(d["horizon"]),
+                               assumption=str(d["assumption"]))
+            except (KeyError, TypeError, ValueError) as e:
+                raise SimgapError(f"controller file {str(path)!r}: its per-run statement is malformed ({e})") from None
+            ok = nr.shape == radii.shape and nH.shape == H.shape and np.all(nr >= 0) and np.all(nH >= 0) \
+                and nt.sigma.shape == H.shape and np.all(nt.sigma >= 0) and nt.lam > 0 and 0 <= nt.beta_cert <= 1 \
+                and nt.horizon >= 1
         if not ok:
             raise SimgapError(f"controller file {str(path)!r}: the box-tube arrays do not fit together")
         spec = Spec.from_dict(meta["spec"]) if meta.get("spec") else None
@@ -185,4 +213,4 @@ class TubeController:
                 system = None
         from types import SimpleNamespace
         plan = SimpleNamespace(x_nom=xn, u_nom=un, K=K, x_star=xs, u_star=us, H=H)
-        return cls(plan, radii, system=system, spec=spec, meta=meta, hold=meta.get("hold", 1))
+        return cls(plan, radii, system=system, spec=spec, meta=meta, hold=meta.get("hold", 1), noise_tube=nt)

@@ -227,8 +227,8 @@ def per_run_empirical(rr, controller=None) -> dict:
         ei = empirical(np.array([inside]), R)
         out.update(p_cert=nt.p_run(T), p_cert_note=(
             f"box tube's noise tube: P(a run stays in it for T = {T} periods, then in its terminal box inside the "
-            f"target) >= 1 - beta_noise - beta_cert = 1 - {nt.beta_noise(T):.3g} - {nt.beta_cert:.3g}, noise bound "
-            f"c = {nt.lam:.3g} sqrt(Mhat) per period; assumes {nt.assumption}"),
+            f"target) >= 1 - beta_noise - beta_cert = 1 - {nt.beta_noise(T):.3g} - {nt.beta_cert:.3g}, the noise's "
+            f"response bounded by {nt.lam:.3g} x its sub-Gaussian proxy; assumes {nt.assumption}"),
             in_noise_tube=inside, p_emp_in_noise_tube=ei["p_emp"][0], se_in_noise_tube=ei["se"][0])
     return out
 
@@ -519,13 +519,13 @@ def _simultaneous(c) -> str:
 
 
 #: the table's groups: which statement the numbers under each header are (the proof is about the
-#: mean map; the rollouts are single runs, counted, and no proof covers them)
+#: mean map; the rollouts are single runs, counted; only a p_cert row states something about them)
 TABLE_GROUPS = {
     "certificate": "certificate (gamma bounds the MEAN next state's gap, not single runs)",
     "proof": "proof (about the MEAN MAP m+ = E fhat(m, u(m)), not single runs)",
     "proof_nominal": "proof (about the MEAN MAP m+ = E fhat(m, u(m)); nominal: about f only)",
     "mean_map": "the mean map run in the simulator (the sequence a gap's proof is about)",
-    "runs": "SINGLE RUNS in the simulator (counted; no proof covers them)",
+    "runs": "SINGLE RUNS in the simulator (counted; only p_cert, where stated, is a proof about them)",
 }
 
 
@@ -539,7 +539,8 @@ SUMMARY_STATEMENTS = {
     "mean_map_satisfies": "the mean map run in the simulator from x0 (the sequence a gap's proof is about) "
                           "satisfies the spec: checked, one sequence",
     "failures, n_rollouts, per_run_empirical, rollouts_in_set": "SINGLE RUNS in the simulator: counted, not "
-                                                                "proved; no certificate or proof here bounds them",
+                                                                "proved; only per_run_empirical.p_cert, where "
+                                                                "stated (a box tube's noise tube), bounds them",
     "rollout_average_satisfies": "the average of the single runs satisfies the spec; not the mean map",
 }
 

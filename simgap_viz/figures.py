@@ -501,7 +501,7 @@ def invariant_sets(run, spec, out_dir: Path, max_drawn: int = 1000, style: str =
     fig, axes = _figure(style, rows, cols, height_rows=rows * (1.0 if cols > 1 else 1.4))
     for ax in axes.ravel()[len(pairs):]:
         ax.set_visible(False)
-    runs, safe_seen = {}, False
+    runs, safe_seen, noisy = {}, False, set()
     for ax, (a, b) in zip(axes.ravel(), pairs):
         lo, hi = [], []
         for m, res in sets:
@@ -525,6 +525,12 @@ def invariant_sets(run, spec, out_dir: Path, max_drawn: int = 1000, style: str =
                     ax.plot(R_[:, 0], R_[:, 1], color=color, lw=0.4, alpha=0.5, zorder=6)
                     lo.append(R_.min(axis=0))
                     hi.append(R_.max(axis=0))
+                if getattr(tube, "noise_tube", None) is not None:  # the per-run statement's tube, dotted
+                    noisy.add(m)
+                    for R_ in tube.outlines((a, b), every=max(1, tube.T0 // 20), noise=True):
+                        ax.plot(R_[:, 0], R_[:, 1], color=color, lw=0.6, ls=":", zorder=6)
+                        lo.append(R_.min(axis=0))
+                        hi.append(R_.max(axis=0))
             ax.plot(*res.invariant_set.x_star[[a, b]], "+", color=color, ms=5, zorder=8)
             lo.append(E.min(axis=0))
             hi.append(E.max(axis=0))
@@ -546,6 +552,8 @@ def invariant_sets(run, spec, out_dir: Path, max_drawn: int = 1000, style: str =
     hs = [Line2D([], [], color=METHOD_STYLE.get(m, "tab:green"), lw=1.4,
                  label=f"E, {_name(m)}"
                  + (f": {runs[m]} rollouts" if m in runs else "")) for m, _ in sets]
+    hs += [Line2D([], [], color=METHOD_STYLE.get(m, "tab:green"), lw=0.6, ls=":",
+                  label=f"noise tube, {_name(m)} (single runs, p_cert)") for m in sorted(noisy)]
     hs += [Line2D([], [], label="mean map", **MEAN_MAP), Line2D([], [], label="rollout average", **AVERAGE),
            Line2D([], [], color="k", marker="o", ls="", ms=3, label="x0"),
            Line2D([], [], color="0.3", marker="+", ls="", ms=5, label="x* (centre of E)")]

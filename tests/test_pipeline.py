@@ -238,7 +238,7 @@ def test_table_says_which_statement_each_number_is():
     assert row.endswith("1000 / 1000")
     assert "MEAN MAP" in TABLE_GROUPS["proof_nominal"] and "f only" in TABLE_GROUPS["proof_nominal"]
     assert TABLE_GROUPS["proof"] in comparison_table({**s, "methods": {"deterministic": e, "stochastic": e}})
-    assert "SINGLE RUNS" in TABLE_GROUPS["runs"] and "no proof" in TABLE_GROUPS["runs"]
+    assert "SINGLE RUNS" in TABLE_GROUPS["runs"] and "only p_cert" in TABLE_GROUPS["runs"]
     # summary.json names the same statements for its keys
     keys = ", ".join(SUMMARY_STATEMENTS)
     for k in ("winning_cells", "mean_map_satisfies", "failures", "rollout_average_satisfies"):

@@ -73,14 +73,24 @@ class TubeController:
     size_with_target = size
 
     # ----- the sets -------------------------------------------------------------------
-    def box_at(self, t: int) -> Box:
-        """The proved box at period t (the tube's for t <= T0, the terminal box after)."""
+    def box_at(self, t: int, noise: bool = False) -> Box:
+        """The proved box at period t (the tube's for t <= T0, the terminal box after); with ``noise``
+        the per-run statement's (SimgapError without one)."""
         t = int(t)
         if t < 0:
             raise SimgapError(f"box tube: period t must be >= 0, got {t}")
+        radii, H = self._sets(noise)
         if t <= self.T0:
-            return Box(self.x_nom[t], self.radii[t])
-        return Box(self.x_star, self.H)
+            return Box(self.x_nom[t], radii[t])
+        return Box(self.x_star, H)
+
+    def _sets(self, noise: bool):
+        """(radii, H) of the mean's tube or (``noise``) of the per-run statement's."""
+        if not noise:
+            return self.radii, self.H
+        if self.noise_tube is None:
+            raise SimgapError("this box-tube controller carries no per-run statement (no noise tube)")
+        return self.noise_tube.radii, self.noise_tube.H
 
     @property
     def terminal_box(self) -> Box:
@@ -134,11 +144,7 @@ class TubeController:
     def inside(self, traj, noise: bool = False) -> np.ndarray:
         """(R,) bool: trajectories (R, T + 1, n) (period 0 = x0) inside the proved box of every period:
         the mean's tube, or with ``noise`` the per-run statement's wider tube (SimgapError without one)."""
-        radii, H = self.radii, self.H
-        if noise:
-            if self.noise_tube is None:
-                raise SimgapError("this box-tube controller carries no per-run statement (no noise tube)")
-            radii, H = self.noise_tube.radii, self.noise_tube.H
+        radii, H = self._sets(noise)
         traj = np.asarray(traj, dtype=float)
         T = traj.shape[1]
         c = np.concatenate([self.x_nom[:T], np.repeat(self.x_star[None], max(0, T - self.T0 - 1), axis=0)])
@@ -146,12 +152,12 @@ class TubeController:
         return np.all(np.abs(traj - c) <= r + TOL * (1.0 + np.abs(c)), axis=(1, 2))
 
     # ----- description ----------------------------------------------------------------
-    def outlines(self, dims=(0, 1), every: int = 1) -> list:
+    def outlines(self, dims=(0, 1), every: int = 1, noise: bool = False) -> list:
         """Closed rectangles (5, 2) of the tube's boxes on two states (every ``every``-th period) and
-        the terminal box last (figures and recordings)."""
+        the terminal box last (figures and recordings); with ``noise`` the per-run statement's."""
         d = [int(i) for i in dims]
-        out = [self.box_at(t).project(d).outline((0, 1)) for t in range(0, self.T0 + 1, max(1, int(every)))]
-        return out + [self.terminal_box.project(d).outline((0, 1))]
+        out = [self.box_at(t, noise).project(d).outline((0, 1)) for t in range(0, self.T0 + 1, max(1, int(every)))]
+        return out + [self.box_at(self.T0 + 1, noise).project(d).outline((0, 1))]
 
     def projection_outline(self, dims, points: int = 0) -> np.ndarray:
         """The terminal box's rectangle on two states (what figures draw for a set controller)."""

@@ -145,6 +145,10 @@ def test_no_statement_without_its_assumptions(kw, why):
     assert "constant" in ntm.why_no_statement(GAP)
 
 
+def test_randomization_switched_off_is_no_randomization():
+    assert ntm.why_no_statement(NoisyGap.make(GAP, SIGMA ** 2, randomize={"mass": 0.0, "damping": 0.0})) is None
+
+
 def test_controller_file_keeps_the_statement(noisy, tmp_path):
     res, T = noisy
     p = res.controller.save(tmp_path / "c.npz")

@@ -120,11 +120,20 @@ def why_no_statement(gap) -> Optional[str]:
     if (gap.options.get("bounds") or {}).get("concentration") != "subgaussian":
         return ("the certificate's tail is Chebyshev's (no sub-Gaussian assumption): certify with "
                 "concentration = \"subgaussian\" for a per-run statement")
-    if ((gap.provenance or {}).get("simulator") or {}).get("randomize"):
+    if _draws_per_run(((gap.provenance or {}).get("simulator") or {}).get("randomize")):
         return "the simulator draws parameters once per run (randomize): the noise is not independent across periods"
     if gap.sup_confidence() is None:
         return "the certificate's simultaneous confidence is vacuous"
     return None
+
+
+def _draws_per_run(randomize) -> bool:
+    """True when a simulator's ``randomize`` section varies anything (a value other than 0 or empty)."""
+    if isinstance(randomize, dict):
+        return any(_draws_per_run(v) for v in randomize.values())
+    if isinstance(randomize, (list, tuple)):
+        return any(_draws_per_run(v) for v in randomize)
+    return bool(randomize)
 
 
 __all__ = ["ASSUMPTION", "NoiseTube", "noise_proxy", "why_no_statement"]

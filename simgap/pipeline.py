@@ -221,6 +221,9 @@ def per_run_empirical(rr, controller=None) -> dict:
     out = {"p_emp": e["p_emp"][0], "se": e["se"][0], "ci95": e["ci95"][0], "successes": k, "n_rollouts": R,
            "horizon": int(rr.horizon), "p_cert": None, "p_cert_note": NO_P_CERT}
     nt = getattr(controller, "noise_tube", None)
+    why = ((getattr(controller, "meta", None) or {}).get("stats", {}).get("noise_tube") or {}).get("none")
+    if nt is None and why:  # a box tube whose certificate does not support the per-run statement
+        out["p_cert_note"] = f"the box tube states no per-run probability: {why}"
     if nt is not None:
         T = int(rr.horizon)
         inside = int(controller.inside(rr.trajectories, noise=True).sum())
@@ -238,7 +241,7 @@ def per_run_note(summary: dict) -> Optional[str]:
     if not any("per_run_empirical" in summary["methods"][m] for m in METHODS):
         return None
     notes = {m: summary["methods"][m]["per_run_empirical"] for m in METHODS
-             if summary["methods"][m].get("per_run_empirical", {}).get("p_cert") is not None}
+             if summary["methods"][m].get("per_run_empirical", {}).get("p_cert_note", NO_P_CERT) != NO_P_CERT}
     p_cert = "; ".join(f"{m}: {e['p_cert_note']}" for m, e in notes.items()) if notes else NO_P_CERT
     return (f"p_emp(x0): successes out of the rollouts from x0 (95 % Clopper-Pearson intervals in summary.json); "
             f"p_cert: {p_cert}")

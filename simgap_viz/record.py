@@ -205,6 +205,11 @@ def record_run(out: str | Path, system, *, dataset=None, certificate=None, spec=
                     boxes = st["invariant_set"].outlines((0, 1))[:-1]
                     log(f"world/{m}/tube", rr.LineStrips3D([_xy0(b) for b in boxes], colors=[method_color(m, k)],
                                                            radii=rr.Radius.ui_points(1.0)))
+                    if getattr(st["invariant_set"], "noise_tube", None) is not None:  # the per-run statement's
+                        noisy = st["invariant_set"].outlines((0, 1), noise=True)
+                        log(f"world/{m}/noise_tube", rr.LineStrips3D([_xy0(b) for b in noisy],
+                                                                     colors=[method_color(m, k)],
+                                                                     radii=rr.Radius.ui_points(0.5)))
                 md += [st["invariant_set"].summary(), ""]
             for i, name in enumerate(system.state_names):
                 _log_gamma(log, rr, info, f"gamma/{m}/{name}", layers[m][i], tops[i], method_color(m, k),

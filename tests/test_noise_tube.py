@@ -158,3 +158,11 @@ def test_controller_file_keeps_the_statement(noisy, tmp_path):
     assert c.noise_tube.p_run(T) == res.controller.noise_tube.p_run(T)
     with pytest.raises(ValueError, match="up to"):
         c.noise_tube.beta_noise(T + 1)
+
+
+def test_recording_draws_the_noise_tube(cubic, noisy, tmp_path):  # noqa: F811
+    from simgap_viz.record import record_run
+    res, _ = noisy
+    info = record_run(tmp_path / "nt.rrd", cubic, spec=_spec(cubic),
+                      methods={"stochastic": {"invariant_set": res.controller, "rollouts": None}})
+    assert any(e.endswith("/noise_tube") for e in info["entities"]) and (tmp_path / "nt.rrd").is_file()

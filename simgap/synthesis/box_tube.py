@@ -687,6 +687,13 @@ class BoxTubeResult:
                          f"{np.round(t['remainder'], 6).tolist()}")
         if not self.empty:
             lines.append(f"margin        gamma could be {s['gap_scale_text']} x larger with the proof still holding")
+            nt = s.get("noise_tube")
+            if nt is not None:
+                lines.append("per run       " + (f"none: {nt['none']}" if "none" in nt else
+                                                 f"P(a run stays in the noise tube for {nt['horizon']} periods) >= "
+                                                 f"{nt['p_run']:.4g} (1 - beta_noise {nt['beta_noise']:.3g} - beta_cert "
+                                                 f"{nt['beta_cert']:.3g}; the noise's response within {nt['lam']:.3g} "
+                                                 f"x its proxy)"))
         else:
             lines.append(f"note          {s['diagnosis']}")
         lines.append(f"time          {s['seconds']:.3f} s, peak memory {s['peak_rss_mb']:.0f} MB (process max RSS)")

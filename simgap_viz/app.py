@@ -342,8 +342,10 @@ class SimgapApp:
                 return
             finally:
                 self._calibrating = False
-            # the same collection still asked for (a typed value may be applied twice: equal, not the same object)
-            if self.settings.stage_key("collect") == s.stage_key("collect") and not self.jobs.busy:
+            # Refresh whatever status still waits for a time, from the settings now current: a change made
+            # while this ran found the calibration busy and was not timed itself. The rate does not
+            # depend on N1hat or the cover; a change of simulator starts one more calibration from here.
+            if "time not estimated yet" in self.status.content and not self.jobs.busy:
                 self.set_status(self.settings_status(getattr(self, "_changed", [])))
 
         threading.Thread(target=work, name="simgap-calibrate", daemon=True).start()

@@ -611,3 +611,35 @@ def test_status_names_stale_layers_next_button_and_the_running_stage():
         assert a.timings["collect"] > 0 and "collect" in a._estimates
     finally:
         a.stop()
+
+
+def test_a_change_made_while_the_rate_is_timed_still_gets_its_time(monkeypatch):
+    """Two quick N1hat edits: the second finds the background calibration busy. When the first one's
+    calibration ends, the status (still "time not estimated yet") is redrawn from the settings now
+    current, with a time. (It used to be redrawn only if the settings had not changed meanwhile, so
+    the status could wait for a time forever; a browser test saw it under load.)"""
+    from simgap_viz import engine
+    from simgap_viz.app import SimgapApp
+    monkeypatch.setattr(engine, "_RATES", {})
+    gate, real = threading.Event(), engine.collect_estimate
+
+    def slow_calibration(*args, calibrate=False, **kw):
+        if calibrate:
+            assert gate.wait(30)
+        return real(*args, calibrate=calibrate, **kw)
+
+    monkeypatch.setattr(engine, "collect_estimate", slow_calibration)
+    a = SimgapApp(port=0, executor="serial", settings=Settings(epsilon=0.1, n_runs=5, noise_std=0.05))
+    try:
+        assert a.update_settings(n_runs=7)
+        assert "time not estimated yet" in a.status.content and a._calibrating
+        assert a.update_settings(n_runs=9)  # while the first calibration runs
+        assert "N1hat 9" in a.status.content and "time not estimated yet" in a.status.content
+        gate.set()
+        deadline = time.time() + 60
+        while "time not estimated yet" in a.status.content and time.time() < deadline:
+            time.sleep(0.05)
+        st = a.status.content
+        assert "N1hat 9" in st and "simulator steps, about" in st, st
+    finally:
+        a.stop()

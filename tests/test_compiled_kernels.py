@@ -142,6 +142,21 @@ def test_small_jobs_do_not_import_numba():
     assert p.stdout.split() == ["False", "True"]
 
 
+def test_kernel_load_defers_numbas_blas_probe():
+    """Loading a kernel does not import scipy.linalg (numba's import-time BLAS probe, 0.23 s and
+    28 MB: jit._defer_blas_probe); numba's BLAS-backed functions still compile and import it."""
+    code = ("import sys\nimport numpy as np\nfrom simgap.synthesis import kernels\n"
+            "from simgap.synthesis.examples import _DCDC_A\n"
+            "kernels.dcdc_rk4(np.ones((4, 2)), np.ones((4, 1)), 0.5, 5, _DCDC_A, 1.0)\n"
+            "print('scipy.linalg' in sys.modules)\n"
+            "import numba\n"
+            "f = numba.njit(lambda a, b: np.dot(a, b))\n"
+            "a = np.arange(3.0)\n"
+            "print(f(a, a) == np.dot(a, a), 'scipy.linalg' in sys.modules)\n")
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert p.stdout.split() == ["False", "True", "True"]
+
+
 @pytest.mark.parametrize("case", ["vehicle", "periodic"])
 def test_reach_game_same_with_and_without_kernel(case, monkeypatch):
     """The compiled level of the worklist reach game (kernels.reach_level) wins the same cells at

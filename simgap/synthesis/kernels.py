@@ -24,17 +24,14 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from .jit import njit
 
 
 def _compiled(fn=None, **kw):
     if fn is None:
         return lambda f: _compiled(f, **kw)
     kw.setdefault("error_model", "numpy")  # x / 0 gives inf or nan as numpy does, no exception
-    try:
-        return njit(cache=True, nogil=True, **kw)(fn)
-    except RuntimeError:  # no writable cache location: compiled in every process instead
-        return njit(nogil=True, **kw)(fn)
+    return njit(**kw)(fn)
 
 
 @_compiled

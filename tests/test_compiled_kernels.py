@@ -232,3 +232,17 @@ def test_corner_index_same_with_and_without_kernels(case, monkeypatch):
         x, y = getattr(a, k), getattr(b, k)
         assert x.dtype == y.dtype and np.array_equal(x, y), k
     assert a.size > 10000
+
+
+def test_input_rows_periodic_and_general(rng):
+    """The input rows of a step: periodic blocks (whole cells, all inputs each) by comparisons,
+    anything else by the sort; every row equals its representative exactly."""
+    from simgap.synthesis.runge_kutta import _input_rows
+    U = ex.vehicle_inputs()
+    for u in (U[np.tile(np.arange(49), 334)], U[np.tile(np.arange(49), 3)][:120],  # periodic, cut
+              U[rng.integers(0, 49, 5000)], np.array([[1.0], [2.0], [2.0], [1.0], [2.0], [2.0], [1.0]]),
+              np.array([[1.0, 2.0], [1.0, 3.0], [1.0, 2.0], [1.0, 2.0]]), U[:1]):
+        uu, inv = _input_rows(u)
+        assert inv.shape == (u.shape[0],) and np.array_equal(uu[inv], u)
+    uu, inv = _input_rows(U[np.tile(np.arange(49), 334)])
+    assert uu.shape == (49, 2)

@@ -22,7 +22,7 @@ from ..systems import System, input_grid
 from .abstraction import state_independent
 from .grid import UniformGrid
 from .jit import use_compiled
-from .runge_kutta import _unique_rows, compiled_args, rk4_growth, rk4_integrate, rk4_step
+from .runge_kutta import _input_rows, compiled_args, rk4_growth, rk4_integrate, rk4_step
 from .spec import Box, Spec
 
 VEHICLE_TAU = 0.3
@@ -78,7 +78,7 @@ def _vehicle_compiled(x, u, tau):
     """:func:`vehicle_step` by the compiled RK4 (:mod:`.kernels`); the input terms by numpy
     (:func:`_vehicle_input_terms`, once per distinct input), as the numpy path computes them."""
     from .kernels import vehicle_rk4  # numba: imported only when a job is large enough (jit.py)
-    uu, inv = _unique_rows(u)
+    uu, inv = _input_rows(u)
     terms = [np.ascontiguousarray(t.take(inv.ravel())) for t in _vehicle_input_terms(uu)]
     return vehicle_rk4(x, *terms, tau, VEHICLE_NINT)
 

@@ -139,7 +139,7 @@ def rk4_growth(L: Union[np.ndarray, Callable[[np.ndarray], np.ndarray]], nint: i
                 raise SimgapError(f"growth: L is {const.shape[0]} x {const.shape[0]}, the state has {n} dimensions")
             A, inv = const[None], np.zeros(r.shape[0], dtype=np.int64)
         else:
-            uu, inv = _unique_rows(np.atleast_2d(np.asarray(u, dtype=float)))
+            uu, inv = _input_rows(np.atleast_2d(np.asarray(u, dtype=float)))
             A = np.asarray(L(uu), dtype=float)
             if A.shape != (uu.shape[0], n, n):
                 raise SimgapError(f"growth: L(u) returned shape {A.shape}, expected {(uu.shape[0], n, n)}")
@@ -155,6 +155,25 @@ def _check_metzler(A: np.ndarray) -> None:
     off = ~np.eye(n, dtype=bool)
     if np.any(A[..., off] < 0) or not np.all(np.isfinite(A)):
         raise SimgapError("growth: L must be finite with off-diagonal entries >= 0 (bounds on |dF_i/dx_j|)")
+
+
+def _input_rows(u: np.ndarray):
+    """(rows, index of each row of ``u`` among them): :func:`_unique_rows`, or, when the rows of
+    ``u`` repeat with a period p (u[i] == u[i mod p], as in the abstraction's blocks of whole
+    cells with all inputs each), (u[:p], i mod p) from two vectorized comparisons instead of a
+    sort (the rows of u[:p] are then not necessarily distinct). Every row of ``u`` equals its
+    representative exactly, so a function of the row gives the same bits either way."""
+    B = u.shape[0]
+    if B > 1 and u.ndim == 2 and u.shape[1]:
+        same = u[1:, 0] == u[0, 0]  # column by column (a reduction along short rows is slow)
+        for d in range(1, u.shape[1]):
+            same &= u[1:, d] == u[0, d]
+        rep = np.flatnonzero(same)
+        if rep.size:
+            p = int(rep[0]) + 1
+            if np.array_equal(u[p:], u[:B - p]):
+                return u[:p], np.tile(np.arange(p, dtype=np.intp), -(-B // p))[:B]
+    return _unique_rows(u)
 
 
 def _unique_rows(u: np.ndarray):

@@ -63,6 +63,28 @@ def test_dcdc_kernel_bit_identical(rng, monkeypatch):
     assert np.array_equal(s.step(x, u, 1.5), dcdc_rk4(x, u, 1.5, 5, ex._DCDC_A, float(ex._DCDC_B[0])))
 
 
+def test_dcdc_numpy_by_mode_bit_identical(rng):
+    """The numpy step with the rows grouped by mode (examples._dcdc_numpy) gives the bits of the
+    plain RK4 of examples._dcdc_rhs (np.where over both modes), special values included, and a
+    column-major RK4 the bits of a row-major one."""
+    from simgap.synthesis.runge_kutta import rk4_integrate
+    s = ex.dcdc_system()
+    x = rng.uniform([1.0, 5.3], [1.7, 6.0], (20000, 2))
+    x[:6] = [[np.inf, 1.0], [0.0, -0.0], [np.nan, 2.0], [-0.0, np.inf], [1e308, 1e308], [-1e-320, 5.0]]
+    u = s.inputs[rng.integers(0, 2, 20000)]
+    with np.errstate(all="ignore"):
+        for tau in (0.5, 1.5):
+            want = rk4_integrate(ex._dcdc_rhs, x, u, tau, 5)
+            got = ex._dcdc_numpy(x, u, tau)
+            assert np.array_equal(np.ascontiguousarray(got).view(np.int64), want.view(np.int64))
+            c = rk4_integrate(ex._dcdc_rhs, np.ascontiguousarray(x), u, tau, 5)
+            assert np.array_equal(c.view(np.int64), want.view(np.int64))
+        assert np.array_equal(ex._dcdc_numpy(x[:7], u[:7] * 0 + 1.0, 0.5), rk4_integrate(ex._dcdc_rhs, x[:7], u[:7] * 0 + 1.0, 0.5, 5),
+                              equal_nan=True)  # one mode only
+        assert np.array_equal(ex._dcdc_numpy(x[0], u[0], 0.5), rk4_integrate(ex._dcdc_rhs, x[:1], u[:1], 0.5, 5),
+                              equal_nan=True)  # one row, 1-D
+
+
 def test_equality_is_sensitive_to_the_summation_order(rng):
     """Mutation check: an RK4 weighting each slope on its own, x + h (k0/6 + k1/3 + k2/3 + k3/6)
     (the same method, other rounding), differs from the kernel in the last bits, so the

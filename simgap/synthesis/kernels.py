@@ -289,8 +289,13 @@ def box_offsets(x, r, z, eta, first, dom_lo, dom_hi, mi, inv_mask, limit, lo_out
     """The successor boxes of a block of pairs in ``build_abstraction`` (no periodic dimension),
     SCOTS's formula in absolute coordinates: left = (x - r) - z, right = (x + r) + z; the pair is
     valid when x and r are finite and (outside the invariant dimensions) the box stays inside
-    (dom_lo, dom_hi); offsets floor((left - first + eta/2) / eta) - mi (and right's), as floats."""
+    (dom_lo, dom_hi); offsets floor((left - first + eta/2) / eta) - mi (and right's), stored
+    into ``lo_out``/``hi_out`` (float, or the abstraction's int8/int16 tables: an offset out of
+    their range is stored wrapped, and the caller redoes the block with wider tables). Returns
+    the least and the greatest offset stored."""
     P, n = x.shape
+    vmin = limit
+    vmax = -limit
     for i in range(P):
         good = True
         out = False
@@ -303,6 +308,11 @@ def box_offsets(x, r, z, eta, first, dom_lo, dom_hi, mi, inv_mask, limit, lo_out
             right = xd + rd + z[d]
             if not inv_mask[d] and (left <= dom_lo[d] or right >= dom_hi[d]):
                 out = True
-            lo_out[i, d] = _offset((left - first[d] + eta[d] / 2) / eta[d], mi[i, d], limit)
-            hi_out[i, d] = _offset((right - first[d] + eta[d] / 2) / eta[d], mi[i, d], limit)
+            a = _offset((left - first[d] + eta[d] / 2) / eta[d], mi[i, d], limit)
+            b = _offset((right - first[d] + eta[d] / 2) / eta[d], mi[i, d], limit)
+            vmin = min(vmin, a, b)
+            vmax = max(vmax, a, b)
+            lo_out[i, d] = a
+            hi_out[i, d] = b
         ok_out[i] = good and not out
+    return vmin, vmax

@@ -99,6 +99,9 @@ def test_dcdc_numpy_by_mode_bit_identical(rng):
             assert np.array_equal(np.ascontiguousarray(got).view(np.int64), want.view(np.int64))
             c = rk4_integrate(ex._dcdc_rhs, np.ascontiguousarray(x), u, tau, 5)
             assert np.array_equal(c.view(np.int64), want.view(np.int64))
+        alt = s.inputs[np.tile([0, 1], 10000)]  # the abstraction's blocks: strided slices per mode
+        assert np.array_equal(np.ascontiguousarray(ex._dcdc_numpy(x, alt, 0.5)).view(np.int64),
+                              rk4_integrate(ex._dcdc_rhs, x, alt, 0.5, 5).view(np.int64))
         assert np.array_equal(ex._dcdc_numpy(x[:7], u[:7] * 0 + 1.0, 0.5), rk4_integrate(ex._dcdc_rhs, x[:7], u[:7] * 0 + 1.0, 0.5, 5),
                               equal_nan=True)  # one mode only
         assert np.array_equal(ex._dcdc_numpy(x[0], u[0], 0.5), rk4_integrate(ex._dcdc_rhs, x[:1], u[:1], 0.5, 5),

@@ -201,8 +201,20 @@ def _dcdc_numpy(x, u, tau):
     out = np.empty(x.shape, order="F")
     for mode, rows in ((1, np.flatnonzero(~m2)), (2, np.flatnonzero(m2))):
         if rows.size:
-            out[rows] = rk4_integrate(_DCDC_RHS_MODE[mode], x.take(rows, axis=0), None, tau, 5)
+            sel = _progression(rows)  # the abstraction's blocks alternate the modes: a strided slice
+            out[sel] = rk4_integrate(_DCDC_RHS_MODE[mode], x[sel], None, tau, 5)
     return out
+
+
+def _progression(rows: np.ndarray):
+    """``rows`` (sorted, distinct) as a slice when they are evenly spaced, else themselves."""
+    if rows.size == 1:
+        return slice(int(rows[0]), int(rows[0]) + 1)
+    step = int(rows[1] - rows[0])
+    d = np.diff(rows)
+    if (d == step).all():
+        return slice(int(rows[0]), int(rows[-1]) + 1, step)
+    return rows
 
 
 def _dcdc_compiled(x, u, tau):

@@ -159,7 +159,9 @@ class CornerIndex:
         indptr = np.zeros(N + 1, dtype=np.int32)
         np.cumsum(counts, out=indptr[1:])
         del counts
-        nxt = indptr[:-1].copy()  # the next free slot of every row (int32: indptr[-1] < 2^31)
+        # the next free slot of every row: the row pointers themselves, advanced as the rows fill
+        # (then each holds its row's end, the next row's start: shifted back below)
+        nxt = indptr[:-1]
         q = np.empty(int(indptr[-1]), dtype=it)
         code_out = np.empty(q.size, dtype=np.uint8)
         keys, code = keys.reshape(-1), code.reshape(-1)
@@ -179,6 +181,9 @@ class CornerIndex:
             q[dest] = (pos % it(N)) * it(M) + pos // it(N)  # -> pair id c * M + u
             code_out[dest] = code.take(pos)
             nxt[ks.take(first)] += run  # distinct keys: no repeated index
+        del keys, code
+        indptr[1:] = indptr[:-1].copy()  # row r's end is row r + 1's start
+        indptr[0] = 0
         return cls(ab, indptr, q, code_out, emax, usable_bits, cell_boxes, cell_trans)
 
     @classmethod

@@ -1,8 +1,10 @@
 """When the compiled (numba) kernels are used instead of their numpy twins.
 
 The compiled kernels (:mod:`.kernels`) give the same bits as the numpy code they replace, so
-the choice is about cost only: importing numba and loading a cached kernel costs about 0.8 s
-CPU and 130 MB of resident memory per process (llvmlite's library and LLVM's start), paid once.
+the choice is about cost only: importing numba and loading a cached kernel costs about 0.33 s
+CPU and 115 MB of resident memory per process (llvmlite's library, LLVM's start and numba's
+registries; measured idle, 2026-11-29, with the BLAS probe deferred: 0.61 s and 131 MB without),
+paid once.
 A kernel pays for that only on large jobs, so
 :func:`~simgap.synthesis.abstraction.build_abstraction` declares its work (the number of rows
 it is about to pass to the system's step, ``pairs * hold * steps``) with
@@ -29,7 +31,7 @@ from ..errors import SimgapError
 
 #: declared step rows from which a compiled twin is used in auto mode, unless it names its own
 #: break-even (``use_compiled(min_rows)``). Importing numba and loading a cached kernel costs
-#: about 0.8 s CPU and 130 MB of resident memory (LLVM's start), measured on the 2-core machine.
+#: about 0.33 s CPU and 115 MB of resident memory (LLVM's start), measured on the 2-core machine.
 AUTO_WORK = 2_000_000
 
 _WORK: contextvars.ContextVar = contextvars.ContextVar("simgap_jit_work", default=0)

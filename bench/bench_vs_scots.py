@@ -18,7 +18,9 @@ Cases (simgap through its public API, every (cell, input) pair integrated as SCO
 
 Per case, ``--pairs`` rounds of (SCOTS, simgap for every ``--jit`` mode) in fresh processes, one
 after the other, so every round sees the same load; CPU is user + system time of the child
-(``wait4``: interpreter start, imports and file writes included), memory its peak RSS. Reported:
+(``wait4``: interpreter start, imports and file writes included), memory its peak RSS, after one
+uncounted warm-up run per program (simgap's bytecode cached as a regular install has it, numba's
+kernel cache filled, the files in the page cache). Reported:
 every run, the median per program, and the ratios simgap / SCOTS per round and their median. The
 machine's load average is printed before and after: on a shared machine the absolute times
 inflate, the ratios of one interleaved run are what to compare.
@@ -127,7 +129,10 @@ def main() -> int:
         print(f"bench: --scots {a.scots!r} has no build.sh (SCOTS v0.2 sources)", file=sys.stderr)
         return 2
     build_scots(os.path.abspath(a.scots), os.path.abspath(a.build))
-    env0 = {k: v for k, v in os.environ.items() if k != "SIMGAP_JIT"}
+    # compiled bytecode cached as after a regular install (pip writes it; a warm-up run per
+    # program writes it here, and numba's kernel cache): without it every process compiles
+    # simgap's modules again (this machine sets PYTHONDONTWRITEBYTECODE=1)
+    env0 = {k: v for k, v in os.environ.items() if k not in ("SIMGAP_JIT", "PYTHONDONTWRITEBYTECODE")}
     env0["PYTHONPATH"] = ROOT + os.pathsep + env0.get("PYTHONPATH", "")
     load0 = os.getloadavg()
     print(f"load average before: {load0[0]:.2f} {load0[1]:.2f} {load0[2]:.2f} ({os.cpu_count()} cores); "
@@ -139,6 +144,8 @@ def main() -> int:
         progs = [("SCOTS", [os.path.join(os.path.abspath(a.build), SCOTS_BIN[case])], env0)]
         progs += [(f"simgap jit={m}", [sys.executable, "-c", script], {**env0, "SIMGAP_JIT": m}) for m in modes]
         res = {name: [] for name, _, _ in progs}
+        for name, argv, env in progs:
+            run_child(argv, env)  # warm-up (not counted): bytecode and kernel caches, file cache
         print(f"\n== {case}")
         print(f"{'round':>5} {'program':<16} {'CPU s':>7} {'peak RSS MB':>12}  result")
         for i in range(a.pairs):

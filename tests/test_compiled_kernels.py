@@ -42,6 +42,26 @@ def test_vehicle_kernel_bit_identical(rng, monkeypatch):
     assert np.array_equal(ex.vehicle_step(x, u, 0.3), want)  # the step dispatches to the kernel
 
 
+def test_vehicle_kernel_standing_still_bit_identical(monkeypatch):
+    """Rows with v = 0 skip the integration in the kernel (the state is the result): the same
+    bits as numpy's RK4 at every edge of that shortcut (zeros of either sign, infinities, NaN,
+    huge headings, cos(alpha) = 0)."""
+    vals = [0.0, -0.0, 1.5, -2.25, 1e-310, np.inf, -np.inf, np.nan, 1e308]
+    grid = np.array(np.meshgrid(vals, vals, vals + [-1.7e308], indexing="ij")).reshape(3, -1).T
+    U = np.array([[0.0, 0.0], [-0.0, 0.9], [0.0, -1.2], [0.0, np.pi / 2], [0.0, np.nan], [0.3, 0.0]])
+    x = np.repeat(grid, U.shape[0], axis=0)
+    u = np.tile(U, (grid.shape[0], 1))
+    monkeypatch.setenv("SIMGAP_JIT", "0")
+    with np.errstate(all="ignore"):
+        want = ex.vehicle_step(x, u, 0.3)
+        got = ex._vehicle_compiled(x, u, 0.3)
+    want = np.ascontiguousarray(want)
+    nan = np.isnan(want)
+    assert np.array_equal(np.isnan(got), nan)  # NaN where numpy has NaN (its sign bit aside)
+    assert np.array_equal(got[~nan].view(np.int64), want[~nan].view(np.int64))  # zeros' signs too
+    assert (u[:, 0] == 0).sum() > x.shape[0] // 2  # the shortcut's rows are most of the batch
+
+
 def test_vehicle_kernel_divides_as_numpy():
     """A zero cos(alpha) (an input term the grid never has) gives numpy's inf/nan, not numba's
     default ZeroDivisionError (the kernels are compiled with error_model="numpy")."""
@@ -61,6 +81,31 @@ def test_dcdc_kernel_bit_identical(rng, monkeypatch):
     monkeypatch.setenv("SIMGAP_JIT", "1")
     assert np.array_equal(s.step(x, u, 0.5), want)
     assert np.array_equal(s.step(x, u, 1.5), dcdc_rk4(x, u, 1.5, 5, ex._DCDC_A, float(ex._DCDC_B[0])))
+
+
+def test_dcdc_numpy_by_mode_bit_identical(rng):
+    """The numpy step with the rows grouped by mode (examples._dcdc_numpy) gives the bits of the
+    plain RK4 of examples._dcdc_rhs (np.where over both modes), special values included, and a
+    column-major RK4 the bits of a row-major one."""
+    from simgap.synthesis.runge_kutta import rk4_integrate
+    s = ex.dcdc_system()
+    x = rng.uniform([1.0, 5.3], [1.7, 6.0], (20000, 2))
+    x[:6] = [[np.inf, 1.0], [0.0, -0.0], [np.nan, 2.0], [-0.0, np.inf], [1e308, 1e308], [-1e-320, 5.0]]
+    u = s.inputs[rng.integers(0, 2, 20000)]
+    with np.errstate(all="ignore"):
+        for tau in (0.5, 1.5):
+            want = rk4_integrate(ex._dcdc_rhs, x, u, tau, 5)
+            got = ex._dcdc_numpy(x, u, tau)
+            assert np.array_equal(np.ascontiguousarray(got).view(np.int64), want.view(np.int64))
+            c = rk4_integrate(ex._dcdc_rhs, np.ascontiguousarray(x), u, tau, 5)
+            assert np.array_equal(c.view(np.int64), want.view(np.int64))
+        alt = s.inputs[np.tile([0, 1], 10000)]  # the abstraction's blocks: strided slices per mode
+        assert np.array_equal(np.ascontiguousarray(ex._dcdc_numpy(x, alt, 0.5)).view(np.int64),
+                              rk4_integrate(ex._dcdc_rhs, x, alt, 0.5, 5).view(np.int64))
+        assert np.array_equal(ex._dcdc_numpy(x[:7], u[:7] * 0 + 1.0, 0.5), rk4_integrate(ex._dcdc_rhs, x[:7], u[:7] * 0 + 1.0, 0.5, 5),
+                              equal_nan=True)  # one mode only
+        assert np.array_equal(ex._dcdc_numpy(x[0], u[0], 0.5), rk4_integrate(ex._dcdc_rhs, x[:1], u[:1], 0.5, 5),
+                              equal_nan=True)  # one row, 1-D
 
 
 def test_equality_is_sensitive_to_the_summation_order(rng):
@@ -142,6 +187,21 @@ def test_small_jobs_do_not_import_numba():
     assert p.stdout.split() == ["False", "True"]
 
 
+def test_kernel_load_defers_numbas_blas_probe():
+    """Loading a kernel does not import scipy.linalg (numba's import-time BLAS probe, 0.23 s and
+    28 MB: jit._defer_blas_probe); numba's BLAS-backed functions still compile and import it."""
+    code = ("import sys\nimport numpy as np\nfrom simgap.synthesis import kernels\n"
+            "from simgap.synthesis.examples import _DCDC_A\n"
+            "kernels.dcdc_rk4(np.ones((4, 2)), np.ones((4, 1)), 0.5, 5, _DCDC_A, 1.0)\n"
+            "print('scipy.linalg' in sys.modules)\n"
+            "import numba\n"
+            "f = numba.njit(lambda a, b: np.dot(a, b))\n"
+            "a = np.arange(3.0)\n"
+            "print(f(a, a) == np.dot(a, a), 'scipy.linalg' in sys.modules)\n")
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert p.stdout.split() == ["False", "True", "True"]
+
+
 @pytest.mark.parametrize("case", ["vehicle", "periodic"])
 def test_reach_game_same_with_and_without_kernel(case, monkeypatch):
     """The compiled level of the worklist reach game (kernels.reach_level) wins the same cells at
@@ -217,3 +277,17 @@ def test_corner_index_same_with_and_without_kernels(case, monkeypatch):
         x, y = getattr(a, k), getattr(b, k)
         assert x.dtype == y.dtype and np.array_equal(x, y), k
     assert a.size > 10000
+
+
+def test_input_rows_periodic_and_general(rng):
+    """The input rows of a step: periodic blocks (whole cells, all inputs each) by comparisons,
+    anything else by the sort; every row equals its representative exactly."""
+    from simgap.synthesis.runge_kutta import _input_rows
+    U = ex.vehicle_inputs()
+    for u in (U[np.tile(np.arange(49), 334)], U[np.tile(np.arange(49), 3)][:120],  # periodic, cut
+              U[rng.integers(0, 49, 5000)], np.array([[1.0], [2.0], [2.0], [1.0], [2.0], [2.0], [1.0]]),
+              np.array([[1.0, 2.0], [1.0, 3.0], [1.0, 2.0], [1.0, 2.0]]), U[:1]):
+        uu, inv = _input_rows(u)
+        assert inv.shape == (u.shape[0],) and np.array_equal(uu[inv], u)
+    uu, inv = _input_rows(U[np.tile(np.arange(49), 334)])
+    assert uu.shape == (49, 2)

@@ -19,14 +19,11 @@ cache when that is not writable) and loaded in later processes instead of compil
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from ..synthesis.jit import njit
 
 
 def _compiled(fn):
-    try:
-        return njit(cache=True, nogil=True)(fn)
-    except RuntimeError:  # no writable cache location: compiled in every process instead
-        return njit(nogil=True)(fn)
+    return njit()(fn)
 
 
 @_compiled

@@ -598,17 +598,23 @@ def build_abstraction(system: System, grid: UniformGrid, *, growth: Optional[Gro
 
 def _boxes_compiled(x, r, z, eta, grid, dom_lo, dom_hi, mi, inv_mask, off, ok, s, e) -> None:
     """The block's offsets and valid flags by :func:`simgap.synthesis.kernels.box_offsets` (the
-    numpy loop's operations, per pair; no periodic dimension), stored as the loop stores them."""
+    numpy loop's operations, per pair; no periodic dimension), written straight into the int8
+    tables; when an offset does not fit, the tables become int16 (as :func:`_store` does) and
+    the block is written again."""
     from .kernels import box_offsets
     P, n = x.shape
-    lo, hi = np.empty((P, n)), np.empty((P, n))
     good = np.empty(P, dtype=bool)
     f64 = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
-    box_offsets(f64(x), f64(r), f64(z), f64(eta), f64(grid.first), f64(dom_lo), f64(dom_hi),
-                np.ascontiguousarray(mi), np.asarray(inv_mask, dtype=np.bool_), float(_OFF_LIMIT), lo, hi, good)
-    for d in range(n):
-        _store(off, "lo", s, e, d, lo[:, d])
-        _store(off, "hi", s, e, d, hi[:, d])
+    args = (f64(x), f64(r), f64(z), f64(eta), f64(grid.first), f64(dom_lo), f64(dom_hi),
+            np.ascontiguousarray(mi), np.asarray(inv_mask, dtype=np.bool_), float(_OFF_LIMIT))
+    for _ in range(2):
+        lo, hi = off["lo"][s:e].reshape(P, n), off["hi"][s:e].reshape(P, n)  # views (contiguous)
+        vmin, vmax = box_offsets(*args, lo, hi, good)
+        info = np.iinfo(lo.dtype)
+        if info.min <= vmin and vmax <= info.max:
+            break
+        for k in off:  # int8 -> int16 (+-_OFF_LIMIT fits); the block is written again
+            off[k] = off[k].astype(np.int16)
     ok[s:e] = good.reshape(e - s, -1)
 
 

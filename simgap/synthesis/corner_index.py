@@ -37,6 +37,14 @@ def expand_counts(counts: np.ndarray):
     return rows, np.arange(rows.size, dtype=it) - starts[rows]
 
 
+def _cell_dtypes(M: int):
+    """dtypes of the per-cell number of indexed boxes (<= M) and of their summed volumes
+    (<= M * CornerIndex.MAX_ROWS): the smallest that hold them (1-2 bytes a cell instead of 8)."""
+    boxes = np.uint8 if M <= 255 else np.int32
+    trans = np.uint8 if M * CornerIndex.MAX_ROWS <= 255 else np.int16 if M * CornerIndex.MAX_ROWS <= 32767 else np.int32
+    return boxes, trans
+
+
 class CornerIndex:
     """CSR of the usable pairs by the flat id of their box's normalized lo corner (module docstring).
 
@@ -44,7 +52,8 @@ class CornerIndex:
     uint8 their box extents (mixed radix over ``emax``, the largest extent per dimension);
     ``offsets`` (prod(emax), n) the corner offsets a; per cell, for the games' one-off work:
     ``usable`` (N, ceil(M/8)) packed bits of the indexed pairs, ``cell_boxes`` (N,) their number
-    and ``cell_transitions`` (N,) the sum of their box volumes.
+    and ``cell_transitions`` (N,) the sum of their box volumes (small integer dtypes:
+    :func:`_cell_dtypes`; sum them with a wide dtype).
     """
 
     #: prod(e_max) above this: the per-transition index (games.Predecessors) answers queries cheaper
@@ -89,10 +98,11 @@ class CornerIndex:
         strides = g.strides.astype(np.int32)
         keys = np.empty((M, N), dtype=np.int32)  # input-major: long ascending runs for the chunk sorts
         exts = [np.empty((M, N), dtype=np.uint8) for _ in range(n)]
-        counts = np.zeros(N, dtype=np.int64)
+        counts = np.zeros(N, dtype=np.int32 if N * M < 2 ** 31 else np.int64)
         usable_bits = np.empty((N, (M + 7) // 8), dtype=np.uint8)
-        cell_boxes = np.zeros(N, dtype=np.int32)
-        cell_trans = np.zeros(N, dtype=np.int32)  # <= M * MAX_ROWS
+        boxes_t, trans_t = _cell_dtypes(M)
+        cell_boxes = np.zeros(N, dtype=boxes_t)
+        cell_trans = np.zeros(N, dtype=trans_t)  # <= M * MAX_ROWS
         emax = np.zeros(n, dtype=np.int64)
         for s in range(0, N, block):
             e = min(N, s + block)
@@ -132,7 +142,7 @@ class CornerIndex:
                 keys[u, s:e] = key
                 vol *= usable
                 cell_boxes[s:e] += usable
-                cell_trans[s:e] += vol
+                np.add(cell_trans[s:e], vol, out=cell_trans[s:e], casting="unsafe")  # <= M * MAX_ROWS
                 bits[:, u >> 3] |= usable.view(np.uint8) << np.uint8(7 - (u & 7))
         if int(np.prod(emax)) > cls.MAX_ROWS:
             return None
@@ -147,9 +157,11 @@ class CornerIndex:
         del exts
         it = np.int32 if N * M < 2 ** 31 else np.int64
         indptr = np.zeros(N + 1, dtype=np.int32)
-        indptr[1:] = np.cumsum(counts)
+        np.cumsum(counts, out=indptr[1:])
         del counts
-        nxt = indptr[:-1].astype(np.int64)  # the next free slot of every row
+        # the next free slot of every row: the row pointers themselves, advanced as the rows fill
+        # (then each holds its row's end, the next row's start: shifted back below)
+        nxt = indptr[:-1]
         q = np.empty(int(indptr[-1]), dtype=it)
         code_out = np.empty(q.size, dtype=np.uint8)
         keys, code = keys.reshape(-1), code.reshape(-1)
@@ -169,6 +181,9 @@ class CornerIndex:
             q[dest] = (pos % it(N)) * it(M) + pos // it(N)  # -> pair id c * M + u
             code_out[dest] = code.take(pos)
             nxt[ks.take(first)] += run  # distinct keys: no repeated index
+        del keys, code
+        indptr[1:] = indptr[:-1].copy()  # row r's end is row r + 1's start
+        indptr[0] = 0
         return cls(ab, indptr, q, code_out, emax, usable_bits, cell_boxes, cell_trans)
 
     @classmethod
@@ -183,15 +198,16 @@ class CornerIndex:
                 g.strides.astype(np.int64), np.asarray(g.periodic_mask, dtype=np.bool_))
         counts = np.zeros(N, dtype=np.int64)
         usable_bits = np.zeros((N, (M + 7) // 8), dtype=np.uint8)
-        cell_boxes = np.zeros(N, dtype=np.int32)
-        cell_trans = np.zeros(N, dtype=np.int32)
+        boxes_t, trans_t = _cell_dtypes(M)
+        cell_boxes = np.zeros(N, dtype=boxes_t)
+        cell_trans = np.zeros(N, dtype=trans_t)
         emax = np.zeros(n, dtype=np.int64)
         corner_counts(*args, counts, usable_bits, cell_boxes, cell_trans, emax)
         if int(np.prod(emax)) > cls.MAX_ROWS:
             return None
         emax = np.maximum(emax, 1)
         indptr = np.zeros(N + 1, dtype=np.int32)
-        indptr[1:] = np.cumsum(counts)
+        np.cumsum(counts, out=indptr[1:])
         del counts
         q = np.empty(int(indptr[-1]), dtype=np.int32 if N * M < 2 ** 31 else np.int64)
         code = np.empty(q.size, dtype=np.uint8)

@@ -54,9 +54,8 @@ def synthesis_cost(system, grid: UniformGrid, gap=None, hold: int = 1, invariant
     K = float(np.prod([grid.shape[d] for d in range(n) if d not in inv])) if len(inv) < n else 1.0
     growth = growth_function(system, growth)
     gap = as_gap(gap, system)
-    rng = np.random.default_rng(seed)
     S = int(min(max(1, sample // M), K))  # cells, all inputs each
-    mi = np.stack([rng.integers(0, grid.shape[d], S) for d in range(n)], axis=1)
+    mi = np.stack([_sample_ints(seed * 16 + d, S, grid.shape[d]) for d in range(n)], axis=1)
     x = np.repeat(grid.multi_to_points(mi), M, axis=0)
     u = np.tile(system.inputs, (S, 1))
     eta, z = grid.eta, 1e-10 * grid.eta
@@ -106,6 +105,20 @@ def synthesis_cost(system, grid: UniformGrid, gap=None, hold: int = 1, invariant
             "mean_box_cells": mean_vol, "sampled_cells": S, "memory": memory,
             "memory_parts": {"abstraction": abstraction, "index": index, "game": game},
             "abstraction_seconds": per_pair * pairs_stored * 1.5}  # + storing the offsets
+
+
+def _sample_ints(stream: int, count: int, high: int) -> np.ndarray:
+    """``count`` seeded pseudo-random integers in [0, high): splitmix64 of (stream, i), by integer
+    arithmetic (numpy.random, about 6 MB of resident memory, is not loaded for a sample)."""
+    with np.errstate(over="ignore"):
+        z = (np.arange(1, count + 1, dtype=np.uint64) + np.uint64(stream & 0xFFFFFFFF) * np.uint64(1 << 32)) \
+            * np.uint64(0x9E3779B97F4A7C15)
+        z ^= z >> np.uint64(30)
+        z *= np.uint64(0xBF58476D1CE4E5B9)
+        z ^= z >> np.uint64(27)
+        z *= np.uint64(0x94D049BB133111EB)
+        z ^= z >> np.uint64(31)
+    return (z % np.uint64(max(int(high), 1))).astype(np.int64)
 
 
 def synthesis_cost_text(c: dict, grid: UniformGrid) -> str:

@@ -22,7 +22,7 @@ from ..systems import System, input_grid
 from .abstraction import state_independent
 from .grid import UniformGrid
 from .jit import use_compiled
-from .runge_kutta import _unique_rows, compiled_args, rk4_growth, rk4_integrate, rk4_step
+from .runge_kutta import _input_rows, compiled_args, rk4_growth, rk4_integrate, rk4_step
 from .spec import Box, Spec
 
 VEHICLE_TAU = 0.3
@@ -78,7 +78,7 @@ def _vehicle_compiled(x, u, tau):
     """:func:`vehicle_step` by the compiled RK4 (:mod:`.kernels`); the input terms by numpy
     (:func:`_vehicle_input_terms`, once per distinct input), as the numpy path computes them."""
     from .kernels import vehicle_rk4  # numba: imported only when a job is large enough (jit.py)
-    uu, inv = _unique_rows(u)
+    uu, inv = _input_rows(u)
     terms = [np.ascontiguousarray(t.take(inv.ravel())) for t in _vehicle_input_terms(uu)]
     return vehicle_rk4(x, *terms, tau, VEHICLE_NINT)
 
@@ -158,6 +158,65 @@ def _dcdc_rhs(x, u):
     return out
 
 
+def _dcdc_rhs_mode(mode: int):
+    """:func:`_dcdc_rhs` for the rows of one mode (1 or 2): the operations ``np.where`` keeps for
+    them, in the same order (the same bits), without evaluating the other mode's."""
+    if mode == 1:
+        (a, _), (_, d) = _DCDC_A[0]
+
+        def rhs(x, _u):
+            out = np.empty_like(x)
+            o0, o1 = out[:, 0], out[:, 1]
+            np.multiply(x[:, 0], a, out=o0)
+            o0 += _DCDC_B[0]
+            np.multiply(x[:, 1], d, out=o1)
+            return out
+    else:
+        (e, f), (g, h) = _DCDC_A[1]
+
+        def rhs(x, _u):
+            out = np.empty_like(x)
+            o0, o1 = out[:, 0], out[:, 1]
+            np.multiply(x[:, 0], e, out=o0)
+            o0 += f * x[:, 1]
+            o0 += _DCDC_B[0]
+            np.multiply(x[:, 0], g, out=o1)
+            o1 += h * x[:, 1]
+            return out
+    return rhs
+
+
+_DCDC_RHS_MODE = {1: _dcdc_rhs_mode(1), 2: _dcdc_rhs_mode(2)}
+
+
+def _dcdc_numpy(x, u, tau):
+    """``rk4_integrate(_dcdc_rhs, x, u, tau, 5)`` with the rows grouped by mode (each group
+    integrated by its own right-hand side, then put back in place): the same bits, about half
+    the operations."""
+    x = np.atleast_2d(np.asarray(x, dtype=float))
+    u = np.atleast_2d(np.asarray(u, dtype=float))
+    if x.ndim != 2 or u.ndim != 2 or x.shape[0] != u.shape[0] or x.shape[1] != 2:
+        return rk4_integrate(_dcdc_rhs, x, u, tau, 5)  # broadcasting: the plain path
+    m2 = u[:, 0] > 1.5
+    out = np.empty(x.shape, order="F")
+    for mode, rows in ((1, np.flatnonzero(~m2)), (2, np.flatnonzero(m2))):
+        if rows.size:
+            sel = _progression(rows)  # the abstraction's blocks alternate the modes: a strided slice
+            out[sel] = rk4_integrate(_DCDC_RHS_MODE[mode], x[sel], None, tau, 5)
+    return out
+
+
+def _progression(rows: np.ndarray):
+    """``rows`` (sorted, distinct) as a slice when they are evenly spaced, else themselves."""
+    if rows.size == 1:
+        return slice(int(rows[0]), int(rows[0]) + 1)
+    step = int(rows[1] - rows[0])
+    d = np.diff(rows)
+    if (d == step).all():
+        return slice(int(rows[0]), int(rows[-1]) + 1, step)
+    return rows
+
+
 def _dcdc_compiled(x, u, tau):
     from .kernels import dcdc_rk4  # numba: imported only when a job is large enough (jit.py)
     return dcdc_rk4(x, u, tau, 5, _DCDC_A, float(_DCDC_B[0]))
@@ -174,7 +233,7 @@ def dcdc_system(x_lo=(1.15, 5.45), x_hi=(1.55, 5.85)) -> System:
     """
     return System(name="dcdc", state_names=("il", "vc"), input_names=("mode",), x_lo=x_lo, x_hi=x_hi,
                   inputs=np.array([[1.0], [2.0]]), base_tau=DCDC_TAU,
-                  step=rk4_step(_dcdc_rhs, nint=5, compiled=_dcdc_compiled),
+                  step=rk4_step(_dcdc_rhs, nint=5, compiled=_dcdc_compiled, numpy=_dcdc_numpy),
                   params={"inputs": "categorical"})  # switch modes: nothing lies between 1 and 2
 
 

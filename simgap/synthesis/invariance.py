@@ -63,7 +63,8 @@ def solve_invariance(ab: Abstraction, safe: np.ndarray, blocked: Optional[np.nda
         W, it, tested = _invariance_sat(ab, PairEvaluator(ab, ~S, S), S, live)
     t2 = time.perf_counter()
     packed, chosen = _safety_controller(ab, W, live, max_margin, alive=alive)
-    steps = np.where(W, 0, -1).astype(np.int32)
+    steps = np.full(N, -1, dtype=np.int32)  # no (N,) int64 temporary
+    steps[W] = 0
     return GameResult(kind="invariance", winning=W, steps=steps, valid_packed=packed,
                       n_inputs=M, target=np.zeros(N, dtype=bool), chosen=chosen, iterations=it,
                       seconds=time.perf_counter() - t0,
@@ -198,9 +199,11 @@ def _safety_controller(ab: Abstraction, W: np.ndarray, live: np.ndarray, max_mar
     open_ = W.copy()  # cells without an input of margin max_margin yet
     B = 1 << 16  # cells per block: the block's temporaries stay small
     for u in range(M):
-        ids_u = np.flatnonzero(open_ & valid[:, u])
-        for s in range(0, ids_u.size, B):
-            ids = ids_u[s:s + B]
+        for s in range(0, N, B):  # the open cells of a block of cells: no (N,) index array
+            ids = np.flatnonzero(open_[s:s + B] & valid[s:s + B, u])
+            if ids.size == 0:
+                continue
+            ids += s
             bx = RowBoxes(ab, ids, inputs=slice(u, u + 1))
             mg = np.where(bx.inside(top)[:, 0], np.int8(max_margin), np.int8(-1))
             rest = np.flatnonzero(mg < 0)
@@ -209,7 +212,7 @@ def _safety_controller(ab: Abstraction, W: np.ndarray, live: np.ndarray, max_mar
             better = mg > best[ids]  # strictly: ties keep the lowest input
             best[ids[better]] = mg[better]
             chosen[ids[better]] = u
-        open_[ids_u[best[ids_u] == max_margin]] = False
+            open_[ids[best[ids] == max_margin]] = False  # these ids are not visited again for u
     return packed, chosen
 
 

@@ -24,17 +24,14 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from .jit import njit
 
 
 def _compiled(fn=None, **kw):
     if fn is None:
         return lambda f: _compiled(f, **kw)
     kw.setdefault("error_model", "numpy")  # x / 0 gives inf or nan as numpy does, no exception
-    try:
-        return njit(cache=True, nogil=True, **kw)(fn)
-    except RuntimeError:  # no writable cache location: compiled in every process instead
-        return njit(nogil=True, **kw)(fn)
+    return njit(**kw)(fn)
 
 
 @_compiled
@@ -52,10 +49,27 @@ def vehicle_rk4(X, alpha, ca, v, dth, tau, nint):
     for i in range(B):
         al, c_a, vi, dt = alpha[i], ca[i], v[i], dth[i]
         x0, x1, x2 = X[i, 0], X[i, 1], X[i, 2]
+        if vi == 0.0 and dt == 0.0 and c_a != 0.0 and math.isfinite(c_a) and math.isfinite(al + x2) \
+                and x0 != 0.0 and x1 != 0.0 and x2 != 0.0 and math.isfinite(x0) and math.isfinite(x1):
+            # standing still (a seventh of the grid's inputs): every slope is a signed zero
+            # (finite cosine or sine times +-0, over a finite nonzero cos(alpha)), and a nonzero
+            # finite coordinate plus a signed zero is itself, so the state is the result, bit for bit
+            out[i, 0] = x0
+            out[i, 1] = x1
+            out[i, 2] = x2
+            continue
+        pa, pc, ps = math.nan, 0.0, 0.0  # the last slope's angle and its cosine and sine
         for _ in range(nint):
             a = al + x2
-            k0 = math.cos(a) * vi / c_a
-            k1 = math.sin(a) * vi / c_a
+            # the first slope's angle is usually the previous substep's last one, bit for bit
+            # (x2 + 6 dth h/6 rounds to x2 + dth h for about 97 % of the grid's rows): the same
+            # argument gives the same cosine and sine, so they are reused (zero: its sign matters)
+            if a == pa and a != 0.0:
+                c, sn = pc, ps
+            else:
+                c, sn = math.cos(a), math.sin(a)
+            k0 = c * vi / c_a
+            k1 = sn * vi / c_a
             a0, a1, a2 = k0, k1, dt
             # the second and third slopes are evaluated at the same heading, x2 + (h/2) dth
             # (theta' = dth does not depend on the state): the same values, computed once
@@ -68,9 +82,10 @@ def vehicle_rk4(X, alpha, ca, v, dth, tau, nint):
             a0 += k0 + k0
             a1 += k1 + k1
             a2 += dt + dt
-            a = al + (dt * h + x2)
-            k0 = math.cos(a) * vi / c_a
-            k1 = math.sin(a) * vi / c_a
+            pa = al + (dt * h + x2)
+            pc, ps = math.cos(pa), math.sin(pa)
+            k0 = pc * vi / c_a
+            k1 = ps * vi / c_a
             a0 += k0
             a1 += k1
             a2 += dt
@@ -283,8 +298,13 @@ def box_offsets(x, r, z, eta, first, dom_lo, dom_hi, mi, inv_mask, limit, lo_out
     """The successor boxes of a block of pairs in ``build_abstraction`` (no periodic dimension),
     SCOTS's formula in absolute coordinates: left = (x - r) - z, right = (x + r) + z; the pair is
     valid when x and r are finite and (outside the invariant dimensions) the box stays inside
-    (dom_lo, dom_hi); offsets floor((left - first + eta/2) / eta) - mi (and right's), as floats."""
+    (dom_lo, dom_hi); offsets floor((left - first + eta/2) / eta) - mi (and right's), stored
+    into ``lo_out``/``hi_out`` (float, or the abstraction's int8/int16 tables: an offset out of
+    their range is stored wrapped, and the caller redoes the block with wider tables). Returns
+    the least and the greatest offset stored."""
     P, n = x.shape
+    vmin = limit
+    vmax = -limit
     for i in range(P):
         good = True
         out = False
@@ -297,6 +317,11 @@ def box_offsets(x, r, z, eta, first, dom_lo, dom_hi, mi, inv_mask, limit, lo_out
             right = xd + rd + z[d]
             if not inv_mask[d] and (left <= dom_lo[d] or right >= dom_hi[d]):
                 out = True
-            lo_out[i, d] = _offset((left - first[d] + eta[d] / 2) / eta[d], mi[i, d], limit)
-            hi_out[i, d] = _offset((right - first[d] + eta[d] / 2) / eta[d], mi[i, d], limit)
+            a = _offset((left - first[d] + eta[d] / 2) / eta[d], mi[i, d], limit)
+            b = _offset((right - first[d] + eta[d] / 2) / eta[d], mi[i, d], limit)
+            vmin = min(vmin, a, b)
+            vmax = max(vmax, a, b)
+            lo_out[i, d] = a
+            hi_out[i, d] = b
         ok_out[i] = good and not out
+    return vmin, vmax

@@ -61,7 +61,9 @@ def rk4_integrate(rhs: RhsFn, x: np.ndarray, u: np.ndarray, tau: float, nint: in
     h = tau / nint
     if prepare is not None:
         u = prepare(u)
-    x = np.array(x, dtype=float, copy=True)
+    # column-major (B, n): the right-hand side's columns x[:, i] are contiguous (elementwise
+    # operations give the same bits in any layout; the result is column-major too)
+    x = np.array(x, dtype=float, copy=True, order="F" if np.ndim(x) == 2 else "K")
     acc, two, tmp = np.empty_like(x), np.empty_like(x), np.empty_like(x)
     for _ in range(nint):  # substeps, vectorized over the batch
         k = rhs(x, u)                                       # k0
@@ -80,7 +82,8 @@ def rk4_integrate(rhs: RhsFn, x: np.ndarray, u: np.ndarray, tau: float, nint: in
 
 
 def rk4_step(rhs: RhsFn, nint: int = 10, prepare: Optional[Callable[[np.ndarray], object]] = None,
-             compiled: Optional[Callable[[np.ndarray, np.ndarray, float], np.ndarray]] = None
+             compiled: Optional[Callable[[np.ndarray, np.ndarray, float], np.ndarray]] = None,
+             numpy: Optional[Callable[[np.ndarray, np.ndarray, float], np.ndarray]] = None
              ) -> Callable[[np.ndarray, np.ndarray, float], np.ndarray]:
     """A :class:`~simgap.systems.System` ``step(x, u, tau)`` integrating x' = rhs(x, u) over tau
     (with ``prepare``: x' = rhs(x, prepare(u)), see :func:`rk4_integrate`).
@@ -89,18 +92,27 @@ def rk4_step(rhs: RhsFn, nint: int = 10, prepare: Optional[Callable[[np.ndarray]
     bits (e.g. a numba kernel, :mod:`simgap.synthesis.kernels`), used instead of the numpy path
     when :func:`simgap.synthesis.jit.use_compiled` says so (large jobs; ``SIMGAP_JIT``; an
     attribute ``compiled.min_rows`` sets its break-even in step rows). It should import its
-    compiler inside, so that building the system costs nothing."""
+    compiler inside, so that building the system costs nothing.
+
+    ``numpy(x, u, tau) -> (B, n)``, optional: another numpy evaluation giving the same bits as
+    ``rk4_integrate(rhs, x, u, tau, nint, prepare)`` (e.g. the rows grouped by input, each
+    group with a right-hand side specialized to it), used instead of it when no compiled twin
+    is used."""
     nint = _check_nint(nint)
     if prepare is not None and not callable(prepare):
         raise SimgapError("runge-kutta: prepare must be a callable prepare(u) -> terms of the right-hand side")
     if compiled is not None and not callable(compiled):
         raise SimgapError("runge-kutta: compiled must be a callable compiled(x, u, tau) -> next states")
+    if numpy is not None and not callable(numpy):
+        raise SimgapError("runge-kutta: numpy must be a callable numpy(x, u, tau) -> next states")
 
     def step(x, u, tau):
         if compiled is not None:
             xu = compiled_args(x, u)
             if xu is not None and use_compiled(getattr(compiled, "min_rows", AUTO_WORK)):
                 return compiled(xu[0], xu[1], float(tau))
+        if numpy is not None:
+            return numpy(x, u, tau)
         return rk4_integrate(rhs, x, u, tau, nint, prepare)
     return step
 
@@ -139,7 +151,7 @@ def rk4_growth(L: Union[np.ndarray, Callable[[np.ndarray], np.ndarray]], nint: i
                 raise SimgapError(f"growth: L is {const.shape[0]} x {const.shape[0]}, the state has {n} dimensions")
             A, inv = const[None], np.zeros(r.shape[0], dtype=np.int64)
         else:
-            uu, inv = _unique_rows(np.atleast_2d(np.asarray(u, dtype=float)))
+            uu, inv = _input_rows(np.atleast_2d(np.asarray(u, dtype=float)))
             A = np.asarray(L(uu), dtype=float)
             if A.shape != (uu.shape[0], n, n):
                 raise SimgapError(f"growth: L(u) returned shape {A.shape}, expected {(uu.shape[0], n, n)}")
@@ -155,6 +167,25 @@ def _check_metzler(A: np.ndarray) -> None:
     off = ~np.eye(n, dtype=bool)
     if np.any(A[..., off] < 0) or not np.all(np.isfinite(A)):
         raise SimgapError("growth: L must be finite with off-diagonal entries >= 0 (bounds on |dF_i/dx_j|)")
+
+
+def _input_rows(u: np.ndarray):
+    """(rows, index of each row of ``u`` among them): :func:`_unique_rows`, or, when the rows of
+    ``u`` repeat with a period p (u[i] == u[i mod p], as in the abstraction's blocks of whole
+    cells with all inputs each), (u[:p], i mod p) from two vectorized comparisons instead of a
+    sort (the rows of u[:p] are then not necessarily distinct). Every row of ``u`` equals its
+    representative exactly, so a function of the row gives the same bits either way."""
+    B = u.shape[0]
+    if B > 1 and u.ndim == 2 and u.shape[1]:
+        same = u[1:, 0] == u[0, 0]  # column by column (a reduction along short rows is slow)
+        for d in range(1, u.shape[1]):
+            same &= u[1:, d] == u[0, d]
+        rep = np.flatnonzero(same)
+        if rep.size:
+            p = int(rep[0]) + 1
+            if np.array_equal(u[p:], u[:B - p]):
+                return u[:p], np.tile(np.arange(p, dtype=np.intp), -(-B // p))[:B]
+    return _unique_rows(u)
 
 
 def _unique_rows(u: np.ndarray):

@@ -42,26 +42,6 @@ def test_vehicle_kernel_bit_identical(rng, monkeypatch):
     assert np.array_equal(ex.vehicle_step(x, u, 0.3), want)  # the step dispatches to the kernel
 
 
-def test_vehicle_kernel_standing_still_bit_identical(monkeypatch):
-    """Rows with v = 0 skip the integration in the kernel (the state is the result): the same
-    bits as numpy's RK4 at every edge of that shortcut (zeros of either sign, infinities, NaN,
-    huge headings, cos(alpha) = 0)."""
-    vals = [0.0, -0.0, 1.5, -2.25, 1e-310, np.inf, -np.inf, np.nan, 1e308]
-    grid = np.array(np.meshgrid(vals, vals, vals + [-1.7e308], indexing="ij")).reshape(3, -1).T
-    U = np.array([[0.0, 0.0], [-0.0, 0.9], [0.0, -1.2], [0.0, np.pi / 2], [0.0, np.nan], [0.3, 0.0]])
-    x = np.repeat(grid, U.shape[0], axis=0)
-    u = np.tile(U, (grid.shape[0], 1))
-    monkeypatch.setenv("SIMGAP_JIT", "0")
-    with np.errstate(all="ignore"):
-        want = ex.vehicle_step(x, u, 0.3)
-        got = ex._vehicle_compiled(x, u, 0.3)
-    want = np.ascontiguousarray(want)
-    nan = np.isnan(want)
-    assert np.array_equal(np.isnan(got), nan)  # NaN where numpy has NaN (its sign bit aside)
-    assert np.array_equal(got[~nan].view(np.int64), want[~nan].view(np.int64))  # zeros' signs too
-    assert (u[:, 0] == 0).sum() > x.shape[0] // 2  # the shortcut's rows are most of the batch
-
-
 def test_vehicle_kernel_divides_as_numpy():
     """A zero cos(alpha) (an input term the grid never has) gives numpy's inf/nan, not numba's
     default ZeroDivisionError (the kernels are compiled with error_model="numpy")."""

@@ -49,15 +49,6 @@ def vehicle_rk4(X, alpha, ca, v, dth, tau, nint):
     for i in range(B):
         al, c_a, vi, dt = alpha[i], ca[i], v[i], dth[i]
         x0, x1, x2 = X[i, 0], X[i, 1], X[i, 2]
-        if vi == 0.0 and dt == 0.0 and c_a != 0.0 and math.isfinite(c_a) and math.isfinite(al + x2) \
-                and x0 != 0.0 and x1 != 0.0 and x2 != 0.0 and math.isfinite(x0) and math.isfinite(x1):
-            # standing still (a seventh of the grid's inputs): every slope is a signed zero
-            # (finite cosine or sine times +-0, over a finite nonzero cos(alpha)), and a nonzero
-            # finite coordinate plus a signed zero is itself, so the state is the result, bit for bit
-            out[i, 0] = x0
-            out[i, 1] = x1
-            out[i, 2] = x2
-            continue
         pa, pc, ps = math.nan, 0.0, 0.0  # the last slope's angle and its cosine and sine
         for _ in range(nint):
             a = al + x2

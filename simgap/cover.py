@@ -346,7 +346,9 @@ def calibrate_rate(simulator, n_runs: int = 4096, seed: int = 0, budget: float =
     repeated batches of the size reached, already built, until ``budget`` seconds have passed
     (at least one batch): runs / seconds over those batches, not one short batch (a single
     batch of a few milliseconds on a shared machine is noise). A slow simulator (a robot with
-    many substeps) is thus measured within about twice its largest batch plus the budget.
+    many substeps) is thus measured within about twice its largest batch plus the budget. Each
+    timed batch takes other rows (a random subset of ``n_runs`` random states), so that a
+    simulator memoizing repeated batches is not timed on its memo.
     """
     s = simulator.system
     n_runs = max(1, int(n_runs))
@@ -364,8 +366,12 @@ def calibrate_rate(simulator, n_runs: int = 4096, seed: int = 0, budget: float =
             break
     runs, spent = 0, 0.0
     while True:
+        # other rows each time: a simulator that memoizes a repeated batch (ParallelSimulator's
+        # memo, a noise-free simulator's identical draws) must not answer from its memo
+        k = rng.permutation(n_runs)[:b]
+        xb, ub = x[k], u[k]
         t0 = time.perf_counter()
-        simulator.step(x[:b], u[:b], rng)
+        simulator.step(xb, ub, rng)
         spent += time.perf_counter() - t0
         runs += b
         if time.perf_counter() - start >= budget:

@@ -52,6 +52,38 @@ def baseline_experiment(exp: ExperimentConfig) -> ExperimentConfig:
     return dataclasses.replace(exp, simulator=sim, collect=col)
 
 
+def collection_estimate(plan, store, executor, workers, address, rate, n_workers):
+    """The printed estimate of a collection stage (a :class:`~simgap.cover.CostEstimate`).
+
+    On a local (or serial) executor the rate is measured in the executor's own workers with the
+    plan's own simulator settings (a noise-free collection has its own rate), whole pairs with
+    their statistics, and the workers' start-up and the chunks' writing are priced
+    (:func:`simgap.collect.estimate_collection`); a resumed store's stored chunks are left out.
+    On Ray (a cluster's workers are not this machine's) ``rate`` measured here is used: runs /
+    (rate x workers)."""
+    from .collect import estimate_collection
+    from .cover import estimate_cost
+    from .store import _done_chunks
+    name = executor if isinstance(executor, str) else getattr(executor, "name", "")
+    est = estimate_cost(plan.cover, plan.n_runs, rate_per_worker=rate, workers=n_workers,
+                        rate_source="calibrated here; a resumed store's done chunks are skipped")
+    if name not in ("local", "serial"):
+        return est
+    try:
+        done = len(_done_chunks(Path(store), plan.n_chunks)) if (Path(store) / "manifest.json").exists() else 0
+    except Exception:
+        done = 0
+    todo = plan.n_chunks - done
+    if todo <= 0:
+        return dataclasses.replace(est, seconds=0.0, rate_source="every chunk is stored already")
+    c = estimate_collection(plan, name, workers or None, address, chunks=todo, budget=0.5)
+    src = (f"calibrated in the {name} workers with this collection's settings; + worker start {c['start_s'] + c['setup_s']:.1f} s, "
+           f"{c['write_s'] * 1000:.0f} ms to store a chunk" + (f"; {done} of {plan.n_chunks} chunks stored already"
+                                                                if done else ""))
+    return dataclasses.replace(est, seconds=c["seconds"], rate_per_worker=c["runs_per_s"], workers=c["workers"],
+                               rate_source=src)
+
+
 def certify_options(section: dict, method: str, system=None):
     """CertifyOptions from an experiment's ``[certify]`` section (``terms`` keys: state names, ``all``,
     or 0-based numbers with -1 = all; names need ``system``)."""
@@ -272,7 +304,7 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
     ``address`` (default: the experiment's ``[collect]``) say where the collections' chunks and the
     per-run stage's interval-MDP sampling run; ``address`` is a Ray cluster's.
     """
-    from .certify.audit import audit, audit_cost, audit_cost_text, check_audit_cost
+    from .certify.audit import audit, audit_cost, audit_rate, audit_cost_text, check_audit_cost
     from .certify.lipschitz import crn_cost_text
     from .certify.pipeline import certify, lhat_cost
     from .cover import calibrate_rate, estimate_cost
@@ -357,8 +389,7 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
         for method, e, sub in (("stochastic", exp, "data"), ("deterministic", baseline_experiment(exp),
                                                               "data_deterministic")):
             plan = e.plan()
-            est = estimate_cost(plan.cover, plan.n_runs, rate_per_worker=rate, workers=n_workers,
-                                rate_source="calibrated here; a resumed store's done chunks are skipped")
+            est = collection_estimate(plan, store_root / sub, ex, wk, address or exp.collect.address, rate, n_workers)
             estimates[f"collect/{method}"] = est.seconds
             log(f"[collect/{method}] " + est.summary().replace("\n", "; "))
             res = stage(f"collect/{method}", lambda: collect(plan, store_root / sub, executor=ex, workers=wk or None,
@@ -375,6 +406,7 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
                 for m, e in (("stochastic", exp), ("deterministic", baseline_experiment(exp)))}
         sim = sims["stochastic"]  # audits and rollouts run against the stochastic simulator
         controllers = {}
+        times_audit: dict = {}
         invariant = checked["method"] in invariant_stage.SET_METHODS  # a proved set (ellipsoid or box tube)
         tube = checked["method"] == "box_tube"
 
@@ -430,6 +462,10 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
             _close(bar)
             cert.save(out / f"cert_{method}.json")
             wrote(f"cert_{method}.json")
+            if "audit_rate" not in times_audit:  # the audits' own simulator, timed once at their batch size
+                times_audit["audit_rate"] = audit_rate(sim, int(au.get("points", 200)), int(au.get("runs", 2000)))
+            acost = audit_cost(int(au.get("points", 200)), int(au.get("runs", 2000)), exp.system,
+                               times_audit["audit_rate"], workers=1)
             estimates[f"audit/{method}"] = acost["seconds"]
             log(f"[audit/{method}] {audit_cost_text(acost)}")
             bar = progress and progress(f"audit/{method}", "runs")

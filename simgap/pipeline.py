@@ -28,7 +28,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from . import fileio, results_folder
-from .collect import check_collection, collect, load_store
+from .collect import check_collection, collect, load_store, printed_collection_estimate
 from .store import check_fillable
 from .config import ExperimentConfig
 from .errors import SimgapError
@@ -50,38 +50,6 @@ def baseline_experiment(exp: ExperimentConfig) -> ExperimentConfig:
     sim = dataclasses.replace(exp.simulator, noise={}, randomize={})
     col = dataclasses.replace(exp.collect, n_runs=2, out=None)
     return dataclasses.replace(exp, simulator=sim, collect=col)
-
-
-def collection_estimate(plan, store, executor, workers, address, rate, n_workers):
-    """The printed estimate of a collection stage (a :class:`~simgap.cover.CostEstimate`).
-
-    On a local (or serial) executor the rate is measured in the executor's own workers with the
-    plan's own simulator settings (a noise-free collection has its own rate), whole pairs with
-    their statistics, and the workers' start-up and the chunks' writing are priced
-    (:func:`simgap.collect.estimate_collection`); a resumed store's stored chunks are left out.
-    On Ray (a cluster's workers are not this machine's) ``rate`` measured here is used: runs /
-    (rate x workers)."""
-    from .collect import estimate_collection
-    from .cover import estimate_cost
-    from .store import _done_chunks
-    name = executor if isinstance(executor, str) else getattr(executor, "name", "")
-    est = estimate_cost(plan.cover, plan.n_runs, rate_per_worker=rate, workers=n_workers,
-                        rate_source="calibrated here; a resumed store's done chunks are skipped")
-    if name not in ("local", "serial"):
-        return est
-    try:
-        done = len(_done_chunks(Path(store), plan.n_chunks)) if (Path(store) / "manifest.json").exists() else 0
-    except Exception:
-        done = 0
-    todo = plan.n_chunks - done
-    if todo <= 0:
-        return dataclasses.replace(est, seconds=0.0, rate_source="every chunk is stored already")
-    c = estimate_collection(plan, name, workers or None, address, chunks=todo, budget=0.5)
-    src = (f"calibrated in the {name} workers with this collection's settings; + worker start {c['start_s'] + c['setup_s']:.1f} s, "
-           f"{c['write_s'] * 1000:.0f} ms to store a chunk" + (f"; {done} of {plan.n_chunks} chunks stored already"
-                                                                if done else ""))
-    return dataclasses.replace(est, seconds=c["seconds"], rate_per_worker=c["runs_per_s"], workers=c["workers"],
-                               rate_source=src)
 
 
 def certify_options(section: dict, method: str, system=None):
@@ -389,7 +357,7 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
         for method, e, sub in (("stochastic", exp, "data"), ("deterministic", baseline_experiment(exp),
                                                               "data_deterministic")):
             plan = e.plan()
-            est = collection_estimate(plan, store_root / sub, ex, wk, address or exp.collect.address, rate, n_workers)
+            est = printed_collection_estimate(plan, store_root / sub, ex, wk, address or exp.collect.address, rate, n_workers)
             estimates[f"collect/{method}"] = est.seconds
             log(f"[collect/{method}] " + est.summary().replace("\n", "; "))
             res = stage(f"collect/{method}", lambda: collect(plan, store_root / sub, executor=ex, workers=wk or None,

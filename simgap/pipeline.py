@@ -374,7 +374,6 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
                 for m, e in (("stochastic", exp), ("deterministic", baseline_experiment(exp)))}
         sim = sims["stochastic"]  # audits and rollouts run against the stochastic simulator
         controllers = {}
-        times_audit: dict = {}
         invariant = checked["method"] in invariant_stage.SET_METHODS  # a proved set (ellipsoid or box tube)
         tube = checked["method"] == "box_tube"
 
@@ -430,10 +429,10 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
             _close(bar)
             cert.save(out / f"cert_{method}.json")
             wrote(f"cert_{method}.json")
-            if "audit_rate" not in times_audit:  # the audits' own simulator, timed once at their batch size
-                times_audit["audit_rate"] = audit_rate(sim, int(au.get("points", 200)), int(au.get("runs", 2000)))
+            # the audit's own simulator timed at its batch size, at the start of each audit (a shared
+            # machine's load changes within a minute: one rate for both audits was off by 3x)
             acost = audit_cost(int(au.get("points", 200)), int(au.get("runs", 2000)), exp.system,
-                               times_audit["audit_rate"], workers=1)
+                               audit_rate(sim, int(au.get("points", 200)), int(au.get("runs", 2000))), workers=1)
             estimates[f"audit/{method}"] = acost["seconds"]
             log(f"[audit/{method}] {audit_cost_text(acost)}")
             bar = progress and progress(f"audit/{method}", "runs")

@@ -336,7 +336,7 @@ def format_duration(s: float) -> str:
     return f"{int(s // 3600)} h {int(s % 3600 // 60):02d} min"
 
 
-def calibrate_rate(simulator, n_runs: int = 4096, seed: int = 0, budget: float = 0.5) -> float:
+def calibrate_rate(simulator, n_runs: int = 4096, seed: int = 0, budget: float = 0.5, repeat: int = 1) -> float:
     """Simulator runs per second in this process: time ``simulator.step`` on random states of X.
 
     Batches grow from 64 runs (x4) up to ``n_runs`` until one takes a quarter of ``budget``
@@ -349,12 +349,18 @@ def calibrate_rate(simulator, n_runs: int = 4096, seed: int = 0, budget: float =
     many substeps) is thus measured within about twice its largest batch plus the budget. Each
     timed batch takes other rows (a random subset of ``n_runs`` random states), so that a
     simulator memoizing repeated batches is not timed on its memo.
+
+    ``repeat``: every state-input row ``repeat`` times in a row, as the stage to be priced steps
+    them (the Lipschitz runs per pair): a simulator that simulates identical noise-free rows once
+    (the TurtleBot's) is timed as it will run.
     """
     s = simulator.system
     n_runs = max(1, int(n_runs))
+    rep = max(1, min(int(repeat), n_runs))
     rng = np.random.default_rng(seed)
-    x = s.x_lo + rng.random((n_runs, s.n)) * (s.x_hi - s.x_lo)
-    u = s.inputs[rng.integers(0, s.inputs.shape[0], n_runs)]
+    k = -(-n_runs // rep)
+    x = np.repeat(s.x_lo + rng.random((k, s.n)) * (s.x_hi - s.x_lo), rep, axis=0)[:n_runs]
+    u = np.repeat(s.inputs[rng.integers(0, s.inputs.shape[0], k)], rep, axis=0)[:n_runs]
     start = time.perf_counter()
     b = min(64, n_runs)
     simulator.step(x[:b], u[:b], rng)  # warm-up: the first call at this size builds what it needs
@@ -368,7 +374,11 @@ def calibrate_rate(simulator, n_runs: int = 4096, seed: int = 0, budget: float =
     while True:
         # other rows each time: a simulator that memoizes a repeated batch (ParallelSimulator's
         # memo, a noise-free simulator's identical draws) must not answer from its memo
-        k = rng.permutation(n_runs)[:b]
+        if rep == 1:
+            k = rng.permutation(n_runs)[:b]
+        else:  # whole blocks of repeated rows, in another order
+            k = (rng.permutation(-(-n_runs // rep))[:, None] * rep + np.arange(rep)).ravel()
+            k = k[k < n_runs][:b]
         xb, ub = x[k], u[k]
         t0 = time.perf_counter()
         simulator.step(xb, ub, rng)

@@ -201,3 +201,28 @@ def test_audit_rate_times_the_audit_batch(clock, monkeypatch):
     assert seen[-1] == 1000
     c = A.audit_cost(200, 2000, get_system("pendulum"), 2e5, workers=1)
     assert c["seconds"] == pytest.approx(2.0)
+
+
+class DedupSim(FakeSim):
+    """Simulates each distinct row once (the TurtleBot's noise-free step): cost per distinct row."""
+
+    def step(self, x, u, rng, **kw):
+        B = len(x)
+        d = len(np.unique(np.asarray(x), axis=0))
+        self.clock.t += d * self.per_run
+        self.calls.append(B)
+        return x
+
+
+def test_calibrate_rate_with_repeated_rows(clock):
+    """Lipschitz runs of a noise-free simulator: 100 identical rows per pair. A simulator that runs
+    each distinct row once at 1 ms costs 1 ms per 100 rows: 100,000 rows/s. Timed on distinct rows
+    (the earlier calibration, repeat = 1) it is 1,000 rows/s: the TurtleBot's deterministic certify
+    was priced 5.8x too long (9.8 s for 1.7 s)."""
+    rate = cover_mod.calibrate_rate(DedupSim(clock, per_run=1e-3), n_runs=4096, budget=0.5, repeat=100)
+    c2 = FakeClock()
+    cover_mod.time.perf_counter = c2
+    old = cover_mod.calibrate_rate(DedupSim(c2, per_run=1e-3), n_runs=4096, budget=0.5)
+    assert old == pytest.approx(1000.0)
+    # the blocks of 100 cut at the batch's end leave a partial block: at least 50x the distinct-row rate
+    assert rate > 50 * old

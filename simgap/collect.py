@@ -320,7 +320,7 @@ def calibrate_chunk(job: dict, c: int, budget: float = 0.3) -> dict:
         _pairs(job, c, a, a + p, rng)
         spent += time.perf_counter() - t1
         pairs += p
-        if time.perf_counter() - start >= budget:
+        if pairs >= 2 * p and time.perf_counter() - start >= budget:  # two batches at least
             break
     return {"setup_s": setup, "pairs_per_s": pairs / max(spent, 1e-9), "pid": os.getpid(),
             "seconds": time.perf_counter() - t0}

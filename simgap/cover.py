@@ -344,7 +344,7 @@ def calibrate_rate(simulator, n_runs: int = 4096, seed: int = 0, budget: float =
     new batch size may build per-row resources (MuJoCo's per-row model copies, a world's
     bodies), a one-off cost the collection does not pay per batch. The rate is then measured on
     repeated batches of the size reached, already built, until ``budget`` seconds have passed
-    (at least one batch): runs / seconds over those batches, not one short batch (a single
+    (at least two batches): runs / seconds over those batches, not one short batch (a single
     batch of a few milliseconds on a shared machine is noise). A slow simulator (a robot with
     many substeps) is thus measured within about twice its largest batch plus the budget. Each
     timed batch takes other rows (a random subset of ``n_runs`` random states), so that a
@@ -384,7 +384,7 @@ def calibrate_rate(simulator, n_runs: int = 4096, seed: int = 0, budget: float =
         simulator.step(xb, ub, rng)
         spent += time.perf_counter() - t0
         runs += b
-        if time.perf_counter() - start >= budget:
+        if runs >= 2 * b and time.perf_counter() - start >= budget:  # two batches at least: one is noise
             return runs / max(spent, 1e-9)
 
 

@@ -71,11 +71,11 @@ def test_calibrate_rate_times_repeats_until_budget(clock):
 
 def test_calibrate_rate_slow_simulator_stops_growing(clock):
     """1 ms per run: 64 runs take 64 ms, 256 runs 0.256 s >= budget / 4: growth stops at 256
-    (not 4096, which would take 4 s) and one timed batch of 256 gives 1,000 runs/s."""
+    (not 4096, which would take 4 s) and two timed batches of 256 give 1,000 runs/s."""
     sim = FakeSim(clock, per_run=1e-3)
     rate = cover_mod.calibrate_rate(sim, n_runs=4096, budget=0.5)
     assert rate == pytest.approx(1000.0)
-    assert max(sim.calls) == 256
+    assert max(sim.calls) == 256 and sim.calls == [64, 256, 256, 256]
 
 
 class MemoSim(FakeSim):

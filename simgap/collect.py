@@ -292,9 +292,9 @@ def calibrate_chunk(job: dict, c: int, budget: float = 0.3) -> dict:
 
     The worker builds its simulator as for the collection (``setup_s``), then computes pairs of
     chunk ``c`` (drawn from a calibration generator: nothing is stored) as :func:`simgap.cover.calibrate_rate`
-    times runs: growing batches of pairs (x4 from 64 runs) not timed for the rate (a first call at
-    a new size may build per-row resources), then repeated batches of the size reached until
-    ``budget`` seconds have passed. The rate is the one the collection's workers achieve, with
+    times runs: growing batches of pairs (x4 from 64 runs, until one takes half the budget) not
+    timed for the rate (a first call at a new size may build per-row resources), then repeated
+    batches of the size reached (two at least) until ``budget`` seconds have passed. The rate is the one the collection's workers achieve, with
     the collection's own simulator settings (a noise-free collection has its own), on the
     machine's load at that moment (all workers calibrate at once)."""
     t0 = time.perf_counter()
@@ -312,7 +312,9 @@ def calibrate_chunk(job: dict, c: int, budget: float = 0.3) -> dict:
         t1 = time.perf_counter()
         p = min(most, 4 * p)
         _pairs(job, c, a, a + p, rng)
-        if time.perf_counter() - t1 >= budget / 4 or time.perf_counter() - start >= budget / 2:
+        # growth up to batches of half the budget: a batched simulator's rate still grows with the batch
+        # (the pendulum's: 64 pairs about 0.6x a whole chunk of 655), so small batches price it long
+        if time.perf_counter() - t1 >= budget / 2 or time.perf_counter() - start >= budget:
             break
     pairs, spent = 0, 0.0
     while True:
@@ -546,7 +548,7 @@ def printed_collection_estimate(plan, store, executor, workers, address, rate, n
     todo = plan.n_chunks - done
     if todo <= 0:
         return dataclasses.replace(est, seconds=0.0, rate_source="every chunk is stored already")
-    c = estimate_collection(plan, name, workers or None, address, chunks=todo, budget=0.5)
+    c = estimate_collection(plan, name, workers or None, address, chunks=todo, budget=0.6)
     src = (f"calibrated in the {name} workers with this collection's settings; + worker start {c['start_s'] + c['setup_s']:.1f} s, "
            f"{c['write_s'] * 1000:.0f} ms to store a chunk" + (f"; {done} of {plan.n_chunks} chunks stored already"
                                                                 if done else ""))

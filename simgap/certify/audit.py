@@ -67,7 +67,7 @@ def audit_cost(points: int, runs: int, system, rate_per_worker=None, workers: in
             "memory": memory, "seconds": secs, "rate": rate_per_worker, "workers": int(workers)}
 
 
-def audit_rate(simulator, points: int, runs: int, chunk_samples: int = CHUNK_SAMPLES, budget: float = 0.3) -> float:
+def audit_rate(simulator, points: int, runs: int, chunk_samples: int = CHUNK_SAMPLES, budget: float = 0.5) -> float:
     """Runs per second of the audit's own ``simulator`` (all its processes: a
     :class:`~simgap.simulators.parallel.ParallelSimulator` spreads each batch over its helpers),
     timed at the audit's batch size: a chunk of min(points, chunk_samples // runs) points x runs

@@ -240,17 +240,22 @@ def _worker_state(job: dict) -> dict:
 
 def run_chunk(job: dict, c: int) -> dict:
     """Compute chunk ``c``: pairs [c*S, min((c+1)*S, K)), N1hat runs each; returns arrays."""
+    cfg = job["config"]
+    K, S = cfg["n_pairs"], cfg["chunk_size"]
+    return _pairs(job, c, c * S, min((c + 1) * S, K), chunk_rng(cfg["seed"], c))
+
+
+def _pairs(job: dict, c: int, a: int, b: int, rng: np.random.Generator) -> dict:
+    """Pairs [a, b) of chunk ``c`` (``c`` names the chunk in error messages), N1hat runs each."""
     st = _worker_state(job)
     cfg = job["config"]
     system, cover, sim = st["system"], st["cover"], st["sim"]
     M = system.inputs.shape[0]
-    K, S, R, n = cfg["n_pairs"], cfg["chunk_size"], cfg["n_runs"], system.n
-    a, b = c * S, min((c + 1) * S, K)
+    R, n = cfg["n_runs"], system.n
     rows = np.arange(a, b, dtype=np.int64)
     ci, ui = rows // M, rows % M
     x, u = cover.points[ci], system.inputs[ui]
     f_nom = system.f(x, u)
-    rng = chunk_rng(cfg["seed"], c)
     P = b - a
     mean, var, lo, hi = (np.empty((P, n)) for _ in range(4))
     top = np.empty((P, min(R, TOP_ORDER_STATS), n))
@@ -280,6 +285,47 @@ def run_chunk(job: dict, c: int) -> dict:
     if samples is not None:
         out["samples"] = samples
     return out
+
+
+def calibrate_chunk(job: dict, c: int, budget: float = 0.3) -> dict:
+    """In a worker: its set-up time and the pairs per second it computes (runs, statistics and all).
+
+    The worker builds its simulator as for the collection (``setup_s``), then computes pairs of
+    chunk ``c`` (drawn from a calibration generator: nothing is stored) as :func:`simgap.cover.calibrate_rate`
+    times runs: growing batches of pairs (x4 from 64 runs, until one takes half the budget) not
+    timed for the rate (a first call at a new size may build per-row resources), then repeated
+    batches of the size reached (two at least) until ``budget`` seconds have passed. The rate is the one the collection's workers achieve, with
+    the collection's own simulator settings (a noise-free collection has its own), on the
+    machine's load at that moment (all workers calibrate at once)."""
+    t0 = time.perf_counter()
+    _worker_state(job)
+    setup = time.perf_counter() - t0
+    cfg = job["config"]
+    K, S, R = cfg["n_pairs"], cfg["chunk_size"], cfg["n_runs"]
+    a = min(c * S, K - 1)
+    most = max(1, min(S, K - a))  # a chunk's pairs at most: a calibration costs no more than a chunk
+    rng = np.random.default_rng(0)
+    start = time.perf_counter()
+    p = min(most, max(1, -(-64 // R)))
+    _pairs(job, c, a, a + p, rng)
+    while p < most:
+        t1 = time.perf_counter()
+        p = min(most, 4 * p)
+        _pairs(job, c, a, a + p, rng)
+        # growth up to batches of half the budget: a batched simulator's rate still grows with the batch
+        # (the pendulum's: 64 pairs about 0.6x a whole chunk of 655), so small batches price it long
+        if time.perf_counter() - t1 >= budget / 2 or time.perf_counter() - start >= budget:
+            break
+    pairs, spent = 0, 0.0
+    while True:
+        t1 = time.perf_counter()
+        _pairs(job, c, a, a + p, rng)
+        spent += time.perf_counter() - t1
+        pairs += p
+        if pairs >= 2 * p and time.perf_counter() - start >= budget:  # two batches at least
+            break
+    return {"setup_s": setup, "pairs_per_s": pairs / max(spent, 1e-9), "pid": os.getpid(),
+            "seconds": time.perf_counter() - t0}
 
 
 # ----------------------------------------------------------------------------------------
@@ -400,3 +446,111 @@ def check_collection(n_pairs: int, n_runs: int, n: int, m: int, steps: int, batc
     check_disk(est["disk"], store, what, hint)
     check_seconds(est["seconds"], what, hint)
     return est
+
+
+def collection_seconds(n_pairs: int, chunk_size: int, workers: int, pairs_per_s: float, setup_s: float = 0.0,
+                       start_s: float = 0.0, write_s: float = 0.0) -> float:
+    """Wall time of computing ``n_pairs`` pairs in chunks of ``chunk_size`` on ``workers`` workers.
+
+    The chunks go round by round: ceil(chunks / workers) rounds of a chunk each per worker (a last
+    round with fewer chunks than workers leaves some idle), a chunk of S pairs taking S / ``pairs_per_s``
+    (one worker's measured rate); plus the pool's start ``start_s`` and a worker's simulator set-up
+    ``setup_s`` (once per worker, in parallel), and ``write_s`` per chunk for the parent to verify and
+    store it (in parallel with the workers but for the last round's: counted for ceil(chunks / workers)
+    chunks, at least one)."""
+    K, S, W = int(n_pairs), max(1, int(chunk_size)), max(1, int(workers))
+    if K <= 0:
+        return 0.0
+    chunks = -(-K // S)
+    W = min(W, chunks)
+    rounds = -(-chunks // W)
+    per_chunk = min(S, K) / float(pairs_per_s)
+    return start_s + setup_s + rounds * per_chunk + max(1, rounds) * write_s
+
+
+def estimate_collection(plan: CollectionPlan, executor: str | Executor = "local", workers: Optional[int] = None,
+                        address: Optional[str] = None, chunks: Optional[int] = None, budget: float = 0.3) -> dict:
+    """Measure what the collection of ``plan`` will cost, in the executor's own workers.
+
+    One calibration task per worker (:func:`calibrate_chunk`: each builds its simulator, then times
+    whole pairs, statistics included, on chunks spread over the plan) gives the pairs per second a
+    worker achieves while the others run too, and the set-up of a worker; the pool's start is the
+    calibration's wall time beyond its slowest task. A chunk's writing is priced at the parent's
+    measured time to write a chunk of the same size (:func:`_write_seconds`). ``chunks``: the chunks
+    to compute (a resumed store's missing ones), default all. Returns a dict with ``seconds`` (see
+    :func:`collection_seconds`), ``pairs_per_s``, ``runs_per_s`` (one worker), ``setup_s``, ``start_s``,
+    ``write_s`` and ``workers``."""
+    ex = executor if isinstance(executor, Executor) else make_executor(executor, workers, address)
+    W = max(1, int(getattr(ex, "workers", 1) or 1))
+    n_chunks = plan.n_chunks if chunks is None else int(chunks)
+    W_eff = max(1, min(W, plan.n_chunks))
+    ids = sorted({int(i * plan.n_chunks // W_eff) for i in range(W_eff)})
+    job = _job(plan)
+    res = []
+    t0 = time.perf_counter()
+    ex.map_chunks(_calibrate_task, (job, budget), ids, lambda c, r: res.append(r))
+    wall = time.perf_counter() - t0
+    rate = float(np.mean([r["pairs_per_s"] for r in res]))
+    setup = float(max(r["setup_s"] for r in res))
+    # the pool's start: the calibration's wall time beyond its slowest task (tasks run side by side;
+    # a serial executor runs them one after another in this process: no pool)
+    start = 0.0 if ex.name == "serial" else max(0.0, wall - max(r["seconds"] for r in res))
+    write = _write_seconds(plan)
+    pairs = plan.n_pairs if chunks is None else min(plan.n_pairs, n_chunks * plan.chunk_size)
+    secs = collection_seconds(pairs, plan.chunk_size, W, rate, setup, start, write)
+    return {"seconds": secs, "pairs_per_s": rate, "runs_per_s": rate * plan.n_runs, "setup_s": setup,
+            "start_s": start, "write_s": write, "workers": W, "executor": ex.name}
+
+
+def _calibrate_task(job, c):
+    j, budget = job
+    return calibrate_chunk(j, c, budget)
+
+
+def _write_seconds(plan: CollectionPlan) -> float:
+    """The parent's time to store one chunk of ``plan``'s size (arrays of zeros; digests, atomic write)."""
+    import tempfile
+    S, n, m = plan.chunk_size, plan.system.n, plan.system.m
+    R = plan.n_runs
+    arrays = {"x": np.zeros((S, n)), "u": np.zeros((S, m)), "f_nom": np.zeros((S, n)), "mean": np.zeros((S, n)),
+              "var": np.zeros((S, n)), "lo": np.zeros((S, n)), "hi": np.zeros((S, n)),
+              "cover_index": np.zeros(S, np.int64), "input_index": np.zeros(S, np.int64),
+              "absdev_top": np.zeros((S, min(R, TOP_ORDER_STATS), n))}
+    if plan.keep_samples:
+        arrays["samples"] = np.zeros((S, R, n))
+    with tempfile.TemporaryDirectory() as d:
+        (Path(d) / CHUNK_DIR).mkdir()
+        t0 = time.perf_counter()
+        _write_chunk(Path(d), 0, "0" * 64, arrays)
+        return time.perf_counter() - t0
+
+
+def printed_collection_estimate(plan, store, executor, workers, address, rate, n_workers):
+    """The printed estimate of a collection stage (a :class:`~simgap.cover.CostEstimate`).
+
+    On a local (or serial) executor the rate is measured in the executor's own workers with the
+    plan's own simulator settings (a noise-free collection has its own rate), whole pairs with
+    their statistics, and the workers' start-up and the chunks' writing are priced
+    (:func:`simgap.collect.estimate_collection`); a resumed store's stored chunks are left out.
+    On Ray (a cluster's workers are not this machine's) ``rate`` measured here is used: runs /
+    (rate x workers)."""
+    import dataclasses
+    from .cover import estimate_cost
+    name = executor if isinstance(executor, str) else getattr(executor, "name", "")
+    est = estimate_cost(plan.cover, plan.n_runs, rate_per_worker=rate, workers=n_workers,
+                        rate_source="calibrated here; a resumed store's done chunks are skipped")
+    if name not in ("local", "serial"):
+        return est
+    try:
+        done = len(_done_chunks(Path(store), plan.n_chunks)) if (Path(store) / MANIFEST).exists() else 0
+    except Exception:
+        done = 0
+    todo = plan.n_chunks - done
+    if todo <= 0:
+        return dataclasses.replace(est, seconds=0.0, rate_source="every chunk is stored already")
+    c = estimate_collection(plan, name, workers or None, address, chunks=todo, budget=0.6)
+    src = (f"calibrated in the {name} workers with this collection's settings; + worker start {c['start_s'] + c['setup_s']:.1f} s, "
+           f"{c['write_s'] * 1000:.0f} ms to store a chunk" + (f"; {done} of {plan.n_chunks} chunks stored already"
+                                                                if done else ""))
+    return dataclasses.replace(est, seconds=c["seconds"], rate_per_worker=c["runs_per_s"], workers=c["workers"],
+                               rate_source=src)

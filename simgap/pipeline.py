@@ -28,7 +28,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from . import fileio, results_folder
-from .collect import check_collection, collect, load_store
+from .collect import check_collection, collect, load_store, printed_collection_estimate
 from .store import check_fillable
 from .config import ExperimentConfig
 from .errors import SimgapError
@@ -272,7 +272,7 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
     ``address`` (default: the experiment's ``[collect]``) say where the collections' chunks and the
     per-run stage's interval-MDP sampling run; ``address`` is a Ray cluster's.
     """
-    from .certify.audit import audit, audit_cost, audit_cost_text, check_audit_cost
+    from .certify.audit import audit, audit_cost, audit_rate, audit_cost_text, check_audit_cost
     from .certify.lipschitz import crn_cost_text
     from .certify.pipeline import certify, lhat_cost
     from .cover import calibrate_rate, estimate_cost
@@ -357,8 +357,7 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
         for method, e, sub in (("stochastic", exp, "data"), ("deterministic", baseline_experiment(exp),
                                                               "data_deterministic")):
             plan = e.plan()
-            est = estimate_cost(plan.cover, plan.n_runs, rate_per_worker=rate, workers=n_workers,
-                                rate_source="calibrated here; a resumed store's done chunks are skipped")
+            est = printed_collection_estimate(plan, store_root / sub, ex, wk, address or exp.collect.address, rate, n_workers)
             estimates[f"collect/{method}"] = est.seconds
             log(f"[collect/{method}] " + est.summary().replace("\n", "; "))
             res = stage(f"collect/{method}", lambda: collect(plan, store_root / sub, executor=ex, workers=wk or None,
@@ -430,6 +429,10 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
             _close(bar)
             cert.save(out / f"cert_{method}.json")
             wrote(f"cert_{method}.json")
+            # the audit's own simulator timed at its batch size, at the start of each audit (a shared
+            # machine's load changes within a minute: one rate for both audits was off by 3x)
+            acost = audit_cost(int(au.get("points", 200)), int(au.get("runs", 2000)), exp.system,
+                               audit_rate(sim, int(au.get("points", 200)), int(au.get("runs", 2000))), workers=1)
             estimates[f"audit/{method}"] = acost["seconds"]
             log(f"[audit/{method}] {audit_cost_text(acost)}")
             bar = progress and progress(f"audit/{method}", "runs")

@@ -183,6 +183,6 @@ def test_rollout_estimate_of_a_reach_avoid_controller_prices_its_steps_to_go():
     from simgap.rollout.closed_loop import rollout_cost, rollout_cost_text
     c = rollout_cost(10, 100, 0, rate=10.0, expected_steps=20)
     assert c["seconds"] == pytest.approx(10 * 20 / 10.0) and c["max_seconds"] == pytest.approx(10 * 100 / 10.0)
-    assert "if the runs end at the target within the controller's 20 steps" in rollout_cost_text(c)
+    assert "if the runs end at the target within the expected 20 steps" in rollout_cost_text(c)
     full = rollout_cost(10, 100, 0, rate=10.0)
     assert full["seconds"] == full["max_seconds"] and "at most about" in rollout_cost_text(full)

@@ -67,6 +67,17 @@ def audit_cost(points: int, runs: int, system, rate_per_worker=None, workers: in
             "memory": memory, "seconds": secs, "rate": rate_per_worker, "workers": int(workers)}
 
 
+def audit_rate(simulator, points: int, runs: int, chunk_samples: int = CHUNK_SAMPLES, budget: float = 0.5) -> float:
+    """Runs per second of the audit's own ``simulator`` (all its processes: a
+    :class:`~simgap.simulators.parallel.ParallelSimulator` spreads each batch over its helpers),
+    timed at the audit's batch size: a chunk of min(points, chunk_samples // runs) points x runs
+    rows per call, capped at 65,536 rows for the calibration (:func:`simgap.cover.calibrate_rate`).
+    With this rate :func:`audit_cost` takes ``workers=1``: the simulator's processes are in it."""
+    from ..cover import calibrate_rate
+    rows = min(int(points), max(1, int(chunk_samples) // max(1, int(runs)))) * int(runs)
+    return calibrate_rate(simulator, n_runs=max(64, min(rows, 65536)), budget=budget)
+
+
 def audit_cost_text(c: dict) -> str:
     """:func:`audit_cost` as the line a command prints before the audit starts."""
     from ..checks import available_memory, human_bytes

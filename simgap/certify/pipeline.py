@@ -614,7 +614,8 @@ def lhat_cost(ds, o: CertifyOptions, simulator) -> Optional[dict]:
     if rows["fhat_rows"]:
         check_pair_distance(ds.system, ds.epsilon, [j for j in range(ds.system.n) if j not in invariant_dims(ds)])
     cost = crn_cost(o.lhat_pairs if rows["fhat_rows"] else 0, o.lhat_runs, ds.system,
-                    calibrate_rate(simulator, budget=0.3), gap_rows=rows["gap_rows"])
+                    calibrate_rate(simulator, budget=0.3, repeat=int(o.lhat_runs)),  # rows repeated as the runs step them
+                    gap_rows=rows["gap_rows"])
     check_crn_cost(cost)
     return cost
 

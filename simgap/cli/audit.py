@@ -98,9 +98,8 @@ def run(args) -> int:
           flush=True)
     bar = None if args.no_progress else ProgressBar(unit="runs", desc="audit")
     with make_simulator(sim_cfg, system=ds.system) as sim:
-        from ..certify.audit import audit_cost, audit_cost_text, check_audit_cost
-        from ..cover import calibrate_rate
-        cost = audit_cost(st["points"], st["runs"], ds.system, calibrate_rate(sim, budget=0.3))
+        from ..certify.audit import audit_cost, audit_cost_text, audit_rate, check_audit_cost
+        cost = audit_cost(st["points"], st["runs"], ds.system, audit_rate(sim, st["points"], st["runs"]))
         print(audit_cost_text(cost), flush=True)
         check_audit_cost(cost)
         from ..certify import load

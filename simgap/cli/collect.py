@@ -11,7 +11,7 @@ import argparse
 import sys
 
 from ..checks import count
-from ..collect import check_collection
+from ..collect import check_collection, printed_collection_estimate
 from ..config import builtin_experiments
 from ..errors import SimgapError
 from ..file_guard import output_dir
@@ -68,8 +68,10 @@ def run(args) -> int:
 
     with make_simulator(exp.simulator, exp.system) as sim:
         rate = calibrate_rate(sim, budget=0.3)
-    est = estimate_cost(cover, plan.n_runs, rate_per_worker=rate, workers=ex.workers,
-                        rate_source=f"calibrated here, executor {ex.name}")
+    est = printed_collection_estimate(plan, store, ex, c.workers, c.address, rate, ex.workers) \
+        if ex.name in ("local", "serial") else \
+        estimate_cost(cover, plan.n_runs, rate_per_worker=rate, workers=ex.workers,
+                      rate_source=f"calibrated here, executor {ex.name}")
     print(est.summary())
     print(f"N1hat={plan.n_runs}, seed={plan.seed}, {plan.n_chunks} chunks of {plan.chunk_size} pairs")
     check_collection(plan.n_pairs, plan.n_runs, exp.system.n, exp.system.m, exp.system.steps, plan.batch_runs,

@@ -231,6 +231,21 @@ def default_horizon(controller, x0: np.ndarray, hold: int) -> int:
     return DEFAULT_HORIZON if v is None else int(max(hold * (2 * v + 1), hold))
 
 
+def expected_rollout_steps(spec, nominal, controller, x0, hold: int):
+    """The simulator steps a rollout is expected to take before it stops (None: the whole horizon).
+
+    Reach-avoid runs end at the target: the nominal model's closed loop from x0 (``nominal``, a
+    one-run result of ``_run``) gives the steps when it reaches the target, else the controller's
+    worst-case steps to go x hold (+ one hold) when it reports them. Other specifications run to
+    the horizon."""
+    if spec.kind != "reach_avoid":
+        return None
+    if nominal is not None and int(nominal.outcome[0]) == SUCCESS and int(nominal.reach_time[0]) >= 0:
+        return max(1, int(nominal.reach_time[0]))
+    v = steps_to_go(controller, x0)
+    return None if v is None else hold * (v + 1)
+
+
 def rollout_cost(n_rollouts: int, horizon: int, mean_map_runs: int, rate=None, expected_steps=None) -> dict:
     """Simulator runs and time of :func:`rollout` before it runs.
 
@@ -256,8 +271,8 @@ def rollout_cost_text(c: dict) -> str:
     if c["seconds"] is None:
         t = "time unknown"
     elif c["expected_steps"] < c["horizon"]:
-        t = (f"about {format_duration(c['seconds'])} if the runs end at the target within the controller's "
-             f"{c['expected_steps']} steps from x0, at most {format_duration(c['max_seconds'])} at the full "
+        t = (f"about {format_duration(c['seconds'])} if the runs end at the target within the expected "
+             f"{c['expected_steps']} steps from x0 (the nominal path's, else the controller's steps to go), at most {format_duration(c['max_seconds'])} at the full "
              f"horizon, at {c['rate']:,.0f} runs/s (calibrated here)")
     else:
         t = f"at most about {format_duration(c['seconds'])} at {c['rate']:,.0f} runs/s (calibrated here)"
@@ -372,11 +387,18 @@ def rollout(controller, simulator, x0=None, n_rollouts: int = 1000, horizon: Opt
                        "use fewer --mean-map-runs (the standard error falls as 1/sqrt(runs))",
                        calibrate_rate(simulator, n_runs=65536, budget=0.3) if work > 1e9 else None)
     estimate_s = None
+    nom_sys = controller.system.with_steps(system.steps)
+    nt = None
     if on_estimate is not None:
         from ..cover import calibrate_rate
-        v = steps_to_go(controller, x0) if spec.kind == "reach_avoid" else None
-        cost = rollout_cost(n_rollouts, horizon, int(mean_map_runs), calibrate_rate(simulator, budget=0.3),
-                            expected_steps=None if v is None else hold * (v + 1))
+        # the nominal model's closed loop from x0 (cheap, deterministic; reported with the results):
+        # a reach-avoid run is expected to end where the nominal path reaches the target
+        nt = _run(controller, _NominalModel(nom_sys), spec, x0, 1, horizon, hold, np.random.default_rng(0), on_exit,
+                  True)
+        cost = rollout_cost(n_rollouts, horizon, int(mean_map_runs),
+                            # the rate at the batch the rollouts step (R rows per call, mean map runs per call)
+                            calibrate_rate(simulator, n_runs=max(int(n_rollouts), int(mean_map_runs), 1), budget=0.3),
+                            expected_steps=expected_rollout_steps(spec, nt, controller, x0, hold))
         estimate_s = cost["seconds"]
         on_estimate(rollout_cost_text(cost))
     if rng is None:
@@ -401,8 +423,9 @@ def rollout(controller, simulator, x0=None, n_rollouts: int = 1000, horizon: Opt
     tr = _run(controller, simulator, spec, x0, n_rollouts, horizon, hold, rng, on_exit, batched, step_done(0))
     wall, cpu = time.perf_counter() - w0, time.process_time() - c0
 
-    nom_sys = controller.system.with_steps(system.steps)
-    nt = _run(controller, _NominalModel(nom_sys), spec, x0, 1, horizon, hold, np.random.default_rng(0), on_exit, True)
+    if nt is None:
+        nt = _run(controller, _NominalModel(nom_sys), spec, x0, 1, horizon, hold, np.random.default_rng(0), on_exit,
+                  True)
     nominal = {"outcome": OUTCOMES[int(nt.outcome[0])], "satisfied": bool(nt.outcome[0] == SUCCESS),
                "reach_time": int(nt.reach_time[0]), "violation_time": int(nt.violation_time[0]),
                "violation_kind": VIOLATION_KINDS[int(nt.violation_kind[0])],

@@ -67,6 +67,13 @@ def audit_cost(points: int, runs: int, system, rate_per_worker=None, workers: in
             "memory": memory, "seconds": secs, "rate": rate_per_worker, "workers": int(workers)}
 
 
+def load_fitting_modules() -> None:
+    """Import scipy.stats (1-2 s the first time in a process under load) before an estimate is
+    printed, so that the estimate covers what follows it: the audit's t quantiles and the certificate's
+    Weibull fits need it, and no cost model prices a module's first import."""
+    import scipy.stats  # noqa: F401
+
+
 def audit_rate(simulator, points: int, runs: int, chunk_samples: int = CHUNK_SAMPLES, budget: float = 0.5) -> float:
     """Runs per second of the audit's own ``simulator`` (all its processes: a
     :class:`~simgap.simulators.parallel.ParallelSimulator` spreads each batch over its helpers),
@@ -74,6 +81,7 @@ def audit_rate(simulator, points: int, runs: int, chunk_samples: int = CHUNK_SAM
     rows per call, capped at 65,536 rows for the calibration (:func:`simgap.cover.calibrate_rate`).
     With this rate :func:`audit_cost` takes ``workers=1``: the simulator's processes are in it."""
     from ..cover import calibrate_rate
+    load_fitting_modules()
     rows = min(int(points), max(1, int(chunk_samples) // max(1, int(runs)))) * int(runs)
     return calibrate_rate(simulator, n_runs=max(64, min(rows, 65536)), budget=budget)
 

@@ -608,9 +608,11 @@ def lhat_cost(ds, o: CertifyOptions, simulator) -> Optional[dict]:
     at ``simulator``'s rate measured here (about 0.3 s); None when it makes none. Checks the pair
     distance first (a refusal costs no run) and refuses work over the memory or time limits."""
     from ..cover import calibrate_rate
+    from .audit import load_fitting_modules
     rows = simulator_rows(ds, o)
     if not rows["rows"]:
         return None
+    load_fitting_modules()
     if rows["fhat_rows"]:
         check_pair_distance(ds.system, ds.epsilon, [j for j in range(ds.system.n) if j not in invariant_dims(ds)])
     cost = crn_cost(o.lhat_pairs if rows["fhat_rows"] else 0, o.lhat_runs, ds.system,

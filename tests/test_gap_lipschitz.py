@@ -317,3 +317,46 @@ def test_common_draw_slopes_across_the_angle_seam_are_not_inflated():
     cert = certify(ds, lipschitz_term="gap", lhat="simulator", lhat_pairs=200, lhat_runs=20, beta1=0.05,
                    beta2=0.05, simulator=sim)
     assert cert.dims[0].L_gap[0] < 1e-6
+
+
+def test_compare_prints_its_estimate_first_one_bar_and_computes_the_gap_term_once(tmp_path, capsys, monkeypatch):
+    """`simgap certify --compare` with the gap's term from the simulator: the first line is the
+    estimate (with the simulator runs' count), one progress bar covers every certification, and the
+    Lipschitz constants (the gap's matrix with its simulator runs, Lhat_fhat) are computed once for
+    all the bound options, not once per option."""
+    from simgap.certify import pipeline
+    from simgap.cli import main
+    cfg = {"kind": "numpy", "system": "pendulum", "noise": {"actuation_std": 0.05},
+           "effects": {"linear": [[0.0, 0.0], [0.0, -0.5]]}}
+    data = synthetic_dataset(cfg, epsilon=0.04, n_runs=20, seed=3).save_npz(tmp_path / "d.npz")
+    calls = {"gap": 0, "fhat": 0}
+    gap_compute, fhat_crn = pipeline._gap_lipschitz_compute, pipeline.fhat_slopes_crn
+
+    def counted_gap(*a, **k):
+        calls["gap"] += 1
+        return gap_compute(*a, **k)
+
+    def counted_fhat(*a, **k):
+        calls["fhat"] += 1
+        return fhat_crn(*a, **k)
+    monkeypatch.setattr(pipeline, "_gap_lipschitz_compute", counted_gap)
+    monkeypatch.setattr(pipeline, "fhat_slopes_crn", counted_fhat)
+    assert main(["certify", str(data), "--compare", "--lipschitz-term", "gap", "--lhat", "simulator"]) == 0
+    cap = capsys.readouterr()
+    lines = cap.out.splitlines()
+    assert lines[0].startswith("estimate: --compare certifies the data under 5 bound options")
+    assert "simulator runs" in lines[0] and "for the gap's own Lipschitz term" in lines[0]
+    assert lines[1].startswith("option") and "sub-Gaussian, uniform over K rows" in cap.out
+    # one bar (tqdm redraws it in place with \r): every draw is the same "compare" bar, ending at 5 of 5
+    draws = [d for d in cap.err.replace("\r", "\n").splitlines() if d.strip()]
+    assert draws and all(d.startswith("compare:") for d in draws)
+    assert "5.0/5 certifications" in draws[-1]
+    assert calls == {"gap": 1, "fhat": 1}
+    # the same data certified again in this process: nothing simulated again, and the same gamma
+    from simgap.certify import certify
+    from simgap.dataset import load_dataset
+    ds = load_dataset(data)
+    a = certify(ds, lipschitz_term="gap", lhat="simulator")
+    b = certify(ds, lipschitz_term="gap", lhat="simulator", beta1=0.02, beta2=0.02)
+    assert calls == {"gap": 2, "fhat": 2} and a.dims[1].L_gap == b.dims[1].L_gap
+    assert pipeline.simulator_rows(ds, pipeline.CertifyOptions(lipschitz_term="gap", lhat="simulator"))["rows"] == 0

@@ -136,6 +136,26 @@ def dataset_region(dataset) -> Optional[tuple]:
     return region_box(dataset.system, reg)
 
 
+_REGION_DS: "OrderedDict[int, tuple]" = OrderedDict()
+
+
+def _region_dataset(ds):
+    """``ds`` with its system's box X narrowed to the region its collection covered (a local
+    certificate's data), or ``ds`` itself when it covered X (or is already narrowed). One object per
+    dataset, so that the estimates memoized by the dataset's identity are found again."""
+    region = dataset_region(ds)
+    if region is None or (np.array_equal(ds.system.x_lo, region[0]) and np.array_equal(ds.system.x_hi, region[1])):
+        return ds
+    hit = _REGION_DS.get(id(ds))
+    if hit is not None and hit[0] is ds:  # the original is held, so its id is not reused meanwhile
+        return hit[1]
+    out = dataclasses.replace(ds, system=dataclasses.replace(ds.system, x_lo=region[0], x_hi=region[1]))
+    _REGION_DS[id(ds)] = (ds, out)
+    while len(_REGION_DS) > 4:
+        _REGION_DS.popitem(last=False)
+    return out
+
+
 def invariant_dims(dataset) -> List[int]:
     """0-based state dimensions the collection declared invariant (not covered; manifest "cover")."""
     names = (dataset.manifest.get("cover") or {}).get("invariant_dims") or []
@@ -254,13 +274,12 @@ def certify(dataset, options: Optional[CertifyOptions] = None, simulator=None, o
     o = options or CertifyOptions(**kw)
     if options is not None and kw:
         raise SimgapError("certify: give either options or keyword arguments, not both")
-    ds = dataset
-    X_lo, X_hi = ds.system.x_lo.copy(), ds.system.x_hi.copy()
-    region = dataset_region(ds)
+    X_lo, X_hi = dataset.system.x_lo.copy(), dataset.system.x_hi.copy()
+    region = dataset_region(dataset)
+    # a local certificate: its data cover the region only, so every estimate (Lipschitz pairs, the
+    # analytic L_2 sweep, the cover radii) is over the region; gamma is stated there only
+    ds = _region_dataset(dataset)
     if region is not None:
-        # a local certificate: its data cover the region only, so every estimate (Lipschitz pairs, the
-        # analytic L_2 sweep, the cover radii) is over the region; gamma is stated there only
-        ds = dataclasses.replace(ds, system=dataclasses.replace(ds.system, x_lo=region[0], x_hi=region[1]))
         if o.method == "stochastic" and not o.bounds.uniform:
             # gamma's sup over the region (what every consumer takes) is a statement about all its rows
             # at once: the uniform (union-bounded) deltas, so that the confidence stated is that one
@@ -610,9 +629,12 @@ def simulator_rows(ds, o: CertifyOptions) -> dict:
         per_axis = max(100, int(o.lhat_pairs) // max(1, axes))
         axis_rows = 2 * per_axis * int(o.lhat_runs)
         gap = axes * axis_rows
+    ds = _region_dataset(ds)  # the dataset certify estimates over (the keys below are its)
     cached = _lip_key(ds, o, True) in _LIP_CACHE or _lip_key(ds, o, False) in _LIP_CACHE
     if cached:  # an earlier call with these data and options: Lhat_fhat is not simulated again
         fhat = 0
+    if gap and (_gap_key(ds, o, True) in _GAP_CACHE or _gap_key(ds, o, False) in _GAP_CACHE):
+        gap = 0  # nor the gap's own Lipschitz matrix
     return {"fhat_rows": fhat, "gap_rows": gap, "gap_axis_rows": axis_rows, "axes": axes, "rows": fhat + gap}
 
 
@@ -632,7 +654,32 @@ def lhat_cost(ds, o: CertifyOptions, simulator) -> Optional[dict]:
     return cost
 
 
+_GAP_CACHE: "OrderedDict[tuple, dict]" = OrderedDict()
+
+
+def _gap_key(ds, o: CertifyOptions, own_simulator: bool) -> tuple:
+    """What the gap's Lipschitz matrix depends on: the data (and the box its estimates are over), the
+    slope source and its sizes, the seed and whether the inputs' axes are included."""
+    return _lip_key(ds, o, own_simulator) + (tuple(ds.system.x_lo), tuple(ds.system.x_hi), o.continuous_inputs,
+                                             id(ds.system))
+
+
 def _gap_lipschitz(ds, o: CertifyOptions, simulator=None, on_progress=None) -> dict:
+    """:func:`_gap_lipschitz_compute`, memoized per dataset like :func:`_data_lipschitz`: it depends on
+    neither delta, beta nor the basis, so certifying the same data again (``--compare``'s bound
+    options, a GUI knob) reuses it instead of repeating its simulator runs."""
+    key = _gap_key(ds, o, simulator is None)
+    if key in _GAP_CACHE:
+        _GAP_CACHE.move_to_end(key)
+        return _GAP_CACHE[key]
+    out = _gap_lipschitz_compute(ds, o, simulator, on_progress)
+    _GAP_CACHE[key] = out
+    while len(_GAP_CACHE) > 4:
+        _GAP_CACHE.popitem(last=False)
+    return out
+
+
+def _gap_lipschitz_compute(ds, o: CertifyOptions, simulator=None, on_progress=None) -> dict:
     """The gap's own Lipschitz matrix L (n, n) in x and Lu (n, m) in u, with the radii (beyond the paper).
 
     L_ij: Wood-Zhang on slopes |g_i(a) - g_i(b)| / h between rows that differ only in x_j by one
@@ -699,21 +746,8 @@ def _gap_lipschitz(ds, o: CertifyOptions, simulator=None, on_progress=None) -> d
             "input_box": ubox, "how": how, "noise_share": share}
 
 
-def compare_options(dataset, base: Optional[CertifyOptions] = None) -> list:
-    """Certify ``dataset`` under the paper's bounds and each option beyond it, at the same betas.
-
-    Returns rows {option, delta1, delta2, beta1, beta2, gamma_min, gamma_max, joint} (per-dimension
-    lists). Deltas are derived from the base options' betas (default 0.01 each), so the rows show
-    what each option does to delta and to gamma at equal confidence.
-    """
-    import dataclasses
-
-    base = base or CertifyOptions()
-    if base.method != "stochastic":
-        raise SimgapError("--compare needs the stochastic method")
-    b1 = base.beta1 if base.beta1 is not None else 0.01
-    b2 = base.beta2 if base.beta2 is not None else b1
-    common = dict(delta1=None, delta2=None, beta1=b1, beta2=b2)
+def compare_variants(base: CertifyOptions) -> list:
+    """[(name, BoundOptions)] that :func:`compare_options` certifies under, in its rows' order."""
     variants = [("paper (chebyshev, 2 Mhat, pointwise)", BoundOptions()),
                 ("chebyshev, 4 Mhat (general Lemma 2)", BoundOptions(lemma2_factor=4.0)),
                 ("chebyshev, uniform over K rows", BoundOptions(uniform=True)),
@@ -723,15 +757,56 @@ def compare_options(dataset, base: Optional[CertifyOptions] = None) -> list:
         variants += [("bernstein (range b)", BoundOptions(concentration="bernstein", value_range=base.value_range)),
                      ("bernstein (range b), uniform", BoundOptions(concentration="bernstein", uniform=True,
                                                                    value_range=base.value_range))]
+    return variants
+
+
+def compare_options(dataset, base: Optional[CertifyOptions] = None, simulator=None, on_progress=None) -> list:
+    """Certify ``dataset`` under the paper's bounds and each option beyond it, at the same betas.
+
+    Returns rows {option, delta1, delta2, beta1, beta2, gamma_min, gamma_max, joint} (per-dimension
+    lists). Deltas are derived from the base options' betas (default 0.01 each), so the rows show
+    what each option does to delta and to gamma at equal confidence.
+
+    The Lipschitz constants (the paper's and, with lipschitz_term = "gap", the gap's own, with their
+    simulator runs under lhat = "simulator") depend on no bound option: the first certification
+    computes them, the others reuse them. ``simulator`` serves those runs (default: rebuilt from the
+    data's manifest). ``on_progress(done, total)`` counts certifications (total = the variants);
+    during the first one's simulator runs ``done`` is their finished fraction, below 1.
+    """
+    base = base or CertifyOptions()
+    if base.method != "stochastic":
+        raise SimgapError("--compare needs the stochastic method")
+    b1 = base.beta1 if base.beta1 is not None else 0.01
+    b2 = base.beta2 if base.beta2 is not None else b1
+    common = dict(delta1=None, delta2=None, beta1=b1, beta2=b2)
+    variants = compare_variants(base)
+    total = len(variants)
+    runs = None if on_progress is None else (lambda done, rows: on_progress(min(done / rows, 0.999), total)
+                                             if rows else None)
     rows = []
-    for name, bo in variants:
-        c = certify(dataset, dataclasses.replace(base, bounds=bo, **common))
+    for k, (name, bo) in enumerate(variants):
+        c = certify(dataset, dataclasses.replace(base, bounds=bo, **common), simulator=simulator,
+                    on_progress=runs if k == 0 else None)
         rows.append({"option": name, "delta1": [d.delta1 for d in c.dims], "delta2": [d.delta2 for d in c.dims],
                      "beta1": [d.beta1 for d in c.dims], "beta2": [d.beta2 for d in c.dims],
                      "gamma_min": [d.scp["gamma_range_on_data"][0] for d in c.dims],
                      "gamma_max": [d.scp["gamma_range_on_data"][1] for d in c.dims],
                      "joint": c.joint_confidence})
+        if on_progress is not None:
+            on_progress(k + 1, total)
     return rows
+
+
+def compare_estimate_text(dataset, base: CertifyOptions, cost: Optional[dict]) -> str:
+    """The line ``simgap certify --compare`` prints before any work: how many certifications, what
+    is computed once, and the simulator runs' time (``cost``: :func:`lhat_cost`, None without runs)."""
+    from .lipschitz import crn_cost_text
+    v = len(compare_variants(base))
+    n = dataset.system.n
+    once = ("the Lipschitz constants once, from the data (no simulator runs)" if cost is None else
+            "the Lipschitz constants once, in the first: " + crn_cost_text(cost)[len("estimate: "):])
+    return (f"estimate: --compare certifies the data under {v} bound options: {v} x {n} linear programs over "
+            f"{dataset.K:,} (x_r,u) rows, each certification timed by the bar after the first; {once}")
 
 
 def comparison_table(rows: list, state_names) -> str:

@@ -37,6 +37,7 @@ from . import geometry as G
 from .bodies import MODEL_BODIES
 
 PENDULUM_PIVOT = (1.9, 0.0, 1.2)  # where the pendulum's pivot stands, beside the state square
+PENDULUM_ROD = 1.0  # its rod's length [m] (assets/urdf/pendulum.urdf): the free end hangs at z = 0.2
 MODEL_LEFT = 1.5  # a robot file's model stands beside the square: its bounding box starts at this x
 MODEL_SIZE = 2.5  # ... and is scaled down to this largest extent (display units) if larger
 SURFACE_RES = 41
@@ -204,8 +205,10 @@ def draw_bodies(app) -> None:
         app.body_frame = sc.add_frame("/bodies/pendulum", show_axes=False, position=PENDULUM_PIVOT, visible=vis)
         for name, mesh, _pos in bodies:
             _add_mesh(sc, f"/bodies/pendulum/{name}", mesh)
-        sc.add_label("/bodies/label", text="PyBullet pendulum (1 m rod)", anchor="bottom-right",
-                     position=(PENDULUM_PIVOT[0], 0.0, PENDULUM_PIVOT[2] + 0.12), visible=vis)
+        # under the rod's free end at rest (pivot - 1 m): above the pivot, the label ran into the rod
+        # where the view from above draws the rod's upper end
+        sc.add_label("/bodies/label", text="PyBullet pendulum (1 m rod)", anchor="top-center",
+                     position=(PENDULUM_PIVOT[0], 0.0, PENDULUM_PIVOT[2] - PENDULUM_ROD - 0.1), visible=vis)
     elif base.name == "turtlebot":
         frame = G.Frame(base)
         k = 1.0 / float(frame.half.max())  # metres -> display units, the same for x, y and z
@@ -604,6 +607,13 @@ def fit_camera(app, clients=None) -> None:
     app.server.initial_camera.position = tuple(pos)
     app.server.initial_camera.look_at = tuple(look)
     app.server.initial_camera.up = (0.0, 0.0, 1.0)
+    import contextlib
+    with getattr(app, "fit_lock", None) or contextlib.nullcontext():  # no window size recorded meanwhile is fitted over
+        _send_camera(app, clients, c, d, right, dist, look, pos, surface)
+
+
+def _send_camera(app, clients, c, d, right, dist, look, pos, surface) -> None:
+    """Send each client its camera: fitted to its window when its size is known, else the default."""
     windows = getattr(app, "windows", {})
     for client in (list(app.server.get_clients().values()) if clients is None else clients):
         win = windows.get(getattr(client, "client_id", None))

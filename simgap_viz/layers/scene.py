@@ -592,7 +592,30 @@ def scene_bounds(app) -> tuple:
 
 def fit_camera(app, clients=None) -> None:
     """Point every client's camera (and the initial camera) at the whole scene from the front-left,
-    above: look at the centre of the bounds, at a distance that fits their diagonal."""
+    above: look at the centre of the bounds, at a distance that fits their diagonal; a client whose
+    window size is known (``app.windows``) gets the scene centred in the part the panel leaves."""
+    import contextlib
+    look, pos = window_camera(app, None)
+    app.server.initial_camera.position = tuple(pos)
+    app.server.initial_camera.look_at = tuple(look)
+    app.server.initial_camera.up = (0.0, 0.0, 1.0)
+    # under the app's fit lock: no window size recorded meanwhile is fitted over with the default
+    with getattr(app, "fit_lock", None) or contextlib.nullcontext():
+        windows = getattr(app, "windows", {})
+        for client in (list(app.server.get_clients().values()) if clients is None else clients):
+            cl_look, cl_pos = window_camera(app, windows.get(getattr(client, "client_id", None)))
+            try:
+                with client.atomic():
+                    client.camera.up_direction = (0.0, 0.0, 1.0)
+                    client.camera.position = tuple(cl_pos)
+                    client.camera.look_at = tuple(cl_look)
+            except Exception:  # a client that just went away
+                pass
+
+
+def window_camera(app, win=None) -> tuple:
+    """(look_at, position) of the camera :func:`fit_camera` sends to a window ``win`` ({"size": (w,
+    h), "panel": px}, as ``app.windows`` records it), or the default one (``win`` None)."""
     lo, hi = scene_bounds(app)
     c = 0.5 * (lo + hi)
     r = 0.5 * float(np.linalg.norm(hi - lo))
@@ -602,31 +625,10 @@ def fit_camera(app, clients=None) -> None:
     right = np.cross(-d, [0.0, 0.0, 1.0])
     right /= np.linalg.norm(right)
     dist = r * 1.75 if surface else max(r * 1.12, 2.4)  # the flat map: close, but whole
+    if win is not None:  # this window's size and panel: the scene centred in the part the panel leaves
+        return _fit_to_window(c, d, right, dist, win["size"], win["panel"], closer=not surface)
     look = c + 0.3 * r * right  # the control panel covers the canvas' right third
-    pos = look + d * dist
-    app.server.initial_camera.position = tuple(pos)
-    app.server.initial_camera.look_at = tuple(look)
-    app.server.initial_camera.up = (0.0, 0.0, 1.0)
-    import contextlib
-    with getattr(app, "fit_lock", None) or contextlib.nullcontext():  # no window size recorded meanwhile is fitted over
-        _send_camera(app, clients, c, d, right, dist, look, pos, surface)
-
-
-def _send_camera(app, clients, c, d, right, dist, look, pos, surface) -> None:
-    """Send each client its camera: fitted to its window when its size is known, else the default."""
-    windows = getattr(app, "windows", {})
-    for client in (list(app.server.get_clients().values()) if clients is None else clients):
-        win = windows.get(getattr(client, "client_id", None))
-        cl_look, cl_pos = look, pos
-        if win is not None:  # this window's size and panel: the scene centred in the part the panel leaves
-            cl_look, cl_pos = _fit_to_window(c, d, right, dist, win["size"], win["panel"], closer=not surface)
-        try:
-            with client.atomic():
-                client.camera.up_direction = (0.0, 0.0, 1.0)
-                client.camera.position = tuple(cl_pos)
-                client.camera.look_at = tuple(cl_look)
-        except Exception:  # a client that just went away
-            pass
+    return look, look + d * dist
 
 
 #: the free canvas' aspect (width left of the panel / height) the distances of fit_camera were chosen

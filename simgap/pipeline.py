@@ -472,6 +472,9 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
                 "winning_cells": int(not sres.empty) if invariant else int(sres.stats["winning"]),
                 "synthesis": sres.stats,
                 "dataset_hash": ds.hash, "warnings": list(cert.options.get("warnings") or []),
+                # the gap's Lipschitz entries whose estimate is mostly noise, worst first (one warning names
+                # their count and the worst; this lists them all)
+                "noisy_gap_entries": list(cert.options.get("noisy_gap_entries") or []),
             }
             summary["methods"][method] = entry
             roll_out(method, sres, entry)

@@ -43,8 +43,9 @@ class ProgressBar:
     """
 
     def __init__(self, unit: str = "pairs", stream=None, scale: float = 1.0, scale_unit: str = "steps",
-                 desc: Optional[str] = None, interval_off_tty: float = 10.0):
+                 desc: Optional[str] = None, interval_off_tty: float = 10.0, bar_format: Optional[str] = None):
         self.unit, self.scale, self.scale_unit, self.desc = unit, scale, scale_unit, desc
+        self.bar_format = bar_format  # tqdm's, e.g. for a count that moves in fractions
         self.stream = stream if stream is not None else sys.stderr
         tty = bool(getattr(self.stream, "isatty", lambda: False)())
         self.mininterval = 0.2 if tty else interval_off_tty
@@ -53,7 +54,8 @@ class ProgressBar:
     def __call__(self, done: int, total: int) -> None:
         if self.bar is None:
             self.bar = tqdm(total=total, initial=done, unit=self.unit, desc=self.desc, file=self.stream,
-                            mininterval=self.mininterval, dynamic_ncols=True, smoothing=0.1)
+                            mininterval=self.mininterval, dynamic_ncols=True, smoothing=0.1,
+                            bar_format=self.bar_format)
         bar = self.bar
         if total != bar.total:
             bar.total = total

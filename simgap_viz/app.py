@@ -99,6 +99,7 @@ class SimgapApp:
         import viser
 
         self.lock = threading.RLock()
+        self.fit_lock = threading.RLock()  # window sizes and camera fits (scene.fit_camera, _fit_window)
         self.settings = (settings or Settings())
         self.experiment = experiment
         self.executor = executor
@@ -172,29 +173,60 @@ class SimgapApp:
         self._update_buttons()
 
     def _on_connect(self, client) -> None:
-        from .layers import scene
-        scene.fit_camera(self, [client])
         # the canvas size arrives with the client's camera: fit the panel and the scene to the window
+        # once it is known (on_update), the default camera only while it is not
         client.camera.on_update(lambda cam: self._fit_window(client))
-        self._fit_window(client)
+        self._fit_window(client, initial=True)
 
-    def _fit_window(self, client) -> None:
+    def _fit_window(self, client, initial: bool = False) -> None:
         """Size the control panel for the browser window and refit the camera, when the window's size
-        is new (a camera move alone changes nothing): ``panel_width`` of the canvas width."""
+        is new (a camera move alone changes nothing): ``panel_width`` of the canvas width.
+
+        viser runs the connect handler and each camera message's callback on its thread pool, so two
+        of these can run at once (a window resized twice, a connect and the first camera message):
+        ``fit_lock`` makes each check-and-fit one step. Before it, the connect handler's default camera
+        (computed without the window's size) could be sent after the fitted one of a camera message
+        handled meanwhile, and the size, then already recorded, never refitted the scene.
+        ``initial``: the connect handler, which sends the default camera while no size is known."""
+        from .layers import scene
+        with self.fit_lock:
+            try:
+                size = (int(client.camera.image_width), int(client.camera.image_height))
+            except (AssertionError, AttributeError):  # no camera message from this client yet
+                size = None
+            if size is None or size[0] <= 0:
+                if initial:
+                    scene.fit_camera(self, [client])
+                return
+            if self.windows.get(client.client_id, {}).get("size") == size:
+                if self._shows_default_camera(client):  # the client went (back) to the initial camera
+                    scene.fit_camera(self, [client])
+                return
+            width = panel_width(size[0])
+            self.windows[client.client_id] = {"size": size, "panel": width}
+            try:
+                client.gui.main_panel.set_width(width)
+            except Exception:  # a client that just went away
+                return
+            scene.fit_camera(self, [client])
+
+    def _shows_default_camera(self, client) -> bool:
+        """The client reports the server's initial camera while its window's fit is another one.
+
+        The browser applies the initial camera when it sets up its view, and now and then that came
+        after the fit sent for its window (seen at 1280 x 800 in the browser test: the client reported
+        the initial camera after the fit, the scene stood partly under the panel). No one moves the
+        camera by hand to exactly that pose, so it is refitted."""
         from .layers import scene
         try:
-            size = (int(client.camera.image_width), int(client.camera.image_height))
-        except (AssertionError, AttributeError):  # no camera message from this client yet
-            return
-        if size[0] <= 0 or self.windows.get(client.client_id, {}).get("size") == size:
-            return
-        width = panel_width(size[0])
-        self.windows[client.client_id] = {"size": size, "panel": width}
-        try:
-            client.gui.main_panel.set_width(width)
-        except Exception:  # a client that just went away
-            return
-        scene.fit_camera(self, [client])
+            look, pos = np.asarray(client.camera.look_at, float), np.asarray(client.camera.position, float)
+        except (AssertionError, AttributeError):
+            return False
+        init = self.server.initial_camera
+        if not (np.allclose(look, init.look_at, atol=1e-6) and np.allclose(pos, init.position, atol=1e-6)):
+            return False
+        fit_look, fit_pos = scene.window_camera(self, self.windows.get(client.client_id))
+        return not (np.allclose(fit_look, look, atol=1e-6) and np.allclose(fit_pos, pos, atol=1e-6))
 
     @property
     def url(self) -> str:
@@ -326,7 +358,7 @@ class SimgapApp:
             t = self.timings.get(stage)
             parts.append(f"{stage}: about {format_duration(t)} (its last run here)" if t is not None
                          else f"{stage}: no estimate before its first run (the engine has no cost model for it)")
-        return "; ".join(parts)
+        return ", then ".join(parts)
 
     def _calibrate_later(self) -> None:
         """Time the simulator on a background thread (about a second), then show the estimate."""
@@ -361,7 +393,9 @@ class SimgapApp:
         nxt = self.next_action()
         if nxt is not None:
             est = self.estimate_text(nxt)
-            text += f"; next: press **{BUTTON[nxt]}**" + (f" ({est})" if est else "")
+            # after a dash, not in parentheses: the estimate ends with its own "(calibrated here, ...)",
+            # which doubled the closing parenthesis
+            text += f"; next: press **{BUTTON[nxt]}**" + (f" — {est}" if est else "")
         elif not stale:
             text += "; everything shown is current"
         return text

@@ -281,7 +281,7 @@ def collect_estimate(settings, system: System, experiment=None, executor: str = 
     if key not in _RATES and calibrate:
         workers = make_executor(executor).workers if executor in ("serial", "local") else 1
         with make_simulator(simcfg, sysb) as sim:
-            _RATES[key] = (calibrate_rate(sim, budget=0.3) * workers, f"calibrated here, {workers} worker(s)")
+            _RATES[key] = (calibrate_rate(sim, budget=0.3) * workers, f"calibrated here, {workers} worker" + ("s" if workers != 1 else ""))
     rate, source = _RATES.get(key, (None, ""))
     return estimate_cost(cover, int(settings.n_runs), rate_per_worker=rate, workers=1, rate_source=source)
 

@@ -206,6 +206,12 @@ def _label_fits(page, label: str) -> tuple:
         return [c.measureText(label).width, o.height]; }""", label))
 
 
+def _chart_top_room(page) -> list:
+    """Per visible chart: the plot area's top minus its canvas' top [px]."""
+    return page.evaluate("""() => [...document.querySelectorAll('.uplot')].filter(u => u.offsetParent).map(u =>
+        u.querySelector('.u-over').getBoundingClientRect().top - u.querySelector('canvas').getBoundingClientRect().top)""")
+
+
 def test_status_progress_and_layout_in_the_page(run_dir, tmp_path):  # noqa: F811
     """What a newcomer meets after loading a run, by what the page shows (issue 44): tabs in ONE row
     (element boxes) at 1280 x 800 and 1920 x 1080 and a wider panel at 1920; after typing a new N1hat
@@ -267,6 +273,7 @@ def test_status_progress_and_layout_in_the_page(run_dir, tmp_path):  # noqa: F81
                 while "about" not in app.status.content and time.time() < deadline:
                     time.sleep(0.2)
                 assert "simulator steps, about" in app.status.content, app.status.content
+                assert "))" not in app.status.content, app.status.content  # the estimate's own parenthesis, once
                 if shots:
                     page.screenshot(path=os.path.join(shots, "app-1280-n1hat.png"))
 
@@ -293,6 +300,10 @@ def test_status_progress_and_layout_in_the_page(run_dir, tmp_path):  # noqa: F81
                 for label in (app.panels["certificate"].slice_plot.axes[1]["label"], y_label("rad/s", -3)):
                     width, height = _label_fits(page, label)
                     assert width <= height, f"y label {label!r} ({width:.0f} px) longer than the plot ({height:.0f} px)"
+                # room above each chart's plot area for its top tick label (uPlot's default had none: the
+                # label and the title's underside were clipped at the canvas' top)
+                for top_room in _chart_top_room(page):
+                    assert top_room >= 10, f"chart plot area {top_room:.0f} px below its canvas' top"
                 if shots:
                     page.screenshot(path=os.path.join(shots, "app-1280-after-certify.png"))
             finally:
@@ -305,3 +316,68 @@ def test_chart_y_label_is_short():
     from simgap_viz.panels.plots import y_label
     assert y_label("rad/s", -3) == "gamma, gap [1e-3 rad/s]"
     assert y_label("m", 0) == "gamma, gap [m]" and y_label("", 0) == "gamma, gap" and y_label("", 5) == "gamma, gap [1e5]"
+
+
+def _box(mask: np.ndarray):
+    """(x0, x1, y0, y1) of a pixel mask's True pixels (None if none)."""
+    ys, xs = np.nonzero(mask)
+    return None if xs.size == 0 else (int(xs.min()), int(xs.max()), int(ys.min()), int(ys.max()))
+
+
+def test_camera_fitted_to_the_window_and_the_pendulum_label_under_its_rod(run_dir, tmp_path):  # noqa: F811
+    """Issue 44, by what the page shows. (1) At 1280 x 800 and 1920 x 1080, three times each: the
+    window's size is recorded, and the camera the client reports is the fit for that window (a
+    redraw's default camera could be sent after the fit now and then: the scene stood partly under
+    the panel). (2) The pendulum's label stands under the rod's free end, clear of the rod (it stood
+    above the pivot, where the view from above draws the rod's upper end): with every other layer
+    removed, the label's pixels (the difference with the label removed) start below the rod's lowest
+    pixel and overlap its columns."""
+    _need_browser()
+    from playwright.sync_api import sync_playwright
+
+    from simgap_viz import screenshot as S
+    from simgap_viz.app import SimgapApp, panel_width
+    from simgap_viz.layers import scene
+    from simgap_viz.results import load_run
+
+    app = SimgapApp(port=0, executor="serial")
+    try:
+        app.load_run(load_run(run_dir))
+        with sync_playwright() as pw:
+            b = pw.chromium.launch(executable_path=S.CHROMIUM, args=S.ARGS)
+            try:
+                for k in range(3):
+                    for w, h in ((1280, 800), (1920, 1080)):
+                        page = S.open_page(b, app.url + "/?fixedDpr=1", w, h)
+                        client = max(app.server.get_clients().values(), key=lambda c: c.client_id)
+                        win = app.windows.get(client.client_id)
+                        assert win == {"size": (w, h), "panel": panel_width(w)}, (k, w, win)
+                        look, pos = scene.window_camera(app, win)
+                        deadline = time.time() + 10
+                        while not np.allclose(client.camera.look_at, look, atol=1e-3) and time.time() < deadline:
+                            time.sleep(0.1)
+                        assert np.allclose(client.camera.look_at, look, atol=1e-3), (k, w, client.camera.look_at, look)
+                        assert np.allclose(client.camera.position, pos, atol=1e-3), (k, w, client.camera.position, pos)
+                        if k < 2:
+                            page.close()
+                # (2) on the last (1920 x 1080) page: the bodies alone, then without the label
+                for lay in scene.LAYERS:
+                    if lay.key != "bodies":
+                        for node in lay.nodes:
+                            app.server.scene.remove_by_name(node)
+                time.sleep(2.5)
+                R1 = _rgb(S.canvas_png(page, tmp_path / "bodies.png"))
+                app.server.scene.remove_by_name("/bodies/label")
+                time.sleep(2.5)
+                R2 = _rgb(S.canvas_png(page, tmp_path / "rod.png"))
+            finally:
+                b.close()
+    finally:
+        app.stop()
+    free = R2.shape[1] - panel_width(1920) - 20  # left of the panel
+    r, g, bl = (R2[:, :free, i] for i in range(3))
+    rod = _box((bl - r >= 5) & (bl - g >= 5) & (R2[:, :free].max(axis=-1) < 215))  # the rod's bluish grey
+    label = _box(_changed(R1, R2)[:, :free])
+    assert rod is not None and label is not None, (rod, label)
+    assert label[2] > rod[3], f"label rows {label[2:]} reach into the rod's {rod[2:]}"
+    assert label[0] <= rod[1] and label[1] >= rod[0], f"label columns {label[:2]} not under the rod's {rod[:2]}"

@@ -164,6 +164,66 @@ def test_data_slopes_state_their_noise_floor_and_warn_when_it_dominates():
     assert any("mostly the noise" in w and "simulator" in w for w in cert.options["warnings"])
 
 
+NOISY_RUN = """
+[system]
+name = "pendulum"
+[simulator]
+kind = "numpy"
+noise = { actuation_std = 0.05 }
+[collect]
+epsilon = 0.04
+n_runs = 8
+seed = 1
+executor = "serial"
+[certify]
+degree = 1
+lipschitz_term = "gap"
+[audit]
+points = 10
+runs = 20
+[synthesis]
+spec = "invariance"
+eta = [0.01, 0.025]
+[rollout]
+n = 10
+horizon = 20
+x0 = [0.05, 0.1]
+"""
+
+
+def test_noisy_gap_entries_make_one_warning_naming_their_count_and_the_worst(tmp_path):
+    """Every entry L_gap[i, j] of a noise-only gap is mostly noise: one warning for the certificate
+    (not one line per entry), naming how many and the worst; the entries, worst first, in the
+    certificate (kept by save and load) and in `simgap run`'s summary.json."""
+    nominal, _ = plant()
+    noisy = NumpySimulator(SimulatorConfig("numpy", "plant", noise={"process_std": 0.05}), system=plant()[1].system)
+    ds = synthetic_dataset(noisy, 0.2, 20, seed=5).with_nominal(nominal)
+    cert = certify(ds, lipschitz_term="gap", beta1=0.05, beta2=0.05)
+    gap_warnings = [w for w in cert.options["warnings"] if "L_gap" in w]
+    entries = cert.options["noisy_gap_entries"]
+    assert len(gap_warnings) == 1 and len(entries) >= 2
+    worst = entries[0]
+    assert f"{len(entries)} of 4 L_gap entries" in gap_warnings[0]
+    assert f"worst L_gap[{worst['dim']}, {worst['wrt']}]" in gap_warnings[0]
+    assert [e["noise_share"] for e in entries] == sorted((e["noise_share"] for e in entries), reverse=True)
+    assert all(e["noise_share"] > 0.5 and e["dim"] in ("p", "v") and e["wrt"] in ("p", "v") for e in entries)
+    cert.save(tmp_path / "c.json")
+    assert load(tmp_path / "c.json").options["noisy_gap_entries"] == entries
+    # a certificate without the gap's term has none
+    assert certify(ds, beta1=0.05, beta2=0.05).options["noisy_gap_entries"] == []
+
+    import json
+
+    from simgap.config import load_experiment
+    from simgap.pipeline import comparison_table, run_experiment
+    (tmp_path / "exp.toml").write_text(NOISY_RUN)
+    summary = run_experiment(load_experiment(tmp_path / "exp.toml", None), tmp_path / "run", log=lambda m: None)
+    sto = json.loads((tmp_path / "run" / "summary.json").read_text())["methods"]["stochastic"]
+    assert sto["noisy_gap_entries"] and sto["noisy_gap_entries"] == summary["methods"]["stochastic"]["noisy_gap_entries"]
+    table = comparison_table(summary)
+    assert sum("L_gap" in line for line in table.splitlines()) == 1
+
+
 def test_bad_input_is_refused_by_name():
     nominal, sim = plant()
     ds = synthetic_dataset(sim, 0.2, 1, seed=0).with_nominal(nominal)
@@ -257,3 +317,46 @@ def test_common_draw_slopes_across_the_angle_seam_are_not_inflated():
     cert = certify(ds, lipschitz_term="gap", lhat="simulator", lhat_pairs=200, lhat_runs=20, beta1=0.05,
                    beta2=0.05, simulator=sim)
     assert cert.dims[0].L_gap[0] < 1e-6
+
+
+def test_compare_prints_its_estimate_first_one_bar_and_computes_the_gap_term_once(tmp_path, capsys, monkeypatch):
+    """`simgap certify --compare` with the gap's term from the simulator: the first line is the
+    estimate (with the simulator runs' count), one progress bar covers every certification, and the
+    Lipschitz constants (the gap's matrix with its simulator runs, Lhat_fhat) are computed once for
+    all the bound options, not once per option."""
+    from simgap.certify import pipeline
+    from simgap.cli import main
+    cfg = {"kind": "numpy", "system": "pendulum", "noise": {"actuation_std": 0.05},
+           "effects": {"linear": [[0.0, 0.0], [0.0, -0.5]]}}
+    data = synthetic_dataset(cfg, epsilon=0.04, n_runs=20, seed=3).save_npz(tmp_path / "d.npz")
+    calls = {"gap": 0, "fhat": 0}
+    gap_compute, fhat_crn = pipeline._gap_lipschitz_compute, pipeline.fhat_slopes_crn
+
+    def counted_gap(*a, **k):
+        calls["gap"] += 1
+        return gap_compute(*a, **k)
+
+    def counted_fhat(*a, **k):
+        calls["fhat"] += 1
+        return fhat_crn(*a, **k)
+    monkeypatch.setattr(pipeline, "_gap_lipschitz_compute", counted_gap)
+    monkeypatch.setattr(pipeline, "fhat_slopes_crn", counted_fhat)
+    assert main(["certify", str(data), "--compare", "--lipschitz-term", "gap", "--lhat", "simulator"]) == 0
+    cap = capsys.readouterr()
+    lines = cap.out.splitlines()
+    assert lines[0].startswith("estimate: --compare certifies the data under 5 bound options")
+    assert "simulator runs" in lines[0] and "for the gap's own Lipschitz term" in lines[0]
+    assert lines[1].startswith("option") and "sub-Gaussian, uniform over K rows" in cap.out
+    # one bar (tqdm redraws it in place with \r): every draw is the same "compare" bar, ending at 5 of 5
+    draws = [d for d in cap.err.replace("\r", "\n").splitlines() if d.strip()]
+    assert draws and all(d.startswith("compare:") for d in draws)
+    assert "5.0/5 certifications" in draws[-1]
+    assert calls == {"gap": 1, "fhat": 1}
+    # the same data certified again in this process: nothing simulated again, and the same gamma
+    from simgap.certify import certify
+    from simgap.dataset import load_dataset
+    ds = load_dataset(data)
+    a = certify(ds, lipschitz_term="gap", lhat="simulator")
+    b = certify(ds, lipschitz_term="gap", lhat="simulator", beta1=0.02, beta2=0.02)
+    assert calls == {"gap": 2, "fhat": 2} and a.dims[1].L_gap == b.dims[1].L_gap
+    assert pipeline.simulator_rows(ds, pipeline.CertifyOptions(lipschitz_term="gap", lhat="simulator"))["rows"] == 0

@@ -643,3 +643,81 @@ def test_a_change_made_while_the_rate_is_timed_still_gets_its_time(monkeypatch):
         assert "N1hat 9" in st and "simulator steps, about" in st, st
     finally:
         a.stop()
+
+
+class _FakeCamera:
+    """A client's camera as viser's handle shows it at connect time (viser calls the connect handler
+    after the client's first camera message: the window's size is known)."""
+
+    def __init__(self, size):
+        self.image_width, self.image_height = size
+        self.callbacks, self.sent = [], []
+
+    def on_update(self, fn):
+        self.callbacks.append(fn)
+
+    def __setattr__(self, name, value):
+        if name == "look_at":
+            self.sent.append(tuple(value))
+        object.__setattr__(self, name, value)
+
+
+class _FakeClient:
+    """A client that connects while another thread (a job's redraw: scene.fit_camera for every
+    client) is sending the camera: the connect handler runs on viser's thread pool meanwhile."""
+
+    client_id = 987
+
+    def __init__(self, app, size):
+        import types
+        self.app, self.camera, self.connect = app, _FakeCamera(size), None
+        self.gui = types.SimpleNamespace(main_panel=types.SimpleNamespace(set_width=lambda w: None))
+
+    def atomic(self):
+        import contextlib
+        if self.connect is None:  # the first camera sent: the client's connect handler runs now
+            self.connect = threading.Thread(target=self.app._on_connect, args=(self,))
+            self.connect.start()
+            self.connect.join(1.0)  # done meanwhile (or waiting for the fit lock)
+        return contextlib.nullcontext()
+
+
+def test_a_window_fitted_while_another_thread_sends_the_camera_is_not_fitted_over():
+    """A redraw's camera (computed before the window's size was recorded) and the connect handler's
+    fit ran on two threads: the redraw's default camera could be sent after the fit, the size was
+    recorded and never fitted again, and the scene stayed unfitted (seen at 1280 x 800 now and
+    then). The last camera sent is the window's fit, at both sizes."""
+    from simgap_viz.app import SimgapApp, panel_width
+    from simgap_viz.layers import scene
+    a = SimgapApp(port=0, executor="serial", settings=Settings(epsilon=0.1, n_runs=5, noise_std=0.05))
+    try:
+        for size in ((1280, 800), (1920, 1080)):
+            client = _FakeClient(a, size)
+            a.windows.pop(client.client_id, None)
+            scene.fit_camera(a, [client])  # a redraw of every client's camera, as the client connects
+            client.connect.join(10)
+            assert a.windows[client.client_id] == {"size": size, "panel": panel_width(size[0])}
+            look, _ = scene.window_camera(a, a.windows[client.client_id])
+            assert np.allclose(client.camera.sent[-1], look), (size, client.camera.sent)
+    finally:
+        a.stop()
+
+
+def test_status_line_has_no_doubled_parentheses():
+    """The estimate after 'next: press ...' ends with its own '(calibrated here, ...)': it follows a
+    dash, not a parenthesis of its own (the status line showed '...worker(s)))')."""
+    from simgap_viz import engine
+    from simgap_viz.app import SimgapApp
+    a = SimgapApp(port=0, executor="serial", settings=Settings(epsilon=0.1, n_runs=5, noise_std=0.05))
+    try:
+        # the simulator's rate timed here first (the app does it on a background thread)
+        assert engine.collect_estimate(a.settings, a.system, None, a.executor, calibrate=True).seconds is not None
+        a.update_settings(n_runs=7)
+        st = a.status.content
+        assert "next: press **Collect** \u2014 collect:" in st and "(calibrated here" in st, st
+        assert "))" not in st, st
+        a.timings["certify"] = 1.5  # a certify that must collect first: both estimates, one after the other
+        assert "))" not in a.settings_status() and "collect:" in a.estimate_text("certify")
+        assert ", then certify: about 1.5 s (its last run here)" in a.estimate_text("certify")
+    finally:
+        a.stop()

@@ -136,6 +136,26 @@ def dataset_region(dataset) -> Optional[tuple]:
     return region_box(dataset.system, reg)
 
 
+_REGION_DS: "OrderedDict[int, tuple]" = OrderedDict()
+
+
+def _region_dataset(ds):
+    """``ds`` with its system's box X narrowed to the region its collection covered (a local
+    certificate's data), or ``ds`` itself when it covered X (or is already narrowed). One object per
+    dataset, so that the estimates memoized by the dataset's identity are found again."""
+    region = dataset_region(ds)
+    if region is None or (np.array_equal(ds.system.x_lo, region[0]) and np.array_equal(ds.system.x_hi, region[1])):
+        return ds
+    hit = _REGION_DS.get(id(ds))
+    if hit is not None and hit[0] is ds:  # the original is held, so its id is not reused meanwhile
+        return hit[1]
+    out = dataclasses.replace(ds, system=dataclasses.replace(ds.system, x_lo=region[0], x_hi=region[1]))
+    _REGION_DS[id(ds)] = (ds, out)
+    while len(_REGION_DS) > 4:
+        _REGION_DS.popitem(last=False)
+    return out
+
+
 def invariant_dims(dataset) -> List[int]:
     """0-based state dimensions the collection declared invariant (not covered; manifest "cover")."""
     names = (dataset.manifest.get("cover") or {}).get("invariant_dims") or []
@@ -254,13 +274,12 @@ def certify(dataset, options: Optional[CertifyOptions] = None, simulator=None, o
     o = options or CertifyOptions(**kw)
     if options is not None and kw:
         raise SimgapError("certify: give either options or keyword arguments, not both")
-    ds = dataset
-    X_lo, X_hi = ds.system.x_lo.copy(), ds.system.x_hi.copy()
-    region = dataset_region(ds)
+    X_lo, X_hi = dataset.system.x_lo.copy(), dataset.system.x_hi.copy()
+    region = dataset_region(dataset)
+    # a local certificate: its data cover the region only, so every estimate (Lipschitz pairs, the
+    # analytic L_2 sweep, the cover radii) is over the region; gamma is stated there only
+    ds = _region_dataset(dataset)
     if region is not None:
-        # a local certificate: its data cover the region only, so every estimate (Lipschitz pairs, the
-        # analytic L_2 sweep, the cover radii) is over the region; gamma is stated there only
-        ds = dataclasses.replace(ds, system=dataclasses.replace(ds.system, x_lo=region[0], x_hi=region[1]))
         if o.method == "stochastic" and not o.bounds.uniform:
             # gamma's sup over the region (what every consumer takes) is a statement about all its rows
             # at once: the uniform (union-bounded) deltas, so that the confidence stated is that one
@@ -376,17 +395,18 @@ def certify(dataset, options: Optional[CertifyOptions] = None, simulator=None, o
             warnings.append(f"Lhat_fhat[{s.state_names[i]}] = {L_fhat:.4g} is mostly the noise of the empirical means: "
                          f"noise alone gives {share:.0%} of the largest slope (N1hat = {N}); lhat = \"simulator\" "
                          f"(--lhat simulator) estimates it with common random numbers, usually far smaller")
-    if gl is not None:
-        for i in range(n):
-            for j, share in gl["noise_share"][i].items():
-                if share > NOISE_SHARE_NOTE:
-                    where = (f"the noise of the empirical means (N1hat = {N}); lhat = \"simulator\" (--lhat "
-                             f"simulator) estimates it with common random numbers" if o.lhat == "data" else
-                             f"noise the common random numbers did not cancel ({o.lhat_runs} runs per pair end; "
-                             f"contacts or slip events respond unevenly to the same draws): more lhat_runs")
-                    warnings.append(f"L_gap[{s.state_names[i]}, {s.state_names[j] if j < n else s.input_names[j - n]}]"
-                                    f" is mostly {where} (noise alone gives {share:.0%} of the largest slope); "
-                                    f"gamma takes the smaller of the gap's and the paper's term per dimension")
+    noisy_gap = noisy_gap_entries(gl, s) if gl is not None else []
+    if noisy_gap:  # one warning for all of them (a wall of one line per entry hid the rest of the output)
+        where = (f"the noise of the empirical means (N1hat = {N}); lhat = \"simulator\" (--lhat simulator) "
+                 f"estimates the slopes with common random numbers" if o.lhat == "data" else
+                 f"noise the common random numbers did not cancel ({o.lhat_runs} runs per pair end; contacts or "
+                 f"slip events respond unevenly to the same draws): more lhat_runs")
+        worst = noisy_gap[0]
+        total = sum(len(h) for h in gl["how"])  # every estimated entry: n x the covered state and input axes
+        warnings.append(f"{len(noisy_gap)} of {total} L_gap entries are mostly {where} (worst "
+                        f"L_gap[{worst['dim']}, {worst['wrt']}]: noise alone gives {worst['noise_share']:.0%} of "
+                        f"the largest slope; all of them in the certificate's noisy_gap_entries); gamma takes the "
+                        f"smaller of the gap's and the paper's term per dimension")
     rng = np.random.default_rng(o.seed)  # only for l2 = "estimated"
 
     dims = []
@@ -439,6 +459,7 @@ def certify(dataset, options: Optional[CertifyOptions] = None, simulator=None, o
     opts["variance_bound"] = variance_info
     opts["notes"] = notes + warnings
     opts["warnings"] = warnings
+    opts["noisy_gap_entries"] = noisy_gap
     prov = {"dataset_hash": ds.hash, "dataset_config_hash": ds.config_hash, "versions": _versions(), "seed": o.seed,
             "dataset_seed": ds.manifest.get("seed"), "simulator": ds.manifest.get("simulator"),
             "created_unix": time.time(), "seconds": time.perf_counter() - t0}
@@ -451,6 +472,17 @@ def certify(dataset, options: Optional[CertifyOptions] = None, simulator=None, o
                        input_radii=gl["input_radii"] if o.continuous_inputs else None,
                        input_box=gl["input_box"] if o.continuous_inputs else None)
 
+
+
+def noisy_gap_entries(gl: dict, system) -> list:
+    """The gap's Lipschitz entries L_gap[i, j] whose estimate is mostly noise (share of the largest
+    slope explained by noise alone above NOISE_SHARE_NOTE), worst first: [{dim, wrt, noise_share}]
+    with the state name of g_i and the state or input name of the slope's direction."""
+    n = system.n
+    out = [{"dim": system.state_names[i], "wrt": system.state_names[j] if j < n else system.input_names[j - n],
+            "noise_share": float(share)}
+           for i in range(n) for j, share in sorted(gl["noise_share"][i].items()) if share > NOISE_SHARE_NOTE]
+    return sorted(out, key=lambda e: -e["noise_share"])
 
 
 #: above this share of the largest data slope explained by the empirical means' noise, the
@@ -597,9 +629,12 @@ def simulator_rows(ds, o: CertifyOptions) -> dict:
         per_axis = max(100, int(o.lhat_pairs) // max(1, axes))
         axis_rows = 2 * per_axis * int(o.lhat_runs)
         gap = axes * axis_rows
+    ds = _region_dataset(ds)  # the dataset certify estimates over (the keys below are its)
     cached = _lip_key(ds, o, True) in _LIP_CACHE or _lip_key(ds, o, False) in _LIP_CACHE
     if cached:  # an earlier call with these data and options: Lhat_fhat is not simulated again
         fhat = 0
+    if gap and (_gap_key(ds, o, True) in _GAP_CACHE or _gap_key(ds, o, False) in _GAP_CACHE):
+        gap = 0  # nor the gap's own Lipschitz matrix
     return {"fhat_rows": fhat, "gap_rows": gap, "gap_axis_rows": axis_rows, "axes": axes, "rows": fhat + gap}
 
 
@@ -622,7 +657,32 @@ def lhat_cost(ds, o: CertifyOptions, simulator) -> Optional[dict]:
     return cost
 
 
+_GAP_CACHE: "OrderedDict[tuple, dict]" = OrderedDict()
+
+
+def _gap_key(ds, o: CertifyOptions, own_simulator: bool) -> tuple:
+    """What the gap's Lipschitz matrix depends on: the data (and the box its estimates are over), the
+    slope source and its sizes, the seed and whether the inputs' axes are included."""
+    return _lip_key(ds, o, own_simulator) + (tuple(ds.system.x_lo), tuple(ds.system.x_hi), o.continuous_inputs,
+                                             id(ds.system))
+
+
 def _gap_lipschitz(ds, o: CertifyOptions, simulator=None, on_progress=None) -> dict:
+    """:func:`_gap_lipschitz_compute`, memoized per dataset like :func:`_data_lipschitz`: it depends on
+    neither delta, beta nor the basis, so certifying the same data again (``--compare``'s bound
+    options, a GUI knob) reuses it instead of repeating its simulator runs."""
+    key = _gap_key(ds, o, simulator is None)
+    if key in _GAP_CACHE:
+        _GAP_CACHE.move_to_end(key)
+        return _GAP_CACHE[key]
+    out = _gap_lipschitz_compute(ds, o, simulator, on_progress)
+    _GAP_CACHE[key] = out
+    while len(_GAP_CACHE) > 4:
+        _GAP_CACHE.popitem(last=False)
+    return out
+
+
+def _gap_lipschitz_compute(ds, o: CertifyOptions, simulator=None, on_progress=None) -> dict:
     """The gap's own Lipschitz matrix L (n, n) in x and Lu (n, m) in u, with the radii (beyond the paper).
 
     L_ij: Wood-Zhang on slopes |g_i(a) - g_i(b)| / h between rows that differ only in x_j by one
@@ -689,21 +749,8 @@ def _gap_lipschitz(ds, o: CertifyOptions, simulator=None, on_progress=None) -> d
             "input_box": ubox, "how": how, "noise_share": share}
 
 
-def compare_options(dataset, base: Optional[CertifyOptions] = None) -> list:
-    """Certify ``dataset`` under the paper's bounds and each option beyond it, at the same betas.
-
-    Returns rows {option, delta1, delta2, beta1, beta2, gamma_min, gamma_max, joint} (per-dimension
-    lists). Deltas are derived from the base options' betas (default 0.01 each), so the rows show
-    what each option does to delta and to gamma at equal confidence.
-    """
-    import dataclasses
-
-    base = base or CertifyOptions()
-    if base.method != "stochastic":
-        raise SimgapError("--compare needs the stochastic method")
-    b1 = base.beta1 if base.beta1 is not None else 0.01
-    b2 = base.beta2 if base.beta2 is not None else b1
-    common = dict(delta1=None, delta2=None, beta1=b1, beta2=b2)
+def compare_variants(base: CertifyOptions) -> list:
+    """[(name, BoundOptions)] that :func:`compare_options` certifies under, in its rows' order."""
     variants = [("paper (chebyshev, 2 Mhat, pointwise)", BoundOptions()),
                 ("chebyshev, 4 Mhat (general Lemma 2)", BoundOptions(lemma2_factor=4.0)),
                 ("chebyshev, uniform over K rows", BoundOptions(uniform=True)),
@@ -713,15 +760,56 @@ def compare_options(dataset, base: Optional[CertifyOptions] = None) -> list:
         variants += [("bernstein (range b)", BoundOptions(concentration="bernstein", value_range=base.value_range)),
                      ("bernstein (range b), uniform", BoundOptions(concentration="bernstein", uniform=True,
                                                                    value_range=base.value_range))]
+    return variants
+
+
+def compare_options(dataset, base: Optional[CertifyOptions] = None, simulator=None, on_progress=None) -> list:
+    """Certify ``dataset`` under the paper's bounds and each option beyond it, at the same betas.
+
+    Returns rows {option, delta1, delta2, beta1, beta2, gamma_min, gamma_max, joint} (per-dimension
+    lists). Deltas are derived from the base options' betas (default 0.01 each), so the rows show
+    what each option does to delta and to gamma at equal confidence.
+
+    The Lipschitz constants (the paper's and, with lipschitz_term = "gap", the gap's own, with their
+    simulator runs under lhat = "simulator") depend on no bound option: the first certification
+    computes them, the others reuse them. ``simulator`` serves those runs (default: rebuilt from the
+    data's manifest). ``on_progress(done, total)`` counts certifications (total = the variants);
+    during the first one's simulator runs ``done`` is their finished fraction, below 1.
+    """
+    base = base or CertifyOptions()
+    if base.method != "stochastic":
+        raise SimgapError("--compare needs the stochastic method")
+    b1 = base.beta1 if base.beta1 is not None else 0.01
+    b2 = base.beta2 if base.beta2 is not None else b1
+    common = dict(delta1=None, delta2=None, beta1=b1, beta2=b2)
+    variants = compare_variants(base)
+    total = len(variants)
+    runs = None if on_progress is None else (lambda done, rows: on_progress(min(done / rows, 0.999), total)
+                                             if rows else None)
     rows = []
-    for name, bo in variants:
-        c = certify(dataset, dataclasses.replace(base, bounds=bo, **common))
+    for k, (name, bo) in enumerate(variants):
+        c = certify(dataset, dataclasses.replace(base, bounds=bo, **common), simulator=simulator,
+                    on_progress=runs if k == 0 else None)
         rows.append({"option": name, "delta1": [d.delta1 for d in c.dims], "delta2": [d.delta2 for d in c.dims],
                      "beta1": [d.beta1 for d in c.dims], "beta2": [d.beta2 for d in c.dims],
                      "gamma_min": [d.scp["gamma_range_on_data"][0] for d in c.dims],
                      "gamma_max": [d.scp["gamma_range_on_data"][1] for d in c.dims],
                      "joint": c.joint_confidence})
+        if on_progress is not None:
+            on_progress(k + 1, total)
     return rows
+
+
+def compare_estimate_text(dataset, base: CertifyOptions, cost: Optional[dict]) -> str:
+    """The line ``simgap certify --compare`` prints before any work: how many certifications, what
+    is computed once, and the simulator runs' time (``cost``: :func:`lhat_cost`, None without runs)."""
+    from .lipschitz import crn_cost_text
+    v = len(compare_variants(base))
+    n = dataset.system.n
+    once = ("the Lipschitz constants once, from the data (no simulator runs)" if cost is None else
+            "the Lipschitz constants once, in the first: " + crn_cost_text(cost)[len("estimate: "):])
+    return (f"estimate: --compare certifies the data under {v} bound options: {v} x {n} linear programs over "
+            f"{dataset.K:,} (x_r,u) rows, each certification timed by the bar after the first; {once}")
 
 
 def comparison_table(rows: list, state_names) -> str:

@@ -88,7 +88,7 @@ def add_parser(subparsers) -> None:
     s.add_argument("--seed", type=int, default=0)
     p.add_argument("--compare", action="store_true",
                    help="certify under each bound option and print delta and gamma side by side")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar (--lhat simulator)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar (--lhat simulator, --compare)")
     p.add_argument("--out", help="write the certificate JSON here")
     p.add_argument("--sign-key", metavar="KEY", help="sign the certificate with this private key (simgap key new; "
                                                      "default: $SIMGAP_SIGNING_KEY, if set)")
@@ -145,21 +145,53 @@ def run(args) -> int:
     if args.alpha is not None:
         raise SimgapError("--alpha belongs to --level run (the mean-level certificate has beta, not alpha)")
     ds = _data(args)
-    if args.lhat == "simulator" and not args.compare:
+    if args.compare:
+        return _compare(args, ds)
+    if args.lhat == "simulator":
         cert = _certify_with_simulator(args, ds)
     else:
         from ..certify import certify
-        from ..certify.pipeline import compare_options, comparison_table
         opts = options_from_args(args, ds.system)
         check_certify_size(opts, ds)
-        if args.compare:
-            print(comparison_table(compare_options(ds, opts), ds.system.state_names))
-            return 0
         cert = certify(ds, opts)
     print(cert.summary())
     if args.out:
         cert.save(args.out, sign_key=args.sign_key)
         print(f"wrote {args.out}")
+    return 0
+
+
+def _compare(args, ds) -> int:
+    """``--compare``: the estimate first (with lhat = "simulator" its runs are timed on the simulator
+    before any of them), then one progress bar over all the certifications, then the table."""
+    import contextlib
+
+    from ..certify.pipeline import compare_estimate_text, compare_options, comparison_table, lhat_cost
+    from ..progress import ProgressBar
+    opts = options_from_args(args, ds.system)
+    check_certify_size(opts, ds)
+    if opts.method != "stochastic":
+        raise SimgapError("--compare needs the stochastic method")
+    with contextlib.ExitStack() as stack:
+        sim = cost = None
+        if opts.lhat == "simulator":
+            from ..simulators import make_simulator
+            cfg = ds.manifest.get("simulator")
+            if not cfg:
+                raise SimgapError("--lhat simulator needs the data manifest's simulator config; this data set has "
+                                  "none (use --lhat data)")
+            sim = stack.enter_context(make_simulator(cfg, system=ds.system))
+            cost = lhat_cost(ds, opts, sim)
+        print(compare_estimate_text(ds, opts, cost), flush=True)
+        bar = None if args.no_progress else ProgressBar(
+            unit="certifications", desc="compare",  # the first certification's runs move it in fractions
+            bar_format="{desc}: {percentage:3.0f}%|{bar}| {n:.1f}/{total} certifications [{elapsed}<{remaining}]")
+        try:
+            rows = compare_options(ds, opts, simulator=sim, on_progress=bar)
+        finally:
+            if bar:
+                bar.close()
+    print(comparison_table(rows, ds.system.state_names))
     return 0
 
 

@@ -37,6 +37,7 @@ from . import geometry as G
 from .bodies import MODEL_BODIES
 
 PENDULUM_PIVOT = (1.9, 0.0, 1.2)  # where the pendulum's pivot stands, beside the state square
+PENDULUM_ROD = 1.0  # its rod's length [m] (assets/urdf/pendulum.urdf): the free end hangs at z = 0.2
 MODEL_LEFT = 1.5  # a robot file's model stands beside the square: its bounding box starts at this x
 MODEL_SIZE = 2.5  # ... and is scaled down to this largest extent (display units) if larger
 SURFACE_RES = 41
@@ -204,8 +205,10 @@ def draw_bodies(app) -> None:
         app.body_frame = sc.add_frame("/bodies/pendulum", show_axes=False, position=PENDULUM_PIVOT, visible=vis)
         for name, mesh, _pos in bodies:
             _add_mesh(sc, f"/bodies/pendulum/{name}", mesh)
-        sc.add_label("/bodies/label", text="PyBullet pendulum (1 m rod)", anchor="bottom-right",
-                     position=(PENDULUM_PIVOT[0], 0.0, PENDULUM_PIVOT[2] + 0.12), visible=vis)
+        # under the rod's free end at rest (pivot - 1 m): above the pivot, the label ran into the rod
+        # where the view from above draws the rod's upper end
+        sc.add_label("/bodies/label", text="PyBullet pendulum (1 m rod)", anchor="top-center",
+                     position=(PENDULUM_PIVOT[0], 0.0, PENDULUM_PIVOT[2] - PENDULUM_ROD - 0.1), visible=vis)
     elif base.name == "turtlebot":
         frame = G.Frame(base)
         k = 1.0 / float(frame.half.max())  # metres -> display units, the same for x, y and z
@@ -589,7 +592,30 @@ def scene_bounds(app) -> tuple:
 
 def fit_camera(app, clients=None) -> None:
     """Point every client's camera (and the initial camera) at the whole scene from the front-left,
-    above: look at the centre of the bounds, at a distance that fits their diagonal."""
+    above: look at the centre of the bounds, at a distance that fits their diagonal; a client whose
+    window size is known (``app.windows``) gets the scene centred in the part the panel leaves."""
+    import contextlib
+    look, pos = window_camera(app, None)
+    app.server.initial_camera.position = tuple(pos)
+    app.server.initial_camera.look_at = tuple(look)
+    app.server.initial_camera.up = (0.0, 0.0, 1.0)
+    # under the app's fit lock: no window size recorded meanwhile is fitted over with the default
+    with getattr(app, "fit_lock", None) or contextlib.nullcontext():
+        windows = getattr(app, "windows", {})
+        for client in (list(app.server.get_clients().values()) if clients is None else clients):
+            cl_look, cl_pos = window_camera(app, windows.get(getattr(client, "client_id", None)))
+            try:
+                with client.atomic():
+                    client.camera.up_direction = (0.0, 0.0, 1.0)
+                    client.camera.position = tuple(cl_pos)
+                    client.camera.look_at = tuple(cl_look)
+            except Exception:  # a client that just went away
+                pass
+
+
+def window_camera(app, win=None) -> tuple:
+    """(look_at, position) of the camera :func:`fit_camera` sends to a window ``win`` ({"size": (w,
+    h), "panel": px}, as ``app.windows`` records it), or the default one (``win`` None)."""
     lo, hi = scene_bounds(app)
     c = 0.5 * (lo + hi)
     r = 0.5 * float(np.linalg.norm(hi - lo))
@@ -599,24 +625,10 @@ def fit_camera(app, clients=None) -> None:
     right = np.cross(-d, [0.0, 0.0, 1.0])
     right /= np.linalg.norm(right)
     dist = r * 1.75 if surface else max(r * 1.12, 2.4)  # the flat map: close, but whole
+    if win is not None:  # this window's size and panel: the scene centred in the part the panel leaves
+        return _fit_to_window(c, d, right, dist, win["size"], win["panel"], closer=not surface)
     look = c + 0.3 * r * right  # the control panel covers the canvas' right third
-    pos = look + d * dist
-    app.server.initial_camera.position = tuple(pos)
-    app.server.initial_camera.look_at = tuple(look)
-    app.server.initial_camera.up = (0.0, 0.0, 1.0)
-    windows = getattr(app, "windows", {})
-    for client in (list(app.server.get_clients().values()) if clients is None else clients):
-        win = windows.get(getattr(client, "client_id", None))
-        cl_look, cl_pos = look, pos
-        if win is not None:  # this window's size and panel: the scene centred in the part the panel leaves
-            cl_look, cl_pos = _fit_to_window(c, d, right, dist, win["size"], win["panel"], closer=not surface)
-        try:
-            with client.atomic():
-                client.camera.up_direction = (0.0, 0.0, 1.0)
-                client.camera.position = tuple(cl_pos)
-                client.camera.look_at = tuple(cl_look)
-        except Exception:  # a client that just went away
-            pass
+    return look, look + d * dist
 
 
 #: the free canvas' aspect (width left of the panel / height) the distances of fit_camera were chosen

@@ -18,6 +18,7 @@ from simgap.systems import labelled, units
 from ..layers import geometry as G
 
 ORANGE, BLUE, RED, GREEN = "#f07800", "#2850c8", "#d23232", "#28a050"
+PADDING = (12, 24, 0, 0)  # the charts' padding (top, right, bottom, left) [px], see add()
 
 
 def _axes(x: str, y: str) -> tuple:
@@ -164,5 +165,8 @@ def add(gui, title: str):
     """An empty, hidden chart (its data and series are set by the functions above)."""
     z = np.zeros(2)
     # x is a state variable or a margin, not a time: uPlot's default x scale would print dates
+    # padding (top, right, bottom, left) [px]: room above the plot for the top tick's label (uPlot's
+    # default let the title and that label clip at the canvas' top) and right of it for the last x
+    # tick's (0: uPlot sizes the axes' sides itself)
     return gui.add_uplot(data=(z, z), series=({"label": "x"}, {"label": "y"}), title=title, aspect=1.4,
-                         scales={"x": {"time": False}}, visible=False)
+                         scales={"x": {"time": False}}, visible=False, padding=PADDING)

@@ -68,14 +68,15 @@ def run(args) -> int:
 
     with make_simulator(exp.simulator, exp.system) as sim:
         rate = calibrate_rate(sim, budget=0.3)
+    # sizes refused before the workers time pairs (one pair of a huge N1hat would not fit in memory)
+    check_collection(plan.n_pairs, plan.n_runs, exp.system.n, exp.system.m, exp.system.steps, plan.batch_runs,
+                     ex.workers, plan.keep_samples, store, rate)
     est = printed_collection_estimate(plan, store, ex, c.workers, c.address, rate, ex.workers) \
         if ex.name in ("local", "serial") else \
         estimate_cost(cover, plan.n_runs, rate_per_worker=rate, workers=ex.workers,
                       rate_source=f"calibrated here, executor {ex.name}")
     print(est.summary())
     print(f"N1hat={plan.n_runs}, seed={plan.seed}, {plan.n_chunks} chunks of {plan.chunk_size} pairs")
-    check_collection(plan.n_pairs, plan.n_runs, exp.system.n, exp.system.m, exp.system.steps, plan.batch_runs,
-                     ex.workers, plan.keep_samples, store, rate)
     _check_certify_section(exp, plan)
     if args.dry_run:
         print(f"dry run: nothing collected (store would be {store.absolute()})")

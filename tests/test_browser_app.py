@@ -325,7 +325,7 @@ def _box(mask: np.ndarray):
 
 
 def test_camera_fitted_to_the_window_and_the_pendulum_label_under_its_rod(run_dir, tmp_path):  # noqa: F811
-    """Issue 44, by what the page shows. (1) At 1280 x 800 and 1920 x 1080, three times each: the
+    """Issue 44, by what the page shows. (1) At 1280 x 800 and 1920 x 1080, twice each: the
     window's size is recorded, and the camera the client reports is the fit for that window (a
     redraw's default camera could be sent after the fit now and then: the scene stood partly under
     the panel). (2) The pendulum's label stands under the rod's free end, clear of the rod (it stood
@@ -346,7 +346,7 @@ def test_camera_fitted_to_the_window_and_the_pendulum_label_under_its_rod(run_di
         with sync_playwright() as pw:
             b = pw.chromium.launch(executable_path=S.CHROMIUM, args=S.ARGS)
             try:
-                for k in range(3):
+                for k in range(2):  # (a new page a round: the fit raced the default camera now and then)
                     for w, h in ((1280, 800), (1920, 1080)):
                         page = S.open_page(b, app.url + "/?fixedDpr=1", w, h)
                         client = max(app.server.get_clients().values(), key=lambda c: c.client_id)
@@ -358,7 +358,7 @@ def test_camera_fitted_to_the_window_and_the_pendulum_label_under_its_rod(run_di
                             time.sleep(0.1)
                         assert np.allclose(client.camera.look_at, look, atol=1e-3), (k, w, client.camera.look_at, look)
                         assert np.allclose(client.camera.position, pos, atol=1e-3), (k, w, client.camera.position, pos)
-                        if k < 2:
+                        if k < 1:
                             page.close()
                 # (2) on the last (1920 x 1080) page: the bodies alone, then without the label
                 for lay in scene.LAYERS:

@@ -359,4 +359,7 @@ def test_compare_prints_its_estimate_first_one_bar_and_computes_the_gap_term_onc
     a = certify(ds, lipschitz_term="gap", lhat="simulator")
     b = certify(ds, lipschitz_term="gap", lhat="simulator", beta1=0.02, beta2=0.02)
     assert calls == {"gap": 2, "fhat": 2} and a.dims[1].L_gap == b.dims[1].L_gap
+    # other slope draws (another seed) are not answered from the memo
+    certify(ds, lipschitz_term="gap", lhat="simulator", seed=1)  # the default seed is 0
+    assert calls["gap"] == 3 and calls["fhat"] == 3
     assert pipeline.simulator_rows(ds, pipeline.CertifyOptions(lipschitz_term="gap", lhat="simulator"))["rows"] == 0

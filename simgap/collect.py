@@ -36,7 +36,7 @@ from typing import Callable, Iterable, Optional, Sequence
 import numpy as np
 
 from .checks import check_disk, check_memory, check_seconds
-from .cover import Cover, CoverSpec, make_cover
+from .cover import Cover, CoverSpec, make_cover, timed_rate
 from .dataset import Dataset, load_store
 from .errors import SimgapError
 from .executors import Executor, make_executor
@@ -287,16 +287,17 @@ def _pairs(job: dict, c: int, a: int, b: int, rng: np.random.Generator) -> dict:
     return out
 
 
-def calibrate_chunk(job: dict, c: int, budget: float = 0.3) -> dict:
+def calibrate_chunk(job: dict, c: int, budget: float = 0.3, work: Optional[float] = None) -> dict:
     """In a worker: its set-up time and the pairs per second it computes (runs, statistics and all).
 
     The worker builds its simulator as for the collection (``setup_s``), then computes pairs of
-    chunk ``c`` (drawn from a calibration generator: nothing is stored) as :func:`simgap.cover.calibrate_rate`
-    times runs: growing batches of pairs (x4 from 64 runs, until one takes half the budget) not
-    timed for the rate (a first call at a new size may build per-row resources), then repeated
-    batches of the size reached (two at least) until ``budget`` seconds have passed. The rate is the one the collection's workers achieve, with
-    the collection's own simulator settings (a noise-free collection has its own), on the
-    machine's load at that moment (all workers calibrate at once)."""
+    chunk ``c`` (drawn from a calibration generator: nothing is stored), timed by
+    :func:`simgap.cover.timed_rate`: growing batches of pairs (x4 from 64 runs, until one takes
+    half the budget) not timed for the rate, then repeated batches of the size reached (two at
+    least) until ``budget`` seconds have passed, or a share of the time ``work`` (the pairs this
+    worker will compute) takes. The rate is the one the collection's workers achieve, with the
+    collection's own simulator settings (a noise-free collection has its own), on the machine's
+    load at that moment (all workers calibrate at once)."""
     t0 = time.perf_counter()
     _worker_state(job)
     setup = time.perf_counter() - t0
@@ -305,26 +306,11 @@ def calibrate_chunk(job: dict, c: int, budget: float = 0.3) -> dict:
     a = min(c * S, K - 1)
     most = max(1, min(S, K - a))  # a chunk's pairs at most: a calibration costs no more than a chunk
     rng = np.random.default_rng(0)
-    start = time.perf_counter()
-    p = min(most, max(1, -(-64 // R)))
-    _pairs(job, c, a, a + p, rng)
-    while p < most:
-        t1 = time.perf_counter()
-        p = min(most, 4 * p)
-        _pairs(job, c, a, a + p, rng)
-        # growth up to batches of half the budget: a batched simulator's rate still grows with the batch
-        # (the pendulum's: 64 pairs about 0.6x a whole chunk of 655), so small batches price it long
-        if time.perf_counter() - t1 >= budget / 2 or time.perf_counter() - start >= budget:
-            break
-    pairs, spent = 0, 0.0
-    while True:
-        t1 = time.perf_counter()
-        _pairs(job, c, a, a + p, rng)
-        spent += time.perf_counter() - t1
-        pairs += p
-        if pairs >= 2 * p and time.perf_counter() - start >= budget:  # two batches at least
-            break
-    return {"setup_s": setup, "pairs_per_s": pairs / max(spent, 1e-9), "pid": os.getpid(),
+    # growth up to batches of half the budget: a batched simulator's rate still grows with the batch
+    # (the pendulum's: 64 pairs about 0.6x a whole chunk of 655), so small batches price it long
+    rate = timed_rate(lambda p, timed: _pairs(job, c, a, a + p, rng), -(-64 // R), most, budget, grow=0.5,
+                      work=work)
+    return {"setup_s": setup, "pairs_per_s": rate, "pid": os.getpid(),
             "seconds": time.perf_counter() - t0}
 
 
@@ -486,9 +472,11 @@ def estimate_collection(plan: CollectionPlan, executor: str | Executor = "local"
     W_eff = max(1, min(W, plan.n_chunks))
     ids = sorted({int(i * plan.n_chunks // W_eff) for i in range(W_eff)})
     job = _job(plan)
+    pairs = plan.n_pairs if chunks is None else min(plan.n_pairs, n_chunks * plan.chunk_size)
     res = []
     t0 = time.perf_counter()
-    ex.map_chunks(_calibrate_task, (job, budget), ids, lambda c, r: res.append(r))
+    # each worker's timing: at most ``budget``, and a share of its part of the pairs
+    ex.map_chunks(_calibrate_task, (job, budget, pairs / W_eff), ids, lambda c, r: res.append(r))
     wall = time.perf_counter() - t0
     rate = float(np.mean([r["pairs_per_s"] for r in res]))
     setup = float(max(r["setup_s"] for r in res))
@@ -496,15 +484,14 @@ def estimate_collection(plan: CollectionPlan, executor: str | Executor = "local"
     # a serial executor runs them one after another in this process: no pool)
     start = 0.0 if ex.name == "serial" else max(0.0, wall - max(r["seconds"] for r in res))
     write = _write_seconds(plan)
-    pairs = plan.n_pairs if chunks is None else min(plan.n_pairs, n_chunks * plan.chunk_size)
     secs = collection_seconds(pairs, plan.chunk_size, W, rate, setup, start, write)
     return {"seconds": secs, "pairs_per_s": rate, "runs_per_s": rate * plan.n_runs, "setup_s": setup,
             "start_s": start, "write_s": write, "workers": W, "executor": ex.name}
 
 
 def _calibrate_task(job, c):
-    j, budget = job
-    return calibrate_chunk(j, c, budget)
+    j, budget, work = job
+    return calibrate_chunk(j, c, budget, work)
 
 
 def _write_seconds(plan: CollectionPlan) -> float:
@@ -548,10 +535,8 @@ def printed_collection_estimate(plan, store, executor, workers, address, rate, n
     todo = plan.n_chunks - done
     if todo <= 0:
         return dataclasses.replace(est, seconds=0.0, rate_source="every chunk is stored already")
-    # the workers' timing costs about twice its budget: at most 0.6 s, and about a tenth of what this
-    # machine's one-process rate says the collection takes (a 1 s collection is not timed for 2 s)
-    budget = 0.6 if est.seconds is None else float(np.clip(0.05 * est.seconds * todo / plan.n_chunks, 0.05, 0.6))
-    c = estimate_collection(plan, name, workers or None, address, chunks=todo, budget=budget)
+    # the workers' timing: at most 0.6 s, less for a small collection (timed_rate's share of the work)
+    c = estimate_collection(plan, name, workers or None, address, chunks=todo, budget=0.6)
     src = (f"calibrated in the {name} workers with this collection's settings; + worker start {c['start_s'] + c['setup_s']:.1f} s, "
            f"{c['write_s'] * 1000:.0f} ms to store a chunk" + (f"; {done} of {plan.n_chunks} chunks stored already"
                                                                 if done else ""))

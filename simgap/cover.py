@@ -32,7 +32,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Optional, Sequence
+from typing import Callable, Optional, Sequence
 
 import numpy as np
 
@@ -336,19 +336,62 @@ def format_duration(s: float) -> str:
     return f"{int(s // 3600)} h {int(s % 3600 // 60):02d} min"
 
 
-def calibrate_rate(simulator, n_runs: int = 4096, seed: int = 0, budget: float = 0.5, repeat: int = 1) -> float:
-    """Simulator runs per second in this process: time ``simulator.step`` on random states of X.
+CALIBRATION_SHARE = 0.05  # a rate's timing costs at most about this share of the work it prices
+MIN_CALIBRATION_S = 0.05  # ... and at least this long (two timed batches in any case)
 
-    Batches grow from 64 runs (x4) up to ``n_runs`` until one takes a quarter of ``budget``
-    (or half the budget has passed); none of these is timed for the rate: the first call at a
-    new batch size may build per-row resources (MuJoCo's per-row model copies, a world's
-    bodies), a one-off cost the collection does not pay per batch. The rate is then measured on
-    repeated batches of the size reached, already built, until ``budget`` seconds have passed
-    (at least two batches): runs / seconds over those batches, not one short batch (a single
-    batch of a few milliseconds on a shared machine is noise). A slow simulator (a robot with
-    many substeps) is thus measured within about twice its largest batch plus the budget. Each
-    timed batch takes other rows (a random subset of ``n_runs`` random states), so that a
-    simulator memoizing repeated batches is not timed on its memo.
+
+def timed_rate(batch: Callable[[int, bool], None], first: int, most: int, budget: float, grow: float = 0.25,
+               work: Optional[float] = None) -> float:
+    """Units (runs, pairs) per second of ``batch(k, timed)``, which computes k units.
+
+    Batches grow from ``first`` units (x4) up to ``most`` until one takes ``grow`` x ``budget``
+    (or 2 ``grow`` x ``budget`` has passed); none of these is timed for the rate: the first call
+    at a new batch size may build per-row resources (MuJoCo's per-row model copies, a world's
+    bodies), a one-off cost the priced work does not pay per batch. The rate is then measured on
+    repeated batches of the size reached (``timed`` True: the caller takes other rows each time,
+    so that a memoizing simulator is not timed on its memo), at least two, until ``budget``
+    seconds have passed since the start: units / seconds over those batches (one short batch on
+    a shared machine is noise).
+
+    ``work``: the units the priced stage will compute. Each batch's time says roughly how long
+    that takes, and the budget shrinks to ``CALIBRATION_SHARE`` of it (at least
+    ``MIN_CALIBRATION_S``): a small stage is not timed for longer than it runs."""
+    def shrink(units, seconds):
+        nonlocal budget
+        if work is not None and units > 0:
+            budget = min(budget, max(MIN_CALIBRATION_S, CALIBRATION_SHARE * float(work) * seconds / units))
+
+    start = time.perf_counter()
+    k = max(1, min(int(first), int(most)))
+    batch(k, False)  # warm-up: the first call at this size builds what it needs
+    while k < most:
+        t0 = time.perf_counter()
+        k = min(int(most), 4 * k)
+        batch(k, False)  # the first call at a new size: not timed for the rate
+        dt = time.perf_counter() - t0
+        shrink(k, dt)
+        if dt >= grow * budget or time.perf_counter() - start >= 2 * grow * budget:
+            break
+    units, spent = 0, 0.0
+    while True:
+        t0 = time.perf_counter()
+        batch(k, True)
+        spent += time.perf_counter() - t0
+        units += k
+        shrink(units, spent)
+        if units >= 2 * k and time.perf_counter() - start >= budget:  # two batches at least: one is noise
+            return units / max(spent, 1e-9)
+
+
+def calibrate_rate(simulator, n_runs: int = 4096, seed: int = 0, budget: float = 0.5, repeat: int = 1,
+                   work: Optional[float] = None) -> float:
+    """Simulator runs per second in this process: ``simulator.step`` timed on random states of X
+    by :func:`timed_rate` (batches growing from 64 runs up to ``n_runs`` until one takes a quarter
+    of ``budget``, untimed; then batches of that size until ``budget`` has passed, a shorter one
+    for a small ``work``, the runs the priced stage makes). A slow simulator (a robot with many
+    substeps) is thus measured within about twice its largest batch plus the budget. Each timed
+    batch takes other rows (a random subset of ``n_runs`` random states), so that a simulator
+    memoizing repeated batches is not timed on its memo.
 
     ``repeat``: every state-input row ``repeat`` times in a row, as the stage to be priced steps
     them (the Lipschitz runs per pair): a simulator that simulates identical noise-free rows once
@@ -361,31 +404,18 @@ def calibrate_rate(simulator, n_runs: int = 4096, seed: int = 0, budget: float =
     k = -(-n_runs // rep)
     x = np.repeat(s.x_lo + rng.random((k, s.n)) * (s.x_hi - s.x_lo), rep, axis=0)[:n_runs]
     u = np.repeat(s.inputs[rng.integers(0, s.inputs.shape[0], k)], rep, axis=0)[:n_runs]
-    start = time.perf_counter()
-    b = min(64, n_runs)
-    simulator.step(x[:b], u[:b], rng)  # warm-up: the first call at this size builds what it needs
-    while b < n_runs:
-        t0 = time.perf_counter()
-        b = min(n_runs, 4 * b)
-        simulator.step(x[:b], u[:b], rng)  # the first call at a new size: not timed for the rate
-        if time.perf_counter() - t0 >= budget / 4 or time.perf_counter() - start >= budget / 2:
-            break
-    runs, spent = 0, 0.0
-    while True:
-        # other rows each time: a simulator that memoizes a repeated batch (ParallelSimulator's
-        # memo, a noise-free simulator's identical draws) must not answer from its memo
-        if rep == 1:
-            k = rng.permutation(n_runs)[:b]
+
+    def batch(b, timed):
+        if not timed:
+            rows = slice(0, b)
+        elif rep == 1:  # other rows each time: a memo (ParallelSimulator's, identical noise-free draws)
+            rows = rng.permutation(n_runs)[:b]
         else:  # whole blocks of repeated rows, in another order
-            k = (rng.permutation(-(-n_runs // rep))[:, None] * rep + np.arange(rep)).ravel()
-            k = k[k < n_runs][:b]
-        xb, ub = x[k], u[k]
-        t0 = time.perf_counter()
-        simulator.step(xb, ub, rng)
-        spent += time.perf_counter() - t0
-        runs += b
-        if runs >= 2 * b and time.perf_counter() - start >= budget:  # two batches at least: one is noise
-            return runs / max(spent, 1e-9)
+            rows = (rng.permutation(-(-n_runs // rep))[:, None] * rep + np.arange(rep)).ravel()
+            rows = rows[rows < n_runs][:b]
+        simulator.step(x[rows], u[rows], rng)
+
+    return timed_rate(batch, 64, n_runs, budget, grow=0.25, work=work)
 
 
 def estimate_cost(cover: Cover, n_runs: int, rate_per_worker: Optional[float] = None,

@@ -15,7 +15,8 @@ Backends:
 * ``serial``: in this process, one chunk after the other (debugging, tests, the GUI's small jobs);
 * ``local``: ``concurrent.futures.ProcessPoolExecutor`` with ``workers`` processes (default
   ``os.cpu_count()``). Workers are forked when the caller has a single thread (scripts need no
-  ``if __name__ == "__main__"`` guard) and started by ``forkserver`` when it has more (the GUI),
+  ``if __name__ == "__main__"`` guard) and started by ``forkserver`` when it has more (the GUI)
+  or native threads of their own name (:func:`native_threads`: Ray's outlive ``ray.shutdown()``),
   since forking a threaded process is unsafe;
 * ``ray``: Ray tasks on a cluster (``address``, checked to accept a connection within
   ``RAY_CONNECT_TIMEOUT`` seconds when the executor is made) or on a local instance started
@@ -27,6 +28,7 @@ from __future__ import annotations
 import multiprocessing
 import os
 import signal
+import sys
 import threading
 import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
@@ -80,7 +82,7 @@ class LocalExecutor(Executor):
         method = self.start_method
         if method is None:
             methods = multiprocessing.get_all_start_methods()
-            if threading.active_count() == 1 and "fork" in methods:
+            if threading.active_count() == 1 and "fork" in methods and not native_threads():
                 method = "fork"
             elif "forkserver" in methods:
                 method = "forkserver"
@@ -116,6 +118,25 @@ class LocalExecutor(Executor):
             fut.cancel()
         pool.shutdown(wait=True, cancel_futures=True)
         return done
+
+
+def native_threads() -> list:
+    """Names of this process's threads started by native code under a name of their own (Linux;
+    elsewhere ``["ray"]`` once Ray is loaded, else none). Ray's gRPC threads outlive
+    ``ray.shutdown()`` and are no Python threads: a child forked beside them can inherit one of
+    their locks held and hang for good (seen after a Ray collection in the same process). BLAS and
+    numba threads keep the process's name."""
+    try:
+        own = open("/proc/self/comm").read()
+        names = []
+        for t in os.listdir("/proc/self/task"):
+            try:
+                names.append(open(f"/proc/self/task/{t}/comm").read())
+            except OSError:  # the thread ended meanwhile
+                pass
+    except OSError:
+        return ["ray"] if "ray" in sys.modules else []
+    return sorted({n.strip() for n in names if n != own})
 
 
 class RayExecutor(Executor):

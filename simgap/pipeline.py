@@ -349,7 +349,8 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
 
         data = {}
         with make_simulator(exp.simulator.to_dict(), exp.system) as one:  # one worker's rate, for the estimates
-            rate = calibrate_rate(one, budget=0.3)
+            rate = calibrate_rate(one, budget=0.3, work=exp.plan().n_pairs * float(exp.collect.n_runs)
+                                  + float(au.get("points", 200)) * float(au.get("runs", 2000)))
         n_workers = wk or os.cpu_count() or 1
         # the audits' size is known now: an audit over the limits is refused before the collections
         acost = audit_cost(int(au.get("points", 200)), int(au.get("runs", 2000)), exp.system, rate, workers=n_workers)

@@ -86,12 +86,18 @@ def save(fig, out_dir: Path, name: str) -> list:
     paths = []
     style = getattr(fig, "_simgap_style", "paper")
     with _plt().rc_context(_rc(style)):
+        # lay the figure out and measure its tight box once for every format (each savefig with
+        # bbox_inches="tight" would lay it out twice: a draw to measure, then the drawing)
+        fig.set_dpi(STYLES[style]["dpi"])
+        fig.draw_without_rendering()
+        bbox = fig.get_tightbbox().padded(0.02)
+        fig.set_layout_engine("none")
         for ext in FORMATS:
             final = out_dir / f"{name}.{ext}"
             tmp = out_dir / f".{name}.{os.getpid()}.tmp.{ext}"
             try:
                 _pending(out_dir, final.name, tmp.name)  # listed before it exists: a kill leaves nothing unowned
-                fig.savefig(tmp, dpi=STYLES[style]["dpi"], bbox_inches="tight", pad_inches=0.02)
+                fig.savefig(tmp, dpi=STYLES[style]["dpi"], bbox_inches=bbox)
                 _pending(out_dir, final.name, tmp.name, tmp)
                 tmp.replace(final)
                 _list_figures(out_dir, [final])

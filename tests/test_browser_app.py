@@ -246,6 +246,7 @@ def test_status_progress_and_layout_in_the_page(run_dir, tmp_path):  # noqa: F81
             try:
                 for w, h in ((1920, 1080), (1280, 800)):  # the smaller one goes on with the changes below
                     page = S.open_page(b, app.url + "/?fixedDpr=1", w, h)
+                    _assert_window_fit(app, w, h)  # a second fresh page at each size (see the camera test)
                     tabs, (list_x, list_w) = _tab_boxes(page)
                     assert [t[0] for t in tabs] == ["Data", "Certificate", "Synthesis", "Rollouts", "Per run",
                                                     "Refine", "View"]
@@ -318,6 +319,23 @@ def test_chart_y_label_is_short():
     assert y_label("m", 0) == "gamma, gap [m]" and y_label("", 0) == "gamma, gap" and y_label("", 5) == "gamma, gap [1e5]"
 
 
+def _assert_window_fit(app, w: int, h: int) -> None:
+    """The newest client's window is recorded at w x h and the camera it reports is that window's
+    fit (a redraw's default camera could be sent after the fit now and then: the scene stood partly
+    under the panel)."""
+    from simgap_viz.app import panel_width
+    from simgap_viz.layers import scene
+    client = max(app.server.get_clients().values(), key=lambda c: c.client_id)
+    win = app.windows.get(client.client_id)
+    assert win == {"size": (w, h), "panel": panel_width(w)}, (w, win)
+    look, pos = scene.window_camera(app, win)
+    deadline = time.time() + 10
+    while not np.allclose(client.camera.look_at, look, atol=1e-3) and time.time() < deadline:
+        time.sleep(0.1)
+    assert np.allclose(client.camera.look_at, look, atol=1e-3), (w, client.camera.look_at, look)
+    assert np.allclose(client.camera.position, pos, atol=1e-3), (w, client.camera.position, pos)
+
+
 def _box(mask: np.ndarray):
     """(x0, x1, y0, y1) of a pixel mask's True pixels (None if none)."""
     ys, xs = np.nonzero(mask)
@@ -325,10 +343,9 @@ def _box(mask: np.ndarray):
 
 
 def test_camera_fitted_to_the_window_and_the_pendulum_label_under_its_rod(run_dir, tmp_path):  # noqa: F811
-    """Issue 44, by what the page shows. (1) At 1280 x 800 and 1920 x 1080, twice each: the
-    window's size is recorded, and the camera the client reports is the fit for that window (a
-    redraw's default camera could be sent after the fit now and then: the scene stood partly under
-    the panel). (2) The pendulum's label stands under the rod's free end, clear of the rod (it stood
+    """Issue 44, by what the page shows. (1) At 1280 x 800 and 1920 x 1080 (a fresh page each, and
+    again in test_status_progress_and_layout_in_the_page): the window's size is recorded, and the
+    camera the client reports is the fit for that window (:func:`_assert_window_fit`). (2) The pendulum's label stands under the rod's free end, clear of the rod (it stood
     above the pivot, where the view from above draws the rod's upper end): with every other layer
     removed, the label's pixels (the difference with the label removed) start below the rod's lowest
     pixel and overlap its columns."""
@@ -346,20 +363,11 @@ def test_camera_fitted_to_the_window_and_the_pendulum_label_under_its_rod(run_di
         with sync_playwright() as pw:
             b = pw.chromium.launch(executable_path=S.CHROMIUM, args=S.ARGS)
             try:
-                for k in range(2):  # (a new page a round: the fit raced the default camera now and then)
-                    for w, h in ((1280, 800), (1920, 1080)):
-                        page = S.open_page(b, app.url + "/?fixedDpr=1", w, h)
-                        client = max(app.server.get_clients().values(), key=lambda c: c.client_id)
-                        win = app.windows.get(client.client_id)
-                        assert win == {"size": (w, h), "panel": panel_width(w)}, (k, w, win)
-                        look, pos = scene.window_camera(app, win)
-                        deadline = time.time() + 10
-                        while not np.allclose(client.camera.look_at, look, atol=1e-3) and time.time() < deadline:
-                            time.sleep(0.1)
-                        assert np.allclose(client.camera.look_at, look, atol=1e-3), (k, w, client.camera.look_at, look)
-                        assert np.allclose(client.camera.position, pos, atol=1e-3), (k, w, client.camera.position, pos)
-                        if k < 1:
-                            page.close()
+                for w, h in ((1280, 800), (1920, 1080)):  # (test_status_progress_and_layout_in_the_page
+                    page = S.open_page(b, app.url + "/?fixedDpr=1", w, h)  # checks a second page at each size)
+                    _assert_window_fit(app, w, h)
+                    if w == 1280:
+                        page.close()
                 # (2) on the last (1920 x 1080) page: the bodies alone, then without the label
                 for lay in scene.LAYERS:
                     if lay.key != "bodies":

@@ -18,6 +18,10 @@ def test_ray_equals_local_pool(tmp_path):
                           effects={"joint_damping": 0.1}, options={"branches": 25})
     plan = CollectionPlan(s, sim, make_cover(s, 0.05), n_runs=20, seed=123, chunk_size=97)
     r_ray = collect(plan, tmp_path / "ray", executor="ray", workers=2)
+    # Ray's native threads outlive its shutdown: the pool after it must not fork beside them (a forked
+    # worker hung for good in a lock one of them held, now and then)
+    from simgap.executors import LocalExecutor, native_threads
+    assert native_threads() and LocalExecutor(2)._context().get_start_method() == "forkserver"
     r_pool = collect(plan, tmp_path / "pool", executor="local", workers=2)
     assert r_ray.complete and r_ray.computed == plan.n_chunks > 2
     a, b = load_store(tmp_path / "ray"), load_store(tmp_path / "pool")

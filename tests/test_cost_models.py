@@ -78,6 +78,40 @@ def test_calibrate_rate_slow_simulator_stops_growing(clock):
     assert max(sim.calls) == 256 and sim.calls == [64, 256, 256, 256]
 
 
+def test_a_small_stage_is_timed_for_a_share_of_its_work(clock):
+    """10 us per run and a stage of 20,000 runs (0.2 s): the budget falls to 0.05 s (the floor; 5 %
+    of the work would be 0.01 s), so the batches grow to 4,096 runs (a quarter of it is 12.5 ms)
+    and two of them are timed: 13,632 runs, 0.136 s, with the same rate. Without ``work`` (and before it existed)
+    the timing ran for the whole 0.5 s budget, 2.5x the stage it priced (a tiny ``simgap run``
+    spent 1.9 of its 6.3 s timing simulators). A large stage keeps the whole budget."""
+    sim = FakeSim(clock, per_run=1e-5)
+    rate = cover_mod.calibrate_rate(sim, n_runs=4096, budget=0.5, work=20_000)
+    assert rate == pytest.approx(1e5, rel=1e-9)
+    spent_small = clock.t
+    assert spent_small == pytest.approx((64 + 256 + 1024 + 4096 + 2 * 4096) * 1e-5)
+    clock.t = 0.0
+    cover_mod.calibrate_rate(FakeSim(clock, per_run=1e-5), n_runs=4096, budget=0.5)
+    assert clock.t >= 0.5
+    clock.t = 0.0
+    cover_mod.calibrate_rate(FakeSim(clock, per_run=1e-5), n_runs=4096, budget=0.5, work=1e9)  # 10,000 s of work
+    assert clock.t >= 0.5
+
+
+def test_timed_rate_budget_follows_the_work(clock):
+    """timed_rate on 1 ms units with work of 2,000 units (2 s): 5 % is 0.1 s, so after the growing
+    batches (1 + 4 + 16 units, untimed) it times two batches of 64 (the second ends past 0.1 s):
+    128 units / 0.128 s = 1,000 units/s."""
+    calls = []
+
+    def batch(k, timed):
+        clock.t += k * 1e-3
+        calls.append((k, timed))
+
+    rate = cover_mod.timed_rate(batch, 1, 64, budget=1.0, grow=0.25, work=2000)
+    assert rate == pytest.approx(1000.0)
+    assert calls == [(1, False), (4, False), (16, False), (64, False), (64, True), (64, True)]
+
+
 class MemoSim(FakeSim):
     """Answers a batch it has seen (same rows) from a memo, at no cost: ParallelSimulator's memo of
     large batches, or any simulator whose noise-free draws repeat."""
@@ -195,10 +229,11 @@ def test_audit_rate_times_the_audit_batch(clock, monkeypatch):
     import importlib
     A = importlib.import_module("simgap.certify.audit")
     seen = []
-    monkeypatch.setattr(cover_mod, "calibrate_rate", lambda sim, n_runs, budget: seen.append(n_runs) or 2e5)
-    assert A.audit_rate(object(), 200, 2000) == 2e5 and seen[-1] == 65536
+    monkeypatch.setattr(cover_mod, "calibrate_rate",
+                        lambda sim, n_runs, budget, work: seen.append((n_runs, work)) or 2e5)
+    assert A.audit_rate(object(), 200, 2000) == 2e5 and seen[-1] == (65536, 400_000)
     A.audit_rate(object(), 10, 100)
-    assert seen[-1] == 1000
+    assert seen[-1] == (1000, 1000)  # the audit's runs: the timing's share of them
     c = A.audit_cost(200, 2000, get_system("pendulum"), 2e5, workers=1)
     assert c["seconds"] == pytest.approx(2.0)
 

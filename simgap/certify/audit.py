@@ -83,7 +83,7 @@ def audit_rate(simulator, points: int, runs: int, chunk_samples: int = CHUNK_SAM
     from ..cover import calibrate_rate
     load_fitting_modules()
     rows = min(int(points), max(1, int(chunk_samples) // max(1, int(runs)))) * int(runs)
-    return calibrate_rate(simulator, n_runs=max(64, min(rows, 65536)), budget=budget)
+    return calibrate_rate(simulator, n_runs=max(64, min(rows, 65536)), budget=budget, work=float(points) * float(runs))
 
 
 def audit_cost_text(c: dict) -> str:

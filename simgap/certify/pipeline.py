@@ -640,7 +640,7 @@ def simulator_rows(ds, o: CertifyOptions) -> dict:
 
 def lhat_cost(ds, o: CertifyOptions, simulator) -> Optional[dict]:
     """:func:`simgap.certify.lipschitz.crn_cost` of every simulator run ``certify(ds, o)`` will make,
-    at ``simulator``'s rate measured here (about 0.3 s); None when it makes none. Checks the pair
+    at ``simulator``'s rate measured here (0.05-0.3 s); None when it makes none. Checks the pair
     distance first (a refusal costs no run) and refuses work over the memory or time limits."""
     from ..cover import calibrate_rate
     from .audit import load_fitting_modules
@@ -650,8 +650,10 @@ def lhat_cost(ds, o: CertifyOptions, simulator) -> Optional[dict]:
     load_fitting_modules()
     if rows["fhat_rows"]:
         check_pair_distance(ds.system, ds.epsilon, [j for j in range(ds.system.n) if j not in invariant_dims(ds)])
-    cost = crn_cost(o.lhat_pairs if rows["fhat_rows"] else 0, o.lhat_runs, ds.system,
-                    calibrate_rate(simulator, budget=0.3, repeat=int(o.lhat_runs)),  # rows repeated as the runs step them
+    pairs = o.lhat_pairs if rows["fhat_rows"] else 0
+    work = crn_cost(pairs, o.lhat_runs, ds.system, gap_rows=rows["gap_rows"])["rows"]
+    cost = crn_cost(pairs, o.lhat_runs, ds.system,
+                    calibrate_rate(simulator, budget=0.3, repeat=int(o.lhat_runs), work=work),  # rows repeated as the runs step them
                     gap_rows=rows["gap_rows"])
     check_crn_cost(cost)
     return cost

@@ -67,7 +67,7 @@ def run(args) -> int:
     ex = make_executor(c.executor, c.workers, c.address)
 
     with make_simulator(exp.simulator, exp.system) as sim:
-        rate = calibrate_rate(sim, budget=0.3)
+        rate = calibrate_rate(sim, budget=0.3, work=plan.n_pairs * float(plan.n_runs))
     # sizes refused before the workers time pairs (one pair of a huge N1hat would not fit in memory)
     check_collection(plan.n_pairs, plan.n_runs, exp.system.n, exp.system.m, exp.system.steps, plan.batch_runs,
                      ex.workers, plan.keep_samples, store, rate)

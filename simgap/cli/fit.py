@@ -104,7 +104,7 @@ def run(args) -> int:
     rows = len(x) * len(s.inputs)
     cfg = dataclasses.replace(exp.simulator, noise={}, randomize={})
     with make_simulator(cfg, s) as sim:
-        rate = calibrate_rate(sim, n_runs=min(rows, 4096), budget=0.3)
+        rate = calibrate_rate(sim, n_runs=min(rows, 4096), budget=0.3, work=rows)
         print(f"estimate: {len(x):,} states x {len(s.inputs)} inputs = {rows:,} noise-free simulator runs, about "
               f"{format_duration(rows / rate)} at {rate:,.0f} runs/s (calibrated here), then the least-squares fit",
               flush=True)

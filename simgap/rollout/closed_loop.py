@@ -397,7 +397,8 @@ def rollout(controller, simulator, x0=None, n_rollouts: int = 1000, horizon: Opt
                   True)
         cost = rollout_cost(n_rollouts, horizon, int(mean_map_runs),
                             # the rate at the batch the rollouts step (R rows per call, mean map runs per call)
-                            calibrate_rate(simulator, n_runs=max(int(n_rollouts), int(mean_map_runs), 1), budget=0.3),
+                            calibrate_rate(simulator, n_runs=max(int(n_rollouts), int(mean_map_runs), 1), budget=0.3,
+                                           work=(float(n_rollouts) + float(mean_map_runs)) * horizon),
                             expected_steps=expected_rollout_steps(spec, nt, controller, x0, hold))
         estimate_s = cost["seconds"]
         on_estimate(rollout_cost_text(cost))

@@ -31,7 +31,7 @@ def open_page(browser, url: str, width: int = 1280, height: int = 800):
     page.locator("canvas").first.wait_for(timeout=60_000)
     time.sleep(1.0)
     close_toasts(page)
-    time.sleep(3.0)  # the scene fades in after connecting
+    settled_canvas(page)  # the scene's nodes arrive and fade in after connecting
     return page
 
 
@@ -61,6 +61,29 @@ def redraw(page, settle: float = 6.0) -> None:
     time.sleep(1.0)
     page.set_viewport_size(vp)
     time.sleep(settle)
+
+
+def settled_canvas(page, path=None, changed_from: bytes | None = None, interval: float = 0.25,
+                   timeout: float = 60.0) -> bytes:
+    """The 3-D canvas once it stopped changing (bytes of a PNG; also written to ``path``): screenshots
+    every ``interval`` s until three in a row are the same. With ``changed_from`` (an earlier
+    screenshot) it first waits for the canvas to differ from it: a change just sent to the client may
+    not be drawn yet. A fixed wait was either long on an idle machine or short under load. After
+    ``timeout`` s the last screenshot is returned as it is."""
+    deadline = time.time() + timeout
+    shot = canvas_png(page)
+    while changed_from is not None and shot == changed_from and time.time() < deadline:
+        time.sleep(interval)
+        shot = canvas_png(page)
+    same = 0
+    while same < 2 and time.time() < deadline:
+        time.sleep(interval)
+        nxt = canvas_png(page)
+        same = same + 1 if nxt == shot else 0
+        shot = nxt
+    if path is not None:
+        Path(path).write_bytes(shot)
+    return shot
 
 
 def canvas_png(page, path=None) -> bytes:

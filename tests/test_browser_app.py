@@ -162,20 +162,18 @@ def test_default_scene_shows_the_map_and_the_runs(run_dir, tmp_path):  # noqa: F
             try:
                 page = S.open_page(b, app.url + "/?fixedDpr=1", 1280, 800)
                 _assert_window_fit(app, 1280, 800)  # (the camera test checks 1920 x 1080)
-                S.show_tab(page, "View", settle=3.0)
-                A = _rgb(S.canvas_png(page, tmp_path / "A.png"))
+                S.show_tab(page, "View", settle=0.5)
+                a = S.settled_canvas(page, tmp_path / "A.png")
                 app.set_time(n_draw=0)  # the bold lines stay
-                time.sleep(2.5)
-                C = _rgb(S.canvas_png(page, tmp_path / "C.png"))
+                c = S.settled_canvas(page, tmp_path / "C.png", changed_from=a)
                 app.server.scene.remove_by_name("/rollouts")  # the bold lines too
-                time.sleep(2.5)
-                D = _rgb(S.canvas_png(page, tmp_path / "D.png"))
+                d = S.settled_canvas(page, tmp_path / "D.png", changed_from=c)
                 for lay in scene.LAYERS:  # everything but the winning map (and the bodies beside it)
                     if lay.key not in ("winning", "bodies"):
                         for node in lay.nodes:
                             app.server.scene.remove_by_name(node)
-                time.sleep(2.5)
-                R = _rgb(S.canvas_png(page, tmp_path / "R.png"))
+                A, C, D = _rgb(a), _rgb(c), _rgb(d)
+                R = _rgb(S.settled_canvas(page, tmp_path / "R.png", changed_from=d))
             finally:
                 b.close()
     finally:
@@ -368,16 +366,15 @@ def test_camera_fitted_to_the_window_and_the_pendulum_label_under_its_rod(run_di
                 # second fresh page at each size)
                 page = S.open_page(b, app.url + "/?fixedDpr=1", 1920, 1080)
                 _assert_window_fit(app, 1920, 1080)
-                # (2) on the last (1920 x 1080) page: the bodies alone, then without the label
+                # (2) on the 1920 x 1080 page: the bodies alone, then without the label
+                before = S.canvas_png(page)
                 for lay in scene.LAYERS:
                     if lay.key != "bodies":
                         for node in lay.nodes:
                             app.server.scene.remove_by_name(node)
-                time.sleep(2.5)
-                R1 = _rgb(S.canvas_png(page, tmp_path / "bodies.png"))
+                r1 = S.settled_canvas(page, tmp_path / "bodies.png", changed_from=before)
                 app.server.scene.remove_by_name("/bodies/label")
-                time.sleep(2.5)
-                R2 = _rgb(S.canvas_png(page, tmp_path / "rod.png"))
+                R1, R2 = _rgb(r1), _rgb(S.settled_canvas(page, tmp_path / "rod.png", changed_from=r1))
             finally:
                 b.close()
     finally:

@@ -354,12 +354,16 @@ def timed_rate(batch: Callable[[int, bool], None], first: int, most: int, budget
     a shared machine is noise).
 
     ``work``: the units the priced stage will compute. Each batch's time says roughly how long
-    that takes, and the budget shrinks to ``CALIBRATION_SHARE`` of it (at least
-    ``MIN_CALIBRATION_S``): a small stage is not timed for longer than it runs."""
+    that takes, and the timed batches stop after ``CALIBRATION_SHARE`` of it (at least
+    ``MIN_CALIBRATION_S``; two batches in any case): a small stage is not timed for longer than it
+    runs. The growth keeps the whole budget: the batch timed is the stage's own size where it can be
+    (a parallel simulator splits large batches over its helpers, small ones not: the rate differs)."""
+    timed_budget = budget
+
     def shrink(units, seconds):
-        nonlocal budget
+        nonlocal timed_budget
         if work is not None and units > 0:
-            budget = min(budget, max(MIN_CALIBRATION_S, CALIBRATION_SHARE * float(work) * seconds / units))
+            timed_budget = min(timed_budget, max(MIN_CALIBRATION_S, CALIBRATION_SHARE * float(work) * seconds / units))
 
     start = time.perf_counter()
     k = max(1, min(int(first), int(most)))
@@ -379,8 +383,8 @@ def timed_rate(batch: Callable[[int, bool], None], first: int, most: int, budget
         spent += time.perf_counter() - t0
         units += k
         shrink(units, spent)
-        if units >= 2 * k and time.perf_counter() - start >= budget:  # two batches at least: one is noise
-            return units / max(spent, 1e-9)
+        if units >= 2 * k and (time.perf_counter() - start >= budget or spent >= timed_budget):
+            return units / max(spent, 1e-9)  # two batches at least: one is noise
 
 
 def calibrate_rate(simulator, n_runs: int = 4096, seed: int = 0, budget: float = 0.5, repeat: int = 1,

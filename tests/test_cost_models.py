@@ -79,9 +79,10 @@ def test_calibrate_rate_slow_simulator_stops_growing(clock):
 
 
 def test_a_small_stage_is_timed_for_a_share_of_its_work(clock):
-    """10 us per run and a stage of 20,000 runs (0.2 s): the budget falls to 0.05 s (the floor; 5 %
-    of the work would be 0.01 s), so the batches grow to 4,096 runs (a quarter of it is 12.5 ms)
-    and two of them are timed: 13,632 runs, 0.136 s, with the same rate. Without ``work`` (and before it existed)
+    """10 us per run and a stage of 20,000 runs (0.2 s): the batches grow to 4,096 runs (the whole
+    budget bounds the growth: the rate is timed at the stage's batch size) and the timing stops after
+    two of them, 0.082 s, past the 0.05 s floor (5 % of the work would be 0.01 s): 13,632 runs,
+    0.136 s, with the same rate. Without ``work`` (and before it existed)
     the timing ran for the whole 0.5 s budget, 2.5x the stage it priced (a tiny ``simgap run``
     spent 1.9 of its 6.3 s timing simulators). A large stage keeps the whole budget."""
     sim = FakeSim(clock, per_run=1e-5)

@@ -9,7 +9,7 @@ and their ratio (measured / estimate; within 2x means 0.5-2). A run records both
 (``estimated_seconds`` and ``seconds``); runs made before ``estimated_seconds`` existed have no
 estimates to compare. Only stages whose measured time is at least ``--min-seconds`` (1 s) are
 judged: a sub-second stage's ratio is start-up and scheduling noise (printed, marked "-").
-What each estimate counts (README, "What the estimates count, and how close they come"):
+What each estimate counts (docs/benchmarks.md, "What the estimates count, and how close they come"):
 collection: the pairs' runs and statistics at the rate the executor's workers achieve (timed in
 them, with the collection's own settings: the noise-free one has its own), the workers' start and
 set-up, a chunk's writing; audit: its runs at the rate of its own simulator at its batch size;

@@ -1,4 +1,4 @@
-"""Idle CPU of ``simgap view`` (run by hand; the numbers go to docs/app.md and the README).
+"""Idle CPU of ``simgap view`` (run by hand; the numbers go to docs/app.md and docs/getting-started.md).
 
     python bench/bench_view_cpu.py results/pendulum-small [--seconds 30]
 

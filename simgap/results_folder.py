@@ -24,7 +24,7 @@ list), owns nothing: the files it names are foreign, kept, and refused if the ru
 them. Only names simgap writes (:data:`RESULT_PATTERNS`) can be owned at all.
 
 The digests detect accidents and mix-ups, not forgery: whoever edits a file can recompute its
-digest in ``summary.json`` too (README, "What the digests protect against").
+digest in ``summary.json`` too (docs/deviations.md, "What the digests protect against").
 """
 
 from __future__ import annotations

@@ -8,7 +8,7 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
 #: seconds per xdist group (a test file, or "ray") measured in a default run; the groups a run measures
-#: are updated by `python -m pytest -n 2 --dist loadgroup --store-durations` (README "Tests")
+#: are updated by `python -m pytest -n 2 --dist loadgroup --store-durations` (docs/tests.md)
 DURATIONS = Path(__file__).with_name("durations.json")
 
 

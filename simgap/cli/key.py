@@ -4,7 +4,7 @@
     SIMGAP_SIGNING_KEY=~/.simgap/key simgap certify data --out cert.json     # signed
     SIMGAP_TRUSTED_KEYS=key.pub simgap synthesize --cert cert.json ...       # verified
 
-What the digests and signatures protect against: README, "Integrity".
+What the digests and signatures protect against: docs/deviations.md, "Integrity".
 """
 
 from __future__ import annotations

@@ -103,7 +103,7 @@ def check_deviations(dataset) -> None:
     with a recomputed digest): each pair's top |d| must be finite, >= 0 and descending; the
     largest must equal max(hi - f_nom, f_nom - lo) (the runs' own extremes, kept beside them);
     and their squares cannot add up to more than all N1hat squared deviations,
-    (N1hat - 1) var + N1hat (mean - f_nom)^2. A plausibility check, not a proof (README)."""
+    (N1hat - 1) var + N1hat (mean - f_nom)^2. A plausibility check, not a proof (docs/deviations.md)."""
     top = np.asarray(dataset.absdev_top, dtype=float)
     where = "the data set's per-run deviations (absdev_top)"
     if not np.all(np.isfinite(top)):

@@ -1,38 +1,61 @@
-"""Regenerate (or check) the README's numbers from `simgap run` result folders.
+"""Write (or check) the numbers the README and the docs pages state about runs, from the runs' own files.
 
-    python bench/readme_numbers.py results/pendulum-small results/turtlebot-small            # print
-    python bench/readme_numbers.py results/pendulum-small results/turtlebot-small --check    # exit 1 on drift
-    python bench/readme_numbers.py results/pendulum-small results/turtlebot-small --write    # update README.md
-    python bench/readme_numbers.py results/turtlebot-separation --check   # the separation scan's table
+    python bench/readme_numbers.py                                   # check every page against bench/results
+    python bench/readme_numbers.py --write                           # rewrite the pages from bench/results
+    python bench/readme_numbers.py results/pendulum-small --check    # check against a run of your own
+    python bench/readme_numbers.py results/pendulum-small --write    # put a fresh run's numbers in
 
-What it covers: the block under "What `simgap run pendulum` prints" (the comparison table of the
-pendulum's small profile) and the numeric cells of the Results table's rows for the runs given
-(matched by experiment and profile; the row's label text is kept). Everything is read from each
-folder's summary.json; nothing is recomputed. tests/test_pipeline.py runs the check for the
-pendulum's small profile on the run it makes, so that row and block cannot drift unnoticed.
-A folder holding ``separation.json`` (bench/turtlebot_separation.py) is a scan: its Markdown
-table goes between the README's ``turtlebot-separation`` markers.
+Sources are `simgap run` result folders (their summary.json) and scan folders (a ``separation.json``
+made by bench/turtlebot_separation.py). Without arguments the committed sources under bench/results/
+are used (SOURCES): each carries a ``provenance.json`` with the date, the load average and the
+command of the run it came from, and the pages say that date and load next to the numbers.
+
+What a source writes, per page (PAGES), found by its anchor in the page's text:
+
+* ``printed``: the comparison table under ``$ simgap run pendulum`` (README.md,
+  docs/getting-started.md), without the machine-dependent wall times;
+* ``rows``: the numeric cells of a results-table row, matched by its label (the first cell, a link's
+  text) and the run's (experiment, profile): README.md's compact row (stochastic gamma, confidence,
+  winning cells, failures) and docs/results.md's full row (both gammas, confidence, audits, winning
+  cells, failures); the row's other cells are kept;
+* ``separation``: the TurtleBot scan's tables between the SEPARATION_MARKERS
+  (docs/turtlebot-separation.md).
+
+Nothing is recomputed: every number is formatted from the source file. tests/test_docs.py checks
+every page against the committed sources (a hand edit of a page or of a source fails it) and
+tests/test_pipeline.py the pendulum's small profile against the run it makes.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-# Results-table label prefix per (experiment, profile)
+# the committed sources the pages are written from (folders under bench/results)
+SOURCES = ["bench/results/runs/pendulum-small", "bench/results/turtlebot-separation"]
+# full results-table label prefix per (experiment, profile): docs/results.md
 ROW_LABELS = {("pendulum", "small"): "pendulum, small", ("pendulum", "paper"): "pendulum, paper",
               ("pendulum", "noisy"): "pendulum, noisy", ("turtlebot", "small"): "TurtleBot, small",
               ("turtlebot", "gazebo"): "TurtleBot, gazebo", ("turtlebot", "gazebo_n400"): "TurtleBot, N1hat 400",
               ("pendulum", "tight"): "pendulum, tight", ("turtlebot", "tight"): "TurtleBot, tight",
               ("cartpole", "small"): "cart-pole, Gymnasium", ("cartpole", "tight"): "cart-pole, tight",
               ("cartpole", "refined"): "cart-pole, refined"}
-PRINTED_RUN = ("pendulum", "small")  # the run whose printed table the README shows
-# the README's block of the TurtleBot separation scan (bench/turtlebot_separation.py)
+# the README's compact table: one row per case study
+README_LABELS = {("pendulum", "small"): "pendulum, small", ("pendulum", "paper"): "pendulum, paper",
+                 ("turtlebot", "small"): "TurtleBot"}
+PRINTED_RUN = ("pendulum", "small")  # the run whose printed table the pages show
 SEPARATION_MARKERS = ("<!-- turtlebot-separation table (bench/readme_numbers.py) -->",
                       "<!-- end turtlebot-separation table -->")
+# what each page holds (looked up by file name, so a copy of a page elsewhere is treated the same)
+PAGES = {"README.md": {"printed": True, "rows": "compact"},
+         "getting-started.md": {"printed": True},
+         "results.md": {"rows": "full"},
+         "turtlebot-separation.md": {"separation": True}}
+PAGE_PATHS = ["README.md", "docs/getting-started.md", "docs/results.md", "docs/turtlebot-separation.md"]
 
 
 def separation_table(table: dict) -> str:
@@ -44,19 +67,19 @@ def separation_table(table: dict) -> str:
     return mod.markdown_table(table)
 
 
-def apply_separation(readme: str, table: dict) -> tuple:
-    """(new README text, differences) with the scan's table between the markers."""
-    lines = readme.split("\n")
+def apply_separation(text: str, table: dict) -> tuple:
+    """(new page text, differences) with the scan's table between the markers."""
+    lines = text.split("\n")
     try:
         a = lines.index(SEPARATION_MARKERS[0]) + 1
         b = lines.index(SEPARATION_MARKERS[1], a)
     except ValueError:
-        return readme, ["README has no turtlebot-separation markers"]
+        return text, ["the page has no turtlebot-separation markers"]
     want = separation_table(table).split("\n")
     if lines[a:b] == want:
-        return readme, []
-    diff = ("the separation scan's table differs:\n  README: " + "\n          ".join(lines[a:b])
-            + "\n  scan:   " + "\n          ".join(want))
+        return text, []
+    diff = ("the separation scan's table differs:\n  page: " + "\n        ".join(lines[a:b])
+            + "\n  scan: " + "\n        ".join(want))
     lines[a:b] = want
     return "\n".join(lines), [diff]
 
@@ -67,46 +90,67 @@ def printed_table(summary: dict) -> str:
     return comparison_table({k: v for k, v in summary.items() if k not in ("seconds", "wall_seconds")}).rstrip()
 
 
-def row_cells(summary: dict) -> list:
-    """The Results table's numeric cells: gamma det, gamma sto, confidence, audit, winning, failures."""
-    det, sto = summary["methods"]["deterministic"], summary["methods"]["stochastic"]
+def _gamma(e: dict) -> str:
+    return ", ".join(f"{v:.3g}" for v in e["gamma"]["max"])
 
-    def g(e):
-        return ", ".join(f"{v:.3g}" for v in e["gamma"]["max"])
+
+def row_cells(summary: dict) -> list:
+    """docs/results.md's numeric cells: gamma det, gamma sto, confidence, audit, winning, failures."""
+    det, sto = summary["methods"]["deterministic"], summary["methods"]["stochastic"]
 
     def fails(e):
         return f"{e['failures']} / {e['n_rollouts']}" if "failures" in e else "-"
 
-    return [g(det), g(sto), f"{sto['confidence_joint']:.2f}",
+    return [_gamma(det), _gamma(sto), f"{sto['confidence_joint']:.2f}",
             f"{det['audit_pass_rate_joint']:.2f} / {sto['audit_pass_rate_joint']:.2f}",
             f"{det['winning_cells']:,} / {sto['winning_cells']:,}", f"{fails(det)} / {fails(sto)}"]
+
+
+def compact_cells(summary: dict) -> list:
+    """The README's numeric cells: gamma sto, confidence, winning det / sto, failures det / sto (of 1000)."""
+    det, sto = summary["methods"]["deterministic"], summary["methods"]["stochastic"]
+    n = {e.get("n_rollouts") for e in (det, sto)}
+    fails = f"{det.get('failures', '-')} / {sto.get('failures', '-')}" + ("" if n == {1000} else f" (of {n.pop()})")
+    return [_gamma(sto), f"{sto['confidence_joint']:.2f}", f"{det['winning_cells']:,} / {sto['winning_cells']:,}",
+            fails]
 
 
 def _split_row(line: str) -> list:
     return [c.strip() for c in line.strip().strip("|").split("|")]
 
 
-def apply(readme: str, summaries: list) -> tuple:
-    """(new README text, list of differences) with the given runs' numbers put in."""
-    lines = readme.split("\n")
+def _label(cell: str) -> str:
+    """A row's label with a Markdown link reduced to its text."""
+    return re.sub(r"\[([^\]]*)\]\([^)]*\)", r"\1", cell)
+
+
+def apply(text: str, summaries: list, rows: str = "full", printed: bool = True) -> tuple:
+    """(new page text, list of differences) with the given runs' numbers put in: their results-table
+    rows (``rows``: "full", "compact" or "" for none) and, with ``printed``, the printed table."""
+    lines = text.split("\n")
     diffs = []
     for s in summaries:
         key = (s["experiment"], s.get("profile"))
-        label = ROW_LABELS.get(key)
-        if label is None:
-            diffs.append(f"{key}: no Results row is known for this run")
-            continue
-        hits = [i for i, ln in enumerate(lines) if ln.startswith(f"| {label}")]
-        if len(hits) != 1:
-            diffs.append(f"{label}: {len(hits)} Results rows start with this label (need 1)")
-            continue
-        i = hits[0]
-        cells = _split_row(lines[i])
-        want = row_cells(s)
-        if cells[1:7] != want:
-            diffs.append(f"{label}: README {cells[1:7]} != run {want}")
-            lines[i] = "| " + " | ".join([cells[0], *want, *cells[7:]]) + " |"
-        if key == PRINTED_RUN:
+        if rows:
+            labels, cells_of, first = ((ROW_LABELS, row_cells, 1) if rows == "full" else (README_LABELS, compact_cells, 2))
+            label = labels.get(key)
+            if label is None:  # the README's compact table has a row for some runs only
+                if rows == "full":
+                    diffs.append(f"{key}: no results row is known for this run")
+            else:
+                hits = [i for i, ln in enumerate(lines) if ln.startswith("| ")
+                        and (_label(_split_row(ln)[0]) + " ").startswith(label + " ")]
+                if len(hits) != 1:
+                    diffs.append(f"{label}: {len(hits)} results rows start with this label (need 1)")
+                else:
+                    i = hits[0]
+                    cells = _split_row(lines[i])
+                    want = cells_of(s)
+                    if cells[first:first + len(want)] != want:
+                        diffs.append(f"{label}: page {cells[first:first + len(want)]} != run {want}")
+                        cells[first:first + len(want)] = want
+                        lines[i] = "| " + " | ".join(cells) + " |"
+        if printed and key == PRINTED_RUN:
             table = printed_table(s).split("\n")
             table = table[:table.index("")] if "" in table else table  # notes below the table are not shown
             try:
@@ -114,55 +158,92 @@ def apply(readme: str, summaries: list) -> tuple:
                 b = lines.index("", a)
                 # the block shows the run's stage lines first; the table starts at its column header
                 a = next(i for i in range(a, b) if lines[i].split() == table[0].split())
-            except ValueError:
-                diffs.append("README has no `$ simgap run pendulum` block")
+            except (ValueError, StopIteration):
+                diffs.append("the page has no `$ simgap run pendulum` block")
                 continue
             if lines[a:b] != table:
-                diffs.append("the printed `simgap run pendulum` table differs:\n  README: "
-                             + "\n          ".join(lines[a:b]) + "\n  run:    " + "\n          ".join(table))
+                diffs.append("the printed `simgap run pendulum` table differs:\n  page: "
+                             + "\n        ".join(lines[a:b]) + "\n  run:  " + "\n        ".join(table))
                 lines[a:b] = table
     return "\n".join(lines), diffs
 
 
+def apply_page(path: Path, text: str, summaries: list, scans: list) -> tuple:
+    """(new text, differences) of one page, by what PAGES says it holds (by file name)."""
+    spec = PAGES.get(path.name)
+    if spec is None:
+        return text, [f"{path}: not a page with run numbers (known: {', '.join(PAGES)})"]
+    diffs = []
+    if summaries and (spec.get("rows") or spec.get("printed")):
+        mine = [s for s in summaries if spec.get("rows") or (s["experiment"], s.get("profile")) == PRINTED_RUN]
+        text, diffs = apply(text, mine, spec.get("rows", ""), spec.get("printed", False))
+    if spec.get("separation"):
+        for t in scans:
+            text, d = apply_separation(text, t)
+            diffs += d
+    return text, [f"{path.name}: {d}" for d in diffs]
+
+
+def provenance(folder: Path) -> str:
+    """'date, load average, command' of a committed source, from its provenance.json."""
+    f = folder / "provenance.json"
+    if not f.is_file():
+        return "no provenance.json"
+    p = json.loads(f.read_text())
+    return f"{p['date']}, load average {p['load']}: {p['command']}"
+
+
+def load_sources(folders: list) -> tuple:
+    """(summaries, scans) of the given folders; raises ValueError naming an unreadable one."""
+    summaries, scans = [], []
+    for r in map(Path, folders):
+        f = r / "separation.json" if (r / "separation.json").is_file() else r / "summary.json"
+        if not f.is_file():
+            raise ValueError(f"{r / 'summary.json'} does not exist (run `simgap run` first)")
+        try:
+            data = json.loads(f.read_text())
+        except (OSError, ValueError) as e:
+            raise ValueError(f"{f} is not readable JSON: {e}") from None
+        (scans if f.name == "separation.json" else summaries).append(data)
+    return summaries, scans
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("runs", nargs="+", help="`simgap run` result folders")
-    p.add_argument("--readme", default=str(ROOT / "README.md"))
+    p.add_argument("runs", nargs="*", help="`simgap run` result folders or scan folders (default: SOURCES)")
+    p.add_argument("--page", action="append", help="a page to check or write (repeatable; default: all pages)")
     g = p.add_mutually_exclusive_group()
-    g.add_argument("--check", action="store_true", help="exit 1 if the README differs from the runs")
-    g.add_argument("--write", action="store_true", help="put the runs' numbers into the README")
+    g.add_argument("--check", action="store_true", help="exit 1 if a page differs from the sources")
+    g.add_argument("--write", action="store_true", help="put the sources' numbers into the pages")
     args = p.parse_args(argv)
-    summaries, scans = [], []
-    for r in args.runs:
-        if (Path(r) / "separation.json").is_file():
-            try:
-                scans.append(json.loads((Path(r) / "separation.json").read_text()))
-            except (OSError, ValueError) as e:
-                print(f"error: {Path(r) / 'separation.json'} is not readable JSON: {e}", file=sys.stderr)
-                return 2
-            continue
-        f = Path(r) / "summary.json"
-        if not f.is_file():
-            print(f"error: {f} does not exist (run `simgap run` first)", file=sys.stderr)
-            return 2
-        summaries.append(json.loads(f.read_text()))
-    readme = Path(args.readme)
-    new, diffs = apply(readme.read_text(), summaries)
-    for t in scans:
-        new, d = apply_separation(new, t)
-        diffs += d
-        print(separation_table(t))
-    for s in summaries:
-        print(f"{s['experiment']} {s.get('profile')}: " + " | ".join(row_cells(s)))
-        if (s["experiment"], s.get("profile")) == PRINTED_RUN:
-            print(printed_table(s))
-    for d in diffs:
+    folders = args.runs or [str(ROOT / s) for s in SOURCES]
+    try:
+        summaries, scans = load_sources(folders)
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    if not args.runs:
+        for s in SOURCES:
+            print(f"source {s}: {provenance(ROOT / s)}")
+    pages = [Path(x) for x in (args.page or [str(ROOT / q) for q in PAGE_PATHS])]
+    all_diffs = []
+    for page in pages:
+        new, diffs = apply_page(page, page.read_text(), summaries, scans)
+        all_diffs += diffs
+        if args.write and diffs and new != page.read_text():
+            tmp = page.with_name(f".{page.name}.tmp")
+            tmp.write_text(new)
+            tmp.replace(page)
+    if not (args.check or args.write):
+        for t in scans:
+            print(separation_table(t))
+        for s in summaries:
+            print(f"{s['experiment']} {s.get('profile')}: " + " | ".join(row_cells(s)))
+            if (s["experiment"], s.get("profile")) == PRINTED_RUN:
+                print(printed_table(s))
+    for d in all_diffs:
         print(("drift: " if args.check else "changed: ") + d)
-    if args.write and diffs:
-        tmp = readme.with_name(f".{readme.name}.tmp")
-        tmp.write_text(new)
-        tmp.replace(readme)
-    return 1 if args.check and diffs else 0
+    return 1 if args.check and all_diffs else 0
 
 
 if __name__ == "__main__":

@@ -1,4 +1,4 @@
-"""Progress reporting: a callback protocol and a terminal progress bar (tqdm).
+"""Progress reporting: a callback protocol and a progress bar (tqdm on a terminal, lines in a log).
 
 Long stages report ``on_progress(done, total)`` (both ints, in the stage's own unit, e.g.
 (x_r, u) pairs) after every finished unit of work; the GUI passes its own callback, the CLI a
@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import sys
 import threading
+import time
 from typing import Callable, Optional, Protocol, Union
 
 from tqdm import tqdm
@@ -34,12 +35,14 @@ def as_stop_check(should_stop: StopCheck) -> Callable[[], bool]:
 
 
 class ProgressBar:
-    """Terminal progress on stderr (tqdm): percentage, count, rate and ETA.
+    """Progress on stderr: percentage, count, rate and ETA.
 
     Callable as ``bar(done, total)``. The rate and ETA count only the work done since the bar
     was created (a resumed run starts with ``done > 0``). ``scale`` converts units for the
-    rate (e.g. N1hat * k simulator steps per pair). Off a terminal tqdm redraws at most every
-    ``interval_off_tty`` seconds, so logs stay short.
+    rate (e.g. N1hat * k simulator steps per pair). On a terminal it is a tqdm bar redrawn in
+    place. Written to a file or a pipe (a log, ``2> log``) each update is a line of its own
+    (a carriage-return redraw would leave a log one line long), the first at once, then at most
+    one every ``interval_off_tty`` seconds, and the last when the work is done or the bar closed.
     """
 
     def __init__(self, unit: str = "pairs", stream=None, scale: float = 1.0, scale_unit: str = "steps",
@@ -47,11 +50,15 @@ class ProgressBar:
         self.unit, self.scale, self.scale_unit, self.desc = unit, scale, scale_unit, desc
         self.bar_format = bar_format  # tqdm's, e.g. for a count that moves in fractions
         self.stream = stream if stream is not None else sys.stderr
-        tty = bool(getattr(self.stream, "isatty", lambda: False)())
-        self.mininterval = 0.2 if tty else interval_off_tty
+        self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
+        self.mininterval = 0.2 if self.tty else interval_off_tty
         self.bar: Optional[tqdm] = None
+        self._lines: Optional[dict] = None  # off a terminal: start, counts, the last line written
 
     def __call__(self, done: int, total: int) -> None:
+        if not self.tty:
+            self._line_update(done, total)
+            return
         if self.bar is None:
             self.bar = tqdm(total=total, initial=done, unit=self.unit, desc=self.desc, file=self.stream,
                             mininterval=self.mininterval, dynamic_ncols=True, smoothing=0.1,
@@ -67,6 +74,36 @@ class ProgressBar:
         if done >= total:
             self.close()
 
+    def _line_update(self, done, total) -> None:
+        now = time.monotonic()
+        if self._lines is None:
+            self._lines = {"t0": now, "initial": done, "written_at": None, "written": None}
+        st = self._lines
+        st["done"], st["total"] = done, total
+        if st["written_at"] is None or done >= total or now - st["written_at"] >= self.mininterval:
+            self._write_line(now)
+        if done >= total:
+            self._lines = None  # a later call starts a new bar, as tqdm's close does
+
+    def _write_line(self, now: float) -> None:
+        st = self._lines
+        done, total, elapsed = st["done"], st["total"], now - st["t0"]
+        rate = (done - st["initial"]) / elapsed if elapsed > 0 else 0.0
+        text = (f"{self.desc}: " if self.desc else "") + f"{100.0 * done / total if total else 100.0:3.0f}% "
+        count = f"{done}" if float(done).is_integer() else f"{done:.1f}"  # certify --compare moves in fractions
+        text += f"{count}/{total} {self.unit} [{tqdm.format_interval(elapsed)} elapsed"
+        if rate > 0 and done < total:
+            text += f", {tqdm.format_interval((total - done) / rate)} left"
+        if rate > 0:
+            text += f", {rate * self.scale:,.0f} {self.scale_unit if self.scale != 1.0 else self.unit}/s"
+        self.stream.write(text + "]\n")
+        self.stream.flush()
+        st["written_at"], st["written"] = now, done
+
     def close(self) -> None:
         if self.bar is not None:
             self.bar.close()
+        if self._lines is not None:  # stopped before the end: say where, unless the last line did
+            if self._lines["written"] != self._lines["done"]:
+                self._write_line(time.monotonic())
+            self._lines = None

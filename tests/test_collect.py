@@ -347,7 +347,7 @@ def test_progress_bar_and_stop_checks():
     assert final.startswith("collect: 100%") and "1000/1000" in final, final
     rate = float(final.split(", ")[-1].split(" sim steps/s")[0].replace(",", ""))
     assert 0 < rate < 800 * 100 / 0.032, final  # 800 new pairs x 100 steps in at least 16 sleeps
-    assert out.count("\r") <= 3  # off a terminal: no redraw storm (first, final, close)
+    assert "\r" not in out and out.count("\n") <= 2  # off a terminal: lines, no redraw storm (first, final)
     ev = threading.Event()
     check = as_stop_check(ev)
     assert not check()
@@ -382,3 +382,48 @@ def test_failed_collection_leaves_no_store(tmp_path, monkeypatch, sim, match):
     with pytest.raises(SimgapError, match=match):
         collect(pend_plan(sim=sim, chunk_size=20), empty, executor="serial")
     assert empty.is_dir() and list(empty.iterdir()) == []  # the user's folder stays, as empty as it was
+
+
+def test_progress_off_a_terminal_is_one_line_per_update():
+    """Written to a file or a pipe, progress is whole lines (a log keeps each), the first at once, then
+    at most one per interval, the last at the end; a bar closed early says where it stopped. On a
+    terminal it stays tqdm's redraw in place."""
+    import io
+
+    from simgap.progress import ProgressBar
+
+    buf = io.StringIO()
+    bar = ProgressBar(unit="pairs", stream=buf, desc="collect", interval_off_tty=0.05)
+    t0 = time.monotonic()
+    for done in range(0, 101):
+        time.sleep(0.003)
+        bar(done, 100)
+    took = time.monotonic() - t0
+    lines = buf.getvalue().split("\n")
+    assert lines[-1] == "" and "\r" not in buf.getvalue()
+    lines = lines[:-1]
+    assert lines[0].startswith("collect:   0% 0/100 pairs [")
+    assert lines[-1].startswith("collect: 100% 100/100 pairs [") and "left" not in lines[-1]
+    assert 3 <= len(lines) <= took / 0.05 + 2, (len(lines), took)  # throttled, yet more than first and last
+    pct = [int(ln.split("%")[0].split()[-1]) for ln in lines]
+    assert pct == sorted(pct) and len(set(pct)) == len(pct)
+    assert all(", " in ln and "pairs/s]" in ln for ln in lines[1:])  # a rate once work was done
+    # stopped early: close() writes where it stopped (once), then nothing more
+    buf = io.StringIO()
+    bar = ProgressBar(unit="runs", stream=buf, desc="audit", interval_off_tty=60.0)
+    bar(0, 50)
+    bar(20, 50)
+    bar.close()
+    bar.close()
+    assert buf.getvalue().splitlines() == [buf.getvalue().splitlines()[0], buf.getvalue().splitlines()[1]]
+    assert buf.getvalue().splitlines()[1].startswith("audit:  40% 20/50 runs [")
+
+    class Tty(io.StringIO):
+        def isatty(self):
+            return True
+
+    buf = Tty()
+    bar = ProgressBar(unit="pairs", stream=buf, desc="collect")
+    for done in range(0, 101, 10):
+        bar(done, 100)
+    assert "\r" in buf.getvalue()  # a terminal: tqdm redraws in place

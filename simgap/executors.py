@@ -153,7 +153,8 @@ class RayExecutor(Executor):
         try:
             import ray  # noqa: F401  (optional extra)
         except ImportError:
-            raise SimgapError("executor 'ray' needs Ray: pip install 'simgap[ray]' (or pip install ray)") from None
+            from .paths import install_command
+            raise SimgapError(f"executor 'ray' needs Ray: {install_command('ray')} (or pip install ray)") from None
 
     def _init(self) -> bool:
         """Connect to (or start) Ray unless it is up already; True if this call did."""

@@ -29,7 +29,8 @@ def _ed25519():
     try:
         from cryptography.hazmat.primitives.asymmetric import ed25519
     except ImportError:
-        raise SimgapError("signing needs the cryptography package: pip install 'simgap[sign]'") from None
+        from .paths import install_command
+        raise SimgapError(f"signing needs the cryptography package: {install_command('sign')}") from None
     return ed25519
 
 

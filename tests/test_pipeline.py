@@ -101,8 +101,9 @@ def test_noisy_profile_shows_the_papers_claim(tmp_path):
 
 
 def test_readme_numbers_match_the_run(small_run):
-    """The README's printed `simgap run pendulum` table and its Results row for the small profile are
-    what this run gives (bench/readme_numbers.py regenerates both; a stale number fails here)."""
+    """The pages' printed `simgap run pendulum` table (README.md, docs/getting-started.md) and their
+    results rows for the small profile (the README's compact row, docs/results.md's full row) are what
+    this run gives (bench/readme_numbers.py writes them; a stale number fails here)."""
     import importlib.util
     from pathlib import Path
     root = Path(__file__).resolve().parents[1]
@@ -110,13 +111,17 @@ def test_readme_numbers_match_the_run(small_run):
     rn = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(rn)
     _, s = small_run
-    readme = (root / "README.md").read_text()
-    new, diffs = rn.apply(readme, [s])
-    assert diffs == [] and new == readme, "\n".join(diffs)
-    # the check can fail: a changed number is reported and rewritten
-    bad = readme.replace("| 0.000253, 0.00223 |", "| 0.000254, 0.00223 |", 1)
-    fixed, diffs = rn.apply(bad, [s])
-    assert len(diffs) == 1 and "pendulum, small" in diffs[0] and fixed == readme
+    for page in rn.PAGE_PATHS[:3]:
+        text = (root / page).read_text()
+        new, diffs = rn.apply_page(root / page, text, [s], [])
+        assert diffs == [] and new == text, "\n".join(diffs)
+    # the check can fail: a changed number is reported and rewritten, in either table's form
+    for page, cell in (("docs/results.md", "| 0.000253, 0.00223 |"), ("README.md", "| 36,839 / 18,124 |")):
+        text = (root / page).read_text()
+        bad = text.replace(cell, cell.replace("3", "4", 1), 1)
+        assert bad != text
+        fixed, diffs = rn.apply_page(root / page, bad, [s], [])
+        assert len(diffs) == 1 and "pendulum, small" in diffs[0] and fixed == text, diffs
 
 
 def test_closest_approach_over_rollouts_and_the_mean_map():

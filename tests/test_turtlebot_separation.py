@@ -200,22 +200,22 @@ def test_readme_numbers_puts_the_scan_table_between_the_markers(sep, tmp_path):
     spec = importlib.util.spec_from_file_location("readme_numbers", ROOT / "bench" / "readme_numbers.py")
     rn = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(rn)
-    readme = (ROOT / "README.md").read_text()
-    assert all(readme.count(m) == 1 for m in rn.SEPARATION_MARKERS)
+    page = (ROOT / "docs" / "turtlebot-separation.md").read_text()
+    assert all(page.count(m) == 1 for m in rn.SEPARATION_MARKERS)
     out = tmp_path / "scan"
     _write_point(sep, out, _config(sep, level=0.5), det=(True, 44), sto=(True, 0))
     table = sep.build_table(out, [])
-    new, diffs = rn.apply_separation(readme, table)
+    new, diffs = rn.apply_separation(page, table)
     assert len(diffs) == 1 and "| 0.5 | 100 | gap | 44/1000 | yes | 0/1000 |" in new
     assert new.replace(sep.markdown_table(table), "").count("44/1000") == 0  # the table went in once
     assert rn.apply_separation(new, table) == (new, [])  # in step: nothing to change
-    # the command line: --check exits 1 while the README lags, 0 after --write
+    # the command line: --check exits 1 while the page lags, 0 after --write
     (out / sep.TABLE).write_text(json.dumps(table))
-    rd = tmp_path / "README.md"
-    rd.write_text(readme)
-    assert rn.main([str(out), "--readme", str(rd), "--check"]) == 1
-    assert rn.main([str(out), "--readme", str(rd), "--write"]) == 0 and rd.read_text() == new
-    assert rn.main([str(out), "--readme", str(rd), "--check"]) == 0
+    rd = tmp_path / "turtlebot-separation.md"
+    rd.write_text(page)
+    assert rn.main([str(out), "--page", str(rd), "--check"]) == 1
+    assert rn.main([str(out), "--page", str(rd), "--write"]) == 0 and rd.read_text() == new
+    assert rn.main([str(out), "--page", str(rd), "--check"]) == 0
 
 
 def test_projection_counts_only_what_is_left(sep, tmp_path):
@@ -233,13 +233,13 @@ def test_projection_counts_only_what_is_left(sep, tmp_path):
 
 
 def test_the_readme_table_is_the_committed_scan():
-    """README's separation table is made from bench/results/turtlebot-separation/separation.json (the
-    scan's own output, committed): a hand edit of either makes this fail."""
+    """docs/turtlebot-separation.md's table is made from bench/results/turtlebot-separation/separation.json
+    (the scan's own output, committed): a hand edit of either makes this fail."""
     spec = importlib.util.spec_from_file_location("readme_numbers", ROOT / "bench" / "readme_numbers.py")
     rn = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(rn)
     scan = ROOT / "bench" / "results" / "turtlebot-separation"
-    assert rn.main([str(scan), "--check"]) == 0
+    assert rn.main([str(scan), "--page", str(ROOT / "docs" / "turtlebot-separation.md"), "--check"]) == 0
     table = json.loads((scan / "separation.json").read_text())
     assert table["rows"] and all(r["stochastic"]["audit_pass_joint"] == 1.0 for r in table["rows"])
 

@@ -71,8 +71,9 @@ def mujoco_module():
         import mujoco
         from mujoco import rollout  # noqa: F401  (the batched stepping this backend needs)
     except ImportError as e:
+        from ..paths import install_command
         raise SimgapError("simulator kind 'mujoco' needs MuJoCo's Python package: "
-                          f"pip install 'simgap[mujoco]' (import failed: {e})") from None
+                          f"{install_command('mujoco')} (import failed: {e})") from None
     return mujoco
 
 

@@ -266,21 +266,36 @@ LOCK = ".run.lock"
 
 def run_lock(out: Path):
     """Hold ``out/.run.lock`` while a run writes into ``out``: a second ``simgap run`` into the same
-    folder is refused instead of mixing its files with the first one's."""
+    folder is refused instead of mixing its files with the first one's. The file is removed when the
+    run ends (finished or failed), so a finished folder holds only the run's files; a run that held a
+    lock on a file another run had just removed (the path gone or a new file there) refuses too."""
     import contextlib
     import fcntl
     import os
 
+    path = Path(out) / LOCK
+
+    def refuse():
+        return SimgapError(f"another simgap run is writing into {str(out)!r}; wait for it or use another --out")
+
     @contextlib.contextmanager
     def held():
-        fd = os.open(Path(out) / LOCK, os.O_RDWR | os.O_CREAT, 0o644)
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
         try:
             try:
                 fcntl.lockf(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except OSError:
-                raise SimgapError(f"another simgap run is writing into {str(out)!r}; wait for it or use another "
-                                  "--out") from None
-            yield
+                raise refuse() from None
+            try:
+                same = os.stat(path).st_ino == os.fstat(fd).st_ino
+            except FileNotFoundError:
+                same = False
+            if not same:  # locked a file the run before us removed on its way out
+                raise refuse()
+            try:
+                yield
+            finally:
+                path.unlink(missing_ok=True)  # while still locked: nobody can lock this file after us
         finally:
             os.close(fd)
     return held()

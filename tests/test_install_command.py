@@ -47,3 +47,4 @@ def test_missing_extra_from_the_command_line(tmp_path):
                        cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
     assert r.returncode != 0 and "Traceback" not in r.stderr, r.stderr
     assert 'pip install -e ".[mujoco]"' in r.stderr, r.stderr
+

@@ -19,6 +19,7 @@ def small_run(tmp_path_factory):
 
 def test_summary_structure_and_sanity(small_run):
     out, s = small_run
+    assert not (out / ".run.lock").exists()  # the run's lock goes with the run (issue 54)
     assert s["experiment"] == "pendulum" and s["profile"] == "small"
     from simgap.pipeline import SUMMARY_STATEMENTS
     assert s["statements"] == SUMMARY_STATEMENTS  # which statement each number is, in the file itself

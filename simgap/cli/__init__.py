@@ -143,6 +143,20 @@ def _on_sigterm(signum, frame):
     raise Terminated()
 
 
+def _reap_forkserver() -> None:
+    """Stop multiprocessing's forkserver, if this process started one, and wait for it. The pool
+    workers are the forkserver's children, reaped by it; once it is waited for, their CPU time
+    counts as this process's children's, so `time simgap run` reports the whole run's CPU (without
+    this, 11 of about 85 CPU-seconds of a two-worker collection)."""
+    try:
+        from multiprocessing import forkserver
+        server = forkserver._forkserver
+        if getattr(server, "_forkserver_pid", None) is not None:
+            server._stop()
+    except Exception:  # a private API of CPython's: never let it fail a command that succeeded
+        pass
+
+
 def main(argv=None) -> int:
     import signal
     command = command_of(sys.argv[1:] if argv is None else argv)
@@ -157,7 +171,9 @@ def main(argv=None) -> int:
     try:
         from ..file_guard import check_outputs
         check_outputs(args)
-        return int(args.func(args) or 0)
+        rc = int(args.func(args) or 0)
+        _reap_forkserver()
+        return rc
     except SimgapError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

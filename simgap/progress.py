@@ -95,7 +95,9 @@ class ProgressBar:
         if rate > 0 and done < total:
             text += f", {tqdm.format_interval((total - done) / rate)} left"
         if rate > 0:
-            text += f", {rate * self.scale:,.0f} {self.scale_unit if self.scale != 1.0 else self.unit}/s"
+            r = rate * self.scale
+            text += f", {r:,.0f}" if r >= 100 else f", {r:.3g}"
+            text += f" {self.scale_unit if self.scale != 1.0 else self.unit}/s"
         self.stream.write(text + "]\n")
         self.stream.flush()
         st["written_at"], st["written"] = now, done

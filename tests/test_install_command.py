@@ -16,11 +16,13 @@ ROOT = Path(__file__).resolve().parents[1]
 def test_clone_and_installed_package(tmp_path, monkeypatch):
     assert paths.install_command("mujoco", cwd=ROOT) == 'pip install -e ".[mujoco]"'
     assert paths.install_command("ray", cwd=tmp_path) == f'pip install -e "{ROOT}[ray]"'  # outside the clone
+    assert paths.install_command(None, cwd=ROOT) == "pip install -e ."
     # an installed package: site-packages/simgap/paths.py, no pyproject.toml beside the package
     site = tmp_path / "site-packages" / "simgap"
     site.mkdir(parents=True)
     monkeypatch.setattr(paths, "__file__", str(site / "paths.py"))
     assert paths.install_command("mujoco", cwd=tmp_path) == "pip install 'simgap[mujoco]'"
+    assert paths.install_command(None, cwd=tmp_path) == "pip install simgap"
     # a pyproject.toml of another project next to it is not a simgap clone
     (tmp_path / "site-packages" / "pyproject.toml").write_text('[project]\nname = "other"\n')
     assert paths.install_command("sign", cwd=tmp_path) == "pip install 'simgap[sign]'"

@@ -133,7 +133,8 @@ def run(args) -> int:
         try:
             from simgap_viz.record import record_refinement
         except ImportError:
-            raise SimgapError("--record needs simgap_viz (pip install -e .)") from None
+            from ..paths import install_command
+            raise SimgapError(f"--record needs simgap_viz and its dependencies ({install_command(None)})") from None
         info = record_refinement(args.record, res, against=args.against)
         if not args.quiet:
             print(f"recording written to {args.record} (residual vs {info['against']}; open with: rerun {args.record})")

@@ -267,8 +267,8 @@ LOCK = ".run.lock"
 def run_lock(out: Path):
     """Hold ``out/.run.lock`` while a run writes into ``out``: a second ``simgap run`` into the same
     folder is refused instead of mixing its files with the first one's. The file is removed when the
-    run ends (finished or failed), so a finished folder holds only the run's files; a run that held a
-    lock on a file another run had just removed (the path gone or a new file there) refuses too."""
+    run ends (finished or failed), so a finished folder holds only the run's files; a lock taken on a
+    file the run before had just removed (the path gone or a new file there) is taken again."""
     import contextlib
     import fcntl
     import os
@@ -278,24 +278,29 @@ def run_lock(out: Path):
     def refuse():
         return SimgapError(f"another simgap run is writing into {str(out)!r}; wait for it or use another --out")
 
-    @contextlib.contextmanager
-    def held():
-        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
-        try:
+    def locked() -> int:
+        """A descriptor holding the lock on the file now at ``path``."""
+        for _ in range(3):
+            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
             try:
                 fcntl.lockf(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except OSError:
+                os.close(fd)
                 raise refuse() from None
             try:
-                same = os.stat(path).st_ino == os.fstat(fd).st_ino
+                if os.stat(path).st_ino == os.fstat(fd).st_ino:
+                    return fd
             except FileNotFoundError:
-                same = False
-            if not same:  # locked a file the run before us removed on its way out
-                raise refuse()
-            try:
-                yield
-            finally:
-                path.unlink(missing_ok=True)  # while still locked: nobody can lock this file after us
+                pass
+            os.close(fd)  # locked a file the run before us removed on its way out: take the new one
+        raise refuse()
+
+    @contextlib.contextmanager
+    def held():
+        fd = locked()
+        try:
+            yield
         finally:
+            path.unlink(missing_ok=True)  # while still locked: nobody can lock this file after us
             os.close(fd)
     return held()

@@ -37,3 +37,28 @@ def test_run_lock_is_removed_and_still_excludes(tmp_path):
         with results_folder.run_lock(tmp_path):
             raise RuntimeError("stage failed")
     assert not (tmp_path / results_folder.LOCK).exists()
+
+
+def test_a_lock_on_a_removed_file_is_taken_again(tmp_path, monkeypatch):
+    """The run before removed .run.lock between our open and our lock: the descriptor locks a file no
+    longer at the path, which would let a third run lock a new file beside us. run_lock sees the path
+    gone (or another file there) and locks the file now at the path instead."""
+    import os
+
+    from simgap import results_folder
+
+    real_stat, calls = os.stat, []
+
+    def stat(p, *a, **k):
+        if str(p).endswith(results_folder.LOCK):
+            calls.append(p)
+            if len(calls) == 1:  # the first look: the path was removed under us
+                os.unlink(p)
+        return real_stat(p, *a, **k)
+
+    monkeypatch.setattr(os, "stat", stat)
+    with results_folder.run_lock(tmp_path):
+        assert len(calls) == 2                      # taken again, on the file now at the path
+        st = real_stat(tmp_path / results_folder.LOCK)
+        assert st.st_size == 0
+    assert not (tmp_path / results_folder.LOCK).exists()

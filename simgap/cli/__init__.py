@@ -146,8 +146,8 @@ def _on_sigterm(signum, frame):
 def _reap_forkserver() -> None:
     """Stop multiprocessing's forkserver, if this process started one, and wait for it. The pool
     workers are the forkserver's children, reaped by it; once it is waited for, their CPU time
-    counts as this process's children's, so `time simgap run` reports the whole run's CPU (without
-    this, 11 of about 85 CPU-seconds of a two-worker collection)."""
+    counts as this process's children's, so `time simgap run` reports the whole run's CPU (a
+    two-worker collection on the forkserver: 0.05 CPU-seconds of children without this, 5.3 with it)."""
     try:
         from multiprocessing import forkserver
         server = forkserver._forkserver

@@ -409,7 +409,7 @@ def text_table(table: dict) -> str:
 
 
 def markdown_table(table: dict) -> str:
-    """The table as Markdown (README and docs/case-studies.md, kept in step by bench/readme_numbers.py)."""
+    """The table as Markdown (docs/turtlebot-separation.md, kept in step by bench/readme_numbers.py)."""
     lines = ["| noise level | N1hat | gap term | deterministic collisions | stochastic wins x0 | stochastic "
              "collisions | gamma max det. (x, y, theta) | gamma max sto. (x, y, theta) | closest approach det. / sto. "
              "[m] | audit pass det. / sto. | wall time |",

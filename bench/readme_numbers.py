@@ -36,8 +36,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 # the committed sources the pages are written from (folders under bench/results)
-SOURCES = ["bench/results/runs/pendulum-small", "bench/results/runs/arm_mujoco-small",
-           "bench/results/turtlebot-separation"]
+SOURCES = ["bench/results/runs/pendulum-small", "bench/results/runs/turtlebot-small",
+           "bench/results/runs/arm_mujoco-small", "bench/results/turtlebot-separation"]
 # full results-table label prefix per (experiment, profile): docs/results.md
 ROW_LABELS = {("pendulum", "small"): "pendulum, small", ("pendulum", "paper"): "pendulum, paper",
               ("pendulum", "noisy"): "pendulum, noisy", ("turtlebot", "small"): "TurtleBot, small",

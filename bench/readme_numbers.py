@@ -116,6 +116,15 @@ def compact_cells(summary: dict) -> list:
             fails]
 
 
+def run_key(summary: dict) -> tuple:
+    """(name, profile) of a run: the experiment's name, or for a folder's generic ``experiment.toml``
+    (examples/husky, examples/racecar) the folder's name."""
+    name = summary["experiment"]
+    if name == "experiment" and summary.get("config_file"):
+        name = Path(summary["config_file"]).parent.name
+    return name, summary.get("profile")
+
+
 def _split_row(line: str) -> list:
     return [c.strip() for c in line.strip().strip("|").split("|")]
 
@@ -131,7 +140,7 @@ def apply(text: str, summaries: list, rows: str = "full", printed: bool = True) 
     lines = text.split("\n")
     diffs = []
     for s in summaries:
-        key = (s["experiment"], s.get("profile"))
+        key = run_key(s)
         if rows:
             labels, cells_of, first = ((ROW_LABELS, row_cells, 1) if rows == "full" else (README_LABELS, compact_cells, 2))
             label = labels.get(key)
@@ -176,7 +185,7 @@ def apply_page(path: Path, text: str, summaries: list, scans: list) -> tuple:
         return text, [f"{path}: not a page with run numbers (known: {', '.join(PAGES)})"]
     diffs = []
     if summaries and (spec.get("rows") or spec.get("printed")):
-        mine = [s for s in summaries if spec.get("rows") or (s["experiment"], s.get("profile")) == PRINTED_RUN]
+        mine = [s for s in summaries if spec.get("rows") or run_key(s) == PRINTED_RUN]
         text, diffs = apply(text, mine, spec.get("rows", ""), spec.get("printed", False))
     if spec.get("separation"):
         for t in scans:
@@ -239,8 +248,8 @@ def main(argv=None) -> int:
         for t in scans:
             print(separation_table(t))
         for s in summaries:
-            print(f"{s['experiment']} {s.get('profile')}: " + " | ".join(row_cells(s)))
-            if (s["experiment"], s.get("profile")) == PRINTED_RUN:
+            print(" ".join(map(str, run_key(s))) + ": " + " | ".join(row_cells(s)))
+            if run_key(s) == PRINTED_RUN:
                 print(printed_table(s))
     for d in all_diffs:
         print(("drift: " if args.check else "changed: ") + d)

@@ -134,8 +134,10 @@ def upward_paths(graph: dict, stages=STAGES) -> list:
         if i is None:
             continue
         prev = reachable(graph, m)
-        later = [t for t in sorted(prev) if t != m and (stage_of(t, stages) or 0) > i]
-        found += [path_to(prev, t) for t in later]
+        for t in sorted(prev):
+            j = stage_of(t, stages)
+            if j is not None and j > i:
+                found.append(path_to(prev, t))
     return found
 
 

@@ -126,6 +126,20 @@ class Dataset:
         return fileio.savez(path, **{k: getattr(self, k) for k in ARRAYS}, **extra, meta=np.array(json.dumps(meta)))
 
 
+def invariant_dims(dataset) -> list:
+    """0-based state dimensions the collection declared invariant (not covered; manifest "cover")."""
+    names = (dataset.manifest.get("cover") or {}).get("invariant_dims") or []
+    out = []
+    for d in names:
+        if isinstance(d, int):
+            out.append(d)
+        elif d in dataset.system.state_names:
+            out.append(dataset.system.state_names.index(d))
+        else:
+            raise SimgapError(f"dataset manifest: unknown invariant dimension {d!r}")
+    return sorted(set(out))
+
+
 def load_dataset(path: str | Path, system: System | None = None) -> Dataset:
     """Load a dataset from a single .npz or from a collection store directory.
 

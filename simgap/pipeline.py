@@ -416,7 +416,7 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
             k = int(syn.get("set_states", 20))
             if invariant and not tube and not sres.empty and k:  # a tube is proved from x0 only
                 entry["rollouts_in_set"] = stage(f"rollout-in-E/{method}", lambda: invariant_stage.rollouts_in_set(
-                    sres.controller, sim, k, R, ro.get("horizon"), int(ro.get("seed", 11)) + 1000,
+                    rollout, sres.controller, sim, k, R, ro.get("horizon"), int(ro.get("seed", 11)) + 1000,
                     ro.get("on_exit", "hold"), log))
         for method in METHODS:
             ds = data[method]

@@ -3,7 +3,7 @@
 A system file (reference: docs/system-files.md) names the state and input variables, the box
 X, the input set U, the base period tau and either a discrete-time one-step map or a
 continuous-time right-hand side x' = F(x, u) that is integrated with classical RK4
-(:func:`simgap.synthesis.runge_kutta.rk4_integrate`, ``substeps`` per base period)::
+(:func:`simgap.runge_kutta.rk4_integrate`, ``substeps`` per base period)::
 
     format = "simgap-system"
     name = "duffing"
@@ -183,7 +183,7 @@ def system_from_spec(spec: dict, where: str = "embedded system file") -> System:
                       uses=range(wz)) for s in states]
     rhs_or_map = _vector_field(forms, [(c, def_forms[c]) for c in order], n, m, wz)
     if continuous:
-        from .synthesis.runge_kutta import rk4_integrate
+        from .runge_kutta import rk4_integrate
 
         def step(x, u, dt, _F=rhs_or_map, _k=substeps):
             return rk4_integrate(lambda xx, uu: _F(xx, uu, dt), x, u, dt, _k)

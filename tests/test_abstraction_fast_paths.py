@@ -103,7 +103,7 @@ def test_dcdc_winning_domain():
 
 def test_synthesis_does_not_load_value_iterations_compiler():
     """numba (about 0.5 s CPU and 110 MB with a kernel loaded) is for value iteration's kernel
-    and for large syntheses only (simgap.synthesis.jit: a small one stays on numpy); the plugin
+    and for large syntheses only (simgap.jit: a small one stays on numpy); the plugin
     registry's metadata scan is for plugin names only."""
     import subprocess
     import sys

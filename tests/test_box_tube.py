@@ -294,13 +294,15 @@ def test_bad_input(cubic):
         bt.synthesize_box_tube(cubic, s, None, x0=X0, input_margin=1.0)
     with pytest.raises(SimgapError, match="target_lo and target_hi"):
         bt.synthesize_box_tube(cubic, s, None, x0=X0, target_lo=[-0.1, -0.1])
-    with pytest.raises(SimgapError, match="leaves X at period"):
+    # the refusal names the levers a user has: the plan's pace, the input range, X
+    with pytest.raises(SimgapError, match=r"leaves X at period.*plan_input_weight.*input range.*larger X"):
         bt.synthesize_box_tube(cubic, s, None, x0=[0.95, 0.0], x_star=[0, 0], u_star=[0], input_margin=0.9)
 
 
 def test_too_large_gap_says_why(cubic):
     res = _design(cubic, gap=10 * GAP)
     assert res.empty and res.controller is None and "no tube proved" in res.stats["diagnosis"]
+    assert all(w in res.stats["diagnosis"] for w in ("plan_input_weight, now 1", "input range", "X and the safe set"))
 
 
 EXPERIMENT = """

@@ -1,5 +1,5 @@
 """Compiled RK4 kernels (numba) against their numpy twins: the same bits, and the policy that
-picks one (simgap.synthesis.jit)."""
+picks one (simgap.jit)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import pytest
 from simgap.errors import SimgapError
 from simgap.synthesis import UniformGrid, build_abstraction
 from simgap.synthesis import examples as ex
-from simgap.synthesis import jit
+from simgap import jit
 
 pytest.importorskip("numba")
 from simgap.synthesis.kernels import dcdc_rk4  # noqa: E402
@@ -67,7 +67,7 @@ def test_dcdc_numpy_by_mode_bit_identical(rng):
     """The numpy step with the rows grouped by mode (examples._dcdc_numpy) gives the bits of the
     plain RK4 of examples._dcdc_rhs (np.where over both modes), special values included, and a
     column-major RK4 the bits of a row-major one."""
-    from simgap.synthesis.runge_kutta import rk4_integrate
+    from simgap.runge_kutta import rk4_integrate
     s = ex.dcdc_system()
     x = rng.uniform([1.0, 5.3], [1.7, 6.0], (20000, 2))
     x[:6] = [[np.inf, 1.0], [0.0, -0.0], [np.nan, 2.0], [-0.0, np.inf], [1e308, 1e308], [-1e-320, 5.0]]
@@ -262,7 +262,7 @@ def test_corner_index_same_with_and_without_kernels(case, monkeypatch):
 def test_input_rows_periodic_and_general(rng):
     """The input rows of a step: periodic blocks (whole cells, all inputs each) by comparisons,
     anything else by the sort; every row equals its representative exactly."""
-    from simgap.synthesis.runge_kutta import _input_rows
+    from simgap.runge_kutta import _input_rows
     U = ex.vehicle_inputs()
     for u in (U[np.tile(np.arange(49), 334)], U[np.tile(np.arange(49), 3)][:120],  # periodic, cut
               U[rng.integers(0, 49, 5000)], np.array([[1.0], [2.0], [2.0], [1.0], [2.0], [2.0], [1.0]]),

@@ -171,6 +171,7 @@ def test_mutation_without_gap_is_caught(cubic, monkeypatch):
     assert real.empty                                  # honest: no set for this gap
     d = real.stats["diagnosis"]
     assert "gamma would have to be at most" in d and "gamma_w <=" in d
+    assert "levers: the input range" in d and "X and the safe set" in d and "plan_input_weight" not in d
     s = real.verification.gap_scale
     assert 0 < s < 1
     monkeypatch.setattr(iv, "gap_bound", lambda gap, n, *a: (np.zeros(n), "mutated: no gap"))

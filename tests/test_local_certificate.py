@@ -184,3 +184,21 @@ def test_bad_region_is_refused_before_any_work(tmp_path, capsys, region, match):
     assert rc == 2 and err.startswith("error:") and "Traceback" not in err, err
     assert re.search(match, err), err
     assert not out.exists()
+
+
+def test_proof_confidence_names_its_kind(local, tmp_path):
+    """What `simgap synthesize` prints beside a proof: the all-rows number when there is one (the
+    uniform local certificate), and for a pointwise certificate over X (K in the thousands) no number
+    for the proof, the pointwise one named as such beside it; the deterministic baseline states none."""
+    _, cert = local
+    assert cert.proof_confidence_text() == (f"all rows {cert.sup_confidence():.4g} (the all-rows reading a sup of "
+                                            "gamma over a set needs)")
+    full = _collect(tmp_path / "x", {})
+    pw = certify(full, degree=1, bounds=BoundOptions(concentration="subgaussian"))
+    assert pw.scope == "pointwise" and pw.sup_confidence() is None and pw.K > 1000
+    txt = pw.proof_confidence_text()
+    point = pw.scope_confidences()["pointwise"]
+    assert txt.startswith(f"none: the all-rows reading over K = {pw.K} rows is vacuous") and "all rows 0" not in txt
+    assert f"the pointwise {point:.4g} is about one (x, u) at a time" in txt
+    det = certify(full, method="deterministic", degree=1)
+    assert det.proof_confidence_text().startswith("none stated")

@@ -13,7 +13,7 @@ from simgap.cli import main
 from simgap.collect import load_store
 from simgap.errors import SimgapError
 from simgap.synthesis.controller import Controller
-from simgap.synthesis.runge_kutta import rk4_integrate
+from simgap.runge_kutta import rk4_integrate
 from simgap.system_file import load_system_file, system_from_spec
 from simgap.system_ref import resolve_system, system_digest, system_ref
 

@@ -41,8 +41,10 @@ from pathlib import Path
 import numpy as np
 
 from .. import fileio
+from ..dataset import invariant_dims
 from ..errors import SimgapError
 from ..simulators import Simulator, make_simulator
+from .lipschitz import load_fitting_modules
 
 QUANTILES = (0.0, 0.01, 0.05, 0.5, 0.95, 1.0)
 #: simulator rows (point x run) stepped at once: bounds the audit's memory
@@ -65,13 +67,6 @@ def audit_cost(points: int, runs: int, system, rate_per_worker=None, workers: in
     secs = rows / (rate_per_worker * max(1, workers)) if rate_per_worker else None
     return {"points": int(points), "runs": int(runs), "rows": rows, "sim_steps": rows * system.steps,
             "memory": memory, "seconds": secs, "rate": rate_per_worker, "workers": int(workers)}
-
-
-def load_fitting_modules() -> None:
-    """Import scipy.stats (1-2 s the first time in a process under load) before an estimate is
-    printed, so that the estimate covers what follows it: the audit's t quantiles and the certificate's
-    Weibull fits need it, and no cost model prices a module's first import."""
-    import scipy.stats  # noqa: F401
 
 
 def audit_rate(simulator, points: int, runs: int, chunk_samples: int = CHUNK_SAMPLES, budget: float = 0.5) -> float:
@@ -179,7 +174,6 @@ def audit(cert, simulator, points: int = 200, runs: int = 2000, seed: int = 0, d
     rng = np.random.default_rng(seed)
     cover, cov_dims = None, list(range(s.n))
     if dataset is not None:
-        from .pipeline import invariant_dims
         inv = invariant_dims(dataset)  # declared-invariant dims are not covered: distances over the others
         cov_dims = [j for j in range(s.n) if j not in inv]
         cover = np.unique(dataset.x[:, cov_dims], axis=0)

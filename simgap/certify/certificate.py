@@ -190,6 +190,18 @@ class Certificate:
         c = self.scope_confidences()["simultaneous"]
         return None if c is None or c <= 0 else float(c)
 
+    def proof_confidence_text(self) -> str:
+        """What a proof built on gamma's sup over a set (cells, an ellipsoid, a tube) may claim, with
+        its kind named: "all rows" (:meth:`sup_confidence`), or why there is none (the pointwise
+        number, about one query (x, u) at a time, is shown beside it and never stands in for it)."""
+        c = self.scope_confidences()
+        if c["pointwise"] is None:
+            return "none stated (deterministic baseline)"
+        if self.sup_confidence() is not None:
+            return f"all rows {self.sup_confidence():.4g} (the all-rows reading a sup of gamma over a set needs)"
+        return (f"none: the all-rows reading over K = {self.K} rows is vacuous; the pointwise {c['pointwise']:.4g} "
+                f"is about one (x, u) at a time, not this proof (certify with uniform = true, --uniform)")
+
     # ----- region ------------------------------------------------------------------------
     def region_text(self, lo=None, hi=None) -> str:
         """The region (or a given box) as "name [lo, hi] x ...", only the dimensions it narrows from X

@@ -38,6 +38,14 @@ from ..errors import SimgapError
 LHAT_PAIRS, LHAT_RUNS = 2000, 100
 
 
+def load_fitting_modules() -> None:
+    """Import scipy.stats (1-2 s the first time in a process under load) before an estimate is
+    printed, so that the estimate covers what follows it: the audit's t quantiles and the
+    certificate's Weibull fits (:func:`wood_zhang`) need it, and no cost model prices a module's
+    first import."""
+    import scipy.stats  # noqa: F401
+
+
 @dataclass
 class WoodZhang:
     estimate: float

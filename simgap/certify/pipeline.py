@@ -23,12 +23,13 @@ from typing import Dict, List, Optional, Sequence, Union
 
 import numpy as np
 
+from ..dataset import invariant_dims
 from ..errors import SimgapError
 from ..system_ref import embedded_ref, system_digest
 from .basis import Basis
 from .bounds import BoundOptions, beta_from_delta, delta_from_beta, required_runs
 from .certificate import Certificate, DimCertificate
-from .lipschitz import (LHAT_PAIRS, LHAT_RUNS, axis_grid, check_crn_cost, check_pair_distance, crn_cost,
+from .lipschitz import (LHAT_PAIRS, LHAT_RUNS, load_fitting_modules, axis_grid, check_crn_cost, check_pair_distance, crn_cost,
                         fhat_slopes_crn, gap_slopes_crn, gap_slopes_data, l2_analytic, l2_partials, neighbour_pairs,
                         slopes_of, wood_zhang)
 from .scp import DependentTerms, solve_scp
@@ -154,20 +155,6 @@ def _region_dataset(ds):
     while len(_REGION_DS) > 4:
         _REGION_DS.popitem(last=False)
     return out
-
-
-def invariant_dims(dataset) -> List[int]:
-    """0-based state dimensions the collection declared invariant (not covered; manifest "cover")."""
-    names = (dataset.manifest.get("cover") or {}).get("invariant_dims") or []
-    out = []
-    for d in names:
-        if isinstance(d, int):
-            out.append(d)
-        elif d in dataset.system.state_names:
-            out.append(dataset.system.state_names.index(d))
-        else:
-            raise SimgapError(f"dataset manifest: unknown invariant dimension {d!r}")
-    return sorted(set(out))
 
 
 def bases_for(system, degree, terms: Dict[int, List[str]], exclude_dims: Sequence[int] = ()) -> List[Basis]:
@@ -643,7 +630,6 @@ def lhat_cost(ds, o: CertifyOptions, simulator) -> Optional[dict]:
     at ``simulator``'s rate measured here (0.05-0.3 s); None when it makes none. Checks the pair
     distance first (a refusal costs no run) and refuses work over the memory or time limits."""
     from ..cover import calibrate_rate
-    from .audit import load_fitting_modules
     rows = simulator_rows(ds, o)
     if not rows["rows"]:
         return None

@@ -121,7 +121,7 @@ def options_from_args(args, system):
 
 def check_certify_size(opts, ds) -> None:
     """Refuse a basis too large for the data set before building it (:func:`simgap.checks.check_basis`)."""
-    from ..certify.pipeline import invariant_dims
+    from ..dataset import invariant_dims
     from ..checks import check_basis
 
     s = ds.system

@@ -250,7 +250,7 @@ def run(args) -> int:
                          on_progress=bar)
     finally:
         bar.close()
-    return _finish(args, res, x0, spec, "EMPTY winning domain", "the winning domain")
+    return _finish(args, res, x0, spec, "EMPTY winning domain", "the winning domain", gap)
 
 
 def _invariant_set(args, system, spec, gap, syn, x0) -> int:
@@ -262,14 +262,17 @@ def _invariant_set(args, system, spec, gap, syn, x0) -> int:
     invariant_stage.check_section(system, dict(syn, hold=1), spec)
     res = invariant_stage.synthesize(system, spec, gap, syn, x0=x0, horizon=args.horizon)
     if meth == "box_tube":
-        return _finish(args, res, x0, spec, "no box tube proved", "the box tube")
-    return _finish(args, res, x0, spec, "no invariant set proved", "the invariant set E")
+        return _finish(args, res, x0, spec, "no box tube proved", "the box tube", gap)
+    return _finish(args, res, x0, spec, "no invariant set proved", "the invariant set E", gap)
 
 
-def _finish(args, res, x0, spec, empty: str, domain: str) -> int:
-    """Print the result, write the stats and the controller; exit 1 when nothing was won, 3 when the
-    controller is written but x0 lies outside its domain (rollouts from x0 are refused)."""
+def _finish(args, res, x0, spec, empty: str, domain: str, gap=None) -> int:
+    """Print the result (with the confidence kind of a certificate's proof), write the stats and the
+    controller; exit 1 when nothing was won, 3 when the controller is written but x0 lies outside its
+    domain (rollouts from x0 are refused)."""
     print(res.summary())
+    if hasattr(gap, "proof_confidence_text"):
+        print(f"confidence    {gap.proof_confidence_text()}")
     if args.json:
         _write_json(args.json, res.stats)
     if res.empty:

@@ -38,8 +38,9 @@ import numpy as np
 
 from ..certify.certificate import Certificate, DimCertificate
 from ..certify.lipschitz import l2_analytic, neighbour_pairs, slopes_of, wood_zhang
-from ..certify.pipeline import _versions, bases_for, check_dataset, dataset_region, invariant_dims
+from ..certify.pipeline import _versions, bases_for, check_dataset, dataset_region
 from ..certify.scp import solve_scp
+from ..dataset import invariant_dims
 from ..errors import SimgapError
 from ..system_ref import embedded_ref, system_digest
 from .orderstats import alpha_min, order_index

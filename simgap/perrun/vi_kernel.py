@@ -19,7 +19,7 @@ cache when that is not writable) and loaded in later processes instead of compil
 from __future__ import annotations
 
 import numpy as np
-from ..synthesis.jit import njit
+from ..jit import njit
 
 
 def _compiled(fn):

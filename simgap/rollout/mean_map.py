@@ -45,6 +45,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import SimgapError
+from ..synthesis.abstraction import COMPOSED_HOLD_LABEL
 from ..synthesis.spec import Spec
 from .judge import circular_mean, classify, judge_path
 
@@ -185,7 +186,6 @@ def mean_map(controller, sim, spec: Spec, x0: np.ndarray, runs: int, T: int, hol
         m = traj[t]
     traj[t + 1:], se[t + 1:], se1[t + 1:] = traj[t], se[t], se1[t]
     verdict = judge_path(spec, traj, system.x_lo, system.x_hi)
-    from ..synthesis.abstraction import COMPOSED_HOLD_LABEL
     composed = getattr(controller, "meta", {}).get("hold_mode") == COMPOSED_HOLD_LABEL
     return MeanMap(trajectory=traj, std_error=se, input_index=uidx, length=t, outcome=outcome, verdict=verdict,
                    left_domain_time=ltime, runs=runs, robot_steps=steps, step_std_error=se1, groups=G,

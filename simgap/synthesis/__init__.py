@@ -14,7 +14,7 @@ from .abstraction import Abstraction, ConstantGap, build_abstraction, state_inde
 from .controller import Controller, SynthesisResult, label_cells, synthesize
 from .games import GameResult, solve_invariance, solve_reach
 from .grid import UniformGrid
-from .runge_kutta import rk4_growth, rk4_integrate, rk4_step
+from ..runge_kutta import rk4_growth, rk4_integrate, rk4_step
 from .spec import Box, Spec
 
 __all__ = [

@@ -59,7 +59,7 @@ from ..errors import SimgapError
 from ..systems import System
 from .corner_index import CornerIndex
 from .grid import UniformGrid
-from .jit import expected_work, use_compiled
+from ..jit import expected_work, use_compiled
 
 GrowthFn = Callable[[np.ndarray, np.ndarray, np.ndarray, float], np.ndarray]
 
@@ -365,7 +365,7 @@ def state_independent(growth: GrowthFn) -> GrowthFn:
 
     :func:`build_abstraction` then evaluates it once per distinct (r, u) instead of once per
     (cell, input) pair: once per input when the radius is the same for every cell (no gap or a
-    constant gap). :func:`~simgap.synthesis.runge_kutta.rk4_growth` and the system's Jacobian
+    constant gap). :func:`~simgap.runge_kutta.rk4_growth` and the system's Jacobian
     bound are state-independent already. Declaring it for a growth that does depend on x is
     wrong (the boxes would be those of an arbitrary cell)."""
     try:
@@ -431,7 +431,7 @@ def build_abstraction(system: System, grid: UniformGrid, *, growth: Optional[Gro
     growth : callable, optional
         ``growth(r (B,n), x (B,n), u (B,m), tau) -> (B,n)``: radius of the image of the box
         [x - r, x + r] under f around f(x, u) after the sampling period tau = system.tau [s]
-        (SCOTS ``radius_post``; see :func:`~simgap.synthesis.runge_kutta.rk4_growth`).
+        (SCOTS ``radius_post``; see :func:`~simgap.runge_kutta.rk4_growth`).
         Default: the system's Jacobian-based ``growth_bound``.
     gap : None, constant vector, or object with ``gamma_upper_box(lo, hi, u) -> (B, n)``
         Bound on the simulation gap gamma (state units per sampling period).

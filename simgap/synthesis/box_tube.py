@@ -512,14 +512,19 @@ def plan_nominal(system: System, x0, x_star, u_star, K, u_lo, u_hi, margin: floa
             x = system.f(x[None], u[None])[0]
         if not (np.all(np.isfinite(x)) and np.all(x >= system.x_lo) and np.all(x <= system.x_hi)):
             raise SimgapError(f"box tube: the nominal plan from x0 leaves X at period {len(us) + 1} (state "
-                              f"{np.round(x, 4).tolist()}): the saturated loop cannot bring x0 to x*; try a smaller "
-                              f"input_margin (now {margin:g}), another K or an x0 closer to x*")
+                              f"{np.round(x, 4).tolist()}): the saturated loop cannot bring x0 to x*. Levers: the "
+                              f"plan's pace ([synthesis] plan_input_weight: larger for gentler inputs, smaller for "
+                              f"firmer ones; or K_plan), a smaller input_margin (now {margin:g}), a wider input range "
+                              f"(the system's inputs), a larger X (the system's x_lo / x_hi, if the overshoot is "
+                              f"harmless) or an x0 closer to x*")
         xs.append(x.copy())
         us.append(u)
     else:
         raise SimgapError(f"box tube: the nominal plan from x0 does not reach x* within {max_steps} periods "
                           f"(at the end |x - x*| = {np.round(np.abs(x - x_star), 6).tolist()}); the saturated "
-                          f"loop may not converge from x0: try a smaller input_margin or a different K")
+                          f"loop may not converge from x0. Levers: a faster plan ([synthesis] plan_input_weight "
+                          f"smaller, or K_plan), a smaller input_margin (now {margin:g}) or a wider input range "
+                          f"(the system's inputs)")
     return np.array(xs), np.array(us).reshape(-1, np.size(u_star))
 
 
@@ -796,7 +801,9 @@ def synthesize_box_tube(system: System, spec: Spec, gap=None, *, x0, x_star=None
     uroom = np.minimum(u_star - u_lo, u_hi - u_star)
     if np.any(room <= 0) or np.any(uroom <= 0):
         raise SimgapError(f"box tube: the equilibrium x* = {x_star.tolist()}, u* = {u_star.tolist()} lies on the "
-                          f"boundary of the safe/target box or of the input range: no room")
+                          f"boundary of the safe/target box or of the input range [{u_lo.tolist()}, "
+                          f"{u_hi.tolist()}]: no room. Levers: a wider safe set or target box, a wider input range "
+                          f"(the system's inputs, all certified), or x_star / u_star")
     sroom = np.minimum(x_star - lo, hi - x_star)
     if K is None or K_plan is None:
         check_stabilizable(A, B, system.state_names)
@@ -873,6 +880,11 @@ def synthesize_box_tube(system: System, spec: Spec, gap=None, *, x0, x_star=None
         if scale is not None and np.isfinite(scale):
             stats["diagnosis"] += (f"; the proof holds with gamma at most {scale:.3g} x its bound" if scale > 0 else
                                    "; not even without the gap")
+        stats["diagnosis"] += ("; levers: the plan's pace ([synthesis] plan_input_weight, now "
+                               f"{float(plan_input_weight):g}; larger = gentler inputs), the input range (the system's "
+                               "inputs), X and the safe set, K (or lqr_q / lqr_r), the terminal box (target_lo / "
+                               "target_hi), and a smaller gamma (more runs N1hat, a [collect] region around the tube, "
+                               "a refined model: docs/synthesis.md)")
     stats["seconds"] = time.perf_counter() - t0
     stats["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     return BoxTubeResult(ctrl, v, stats)

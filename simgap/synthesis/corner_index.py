@@ -22,7 +22,7 @@ from typing import Optional
 
 import numpy as np
 
-from .jit import expected_work, use_compiled
+from ..jit import expected_work, use_compiled
 
 #: (cell, input) pairs from which the compiled build pays for numba's start in auto mode
 #: (about 0.1 us a pair saved, numba's start about 0.5-0.8 s)

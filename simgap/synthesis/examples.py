@@ -21,8 +21,8 @@ import numpy as np
 from ..systems import System, input_grid
 from .abstraction import state_independent
 from .grid import UniformGrid
-from .jit import use_compiled
-from .runge_kutta import _input_rows, compiled_args, rk4_growth, rk4_integrate, rk4_step
+from ..jit import use_compiled
+from ..runge_kutta import _input_rows, compiled_args, rk4_growth, rk4_integrate, rk4_step
 from .spec import Box, Spec
 
 VEHICLE_TAU = 0.3

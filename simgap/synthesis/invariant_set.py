@@ -620,7 +620,8 @@ def synthesize_invariant_set(system: System, spec: Spec, gap=None, *, x_star=Non
         raise SimgapError(f"invariant set: the equilibrium lies on the safe set's boundary in {system.state_names[i]}")
     if np.any(uroom <= 0):
         raise SimgapError(f"invariant set: u* = {u_star.tolist()} lies on the boundary of the input range "
-                          f"[{u_lo.tolist()}, {u_hi.tolist()}]: no room for feedback")
+                          f"[{u_lo.tolist()}, {u_hi.tolist()}]: no room for feedback. Levers: a wider input range "
+                          f"(the system's inputs, all certified) or another x_star / u_star")
     if K is None:
         check_stabilizable(A, B, system.state_names)
         q = 1.0 / room ** 2 if lqr_q is None else _weights(lqr_q, n, "lqr_q")
@@ -733,7 +734,9 @@ def diagnose(system: System, v: Verification) -> str:
                              f"{need} per period")
         else:
             parts.append(f"{c['name']} fails: {c['value']:.4g} > {c['limit']:g} ({c['what']})")
-    return "no invariant set proved; best candidate: " + "; ".join(parts)
+    return ("no invariant set proved; best candidate: " + "; ".join(parts) + "; levers: the input range (the "
+            "system's inputs), X and the safe set (E must fit in both), K (or lqr_q / lqr_r), x_star / u_star, and a "
+            "smaller gamma (more runs N1hat, a [collect] region around x*, a refined model: docs/synthesis.md)")
 
 
 def _describe_gap(gap) -> dict:

@@ -126,10 +126,11 @@ def states_in_set(ctrl, k: int, seed: int) -> np.ndarray:
     return ctrl.x_star + np.linalg.solve(L.T, z.T).T * (1 - 1e-9)
 
 
-def rollouts_in_set(ctrl, sim, k: int, n_rollouts: int, horizon, seed: int, on_exit: str, log=print) -> dict:
+def rollouts_in_set(rollout, ctrl, sim, k: int, n_rollouts: int, horizon, seed: int, on_exit: str,
+                    log=print) -> dict:
     """R rollouts from each of k states drawn in E (the mean map too, 100 runs per step): failures per
-    start and in total."""
-    from ..rollout import rollout
+    start and in total. ``rollout``: :func:`simgap.rollout.rollout`, passed by the caller (rollouts
+    are the stage after synthesis: this package does not import it)."""
     starts = states_in_set(ctrl, k, seed)
     per = []
     for i, x in enumerate(starts):

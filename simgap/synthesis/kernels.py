@@ -1,8 +1,8 @@
-"""Compiled kernels (numba; imported only when :mod:`.jit` says so): the RK4 of the reference
+"""Compiled kernels (numba; imported only when :mod:`simgap.jit` says so): the RK4 of the reference
 systems and one level of the worklist reach game (:func:`reach_level`).
 
 Each RK4 kernel integrates x' = F(x, u) over tau with ``nint`` classical RK4 substeps, row by row,
-in exactly the operation order of :func:`~simgap.synthesis.runge_kutta.rk4_integrate` and of the
+in exactly the operation order of :func:`~simgap.runge_kutta.rk4_integrate` and of the
 numpy right-hand side it replaces (SCOTS's order)::
 
     k0 = F(x);  k1 = F(k0 (h/2) + x);  k2 = F(k1 (h/2) + x);  k3 = F(k2 h + x)
@@ -24,7 +24,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from .jit import njit
+from ..jit import njit
 
 
 def _compiled(fn=None, **kw):

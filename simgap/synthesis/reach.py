@@ -20,7 +20,7 @@ from .abstraction import Abstraction
 from .boxes import BoxCounter, PairEvaluator, pair_volumes, volume_bound
 from .corner_index import CornerIndex
 from .fixed_point import GameResult, choose_method, tick
-from .jit import expected_work, use_compiled
+from ..jit import expected_work, use_compiled
 from .live import _per_class, _usable_pairs, _valid_shared, live_pairs
 from .pair_rows import _block_size, _unpack, pack_rows
 from .predecessors import _frontier, _predecessors
@@ -134,7 +134,7 @@ COMPILED_GAME_TRANSITIONS = 20_000_000
 
 def _compiled_level(pre, cnt):
     """``level(R, won) -> (pairs whose count reached 0, transitions visited)`` compiled
-    (:func:`simgap.synthesis.kernels.reach_level`) when :mod:`.jit` says so for this game's
+    (:func:`simgap.synthesis.kernels.reach_level`) when :mod:`simgap.jit` says so for this game's
     transitions and ``pre`` is a corner index; else None (the numpy level)."""
     if not isinstance(pre, CornerIndex):
         return None

@@ -33,7 +33,7 @@ from typing import Callable, Optional, Union
 
 import numpy as np
 
-from ..errors import SimgapError
+from .errors import SimgapError
 from .jit import AUTO_WORK, use_compiled
 
 RhsFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
@@ -90,7 +90,7 @@ def rk4_step(rhs: RhsFn, nint: int = 10, prepare: Optional[Callable[[np.ndarray]
 
     ``compiled(x (B, n), u (B, m), tau) -> (B, n)``, optional: a compiled twin giving the same
     bits (e.g. a numba kernel, :mod:`simgap.synthesis.kernels`), used instead of the numpy path
-    when :func:`simgap.synthesis.jit.use_compiled` says so (large jobs; ``SIMGAP_JIT``; an
+    when :func:`simgap.jit.use_compiled` says so (large jobs; ``SIMGAP_JIT``; an
     attribute ``compiled.min_rows`` sets its break-even in step rows). It should import its
     compiler inside, so that building the system costs nothing.
 

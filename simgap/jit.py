@@ -1,10 +1,10 @@
 """When the compiled (numba) kernels are used instead of their numpy twins.
 
-The compiled kernels (:mod:`.kernels`) give the same bits as the numpy code they replace, so
-the choice is about cost only: importing numba and loading a cached kernel costs about 0.33 s
-CPU and 115 MB of resident memory per process (llvmlite's library, LLVM's start and numba's
-registries; measured idle, 2026-11-29, with the BLAS probe deferred: 0.61 s and 131 MB without),
-paid once.
+The compiled kernels (:mod:`simgap.synthesis.kernels`, :mod:`simgap.perrun.vi_kernel`) give the
+same bits as the numpy code they replace, so the choice is about cost only: importing numba and
+loading a cached kernel costs about 0.33 s CPU and 115 MB of resident memory per process
+(llvmlite's library, LLVM's start and numba's registries; measured idle, 2026-11-29, with the
+BLAS probe deferred: 0.61 s and 131 MB without), paid once.
 A kernel pays for that only on large jobs, so
 :func:`~simgap.synthesis.abstraction.build_abstraction` declares its work (the number of rows
 it is about to pass to the system's step, ``pairs * hold * steps``) with
@@ -27,7 +27,7 @@ import contextvars
 import importlib.util
 import os
 
-from ..errors import SimgapError
+from .errors import SimgapError
 
 #: declared step rows from which a compiled twin is used in auto mode, unless it names its own
 #: break-even (``use_compiled(min_rows)``). Importing numba and loading a cached kernel costs

@@ -132,6 +132,9 @@ def check_experiment(exp: ExperimentConfig, out: Optional[str | Path] = None, *,
     if "horizon" in ro:
         checks.check_memory(R * (ro["horizon"] + 1) * (2 * n * 8 + 4),
                             f"{R:,} rollouts x horizon {ro['horizon']:,}", "use fewer rollouts or a shorter horizon")
+        if invariant_stage.method_of(syn) == "box_tube" and syn.get("per_run", True):
+            from .synthesis.noise_tube import check_horizon
+            check_horizon(ro["horizon"], n, "[rollout] horizon")  # the box tube's per-run statement
 
     for k in ("delta1", "delta2", "beta1", "beta2", "degree"):
         if k in cert:
@@ -445,7 +448,7 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
             wrote(f"audit_{method}.json")
             if invariant:
                 sres = stage(f"synthesize/{method}", lambda: invariant_stage.synthesize(
-                    exp.system, spec, cert, syn, x0=x0, horizon=ro.get("horizon")))
+                    exp.system, spec, cert, syn, x0=x0, horizon=ro.get("horizon"), log=log))
                 if not sres.empty:  # no set proved: nothing written (the summary says why)
                     sres.controller.save(out / f"controller_{method}.npz")
                     wrote(f"controller_{method}.npz")

@@ -71,7 +71,8 @@ def add_parser(subparsers) -> None:
     g.add_argument("--compose-hold", action="store_true",
                    help="with --hold > 1: compose the one-period gap over the held steps (not covered by the "
                         "paper's theorem when f is nonlinear; labelled in the report)")
-    p.set_defaults(func=run, outputs=("out", "save_system", "record"))
+    p.set_defaults(func=run, outputs=("out", "save_system", "record"),
+                   formats={"out": (".json",), "save_system": (".json", ".toml"), "record": (".rrd",)})
 
 
 def run(args) -> int:

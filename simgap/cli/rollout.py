@@ -47,7 +47,7 @@ def add_parser(sub) -> None:
                         "controller's guarantee is about (default: --n clipped to [100, 1000]; 0 skips it)")
     p.add_argument("--out", required=True, help="JSON report path")
     p.add_argument("--trajectories", default=None, help="also write all arrays to this .npz")
-    p.set_defaults(func=run, outputs=("out", "trajectories"))
+    p.set_defaults(func=run, outputs=("out", "trajectories"), formats={"out": (".json",), "trajectories": (".npz",)})
 
 
 def parse_vector(tokens, what: str) -> np.ndarray:

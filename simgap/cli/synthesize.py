@@ -101,7 +101,8 @@ def add_parser(subparsers) -> None:
                         "docs/synthesis.md). Default: the experiment's [synthesis] method, else grid")
     p.add_argument("--no-strict-domain", action="store_true",
                    help="let cells stick out of X by eta/2 (SCOTS's convention) instead of blocking them")
-    p.set_defaults(func=run, outputs=("out", "json"), output_dirs=("store",))
+    p.set_defaults(func=run, outputs=("out", "json"), output_dirs=("store",),
+                   formats={"out": (".npz",), "json": (".json",)})
 
 
 def _floats(text: str, what: str) -> np.ndarray:

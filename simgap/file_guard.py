@@ -230,14 +230,15 @@ def check_outputs(args) -> None:
         if v is not None:
             what = "--" + name.replace("_", "-")
             outs.append((what, output_file(v, what)))
-            if name in formats:
-                output_format(v, what, formats[name])
     for name in getattr(args, "output_dirs", ()):
         v = getattr(args, name, None)
         if v is not None:
             outs.append(("--" + name.replace("_", "-"), output_dir(v, "--" + name.replace("_", "-"))))
+    not_over_inputs(outs, _input_paths(args))  # the worst first: an input would be destroyed
     not_twice(outs)
-    not_over_inputs(outs, _input_paths(args))
+    for name, exts in formats.items():
+        if getattr(args, name, None) is not None:
+            output_format(getattr(args, name), "--" + name.replace("_", "-"), exts)
 
 
 def _input_paths(args) -> list:

@@ -71,7 +71,7 @@ from ..systems import System
 from .interval_map import IntervalMap
 from ..checks import one_of
 from .noise_tube import NoiseTube, check_horizon, noise_proxy, why_no_statement
-from .invariant_set import (_describe_gap, _parse_matrix, check_stabilizable, find_equilibrium, gap_bound,
+from .invariant_set import (_describe_gap, _parse_matrix, _weights, check_stabilizable, find_equilibrium, gap_bound,
                             input_range, linearize, lqr_gain, spectral_radius)
 from .spec import Spec
 
@@ -835,8 +835,8 @@ def synthesize_box_tube(system: System, spec: Spec, gap=None, *, x0, x_star=None
         K_plan = _parse_matrix(K_plan, m, n)
     if K is None:
         if lqr_q is not None or lqr_r is not None:
-            q = 1.0 / room ** 2 if lqr_q is None else np.broadcast_to(np.asarray(lqr_q, float), (n,))
-            rr = 1.0 / uroom ** 2 if lqr_r is None else np.broadcast_to(np.asarray(lqr_r, float), (m,))
+            q = 1.0 / room ** 2 if lqr_q is None else _weights(lqr_q, n, "lqr_q")
+            rr = 1.0 / uroom ** 2 if lqr_r is None else _weights(lqr_r, m, "lqr_r")
             if np.any(q < 0) or np.any(rr <= 0):
                 raise SimgapError("box tube: LQR weights need q >= 0 and r > 0")
             K, K_how = lqr_gain(A, B, q, rr), "discrete LQR of the linearization (given weights)"

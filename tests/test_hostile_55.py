@@ -210,6 +210,17 @@ def test_box_tube_controller_with_another_hold_is_refused(work, capsys):
     assert not (work / "never.json").exists()
 
 
+def test_box_tube_rollout_from_another_x0_is_refused(work, capsys):
+    """The tube's proof starts at its own x0; rollouts from elsewhere reported "spec held" for a tube
+    that proves nothing there."""
+    rc, _, err = cli(capsys, "rollout", "--controller", "tube.npz", "--simulator", "exp.toml", "--x0", "0.4,0",
+                     "--n", "5", "--out", "never.json", cwd=work)
+    assert rc == 2 and "outside the controller's box at period 0" in err and "x0 = [0.5, 0.0]" in err, err
+    rc, _, err = cli(capsys, "rollout", "--controller", "tube.npz", "--simulator", "exp.toml", "--n", "5",
+                     "--out", "tube_rollouts.json", cwd=work)
+    assert rc == 0, err
+
+
 def test_set_controllers_refuse_a_hold_other_than_one():
     from simgap.synthesis.ellipsoid_controller import EllipsoidController
     from simgap.synthesis.tube_controller import TubeController

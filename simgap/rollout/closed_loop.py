@@ -361,6 +361,11 @@ def rollout(controller, simulator, x0=None, n_rollouts: int = 1000, horizon: Opt
     if int(np.asarray(controller.input_index(x0[None])).reshape(-1)[0]) < 0 and not (
             spec.kind == "reach_avoid" and spec.reached(x0[None])[0]):
         raise SimgapError(f"rollout x0 {x0.tolist()} is outside the controller's winning domain")
+    if getattr(controller, "time_varying", False) and not bool(controller.winning(x0[None], t=0)[0]):
+        # a tube's proof starts at its own x0 (its box at period 0): from elsewhere it proves nothing
+        raise SimgapError(f"rollout x0 {x0.tolist()} is outside the controller's box at period 0: its proof starts at "
+                          f"x0 = {np.asarray(controller.x0).tolist()}; roll out from there (drop --x0), or synthesize "
+                          "a tube from this x0")
     if hold is not None and (int(hold) != hold or hold < 1):
         raise SimgapError(f"rollout: hold must be an integer >= 1, got {hold!r}")
     proved = resolve_hold(controller, simulator)

@@ -87,10 +87,11 @@ def sample_states(system: System, points: int, rng: np.random.Generator, fix: Op
 
 def check_fit_size(system: System, points: int, grid: bool, fix: Optional[Dict[str, float]], n_params: int,
                    what: str) -> int:
-    """The fit's transitions (states x inputs), refused before any state is drawn when they cannot fit
-    in memory: B = points (or points^d on a grid of the d free states) states, R = B |U| rows; the
-    states, inputs and next states (2n + m floats per row, twice: drawn and repeated) and the
-    least-squares fit's residuals and finite-difference Jacobian (n (p + 4) floats per row)."""
+    """The fit's transitions R (states x inputs), refused before any state is drawn when they cannot
+    fit in memory: B = points (or points^d on a grid of the d free states) states, R = B |U| rows; per
+    row the states, inputs and next states with the simulator's and the formulas' temporaries
+    (6 (2n + m) floats) and the least-squares fit's residuals and finite-difference Jacobian
+    (n (2p + 8) floats, p parameters)."""
     from .checks import check_memory
     free = sum(1 for nm in system.state_names if nm not in (fix or {}))
     states = int(points) ** free if grid else int(points)

@@ -94,11 +94,11 @@ def run(args) -> int:
     from ..cover import calibrate_rate, format_duration
     from ..file_guard import read_text
     from ..fileio import write_text
-    from ..fit import fit_params, fitted_text, sample_states, system_file_spec, transitions
+    from ..checks import one_of
+    from ..fit import (check_fit_size, fit_params, fitted_text, sample_states, seconds_per_evaluation,
+                       system_file_spec, transitions)
     from ..simulators import make_simulator
 
-    from ..checks import one_of
-    from ..fit import check_fit_size, seconds_per_evaluation
     one_of({"--points": args.points, "--grid": args.grid}, "the states the fit simulates from",
            "--points draws that many states at random, --grid takes that many values per free state")
     fix = _pairs(args.fix, "--fix", float)
@@ -126,9 +126,10 @@ def run(args) -> int:
             print(f"note: --bounds {k}={lo:g}:{hi:g} excludes the file's {k} = {v:g}: the fit starts at the nearest "
                   "bound and is compared with the file's values below", file=sys.stderr)
     rng = np.random.default_rng(args.seed)
-    what = f"--grid {args.grid}" if args.grid is not None else f"--points {args.points or POINTS}"
-    rows = check_fit_size(s, args.grid or args.points or POINTS, args.grid is not None, fix, len(args.params), what)
-    x = sample_states(s, args.grid or args.points or POINTS, rng, fix, grid=args.grid is not None)
+    count_, grid = args.grid or args.points or POINTS, args.grid is not None
+    what = f"--grid {count_}" if grid else f"--points {count_}"
+    rows = check_fit_size(s, count_, grid, fix, len(args.params), what)  # before any state is drawn
+    x = sample_states(s, count_, rng, fix, grid=grid)
     cfg = dataclasses.replace(exp.simulator, noise={}, randomize={})
     # the fit: each iteration evaluates the model p + 1 times over every row (finite-difference Jacobian)
     per_iteration = (len(args.params) + 1) * seconds_per_evaluation(s, x, rows)

@@ -312,7 +312,8 @@ def rollout(controller, simulator, x0=None, n_rollouts: int = 1000, horizon: Opt
     seed, rng
         Randomness: ``rng`` if given, else ``numpy.random.default_rng(seed)``.
     hold : int, optional
-        Simulator steps per controller query; default :func:`resolve_hold`.
+        Simulator steps per controller query: :func:`resolve_hold`, what the controller's proof
+        assumed (another value is refused).
     spec : Spec, optional
         Judge against this spec instead of ``controller.spec``.
     on_exit : {"hold", "stop"}

@@ -158,6 +158,17 @@ def test_fit_estimate_prices_the_least_squares_too(work, capsys):
     assert line.startswith("estimate: 50 states x 5 inputs = 250") and "per iteration (4 model evaluations" in line
 
 
+def test_refine_bootstrap_is_priced_and_counts_are_typed(work, capsys):
+    rc, _, err = cli(capsys, "refine", "--system", "cubic.toml", "--data", "run/data", "--bootstrap", "1000000000",
+                     "--quiet", "--out", "never.json", cwd=work)
+    assert rc == 2 and "--bootstrap 1,000,000,000" in err and "more than the 6 h" in err, err
+    for option, value in (("--bootstrap", "1"), ("--segments", "0"), ("--hold", "-5")):
+        rc, _, err = cli(capsys, "refine", "--system", "cubic.toml", "--data", "run/data", option, value,
+                         "--out", "never.json", cwd=work)
+        assert rc == 2 and f"argument {option}" in err, err
+    assert not (work / "never.json").exists()
+
+
 def test_long_rollout_prints_its_estimate_before_the_work(work):
     """`simgap rollout --horizon 5000000` of an invariance controller used to step the nominal path to
     the horizon (a model in formulas, ~1 ms a step) before the estimate: no line for over an hour."""

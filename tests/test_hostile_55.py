@@ -315,6 +315,10 @@ def test_command_line_values_are_named_as_written(work, capsys):
     rc, _, err = cli(capsys, "synthesize", "--system", "cubic.toml", "--safe", "-1,1,-2,2", "--eta", "0.1", "--no-gap",
                      "--horizon", "5", "--out", "never.npz", cwd=work)
     assert rc == 2 and "--horizon is for --level run and --method box_tube" in err and "grid" in err, err
+    rc, _, err = cli(capsys, "synthesize", "--spec", "exp.toml", "--no-gap", "--eta", "0.1", "--out", "never.npz",
+                     cwd=work)
+    assert rc == 2 and '--eta is a grid option, but [synthesis] method = "box_tube" builds no grid' in err, err
+    assert not (work / "never.npz").exists()
 
 
 def test_the_engine_refuses_k_with_lqr_weights_too():

@@ -263,6 +263,12 @@ def _invariant_set(args, system, spec, gap, syn, x0) -> int:
     meth = syn["method"]
     # the checks `simgap run` makes, on the values this command will use, named as the user wrote them
     names = {"method": f"--method {meth}"} if args.method else {}
+    unused = [f for f, v in (("--eta", args.eta), ("--compose-hold", args.compose_hold),
+                             ("--no-strict-domain", args.no_strict_domain)) if v]
+    if unused:
+        raise SimgapError(f"{', '.join(unused)} {'is a grid option' if len(unused) == 1 else 'are grid options'}, "
+                          f"but {invariant_stage.said(syn, 'method', names)} builds no grid: drop "
+                          f"{'it' if len(unused) == 1 else 'them'}")
     if args.hold is not None:
         syn, names["hold"] = dict(syn, hold=args.hold), f"--hold {args.hold}"
     invariant_stage.check_section(system, syn, spec, names)

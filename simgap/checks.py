@@ -130,6 +130,22 @@ def reachable(address: str, timeout: float = 5.0, what: str = "server") -> None:
 
 
 # ----------------------------------------------------------------------------------------
+# Conflicting options
+# ----------------------------------------------------------------------------------------
+
+def one_of(options: dict, what: str, hint: str = "") -> None:
+    """The one rule for options that set the same thing: refuse two or more of ``options`` given
+    together (a value other than None), naming each as the user wrote it, instead of using one of
+    them silently. ``options``: the user's spelling (``"--grid"``, ``"[synthesis] K"``) -> value;
+    ``what``: the thing they all set. The stage commands and ``simgap run`` call it on the same
+    keys, so a conflict is refused the same way wherever it is written."""
+    given = [k for k, v in options.items() if v is not None]
+    if len(given) > 1:
+        raise SimgapError(f"{' and '.join(given)} both set {what}: give only one of them"
+                          + (f" ({hint})" if hint else ""))
+
+
+# ----------------------------------------------------------------------------------------
 # Sizes
 # ----------------------------------------------------------------------------------------
 

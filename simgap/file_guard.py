@@ -193,19 +193,52 @@ def output_dir(path, what: str = "--out") -> Path:
     return p
 
 
+def output_format(path, what: str, formats) -> str:
+    """The extension (lower case) of output ``path`` if it is one of ``formats`` (e.g. ``(".json",)``):
+    a file's format comes from its name, so a name promising another format is refused instead of
+    written in the command's format (``fit --out f.json`` writing TOML that nothing can read back)."""
+    ext = Path(path).suffix.lower()
+    if ext not in formats:
+        said = f"ends in {ext!r}" if ext else "has no extension"
+        raise SimgapError(f"{what} {str(path)!r} {said}, but this command writes "
+                          f"{' or '.join(f[1:].upper() for f in formats)} there: give a name ending in "
+                          f"{' or '.join(formats)}")
+    return ext
+
+
+def not_twice(outputs) -> None:
+    """Refuse two outputs of one command at the same path (the second would replace the first:
+    ``refine --save-system o.toml --out o.toml`` lost its report). ``outputs``: (option, path)."""
+    seen = {}
+    for what, out in outputs:
+        key = resolved(out, what)
+        if key in seen:
+            raise SimgapError(f"{seen[key]} and {what} are both {str(out)!r}: the second would replace the first; "
+                              "give each output its own path")
+        seen[key] = what
+
+
 def check_outputs(args) -> None:
-    """Check every output a parsed command declares (``set_defaults(outputs=..., output_dirs=...)``):
-    writable (:func:`output_file`, :func:`output_dir`) and not over any input (:func:`not_over_inputs`)."""
+    """Check every output a parsed command declares (``set_defaults(outputs=..., output_dirs=...,
+    formats=...)``): writable (:func:`output_file`, :func:`output_dir`), named for the format written
+    there (:func:`output_format`), no two at one path (:func:`not_twice`) and not over any input
+    (:func:`not_over_inputs`)."""
     outs = []
+    formats = getattr(args, "formats", {})
     for name in getattr(args, "outputs", ()):
         v = getattr(args, name, None)
         if v is not None:
-            outs.append(("--" + name.replace("_", "-"), output_file(v, "--" + name.replace("_", "-"))))
+            what = "--" + name.replace("_", "-")
+            outs.append((what, output_file(v, what)))
     for name in getattr(args, "output_dirs", ()):
         v = getattr(args, name, None)
         if v is not None:
             outs.append(("--" + name.replace("_", "-"), output_dir(v, "--" + name.replace("_", "-"))))
-    not_over_inputs(outs, _input_paths(args))
+    not_over_inputs(outs, _input_paths(args))  # the worst first: an input would be destroyed
+    not_twice(outs)
+    for name, exts in formats.items():
+        if getattr(args, name, None) is not None:
+            output_format(getattr(args, name), "--" + name.replace("_", "-"), exts)
 
 
 def _input_paths(args) -> list:

@@ -74,7 +74,7 @@ def sample_states(system: System, points: int, rng: np.random.Generator, fix: Op
     if grid:
         axes = [system.x_lo[j] + (np.arange(points) + 0.5) / points * (system.x_hi[j] - system.x_lo[j]) for j in free]
         mesh = np.meshgrid(*axes, indexing="ij") if axes else []
-        B = int(np.prod([points] * len(free))) if free else 1
+        B = int(points) ** len(free)  # a Python int: no overflow (priced by check_fit_size)
         x = np.empty((B, system.n))
         for a, j in enumerate(free):
             x[:, j] = mesh[a].ravel()
@@ -83,6 +83,41 @@ def sample_states(system: System, points: int, rng: np.random.Generator, fix: Op
     for k, v in fix.items():
         x[:, system.state_names.index(k)] = v
     return x
+
+
+def check_fit_size(system: System, points: int, grid: bool, fix: Optional[Dict[str, float]], n_params: int,
+                   what: str) -> int:
+    """The fit's transitions R (states x inputs), refused before any state is drawn when they cannot
+    fit in memory: B = points (or points^d on a grid of the d free states) states, R = B |U| rows; per
+    row the states, inputs and next states with the simulator's and the formulas' temporaries
+    (6 (2n + m) floats) and the least-squares fit's residuals and finite-difference Jacobian
+    (n (2p + 8) floats, p parameters)."""
+    from .checks import check_memory
+    free = sum(1 for nm in system.state_names if nm not in (fix or {}))
+    states = int(points) ** free if grid else int(points)
+    rows = states * len(system.inputs)
+    # measured: 254 bytes per row for n = m = 1, p = 3 (peak RSS at 1e6 and 5e6 rows); the formulas'
+    # temporaries are the rest
+    need = 8.0 * rows * (6 * (2 * system.n + system.m) + system.n * (2 * n_params + 8))
+    check_memory(need, f"{what}: {states:,} states x {len(system.inputs)} inputs = {rows:,} transitions "
+                 "(states, next states and the fit's Jacobian)",
+                 "use fewer --points or a coarser --grid" + (" (or --fix some states)" if grid else ""))
+    return rows
+
+
+def seconds_per_evaluation(system: System, x: np.ndarray, rows: int, sample: int = 65536) -> float:
+    """Seconds of one evaluation of the fit's residual over ``rows`` transitions: the model rebuilt
+    (:func:`with_params`) and evaluated on ``sample`` rows from the states ``x`` (the second of two
+    timings, the first warms up), scaled to ``rows``."""
+    import time
+    k = max(1, min(int(sample), len(x) * len(system.inputs)))
+    X = np.repeat(x[: -(-k // len(system.inputs))], len(system.inputs), axis=0)[:k]
+    U = np.tile(system.inputs, (-(-k // len(system.inputs)), 1))[:k]
+    for _ in range(2):
+        t = time.perf_counter()
+        system.diff(X, with_params(system, {}).f(X, U))
+        dt = time.perf_counter() - t
+    return dt * rows / k
 
 
 def transitions(simulator, x: np.ndarray, inputs: np.ndarray, rng: np.random.Generator):

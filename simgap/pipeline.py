@@ -132,6 +132,9 @@ def check_experiment(exp: ExperimentConfig, out: Optional[str | Path] = None, *,
     if "horizon" in ro:
         checks.check_memory(R * (ro["horizon"] + 1) * (2 * n * 8 + 4),
                             f"{R:,} rollouts x horizon {ro['horizon']:,}", "use fewer rollouts or a shorter horizon")
+        if invariant_stage.method_of(syn) == "box_tube" and syn.get("per_run", True):
+            from .synthesis.noise_tube import check_horizon
+            check_horizon(ro["horizon"], n, "[rollout] horizon")  # the box tube's per-run statement
 
     for k in ("delta1", "delta2", "beta1", "beta2", "degree"):
         if k in cert:
@@ -261,7 +264,7 @@ def _gamma_stats(cert, ds) -> dict:
 def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional[str] = None,
                    workers: Optional[int] = None, address: Optional[str] = None, n_rollouts: Optional[int] = None,
                    log: Callable[[str], None] = print, progress: Optional[Callable] = None,
-                   stores_from: Optional[str | Path] = None) -> dict:
+                   stores_from: Optional[str | Path] = None, force: bool = False) -> dict:
     """Run the deterministic-vs-stochastic comparison of ``exp`` into ``out``; return the summary.
 
     Writes ``out/data`` and ``out/data_deterministic`` (resumable stores), ``cert_<method>.json``,
@@ -270,7 +273,8 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
     ``on_progress(done, total)`` callback for that stage: each collection ("pairs") and the long
     parts of the per-run stage (:func:`simgap.perrun.stage.run_stage`). ``executor``, ``workers`` and
     ``address`` (default: the experiment's ``[collect]``) say where the collections' chunks and the
-    per-run stage's interval-MDP sampling run; ``address`` is a Ray cluster's.
+    per-run stage's interval-MDP sampling run; ``address`` is a Ray cluster's. A folder holding the
+    finished run of another experiment or profile is refused unless ``force`` (its files are named).
     """
     from .certify.audit import audit, audit_cost, audit_rate, audit_cost_text, check_audit_cost
     from .certify.lipschitz import crn_cost_text
@@ -309,6 +313,7 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
     # a refused run leaves an earlier run's results and the user's own files as they were
     for e, sub in ((exp, "data"), (baseline_experiment(exp), "data_deterministic")):
         check_fillable(store_root / sub, e.plan().config())
+    results_folder.check_same_run(out, exp.name, exp.profile, force)  # another run's results: only with force
     results_folder.claim(out, RESULT_NAMES)
     out.mkdir(parents=True, exist_ok=True)  # after validation: bad input leaves no folder behind
     run_id = results_folder.new_run_id()
@@ -445,7 +450,7 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
             wrote(f"audit_{method}.json")
             if invariant:
                 sres = stage(f"synthesize/{method}", lambda: invariant_stage.synthesize(
-                    exp.system, spec, cert, syn, x0=x0, horizon=ro.get("horizon")))
+                    exp.system, spec, cert, syn, x0=x0, horizon=ro.get("horizon"), log=log))
                 if not sres.empty:  # no set proved: nothing written (the summary says why)
                     sres.controller.save(out / f"controller_{method}.npz")
                     wrote(f"controller_{method}.npz")

@@ -162,6 +162,25 @@ class Claim:
         return gone
 
 
+def check_same_run(out: Path, experiment: str, profile, force: bool = False) -> None:
+    """Refuse a run into a folder holding a finished run of another experiment or profile (its
+    verified ``summary.json``), naming that run and the files this one would replace, unless
+    ``force``: the results of a different run are not replaced without a word (the collection
+    stores are checked and reused by their configuration, :mod:`simgap.store`)."""
+    prev = _manifest(Path(out) / "summary.json")
+    if prev is None or force:
+        return
+    was = (prev.get("experiment"), prev.get("profile"))
+    if was == (experiment, profile):
+        return
+    owned, _ = _owned(Path(out))
+    raise SimgapError(
+        f"--out {str(out)!r} holds the finished run of experiment {printable(was[0])!r} (profile "
+        f"{printable(was[1] or 'base')}); this run of {experiment!r} (profile {profile or 'base'}) would replace its "
+        f"{', '.join(printable(n) for n in sorted(owned, key=lambda n: n != 'summary.json'))}. Nothing was changed; "
+        "choose another --out, or give --force to replace them")
+
+
 def claim(out: Path, will_write) -> Claim:
     """Sort ``out``'s result-like files into an earlier run's (owned) and foreign ones; refuse the
     run if a foreign file has a name in ``will_write`` (the run would overwrite or stand beside it,

@@ -40,7 +40,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--horizon", type=int, default=None, help="rollout length in simulator steps")
     p.add_argument("--x0", default=None, help="initial state, comma separated")
     p.add_argument("--executor", default="local", choices=("serial", "local"), help="collection executor")
-    p.set_defaults(func=run, outputs=("out",))
+    p.set_defaults(func=run, outputs=("out",), formats={"out": (".rrd",)})
     return p
 
 

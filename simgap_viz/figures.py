@@ -629,6 +629,14 @@ def plot_run(path, out_dir=None, max_drawn: int = 1000, style: str = "paper") ->
         raise SimgapError(f"{str(out)!r} exists and is not a folder")
     if not out.parent.is_dir():
         raise SimgapError(f"folder {str(out.parent)!r} does not exist")
+    from simgap.file_guard import output_dir
+    try:  # a read-only results folder: said before anything is drawn, with the way out
+        output_dir(out, "--out" if out_dir is not None else "figures folder")
+    except SimgapError as e:
+        if out_dir is not None:
+            raise
+        raise SimgapError(f"{e}: the results folder is not writable; draw the figures elsewhere with --out FOLDER "
+                          "(e.g. simgap plot RUN --out /tmp/figures)") from None
     spec = run_spec(run)[0]
     _check_replaceable(out)  # before anything is drawn or written
     out.mkdir(exist_ok=True)

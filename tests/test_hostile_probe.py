@@ -228,7 +228,7 @@ CASES = {
     # values checked on load
     "controller_input_index_999": (
         lambda c, d: ["rollout", "--controller", _forged_controller(c, d), "--simulator", _write(d, "exp.toml", EXP),
-                      "--profile", "base", "--x0", "0.05", "0.1", "--n", "5", "--horizon", "5", "--out", "r.npz"],
+                      "--profile", "base", "--x0", "0.05", "0.1", "--n", "5", "--horizon", "5", "--out", "r.json"],
         ["input index", "999"], 120),
     "refined_model_overflowing_to_inf": (  # finite on X, its residuals overflow: refused on load, the coefficient named
         lambda c, d: ["refine", "--system", _refined(c, d, "big.json", lambda r: r["effects"][0].update(

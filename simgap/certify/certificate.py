@@ -640,4 +640,24 @@ def load(path, dataset=None) -> Certificate:
         if want != have:
             raise SimgapError(f"certificate {str(path)!r} was made from data set {want!r}, "
                               f"but the given data set has hash {have!r}")
+        check_region_matches(cert, dataset, f"certificate {str(path)!r}")
     return cert
+
+
+def check_region_matches(cert: Certificate, dataset, what: str) -> None:
+    """Refuse a certificate whose region is not the one its data set's collection covered (the
+    manifest's cover region, X without one): the data's hash does not cover the certificate's own
+    region, so a file whose region was widened and its digest recomputed would otherwise claim gamma
+    where no data were collected."""
+    from .pipeline import dataset_region
+    data = dataset_region(dataset)
+    if data is None and cert.region is None:
+        return
+    same = data is not None and cert.region is not None and all(
+        np.allclose(np.asarray(h, float), np.asarray(w, float), rtol=0, atol=1e-12) for h, w in zip(cert.region, data))
+    if not same:
+        names = dataset.system.state_names
+        fmt = lambda b: "X (no region)" if b is None else " x ".join(  # noqa: E731
+            f"{nm} [{lo:g}, {hi:g}]" for nm, lo, hi in zip(names, *b))
+        raise SimgapError(f"{what} claims gamma over {fmt(cert.region)}, but its data set was collected over "
+                          f"{fmt(data)}: refused (the certificate was edited, or belongs to other data)")

@@ -78,7 +78,7 @@ def add_parser(subparsers) -> None:
     p.add_argument("--power-fraction", type=probability, default=0.01,
                    help="violated fraction of (x,u) the printed power refers to (default 0.01)")
     p.add_argument("--out", help="write the audit report JSON here")
-    p.set_defaults(func=run, outputs=("out",))
+    p.set_defaults(func=run, outputs=("out",), formats={"out": (".json",)})
 
 
 def run(args) -> int:

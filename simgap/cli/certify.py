@@ -92,7 +92,7 @@ def add_parser(subparsers) -> None:
     p.add_argument("--out", help="write the certificate JSON here")
     p.add_argument("--sign-key", metavar="KEY", help="sign the certificate with this private key (simgap key new; "
                                                      "default: $SIMGAP_SIGNING_KEY, if set)")
-    p.set_defaults(func=run, outputs=("out",))
+    p.set_defaults(func=run, outputs=("out",), formats={"out": (".json",)})
 
 
 def options_from_args(args, system):

@@ -39,7 +39,7 @@ def add_parser(subparsers) -> None:
     t.add_argument("--trim", type=int, help="samples dropped at each edge (default max(20, 2 fs / cutoff))")
     t.add_argument("--no-filter-input", action="store_true", help="do not filter the inputs")
     t.add_argument("--out", required=True, help="transition .npz to write")
-    t.set_defaults(func=run_from_trajectory, outputs=("out",))
+    t.set_defaults(func=run_from_trajectory, outputs=("out",), formats={"out": (".npz",)})
     p.set_defaults(func=lambda args: (p.print_help(), 0)[1])
 
 

@@ -20,6 +20,10 @@ from ..errors import SimgapError
 from ..profiles import DEFAULT_PROFILE
 
 
+#: states drawn when neither --points nor --grid is given
+POINTS = 200
+
+
 def add_parser(sub) -> None:
     p = sub.add_parser(
         "fit", help="fit named parameters of a system file to noise-free simulator transitions",
@@ -31,15 +35,16 @@ def add_parser(sub) -> None:
     p.add_argument("--params", nargs="+", required=True, help="names of the system file's [params] to fit")
     p.add_argument("--profile", default=DEFAULT_PROFILE, help="experiment profile (default: small, else base)")
     p.add_argument("--out", required=True, help="the fitted system file (.toml) to write")
-    p.add_argument("--points", type=count(1), default=200,
-                   help="states drawn uniformly in X (seeded), each simulated with every input (default 200)")
+    p.add_argument("--points", type=count(1), default=None,
+                   help=f"states drawn uniformly in X (seeded), each simulated with every input (default {POINTS})")
     p.add_argument("--grid", type=count(1), default=None,
-                   help="instead of --points: this many evenly spaced values per state dimension not fixed")
+                   help="instead of --points (not with it): this many evenly spaced values per state dimension "
+                        "not fixed")
     p.add_argument("--fix", nargs="+", default=(), metavar="STATE=VALUE",
                    help="hold states at a value, e.g. --fix x=3 y=3 (a uniform floor, or away from obstacles)")
     p.add_argument("--bounds", nargs="+", default=(), metavar="NAME=LO:HI", help="bound parameters, e.g. d=0:1")
     p.add_argument("--seed", type=count(0), default=0, help="seed of the states and the simulator (default 0)")
-    p.set_defaults(func=run, outputs=("out",))
+    p.set_defaults(func=run, outputs=("out",), formats={"out": (".toml",)})
 
 
 def _pairs(tokens, flag: str, parse):
@@ -65,6 +70,14 @@ def _bounds(v: str):
     return lo, hi
 
 
+def check_seconds_of_runs(rows: int, rate: float, what: str) -> None:
+    """Refuse ``rows`` simulator runs that would take more than a command may at the calibrated
+    ``rate`` [runs/s] (:func:`simgap.checks.check_sim_work`), naming ``what``."""
+    from ..checks import check_sim_work
+    check_sim_work(rows, 0.0, f"{what}: the fit's transitions and its first 5 iterations",
+                   "use fewer --points or a coarser --grid", rate)
+
+
 def system_file_path(exp) -> Path:
     """The system file an experiment names (its ``[system] name``, in the experiment's folder)."""
     name = str((exp.section("system") or {}).get("name", ""))
@@ -81,11 +94,19 @@ def run(args) -> int:
     from ..cover import calibrate_rate, format_duration
     from ..file_guard import read_text
     from ..fileio import write_text
-    from ..fit import fit_params, fitted_text, sample_states, system_file_spec, transitions
+    from ..checks import one_of
+    from ..fit import (check_fit_size, fit_params, fitted_text, sample_states, seconds_per_evaluation,
+                       system_file_spec, transitions)
     from ..simulators import make_simulator
 
+    one_of({"--points": args.points, "--grid": args.grid}, "the states the fit simulates from",
+           "--points draws that many states at random, --grid takes that many values per free state")
     fix = _pairs(args.fix, "--fix", float)
     bounds = _pairs(args.bounds, "--bounds", _bounds)
+    unfitted = [k for k in bounds if k not in args.params]
+    if unfitted:
+        raise SimgapError(f"--bounds {', '.join(unfitted)}: not among --params {' '.join(args.params)}; a bound only "
+                          "applies to a fitted parameter (fit it, or drop the bound)")
     exp = load_experiment(args.experiment, args.profile)
     s = exp.system
     system_file_spec(s)
@@ -99,15 +120,27 @@ def run(args) -> int:
     if bad:
         raise SimgapError(f"--params/--bounds {', '.join(bad)}: not in {path.name}'s [params] "
                           f"({', '.join(params) or 'none'})")
+    for k, (lo, hi) in bounds.items():
+        v = float(params[k])
+        if not lo <= v <= hi:
+            print(f"note: --bounds {k}={lo:g}:{hi:g} excludes the file's {k} = {v:g}: the fit starts at the nearest "
+                  "bound and is compared with the file's values below", file=sys.stderr)
     rng = np.random.default_rng(args.seed)
-    x = sample_states(s, args.grid or args.points, rng, fix, grid=args.grid is not None)
-    rows = len(x) * len(s.inputs)
+    count_, grid = args.grid or args.points or POINTS, args.grid is not None
+    what = f"--grid {count_}" if grid else f"--points {count_}"
+    rows = check_fit_size(s, count_, grid, fix, len(args.params), what)  # before any state is drawn
+    x = sample_states(s, count_, rng, fix, grid=grid)
     cfg = dataclasses.replace(exp.simulator, noise={}, randomize={})
+    # the fit: each iteration evaluates the model p + 1 times over every row (finite-difference Jacobian)
+    per_iteration = (len(args.params) + 1) * seconds_per_evaluation(s, x, rows)
     with make_simulator(cfg, s) as sim:
         rate = calibrate_rate(sim, n_runs=min(rows, 4096), budget=0.3, work=rows)
         print(f"estimate: {len(x):,} states x {len(s.inputs)} inputs = {rows:,} noise-free simulator runs, about "
-              f"{format_duration(rows / rate)} at {rate:,.0f} runs/s (calibrated here), then the least-squares fit",
-              flush=True)
+              f"{format_duration(rows / rate)} at {rate:,.0f} runs/s (calibrated here), then the least-squares fit, "
+              f"about {format_duration(per_iteration)} per iteration ({len(args.params) + 1} model evaluations over "
+              f"every row; usually 5 to 20 iterations: {format_duration(5 * per_iteration)} to "
+              f"{format_duration(20 * per_iteration)})", flush=True)
+        check_seconds_of_runs(rows + 5 * per_iteration * rate, rate, what)
         X, U, Y = transitions(sim, x, s.inputs, rng)
     res = fit_params(s, args.params, X, U, Y, bounds)
     new = fitted_text(text, res.values())
@@ -120,6 +153,11 @@ def run(args) -> int:
     for j, nm in enumerate(s.state_names):
         print(f"  {nm}: {res.rms_before[j]:.4g} / {res.max_before[j]:.4g} -> {res.rms_after[j]:.4g} / "
               f"{res.max_after[j]:.4g}")
+    worse = float(np.sum((res.rms_after / res.scale) ** 2)) > float(np.sum((res.rms_before / res.scale) ** 2))
+    if worse:
+        print(f"warning: the fitted values match the transitions WORSE than the file's own (weighted rms above); "
+              f"the bounds {' '.join(args.bounds) or ''} exclude the better values. {args.out} is written for "
+              "inspection: do not replace the system file with it", file=sys.stderr)
     write_text(args.out, new)
     print(f"wrote {args.out} (only these [params] lines changed)", file=sys.stdout)
     return 0

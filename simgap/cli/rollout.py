@@ -38,7 +38,8 @@ def add_parser(sub) -> None:
     p.add_argument("--seed", type=count(0), default=None,
                    help="seed of the numpy generator (default: an experiment --simulator's [rollout] seed, else 0)")
     p.add_argument("--hold", type=count(1), default=None,
-                   help="simulator steps per controller query (default: what the controller records)")
+                   help="simulator steps per controller query: only what the controller records (its proof's; "
+                        "another is refused)")
     p.add_argument("--on-exit", choices=("hold", "stop"), default="hold",
                    help="outside the winning domain: keep the last input (hold) or stop the rollout")
     p.add_argument("--one-at-a-time", action="store_true", help="step rollouts one by one (benchmarking)")
@@ -47,7 +48,7 @@ def add_parser(sub) -> None:
                         "controller's guarantee is about (default: --n clipped to [100, 1000]; 0 skips it)")
     p.add_argument("--out", required=True, help="JSON report path")
     p.add_argument("--trajectories", default=None, help="also write all arrays to this .npz")
-    p.set_defaults(func=run, outputs=("out", "trajectories"))
+    p.set_defaults(func=run, outputs=("out", "trajectories"), formats={"out": (".json",), "trajectories": (".npz",)})
 
 
 def parse_vector(tokens, what: str) -> np.ndarray:

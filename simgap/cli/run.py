@@ -30,6 +30,8 @@ def add_parser(sub):
     p.add_argument("--rollouts", type=count(1), default=None,
                    help="closed-loop rollouts per controller (default: [rollout] n, else 1000)")
     p.add_argument("--no-record", action="store_true", help="skip the Rerun recording")
+    p.add_argument("--force", action="store_true", help="replace the results of a different run (another experiment "
+                                                        "or profile) that --out holds (refused otherwise)")
     p.set_defaults(func=run, output_dirs=("out",))
 
 
@@ -42,7 +44,7 @@ def run(args) -> int:
     out = output_dir(args.out or Path("results") / f"{exp.name}-{exp.profile or 'base'}")
     print(f"simgap run {exp.name} (profile {exp.profile or 'base'}): results go to {out.absolute()}", file=sys.stderr)
     summary = run_experiment(exp, out, executor=args.executor, workers=args.workers, address=args.address,
-                             n_rollouts=args.rollouts,
+                             n_rollouts=args.rollouts, force=args.force,
                              log=lambda m: print(m, file=sys.stderr, flush=True), progress=lambda stage, unit: ProgressBar(unit, desc=stage))
     print(comparison_table(summary))
     note = per_run_note(summary)

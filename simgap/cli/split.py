@@ -24,7 +24,7 @@ def add_parser(subparsers) -> None:
     p.add_argument("--fix", default="", help="values of the other states, NAME=VALUE comma separated "
                                              "(default: the middle of each one's range)")
     p.add_argument("--out", required=True, help="the sub-system file to write (.toml)")
-    p.set_defaults(func=run, outputs=("out",))
+    p.set_defaults(func=run, outputs=("out",), formats={"out": (".toml",)})
 
 
 def _fixed(text: str) -> dict:

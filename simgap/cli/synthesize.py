@@ -55,9 +55,9 @@ def add_parser(subparsers) -> None:
                    help=f"built-in or plugin system name ({', '.join(sorted(BUILTIN))}; see simgap plugins), a system "
                         "file (.toml) or a refined-system JSON; default: the experiment's, else the one the "
                         "certificate records")
-    p.add_argument("--steps", type=int, default=None,
+    p.add_argument("--steps", type=count(1), default=None,
                    help="base periods per sampling period (default: the certificate's, else 1)")
-    p.add_argument("--hold", type=int, default=None,
+    p.add_argument("--hold", type=count(1), default=None,
                    help="sampling periods per abstract step, input held (default: the experiment's, else 1); "
                         "with a gap only together with --compose-hold")
     p.add_argument("--compose-hold", action="store_true",
@@ -67,7 +67,7 @@ def add_parser(subparsers) -> None:
     p.add_argument("--level", choices=["mean", "run"], default="mean",
                    help="mean: robust game on the certified gap (default); run: interval MDP from the experiment's "
                         "simulator with p_cert per cell (needs an experiment --spec with a [perrun] section)")
-    p.add_argument("--horizon", type=int, default=None, help="--level run: horizon in sampling periods "
+    p.add_argument("--horizon", type=count(1), default=None, help="--level run: horizon in sampling periods "
                                                                 "(default: [perrun] or [rollout] horizon); "
                                                                 "--method box_tube: the periods of the per-run "
                                                                 "statement (default 2 T0 + 1)")
@@ -101,7 +101,8 @@ def add_parser(subparsers) -> None:
                         "docs/synthesis.md). Default: the experiment's [synthesis] method, else grid")
     p.add_argument("--no-strict-domain", action="store_true",
                    help="let cells stick out of X by eta/2 (SCOTS's convention) instead of blocking them")
-    p.set_defaults(func=run, outputs=("out", "json"), output_dirs=("store",))
+    p.set_defaults(func=run, outputs=("out", "json"), output_dirs=("store",),
+                   formats={"out": (".npz",), "json": (".json",)})
 
 
 def _floats(text: str, what: str) -> np.ndarray:
@@ -194,7 +195,7 @@ def run(args) -> int:
         if args.steps is not None and args.steps != system.steps:
             system = system.with_steps(args.steps)
         from ..synthesis import invariant_stage
-        invariant_stage.check_method(syn, args.method)
+        invariant_stage.check_method(syn, args.method)  # a set method with a reach-avoid spec, by both names
         spec, x0, _ = experiment_spec(e)
         if x0 is None and "x0" in e.section("rollout"):  # recorded, so `simgap rollout` needs no --x0
             x0 = _floats(",".join(map(str, np.ravel(e.section("rollout")["x0"]))), "[rollout] x0")
@@ -231,6 +232,9 @@ def run(args) -> int:
         x0 = _floats(args.x0, "--x0")
         system.check_states(x0[None], what="--x0")
     method = args.method or syn.get("method", "grid")
+    if args.horizon is not None and method != "box_tube":
+        raise SimgapError(f"--horizon is for --level run and --method box_tube (the per-run statement's periods); "
+                          f"the {method} method has no horizon: drop it")
     if method in ("invariant_set", "box_tube"):
         return _invariant_set(args, system, spec, gap, dict(syn, method=method), x0)
     if args.eta is not None:
@@ -257,10 +261,19 @@ def _invariant_set(args, system, spec, gap, syn, x0) -> int:
     """--method invariant_set / box_tube: design, prove, write (nothing written when no set is proved)."""
     from ..synthesis import invariant_stage
     meth = syn["method"]
-    if args.hold not in (None, 1):
-        raise SimgapError(f"--method {meth} applies u(x) every period: --hold must be 1")
-    invariant_stage.check_section(system, dict(syn, hold=1), spec)
-    res = invariant_stage.synthesize(system, spec, gap, syn, x0=x0, horizon=args.horizon)
+    # the checks `simgap run` makes, on the values this command will use, named as the user wrote them
+    names = {"method": f"--method {meth}"} if args.method else {}
+    unused = [f for f, v in (("--eta", args.eta), ("--compose-hold", args.compose_hold),
+                             ("--no-strict-domain", args.no_strict_domain)) if v]
+    if unused:
+        raise SimgapError(f"{', '.join(unused)} {'is a grid option' if len(unused) == 1 else 'are grid options'}, "
+                          f"but {invariant_stage.said(syn, 'method', names)} builds no grid: drop "
+                          f"{'it' if len(unused) == 1 else 'them'}")
+    if args.hold is not None:
+        syn, names["hold"] = dict(syn, hold=args.hold), f"--hold {args.hold}"
+    invariant_stage.check_section(system, syn, spec, names)
+    res = invariant_stage.synthesize(system, spec, gap, syn, x0=x0, horizon=args.horizon, what="--horizon",
+                                     log=lambda m: print(m, flush=True))
     if meth == "box_tube":
         return _finish(args, res, x0, spec, "no box tube proved", "the box tube", gap)
     return _finish(args, res, x0, spec, "no invariant set proved", "the invariant set E", gap)

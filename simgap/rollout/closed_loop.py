@@ -224,6 +224,10 @@ def steps_to_go(controller, x0: np.ndarray) -> Optional[float]:
     return None
 
 
+#: steps of the nominal model's path run before the estimate (it is run to the horizon later if it has not stopped)
+NOMINAL_PROBE = 1000
+
+
 def default_horizon(controller, x0: np.ndarray, hold: int) -> int:
     """A horizon in simulator steps: 2x the controller's steps-to-go at x0 (+1 abstract step) when it
     reports one (``steps_to_go``/``value``), else DEFAULT_HORIZON."""
@@ -308,7 +312,8 @@ def rollout(controller, simulator, x0=None, n_rollouts: int = 1000, horizon: Opt
     seed, rng
         Randomness: ``rng`` if given, else ``numpy.random.default_rng(seed)``.
     hold : int, optional
-        Simulator steps per controller query; default :func:`resolve_hold`.
+        Simulator steps per controller query: :func:`resolve_hold`, what the controller's proof
+        assumed (another value is refused).
     spec : Spec, optional
         Judge against this spec instead of ``controller.spec``.
     on_exit : {"hold", "stop"}
@@ -357,11 +362,20 @@ def rollout(controller, simulator, x0=None, n_rollouts: int = 1000, horizon: Opt
     if int(np.asarray(controller.input_index(x0[None])).reshape(-1)[0]) < 0 and not (
             spec.kind == "reach_avoid" and spec.reached(x0[None])[0]):
         raise SimgapError(f"rollout x0 {x0.tolist()} is outside the controller's winning domain")
-    if hold is None:
-        hold = resolve_hold(controller, simulator)
-    if int(hold) != hold or hold < 1:
+    if getattr(controller, "time_varying", False) and not bool(controller.winning(x0[None], t=0)[0]):
+        # a tube's proof starts at its own x0 (its box at period 0): from elsewhere it proves nothing
+        raise SimgapError(f"rollout x0 {x0.tolist()} is outside the controller's box at period 0: its proof starts at "
+                          f"x0 = {np.asarray(controller.x0).tolist()}; roll out from there (drop --x0), or synthesize "
+                          "a tube from this x0")
+    if hold is not None and (int(hold) != hold or hold < 1):
         raise SimgapError(f"rollout: hold must be an integer >= 1, got {hold!r}")
-    hold = int(hold)
+    proved = resolve_hold(controller, simulator)
+    if hold is not None and int(hold) != proved:
+        raise SimgapError(f"rollout: hold = {hold!r} simulator steps per input, but the controller was proved with its "
+                          f"input held {proved} step(s) (its hold {getattr(controller, 'hold', 1)} x its "
+                          f"{controller.system.steps} base period(s) per step, over the simulator's "
+                          f"{simulator.system.steps}): another hold voids its guarantee; drop the hold")
+    hold = proved
     if horizon is None:
         horizon = default_horizon(controller, x0, hold)
     if int(horizon) != horizon or horizon < 1:
@@ -393,8 +407,11 @@ def rollout(controller, simulator, x0=None, n_rollouts: int = 1000, horizon: Opt
         from ..cover import calibrate_rate
         # the nominal model's closed loop from x0 (cheap, deterministic; reported with the results):
         # a reach-avoid run is expected to end where the nominal path reaches the target
-        nt = _run(controller, _NominalModel(nom_sys), spec, x0, 1, horizon, hold, np.random.default_rng(0), on_exit,
-                  True)
+        # only a reach-avoid run ends early, and at most NOMINAL_PROBE steps before the estimate: a long
+        # horizon's own nominal path (a model in formulas: ~1 ms a step) must not delay it
+        probe = min(horizon, NOMINAL_PROBE) if spec.kind == "reach_avoid" else 0
+        nt = _run(controller, _NominalModel(nom_sys), spec, x0, 1, probe, hold, np.random.default_rng(0), on_exit,
+                  True) if probe else None
         cost = rollout_cost(n_rollouts, horizon, int(mean_map_runs),
                             # the rate at the batch the rollouts step (R rows per call, mean map runs per call)
                             calibrate_rate(simulator, n_runs=max(int(n_rollouts), int(mean_map_runs), 1), budget=0.3,
@@ -402,6 +419,15 @@ def rollout(controller, simulator, x0=None, n_rollouts: int = 1000, horizon: Opt
                             expected_steps=expected_rollout_steps(spec, nt, controller, x0, hold))
         estimate_s = cost["seconds"]
         on_estimate(rollout_cost_text(cost))
+        if nt is None or (probe < horizon and int(nt.lengths[0]) >= probe):
+            nt = None  # the nominal path did not stop within the probe: run it to the horizon after the rollouts
+            if horizon > NOMINAL_PROBE:  # then it is long work of its own (one run, one model step at a time)
+                k = min(horizon, 20)
+                t0 = time.perf_counter()
+                _run(controller, _NominalModel(nom_sys), spec, x0, 1, k, hold, np.random.default_rng(0), on_exit, True)
+                from ..cover import format_duration
+                on_estimate(f"estimate: then the nominal model's path, 1 run x up to {horizon:,} steps one at a time: "
+                            f"at most about {format_duration((time.perf_counter() - t0) / k * horizon)} (timed here)")
     if rng is None:
         rng = np.random.default_rng(seed)
     else:

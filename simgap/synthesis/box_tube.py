@@ -57,6 +57,7 @@ tolerable gamma". The gap is refused outside a certificate's ``region`` when it 
 
 from __future__ import annotations
 
+import functools
 import resource
 import time
 from dataclasses import dataclass, field
@@ -68,8 +69,9 @@ from ..errors import SimgapError
 from ..sets import Zonotope
 from ..systems import System
 from .interval_map import IntervalMap
-from .noise_tube import NoiseTube, noise_proxy, why_no_statement
-from .invariant_set import (_describe_gap, _parse_matrix, check_stabilizable, find_equilibrium, gap_bound,
+from ..checks import one_of
+from .noise_tube import NoiseTube, check_horizon, noise_proxy, why_no_statement
+from .invariant_set import (_describe_gap, _parse_matrix, _weights, check_stabilizable, find_equilibrium, gap_bound,
                             input_range, linearize, lqr_gain, spectral_radius)
 from .spec import Spec
 
@@ -705,6 +707,21 @@ class BoxTubeResult:
         return "\n".join(lines)
 
 
+def _box_tube_messages(fn):
+    """Refusals raised by the helpers shared with the invariant-set method (equilibrium, LQR, K's
+    shape) start "invariant set:"; here they name the method the user asked for."""
+    @functools.wraps(fn)
+    def wrapped(*args, **kwargs):
+        try:
+            return fn(*args, **kwargs)
+        except SimgapError as e:
+            if str(e).startswith("invariant set:"):
+                raise SimgapError("box tube:" + str(e)[len("invariant set:"):]) from None
+            raise
+    return wrapped
+
+
+@_box_tube_messages
 def synthesize_box_tube(system: System, spec: Spec, gap=None, *, x0, x_star=None, u_star=None, K=None,
                         lqr_q=None, lqr_r=None, target_lo=None, target_hi=None, shells: int = SHELLS,
                         input_margin: float = INPUT_MARGIN, margin_search: bool = True,
@@ -764,6 +781,10 @@ def synthesize_box_tube(system: System, spec: Spec, gap=None, *, x0, x_star=None
         raise SimgapError(f"box tube: terminal must be \"largest\" or \"smallest\", got {terminal!r}")
     if not 0.0 <= float(input_margin) < 1.0:
         raise SimgapError(f"box tube: input_margin must be in [0, 1), got {input_margin!r}")
+    one_of({"K": K, "lqr_q": lqr_q}, "the feedback gain", "K is used as given; lqr_q / lqr_r design it otherwise")
+    one_of({"K": K, "lqr_r": lqr_r}, "the feedback gain", "K is used as given; lqr_q / lqr_r design it otherwise")
+    if horizon is not None:  # priced before any work: the per-run statement's cost grows as horizon^2
+        check_horizon(horizon, system.n)
     if gap is not None and hasattr(gap, "check_system"):
         gap.check_system(system)
     imap = IntervalMap(system)
@@ -809,14 +830,20 @@ def synthesize_box_tube(system: System, spec: Spec, gap=None, *, x0, x_star=None
         check_stabilizable(A, B, system.state_names)
     if not (np.isfinite(plan_input_weight) and plan_input_weight > 0):
         raise SimgapError(f"box tube: plan_input_weight must be a number > 0, got {plan_input_weight!r}")
+    plan_how = "" if K_plan is not None else f" (designed with plan_input_weight = {plan_input_weight!r})"
     if K_plan is None:  # the plan: Bryson's weights over the safe box (gentle: the plan must stay in X)
-        K_plan = lqr_gain(A, B, 1.0 / sroom ** 2, float(plan_input_weight) / uroom ** 2)
+        try:
+            K_plan = lqr_gain(A, B, 1.0 / sroom ** 2, float(plan_input_weight) / uroom ** 2)
+        except SimgapError as e:
+            raise SimgapError(f"box tube: plan_input_weight = {plan_input_weight!r}: the plan's LQR (input weight "
+                              f"plan_input_weight x Bryson's) has no stabilizing solution ({str(e).split(' (', 1)[-1]}; "
+                              "use a weight nearer 1 (0.1 .. 100), or give K_plan") from None
     else:
         K_plan = _parse_matrix(K_plan, m, n)
     if K is None:
         if lqr_q is not None or lqr_r is not None:
-            q = 1.0 / room ** 2 if lqr_q is None else np.broadcast_to(np.asarray(lqr_q, float), (n,))
-            rr = 1.0 / uroom ** 2 if lqr_r is None else np.broadcast_to(np.asarray(lqr_r, float), (m,))
+            q = 1.0 / room ** 2 if lqr_q is None else _weights(lqr_q, n, "lqr_q")
+            rr = 1.0 / uroom ** 2 if lqr_r is None else _weights(lqr_r, m, "lqr_r")
             if np.any(q < 0) or np.any(rr <= 0):
                 raise SimgapError("box tube: LQR weights need q >= 0 and r > 0")
             K, K_how = lqr_gain(A, B, q, rr), "discrete LQR of the linearization (given weights)"
@@ -828,7 +855,8 @@ def synthesize_box_tube(system: System, spec: Spec, gap=None, *, x0, x_star=None
     if rho0 >= 1:
         raise SimgapError(f"box tube: K does not stabilize the linearization at x*: spectral radius {rho0:.6g} >= 1")
     if spectral_radius(A + B @ K_plan) >= 1:
-        raise SimgapError("box tube: K_plan does not stabilize the linearization at x*")
+        raise SimgapError(f"box tube: K_plan{plan_how} does not stabilize the linearization at x*"
+                          + ("; use a plan_input_weight nearer 1 (0.1 .. 100), or give K_plan" if plan_how else ""))
     x_nom, u_nom = plan_nominal(system, x0, x_star, u_star, K_plan, u_lo, u_hi, float(input_margin),
                                 tol=PLAN_TOL * room)
     plan = TubePlan(x_nom, u_nom, K, x_star, u_star, np.zeros(n))

@@ -44,6 +44,9 @@ class EllipsoidController:
         n, m = self.x_star.size, self.u_star.size
         self.K = np.asarray(K, dtype=float).reshape(m, n)
         self.P = np.asarray(P, dtype=float).reshape(n, n)
+        if hold != 1:  # a file edited with its digest recomputed must not hold the input longer than the proof
+            raise SimgapError(f"invariant-set controller: hold = {hold!r}, but its proof applies u(x) every period (hold = 1): "
+                              "refused (was the file edited?)")
         self.system, self.spec, self.hold = system, spec, int(hold)
         self.meta = dict(meta or {})
         x0 = self.meta.get("x0")

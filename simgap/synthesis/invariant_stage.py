@@ -27,30 +27,50 @@ def is_set_method(syn: dict) -> bool:
     return method_of(syn) in SET_METHODS
 
 
-def check_method(syn: dict, method: str | None = None) -> None:
-    """Refuse ``method = "invariant_set"`` with ``spec = "reach_avoid"`` by both names, before the
-    specification is built (a reach-avoid map's start would otherwise be checked first)."""
-    method = method or method_of(syn)
-    if method == "invariant_set" and syn.get("spec", "invariance") != "invariance":
-        raise SimgapError(f"[synthesis] method = \"invariant_set\" handles spec = \"invariance\" only, but the "
-                          f"experiment sets spec = {syn.get('spec')!r}: use method = \"grid\" for reach-avoid, or "
+def said(syn: dict, key: str, names: dict | None = None) -> str:
+    """How the user wrote ``key``: ``names[key]`` (e.g. ``--method box_tube`` on the command line),
+    else ``[synthesis] key = value``."""
+    if names and key in names:
+        return names[key]
+    v = syn.get(key)
+    return f"[synthesis] {key} = " + (f'"{v}"' if isinstance(v, str) else repr(v))
+
+
+def check_method(syn: dict, method: str | None = None, names: dict | None = None) -> None:
+    """Refuse a set method (``invariant_set``, ``box_tube``) with ``spec = "reach_avoid"`` by both
+    names, before the specification is built (a reach-avoid map's start would otherwise be checked
+    first). ``method``: given on the command line (``names['method']`` says how)."""
+    if method is not None:
+        syn = dict(syn, method=method)
+        names = {"method": f"--method {method}", **(names or {})}
+    method = method_of(syn)
+    if method in SET_METHODS and syn.get("spec", "invariance") != "invariance":
+        raise SimgapError(f"{said(syn, 'method', names)} handles spec = \"invariance\" only, but "
+                          f"{said(syn, 'spec', names)}: use method = \"grid\" for reach-avoid, or "
                           "spec = \"invariance\" with safe_lo/safe_hi")
 
 
-def check_section(system, syn: dict, spec) -> None:
-    """Refuse what the invariant-set synthesis cannot do before any stage runs: a spec other than
-    invariance or with obstacles, a hold other than 1, a model without formulas for the interval
-    proof, and x_star / u_star / K of the wrong size."""
+def check_section(system, syn: dict, spec, names: dict | None = None) -> None:
+    """Refuse what the set methods cannot do before any stage runs: a spec other than invariance or
+    with obstacles, a hold other than 1, a model without formulas for the interval proof, x_star /
+    u_star / K of the wrong size, and K given together with the LQR weights it would override.
+    ``simgap run`` and ``simgap synthesize`` both call it (``names``: how the command line spelled a
+    key, e.g. ``{"method": "--method box_tube"}``; default ``[synthesis] key = value``)."""
+    from ..checks import one_of
     from .interval_map import IntervalMap
     meth = method_of(syn) if method_of(syn) in SET_METHODS else "invariant_set"
     if spec.kind != "invariance":
-        raise SimgapError(f"[synthesis] method = \"{meth}\" handles spec = \"invariance\" only, not "
+        raise SimgapError(f"{said(syn, 'method', names)} handles spec = \"invariance\" only, not "
                           f"{spec.kind!r} (use the grid for reach-avoid)")
     if spec.obstacles:
-        raise SimgapError(f"[synthesis] method = \"{meth}\": the safe set must be a box without obstacles")
+        raise SimgapError(f"{said(syn, 'method', names)}: the safe set must be a box without obstacles")
     if int(syn.get("hold", 1)) != 1:
-        raise SimgapError(f"[synthesis] method = \"{meth}\" applies u(x) every period: hold must be 1 "
-                          "(certify at a longer step with [system] steps instead)")
+        raise SimgapError(f"{said(syn, 'method', names)} applies u(x) every period, but {said(syn, 'hold', names)}: "
+                          "hold must be 1 (certify at a longer step with [system] steps instead)")
+    one_of({said(syn, k, names): syn.get(k) for k in ("K", "lqr_q")}, "the feedback gain",
+           "K is used as given; lqr_q / lqr_r are the weights of the LQR that designs K when it is not given")
+    one_of({said(syn, k, names): syn.get(k) for k in ("K", "lqr_r")}, "the feedback gain",
+           "K is used as given; lqr_q / lqr_r are the weights of the LQR that designs K when it is not given")
     if meth == "box_tube":
         for key in ("target_lo", "target_hi"):
             if key in syn and len(syn[key]) != system.n:
@@ -93,14 +113,26 @@ def check_section(system, syn: dict, spec) -> None:
     IntervalMap(system)  # a model the proof can differentiate
 
 
-def synthesize(system, spec, gap, syn: dict, x0=None, horizon=None):
+#: a per-run statement estimated to take longer than this prints an estimate line first [s]
+ESTIMATE_SECONDS = 10.0
+
+
+def synthesize(system, spec, gap, syn: dict, x0=None, horizon=None, log=None, what: str = "[rollout] horizon"):
     """:func:`~simgap.synthesis.invariant_set.synthesize_invariant_set` or (``method = "box_tube"``)
     :func:`~simgap.synthesis.box_tube.synthesize_box_tube` with the section's options (``horizon``:
-    the rollouts' periods, for the box tube's per-run statement)."""
+    the rollouts' periods, for the box tube's per-run statement, priced first and refused by the
+    name ``what`` when it cannot fit; a long one is announced through ``log``)."""
     if method_of(syn) == "box_tube":
         from .box_tube import INPUT_MARGIN, SHELLS, synthesize_box_tube
         if x0 is None:
             raise SimgapError("[synthesis] method = \"box_tube\" starts its tube at x0: give [rollout] x0 (or --x0)")
+        if horizon is not None and bool(syn.get("per_run", True)):
+            from ..cover import format_duration
+            from .noise_tube import check_horizon, why_no_statement
+            cost = check_horizon(horizon, system.n, what)
+            if log is not None and cost["seconds"] > ESTIMATE_SECONDS and why_no_statement(gap) is None:
+                log(f"estimate: the per-run statement over {what} = {int(horizon):,} periods takes about "
+                    f"{format_duration(cost['seconds'])} (its cost grows as the horizon squared; calibrated here)")
         return synthesize_box_tube(system, spec, gap, x0=x0, x_star=syn.get("x_star"), u_star=syn.get("u_star"),
                                    K=syn.get("K"), lqr_q=syn.get("lqr_q"), lqr_r=syn.get("lqr_r"),
                                    target_lo=syn.get("target_lo"), target_hi=syn.get("target_hi"),

@@ -48,6 +48,8 @@ bounds no noise: both give no statement, with the reason.
 
 from __future__ import annotations
 
+import functools
+import time
 from dataclasses import dataclass, field
 from typing import Optional
 
@@ -74,6 +76,49 @@ def noise_proxy(A_seq, sigma) -> np.ndarray:
         S = np.square(np.abs(P) @ sigma).sum(axis=0)
         out[t + 1] = np.sqrt(S)
     return out
+
+
+#: horizon of the in-process calibration of :func:`noise_proxy` (about 0.1 s here)
+CAL_HORIZON = 1000
+#: horizons up to this are not priced (well under a second)
+FREE_HORIZON = 2000
+
+
+@functools.lru_cache(maxsize=None)
+def _seconds_per_period_squared(n: int) -> float:
+    """:func:`noise_proxy`'s time / T^2 for n states, measured here once at T = CAL_HORIZON."""
+    A = np.repeat((0.5 * np.eye(n))[None], CAL_HORIZON, axis=0)
+    t = time.perf_counter()
+    noise_proxy(A, np.ones(n))
+    return (time.perf_counter() - t) / CAL_HORIZON ** 2
+
+
+def horizon_cost(horizon: int, n: int) -> dict:
+    """Peak memory [bytes] and time [s] of the per-run statement for runs of ``horizon`` periods:
+    :func:`noise_proxy` keeps every Phi(t, s) (T n^2 floats, about 5 copies at once with the
+    Jacobians repeated after T0) and costs O(T^2 n^3) (calibrated here; 0 s below FREE_HORIZON)."""
+    T = int(horizon)
+    seconds = 0.0 if T <= FREE_HORIZON else _seconds_per_period_squared(int(n)) * float(T) ** 2
+    return {"horizon": T, "memory": 5.0 * 8.0 * float(T) * n * n, "seconds": seconds}
+
+
+def check_horizon(horizon, n: int, what: str = "horizon") -> dict:
+    """Refuse a per-run horizon that is not an integer >= 1, or whose statement (:func:`horizon_cost`)
+    needs more memory than is available or more time than a command may take
+    (:data:`simgap.checks.MAX_COMMAND_SECONDS`), naming ``what``, the need and the limit; the cost."""
+    from ..checks import MAX_COMMAND_SECONDS, check_memory, human_seconds
+    from ..errors import SimgapError
+    if isinstance(horizon, bool) or not isinstance(horizon, (int, np.integer)) or horizon < 1:
+        raise SimgapError(f"{what}: the per-run statement's horizon must be an integer >= 1 periods, got {horizon!r}")
+    hint = "use a shorter horizon (the rollouts' default is 2 T0 + 1 periods)"
+    c = horizon_cost(int(horizon), n)
+    check_memory(c["memory"], f"{what} = {int(horizon):,}: the per-run statement (the noise's response over "
+                 f"{int(horizon):,} periods)", hint)
+    if c["seconds"] > MAX_COMMAND_SECONDS:
+        raise SimgapError(f"{what} = {int(horizon):,}: the per-run statement (the noise's response over "
+                          f"{int(horizon):,} periods, cost ~ T^2) would take about {human_seconds(c['seconds'])}, "
+                          f"more than the {human_seconds(MAX_COMMAND_SECONDS)} a command may take; {hint}")
+    return c
 
 
 @dataclass

@@ -54,6 +54,9 @@ class TubeController:
         self.u_star = np.asarray(plan.u_star, dtype=float).ravel()
         self.H = np.asarray(plan.H, dtype=float).ravel()
         self.radii = np.asarray(radii, dtype=float).reshape(self.x_nom.shape)
+        if hold != 1:  # a file edited with its digest recomputed must not hold the input longer than the proof
+            raise SimgapError(f"box-tube controller: hold = {hold!r}, but its proof applies u(x) every period (hold = 1): "
+                              "refused (was the file edited?)")
         self.system, self.spec, self.hold = system, spec, int(hold)
         self.meta = dict(meta or {})
         self.noise_tube = noise_tube

@@ -374,8 +374,8 @@ class _IntervalEmitter:
     """Straight-line interval code of one right-hand side: node i -> locals ``l{i}``, ``h{i}`` (value
     box) and ``a{i}_{j}``, ``b{i}_{j}`` (derivative box along column j, only for j in deps[i])."""
 
-    def __init__(self, dag: _Dag, n: int, m: int):
-        self.dag, self.n, self.m = dag, n, m
+    def __init__(self, dag: _Dag, n: int, m: int, flat: bool = False):
+        self.dag, self.n, self.m, self.flat = dag, n, m, flat
         self.lines = []
 
     def emit(self, line):
@@ -391,6 +391,9 @@ class _IntervalEmitter:
         n, m = self.n, self.m
         if kind == "const":
             e(f"l{i} = h{i} = {pay!r}")
+            return
+        if kind == "var" and self.flat:
+            e(f"l{i}, h{i} = zl[{pay}], zh[{pay}]")
             return
         if kind == "var":
             if pay < n:
@@ -530,6 +533,56 @@ def interval_source(trees, n: int, m: int) -> str:
     rhs = ('\n\n@njit(error_model="numpy")\ndef _rhs(yl, yh, ul, uh, dt, vl, vh, GL, GH):\n'
            '    """Generated: value box and interval Jacobian of the formulas (one box)."""\n' + body + "\n")
     return _INTERVAL_PRELUDE + rhs + _INTERVAL_DRIVER
+
+
+_VALUES_DRIVER = '''
+
+@njit(error_model="numpy")
+def values(ZL, ZH):
+    """Interval values (lo, hi) (B, T) of the T formulas over the boxes [ZL, ZH] (B, width)."""
+    B = ZL.shape[0]
+    LO, HI = np.empty((B, NT)), np.empty((B, NT))
+    for b in range(B):
+        _values(ZL[b], ZH[b], LO[b], HI[b])
+    return LO, HI
+'''
+
+
+def values_source(trees, width: int) -> str:
+    """Source of a value-interval module (no derivatives): ``values(ZL, ZH) -> (lo, hi)`` (B, T) for
+    formulas over the columns of z (``width``), :meth:`simgap.certify.basis.Term.interval` for each."""
+    dag = _Dag(0, INTERVAL_FUNCS)          # nvar 0: no derivative is carried
+    roots = [dag.add(t) for t in trees]
+    em = _IntervalEmitter(dag, 0, 0, flat=True)
+    for i, (kind, pay, _) in enumerate(dag.nodes):
+        if kind == "var" and pay >= width:
+            raise SimgapError(f"compiler: column {pay} is outside z's {width}")
+        em.node(i)
+    for s, r in enumerate(roots):
+        em.emit(f"lo[{s}], hi[{s}] = l{r}, h{r}")
+    body = "\n".join(em.lines) or "    pass"
+    fn = ('\n\n@njit(error_model="numpy")\ndef _values(zl, zh, lo, hi):\n'
+          '    """Generated: interval values of the formulas (one box)."""\n' + body + "\n")
+    return _INTERVAL_PRELUDE + f"\nNT = {len(roots)}\n" + fn + _VALUES_DRIVER
+
+
+def values_kernel(trees, width: int):
+    """The compiled ``values(ZL, ZH)`` of :func:`values_source`."""
+    return load(values_source(trees, width)).values
+
+
+def should_compile(done_rows: int, auto_rows: int) -> bool:
+    """Whether a caller that has evaluated ``done_rows`` rows in numpy compiles now: SIMGAP_JIT=1
+    always, 0 never, auto (:mod:`simgap.synthesis.jit`) when numba is installed and already imported
+    (no start cost left) or ``done_rows`` >= ``auto_rows`` (the numpy path has spent about what a
+    first compile costs)."""
+    from .synthesis import jit
+    m = jit.mode()
+    if m == "0":
+        return False
+    if m == "1":
+        return jit.use_compiled()  # raises naming the missing numba
+    return jit.available() and ("numba" in sys.modules or done_rows >= auto_rows)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -169,3 +169,31 @@ def test_interval_map_uses_kernel(monkeypatch, rng):
     assert im._kernel is not None and im.numpy_boxes == 50
     np.testing.assert_allclose(got[2], ref[2], rtol=1e-12, atol=1e-14)
     np.testing.assert_allclose(got[3], ref[3], rtol=1e-9, atol=1e-12)
+
+
+def test_values_kernel_matches_term_interval(rng, monkeypatch):
+    """Basis.value_bounds compiled (SIMGAP_JIT=1) against Term.interval in numpy: the same bounds up to
+    the C library's last bits, and a box's points inside."""
+    from simgap.certify.basis import Basis
+    s = load_system_file(REPO / FILES[2])
+    extra = ["sin(theta)", "cos(theta)*omega", "exp(torque/10)", "sqrt(omega^2 + 1)", "tanh(omega)", "abs(theta)",
+             "sign(omega)", "theta^-2", "tan(theta/4)", "omega^3/(1 + theta^2)"]
+    z = s.n + s.m
+    c = rng.uniform(-1, 1, (400, z))
+    h = rng.uniform(0, 0.5, (400, z))
+    monkeypatch.setenv("SIMGAP_JIT", "0")
+    b = Basis.polynomial(s, 2, extra)
+    want = b.value_bounds(c - h, c + h)
+    assert b._kernel is None
+    monkeypatch.setenv("SIMGAP_JIT", "1")
+    got = b.value_bounds(c - h, c + h)
+    assert b._kernel is not None
+    for g, w in zip(got, want):
+        same = (g == w) | (np.isnan(g) & np.isnan(w))
+        with np.errstate(invalid="ignore"):
+            close = np.abs(g - w) <= 1e-14 * np.abs(w)
+        assert np.all(same | close)
+    pts = c + h * rng.uniform(-1, 1, (400, z))
+    P = np.stack([t.eval(pts) for t in b.terms], axis=1)
+    ok = np.isfinite(P)
+    assert np.all((got[0] <= P + 1e-12 * np.abs(P))[ok]) and np.all((got[1] >= P - 1e-12 * np.abs(P))[ok])

@@ -34,6 +34,8 @@ from ..expr import Expr, VarSpace, parse
 from ..systems import System
 
 FUNCS = ("sin", "cos", "tan", "exp", "abs", "sqrt", "tanh", "sign")
+#: term-boxes evaluated in numpy by one Basis from which value_bounds compiles in auto mode
+AUTO_BOXES = 20_000
 TWO_PI = 2.0 * np.pi
 
 
@@ -342,11 +344,15 @@ class Basis:
             raise SimgapError("basis: no terms")
         self.system = system
         self.terms = [parse_term(t, system) for t in terms]
+        self.numpy_boxes, self._kernel = 0, None   # value_bounds: boxes done in numpy, the compiled twin
         seen = set()
         for t in self.terms:
             if t.text in seen:
                 raise SimgapError(f"basis: term {t.text!r} appears twice")
             seen.add(t.text)
+
+    def __getstate__(self):  # the compiled kernel stays in its process (loaded again on use)
+        return dict(self.__dict__, _kernel=None)
 
     @classmethod
     def polynomial(cls, system: System, degree: int, extra: Sequence[str] = (),
@@ -385,7 +391,15 @@ class Basis:
         return P
 
     def value_bounds(self, zlo: np.ndarray, zhi: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
-        """Interval bounds of every term over boxes: (lo, hi), each (B, z)."""
+        """Interval bounds of every term over boxes: (lo, hi), each (B, z); compiled
+        (:func:`simgap.compile.values_kernel`, the same interval formulas) once
+        :func:`simgap.compile.should_compile` says so for the boxes evaluated here in numpy."""
+        from .. import compile as C
+        if self._kernel is None and C.should_compile(self.numpy_boxes, AUTO_BOXES):
+            self._kernel = C.values_kernel([t.tree for t in self.terms], self.system.n + self.system.m)
+        if self._kernel is not None:
+            return self._kernel(np.ascontiguousarray(zlo, dtype=float), np.ascontiguousarray(zhi, dtype=float))
+        self.numpy_boxes += zlo.shape[0]
         lo = np.empty((zlo.shape[0], len(self.terms)))
         hi = np.empty_like(lo)
         cache = {}

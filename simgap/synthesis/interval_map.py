@@ -23,7 +23,7 @@ cover it (far above the accumulated rounding of the few dozen operations per ent
 
 The same enclosure is compiled from the expression trees by :mod:`simgap.compile` (one numba call
 per batch of boxes for every period, substep and stage); :meth:`IntervalMap.closed_loop` uses it in
-place of the numpy code here (the oracle and the fallback) as :func:`use_kernel` decides.
+place of the numpy code here (the oracle and the fallback) as :meth:`IntervalMap.kernel` decides.
 
 Refused (a clear message): models that are not system files, and formulas with functions that
 have no interval derivative here (the non-smooth ones: abs, sign, min, max, clip, where,
@@ -83,22 +83,16 @@ class IntervalMap:
         self.numpy_boxes = 0      # boxes evaluated by the numpy path so far
         self._kernel = None       # the compiled closed loop, once loaded
 
+    def __getstate__(self):  # the compiled kernel stays in its process (loaded again on use)
+        return dict(self.__dict__, _kernel=None)
+
     def kernel(self, boxes: int = 0):
-        """The compiled closed loop (:func:`simgap.compile.interval_kernel`) when :mod:`.jit`'s mode
-        says so: SIMGAP_JIT=1 always, 0 never, auto when numba is already imported or this map has
-        evaluated :data:`AUTO_BOXES` boxes in numpy (counting ``boxes`` about to come); else None."""
-        import sys
-        from . import jit
-        if self._kernel is None:
-            m = jit.mode()
-            if m == "0" or (m == "auto" and not jit.available()):
-                return None
-            if m == "auto" and "numba" not in sys.modules and self.numpy_boxes + boxes < AUTO_BOXES:
-                return None
-            if m == "1" and not jit.available():
-                jit.use_compiled()  # the message naming the missing numba
-            from ..compile import interval_kernel
-            self._kernel = interval_kernel(self.terms_trees, self.n, self.m)
+        """The compiled closed loop (:func:`simgap.compile.interval_kernel`) when
+        :func:`simgap.compile.should_compile` says so for the boxes this map has evaluated in numpy
+        (plus ``boxes`` about to come; auto mode: from :data:`AUTO_BOXES`); else None."""
+        from .. import compile as C
+        if self._kernel is None and C.should_compile(self.numpy_boxes + boxes, AUTO_BOXES):
+            self._kernel = C.interval_kernel(self.terms_trees, self.n, self.m)
         return self._kernel
 
     def rhs(self, ylo, yhi, ulo, uhi):

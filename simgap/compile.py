@@ -42,8 +42,8 @@ Compiled code is cached on disk: the generated module is written to
 ``$SIMGAP_KERNEL_CACHE`` (default ``~/.cache/simgap/kernels``) as ``k<digest>.py``, the digest a
 sha256 of the source and numba's version, and imported by path with numba's ``cache=True``, so a
 second process loads the machine code instead of compiling it (measured in docs/synthesis.md,
-"Speed"). Whether to compile at all follows :mod:`simgap.synthesis.jit` (``SIMGAP_JIT``; in auto
-mode a job of at least :data:`INTERVAL_MIN_BOXES` boxes, or numba already imported).
+"Speed"). Whether to compile at all follows :mod:`simgap.synthesis.jit`'s modes (``SIMGAP_JIT``)
+with a break-even per use (:class:`Twin`).
 """
 
 from __future__ import annotations
@@ -571,18 +571,45 @@ def values_kernel(trees, width: int):
     return load(values_source(trees, width)).values
 
 
-def should_compile(done_rows: int, auto_rows: int) -> bool:
-    """Whether a caller that has evaluated ``done_rows`` rows in numpy compiles now: SIMGAP_JIT=1
-    always, 0 never, auto (:mod:`simgap.synthesis.jit`) when numba is installed and already imported
-    (no start cost left) or ``done_rows`` >= ``auto_rows`` (the numpy path has spent about what a
-    first compile costs)."""
-    from .synthesis import jit
-    m = jit.mode()
-    if m == "0":
-        return False
-    if m == "1":
-        return jit.use_compiled()  # raises naming the missing numba
-    return jit.available() and ("numba" in sys.modules or done_rows >= auto_rows)
+class Twin:
+    """A compiled twin of a numpy evaluation, loaded when it pays (the ``SIMGAP_JIT`` modes of
+    :mod:`simgap.synthesis.jit`).
+
+    ``make`` builds the source; ``attr`` names the kernel in it. :meth:`get` is asked before each
+    evaluation of ``rows`` rows and returns the kernel or None (the caller evaluates in numpy, and
+    those rows are counted): SIMGAP_JIT=1 always, 0 never; auto (numba installed) once the rows
+    done in numpy plus these reach ``auto_rows`` (about what a first compile costs, seconds) or
+    the job declared with :func:`simgap.synthesis.jit.expected_work` does, and already from
+    ``auto_rows / 20`` when the kernel is in the disk cache (a load costs numba's start, ~1 s)."""
+
+    def __init__(self, make, attr: str, auto_rows: int):
+        self.make, self.attr, self.auto_rows = make, attr, int(auto_rows)
+        self.done, self.fn, self.cached = 0, None, None
+
+    def __getstate__(self):  # the compiled code stays in its process (loaded again on use)
+        return dict(self.__dict__, fn=None)
+
+    def get(self, rows: int = 0):
+        if self.fn is not None:
+            return self.fn
+        from .synthesis import jit
+        m = jit.mode()
+        if m == "0":
+            return None
+        if m == "auto":
+            if not jit.available():
+                return None
+            due = max(self.done + rows, jit._WORK.get())
+            if due < self.auto_rows:
+                if due >= self.auto_rows // 20 and self.cached is None:
+                    self.cached = is_cached(self.make())
+                if not (self.cached and due >= self.auto_rows // 20):
+                    self.done += rows
+                    return None
+        else:
+            jit.use_compiled()  # SIMGAP_JIT=1 without numba: the message naming it
+        self.fn = getattr(load(self.make()), self.attr)
+        return self.fn
 
 
 # ---------------------------------------------------------------------------------------------
@@ -737,13 +764,23 @@ def cache_dir() -> Path:
 _LOADED: dict = {}
 
 
+def _digest(source: str) -> str:
+    import numba
+    return hashlib.sha256((numba.__version__ + "\0" + source).encode()).hexdigest()[:32]
+
+
+def is_cached(source: str) -> bool:
+    """Whether numba's machine code for ``source`` is in the disk cache (its index file exists)."""
+    digest = _digest(source)
+    return digest in _LOADED or any((cache_dir() / "__pycache__").glob(f"k{digest}.*.nbi"))
+
+
 def load(source: str):
     """The module of generated ``source``: written once to the cache directory as ``k<digest>.py``
     (digest: sha256 of the source and numba's version; written to a temporary name and renamed, so a
     concurrent process never imports half a file) and imported by path, so numba's ``cache=True``
     stores its machine code next to it."""
-    import numba
-    digest = hashlib.sha256((numba.__version__ + "\0" + source).encode()).hexdigest()[:32]
+    digest = _digest(source)
     if digest in _LOADED:
         return _LOADED[digest]
     d = cache_dir()

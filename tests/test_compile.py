@@ -163,10 +163,10 @@ def test_interval_map_uses_kernel(monkeypatch, rng):
     monkeypatch.setenv("SIMGAP_JIT", "0")
     im = IntervalMap(s)
     ref = im.closed_loop(xl, xh, ul, uh, K)
-    assert im._kernel is None and im.numpy_boxes == 50
+    assert im.twin.fn is None
     monkeypatch.setenv("SIMGAP_JIT", "1")
     got = im.closed_loop(xl, xh, ul, uh, K)
-    assert im._kernel is not None and im.numpy_boxes == 50
+    assert im.twin.fn is not None
     np.testing.assert_allclose(got[2], ref[2], rtol=1e-12, atol=1e-14)
     np.testing.assert_allclose(got[3], ref[3], rtol=1e-9, atol=1e-12)
 
@@ -184,10 +184,10 @@ def test_values_kernel_matches_term_interval(rng, monkeypatch):
     monkeypatch.setenv("SIMGAP_JIT", "0")
     b = Basis.polynomial(s, 2, extra)
     want = b.value_bounds(c - h, c + h)
-    assert b._kernel is None
+    assert b.twin.fn is None
     monkeypatch.setenv("SIMGAP_JIT", "1")
     got = b.value_bounds(c - h, c + h)
-    assert b._kernel is not None
+    assert b.twin.fn is not None
     for g, w in zip(got, want):
         same = (g == w) | (np.isnan(g) & np.isnan(w))
         with np.errstate(invalid="ignore"):
@@ -197,3 +197,41 @@ def test_values_kernel_matches_term_interval(rng, monkeypatch):
     P = np.stack([t.eval(pts) for t in b.terms], axis=1)
     ok = np.isfinite(P)
     assert np.all((got[0] <= P + 1e-12 * np.abs(P))[ok]) and np.all((got[1] >= P - 1e-12 * np.abs(P))[ok])
+
+
+def test_system_file_step_compiled_same_bits(monkeypatch, rng):
+    """A system file's step under SIMGAP_JIT=1 is the point kernel (exp-free file) with the numpy step's
+    bits; a file with a power the kernel cannot match stays on numpy."""
+    for path, compiled in (("assets/experiments/reacher/reacher.toml", True), ("examples/duffing/duffing.toml", False)):
+        monkeypatch.setenv("SIMGAP_JIT", "0")
+        s = load_system_file(REPO / path)
+        x = rng.uniform(s.x_lo, s.x_hi, (3000, s.n))
+        u = s.inputs[rng.integers(0, len(s.inputs), 3000)]
+        want = s.with_steps(3).f(x, u)
+        monkeypatch.setenv("SIMGAP_JIT", "1")
+        got = s.with_steps(3).f(x, u)
+        assert np.array_equal(got, want)
+        comp = [c.cell_contents for c in s.step.__closure__ if isinstance(c.cell_contents, object)
+                and type(c.cell_contents).__name__ == "_CompiledStep"][0]
+        assert (comp.twin.fn is not None) == compiled and comp.exact == compiled
+
+
+def test_twin_policy(monkeypatch, tmp_path):
+    """auto: numpy until the rows reach the break-even (or 1/20 of it when the disk cache has the
+    kernel); 0: never; a declared job counts."""
+    from simgap.synthesis import jit
+    monkeypatch.setenv("SIMGAP_KERNEL_CACHE", str(tmp_path))
+    src = lambda: C.values_source([("mul", ("var", 0), ("var", 1))], 2)
+    monkeypatch.setenv("SIMGAP_JIT", "0")
+    t = C.Twin(src, "values", 1000)
+    assert t.get(10 ** 9) is None
+    monkeypatch.setenv("SIMGAP_JIT", "auto")
+    assert t.get(600) is None and t.get(300) is None and t.done == 900 and t.cached is False
+    k = t.get(100)                                    # 1000 rows: compiled (on first call), now on disk
+    assert k is not None and np.array_equal(k(np.ones((1, 2)), np.full((1, 2), 2.0))[1], [[4.0]])
+    t2 = C.Twin(src, "values", 1000)
+    C._LOADED.clear()
+    assert t2.get(10) is None and t2.get(40) is not None and t2.cached  # 50 rows, cached: loaded
+    t3 = C.Twin(lambda: C.values_source([("var", 0)], 1), "values", 1000)
+    with jit.expected_work(5000):
+        assert t3.get(1) is not None

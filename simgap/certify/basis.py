@@ -344,15 +344,13 @@ class Basis:
             raise SimgapError("basis: no terms")
         self.system = system
         self.terms = [parse_term(t, system) for t in terms]
-        self.numpy_boxes, self._kernel = 0, None   # value_bounds: boxes done in numpy, the compiled twin
+        from ..compile import Twin, values_source
+        self.twin = Twin(lambda: values_source([t.tree for t in self.terms], system.n + system.m), "values", AUTO_BOXES)
         seen = set()
         for t in self.terms:
             if t.text in seen:
                 raise SimgapError(f"basis: term {t.text!r} appears twice")
             seen.add(t.text)
-
-    def __getstate__(self):  # the compiled kernel stays in its process (loaded again on use)
-        return dict(self.__dict__, _kernel=None)
 
     @classmethod
     def polynomial(cls, system: System, degree: int, extra: Sequence[str] = (),
@@ -392,14 +390,11 @@ class Basis:
 
     def value_bounds(self, zlo: np.ndarray, zhi: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
         """Interval bounds of every term over boxes: (lo, hi), each (B, z); compiled
-        (:func:`simgap.compile.values_kernel`, the same interval formulas) once
-        :func:`simgap.compile.should_compile` says so for the boxes evaluated here in numpy."""
-        from .. import compile as C
-        if self._kernel is None and C.should_compile(self.numpy_boxes, AUTO_BOXES):
-            self._kernel = C.values_kernel([t.tree for t in self.terms], self.system.n + self.system.m)
-        if self._kernel is not None:
-            return self._kernel(np.ascontiguousarray(zlo, dtype=float), np.ascontiguousarray(zhi, dtype=float))
-        self.numpy_boxes += zlo.shape[0]
+        (:func:`simgap.compile.values_kernel`, the same interval formulas) when it pays
+        (:class:`simgap.compile.Twin`)."""
+        kern = self.twin.get(zlo.shape[0])
+        if kern is not None:
+            return kern(np.ascontiguousarray(zlo, dtype=float), np.ascontiguousarray(zhi, dtype=float))
         lo = np.empty((zlo.shape[0], len(self.terms)))
         hi = np.empty_like(lo)
         cache = {}

@@ -80,20 +80,13 @@ class IntervalMap:
         self.substeps = t["substeps"]
         self.base_tau = t["tau"]
         self.steps = int(system.steps)
-        self.numpy_boxes = 0      # boxes evaluated by the numpy path so far
-        self._kernel = None       # the compiled closed loop, once loaded
-
-    def __getstate__(self):  # the compiled kernel stays in its process (loaded again on use)
-        return dict(self.__dict__, _kernel=None)
+        from ..compile import Twin, interval_source
+        self.twin = Twin(lambda: interval_source(self.terms_trees, self.n, self.m), "closed_loop", AUTO_BOXES)
 
     def kernel(self, boxes: int = 0):
-        """The compiled closed loop (:func:`simgap.compile.interval_kernel`) when
-        :func:`simgap.compile.should_compile` says so for the boxes this map has evaluated in numpy
-        (plus ``boxes`` about to come; auto mode: from :data:`AUTO_BOXES`); else None."""
-        from .. import compile as C
-        if self._kernel is None and C.should_compile(self.numpy_boxes + boxes, AUTO_BOXES):
-            self._kernel = C.interval_kernel(self.terms_trees, self.n, self.m)
-        return self._kernel
+        """The compiled closed loop (:func:`simgap.compile.interval_kernel`) if it pays for ``boxes``
+        boxes now (:class:`simgap.compile.Twin`, auto mode from :data:`AUTO_BOXES`), else None."""
+        return self.twin.get(boxes)
 
     def rhs(self, ylo, yhi, ulo, uhi):
         """Value box and interval Jacobian of the formulas over boxes y in [ylo, yhi], u in [ulo, uhi]
@@ -129,7 +122,6 @@ class IntervalMap:
             return kern(c(x_lo), c(x_hi), c(np.broadcast_to(u_lo, (B, self.m))), c(np.broadcast_to(u_hi, (B, self.m))),
                         c(K.reshape(self.m, n)), self.base_tau, self.substeps, self.steps, self.continuous,
                         REL_WIDEN, ABS_WIDEN)
-        self.numpy_boxes += B
         Kb = np.broadcast_to(K, (B,) + K.shape)
         zero_K = np.zeros_like(Kb)
         lo, hi = x_lo.copy(), x_hi.copy()

@@ -55,6 +55,7 @@ import os
 import sys
 import tempfile
 from pathlib import Path
+from typing import Optional
 
 from .errors import SimgapError
 
@@ -580,10 +581,12 @@ class Twin:
     those rows are counted): SIMGAP_JIT=1 always, 0 never; auto (numba installed) once the rows
     done in numpy plus these reach ``auto_rows`` (about what a first compile costs, seconds) or
     the job declared with :func:`simgap.synthesis.jit.expected_work` does, and already from
-    ``auto_rows / 20`` when the kernel is in the disk cache (a load costs numba's start, ~1 s)."""
+    ``early`` rows (default ``auto_rows / 20``) or when numba is imported anyway, if the kernel is
+    in the disk cache (a load costs numba's start, ~0.5 s CPU and ~100 MB)."""
 
-    def __init__(self, make, attr: str, auto_rows: int):
+    def __init__(self, make, attr: str, auto_rows: int, early: Optional[int] = None):
         self.make, self.attr, self.auto_rows = make, attr, int(auto_rows)
+        self.early = int(auto_rows) // 20 if early is None else int(early)
         self.done, self.fn, self.cached = 0, None, None
 
     def __getstate__(self):  # the compiled code stays in its process (loaded again on use)
@@ -601,9 +604,10 @@ class Twin:
                 return None
             due = max(self.done + rows, jit._WORK.get())
             if due < self.auto_rows:
-                if due >= self.auto_rows // 20 and self.cached is None:
+                early = due >= self.early or "numba" in sys.modules
+                if early and self.cached is None:
                     self.cached = is_cached(self.make())
-                if not (self.cached and due >= self.auto_rows // 20):
+                if not (early and self.cached):
                     self.done += rows
                     return None
         else:
@@ -765,8 +769,9 @@ _LOADED: dict = {}
 
 
 def _digest(source: str) -> str:
-    import numba
-    return hashlib.sha256((numba.__version__ + "\0" + source).encode()).hexdigest()[:32]
+    """sha256 of numba's version and the source (the version read without importing numba)."""
+    from importlib.metadata import version
+    return hashlib.sha256((version("numba") + "\0" + source).encode()).hexdigest()[:32]
 
 
 def is_cached(source: str) -> bool:

@@ -227,7 +227,9 @@ class _CompiledStep:
         from .compile import Twin, point_source
         from .synthesis.jit import AUTO_WORK
         self.spec, self.n, self.m, self.substeps, self.continuous = spec, n, m, substeps, continuous
-        self.twin = Twin(lambda: point_source(self.trees, n, m), "step", AUTO_WORK)
+        # no early load from the cache: numba's ~100 MB pay only on large grids (measured: SCOTS's
+        # dcdc as a file, 1.3 M rows, 1.9 s CPU either way; docs/synthesis.md "Speed")
+        self.twin = Twin(lambda: point_source(self.trees, n, m), "step", AUTO_WORK, early=AUTO_WORK)
         self.trees, self.exact = None, None
 
     def __call__(self, x, u, dt):

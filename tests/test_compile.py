@@ -18,6 +18,10 @@ pytest.importorskip("numba")
 REPO = Path(__file__).resolve().parents[1]
 FILES = ["assets/experiments/reacher/reacher.toml", "assets/experiments/cartpole/cartpole_ct.toml",
          "examples/arm/arm.toml"]
+#: the default suite compiles the reacher's kernels (about 10 s CPU the first time, then loaded from
+#: the disk cache); the other files' first compiles run with the slow tests
+SLOW = pytest.mark.slow
+CASES = [FILES[0]] + [pytest.param(f, marks=SLOW) for f in FILES[1:]]
 
 
 def _boxes(s, rng, B, rel=0.05):
@@ -38,7 +42,7 @@ def _kernel(s, trees=None):
                                        REL_WIDEN, ABS_WIDEN)
 
 
-@pytest.mark.parametrize("path", FILES)
+@pytest.mark.parametrize("path", CASES)
 def test_interval_kernel_encloses_numpy(path, rng):
     """The compiled enclosure contains the numpy path's unwidened one (sound where it is) and is no
     wider than the numpy one widened twice (not vacuous)."""
@@ -79,7 +83,7 @@ def _jacobian_violations(s, kernel, rng, boxes=40, points=30):
     return int(((J < lo - 1e-5) | (J > hi + 1e-5)).sum())
 
 
-@pytest.mark.parametrize("path", FILES[:2])
+@pytest.mark.parametrize("path", CASES[:2])
 def test_point_jacobians_inside(path, rng):
     s = load_system_file(REPO / path)
     assert _jacobian_violations(s, _kernel(s), rng) == 0
@@ -108,7 +112,8 @@ def test_a_dropped_term_is_caught(rng):
     assert _jacobian_violations(s, _kernel(s, trees), rng) > 0
 
 
-@pytest.mark.parametrize("path", FILES + ["examples/racecar/racecar.toml", "examples/husky/husky.toml"])
+@pytest.mark.parametrize("path", CASES + [pytest.param(f, marks=SLOW) for f in ("examples/racecar/racecar.toml",
+                                                                                 "examples/husky/husky.toml")])
 def test_point_kernel_bit_identical(path, rng):
     s = load_system_file(REPO / path)
     t = model_trees(s)
@@ -158,7 +163,7 @@ def test_shared_subtrees_emitted_once():
 
 def test_interval_map_uses_kernel(monkeypatch, rng):
     """SIMGAP_JIT=1: IntervalMap.closed_loop is the compiled one (the same enclosure); 0: numpy."""
-    s = load_system_file(REPO / FILES[2])
+    s = load_system_file(REPO / FILES[0])     # the kernel of the first test: loaded, not compiled again
     xl, xh, ul, uh, K = _boxes(s, rng, 50)
     monkeypatch.setenv("SIMGAP_JIT", "0")
     im = IntervalMap(s)

@@ -18,6 +18,13 @@ velocities v_i, one force each; Euler steps of 0.1 s as a discrete system file):
 forces in [-2, 2]; from x0 = (0.3 each position, 0 each velocity) to a box around the origin, the design and its proof (``synthesize_box_tube`` with ``margin_search=False``)
 timed apart from the tolerable-gap search (a bisection of whole proofs), with the plan's length T0,
 the terminal box's smallest half-width and the tolerable factor.
+
+The real plan (``--real CERT``, e.g. the reacher's ``cert_stochastic.json`` written by ``simgap run
+reacher``): ``python -m simgap synthesize --spec reacher --cert CERT`` as a user runs it (design,
+proof, tolerable scale, noise tube), once per ``SIMGAP_JIT`` mode (``--jit 0,auto``: the numpy
+interval path against the compiled kernels of simgap.compile), the modes interleaved ``--repeat``
+times, each in a fresh process: the process's CPU seconds (user + system), its wall time, the
+synthesis's own ``time`` line, the peak RSS and the margin printed (the outputs must agree).
 """
 
 from __future__ import annotations
@@ -98,12 +105,54 @@ print(json.dumps({"n": n, "m": m, "gap": gap, "seconds": dt, "candidates": res.s
 """
 
 
+def real_plan(cert: str, spec: str, modes, repeat: int) -> int:
+    """The module docstring's ``--real``: one fresh process per mode and repeat, interleaved."""
+    import re
+    import resource
+    import time
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for k in range(repeat):
+            for mode in modes:
+                env = {key: v for key, v in os.environ.items() if key != "SIMGAP_JIT"}
+                env.update(SIMGAP_JIT=mode, PYTHONPATH=ROOT)
+                r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+                t0 = time.perf_counter()
+                out = subprocess.run([sys.executable, "-m", "simgap", "synthesize", "--spec", spec, "--cert", cert,
+                                      "--out", os.path.join(tmp, f"ctrl_{mode}_{k}.npz")],
+                                     capture_output=True, text=True, env=env)
+                wall = time.perf_counter() - t0
+                r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+                if out.returncode:
+                    print(out.stdout, out.stderr, file=sys.stderr)
+                    return 1
+                t = re.search(r"^time\s+([0-9.]+) s, peak memory ([0-9]+) MB", out.stdout, re.M)
+                margin = re.search(r"^margin\s+(.*)$", out.stdout, re.M)
+                rows.append({"mode": mode, "cpu": (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime),
+                             "wall": wall, "synthesis": float(t.group(1)), "rss": int(t.group(2)),
+                             "margin": margin.group(1) if margin else "-", "load": os.getloadavg()[0]})
+                print(f"SIMGAP_JIT={mode}: {rows[-1]['cpu']:.1f} s CPU, {wall:.1f} s wall", file=sys.stderr)
+    print("| SIMGAP_JIT | process CPU [s] | wall [s] | synthesis (its time line) [s] | peak RSS [MB] | load (1 min) "
+          "| margin |")
+    print("|---|---|---|---|---|---|---|")
+    for r in rows:
+        print(f"| {r['mode']} | {r['cpu']:.1f} | {r['wall']:.1f} | {r['synthesis']:.1f} | {r['rss']} | "
+              f"{r['load']:.1f} | {r['margin']} |")
+    return 0
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--real", metavar="CERT", help="the real plan: synthesize --spec SPEC --cert CERT per mode")
+    ap.add_argument("--spec", default="reacher", help="--real: the experiment (default reacher)")
+    ap.add_argument("--jit", default="0,auto", help="--real: SIMGAP_JIT modes, interleaved (default 0,auto)")
+    ap.add_argument("--repeat", type=int, default=1, help="--real: rounds of the modes (default 1)")
     ap.add_argument("--dims", default="2,4,6,8,12")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--method", choices=["ellipsoid", "box_tube", "both"], default="both")
     a = ap.parse_args()
+    if a.real:
+        return real_plan(os.path.abspath(a.real), a.spec, a.jit.split(","), a.repeat)
     methods = ["ellipsoid", "box_tube"] if a.method == "both" else [a.method]
     rows = {k: [] for k in methods}
     with tempfile.TemporaryDirectory() as tmp:

@@ -182,14 +182,17 @@ def system_from_spec(spec: dict, where: str = "embedded system file") -> System:
     forms = [_formula(dyn[s], variables, consts, f"{where}: dynamics.{s}", allow_dt=not continuous,
                       uses=range(wz)) for s in states]
     rhs_or_map = _vector_field(forms, [(c, def_forms[c]) for c in order], n, m, wz)
+    compiled = _CompiledStep(spec, n, m, substeps, continuous)
     if continuous:
         from .runge_kutta import rk4_integrate
 
         def step(x, u, dt, _F=rhs_or_map, _k=substeps):
-            return rk4_integrate(lambda xx, uu: _F(xx, uu, dt), x, u, dt, _k)
+            out = compiled(x, u, dt)
+            return out if out is not None else rk4_integrate(lambda xx, uu: _F(xx, uu, dt), x, u, dt, _k)
     else:
         def step(x, u, dt, _f=rhs_or_map):
-            return _f(np.asarray(x, dtype=float), np.asarray(u, dtype=float), dt)
+            out = compiled(x, u, dt)
+            return out if out is not None else _f(np.asarray(x, dtype=float), np.asarray(u, dtype=float), dt)
 
     xs = _check_states(x_lo, x_hi)
     _check_finite(step, xs, U, float(tau), states, where, "the model")
@@ -211,6 +214,42 @@ def system_from_spec(spec: dict, where: str = "embedded system file") -> System:
         if J.shape != (U.shape[0], n, n) or not np.all(np.isfinite(J)) or np.any(J < 0):
             raise SimgapError(f"{where}: the Jacobian bound must be finite and >= 0 for every input of U")
     return s
+
+
+class _CompiledStep:
+    """The step's compiled twin (:func:`simgap.compile.point_kernel`: the same bits as the numpy
+    step) when it pays (:class:`simgap.compile.Twin`: SIMGAP_JIT=1, or in auto mode a declared job
+    or the rows stepped so far reaching :data:`simgap.synthesis.jit.AUTO_WORK`) and the formulas
+    have a bit-identical kernel (:func:`simgap.compile.point_exact`); otherwise the call returns
+    None (the numpy step)."""
+
+    def __init__(self, spec, n, m, substeps, continuous):
+        from .compile import Twin, point_source
+        from .synthesis.jit import AUTO_WORK
+        self.spec, self.n, self.m, self.substeps, self.continuous = spec, n, m, substeps, continuous
+        # no early load from the cache: numba's ~100 MB pay only on large grids (measured: SCOTS's
+        # dcdc as a file, 1.3 M rows, 1.9 s CPU either way; docs/synthesis.md "Speed")
+        self.twin = Twin(lambda: point_source(self.trees, n, m), "step", AUTO_WORK, early=AUTO_WORK)
+        self.trees, self.exact = None, None
+
+    def __call__(self, x, u, dt):
+        x = np.atleast_2d(np.asarray(x, dtype=float))
+        if self.exact is False or x.ndim != 2 or x.shape[1] != self.n:
+            return None  # the numpy step (it names a wrong shape)
+        if self.exact is None:
+            from .compile import point_exact
+            from .synthesis.jit import mode
+            if mode() == "0":
+                return None
+            self.trees = _spec_trees(self.spec)["trees"]
+            self.exact = not point_exact(self.trees)
+            if not self.exact:
+                return None
+        kern = self.twin.get(x.shape[0])
+        if kern is None:
+            return None
+        u = np.ascontiguousarray(np.broadcast_to(np.atleast_2d(np.asarray(u, dtype=float)), (x.shape[0], self.m)))
+        return kern(np.ascontiguousarray(x), u, float(dt), self.substeps, self.continuous)
 
 
 def translation_invariant_dims(system: System) -> tuple:
@@ -252,6 +291,11 @@ def model_trees(system: System) -> dict:
     if not is_spec(spec) or "_refined_json" in system.params:
         raise SimgapError(f"system {system.name!r} is not a system file (a built-in, a plugin or a refined system): "
                           f"its formulas are not available for interval analysis")
+    return _spec_trees(spec)
+
+
+def _spec_trees(spec: dict) -> dict:
+    """:func:`model_trees` of a checked system-file table."""
     states, inputs = list(spec["states"]), list(spec["inputs"])
     defs = dict(spec.get("definitions", {}))
     params = _params(spec.get("params", {}), "system file")

@@ -34,6 +34,8 @@ from ..expr import Expr, VarSpace, parse
 from ..systems import System
 
 FUNCS = ("sin", "cos", "tan", "exp", "abs", "sqrt", "tanh", "sign")
+#: term-boxes evaluated in numpy by one Basis from which value_bounds compiles in auto mode
+AUTO_BOXES = 20_000
 TWO_PI = 2.0 * np.pi
 
 
@@ -342,6 +344,8 @@ class Basis:
             raise SimgapError("basis: no terms")
         self.system = system
         self.terms = [parse_term(t, system) for t in terms]
+        from ..compile import Twin, values_source
+        self.twin = Twin(lambda: values_source([t.tree for t in self.terms], system.n + system.m), "values", AUTO_BOXES)
         seen = set()
         for t in self.terms:
             if t.text in seen:
@@ -385,7 +389,12 @@ class Basis:
         return P
 
     def value_bounds(self, zlo: np.ndarray, zhi: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
-        """Interval bounds of every term over boxes: (lo, hi), each (B, z)."""
+        """Interval bounds of every term over boxes: (lo, hi), each (B, z); compiled
+        (:func:`simgap.compile.values_kernel`, the same interval formulas) when it pays
+        (:class:`simgap.compile.Twin`)."""
+        kern = self.twin.get(zlo.shape[0])
+        if kern is not None:
+            return kern(np.ascontiguousarray(zlo, dtype=float), np.ascontiguousarray(zhi, dtype=float))
         lo = np.empty((zlo.shape[0], len(self.terms)))
         hi = np.empty_like(lo)
         cache = {}

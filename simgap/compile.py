@@ -31,7 +31,7 @@ Two kernels:
   every NaN endpoint product as 0 (meant for 0 * inf); the kernel does so only for 0 * inf and
   lets a NaN (a formula outside its domain) make the box unbounded, which is never narrower.
 * :func:`point_kernel` -> ``step(X, U, tau, nint)``: the model's step (``nint`` RK4 substeps of a
-  continuous file in :func:`~simgap.synthesis.runge_kutta.rk4_integrate`'s operation order, or the
+  continuous file in :func:`~simgap.runge_kutta.rk4_integrate`'s operation order, or the
   discrete map) bit for bit equal to the numpy evaluation: no fast-math, the same operations in
   the same order. Only trees whose every function gives numpy's bits in numba are compiled
   (:data:`POINT_EXACT`: + - * /, sin, cos, sqrt, abs, powers 0, 1, 2, -1, 0.5, comparisons, where,
@@ -42,7 +42,7 @@ Compiled code is cached on disk: the generated module is written to
 ``$SIMGAP_KERNEL_CACHE`` (default ``~/.cache/simgap/kernels``) as ``k<digest>.py``, the digest a
 sha256 of the source and numba's version, and imported by path with numba's ``cache=True``, so a
 second process loads the machine code instead of compiling it (measured in docs/synthesis.md,
-"Speed"). Whether to compile at all follows :mod:`simgap.synthesis.jit`'s modes (``SIMGAP_JIT``)
+"Speed"). Whether to compile at all follows :mod:`simgap.jit`'s modes (``SIMGAP_JIT``)
 with a break-even per use (:class:`Twin`).
 """
 
@@ -136,7 +136,7 @@ class _Dag:
 _INTERVAL_PRELUDE = '''
 import math
 import numpy as np
-from simgap.synthesis.jit import njit
+from simgap.jit import njit
 
 PI = math.pi
 TWO_PI = 2.0 * math.pi
@@ -574,13 +574,13 @@ def values_kernel(trees, width: int):
 
 class Twin:
     """A compiled twin of a numpy evaluation, loaded when it pays (the ``SIMGAP_JIT`` modes of
-    :mod:`simgap.synthesis.jit`).
+    :mod:`simgap.jit`).
 
     ``make`` builds the source; ``attr`` names the kernel in it. :meth:`get` is asked before each
     evaluation of ``rows`` rows and returns the kernel or None (the caller evaluates in numpy, and
     those rows are counted): SIMGAP_JIT=1 always, 0 never; auto (numba installed) once the rows
     done in numpy plus these reach ``auto_rows`` (about what a first compile costs, seconds) or
-    the job declared with :func:`simgap.synthesis.jit.expected_work` does, and already from
+    the job declared with :func:`simgap.jit.expected_work` does, and already from
     ``early`` rows (default ``auto_rows / 20``) or when numba is imported anyway, if the kernel is
     in the disk cache (a load costs numba's start, ~0.5 s CPU and ~100 MB)."""
 
@@ -595,7 +595,7 @@ class Twin:
     def get(self, rows: int = 0):
         if self.fn is not None:
             return self.fn
-        from .synthesis import jit
+        from . import jit
         m = jit.mode()
         if m == "0":
             return None
@@ -623,7 +623,7 @@ class Twin:
 _POINT_PRELUDE = '''
 import math
 import numpy as np
-from simgap.synthesis.jit import njit
+from simgap.jit import njit
 
 
 @njit(error_model="numpy")

@@ -219,13 +219,13 @@ def system_from_spec(spec: dict, where: str = "embedded system file") -> System:
 class _CompiledStep:
     """The step's compiled twin (:func:`simgap.compile.point_kernel`: the same bits as the numpy
     step) when it pays (:class:`simgap.compile.Twin`: SIMGAP_JIT=1, or in auto mode a declared job
-    or the rows stepped so far reaching :data:`simgap.synthesis.jit.AUTO_WORK`) and the formulas
+    or the rows stepped so far reaching :data:`simgap.jit.AUTO_WORK`) and the formulas
     have a bit-identical kernel (:func:`simgap.compile.point_exact`); otherwise the call returns
     None (the numpy step)."""
 
     def __init__(self, spec, n, m, substeps, continuous):
         from .compile import Twin, point_source
-        from .synthesis.jit import AUTO_WORK
+        from .jit import AUTO_WORK
         self.spec, self.n, self.m, self.substeps, self.continuous = spec, n, m, substeps, continuous
         # no early load from the cache: numba's ~100 MB pay only on large grids (measured: SCOTS's
         # dcdc as a file, 1.3 M rows, 1.9 s CPU either way; docs/synthesis.md "Speed")
@@ -238,7 +238,7 @@ class _CompiledStep:
             return None  # the numpy step (it names a wrong shape)
         if self.exact is None:
             from .compile import point_exact
-            from .synthesis.jit import mode
+            from .jit import mode
             if mode() == "0":
                 return None
             self.trees = _spec_trees(self.spec)["trees"]

@@ -224,7 +224,7 @@ def test_system_file_step_compiled_same_bits(monkeypatch, rng):
 def test_twin_policy(monkeypatch, tmp_path):
     """auto: numpy until the rows reach the break-even; a kernel in the disk cache is loaded early
     (numba is imported in this process); 0: never; a declared job counts."""
-    from simgap.synthesis import jit
+    from simgap import jit
     monkeypatch.setenv("SIMGAP_KERNEL_CACHE", str(tmp_path))
     src = lambda: C.values_source([("mul", ("var", 0), ("var", 1))], 2)
     monkeypatch.setenv("SIMGAP_JIT", "0")

@@ -129,11 +129,27 @@ def _versions() -> dict:
 def dataset_region(dataset) -> Optional[tuple]:
     """(lo, hi) of the region the collection covered (manifest "cover" "region", a sub-box of X), or
     None when it covered X."""
+    boxes = dataset_region_boxes(dataset)
+    if boxes is not None:  # a cover along a tube: the estimates are made over the boxes' hull
+        return boxes[0].min(axis=0), boxes[1].max(axis=0)
     reg = (dataset.manifest.get("cover") or {}).get("region")
     if not reg:
         return None
     from ..cover import region_box
     return region_box(dataset.system, reg)
+
+
+def dataset_region_boxes(dataset) -> Optional[tuple]:
+    """((B, n), (B, n)) the boxes a cover along a tube covered (manifest "cover" "boxes"; declared-invariant
+    dimensions at X's bounds), or None for a grid cover."""
+    boxes = (dataset.manifest.get("cover") or {}).get("boxes")
+    if not boxes:
+        return None
+    from ..tube_cover import check_boxes
+    lo, hi = check_boxes(dataset.system, boxes)
+    inv = invariant_dims(dataset)
+    lo[:, inv], hi[:, inv] = dataset.system.x_lo[inv], dataset.system.x_hi[inv]
+    return lo, hi
 
 
 _REGION_DS: "OrderedDict[int, tuple]" = OrderedDict()
@@ -465,6 +481,7 @@ def certify(dataset, options: Optional[CertifyOptions] = None, simulator=None, o
             "created_unix": time.time(), "seconds": time.perf_counter() - t0}
     return Certificate(system_name=s.name, steps=int(s.steps), state_names=tuple(s.state_names),
                        input_names=tuple(s.input_names), x_lo=X_lo, x_hi=X_hi, region=region,
+                       region_boxes=dataset_region_boxes(dataset),
                        angle_dims=tuple(s.angle_dims), epsilon=float(ds.epsilon), n_runs=N, K=K,
                        method=o.method, options=opts, dims=dims, provenance=prov, inputs=U_data,
                        system_digest=system_digest(s), system_ref=embedded_ref(s),
@@ -700,6 +717,12 @@ def _gap_lipschitz_compute(ds, o: CertifyOptions, simulator=None, on_progress=No
     cov = [j for j in range(n) if j not in invariant_dims(ds)]
     ubox = input_grid_of(s, np.unique(ds.u, axis=0)) if o.continuous_inputs else None
     grid = axis_grid(ds, cov, range(m) if o.continuous_inputs else ())
+    cv = ds.manifest.get("cover") or {}
+    if cv.get("boxes"):  # a cover along a tube: each box has its own grid, so the values along x_j of all
+        # boxes together say nothing of a cell's width; eps_j = half the widest cell over the boxes
+        w = np.zeros(n)
+        w[cov] = 0.5 * np.asarray(cv["widths"], float)
+        grid = dataclasses.replace(grid, radii=np.maximum(grid.radii, w))
     for j in grid.dims:
         if grid.neighbours[j][0].size == 0 or len(grid.values[j]) < 2:
             nm = s.state_names[j] if j < n else s.input_names[j - n]

@@ -181,16 +181,35 @@ class Certificate:
             return "no probability is stated (deterministic baseline)"
         c = self.scope_confidences()
         where = "" if self.region is None else f" over the region {self.region_text()}"
+        rounds = "" if not self.round else (
+            f"; round {self.round} of anytime-valid rounds (betas / 2^{self.round}): every round's certificate "
+            f"at once {confidence_text(self.all_rounds_confidence(), self.K)}, what a proof may state")
         return (f"scope {self.scope}; joint confidence pointwise (one query (x,u) at a time) "
                 f"{confidence_text(c['pointwise'])}, simultaneous (all K = {self.K} cover rows at once, union "
                 f"bound: what a sup of gamma over a set relies on: synthesis, invariant sets, tubes){where} "
-                f"{confidence_text(c['simultaneous'], self.K)}")
+                f"{confidence_text(c['simultaneous'], self.K)}{rounds}")
+
+    @property
+    def round(self) -> int:
+        """0, or k >= 1: the k-th round of data (:mod:`simgap.rounds`), its betas the base ones / 2^k."""
+        return int(self.options.get("round") or 0)
+
+    def all_rounds_confidence(self) -> Optional[float]:
+        """The simultaneous confidence of the certificates of EVERY round k >= 1 at once (round k spends
+        beta / 2^k, so their failures sum to at most 2^k times this round's): 1 - 2^k (1 - simultaneous).
+        What a proof with the certificate of the round where the rounds stopped may state, the stopping
+        having looked at the data. The simultaneous confidence itself without rounds."""
+        c = self.scope_confidences()["simultaneous"]
+        if c is None or not self.round:
+            return c
+        return 1.0 - 2.0 ** self.round * (1.0 - c)
 
     def sup_confidence(self) -> Optional[float]:
         """The confidence of any statement that takes gamma's sup over a set (a synthesis over cells,
         an invariant set, a tube): the SIMULTANEOUS reading (all K rows at once), never the pointwise
-        one (which is about one query (x, u)). None: deterministic baseline, or vacuous (<= 0)."""
-        c = self.scope_confidences()["simultaneous"]
+        one (which is about one query (x, u)); over all the rounds when the certificate is one of the
+        anytime-valid rounds (:meth:`all_rounds_confidence`). None: deterministic baseline, or vacuous (<= 0)."""
+        c = self.all_rounds_confidence()
         return None if c is None or c <= 0 else float(c)
 
     # ----- region ------------------------------------------------------------------------

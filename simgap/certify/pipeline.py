@@ -69,6 +69,10 @@ class CertifyOptions:
         that callers add for inputs anywhere in the grid's box (Certificate.gamma(..., continuous=True)).
     scp_method, solver, secondary : see scp.solve_scp.
     seed : seeds the Lipschitz batches and the constraint-generation start set.
+    round : 0 (one look at the data), or k >= 1: the k-th of the rounds of :mod:`simgap.rounds`; beta1,
+        beta2 and beta_v are then spent as beta / 2^k (sum over every round k >= 1: beta), so that the
+        certificates of all the rounds hold together with the confidence the base betas state. The
+        deltas must then come from betas (delta1 / delta2 refused).
     """
 
     method: str = "stochastic"
@@ -94,14 +98,25 @@ class CertifyOptions:
     solver: str = "CLARABEL"
     secondary: bool = True
     seed: int = 0
+    round: int = 0
 
     def to_dict(self) -> dict:
         d = asdict(self)
+        if not d["round"]:  # one look at the data: the options (and so the certificates) as before rounds
+            del d["round"]
         d["terms"] = {str(k): list(v) for k, v in self.terms.items()}
         for k in ("delta1", "delta2", "beta1", "beta2", "degree"):
             if d[k] is not None and not np.isscalar(d[k]):
                 d[k] = [float(v) for v in d[k]]
         return d
+
+
+def round_split(o: CertifyOptions) -> float:
+    """The share 2^-k of the base betas round k >= 1 spends (1 without rounds)."""
+    k = o.round
+    if isinstance(k, bool) or int(k) != k or k < 0:
+        raise SimgapError(f"round must be an integer >= 0, got {k!r}")
+    return 1.0 if k == 0 else 0.5 ** int(k)
 
 
 def _per_dim(v, n, name):
@@ -334,7 +349,8 @@ def certify(dataset, options: Optional[CertifyOptions] = None, simulator=None, o
 
     # ----- margins and confidences -----------------------------------------------------
     if o.method == "stochastic":
-        vb = variance_bound(ds.var, N, o.variance, o.safety, o.value_range, o.beta_v)
+        split = round_split(o)  # 1, or 2^-k in round k of the anytime-valid rounds
+        vb = variance_bound(ds.var, N, o.variance, o.safety, o.value_range, o.beta_v * split)
         M = vb.M
         d1, d2 = _per_dim(o.delta1, n, "delta1"), _per_dim(o.delta2, n, "delta2")
         b1, b2 = _per_dim(o.beta1, n, "beta1"), _per_dim(o.beta2, n, "beta2")
@@ -358,6 +374,11 @@ def certify(dataset, options: Optional[CertifyOptions] = None, simulator=None, o
                                       f"the states (|x| up to {scale[i]:g}): a margin that large certifies nothing")
         if d1 is None and b1 is None:
             b1 = b2 = np.full(n, 0.01)
+        if split != 1.0:
+            if d1 is not None:
+                raise SimgapError(f"round {o.round}: the rounds split the betas (beta / 2^k), so the deltas must "
+                                  "come from them: give beta1 / beta2, not delta1 / delta2")
+            b1, b2 = b1 * split, b2 * split
         if d1 is None:
             d1, d2 = delta_from_beta(M, b1, b2, N, K, o.bounds)
             beta1, beta2 = beta_from_delta(M, d1, d2, N, K, o.bounds)

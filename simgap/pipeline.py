@@ -455,6 +455,7 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
 
             def attempt(k, n_k):
                 runs, secs = 0, 0.0
+                sub = "data"
                 if k == 1:
                     ds = data["stochastic"]
                 else:
@@ -478,7 +479,7 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
                     ds = load_store(store_root / sub, system=exp.system)
                 cert, sres = certify_prove("stochastic", ds, dataclasses.replace(opts, round=k),
                                            "" if k == 1 else f" round {k}")
-                got.update(cert=cert, sres=sres, ds=ds)
+                got.update(cert=cert, sres=sres, ds=ds, sub=sub)
                 scale = sres.stats.get("gap_scale") if invariant else None
                 if invariant and sres.stats.get("gap_scale_text", "").startswith("any"):
                     scale = float("inf")
@@ -487,13 +488,14 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
             rr = run_rounds(exp.collect.n_runs, exp.plan().n_pairs, budget, attempt, log)
             log(f"[rounds] {rr.stopped}")
             summary["rounds"] = rr.to_dict()
-            return got["cert"], got["sres"], got["ds"]
+            return got["cert"], got["sres"], got["ds"], got["sub"]
 
         for method in METHODS:
             ds = data[method]
             opts = certify_options(cert_section, method, exp.system)
+            data_dir = {"stochastic": "data", "deterministic": "data_deterministic"}[method]
             if method == "stochastic" and budget.active:
-                cert, sres, ds = in_rounds(opts)
+                cert, sres, ds, data_dir = in_rounds(opts)
             else:
                 cert, sres = certify_prove(method, ds, opts)
             cert.save(out / f"cert_{method}.json")
@@ -530,7 +532,7 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
                 "audit_violated_joint": rep["joint"]["fraction_violated"],
                 "winning_cells": int(not sres.empty) if invariant else int(sres.stats["winning"]),
                 "synthesis": sres.stats,
-                "dataset_hash": ds.hash, "warnings": list(cert.options.get("warnings") or []),
+                "dataset_hash": ds.hash, "data_dir": data_dir, "warnings": list(cert.options.get("warnings") or []),
                 # the gap's Lipschitz entries whose estimate is mostly noise, worst first (one warning names
                 # their count and the worst; this lists them all)
                 "noisy_gap_entries": list(cert.options.get("noisy_gap_entries") or []),

@@ -21,7 +21,9 @@ The budget (``[collect] budget_runs``: simulator runs over all the rounds after 
 ``budget_minutes``: wall minutes of the rounds after the first) is checked before each round from its
 known size (pairs x N1hat_k runs) and the last round's rate: a round that would exceed it is not
 started. Rounds stop early when the proof's tolerable factor did not grow (more data did not help:
-the Lipschitz term or the gap itself limits the proof, not the confidence terms).
+the Lipschitz term or the gap itself limits the proof, not the confidence terms), or when, at the
+last round's growth of the factor per round, reaching 1 would take more runs than the budget (a
+projection, said as one).
 
 Each round's store is resumable like any collection: running the same command again finds the
 finished rounds' stores complete and their chunks verified.
@@ -29,9 +31,10 @@ finished rounds' stores complete and their chunks verified.
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field
 from typing import Callable, Optional
+
+import numpy as np
 
 from .errors import SimgapError
 
@@ -150,9 +153,19 @@ def run_rounds(n_runs: int, n_pairs: int, budget: Budget, attempt: Callable[[int
         why = budget.refuses(spent_runs, runs_next, spent_s, None if rate is None else runs_next / rate)
         if why:
             return RoundsResult(a, rows, f"budget: {why}")
+        if prev_scale is not None and a.scale < 1:
+            # a projection, not a proof: the factor grows by g per round as in the last one; R more rounds reach 1
+            g = a.scale / prev_scale
+            R = int(np.ceil(np.log(1.0 / a.scale) / np.log(g)))
+            runs_R = int(n_pairs) * n_runs_of_round(n_runs, k + 1) * (2 ** R - 1)  # rounds k+1 .. k+R
+            if R > max_rounds - k or (budget.runs is not None and spent_runs + runs_R > budget.runs):
+                return RoundsResult(a, rows, (
+                    f"round {k}: at the last round's growth of the tolerable factor (x {g:.4g} per round, "
+                    f"{prev_scale:.4g} -> {a.scale:.4g}) the proof would need about {R} more rounds (N1hat "
+                    f"{n_runs_of_round(n_runs, k + R):,}, {runs_R:,} more runs)"
+                    + (f", beyond [collect] budget_runs = {budget.runs:,}" if budget.runs is not None and
+                       spent_runs + runs_R > budget.runs else f", beyond {max_rounds} rounds")
+                    + ": more data is not the lever here (a projection, not a proof)"))
         prev_scale = a.scale
         k += 1
 
-
-def elapsed(t0: float) -> float:
-    return time.perf_counter() - t0

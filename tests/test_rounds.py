@@ -86,10 +86,16 @@ def test_policy_doubles_and_stops():
     assert [row["beta_share"] for row in r.rows] == [0.5, 0.25, 0.125]
     assert all(row["confidence_all_rounds"] == pytest.approx(0.98) for row in r.rows)
     # the budget: rounds 2 (2,000 runs) and 3 (4,000) fit in 6,000, round 4 (8,000 more) does not
-    never = lambda k, n: Attempt(False, 0.1 * k, _Cert(k, 0.02), 10 * n, 1.0)
+    never = lambda k, n: Attempt(False, 0.3 * k, _Cert(k, 0.02), 10 * n, 1.0)
     r = run_rounds(100, 10, Budget(runs=6000), never, log=lambda s: None)
     assert len(r.rows) == 3 and r.stopped.startswith("budget:") and "budget_runs = 6,000" in r.stopped
-    flat = lambda k, n: Attempt(False, 0.4, _Cert(k, 0.02), 10 * n, 1.0)
+    # projected: x2 per round from 0.2 needs 3 more rounds (4,000 + 8,000 + 16,000 runs), over the budget
+    slow = lambda k, n: Attempt(0.1 * 2 ** (k - 1) >= 1, 0.1 * 2 ** (k - 1), _Cert(k, 0.02), 10 * n, 1.0)
+    r = run_rounds(100, 10, Budget(runs=6000), slow, log=lambda s: None)
+    assert len(r.rows) == 2 and "about 3 more rounds" in r.stopped and "28,000 more runs" in r.stopped
+    r = run_rounds(100, 10, Budget(runs=10 ** 6), slow, log=lambda s: None)
+    assert len(r.rows) == 5 and r.last.proved  # within the budget the rounds go on
+    flat = lambda k, n: Attempt(False, 0.4, _Cert(k, 0.02), 10 * n, 1.0)  # not proved at 1.6 x: no proof
     r = run_rounds(100, 10, Budget(runs=10 ** 9), flat, log=lambda s: None)
     assert len(r.rows) == 2 and "did not grow" in r.stopped
     with pytest.raises(SimgapError, match="budget_runs"):

@@ -744,8 +744,9 @@ def _gap_lipschitz_compute(ds, o: CertifyOptions, simulator=None, on_progress=No
         w = np.zeros(n)
         w[cov] = 0.5 * np.asarray(cv["widths"], float)
         grid = dataclasses.replace(grid, radii=np.maximum(grid.radii, w))
-    for j in grid.dims:
-        if grid.neighbours[j][0].size == 0 or len(grid.values[j]) < 2:
+    along_tube = bool((ds.manifest.get("cover") or {}).get("boxes"))
+    for j in grid.dims:  # a cover along a tube with simulator slopes needs no neighbours (its radii are the cells')
+        if (grid.neighbours[j][0].size == 0 and not (along_tube and o.lhat == "simulator")) or len(grid.values[j]) < 2:
             nm = s.state_names[j] if j < n else s.input_names[j - n]
             raise SimgapError(f"the gap's Lipschitz term needs cover points with neighbours along every covered "
                               f"dimension, but {nm} has {len(grid.values[j])} value(s) in the data: use a finer "

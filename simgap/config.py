@@ -56,7 +56,7 @@ class CollectSettings:
     invariant_dims: tuple = ()
     fixed: dict = field(default_factory=dict)
     region: dict = field(default_factory=dict)   # a sub-box of X covered instead of X (cover.region_box)
-    tube_margin: Optional[tuple] = None          # a cover along the box tube (simgap.tube_cover.along_tube)
+    tube_margin: Optional[tuple] = None          # a cover along the box tube (simgap.tube_collect.along_tube)
     boxes: tuple = ()                            # ... its boxes, computed from the nominal tube (not a TOML key)
     budget_runs: Optional[int] = None            # anytime-valid rounds (simgap.rounds)
     budget_minutes: Optional[float] = None

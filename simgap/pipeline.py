@@ -282,7 +282,7 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
     t_start = time.perf_counter()
     out = Path(out)
     if exp.collect.tube_margin is not None:  # the cover along the nominal tube, fixed before any data
-        from .tube_cover import along_tube
+        from .tube_collect import along_tube
         exp = along_tube(exp, log)
     from .rounds import Budget
     budget = Budget(exp.collect.budget_runs, exp.collect.budget_minutes)

@@ -21,6 +21,10 @@ x in the box (and for every input in [u_lo, u_hi], the range u takes there). Rou
 floating-point operations is not directed; the radius is widened by a relative 1e-9 plus 1e-12 to
 cover it (far above the accumulated rounding of the few dozen operations per entry).
 
+The same enclosure is compiled from the expression trees by :mod:`simgap.compile` (one numba call
+per batch of boxes for every period, substep and stage); :meth:`IntervalMap.closed_loop` uses it in
+place of the numpy code here (the oracle and the fallback) as :func:`use_kernel` decides.
+
 Refused (a clear message): models that are not system files, and formulas with functions that
 have no interval derivative here (the non-smooth ones: abs, sign, min, max, clip, where,
 comparisons; and sinh, cosh, log, arctan, arctan2) or non-integer powers.
@@ -40,6 +44,12 @@ from ..systems import System
 SMOOTH_FUNCS = tuple(f for f in FUNCS if f not in NONSMOOTH)
 #: relative and absolute widening of every enclosure radius (unrounded interval arithmetic)
 REL_WIDEN, ABS_WIDEN = 1e-9, 1e-12
+
+
+#: boxes evaluated by one IntervalMap in numpy from which it compiles its kernel in auto mode
+#: (SIMGAP_JIT unset or auto): about the numpy path's cost of a first compile (seconds) on a
+#: 4-state file; a loaded kernel (numba's start and the cached code) costs about 1 s
+AUTO_BOXES = 20_000
 
 
 def _imatmul(Ac, Ar, Bc, Br):
@@ -65,10 +75,31 @@ class IntervalMap:
                     raise SimgapError(f"system {system.name!r}: dynamics of {system.state_names[i]!r} use the "
                                       f"non-integer power {node[2]}; write sqrt() for square roots")
         self.terms = [Term(f"d{s}", tree) for s, tree in zip(system.state_names, t["trees"])]
+        self.terms_trees = list(t["trees"])
         self.continuous = t["continuous"]
         self.substeps = t["substeps"]
         self.base_tau = t["tau"]
         self.steps = int(system.steps)
+        self.numpy_boxes = 0      # boxes evaluated by the numpy path so far
+        self._kernel = None       # the compiled closed loop, once loaded
+
+    def kernel(self, boxes: int = 0):
+        """The compiled closed loop (:func:`simgap.compile.interval_kernel`) when :mod:`.jit`'s mode
+        says so: SIMGAP_JIT=1 always, 0 never, auto when numba is already imported or this map has
+        evaluated :data:`AUTO_BOXES` boxes in numpy (counting ``boxes`` about to come); else None."""
+        import sys
+        from . import jit
+        if self._kernel is None:
+            m = jit.mode()
+            if m == "0" or (m == "auto" and not jit.available()):
+                return None
+            if m == "auto" and "numba" not in sys.modules and self.numpy_boxes + boxes < AUTO_BOXES:
+                return None
+            if m == "1" and not jit.available():
+                jit.use_compiled()  # the message naming the missing numba
+            from ..compile import interval_kernel
+            self._kernel = interval_kernel(self.terms_trees, self.n, self.m)
+        return self._kernel
 
     def rhs(self, ylo, yhi, ulo, uhi):
         """Value box and interval Jacobian of the formulas over boxes y in [ylo, yhi], u in [ulo, uhi]
@@ -98,6 +129,13 @@ class IntervalMap:
         u_lo, u_hi = np.atleast_2d(u_lo).astype(float), np.atleast_2d(u_hi).astype(float)
         B, n = x_lo.shape
         K = np.asarray(K, dtype=float)
+        kern = self.kernel(B)
+        if kern is not None:
+            c = np.ascontiguousarray
+            return kern(c(x_lo), c(x_hi), c(np.broadcast_to(u_lo, (B, self.m))), c(np.broadcast_to(u_hi, (B, self.m))),
+                        c(K.reshape(self.m, n)), self.base_tau, self.substeps, self.steps, self.continuous,
+                        REL_WIDEN, ABS_WIDEN)
+        self.numpy_boxes += B
         Kb = np.broadcast_to(K, (B,) + K.shape)
         zero_K = np.zeros_like(Kb)
         lo, hi = x_lo.copy(), x_hi.copy()

@@ -1,0 +1,719 @@
+"""The compiler: a system file's expression trees -> numba kernels (the one code generator).
+
+Input is the tuple tree of :mod:`simgap.expr` (``("const", v) | ("var", j) | ("neg", a) |
+("add"|"sub"|"mul"|"div", a, b) | ("pow", a, p) | ("fn", name, a, ...) | ("cmp", op, a, b)``),
+already parsed against the allow-list, with parameters folded and definitions inlined
+(:func:`simgap.system_file.model_trees`). The compiler emits Python source for numba from that
+tree only: every node kind is checked against an allow-list while emitting, constants are written
+with ``repr(float)`` of a finite float, variables as integer array indices, function names map to
+fixed code fragments of this module, and the names of the generated locals are numbers. No text a
+user wrote is ever copied into the source (a tree that holds anything else is refused with
+:class:`~simgap.errors.SimgapError`), so compiling a hostile file executes nothing it says.
+
+Identical sub-trees are emitted once (hash-consing: the tree becomes a DAG of numbered nodes), so
+the definitions a file shares between formulas (``det``, ``M12`` of the reacher) are computed once
+per evaluation, as in the numpy path.
+
+Two kernels:
+
+* :func:`interval_kernel` -> ``closed_loop(xlo, xhi, ulo, uhi, K, tau, substeps, steps,
+  continuous)``: the whole :meth:`simgap.synthesis.interval_map.IntervalMap.closed_loop` (every
+  base period, RK4 substep and stage, value box and interval Jacobian d y / d x0 in midpoint-radius
+  form) for a batch of boxes in ONE call. The right-hand side's value box and interval Jacobian are
+  the forward-mode interval arithmetic of :meth:`simgap.certify.basis.Term.interval_grad`, node for
+  node (the same interval formulas, the same operation order), with the derivative carried only
+  for the variables a node depends on (structural zeros are skipped: the numpy path adds exact
+  zeros there). Transcendental functions are the C library's (numpy's SIMD tan/exp differ in the
+  last bit for ~1 % of arguments) and the interval matrix products sum in another order, so the
+  results may differ from the numpy path by a few units in the last place; the enclosure's radius
+  is widened by the same relative 1e-9 plus 1e-12 as the numpy path (``REL_WIDEN``, ``ABS_WIDEN``),
+  far above those differences. One difference is deliberate: the numpy interval product counts
+  every NaN endpoint product as 0 (meant for 0 * inf); the kernel does so only for 0 * inf and
+  lets a NaN (a formula outside its domain) make the box unbounded, which is never narrower.
+* :func:`point_kernel` -> ``step(X, U, tau, nint)``: the model's step (``nint`` RK4 substeps of a
+  continuous file in :func:`~simgap.synthesis.runge_kutta.rk4_integrate`'s operation order, or the
+  discrete map) bit for bit equal to the numpy evaluation: no fast-math, the same operations in
+  the same order. Only trees whose every function gives numpy's bits in numba are compiled
+  (:data:`POINT_EXACT`: + - * /, sin, cos, sqrt, abs, powers 0, 1, 2, -1, 0.5, comparisons, where,
+  minimum, maximum, clip; numpy's own SIMD exp, tan, tanh, log, arctan and general powers differ
+  from the C library's in the last bit, measured); :func:`point_exact` says why not otherwise.
+
+Compiled code is cached on disk: the generated module is written to
+``$SIMGAP_KERNEL_CACHE`` (default ``~/.cache/simgap/kernels``) as ``k<digest>.py``, the digest a
+sha256 of the source and numba's version, and imported by path with numba's ``cache=True``, so a
+second process loads the machine code instead of compiling it (measured in docs/synthesis.md,
+"Speed"). Whether to compile at all follows :mod:`simgap.synthesis.jit` (``SIMGAP_JIT``; in auto
+mode a job of at least :data:`INTERVAL_MIN_BOXES` boxes, or numba already imported).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import math
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+from .errors import SimgapError
+
+#: functions the point kernel evaluates with numpy's bits (module docstring)
+POINT_EXACT = frozenset({"sin", "cos", "sqrt", "abs", "minimum", "maximum", "clip", "where"})
+#: exponents for which numba's pow gives np.power's bits
+POINT_EXACT_POWERS = frozenset({0.0, 1.0, 2.0, -1.0, 0.5})
+#: functions with an interval extension and derivative in the interval kernel (basis.FUNCS)
+INTERVAL_FUNCS = frozenset({"sin", "cos", "tan", "exp", "abs", "sqrt", "tanh", "sign"})
+_ARITH = {"add": "+", "sub": "-", "mul": "*", "div": "/"}
+_CMP = {"lt": "<", "le": "<=", "gt": ">", "ge": ">="}
+_POINT_FN = {"sin": "math.sin", "cos": "math.cos", "sqrt": "np.sqrt", "abs": "abs",
+             "minimum": "_minimum", "maximum": "_maximum", "clip": "_clip", "where": "_where"}
+
+
+# ---------------------------------------------------------------------------------------------
+# trees -> DAG (hash-consed, validated)
+# ---------------------------------------------------------------------------------------------
+
+def _num(v) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(float(v)):
+        raise SimgapError(f"compiler: constant {v!r} is not a finite number")
+    return float(v)
+
+
+class _Dag:
+    """Nodes numbered in evaluation order (children first), identical sub-trees once.
+
+    ``nodes[i]`` = (kind, payload, child ids); payload: the float of a const, the column of a var,
+    the exponent of a pow, the function or comparison name. ``deps[i]``: the columns (< ``nvar``)
+    node i depends on, i.e. where its derivative may be non-zero."""
+
+    def __init__(self, nvar: int, fns):
+        self.nvar, self.fns = int(nvar), frozenset(fns)
+        self.nodes, self.deps, self.ids = [], [], {}
+
+    def add(self, t) -> int:
+        if not isinstance(t, tuple) or not t or not isinstance(t[0], str):
+            raise SimgapError(f"compiler: {type(t).__name__} is not an expression node")
+        k = t[0]
+        if k == "const":
+            key = ("const", _num(t[1]), ())
+        elif k == "var":
+            if isinstance(t[1], bool) or not isinstance(t[1], int) or t[1] < 0:
+                raise SimgapError(f"compiler: variable index {t[1]!r} is not a column")
+            key = ("var", int(t[1]), ())
+        elif k == "neg":
+            key = ("neg", None, (self.add(t[1]),))
+        elif k in _ARITH:
+            key = (k, None, (self.add(t[1]), self.add(t[2])))
+        elif k == "pow":
+            p = _num(t[2])
+            key = ("pow", int(p) if p == int(p) else p, (self.add(t[1]),))
+        elif k == "fn":
+            if t[1] not in self.fns:
+                raise SimgapError(f"compiler: function {t[1]!r} is not compiled here (allowed: {', '.join(sorted(self.fns))})")
+            key = ("fn", str(t[1]), tuple(self.add(a) for a in t[2:]))
+        elif k == "cmp":
+            if t[1] not in _CMP or "cmp" not in self.fns:
+                raise SimgapError(f"compiler: comparison {t[1]!r} is not compiled here")
+            key = ("cmp", str(t[1]), (self.add(t[2]), self.add(t[3])))
+        else:
+            raise SimgapError(f"compiler: node kind {k!r} is not allowed")
+        if key not in self.ids:
+            self.ids[key] = len(self.nodes)
+            self.nodes.append(key)
+            d = {key[1]} if k == "var" and key[1] < self.nvar else set()
+            for c in key[2]:
+                d |= self.deps[c]
+            self.deps.append(frozenset(d))
+        return self.ids[key]
+
+
+# ---------------------------------------------------------------------------------------------
+# interval kernel
+# ---------------------------------------------------------------------------------------------
+
+_INTERVAL_PRELUDE = '''
+import math
+import numpy as np
+from simgap.synthesis.jit import njit
+
+PI = math.pi
+TWO_PI = 2.0 * math.pi
+INF = math.inf
+
+
+@njit(error_model="numpy")
+def _p(a, b):
+    """a * b with 0 * inf = 0 (basis._imul's convention); NaN otherwise propagates."""
+    c = a * b
+    if c != c and a == a and b == b:
+        return 0.0
+    return c
+
+
+@njit(error_model="numpy")
+def _imul(al, ah, bl, bh):
+    c0, c1, c2, c3 = _p(al, bl), _p(al, bh), _p(ah, bl), _p(ah, bh)
+    if c0 != c0 or c1 != c1 or c2 != c2 or c3 != c3:
+        return math.nan, math.nan
+    return min(min(c0, c1), min(c2, c3)), max(max(c0, c1), max(c2, c3))
+
+
+@njit(error_model="numpy")
+def _idiv(al, ah, bl, bh):
+    if bl <= 0.0 and bh >= 0.0:
+        return -INF, INF
+    return _imul(al, ah, 1.0 / bh, 1.0 / bl)
+
+
+@njit(error_model="numpy")
+def _ipow(al, ah, k):
+    """[a]^k for an integer k (basis._ipow)."""
+    if k == 0:
+        return 1.0, 1.0
+    a = abs(k)
+    pl, ph = al ** a, ah ** a
+    if a % 2 == 0:
+        pl, ph = (0.0 if (al <= 0.0 and ah >= 0.0) else min(pl, ph)), max(pl, ph)
+    if k < 0:
+        return _idiv(1.0, 1.0, pl, ph)
+    return pl, ph
+
+
+@njit(error_model="numpy")
+def _contains(lo, hi, c, period):
+    return np.ceil((lo - c) / period) <= np.floor((hi - c) / period)
+
+
+@njit(error_model="numpy")
+def _isin(lo, hi):
+    if not (lo == lo and hi == hi) or math.isinf(lo) or math.isinf(hi):
+        return (-1.0, 1.0) if (lo == lo and hi == hi) else (math.nan, math.nan)
+    wide = (hi - lo) >= TWO_PI
+    sl, sh = math.sin(lo), math.sin(hi)
+    rl, rh = min(sl, sh), max(sl, sh)
+    if wide or _contains(lo, hi, PI / 2, TWO_PI):
+        rh = 1.0
+    if wide or _contains(lo, hi, -PI / 2, TWO_PI):
+        rl = -1.0
+    return rl, rh
+
+
+@njit(error_model="numpy")
+def _icos(lo, hi):
+    return _isin(lo + PI / 2, hi + PI / 2)
+
+
+@njit(error_model="numpy")
+def _itan(lo, hi):
+    if not (lo == lo and hi == hi):
+        return math.nan, math.nan
+    if math.isinf(lo) or math.isinf(hi) or _contains(lo, hi, PI / 2, PI) or (hi - lo) >= PI:
+        return -INF, INF
+    return math.tan(lo), math.tan(hi)
+
+
+@njit(error_model="numpy")
+def _isign(x):
+    if x > 0.0:
+        return 1.0
+    if x < 0.0:
+        return -1.0
+    return x
+
+
+@njit(error_model="numpy")
+def _iabs(al, ah):
+    lo = 0.0 if (al <= 0.0 and ah >= 0.0) else min(abs(al), abs(ah))
+    return lo, max(abs(al), abs(ah))
+
+
+@njit(error_model="numpy")
+def _isqrt(al, ah):
+    return np.sqrt(max(al, 0.0)), np.sqrt(ah)
+
+
+@njit(error_model="numpy")
+def _dsqrt(al, ah):
+    if al > 0.0:
+        return 0.5 / np.sqrt(ah), 0.5 / np.sqrt(al)
+    return 0.0, INF
+
+
+@njit(error_model="numpy")
+def _dabs(al, ah):
+    gl, gh = _isign(al), _isign(ah)
+    if al <= 0.0:
+        gl = -1.0
+    if ah >= 0.0:
+        gh = 1.0
+    return gl, gh
+
+
+@njit(error_model="numpy")
+def _dsign(al, ah):
+    if al <= 0.0 and ah >= 0.0:
+        return -INF, INF
+    return 0.0, 0.0
+'''
+
+_INTERVAL_DRIVER = '''
+
+@njit(error_model="numpy")
+def _field(yl, yh, ul, uh, dt, K, Yc, Yr, vl, vh, gl, gh, oc, orr):
+    """Value box (vl, vh) and derivative [oc +- orr] = G_x [Yc +- Yr] + G_u K of the right-hand side
+    (IntervalMap.closed_loop's field); False when unbounded."""
+    n, m = yl.shape[0], ul.shape[0]
+    _rhs(yl, yh, ul, uh, dt, vl, vh, gl, gh)
+    for i in range(n):
+        if not (math.isfinite(vl[i]) and math.isfinite(vh[i])):
+            return False
+        for j in range(n + m):
+            if not (math.isfinite(gl[i, j]) and math.isfinite(gh[i, j])):
+                return False
+    for i in range(n):
+        for j in range(n):
+            c = 0.0
+            r = 0.0
+            for k in range(n):
+                gc = 0.5 * (gl[i, k] + gh[i, k])
+                gr = 0.5 * (gh[i, k] - gl[i, k])
+                c += gc * Yc[k, j]
+                r += abs(gc) * Yr[k, j] + gr * abs(Yc[k, j]) + gr * Yr[k, j]
+            for k in range(m):
+                gc = 0.5 * (gl[i, n + k] + gh[i, n + k])
+                gr = 0.5 * (gh[i, n + k] - gl[i, n + k])
+                c += gc * K[k, j]
+                r += gr * abs(K[k, j])
+            oc[i, j] = c
+            orr[i, j] = r
+    return True
+
+
+@njit(error_model="numpy")
+def closed_loop(xlo, xhi, ulo, uhi, K, tau, substeps, steps, continuous, rel_widen, abs_widen):
+    """IntervalMap.closed_loop for the boxes [xlo, xhi] (B, n), inputs [ulo, uhi] (B, m), u = u* + K (x - x*):
+    (lo, hi) (B, n) and (Dc, Dr) (B, n, n); an unbounded box gets lo = -inf, hi = inf, Dc = 0, Dr = inf."""
+    B, n = xlo.shape
+    m = ulo.shape[1]
+    LO, HI = np.empty((B, n)), np.empty((B, n))
+    DC, DR = np.empty((B, n, n)), np.empty((B, n, n))
+    h = tau / substeps
+    w = (1.0, 2.0, 2.0, 1.0)
+    kl, kh = np.empty((4, n)), np.empty((4, n))
+    kc, kr = np.empty((4, n, n)), np.empty((4, n, n))
+    gl, gh = np.empty((n, n + m)), np.empty((n, n + m))
+    lo, hi, sl, sh = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
+    Dc, Dr, Sc, Sr = np.empty((n, n)), np.empty((n, n)), np.empty((n, n)), np.empty((n, n))
+    for b in range(B):
+        ul, uh = ulo[b], uhi[b]
+        lo[:] = xlo[b]
+        hi[:] = xhi[b]
+        Dc[:] = 0.0
+        Dr[:] = 0.0
+        for i in range(n):
+            Dc[i, i] = 1.0
+        ok = True
+        for _ in range(steps):
+            if not ok:
+                break
+            if not continuous:
+                ok = _field(lo, hi, ul, uh, tau, K, Dc, Dr, kl[0], kh[0], gl, gh, kc[0], kr[0])
+                lo[:] = kl[0]
+                hi[:] = kh[0]
+                Dc[:] = kc[0]
+                Dr[:] = kr[0]
+                continue
+            for _s in range(substeps):
+                ok = _field(lo, hi, ul, uh, tau, K, Dc, Dr, kl[0], kh[0], gl, gh, kc[0], kr[0])
+                for st in range(1, 4):
+                    if not ok:
+                        break
+                    a = h if st == 3 else h / 2
+                    for i in range(n):
+                        sl[i] = lo[i] + a * kl[st - 1, i]
+                        sh[i] = hi[i] + a * kh[st - 1, i]
+                        for j in range(n):
+                            Sc[i, j] = Dc[i, j] + a * kc[st - 1, i, j]
+                            Sr[i, j] = Dr[i, j] + a * kr[st - 1, i, j]
+                    ok = _field(sl, sh, ul, uh, tau, K, Sc, Sr, kl[st], kh[st], gl, gh, kc[st], kr[st])
+                if not ok:
+                    break
+                for i in range(n):
+                    al, ah = 0.0, 0.0
+                    for st in range(4):
+                        al = al + w[st] * kl[st, i]
+                        ah = ah + w[st] * kh[st, i]
+                    lo[i] = lo[i] + h / 6 * al
+                    hi[i] = hi[i] + h / 6 * ah
+                    for j in range(n):
+                        ac, ar = 0.0, 0.0
+                        for st in range(4):
+                            ac = ac + w[st] * kc[st, i, j]
+                            ar = ar + w[st] * kr[st, i, j]
+                        Dc[i, j] = Dc[i, j] + h / 6 * ac
+                        Dr[i, j] = Dr[i, j] + h / 6 * ar
+        for i in range(n):
+            for j in range(n):
+                r = Dr[i, j] + rel_widen * abs(Dc[i, j]) + abs_widen
+                fin = ok and math.isfinite(Dc[i, j]) and math.isfinite(r)
+                DR[b, i, j] = r if fin else INF
+                DC[b, i, j] = Dc[i, j] if fin else 0.0
+            if ok and math.isfinite(lo[i]) and math.isfinite(hi[i]):
+                span = rel_widen * max(abs(lo[i]), abs(hi[i])) + abs_widen
+                LO[b, i] = lo[i] - span
+                HI[b, i] = hi[i] + span
+            else:
+                LO[b, i] = -INF
+                HI[b, i] = INF
+    return LO, HI, DC, DR
+'''
+
+
+class _IntervalEmitter:
+    """Straight-line interval code of one right-hand side: node i -> locals ``l{i}``, ``h{i}`` (value
+    box) and ``a{i}_{j}``, ``b{i}_{j}`` (derivative box along column j, only for j in deps[i])."""
+
+    def __init__(self, dag: _Dag, n: int, m: int):
+        self.dag, self.n, self.m = dag, n, m
+        self.lines = []
+
+    def emit(self, line):
+        self.lines.append("    " + line)
+
+    def value_ref(self, i):
+        return f"l{i}", f"h{i}"
+
+    def node(self, i):
+        kind, pay, ch = self.dag.nodes[i]
+        deps = sorted(self.dag.deps[i])
+        e = self.emit
+        n, m = self.n, self.m
+        if kind == "const":
+            e(f"l{i} = h{i} = {pay!r}")
+            return
+        if kind == "var":
+            if pay < n:
+                e(f"l{i}, h{i} = yl[{pay}], yh[{pay}]")
+            elif pay < n + m:
+                e(f"l{i}, h{i} = ul[{pay - n}], uh[{pay - n}]")
+            elif pay == n + m:
+                e(f"l{i} = h{i} = dt")
+            else:
+                raise SimgapError(f"compiler: column {pay} is not x, u or dt")
+            if pay < n + m:
+                e(f"a{i}_{pay} = b{i}_{pay} = 1.0")
+            return
+        if kind == "neg":
+            a = ch[0]
+            e(f"l{i}, h{i} = -h{a}, -l{a}")
+            for j in deps:
+                e(f"a{i}_{j}, b{i}_{j} = -b{a}_{j}, -a{a}_{j}")
+            return
+        if kind in ("add", "sub"):
+            a, b = ch
+            da, db = self.dag.deps[a], self.dag.deps[b]
+            if kind == "add":
+                e(f"l{i}, h{i} = l{a} + l{b}, h{a} + h{b}")
+            else:
+                e(f"l{i}, h{i} = l{a} - h{b}, h{a} - l{b}")
+            for j in deps:
+                if j in da and j in db:
+                    e(f"a{i}_{j}, b{i}_{j} = a{a}_{j} + a{b}_{j}, b{a}_{j} + b{b}_{j}" if kind == "add" else
+                      f"a{i}_{j}, b{i}_{j} = a{a}_{j} - b{b}_{j}, b{a}_{j} - a{b}_{j}")
+                elif j in da:
+                    e(f"a{i}_{j}, b{i}_{j} = a{a}_{j}, b{a}_{j}")
+                else:
+                    e(f"a{i}_{j}, b{i}_{j} = a{b}_{j}, b{b}_{j}" if kind == "add" else
+                      f"a{i}_{j}, b{i}_{j} = -b{b}_{j}, -a{b}_{j}")
+            return
+        if kind == "mul":  # (ab)' = a'b + ab'
+            a, b = ch
+            da, db = self.dag.deps[a], self.dag.deps[b]
+            e(f"l{i}, h{i} = _imul(l{a}, h{a}, l{b}, h{b})")
+            for j in deps:
+                if j in da and j in db:
+                    e(f"p1, q1 = _imul(a{a}_{j}, b{a}_{j}, l{b}, h{b})")
+                    e(f"p2, q2 = _imul(l{a}, h{a}, a{b}_{j}, b{b}_{j})")
+                    e(f"a{i}_{j}, b{i}_{j} = p1 + p2, q1 + q2")
+                elif j in da:
+                    e(f"a{i}_{j}, b{i}_{j} = _imul(a{a}_{j}, b{a}_{j}, l{b}, h{b})")
+                else:
+                    e(f"a{i}_{j}, b{i}_{j} = _imul(l{a}, h{a}, a{b}_{j}, b{b}_{j})")
+            return
+        if kind == "div":  # (a/b)' = (a'b - ab') / b^2
+            a, b = ch
+            da, db = self.dag.deps[a], self.dag.deps[b]
+            if deps:
+                e(f"s{i}l, s{i}h = _ipow(l{b}, h{b}, 2)")
+            for j in deps:
+                if j in da and j in db:
+                    e(f"p1, q1 = _imul(a{a}_{j}, b{a}_{j}, l{b}, h{b})")
+                    e(f"p2, q2 = _imul(l{a}, h{a}, a{b}_{j}, b{b}_{j})")
+                    e(f"a{i}_{j}, b{i}_{j} = _idiv(p1 - q2, q1 - p2, s{i}l, s{i}h)")
+                elif j in da:
+                    e(f"p1, q1 = _imul(a{a}_{j}, b{a}_{j}, l{b}, h{b})")
+                    e(f"a{i}_{j}, b{i}_{j} = _idiv(p1, q1, s{i}l, s{i}h)")
+                else:
+                    e(f"p2, q2 = _imul(l{a}, h{a}, a{b}_{j}, b{b}_{j})")
+                    e(f"a{i}_{j}, b{i}_{j} = _idiv(-q2, -p2, s{i}l, s{i}h)")
+            e(f"l{i}, h{i} = _idiv(l{a}, h{a}, l{b}, h{b})")
+            return
+        if kind == "pow":
+            a = ch[0]
+            if pay != int(pay):
+                raise SimgapError(f"compiler: the interval kernel needs integer powers, got {pay!r}")
+            p = int(pay)
+            e(f"l{i}, h{i} = _ipow(l{a}, h{a}, {p})")
+            if deps and p != 0:
+                e(f"cl, ch = _ipow(l{a}, h{a}, {p - 1})")
+                e(f"cl, ch = _imul(cl, ch, {float(p)!r}, {float(p)!r})")
+                for j in deps:
+                    e(f"a{i}_{j}, b{i}_{j} = _imul(cl, ch, a{a}_{j}, b{a}_{j})")
+            elif deps:
+                for j in deps:
+                    e(f"a{i}_{j} = b{i}_{j} = 0.0")
+            return
+        if kind == "fn":
+            a = ch[0]
+            val = {"sin": "_isin", "cos": "_icos", "tan": "_itan", "sqrt": "_isqrt", "abs": "_iabs"}
+            if pay in val:
+                e(f"l{i}, h{i} = {val[pay]}(l{a}, h{a})")
+            elif pay in ("exp", "tanh"):
+                e(f"l{i}, h{i} = math.{pay}(l{a}), math.{pay}(h{a})")
+            elif pay == "sign":
+                e(f"l{i}, h{i} = _isign(l{a}), _isign(h{a})")
+            else:
+                raise SimgapError(f"compiler: function {pay!r} has no interval extension here")
+            if not deps:
+                return
+            if pay == "sin":
+                e(f"gl, gh = _icos(l{a}, h{a})")
+            elif pay == "cos":
+                e(f"gl, gh = _isin(l{a}, h{a})")
+                e("gl, gh = -gh, -gl")
+            elif pay == "tan":
+                e(f"sl, sh = _ipow(l{i}, h{i}, 2)")
+                e("gl, gh = 1.0 + sl, 1.0 + sh")
+            elif pay == "exp":
+                e(f"gl, gh = l{i}, h{i}")
+            elif pay == "tanh":
+                e(f"sl, sh = _ipow(l{i}, h{i}, 2)")
+                e("gl, gh = 1.0 - sh, 1.0 - sl")
+            elif pay == "abs":
+                e(f"gl, gh = _dabs(l{a}, h{a})")
+            elif pay == "sqrt":
+                e(f"gl, gh = _dsqrt(l{a}, h{a})")
+            else:
+                e(f"gl, gh = _dsign(l{a}, h{a})")
+            for j in deps:
+                e(f"a{i}_{j}, b{i}_{j} = _imul(gl, gh, a{a}_{j}, b{a}_{j})")
+            return
+        raise SimgapError(f"compiler: node kind {kind!r} has no interval extension")
+
+
+def interval_source(trees, n: int, m: int) -> str:
+    """Source of the interval module for formulas ``trees`` over z = [x (n), u (m), dt]: ``_rhs`` (value
+    box and interval Jacobian over the n + m columns) and the ``closed_loop`` driver."""
+    dag = _Dag(n + m, INTERVAL_FUNCS)
+    roots = [dag.add(t) for t in trees]
+    if len(roots) != n:
+        raise SimgapError(f"compiler: {len(roots)} formulas for {n} states")
+    em = _IntervalEmitter(dag, int(n), int(m))
+    for i in range(len(dag.nodes)):
+        em.node(i)
+    for s, r in enumerate(roots):
+        em.emit(f"vl[{s}], vh[{s}] = l{r}, h{r}")
+        for j in range(n + m):
+            em.emit(f"GL[{s}, {j}], GH[{s}, {j}] = " + (f"a{r}_{j}, b{r}_{j}" if j in dag.deps[r] else "0.0, 0.0"))
+    body = "\n".join(em.lines) or "    pass"
+    rhs = ('\n\n@njit(error_model="numpy")\ndef _rhs(yl, yh, ul, uh, dt, vl, vh, GL, GH):\n'
+           '    """Generated: value box and interval Jacobian of the formulas (one box)."""\n' + body + "\n")
+    return _INTERVAL_PRELUDE + rhs + _INTERVAL_DRIVER
+
+
+# ---------------------------------------------------------------------------------------------
+# point kernel
+# ---------------------------------------------------------------------------------------------
+
+_POINT_PRELUDE = '''
+import math
+import numpy as np
+from simgap.synthesis.jit import njit
+
+
+@njit(error_model="numpy")
+def _minimum(a, b):
+    if a != a:
+        return a
+    if b != b:
+        return b
+    return a if a <= b else b
+
+
+@njit(error_model="numpy")
+def _maximum(a, b):
+    if a != a:
+        return a
+    if b != b:
+        return b
+    return a if a >= b else b
+
+
+@njit(error_model="numpy")
+def _clip(a, lo, hi):
+    return _minimum(_maximum(a, lo), hi)
+
+
+@njit(error_model="numpy")
+def _where(c, a, b):
+    return a if c != 0.0 else b
+'''
+
+_POINT_DRIVER = '''
+
+@njit(error_model="numpy")
+def step(X, U, tau, nint, continuous):
+    """The model's step for every row: nint RK4 substeps of rk4_integrate's order, or the map."""
+    B, n = X.shape
+    out = np.empty((B, n))
+    x, acc, tmp, k = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
+    h = tau / nint
+    h2 = h / 2
+    h6 = h / 6
+    for b in range(B):
+        u = U[b]
+        x[:] = X[b]
+        if not continuous:
+            _rhs(x, u, tau, k)
+            out[b] = k
+            continue
+        for _ in range(nint):
+            _rhs(x, u, tau, k)
+            for i in range(n):
+                acc[i] = k[i]
+                tmp[i] = k[i] * h2 + x[i]
+            _rhs(tmp, u, tau, k)
+            for i in range(n):
+                acc[i] += k[i] + k[i]
+                tmp[i] = k[i] * h2 + x[i]
+            _rhs(tmp, u, tau, k)
+            for i in range(n):
+                acc[i] += k[i] + k[i]
+                tmp[i] = k[i] * h + x[i]
+            _rhs(tmp, u, tau, k)
+            for i in range(n):
+                acc[i] += k[i]
+                acc[i] *= h6
+                x[i] += acc[i]
+        out[b] = x
+    return out
+'''
+
+
+def point_exact(trees) -> str:
+    """'' when the point kernel gives numpy's bits for these trees, else why not (a function or power
+    whose numba result differs from numpy's in the last bit)."""
+    from .expr import walk
+    for t in trees:
+        for node in walk(t):
+            if node[0] == "fn" and node[1] not in POINT_EXACT:
+                return f"{node[1]}() (numpy's own implementation differs from the C library's in the last bit)"
+            if node[0] == "pow" and float(node[2]) not in POINT_EXACT_POWERS:
+                return f"the power {node[2]} (numpy's pow differs from the C library's in the last bit)"
+    return ""
+
+
+def point_source(trees, n: int, m: int) -> str:
+    """Source of the point module: ``_rhs(x, u, dt, out)`` and the ``step`` driver."""
+    from .expr import FUNCTIONS
+    dag = _Dag(n + m, frozenset(FUNCTIONS) | {"cmp"})   # validates every node first
+    roots = [dag.add(t) for t in trees]
+    why = point_exact(trees)
+    if why:
+        raise SimgapError(f"compiler: no bit-identical point kernel for {why}")
+    lines = []
+    for i, (kind, pay, ch) in enumerate(dag.nodes):
+        if kind == "const":
+            rhs = repr(pay)
+        elif kind == "var":
+            if pay < n:
+                rhs = f"x[{pay}]"
+            elif pay < n + m:
+                rhs = f"u[{pay - n}]"
+            elif pay == n + m:
+                rhs = "dt"
+            else:
+                raise SimgapError(f"compiler: column {pay} is not x, u or dt")
+        elif kind == "neg":
+            rhs = f"-v{ch[0]}"
+        elif kind in _ARITH:
+            rhs = f"v{ch[0]} {_ARITH[kind]} v{ch[1]}"
+        elif kind == "pow":
+            rhs = f"math.pow(v{ch[0]}, {float(pay)!r})"  # the C library's pow: np.power's bits for these
+        elif kind == "fn":
+            rhs = f"{_POINT_FN[pay]}({', '.join(f'v{c}' for c in ch)})"
+        else:  # cmp
+            rhs = f"1.0 if v{ch[0]} {_CMP[pay]} v{ch[1]} else 0.0"
+        lines.append(f"    v{i} = {rhs}")
+    for s, r in enumerate(roots):
+        lines.append(f"    out[{s}] = v{r}")
+    rhs_fn = ('\n\n@njit(error_model="numpy")\ndef _rhs(x, u, dt, out):\n'
+              '    """Generated: the formulas at one point."""\n' + "\n".join(lines) + "\n")
+    return _POINT_PRELUDE + rhs_fn + _POINT_DRIVER
+
+
+# ---------------------------------------------------------------------------------------------
+# the disk cache
+# ---------------------------------------------------------------------------------------------
+
+def cache_dir() -> Path:
+    """``$SIMGAP_KERNEL_CACHE`` or ``~/.cache/simgap/kernels`` (a temporary directory when neither is writable)."""
+    d = Path(os.environ.get("SIMGAP_KERNEL_CACHE") or Path.home() / ".cache" / "simgap" / "kernels")
+    try:
+        d.mkdir(parents=True, exist_ok=True)
+        if os.access(d, os.W_OK):
+            return d
+    except OSError:
+        pass
+    d = Path(tempfile.gettempdir()) / f"simgap-kernels-{os.getuid()}"
+    d.mkdir(parents=True, exist_ok=True)
+    return d
+
+
+_LOADED: dict = {}
+
+
+def load(source: str):
+    """The module of generated ``source``: written once to the cache directory as ``k<digest>.py``
+    (digest: sha256 of the source and numba's version; written to a temporary name and renamed, so a
+    concurrent process never imports half a file) and imported by path, so numba's ``cache=True``
+    stores its machine code next to it."""
+    import numba
+    digest = hashlib.sha256((numba.__version__ + "\0" + source).encode()).hexdigest()[:32]
+    if digest in _LOADED:
+        return _LOADED[digest]
+    d = cache_dir()
+    path = d / f"k{digest}.py"
+    if not path.exists() or path.read_text() != source:
+        fd, tmp = tempfile.mkstemp(dir=d, suffix=".tmp")
+        with os.fdopen(fd, "w") as f:
+            f.write(source)
+        os.replace(tmp, path)
+    name = f"simgap_kernel_{digest}"
+    spec = importlib.util.spec_from_file_location(name, path)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[name] = mod
+    spec.loader.exec_module(mod)
+    _LOADED[digest] = mod
+    return mod
+
+
+def interval_kernel(trees, n: int, m: int):
+    """The compiled ``closed_loop`` of :func:`interval_source` (compiled or loaded from the disk cache)."""
+    return load(interval_source(trees, n, m)).closed_loop
+
+
+def point_kernel(trees, n: int, m: int):
+    """The compiled ``step(X, U, tau, nint, continuous)`` of :func:`point_source`."""
+    return load(point_source(trees, n, m)).step

@@ -745,6 +745,13 @@ def comparison_table(summary: dict) -> str:
         r = next(iter(regions.values()))
         lines += ["", "local certificate: gamma holds on the region " + " x ".join(
             f"{nm} [{a:g}, {b:g}]" for nm, a, b in zip(names, r[0], r[1])) + " only"]
+    rr = summary.get("rounds")
+    if rr:  # the stochastic certificate came from anytime-valid rounds (simgap.rounds)
+        lines += ["", "stochastic data in anytime-valid rounds (betas / 2^k; the proof states every round's "
+                  "certificate at once): " + "; ".join(
+                      f"round {r['round']} N1hat {r['n_runs']:,} " + ("proved" if r["proved"] else "not proved")
+                      + ("" if r["gap_scale"] is None else f" (tolerable {r['gap_scale']:.3g} x gamma)")
+                      for r in rr["rounds"]) + f"; {rr['stopped']}"]
     secs = summary.get("seconds", {})
     if secs:
         lines.append("")

@@ -106,12 +106,16 @@ def box_grid_points(lo, hi, covered: Sequence[int], h) -> tuple:
     """The union of the per-box grids: (points (N, n) over the covered dims (others 0), widths (B, d)).
 
     Box b, dimension i: c = ceil(L / h_i) cells of width L / c, points at the centers; the points of all
-    boxes stacked, then exact duplicates removed (first occurrence kept, order preserved)."""
+    boxes stacked, then exact duplicates removed (first occurrence kept, order preserved). When the grid
+    over the boxes' hull has fewer points than the boxes' grids together (wide boxes overlapping from one
+    period to the next), the hull's grid is taken instead: it covers the hull, so the union too."""
     cov = list(covered)
     L = (hi - lo)[:, cov]
     counts = np.maximum(1, np.ceil(L / h * (1 - 1e-12))).astype(np.int64)
     widths = L / counts
     total = int(counts.prod(axis=1).astype(float).sum())
+    if len(lo) > 1 and grid_size(hi.max(axis=0)[cov] - lo.min(axis=0)[cov], h) < total:
+        return box_grid_points(lo.min(axis=0)[None], hi.max(axis=0)[None], covered, h)
     if total > 2e8:
         raise SimgapError(f"tube cover: {total:.3g} points is too many; use a larger epsilon or a smaller margin")
     parts = []

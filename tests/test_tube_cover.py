@@ -31,9 +31,9 @@ def _plan(T=30):
     return np.concatenate([leg1, leg2[1:]])
 
 
-def _spec(eps=0.03, margin=0.02):
+def _spec(eps=0.03, margin=0.01, T=12):
     s = get_system("pendulum")
-    lo, hi = tube_boxes(s.x_lo, s.x_hi, _plan(), margin=margin)
+    lo, hi = tube_boxes(s.x_lo, s.x_hi, _plan(T), margin=margin)
     return s, CoverSpec(epsilon=eps, boxes=tuple(zip(lo.tolist(), hi.tolist()))), (lo, hi)
 
 
@@ -55,6 +55,22 @@ def test_every_point_of_the_union_is_within_epsilon():
     # the points lie in the boxes, none in the hull's empty corner (theta > 0, omega < 0.2 away from the legs)
     assert np.all(np.any(np.all((c.points[:, None] >= lo[None]) & (c.points[:, None] <= hi[None]), axis=2), axis=1))
     assert not np.any((c.points[:, 0] < 0.08) & (c.points[:, 1] > -0.2))
+
+
+def test_wide_boxes_take_the_hulls_grid():
+    """Boxes wider than the spacing that overlap from period to period: the grid over their hull has
+    fewer points than their grids together, and is taken (it covers the union too)."""
+    s, spec, (lo, hi) = _spec(margin=0.03, T=30)
+    c = make_cover(s, spec)
+    from simgap.tube_cover import box_grid_points, default_spacing
+    h = default_spacing(0.03, 2)
+    per_box = sum(int(np.prod(np.ceil((b - a) / h * (1 - 1e-12)))) for a, b in zip(lo, hi))
+    assert c.N == grid_size(hi.max(0) - lo.min(0), h) < per_box
+    rng = np.random.default_rng(1)
+    b = rng.integers(0, len(lo), 5000)
+    x = lo[b] + rng.random((5000, 2)) * (hi[b] - lo[b])
+    from scipy.spatial import cKDTree
+    assert cKDTree(c.points).query(x)[0].max() <= c.radius <= c.epsilon
 
 
 def test_size_grows_with_the_horizon_not_the_dimension():
@@ -135,12 +151,15 @@ def test_certificate_holds_in_the_union_only(tube_cert, tmp_path):
 
 
 def test_gap_term_radius_is_the_widest_cell(tube_cert):
-    """The gap's own Lipschitz term uses eps_j = half the widest cell over the boxes, not half the
-    distance between neighbouring values of the union (which the boxes' shifted grids make tiny)."""
+    """The gap's own Lipschitz term uses eps_j >= half the widest cell over the boxes, not only half the
+    distance between neighbouring values of the union (which the boxes' shifted grids can make small)."""
     ds, cert, _ = tube_cert
     w = np.asarray(ds.manifest["cover"]["widths"])
     assert np.all(cert.radii >= 0.5 * w - 1e-12)
-    assert np.unique(ds.x[:, 0]).size > 2 * len(np.unique(np.round(ds.x[:, 0] / w[0])))  # the values are dense
+    from simgap.certify.lipschitz import axis_grid
+    from simgap.certify.pipeline import _region_dataset
+    naive = axis_grid(_region_dataset(ds), [0, 1]).radii  # half the gaps between the union's values
+    assert np.allclose(cert.radii, np.maximum(naive, 0.5 * w))
 
 
 def test_audit_draws_in_the_boxes(tube_cert):

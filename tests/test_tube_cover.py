@@ -171,3 +171,25 @@ def test_audit_draws_in_the_boxes(tube_cert):
     with make_simulator(PEND_CFG) as sim:
         rep = audit(cert, sim, points=20, runs=50, seed=1, dataset=ds)
     assert rep["joint"]["fraction_holds"] >= 0.9
+
+
+def test_tube_margin_refusals(tmp_path):
+    """[collect] tube_margin without a box tube, with a region, or of the wrong size is refused by name
+    before any synthesis or data; a negative margin when the file is loaded."""
+    from simgap.config import load_experiment
+    from simgap.tube_collect import along_tube
+    from test_rounds import EXPERIMENT, LIN
+    (tmp_path / "lin.toml").write_text(LIN)
+
+    def exp(text):
+        (tmp_path / "e.toml").write_text(text)
+        return load_experiment(tmp_path / "e.toml")
+
+    with pytest.raises(SimgapError, match='needs \\[synthesis\\] method = "box_tube"'):
+        along_tube(exp(EXPERIMENT.replace('method = "box_tube"', 'method = "invariant_set"')))
+    with pytest.raises(SimgapError, match="one value or 2"):
+        along_tube(exp(EXPERIMENT.replace("tube_margin = 0.3", "tube_margin = [0.1, 0.2, 0.3]")))
+    with pytest.raises(SimgapError, match="a region or a tube_margin"):
+        along_tube(exp(EXPERIMENT.replace("tube_margin = 0.3", "tube_margin = 0.3\nregion = { a = [-0.5, 0.5] }")))
+    with pytest.raises(SimgapError, match="tube_margin"):
+        exp(EXPERIMENT.replace("tube_margin = 0.3", "tube_margin = -0.3"))

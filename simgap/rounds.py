@@ -18,7 +18,8 @@ its round k and gives 1 - 2^k (1 - its own simultaneous confidence)). Reusing on
 round would make the statement 1 - k beta after k looks, not 1 - beta.
 
 The budget (``[collect] budget_runs``: simulator runs over all the rounds after the first;
-``budget_minutes``: wall minutes of the rounds after the first) is checked before each round from its
+``budget_minutes``: minutes of the collections of the rounds after the first; certifying and proving
+are not counted) is checked before each round from its
 known size (pairs x N1hat_k runs) and the last round's rate: a round that would exceed it is not
 started. Rounds stop early when the proof's tolerable factor did not grow (more data did not help:
 the Lipschitz term or the gap itself limits the proof, not the confidence terms), or when, at the

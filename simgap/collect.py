@@ -231,7 +231,7 @@ def _worker_state(job: dict) -> dict:
         cv = cfg["cover"]
         cover = make_cover(system, CoverSpec(epsilon=cv["epsilon"], spacing=cv["spacing"],
                                              invariant_dims=tuple(cv["invariant_dims"]), fixed=cv["fixed"],
-                                             region=cv.get("region") or {}))
+                                             region=cv.get("region") or {}, boxes=tuple(cv.get("boxes") or ())))
         sim = make_simulator(cfg["simulator"], system)
         st = {"system": system, "cover": cover, "sim": sim}
         _WORKER_CACHE[h] = st

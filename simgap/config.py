@@ -56,6 +56,10 @@ class CollectSettings:
     invariant_dims: tuple = ()
     fixed: dict = field(default_factory=dict)
     region: dict = field(default_factory=dict)   # a sub-box of X covered instead of X (cover.region_box)
+    tube_margin: Optional[tuple] = None          # a cover along the box tube (simgap.tube_collect.along_tube)
+    boxes: tuple = ()                            # ... its boxes, computed from the nominal tube (not a TOML key)
+    budget_runs: Optional[int] = None            # anytime-valid rounds (simgap.rounds)
+    budget_minutes: Optional[float] = None
     chunk_size: Optional[int] = None
     batch_runs: int = DEFAULT_BATCH_RUNS
     keep_samples: bool = False
@@ -85,7 +89,7 @@ class ExperimentConfig:
     def cover_spec(self) -> CoverSpec:
         c = self.collect
         return CoverSpec(epsilon=c.epsilon, spacing=c.spacing, invariant_dims=tuple(c.invariant_dims),
-                         fixed=dict(c.fixed), region={k: list(v) for k, v in c.region.items()})
+                         fixed=dict(c.fixed), region={k: list(v) for k, v in c.region.items()}, boxes=c.boxes)
 
     def cover(self) -> Cover:
         return make_cover(self.system, self.cover_spec())
@@ -362,4 +366,6 @@ def _collect(d: schema.CollectSection, out: Optional[str]) -> CollectSettings:
         epsilon=float(d.epsilon), n_runs=d.n_runs, seed=d.seed,
         spacing=None if d.spacing is None else tuple(d.spacing), invariant_dims=tuple(d.invariant_dims),
         fixed=dict(d.fixed), region={k: list(v) for k, v in d.region.items()}, chunk_size=d.chunk_size, batch_runs=d.batch_runs, keep_samples=d.keep_samples,
+        tube_margin=None if d.tube_margin is None else tuple(np.atleast_1d(d.tube_margin).tolist()),
+        budget_runs=d.budget_runs, budget_minutes=d.budget_minutes,
         executor=d.executor, workers=d.workers or None, address=d.address, out=out)

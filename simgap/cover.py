@@ -80,6 +80,9 @@ class CoverSpec:
     region : dict, optional
         A sub-box of X to cover instead of X: state name (or index) -> [lo, hi]; dimensions not
         named keep X's bounds (module docstring).
+    boxes : tuple of ([lo], [hi]) pairs, optional
+        A union of boxes in X to cover instead of X (a cover along a tube, :mod:`simgap.tube_cover`):
+        each box gets its own grid (the spacing rules above); not together with ``region``.
     """
 
     epsilon: float
@@ -87,6 +90,7 @@ class CoverSpec:
     invariant_dims: tuple = ()
     fixed: dict = field(default_factory=dict)
     region: dict = field(default_factory=dict)
+    boxes: tuple = ()
 
     def to_dict(self) -> dict:
         out = {"epsilon": float(self.epsilon),
@@ -95,6 +99,8 @@ class CoverSpec:
                "fixed": {str(k): float(v) for k, v in self.fixed.items()}}
         if self.region:  # only when given: the configuration hash of a collection over X is unchanged
             out["region"] = {str(k): [float(a) for a in v] for k, v in self.region.items()}
+        if self.boxes:  # likewise
+            out["boxes"] = [[[float(a) for a in b[0]], [float(a) for a in b[1]]] for b in self.boxes]
         return out
 
 
@@ -162,6 +168,7 @@ class Cover:
     periodic: tuple
     spec: CoverSpec
     box_lo: Optional[np.ndarray] = None   # the covered box's lower corner (X's, or the region's)
+    boxes: Optional[tuple] = None         # ((B, n), (B, n)) a cover along a tube: the union it covers
 
     @property
     def N(self) -> int:
@@ -169,11 +176,13 @@ class Cover:
         return self.points.shape[0]
 
     def describe(self) -> dict:
-        """JSON-ready record of the cover for manifests (spec plus what it produced)."""
+        """JSON-ready record of the cover for manifests (spec plus what it produced). A cover along a
+        tube records ``widths`` as the largest cell width per covered dimension over its boxes (the
+        radius per dimension its certificate may use) and ``counts`` as the distinct values per one."""
         s = self.system
         return {
             **self.spec.to_dict(),
-            "type": "grid",
+            "type": "grid" if self.boxes is None else "boxes",
             "covered_dims": [s.state_names[i] for i in self.covered],
             "invariant_dims": [s.state_names[i] for i in sorted(self.fixed)],
             "fixed": {s.state_names[i]: v for i, v in sorted(self.fixed.items())},
@@ -188,6 +197,10 @@ class Cover:
         s = self.system
         dims = " x ".join(f"{s.state_names[i]}:{c}" for i, c in zip(self.covered, self.counts))
         out = f"cover: {self.N} points (epsilon={self.epsilon:g}, achieved radius {self.radius:.4g}; grid {dims})"
+        if self.boxes is not None:
+            out = (f"cover along a tube: {self.N} points in {len(self.boxes[0])} boxes (epsilon={self.epsilon:g}, "
+                   f"achieved radius {self.radius:.4g}; distinct values {dims})\n  region (a local certificate: "
+                   "gamma will hold in the union of the boxes only)")
         if self.spec.region:
             out += ("\n  region (a local certificate: gamma will hold there only): "
                     + " x ".join(f"{k} [{float(v[0]):g}, {float(v[1]):g}]" for k, v in self.spec.region.items()))
@@ -199,6 +212,8 @@ class Cover:
 
     def locate(self, x: np.ndarray) -> np.ndarray:
         """Index of the cover point whose cell contains x (B,n) -> (B,) (invariant dims ignored)."""
+        if self.boxes is not None:
+            raise SimgapError("cover.locate: a cover along a tube has no single grid; use its boxes")
         s = self.system
         x = np.atleast_2d(np.asarray(x, dtype=float))
         idx = np.zeros(x.shape[0], dtype=np.int64)
@@ -243,6 +258,8 @@ def make_cover(system: System, spec: CoverSpec | float) -> Cover:
         raise SimgapError(f"cover: epsilon must be > 0, got {spec.epsilon!r}")
 
     whole = system
+    if spec.boxes and spec.region:
+        raise SimgapError("cover: give a region or boxes (a cover along a tube), not both")
     system = restrict(system, spec.region)  # a region: cover it instead of X (its checks name the dimension)
     inv = sorted({_dim_index(system, d) for d in spec.invariant_dims})
     covered = tuple(i for i in range(system.n) if i not in inv)
@@ -264,13 +281,9 @@ def make_cover(system: System, spec: CoverSpec | float) -> Cover:
 
     d = len(covered)
     L = system.x_hi[list(covered)] - system.x_lo[list(covered)]
-    if spec.spacing is None:
-        h = np.full(d, 2.0 * eps / math.sqrt(d))
-    else:
-        h = np.asarray(spec.spacing, dtype=float).ravel()
-        if h.shape != (d,) or not np.all(np.isfinite(h)) or np.any(h <= 0):
-            raise SimgapError(f"cover: spacing needs {d} positive values (one per covered dimension), "
-                              f"got {spec.spacing!r}")
+    if spec.boxes:  # the union of boxes along a tube: each box's own grid (simgap.tube_cover)
+        return _box_cover(whole, spec, eps, covered, fixed)
+    h = _spacing(spec, eps, d)
     # ceil with a relative slack so that L/h = 70.0000000001 from rounding does not add a cell
     counts = np.maximum(1, np.ceil(L / h * (1 - 1e-12))).astype(np.int64)
     widths = L / counts
@@ -293,6 +306,35 @@ def make_cover(system: System, spec: CoverSpec | float) -> Cover:
     return Cover(system=whole, points=pts, epsilon=eps, radius=radius, covered=covered,
                  counts=counts, widths=widths, fixed=fixed, periodic=periodic, spec=spec,
                  box_lo=system.x_lo.copy())
+
+
+def _spacing(spec: CoverSpec, eps: float, d: int) -> np.ndarray:
+    if spec.spacing is None:
+        return np.full(d, 2.0 * eps / math.sqrt(d))
+    h = np.asarray(spec.spacing, dtype=float).ravel()
+    if h.shape != (d,) or not np.all(np.isfinite(h)) or np.any(h <= 0):
+        raise SimgapError(f"cover: spacing needs {d} positive values (one per covered dimension), "
+                          f"got {spec.spacing!r}")
+    return h
+
+
+def _box_cover(system: System, spec: CoverSpec, eps: float, covered: tuple, fixed: dict) -> Cover:
+    """The cover of a union of boxes (:mod:`simgap.tube_cover`): every box's grid at the spacing, the union."""
+    from .tube_cover import box_grid_points, check_boxes
+    lo, hi = check_boxes(system, spec.boxes)
+    h = _spacing(spec, eps, len(covered))
+    pts, widths = box_grid_points(lo, hi, covered, h)
+    radius = 0.5 * float(np.sqrt((widths ** 2).sum(axis=1)).max())
+    if radius > eps * (1 + 1e-12):
+        raise SimgapError(f"cover: spacing {h.tolist()} gives radius {radius:.6g} > epsilon {eps:g}")
+    for i, v in fixed.items():
+        pts[:, i] = v
+    inv = [i for i in range(system.n) if i not in covered]
+    lo[:, inv], hi[:, inv] = system.x_lo[inv], system.x_hi[inv]  # gamma is declared independent of them
+    counts = np.array([np.unique(pts[:, i]).size for i in covered], dtype=np.int64)
+    return Cover(system=system, points=pts, epsilon=eps, radius=radius, covered=covered, counts=counts,
+                 widths=widths.max(axis=0), fixed=fixed, periodic=tuple(False for _ in covered), spec=spec,
+                 box_lo=None, boxes=(lo, hi))
 
 
 # ----------------------------------------------------------------------------------------

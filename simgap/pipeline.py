@@ -285,6 +285,14 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
 
     t_start = time.perf_counter()
     out = Path(out)
+    if exp.collect.tube_margin is not None:  # the cover along the nominal tube, fixed before any data
+        from .tube_collect import along_tube
+        exp = along_tube(exp, log)
+    from .rounds import Budget
+    budget = Budget(exp.collect.budget_runs, exp.collect.budget_minutes)
+    if budget.active and invariant_stage.method_of(exp.section("synthesis")) not in invariant_stage.SET_METHODS:
+        raise SimgapError("[collect] budget_runs / budget_minutes: the rounds re-prove a set synthesis (method = "
+                          "\"box_tube\" or \"invariant_set\"), whose proof reports the factor of gamma it tolerates")
     per_run = exp.section("perrun")
     if per_run:  # validated before any work: bad input writes nothing
         from .perrun.stage import check_section
@@ -423,16 +431,78 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
                 entry["rollouts_in_set"] = stage(f"rollout-in-E/{method}", lambda: invariant_stage.rollouts_in_set(
                     rollout, sres.controller, sim, k, R, ro.get("horizon"), int(ro.get("seed", 11)) + 1000,
                     ro.get("on_exit", "hold"), log))
+        def certify_prove(method, ds, opts, tag=""):
+            """Certify ``ds`` and synthesize with the certificate: (cert, sres)."""
+            cost = lhat_cost(ds, opts, sims[method])  # the simulator's Lipschitz runs, if any: priced first
+            if cost is not None:
+                estimates[f"certify/{method}{tag}"] = cost["seconds"]
+                log(f"[certify/{method}{tag}] {crn_cost_text(cost)}")
+            bar = progress and cost is not None and progress(f"certify/{method}: Lipschitz (simulator)", "runs")
+            cert = stage(f"certify/{method}{tag}", lambda: certify(ds, opts, simulator=sims[method],
+                                                                   on_progress=bar or None))
+            _close(bar)
+            if invariant:
+                sres = stage(f"synthesize/{method}{tag}", lambda: invariant_stage.synthesize(
+                    exp.system, spec, cert, syn, x0=x0, horizon=ro.get("horizon"), log=log))
+            else:
+                bar = progress and progress(f"synthesize/{method}: abstraction", "classes")
+                sres = stage(f"synthesize/{method}{tag}", lambda: synthesize(exp.system, spec, syn["eta"], gap=cert,
+                                                                             hold=hold, x0=x0, log=log,
+                                                                             on_progress=bar))
+                _close(bar)
+            return cert, sres
+
+        def in_rounds(opts):
+            """The stochastic certificate and proof in anytime-valid rounds (simgap.rounds): round 1 on the
+            collected data, round k >= 2 on a fresh store data_round<k> with N1hat doubled each round."""
+            from .rounds import Attempt, run_rounds
+            got = {}
+
+            def attempt(k, n_k):
+                runs, secs = 0, 0.0
+                sub = "data"
+                if k == 1:
+                    ds = data["stochastic"]
+                else:
+                    e = dataclasses.replace(exp, collect=dataclasses.replace(exp.collect, n_runs=n_k,
+                                                                             seed=exp.collect.seed + k - 1))
+                    plan, sub = e.plan(), f"data_round{k}"
+                    check_fillable(store_root / sub, plan.config())
+                    check_collection(plan.n_pairs, plan.n_runs, exp.system.n, exp.system.m, exp.system.steps,
+                                     plan.batch_runs, n_workers, plan.keep_samples, store_root / sub)
+                    est = printed_collection_estimate(plan, store_root / sub, ex, wk, address or exp.collect.address,
+                                                      rate, n_workers)
+                    log(f"[collect/round {k}] " + est.summary().replace("\n", "; "))
+                    res = stage(f"collect/round {k}", lambda: collect(
+                        plan, store_root / sub, executor=ex, workers=wk or None, address=address or exp.collect.address,
+                        on_progress=progress and progress(f"collect/round {k}", "pairs")))
+                    if not res.complete:
+                        raise SimgapError(f"collection of {store_root / sub} did not finish (cancelled); run again "
+                                          "to resume")
+                    runs, secs = int(res.runs), float(res.seconds)
+                    summary["collected_runs"][f"stochastic round {k}"] = runs
+                    ds = load_store(store_root / sub, system=exp.system)
+                cert, sres = certify_prove("stochastic", ds, dataclasses.replace(opts, round=k),
+                                           "" if k == 1 else f" round {k}")
+                got.update(cert=cert, sres=sres, ds=ds, sub=sub)
+                scale = sres.stats.get("gap_scale") if invariant else None
+                if invariant and sres.stats.get("gap_scale_text", "").startswith("any"):
+                    scale = float("inf")
+                return Attempt(proved=not sres.empty, scale=scale, cert=cert, runs=runs, seconds=secs)
+
+            rr = run_rounds(exp.collect.n_runs, exp.plan().n_pairs, budget, attempt, log)
+            log(f"[rounds] {rr.stopped}")
+            summary["rounds"] = rr.to_dict()
+            return got["cert"], got["sres"], got["ds"], got["sub"]
+
         for method in METHODS:
             ds = data[method]
             opts = certify_options(cert_section, method, exp.system)
-            cost = lhat_cost(ds, opts, sims[method])  # the simulator's Lipschitz runs, if any: priced first
-            if cost is not None:
-                estimates[f"certify/{method}"] = cost["seconds"]
-                log(f"[certify/{method}] {crn_cost_text(cost)}")
-            bar = progress and cost is not None and progress(f"certify/{method}: Lipschitz (simulator)", "runs")
-            cert = stage(f"certify/{method}", lambda: certify(ds, opts, simulator=sims[method], on_progress=bar or None))
-            _close(bar)
+            data_dir = {"stochastic": "data", "deterministic": "data_deterministic"}[method]
+            if method == "stochastic" and budget.active:
+                cert, sres, ds, data_dir = in_rounds(opts)
+            else:
+                cert, sres = certify_prove(method, ds, opts)
             cert.save(out / f"cert_{method}.json")
             wrote(f"cert_{method}.json")
             # the audit's own simulator timed at its batch size, at the start of each audit (a shared
@@ -448,17 +518,7 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
             _close(bar)
             fileio.write_json(out / f"audit_{method}.json", rep)
             wrote(f"audit_{method}.json")
-            if invariant:
-                sres = stage(f"synthesize/{method}", lambda: invariant_stage.synthesize(
-                    exp.system, spec, cert, syn, x0=x0, horizon=ro.get("horizon"), log=log))
-                if not sres.empty:  # no set proved: nothing written (the summary says why)
-                    sres.controller.save(out / f"controller_{method}.npz")
-                    wrote(f"controller_{method}.npz")
-            else:
-                bar = progress and progress(f"synthesize/{method}: abstraction", "classes")
-                sres = stage(f"synthesize/{method}", lambda: synthesize(exp.system, spec, syn["eta"], gap=cert,
-                                                                        hold=hold, x0=x0, log=log, on_progress=bar))
-                _close(bar)
+            if not (invariant and sres.empty):  # no set proved: nothing written (the summary says why)
                 sres.controller.save(out / f"controller_{method}.npz")
                 wrote(f"controller_{method}.npz")
             if not sres.empty:
@@ -477,7 +537,7 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
                 "audit_violated_joint": rep["joint"]["fraction_violated"],
                 "winning_cells": int(not sres.empty) if invariant else int(sres.stats["winning"]),
                 "synthesis": sres.stats,
-                "dataset_hash": ds.hash, "warnings": list(cert.options.get("warnings") or []),
+                "dataset_hash": ds.hash, "data_dir": data_dir, "warnings": list(cert.options.get("warnings") or []),
                 # the gap's Lipschitz entries whose estimate is mostly noise, worst first (one warning names
                 # their count and the worst; this lists them all)
                 "noisy_gap_entries": list(cert.options.get("noisy_gap_entries") or []),
@@ -690,6 +750,13 @@ def comparison_table(summary: dict) -> str:
         r = next(iter(regions.values()))
         lines += ["", "local certificate: gamma holds on the region " + " x ".join(
             f"{nm} [{a:g}, {b:g}]" for nm, a, b in zip(names, r[0], r[1])) + " only"]
+    rr = summary.get("rounds")
+    if rr:  # the stochastic certificate came from anytime-valid rounds (simgap.rounds)
+        lines += ["", "stochastic data in anytime-valid rounds (betas / 2^k; the proof states every round's "
+                  "certificate at once): " + "; ".join(
+                      f"round {r['round']} N1hat {r['n_runs']:,} " + ("proved" if r["proved"] else "not proved")
+                      + ("" if r["gap_scale"] is None else f" (tolerable {r['gap_scale']:.3g} x gamma)")
+                      for r in rr["rounds"]) + f"; {rr['stopped']}"]
     secs = summary.get("seconds", {})
     if secs:
         lines.append("")

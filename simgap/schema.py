@@ -109,6 +109,11 @@ class CollectSection(Section):
     invariant_dims: list[Union[str, Int0]] = []
     fixed: dict[str, Finite] = {}
     region: dict[str, Annotated[list[Finite], Field(min_length=2, max_length=2)]] = {}
+    # a cover along the box tube (simgap.tube_cover): the room beyond the nominal tube, one value or one per state
+    tube_margin: Optional[Union[Positive, list[Positive]]] = None
+    # anytime-valid rounds (simgap.rounds): what the rounds after the first may spend
+    budget_runs: Optional[Int1] = None
+    budget_minutes: Optional[Positive] = None
     chunk_size: Optional[Int1] = None
     batch_runs: Int1 = 1 << 18
     keep_samples: bool = False

@@ -22,6 +22,7 @@ controller.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+import re
 from pathlib import Path
 from typing import Optional
 
@@ -190,10 +191,14 @@ def load_run(path) -> RunResults:
         for name in (f"cert_{m}.json", f"audit_{m}.json", f"controller_{m}.npz", f"rollouts_{m}.npz"):
             if (root / name).is_file():
                 check_listed(root, summary, name, digest=False)  # a stray of another run: refused first
-        ds = load_store(_inside(root, DATA_DIRS[m]), system=exp.system)
-        want = summary["methods"][m].get("dataset_hash") if isinstance(summary["methods"][m], dict) else None
+        entry = summary["methods"][m] if isinstance(summary["methods"][m], dict) else {}
+        sub = entry.get("data_dir", DATA_DIRS[m])  # the last round's store when the run collected in rounds
+        if not (sub == DATA_DIRS[m] or (m == "stochastic" and re.fullmatch(r"data_round[0-9]{1,3}", str(sub)))):
+            raise SimgapError(f"results folder {root}: summary.json names the data folder {sub!r} (refused)")
+        ds = load_store(_inside(root, sub), system=exp.system)
+        want = entry.get("dataset_hash")
         if want is not None and ds.hash != want:
-            raise SimgapError(f"results folder {root}: the data in {DATA_DIRS[m]} are not the ones this run certified "
+            raise SimgapError(f"results folder {root}: the data in {sub} are not the ones this run certified "
                               f"(dataset hash {ds.hash[:12]}..., summary.json says {str(want)[:12]}...; refused)")
         cert = load_certificate(_inside(root, f"cert_{m}.json"))
         audit = None

@@ -106,13 +106,22 @@ def _chunk_progress(on_progress, a: int, R: int, B: int):
     return lambda rows: on_progress(a * R + rows, B * R)
 
 
-def draw_points(system, B: int, rng: np.random.Generator, cover=None, cov_dims=None, inputs=None, input_box=None):
+def draw_points(system, B: int, rng: np.random.Generator, cover=None, cov_dims=None, inputs=None, input_box=None,
+                boxes=None):
     """B fresh states uniform in X (not on the cover points) and inputs uniform from ``inputs`` (default U),
     or uniform in ``input_box`` = (lo, hi) when given (a certificate for continuous inputs).
 
-    ``cover`` holds the cover points' coordinates in the covered dimensions ``cov_dims``.
+    ``cover`` holds the cover points' coordinates in the covered dimensions ``cov_dims``. ``boxes`` =
+    ((K, n), (K, n)): the states are drawn in their union instead (a box at random, then uniform in it:
+    a certificate whose data covered a tube is audited where it speaks).
     """
-    x = system.x_lo + rng.random((B, system.n)) * (system.x_hi - system.x_lo)
+    def uniform(k):
+        if boxes is None:
+            return system.x_lo + rng.random((k, system.n)) * (system.x_hi - system.x_lo)
+        b = rng.integers(0, len(boxes[0]), size=k)
+        return boxes[0][b] + rng.random((k, system.n)) * (boxes[1][b] - boxes[0][b])
+
+    x = uniform(B)
     cov_dims = list(range(system.n)) if cov_dims is None else list(cov_dims)
     if cover is not None and len(cover):
         from scipy.spatial import cKDTree
@@ -120,7 +129,7 @@ def draw_points(system, B: int, rng: np.random.Generator, cover=None, cov_dims=N
         d, _ = tree.query(x[:, cov_dims])
         hit = d < 1e-9
         while hit.any():  # measure-zero event, redraw those (seeded)
-            x[hit] = system.x_lo + rng.random((int(hit.sum()), system.n)) * (system.x_hi - system.x_lo)
+            x[hit] = uniform(int(hit.sum()))
             d, _ = tree.query(x[:, cov_dims])
             hit = d < 1e-9
     if input_box is not None:
@@ -181,7 +190,7 @@ def audit(cert, simulator, points: int = 200, runs: int = 2000, seed: int = 0, d
     cont = bool(getattr(cert, "continuous", False))
     # a local certificate is audited where it speaks: fresh points in its region
     x, u = draw_points(cert.restrict(s) if hasattr(cert, "restrict") else s, int(points), rng, cover, cov_dims,
-                       cert.inputs, cert.input_box if cont else None)
+                       cert.inputs, cert.input_box if cont else None, getattr(cert, "region_boxes", None))
     B, R, n = len(x), int(runs), s.n
     fx = s.f(x, u)
     mean_dev = np.empty((B, n))

@@ -134,6 +134,9 @@ class Certificate:
     input_radii: Optional[np.ndarray] = None  # (m,) half the input grid's spacing (continuous inputs)
     input_box: Optional[tuple] = None     # ((m,), (m,)) the input box gamma holds on (continuous inputs)
     region: Optional[tuple] = None        # ((n,), (n,)) the sub-box of X the data covered: gamma holds there only
+    # ((B, n), (B, n)) a cover along a tube (simgap.tube_cover): gamma holds in the union of these boxes only;
+    # ``region`` is then their hull (the box every estimate was made over)
+    region_boxes: Optional[tuple] = None
 
     # ----- shape -----------------------------------------------------------------------
     @property
@@ -178,16 +181,35 @@ class Certificate:
             return "no probability is stated (deterministic baseline)"
         c = self.scope_confidences()
         where = "" if self.region is None else f" over the region {self.region_text()}"
+        rounds = "" if not self.round else (
+            f"; round {self.round} of anytime-valid rounds (betas / 2^{self.round}): every round's certificate "
+            f"at once {confidence_text(self.all_rounds_confidence(), self.K)}, what a proof may state")
         return (f"scope {self.scope}; joint confidence pointwise (one query (x,u) at a time) "
                 f"{confidence_text(c['pointwise'])}, simultaneous (all K = {self.K} cover rows at once, union "
                 f"bound: what a sup of gamma over a set relies on: synthesis, invariant sets, tubes){where} "
-                f"{confidence_text(c['simultaneous'], self.K)}")
+                f"{confidence_text(c['simultaneous'], self.K)}{rounds}")
+
+    @property
+    def round(self) -> int:
+        """0, or k >= 1: the k-th round of data (:mod:`simgap.rounds`), its betas the base ones / 2^k."""
+        return int(self.options.get("round") or 0)
+
+    def all_rounds_confidence(self) -> Optional[float]:
+        """The simultaneous confidence of the certificates of EVERY round k >= 1 at once (round k spends
+        beta / 2^k, so their failures sum to at most 2^k times this round's): 1 - 2^k (1 - simultaneous).
+        What a proof with the certificate of the round where the rounds stopped may state, the stopping
+        having looked at the data. The simultaneous confidence itself without rounds."""
+        c = self.scope_confidences()["simultaneous"]
+        if c is None or not self.round:
+            return c
+        return 1.0 - 2.0 ** self.round * (1.0 - c)
 
     def sup_confidence(self) -> Optional[float]:
         """The confidence of any statement that takes gamma's sup over a set (a synthesis over cells,
         an invariant set, a tube): the SIMULTANEOUS reading (all K rows at once), never the pointwise
-        one (which is about one query (x, u)). None: deterministic baseline, or vacuous (<= 0)."""
-        c = self.scope_confidences()["simultaneous"]
+        one (which is about one query (x, u)); over all the rounds when the certificate is one of the
+        anytime-valid rounds (:meth:`all_rounds_confidence`). None: deterministic baseline, or vacuous (<= 0)."""
+        c = self.all_rounds_confidence()
         return None if c is None or c <= 0 else float(c)
 
     def proof_confidence_text(self) -> str:
@@ -213,13 +235,14 @@ class Certificate:
             dims = list(range(self.n))
         return " x ".join(f"{self.state_names[i]} [{lo[i]:.6g}, {hi[i]:.6g}]" for i in dims)
 
-    def require_inside(self, lo, hi, what: str) -> None:
-        """Refuse taking gamma over the box [lo, hi] ("what" names the set) unless it lies in the region
-        the data covered (no-op for a certificate over all of X). Every consumer that takes gamma's sup
-        over a set calls it with its set's name; :meth:`gamma_upper_box` and :meth:`gamma_sup` check the
-        boxes they are given too."""
+    def outside(self, lo, hi, what: str) -> str:
+        """'' when every box [lo, hi] (rows of (B, n) arrays, or one box) lies in the region the data
+        covered, else why not, naming the set (``what``), the box and the dimensions. A cover along a
+        tube (``region_boxes``): each box must lie inside ONE of the region's boxes (a box between them,
+        or straddling two, is outside: gamma was certified on their union only, and containment in one
+        box is what is checked, soundly)."""
         if self.region is None:
-            return
+            return ""
         lo, hi = np.atleast_2d(np.asarray(lo, float)), np.atleast_2d(np.asarray(hi, float))
         rlo, rhi = self.region
         tol = 1e-9 * np.maximum(1.0, np.abs(rhi - rlo))
@@ -227,10 +250,34 @@ class Certificate:
         if np.any(out):
             b = int(np.argmax(out.any(axis=1)))
             dims = ", ".join(self.state_names[i] for i in np.flatnonzero(out[b]))
-            raise SimgapError(f"{what} [{self.region_text(lo[b], hi[b])}] leaves the certificate's region "
-                              f"[{self.region_text()}] in {dims}: gamma holds on that region only (its data were "
-                              "collected there, [collect] region); keep the set inside it or collect over a "
-                              "larger region")
+            return (f"{what} [{self.region_text(lo[b], hi[b])}] leaves the certificate's region "
+                    f"[{self.region_text()}] in {dims}: gamma holds on that region only (its data were "
+                    "collected there, [collect] region); keep the set inside it or collect over a "
+                    "larger region")
+        if self.region_boxes is None:
+            return ""
+        blo, bhi = (np.asarray(a, float) for a in self.region_boxes)
+        inside = np.zeros(lo.shape[0], dtype=bool)
+        step = max(1, 2_000_000 // max(1, blo.size))  # (queries x boxes x n) booleans per slice
+        for a in range(0, lo.shape[0], step):
+            q_lo, q_hi = lo[a:a + step, None, :], hi[a:a + step, None, :]
+            inside[a:a + step] = np.any(np.all((q_lo >= blo[None] - tol) & (q_hi <= bhi[None] + tol), axis=2),
+                                        axis=1)
+        if inside.all():
+            return ""
+        b = int(np.flatnonzero(~inside)[0])
+        return (f"{what} [{self.region_text(lo[b], hi[b])}] lies in none of the {len(blo)} boxes the certificate's "
+                "data covered (a cover along a tube: gamma holds in their union only, and a set must lie inside "
+                "one of them); keep the set along the tube or collect with a larger [collect] tube_margin")
+
+    def require_inside(self, lo, hi, what: str) -> None:
+        """Refuse taking gamma over the box [lo, hi] ("what" names the set) unless it lies in the region
+        the data covered (:meth:`outside`; no-op for a certificate over all of X). Every consumer that
+        takes gamma's sup over a set calls it with its set's name; :meth:`gamma_upper_box` and
+        :meth:`gamma_sup` check the boxes they are given too."""
+        msg = self.outside(lo, hi, what)
+        if msg:
+            raise SimgapError(msg)
 
     def restrict(self, system):
         """``system`` with X narrowed to the region (the system itself without one)."""
@@ -396,6 +443,8 @@ class Certificate:
             d["radii"] = np.asarray(self.radii, float).tolist()
         if self.region is not None:  # only when present: certificates over X keep their content
             d["region"] = [np.asarray(b, float).tolist() for b in self.region]
+        if self.region_boxes is not None:  # likewise
+            d["region_boxes"] = [np.asarray(b, float).tolist() for b in self.region_boxes]
         if self.continuous:
             d["input_box"] = [np.asarray(b, float).tolist() for b in self.input_box]
             d["input_radii"] = np.asarray(self.input_radii, float).tolist()
@@ -532,6 +581,9 @@ class Certificate:
         if self.region is not None:
             lines.append(f"region (local certificate): gamma holds on {self.region_text()} only (the data's "
                          "[collect] region); a set leaving it is refused")
+        if self.region_boxes is not None:
+            lines.append(f"  ... and there in the union of {len(self.region_boxes[0])} boxes along a tube only (a cover "
+                         "along the tube); a set inside none of them is refused")
         lines.append(self.statement())
         const = self.constant()
         for i, (name, d) in enumerate(zip(self.state_names, self.dims)):
@@ -593,6 +645,21 @@ def _term_fields(d: dict, names) -> dict:
         if lo.shape != (names.n,) or hi.shape != (names.n,) or not np.all(np.isfinite(lo + hi)) or np.any(lo >= hi):
             raise SimgapError("certificate is malformed: region needs finite lo < hi per state")
         out["region"] = (lo, hi)
+    if d.get("region_boxes") is not None:
+        box = d["region_boxes"]
+        if "region" not in out or not (isinstance(box, list) and len(box) == 2):
+            raise SimgapError("certificate is malformed: region_boxes must be [lo, hi] beside a region")
+        try:
+            lo, hi = (np.asarray(b, float) for b in box)
+        except (TypeError, ValueError):
+            raise SimgapError("certificate is malformed: region_boxes must hold numbers") from None
+        if lo.ndim != 2 or lo.shape != hi.shape or lo.shape[1] != names.n or not np.all(np.isfinite(lo + hi)) \
+                or np.any(lo >= hi):
+            raise SimgapError("certificate is malformed: region_boxes needs (B, n) finite lo < hi")
+        rlo, rhi = out["region"]
+        if not (np.allclose(lo.min(axis=0), rlo) and np.allclose(hi.max(axis=0), rhi)):
+            raise SimgapError("certificate is malformed: region is not the hull of region_boxes")
+        out["region_boxes"] = (lo, hi)
     if term == "gap" and "radii" not in out:
         raise SimgapError("certificate is malformed: lipschitz_term 'gap' without radii")
     return out

@@ -70,6 +70,10 @@ class CertifyOptions:
         that callers add for inputs anywhere in the grid's box (Certificate.gamma(..., continuous=True)).
     scp_method, solver, secondary : see scp.solve_scp.
     seed : seeds the Lipschitz batches and the constraint-generation start set.
+    round : 0 (one look at the data), or k >= 1: the k-th of the rounds of :mod:`simgap.rounds`; beta1,
+        beta2 and beta_v are then spent as beta / 2^k (sum over every round k >= 1: beta), so that the
+        certificates of all the rounds hold together with the confidence the base betas state. The
+        deltas must then come from betas (delta1 / delta2 refused).
     """
 
     method: str = "stochastic"
@@ -95,14 +99,25 @@ class CertifyOptions:
     solver: str = "CLARABEL"
     secondary: bool = True
     seed: int = 0
+    round: int = 0
 
     def to_dict(self) -> dict:
         d = asdict(self)
+        if not d["round"]:  # one look at the data: the options (and so the certificates) as before rounds
+            del d["round"]
         d["terms"] = {str(k): list(v) for k, v in self.terms.items()}
         for k in ("delta1", "delta2", "beta1", "beta2", "degree"):
             if d[k] is not None and not np.isscalar(d[k]):
                 d[k] = [float(v) for v in d[k]]
         return d
+
+
+def round_split(o: CertifyOptions) -> float:
+    """The share 2^-k of the base betas round k >= 1 spends (1 without rounds)."""
+    k = o.round
+    if isinstance(k, bool) or int(k) != k or k < 0:
+        raise SimgapError(f"round must be an integer >= 0, got {k!r}")
+    return 1.0 if k == 0 else 0.5 ** int(k)
 
 
 def _per_dim(v, n, name):
@@ -130,11 +145,27 @@ def _versions() -> dict:
 def dataset_region(dataset) -> Optional[tuple]:
     """(lo, hi) of the region the collection covered (manifest "cover" "region", a sub-box of X), or
     None when it covered X."""
+    boxes = dataset_region_boxes(dataset)
+    if boxes is not None:  # a cover along a tube: the estimates are made over the boxes' hull
+        return boxes[0].min(axis=0), boxes[1].max(axis=0)
     reg = (dataset.manifest.get("cover") or {}).get("region")
     if not reg:
         return None
     from ..cover import region_box
     return region_box(dataset.system, reg)
+
+
+def dataset_region_boxes(dataset) -> Optional[tuple]:
+    """((B, n), (B, n)) the boxes a cover along a tube covered (manifest "cover" "boxes"; declared-invariant
+    dimensions at X's bounds), or None for a grid cover."""
+    boxes = (dataset.manifest.get("cover") or {}).get("boxes")
+    if not boxes:
+        return None
+    from ..tube_cover import check_boxes
+    lo, hi = check_boxes(dataset.system, boxes)
+    inv = invariant_dims(dataset)
+    lo[:, inv], hi[:, inv] = dataset.system.x_lo[inv], dataset.system.x_hi[inv]
+    return lo, hi
 
 
 _REGION_DS: "OrderedDict[int, tuple]" = OrderedDict()
@@ -305,7 +336,8 @@ def certify(dataset, options: Optional[CertifyOptions] = None, simulator=None, o
 
     # ----- margins and confidences -----------------------------------------------------
     if o.method == "stochastic":
-        vb = variance_bound(ds.var, N, o.variance, o.safety, o.value_range, o.beta_v)
+        split = round_split(o)  # 1, or 2^-k in round k of the anytime-valid rounds
+        vb = variance_bound(ds.var, N, o.variance, o.safety, o.value_range, o.beta_v * split)
         M = vb.M
         d1, d2 = _per_dim(o.delta1, n, "delta1"), _per_dim(o.delta2, n, "delta2")
         b1, b2 = _per_dim(o.beta1, n, "beta1"), _per_dim(o.beta2, n, "beta2")
@@ -329,6 +361,11 @@ def certify(dataset, options: Optional[CertifyOptions] = None, simulator=None, o
                                       f"the states (|x| up to {scale[i]:g}): a margin that large certifies nothing")
         if d1 is None and b1 is None:
             b1 = b2 = np.full(n, 0.01)
+        if split != 1.0:
+            if d1 is not None:
+                raise SimgapError(f"round {o.round}: the rounds split the betas (beta / 2^k), so the deltas must "
+                                  "come from them: give beta1 / beta2, not delta1 / delta2")
+            b1, b2 = b1 * split, b2 * split
         if d1 is None:
             d1, d2 = delta_from_beta(M, b1, b2, N, K, o.bounds)
             beta1, beta2 = beta_from_delta(M, d1, d2, N, K, o.bounds)
@@ -452,6 +489,7 @@ def certify(dataset, options: Optional[CertifyOptions] = None, simulator=None, o
             "created_unix": time.time(), "seconds": time.perf_counter() - t0}
     return Certificate(system_name=s.name, steps=int(s.steps), state_names=tuple(s.state_names),
                        input_names=tuple(s.input_names), x_lo=X_lo, x_hi=X_hi, region=region,
+                       region_boxes=dataset_region_boxes(dataset),
                        angle_dims=tuple(s.angle_dims), epsilon=float(ds.epsilon), n_runs=N, K=K,
                        method=o.method, options=opts, dims=dims, provenance=prov, inputs=U_data,
                        system_digest=system_digest(s), system_ref=embedded_ref(s),
@@ -686,8 +724,15 @@ def _gap_lipschitz_compute(ds, o: CertifyOptions, simulator=None, on_progress=No
     cov = [j for j in range(n) if j not in invariant_dims(ds)]
     ubox = input_grid_of(s, np.unique(ds.u, axis=0)) if o.continuous_inputs else None
     grid = axis_grid(ds, cov, range(m) if o.continuous_inputs else ())
-    for j in grid.dims:
-        if grid.neighbours[j][0].size == 0 or len(grid.values[j]) < 2:
+    cv = ds.manifest.get("cover") or {}
+    if cv.get("boxes"):  # a cover along a tube: each box has its own grid, so the values along x_j of all
+        # boxes together say nothing of a cell's width; eps_j = half the widest cell over the boxes
+        w = np.zeros(n)
+        w[cov] = 0.5 * np.asarray(cv["widths"], float)
+        grid = dataclasses.replace(grid, radii=np.maximum(grid.radii, w))
+    along_tube = bool((ds.manifest.get("cover") or {}).get("boxes"))
+    for j in grid.dims:  # a cover along a tube with simulator slopes needs no neighbours (its radii are the cells')
+        if (grid.neighbours[j][0].size == 0 and not (along_tube and o.lhat == "simulator")) or len(grid.values[j]) < 2:
             nm = s.state_names[j] if j < n else s.input_names[j - n]
             raise SimgapError(f"the gap's Lipschitz term needs cover points with neighbours along every covered "
                               f"dimension, but {nm} has {len(grid.values[j])} value(s) in the data: use a finer "

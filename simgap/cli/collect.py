@@ -57,6 +57,9 @@ def run(args) -> int:
                         "executor": args.executor, "workers": args.workers, "address": args.address,
                         "out": args.out}}
     exp = load_experiment(args.experiment, args.profile, overrides=over)
+    if exp.collect.tube_margin is not None:  # the same cover along the nominal tube as `simgap run` collects
+        from ..tube_collect import along_tube
+        exp = along_tube(exp)
     c = exp.collect
     store = output_dir(exp.store_dir(), "store")
     print(f"experiment {exp.name} (profile {exp.profile or 'base'}): system {exp.system.name}, tau={exp.system.tau:g} s; "

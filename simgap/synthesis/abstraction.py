@@ -126,6 +126,9 @@ def as_gap(gap, system: System):
     region = getattr(gap, "region", None)
     if region is not None:  # a local certificate: the sample evaluation stays where gamma holds
         lo, hi = np.asarray(region[0], float)[None, :], np.asarray(region[1], float)[None, :]
+        boxes = getattr(gap, "region_boxes", None)
+        if boxes is not None:  # a cover along a tube: gamma holds in its boxes only (the hull is refused)
+            lo, hi = np.asarray(boxes[0][:1], float), np.asarray(boxes[1][:1], float)
     try:
         g = np.asarray(gap.gamma_upper_box(lo, hi, system.inputs[:1]), dtype=float)
     except SimgapError:

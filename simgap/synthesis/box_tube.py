@@ -129,6 +129,8 @@ def remainder(Mr, h) -> np.ndarray:
 
 def _check_region(gap, lo, hi, what):
     """'' or why the box [lo, hi] leaves the certificate's region (a local certificate)."""
+    if hasattr(gap, "outside"):  # a certificate says it (a region, or the boxes of a cover along a tube)
+        return gap.outside(lo, hi, what)
     reg = getattr(gap, "region", None)
     if reg is None:
         return ""

@@ -1,0 +1,195 @@
+"""A cover along a tube (issue 52 item 5): cover points only in the boxes a box tube reads gamma
+over; the certificate holds in their union, and every consumer refuses a set inside none of them
+(a set in the boxes' hull but between them included)."""
+
+import json
+
+import numpy as np
+import pytest
+
+from simgap.certify import BoundOptions, certify, load
+from simgap.certify.audit import audit
+from simgap.collect import CollectionPlan, collect, load_store
+from simgap.cover import CoverSpec, make_cover
+from simgap.errors import SimgapError
+from simgap.simulators import make_simulator
+from simgap.simulators.base import SimulatorConfig
+from simgap.synthesis.box_tube import _check_region
+from simgap.synthesis.invariant_set import gap_bound
+from simgap.systems import get_system
+from simgap.tube_cover import grid_size, tube_boxes
+
+PEND_CFG = {"kind": "numpy", "system": "pendulum", "noise": {"process_std": 0.002},
+            "effects": {"linear": [[0.0, 0.0], [0.0, -0.5]]}}
+
+
+def _plan(T=30):
+    """An L-shaped plan in the pendulum's X: theta from -0.15 to 0.15 at omega = -0.3, then omega up to 0.3."""
+    a = np.linspace(-0.15, 0.15, T)
+    leg1 = np.stack([a, np.full(T, -0.3)], axis=1)
+    leg2 = np.stack([np.full(T, 0.15), np.linspace(-0.3, 0.3, T)], axis=1)
+    return np.concatenate([leg1, leg2[1:]])
+
+
+def _spec(eps=0.03, margin=0.01, T=12):
+    s = get_system("pendulum")
+    lo, hi = tube_boxes(s.x_lo, s.x_hi, _plan(T), margin=margin)
+    return s, CoverSpec(epsilon=eps, boxes=tuple(zip(lo.tolist(), hi.tolist()))), (lo, hi)
+
+
+def test_every_point_of_the_union_is_within_epsilon():
+    """The cover property on the union of the boxes: 20,000 random points of the union (a random box,
+    then uniform in it) are each within epsilon of a cover point, and the achieved radius is attained
+    nearly (a cover with fewer points would fail it: dropping every second point does)."""
+    s, spec, (lo, hi) = _spec()
+    c = make_cover(s, spec)
+    rng = np.random.default_rng(0)
+    b = rng.integers(0, len(lo), 20000)
+    x = lo[b] + rng.random((20000, 2)) * (hi[b] - lo[b])
+    from scipy.spatial import cKDTree
+    d, _ = cKDTree(c.points).query(x)
+    assert d.max() <= c.radius <= c.epsilon
+    assert d.max() > 0.7 * c.radius
+    d_half, _ = cKDTree(c.points[::2]).query(x)
+    assert d_half.max() > c.epsilon
+    # the points lie in the boxes, none in the hull's empty corner (theta > 0, omega < 0.2 away from the legs)
+    assert np.all(np.any(np.all((c.points[:, None] >= lo[None]) & (c.points[:, None] <= hi[None]), axis=2), axis=1))
+    assert not np.any((c.points[:, 0] < 0.08) & (c.points[:, 1] > -0.2))
+
+
+def test_wide_boxes_take_the_hulls_grid():
+    """Boxes wider than the spacing that overlap from period to period: the grid over their hull has
+    fewer points than their grids together, and is taken (it covers the union too)."""
+    s, spec, (lo, hi) = _spec(margin=0.03, T=30)
+    c = make_cover(s, spec)
+    from simgap.tube_cover import box_grid_points, default_spacing
+    h = default_spacing(0.03, 2)
+    per_box = sum(int(np.prod(np.ceil((b - a) / h * (1 - 1e-12)))) for a, b in zip(lo, hi))
+    assert c.N == grid_size(hi.max(0) - lo.min(0), h) < per_box
+    rng = np.random.default_rng(1)
+    b = rng.integers(0, len(lo), 5000)
+    x = lo[b] + rng.random((5000, 2)) * (hi[b] - lo[b])
+    from scipy.spatial import cKDTree
+    assert cKDTree(c.points).query(x)[0].max() <= c.radius <= c.epsilon
+
+
+def test_size_grows_with_the_horizon_not_the_dimension():
+    """A tube narrower than the spacing costs one point per period: at 4, 6 and 14 states the same plan
+    length gives the same count, while the grid over X grows exponentially."""
+    counts = {}
+    for n in (4, 6, 14):
+        T = 50
+        x_lo, x_hi = -np.ones(n), np.ones(n)
+        xn = np.linspace(-0.8, 0.8, T)[:, None] * np.ones(n)
+        eps = 0.2
+        margin = 0.9 * eps / np.sqrt(n)  # the box's half-diagonal below epsilon: one cell per dimension
+        lo, hi = tube_boxes(x_lo, x_hi, xn, margin=margin)
+        from simgap.tube_cover import box_grid_points, default_spacing
+        pts, _ = box_grid_points(lo, hi, range(n), default_spacing(eps, n))
+        counts[n] = len(pts)
+        assert grid_size(x_hi - x_lo, default_spacing(eps, n)) > 10 ** (n // 2)
+    assert counts == {4: 50, 6: 50, 14: 50}
+
+
+def test_bad_boxes_are_refused():
+    s = get_system("pendulum")
+    with pytest.raises(SimgapError, match="box 0 leaves X in omega"):
+        make_cover(s, CoverSpec(epsilon=0.05, boxes=(([-0.1, -0.6], [0.1, 0.1]),)))
+    with pytest.raises(SimgapError, match="lo < hi"):
+        make_cover(s, CoverSpec(epsilon=0.05, boxes=(([0.1, 0.0], [0.1, 0.1]),)))
+    with pytest.raises(SimgapError, match="region or boxes"):
+        make_cover(s, CoverSpec(epsilon=0.05, boxes=(([-0.1, 0.0], [0.1, 0.1]),), region={"theta": [-0.1, 0.1]}))
+    with pytest.raises(SimgapError, match="margin is 0"):
+        tube_boxes(s.x_lo, s.x_hi, _plan(), margin=0.0)
+    with pytest.raises(SimgapError, match="margin must be finite"):
+        tube_boxes(s.x_lo, s.x_hi, _plan(), margin=-1.0)
+
+
+@pytest.fixture(scope="module")
+def tube_cert(tmp_path_factory):
+    s, spec, boxes = _spec()
+    plan = CollectionPlan(system=s, simulator=SimulatorConfig.from_dict(PEND_CFG), cover=make_cover(s, spec),
+                          n_runs=20, seed=3, chunk_size=200)
+    store = tmp_path_factory.mktemp("tube") / "data"
+    collect(plan, store, executor="serial")
+    ds = load_store(store)
+    return ds, certify(ds, degree=1, bounds=BoundOptions(concentration="subgaussian"),
+                       lipschitz_term="gap"), boxes
+
+
+def test_certificate_holds_in_the_union_only(tube_cert, tmp_path):
+    """The certificate records the boxes (their hull as its region) and is uniform; a box inside one of
+    them is accepted by every consumer, a box inside the HULL but between the legs is refused by each
+    (a certificate checking the hull alone would accept it), and so is a box straddling two boxes that do
+    not contain it together. The boxes survive a JSON round trip and cannot be edited."""
+    ds, cert, (lo, hi) = tube_cert
+    assert cert.region_boxes is not None and len(cert.region_boxes[0]) == len(lo)
+    assert np.allclose(cert.region[0], lo.min(axis=0)) and np.allclose(cert.region[1], hi.max(axis=0))
+    assert cert.scope == "simultaneous"
+    u = cert.inputs[:1]
+    inside = (np.array([-0.1, -0.31]), np.array([-0.09, -0.29]))       # on the first leg
+    between = (np.array([-0.1, 0.1]), np.array([-0.09, 0.12]))         # in the hull, off both legs
+    assert np.all(np.isfinite(cert.gamma_upper_box(inside[0][None], inside[1][None], u)))
+    assert _check_region(cert, *inside, "a box") == ""
+    gap_bound(cert, 2, *inside, u[0], u[0])
+    for fn in (lambda: cert.gamma_upper_box(between[0][None], between[1][None], u),
+               lambda: gap_bound(cert, 2, *between, u[0], u[0]),
+               lambda: cert.require_inside(*between, "a box")):
+        with pytest.raises(SimgapError, match="lies in none of the"):
+            fn()
+    assert "lies in none of the" in _check_region(cert, *between, "the tube at period 3")
+    cert.save(tmp_path / "c.json")
+    back = load(tmp_path / "c.json")
+    assert np.array_equal(back.region_boxes[0], cert.region_boxes[0])
+    with pytest.raises(SimgapError, match="lies in none"):
+        back.require_inside(*between, "a box")
+    d = json.loads((tmp_path / "c.json").read_text())
+    d["region_boxes"] = [[[-0.2, -0.5]], [[0.2, 0.5]]]  # one box over the hull: refused
+    (tmp_path / "c.json").write_text(json.dumps(d))
+    with pytest.raises(SimgapError, match="modified|malformed"):
+        load(tmp_path / "c.json")
+
+
+def test_gap_term_radius_is_the_widest_cell(tube_cert):
+    """The gap's own Lipschitz term uses eps_j >= half the widest cell over the boxes, not only half the
+    distance between neighbouring values of the union (which the boxes' shifted grids can make small)."""
+    ds, cert, _ = tube_cert
+    w = np.asarray(ds.manifest["cover"]["widths"])
+    assert np.all(cert.radii >= 0.5 * w - 1e-12)
+    from simgap.certify.lipschitz import axis_grid
+    from simgap.certify.pipeline import _region_dataset
+    naive = axis_grid(_region_dataset(ds), [0, 1]).radii  # half the gaps between the union's values
+    assert np.allclose(cert.radii, np.maximum(naive, 0.5 * w))
+
+
+def test_audit_draws_in_the_boxes(tube_cert):
+    """The audit's fresh points lie in the boxes (not in the hull between them), and gamma holds there."""
+    from simgap.certify.audit import draw_points
+    ds, cert, (lo, hi) = tube_cert
+    x, _ = draw_points(get_system("pendulum"), 500, np.random.default_rng(0), boxes=cert.region_boxes)
+    assert np.all(np.any(np.all((x[:, None] >= lo[None]) & (x[:, None] <= hi[None]), axis=2), axis=1))
+    with make_simulator(PEND_CFG) as sim:
+        rep = audit(cert, sim, points=20, runs=50, seed=1, dataset=ds)
+    assert rep["joint"]["fraction_holds"] >= 0.9
+
+
+def test_tube_margin_refusals(tmp_path):
+    """[collect] tube_margin without a box tube, with a region, or of the wrong size is refused by name
+    before any synthesis or data; a negative margin when the file is loaded."""
+    from simgap.config import load_experiment
+    from simgap.tube_collect import along_tube
+    from test_rounds import EXPERIMENT, LIN
+    (tmp_path / "lin.toml").write_text(LIN)
+
+    def exp(text):
+        (tmp_path / "e.toml").write_text(text)
+        return load_experiment(tmp_path / "e.toml")
+
+    with pytest.raises(SimgapError, match='needs \\[synthesis\\] method = "box_tube"'):
+        along_tube(exp(EXPERIMENT.replace('method = "box_tube"', 'method = "invariant_set"')))
+    with pytest.raises(SimgapError, match="one value or 2"):
+        along_tube(exp(EXPERIMENT.replace("tube_margin = 0.3", "tube_margin = [0.1, 0.2, 0.3]")))
+    with pytest.raises(SimgapError, match="a region or a tube_margin"):
+        along_tube(exp(EXPERIMENT.replace("tube_margin = 0.3", "tube_margin = 0.3\nregion = { a = [-0.5, 0.5] }")))
+    with pytest.raises(SimgapError, match="tube_margin"):
+        exp(EXPERIMENT.replace("tube_margin = 0.3", "tube_margin = -0.3"))

@@ -36,14 +36,14 @@ from typing import Optional, Sequence
 import numpy as np
 
 from ..systems import System
-from .data import Transitions, episodes, history, lagged_inputs, subset, time_order
+from .data import Transitions, _continues, episodes, history, lagged_inputs, subset, time_order
 from ..errors import SimgapError
 from .effects import (LAG_PERIODS, Effect, candidate_effects, carry_matrix, coefficient_units,
                       integration_effect, physical, sign_check, velocity_dims)
 from .refined import build_refined, load_system, refined_system
 from .residual import Residuals, match_tau, residuals
 from .selection import SelectionOptions, StateFit, select_state, split_heldout
-from .structure import Probe
+from .structure import STATE_LAGS, Probe
 
 
 @dataclass
@@ -109,7 +109,15 @@ def refine(system, data: Transitions, effects: Optional[Sequence[str]] = None,
         lagged_u.append(hist[:, lags * w + g * sysobj.m: lags * w + (g + 1) * sysobj.m])
     V = np.concatenate([data.x, data.u] + lagged_u, axis=1)
     angle_cols = np.concatenate([sysobj.angle_mask, np.zeros(V.shape[1] - sysobj.n, dtype=bool)])
-    probe = Probe(V, angle_cols, held, torder, rng)
+    # the memory test: each row's previous row along its trajectory, and the lagged states
+    prev = None
+    if lags:
+        cont = _continues(data, torder)
+        prev = np.full(data.K, -1)
+        prev[torder[1:]] = np.where(cont[1:], torder[:-1], -1)
+    lagged_x = np.concatenate([hist[:, d * w: d * w + sysobj.n] for d in range(min(lags, STATE_LAGS))], axis=1) \
+        if lags else None
+    probe = Probe(V, angle_cols, held, torder, rng, prev=prev, lagged_x=lagged_x)
     # velocity states first: the integration term of a position uses the refined velocity update
     vd = velocity_dims(sysobj)
     order = list(vd) + [i for i in range(sysobj.n) if i not in vd]
@@ -501,6 +509,7 @@ def _report(s: System, refined: System, data: Transitions, held, fits: Sequence[
             "unexplained_fraction": fit.unexplained_fraction,
             "unexplained": fit.unexplained,
             "lag1_autocorr": fit.lag1_autocorr,
+            "memory_r2": fit.memory_r2,
             "rounds": fit.rounds,
             "time": fit.time,
             "notes": list(fit.notes),
@@ -594,6 +603,8 @@ def format_table(report: dict) -> str:
                f"structure left R^2 = {st['structure_r2']:.3f}")
         if st["lag1_autocorr"] is not None:
             msg += f", lag-1 autocorrelation {st['lag1_autocorr']:.2f}"
+        if st.get("memory_r2") is not None:
+            msg += f", memory R^2 = {st['memory_r2']:.3f}"
         if st.get("rounds", 1) > 1:
             msg += f", {st['rounds']} selection rounds"
         tm = st.get("time")

@@ -96,6 +96,7 @@ def refine(system, data: Transitions, effects: Optional[Sequence[str]] = None,
                           + (f"only {lags} period(s) of history are used" if lags else
                              "the data carry no time order (transitions with time stamps t)"))
     before = residuals(sysobj, data)
+    weighted = opts.weighted and data.se is not None
     cands = candidate_effects(sysobj, effects, user_terms, max_lag=lags)
     torder = time_order(data)
     held = split_heldout(data.K, data.t, opts, torder)
@@ -140,6 +141,10 @@ def refine(system, data: Transitions, effects: Optional[Sequence[str]] = None,
             interim = refined_system(sysobj, [c[0] for c in chosen if c[0].lag == 0],
                                      [c[1] for c in chosen if c[0].lag == 0])
             y = _after(interim, data, hist, chosen).r[:, i] / data.tau
+        if weighted:
+            # weighted least squares: row k counts 1 / se_ki (normalized to mean square 1)
+            wt = row_weights(data.se[:, i])
+            y, Theta = y * wt, Theta * wt[:, None]
         fit = select_state(y, Theta, [e.key(sysobj) for e in ci], held, probe, i,
                            data.is_time_series, opts, rng, sign_check(sysobj, ci, data.x), clock)
         fits[i] = fit
@@ -155,11 +160,22 @@ def refine(system, data: Transitions, effects: Optional[Sequence[str]] = None,
                             [c[2] for c in now], name=name)
     after = _after(refined, data, hist, chosen)
     for fit in fits:      # after a withdrawal the remaining residual is larger than selection saw
-        fit.rss_heldout = float(np.sum((after.r[held, fit.state] / data.tau) ** 2))
+        wt = row_weights(data.se[:, fit.state]) if weighted else 1.0
+        fit.rss_heldout = float(np.sum(((after.r[:, fit.state] * wt)[held] / data.tau) ** 2))
         fit.unexplained_fraction = max(0.0, fit.remaining_fraction - fit.noise_floor_fraction)
     report = _report(sysobj, refined, data, held, fits, chosen, before, after, opts, hist, withdrawn, hist_info)
     return RefineResult(system=sysobj, refined=refined, data=data, heldout=held, fits=fits,
                         effects=chosen, before=before, after=after, report=report)
+
+
+def row_weights(se: np.ndarray) -> np.ndarray:
+    """Weights 1 / se (standard errors floored at 1 % of their median, so exact pairs do not take
+    over), scaled to mean square 1; all ones when every se is zero (noise-free data)."""
+    med = float(np.median(se))
+    if not med > 0:
+        return np.ones_like(se)
+    w = 1.0 / np.maximum(se, 0.01 * med)
+    return w / np.sqrt(np.mean(w ** 2))
 
 
 def validate(res: RefineResult, data: Transitions) -> dict:
@@ -526,6 +542,7 @@ def _report(s: System, refined: System, data: Transitions, held, fits: Sequence[
         "system": s.name, "refined_system": refined.name, "data": data.source,
         "tau": data.tau, "samples": int(data.K), "train": int((~held).sum()), "heldout": int(held.sum()),
         "holdout_kind": "contiguous time segments" if data.is_time_series else "random rows",
+        "weighted": bool(opts.weighted and data.se is not None),   # rows weighted by 1 / se of x_next
         "dropped_nonfinite": int(data.n_dropped), "outside_X": outside,
         "state_names": list(s.state_names),
         "effects": eff,

@@ -67,6 +67,8 @@ class SelectionOptions:
     gate_steps: int = 100           # multi-step gate: horizons 10 and this on held-out data (time series; 0: 10 only)
     gate_tolerance: float = 0.01    # allowed mean squared ratio of k-step RMS f' / f above 1
     max_rounds: int = 5             # selection rounds on what is left (1: a single round)
+    weighted: bool = False          # weight rows by 1 / standard error of x_next where the data carry it
+                                    # (collected pair means: Transitions.se), i.e. weighted least squares
 
 
 @dataclass
@@ -149,7 +151,7 @@ def _rss(yy: float, G: np.ndarray, b: np.ndarray, S: list, c: np.ndarray) -> flo
 
 #: which of several collinear candidates is kept: the simplest physical reading first
 PRIORITY = ("bias", "viscous_friction", "coulomb_friction", "drag", "cubic_stiffness", "input_gain", "deadband",
-            "input_coupling", None,
+            "input_coupling", "input_cross", "input_cross_abs", None,
             "integration", "input_delay", "actuator_lag", "gravity")
 
 

@@ -57,6 +57,9 @@ def add_parser(subparsers) -> None:
                    help="held-out residual-variance fraction an effect must explain to be kept (default 0.005)")
     p.add_argument("--bootstrap", type=count(2), default=100, help="bootstrap resamples for standard errors")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--weighted", action="store_true",
+                   help="collected data: weight each pair by 1 / the standard error of its mean (weighted least "
+                        "squares; pairs whose runs scatter widely count less)")
     p.add_argument("--name", help="name of the refined system")
     p.add_argument("--quiet", action="store_true", help="no table on the terminal")
     p.add_argument("--record", metavar="FILE.rrd", help="write a Rerun recording of the residual against a "
@@ -101,7 +104,7 @@ def run(args) -> int:
     from ..refine.effects import MAX_DELAY
     users = parse_user_terms(match_tau(system, data.tau), args.term, MAX_DELAY if data.is_time_series else 0)
     opts = SelectionOptions(holdout=args.holdout, n_segments=args.segments, min_explained=args.min_explained,
-                            n_boot=args.bootstrap, seed=args.seed)
+                            n_boot=args.bootstrap, seed=args.seed, weighted=args.weighted)
     res = refine(system, data, effects=names, user_terms=users, options=opts, name=args.name)
     if args.compare_gap or args.spec:
         res.report["gap_comparison"] = _compare(args, res)

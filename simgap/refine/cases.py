@@ -48,14 +48,16 @@ def _rows(sysname: str, K: int, rng, extra: Callable, noise: Callable) -> Transi
 
 
 def _series(sysname: str, K: int, rng, extra: Callable, noise: Callable, delay: int = 0,
-            runs: int = 40, lag: float = 0.0, timed: Callable = None) -> Transitions:
+            runs: int = 40, lag: float = 0.0, timed: Callable = None, memory: Callable = None) -> Transitions:
     """``runs`` trajectories of K / runs transitions with random held inputs.
 
     The truth applies the input ``delay`` periods late: x+ = f(x, u[k - delay]) + tau extra + noise,
     and, with ``lag`` = T_a / tau > 0, through a first-order actuator a+ = a + (u - a) / lag (the
     acting input a starts at the first command). ``timed(x, u, t, p)`` adds a time-dependent rate
-    (t the record's clock [s], p in [0, 1) the position in the record). Time stamps continue across
-    runs with a gap, so runs are separate segments of one record.
+    (t the record's clock [s], p in [0, 1) the position in the record). ``memory(x, u, m)`` returns
+    (rate, m'): a rate that depends on the past through its own state m (None at the start; hysteresis,
+    a delayed coupling). Time stamps continue across runs with a gap, so runs are separate segments of
+    one record.
     """
     s = get_system(sysname)
     T = K // runs
@@ -75,9 +77,13 @@ def _series(sysname: str, K: int, rng, extra: Callable, noise: Callable, delay: 
     X, Uk, XN = [], [], []
     tt = (np.arange(runs)[:, None] * (T + 10) + np.arange(T)[None, :]) * s.tau
     pos = (np.arange(runs)[:, None] * T + np.arange(T)[None, :]) / (runs * T)
+    mem = None
     for k in range(T):
         u_now, u_act = useq[:, k + delay], act[:, k]
         xn = s.f(x, u_act) + s.tau * extra(x, u_now) + noise(x, u_now, rng)
+        if memory is not None:
+            rate, mem = memory(x, u_now, mem)
+            xn = xn + s.tau * rate
         if timed is not None:
             xn = xn + s.tau * timed(x, u_now, tt[:, k], pos[:, k])
         X.append(x), Uk.append(u_now), XN.append(xn)
@@ -112,6 +118,29 @@ def _deadzone(x, u):
     return -_pend_B() * lost
 
 
+def _friction_dead_zone(x, u):
+    """Viscous friction that acts only beyond |omega| = 0.25 rad/s: -0.8 (omega - clip(omega))."""
+    w = x[:, 1]
+    return -0.8 * (w - np.clip(w, -0.25, 0.25))
+
+
+def _backlash(x, u, a):
+    """Pendulum torque through a backlash (play) of half-width 0.3: the acting input a follows u only
+    when u pulls it beyond 0.3; the model's input term minus what the play holds back (hysteresis)."""
+    a = u[:, 0].copy() if a is None else np.clip(a, u[:, 0] - 0.3, u[:, 0] + 0.3)
+    out = np.zeros_like(x)
+    out[:, 1] = _pend_B() * (a - u[:, 0])
+    return out, a
+
+
+def _delayed_coupling(x, u, past):
+    """omega pulled towards where theta was 5 periods ago: -3 (theta[k-5] - theta[k])."""
+    past = [x[:, 0].copy()] * 6 if past is None else past[1:] + [x[:, 0].copy()]
+    out = np.zeros_like(x)
+    out[:, 1] = -3.0 * (past[0] - x[:, 0])
+    return out, past
+
+
 def _pend_B():
     s = get_system("pendulum")
     return 3.0 / (float(s.params["m"]) * float(s.params["l"]) ** 2)
@@ -129,6 +158,10 @@ CASES = {
                             shape="in library"),
     "heading_bias": dict(system="turtlebot", kind="rows", extra=_on(2, lambda x, u: 0.05 + 0 * x[:, 2]),
                          std=1e-4, expect={"effects": [("bias", "theta")]}, shape="in library"),
+    # unequal wheels: the heading turns with the speed, a path the unicycle model lacks (input_coupling)
+    "heading_speed": dict(system="turtlebot", kind="rows", extra=_on(2, lambda x, u: 0.06 * u[:, 0]),
+                          std=1e-4, expect={"effects": [("input_coupling", "theta")]}, truth={"coupling": 0.06},
+                          shape="in library: heading turned by the speed"),
     # in the library only approximately: the dead zone's error bar must carry the misfit
     "dead_zone": dict(system="pendulum", kind="rows", extra=_on(1, _deadzone), std=1e-4,
                       expect={"effects": [("deadband", "omega")]}, truth={"width": 0.2},
@@ -157,6 +190,17 @@ CASES = {
                           extra=_on(1, lambda x, u: -0.3 * _pend_B() * u[:, 0] - 0.027 * np.sign(x[:, 1])),
                           std=6.75e-5, expect={"effects": [("coulomb_friction", "omega"), ("input_gain", "omega")]},
                           truth={"coulomb": -0.027}, shape="in library: small Coulomb next to a large gain error"),
+    # outside the library, issue 57: a friction dead zone (viscous + Coulomb outside it, zero inside),
+    # friction that depends on the position, hysteresis (backlash) and a delayed state coupling
+    "friction_dead_zone": dict(system="pendulum", kind="rows", extra=_on(1, _friction_dead_zone), std=1e-4,
+                               expect={"flag": "omega"}, shape="outside: viscous friction only beyond |omega| 0.25"),
+    "position_friction": dict(system="pendulum", kind="rows",
+                              extra=_on(1, lambda x, u: -0.8 * x[:, 1] * (1 + 0.9 * np.sin(15 * x[:, 0]))),
+                              std=1e-4, expect={"flag": "omega"}, shape="outside: friction varying with the angle"),
+    "backlash": dict(system="pendulum", kind="series", extra=_zero, memory=_backlash, std=1e-4,
+                     expect={"flag": "omega"}, shape="outside: backlash (hysteresis) of 0.3 on the torque"),
+    "delayed_coupling": dict(system="pendulum", kind="series", extra=_zero, memory=_delayed_coupling, std=1e-4,
+                             expect={"flag": "omega"}, shape="outside: omega coupled to theta 5 periods ago"),
     # time: a periodic disturbance (period 0.37 s, 99.7 % of the residual) and an actuator gain
     # drifting from 1.0 to 0.6 over the record
     "periodic": dict(system="pendulum", kind="series", extra=_zero, std=1e-4,
@@ -200,7 +244,7 @@ def make_case(name: str, K: int = 20000, seed: int = 0) -> Case:
         data = _rows(c["system"], K, rng, c["extra"], noise)
     else:
         data = _series(c["system"], K, rng, c["extra"], noise, delay=c.get("delay", 0), lag=c.get("lag", 0.0),
-                       timed=c.get("timed"))
+                       timed=c.get("timed"), memory=c.get("memory"))
     return Case(name=name, system=c["system"], data=data, expect=c["expect"], truth=c.get("truth", {}),
                 shape=c.get("shape", ""))
 

@@ -53,6 +53,10 @@ class Transitions:
         Rows removed because they held NaN/inf (only with ``drop_nonfinite``).
     meta : dict
         Free-form provenance (e.g. the trajectory conversion settings).
+    se : (K, n) array or None
+        Standard error of each x_next (collected data: sqrt(var / N1hat) of the runs' mean); the
+        selection then weights row k of state i by 1 / se_ki (weighted least squares), so pairs
+        whose runs scatter widely (a slipping robot at speed) count as little as they tell.
     """
 
     x: np.ndarray
@@ -64,6 +68,7 @@ class Transitions:
     n_dropped: int = 0
     meta: dict = field(default_factory=dict)
     episode: Optional[np.ndarray] = None
+    se: Optional[np.ndarray] = None
 
     @property
     def K(self) -> int:
@@ -189,7 +194,7 @@ def subset(data: Transitions, rows: np.ndarray) -> Transitions:
     return Transitions(x=data.x[rows], u=data.u[rows], x_next=data.x_next[rows], tau=data.tau,
                        t=None if data.t is None else data.t[rows], source=data.source,
                        n_dropped=data.n_dropped, meta=dict(data.meta),
-                       episode=None if ep is None else ep[rows])
+                       episode=None if ep is None else ep[rows], se=None if data.se is None else data.se[rows])
 
 
 def make_transitions(x, u, x_next, tau, t=None, *, system: Optional[System] = None,
@@ -259,9 +264,14 @@ def make_transitions(x, u, x_next, tau, t=None, *, system: Optional[System] = No
 
 
 def from_dataset(ds) -> Transitions:
-    """Transitions from a collected :class:`simgap.dataset.Dataset`: x_next = empirical mean."""
-    return make_transitions(ds.x, ds.u, ds.mean, ds.system.tau, system=ds.system, source="dataset",
-                            meta={"dataset_hash": ds.hash, "n_runs": int(ds.n_runs)})
+    """Transitions from a collected :class:`simgap.dataset.Dataset`: x_next = empirical mean, with its
+    standard error sqrt(var / N1hat) per pair and state."""
+    tr = make_transitions(ds.x, ds.u, ds.mean, ds.system.tau, system=ds.system, source="dataset",
+                          meta={"dataset_hash": ds.hash, "n_runs": int(ds.n_runs)})
+    var = getattr(ds, "var", None)
+    if var is not None and np.shape(var) == tr.x.shape and np.all(np.isfinite(var)):
+        tr.se = np.sqrt(np.maximum(np.asarray(var, float), 0.0) / max(int(ds.n_runs), 1))
+    return tr
 
 
 def _columns_lookup(cols: dict, system: Optional[System], path: str):

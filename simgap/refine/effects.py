@@ -19,6 +19,13 @@ cubic_stiffn.  p^3, p the position integrating v   c = -k3/I for a cubic spring 
 input_gain     B_ij(x) u_j ("as u_j enters f_i")   relative gain error: the input acts (1 + c) u_j
 deadband       B_ij(x) sign(u_j)                   c = -w: a dead zone of width w [input unit]
                                                    (exact for |u_j| >= w)
+input_coupl.   u_j, for a state x_i the model does c [state unit / s per input unit]: input j
+               not drive by u_j (B_ij = 0 on X x U) acts on x_i where the model routes none
+               and that integrates no velocity     (a differential drive's unequal wheels turn
+                                                   the heading with the speed: theta' += c v)
+input_cross    B_ij(x) u_j u_k, k != j              the gain of input j changes by c per unit of
+input_cr._abs  B_ij(x) u_j |u_k|, k != j            input k (or of its size |u_k|): a turn rate lost
+                                                   to slip that depends on the speed
 gravity        the model's own drift of x_i,       relative error of the model's own gravity /
                (f_i(x, 0) - x_i) / tau             parameter term (x_i's drift at u = 0)
 integration    a_j(x, u) = (f'_j(x, u) - x_j) / tau  for a position x_i integrating velocity x_j:
@@ -65,7 +72,8 @@ from ..expr import VarSpace, parse
 from ..systems import BUILTIN_UNITS, System
 
 LIBRARY = ("bias", "viscous_friction", "coulomb_friction", "drag", "cubic_stiffness", "input_gain", "deadband",
-           "gravity", "integration", "input_delay", "actuator_lag")
+           "input_coupling", "input_cross", "input_cross_abs", "gravity", "integration", "input_delay",
+           "actuator_lag")
 #: deepest history the library's delay candidates look at (periods), for time-ordered data
 MAX_DELAY = 3
 #: time constants (in periods L, 1 / L = 1 - exp(-tau / T_a)) of the first-order actuator-lag candidates
@@ -353,6 +361,30 @@ def library_candidates(system: System, names: Optional[Iterable[str]] = None,
                     else:
                         out.append(Effect(nm, i, un, f"B_{i + 1}{j + 1}(x) sign({un})",
                                           lambda x, u, B=B, j=j: B(x, u) * np.sign(u[:, j])))
+        elif nm == "input_coupling":
+            # an input acting where the model routes none; not on a position integrating a velocity
+            # (within the step the velocity's input reaches it: that is ``integration``)
+            x, u = _sample_domain(s)
+            integrating = {i for i, _ in integrator_pairs(s)}
+            for i in range(s.n):
+                for j in range(s.m):
+                    if i in integrating or np.any(_input_rate(s, i, j)(x, u) != 0):
+                        continue
+                    un = s.input_names[j]
+                    out.append(Effect(nm, i, un, un, lambda x, u, j=j: u[:, j]))
+        elif nm in ("input_cross", "input_cross_abs"):
+            # the gain of input j varying with another input k (or its size)
+            for i in range(s.n):
+                for j in range(s.m):
+                    B = _input_rate(s, i, j)
+                    un = s.input_names[j]
+                    for k in range(s.m):
+                        if k == j:
+                            continue
+                        kn = s.input_names[k] if nm == "input_cross" else f"|{s.input_names[k]}|"
+                        size = (lambda a: a) if nm == "input_cross" else np.abs
+                        out.append(Effect(nm, i, f"{un}*{kn}", f"B_{i + 1}{j + 1}(x) {un} {kn}",
+                                          lambda x, u, B=B, j=j, k=k, size=size: B(x, u) * u[:, j] * size(u[:, k])))
         elif nm == "input_delay":
             # the input acting d periods late: f(x, u[k-d]) - f(x, u[k]) = tau B (u[k-d] - u[k]) for
             # an input entering affinely; c = 1 is the whole input delayed by d periods
@@ -429,6 +461,11 @@ def coefficient_units(system: System, e: Effect) -> str:
     rate = f"{su[e.state]}/s"
     if e.name in ("bias", "coulomb_friction"):
         return rate
+    if e.name == "input_coupling":
+        return f"{rate} per ({iu[system.input_names.index(e.variable)]})"
+    if e.name in ("input_cross", "input_cross_abs"):
+        k = e.variable.split("*")[1].strip("|")
+        return f"1 (relative) per ({iu[system.input_names.index(k)]})"
     if e.name == "viscous_friction":
         return "1/s"
     if e.name == "drag":

@@ -36,14 +36,14 @@ from typing import Optional, Sequence
 import numpy as np
 
 from ..systems import System
-from .data import Transitions, episodes, history, lagged_inputs, subset, time_order
+from .data import Transitions, _continues, episodes, history, lagged_inputs, subset, time_order
 from ..errors import SimgapError
 from .effects import (LAG_PERIODS, Effect, candidate_effects, carry_matrix, coefficient_units,
                       integration_effect, physical, sign_check, velocity_dims)
 from .refined import build_refined, load_system, refined_system
 from .residual import Residuals, match_tau, residuals
 from .selection import SelectionOptions, StateFit, select_state, split_heldout
-from .structure import Probe
+from .structure import STATE_LAGS, Probe
 
 
 @dataclass
@@ -96,6 +96,7 @@ def refine(system, data: Transitions, effects: Optional[Sequence[str]] = None,
                           + (f"only {lags} period(s) of history are used" if lags else
                              "the data carry no time order (transitions with time stamps t)"))
     before = residuals(sysobj, data)
+    weighted = opts.weighted and data.se is not None
     cands = candidate_effects(sysobj, effects, user_terms, max_lag=lags)
     torder = time_order(data)
     held = split_heldout(data.K, data.t, opts, torder)
@@ -109,7 +110,15 @@ def refine(system, data: Transitions, effects: Optional[Sequence[str]] = None,
         lagged_u.append(hist[:, lags * w + g * sysobj.m: lags * w + (g + 1) * sysobj.m])
     V = np.concatenate([data.x, data.u] + lagged_u, axis=1)
     angle_cols = np.concatenate([sysobj.angle_mask, np.zeros(V.shape[1] - sysobj.n, dtype=bool)])
-    probe = Probe(V, angle_cols, held, torder, rng)
+    # the memory test: each row's previous row along its trajectory, and the lagged states
+    prev = None
+    if lags:
+        cont = _continues(data, torder)
+        prev = np.full(data.K, -1)
+        prev[torder[1:]] = np.where(cont[1:], torder[:-1], -1)
+    lagged_x = np.concatenate([hist[:, d * w: d * w + sysobj.n] for d in range(min(lags, STATE_LAGS))], axis=1) \
+        if lags else None
+    probe = Probe(V, angle_cols, held, torder, rng, prev=prev, lagged_x=lagged_x)
     # velocity states first: the integration term of a position uses the refined velocity update
     vd = velocity_dims(sysobj)
     order = list(vd) + [i for i in range(sysobj.n) if i not in vd]
@@ -132,6 +141,10 @@ def refine(system, data: Transitions, effects: Optional[Sequence[str]] = None,
             interim = refined_system(sysobj, [c[0] for c in chosen if c[0].lag == 0],
                                      [c[1] for c in chosen if c[0].lag == 0])
             y = _after(interim, data, hist, chosen).r[:, i] / data.tau
+        if weighted:
+            # weighted least squares: row k counts 1 / se_ki (normalized to mean square 1)
+            wt = row_weights(data.se[:, i])
+            y, Theta = y * wt, Theta * wt[:, None]
         fit = select_state(y, Theta, [e.key(sysobj) for e in ci], held, probe, i,
                            data.is_time_series, opts, rng, sign_check(sysobj, ci, data.x), clock)
         fits[i] = fit
@@ -147,11 +160,22 @@ def refine(system, data: Transitions, effects: Optional[Sequence[str]] = None,
                             [c[2] for c in now], name=name)
     after = _after(refined, data, hist, chosen)
     for fit in fits:      # after a withdrawal the remaining residual is larger than selection saw
-        fit.rss_heldout = float(np.sum((after.r[held, fit.state] / data.tau) ** 2))
+        wt = row_weights(data.se[:, fit.state]) if weighted else 1.0
+        fit.rss_heldout = float(np.sum(((after.r[:, fit.state] * wt)[held] / data.tau) ** 2))
         fit.unexplained_fraction = max(0.0, fit.remaining_fraction - fit.noise_floor_fraction)
     report = _report(sysobj, refined, data, held, fits, chosen, before, after, opts, hist, withdrawn, hist_info)
     return RefineResult(system=sysobj, refined=refined, data=data, heldout=held, fits=fits,
                         effects=chosen, before=before, after=after, report=report)
+
+
+def row_weights(se: np.ndarray) -> np.ndarray:
+    """Weights 1 / se (standard errors floored at 1 % of their median, so exact pairs do not take
+    over), scaled to mean square 1; all ones when every se is zero (noise-free data)."""
+    med = float(np.median(se))
+    if not med > 0:
+        return np.ones_like(se)
+    w = 1.0 / np.maximum(se, 0.01 * med)
+    return w / np.sqrt(np.mean(w ** 2))
 
 
 def validate(res: RefineResult, data: Transitions) -> dict:
@@ -501,6 +525,7 @@ def _report(s: System, refined: System, data: Transitions, held, fits: Sequence[
             "unexplained_fraction": fit.unexplained_fraction,
             "unexplained": fit.unexplained,
             "lag1_autocorr": fit.lag1_autocorr,
+            "memory_r2": fit.memory_r2,
             "rounds": fit.rounds,
             "time": fit.time,
             "notes": list(fit.notes),
@@ -517,6 +542,7 @@ def _report(s: System, refined: System, data: Transitions, held, fits: Sequence[
         "system": s.name, "refined_system": refined.name, "data": data.source,
         "tau": data.tau, "samples": int(data.K), "train": int((~held).sum()), "heldout": int(held.sum()),
         "holdout_kind": "contiguous time segments" if data.is_time_series else "random rows",
+        "weighted": bool(opts.weighted and data.se is not None),   # rows weighted by 1 / se of x_next
         "dropped_nonfinite": int(data.n_dropped), "outside_X": outside,
         "state_names": list(s.state_names),
         "effects": eff,
@@ -594,6 +620,8 @@ def format_table(report: dict) -> str:
                f"structure left R^2 = {st['structure_r2']:.3f}")
         if st["lag1_autocorr"] is not None:
             msg += f", lag-1 autocorrelation {st['lag1_autocorr']:.2f}"
+        if st.get("memory_r2") is not None:
+            msg += f", memory R^2 = {st['memory_r2']:.3f}"
         if st.get("rounds", 1) > 1:
             msg += f", {st['rounds']} selection rounds"
         tm = st.get("time")

@@ -18,18 +18,23 @@ the column-standardized design, which makes every subset fit a tiny p x p solve)
 4. Held-out pruning: a term stays only if removing it (refitting the rest on train) raises
    the held-out RSS by at least ``min_explained`` of the held-out residual sum of squares of the
    nominal model, and significantly: the paired statistic mean(d)/se(d) of the per-sample loss
-   differences d_k = e_without,k^2 - e_with,k^2 must reach ``min_z`` (block means for a time
-   series). With step 3 this keeps pure-noise data free of effects.
+   differences d_k = e_without,k^2 - e_with,k^2 must reach the Student-t quantile of ``min_z``'s
+   one-sided level with (block) means - 1 degrees of freedom (block means for a time series): the
+   threshold grows as the held-out data shrink (3.0 -> 3.08 at 100 means, 3.27 at 30, 6.6 at 5). With step 3
+   this keeps pure-noise data free of effects.
 5. Coefficients on train; standard errors by bootstrap (rows resampled, or moving blocks for a
    time series) with a seeded generator.
 6. Explained fraction of each effect: the drop of held-out RSS when it is added, in the forward
    order, divided by the nominal model's held-out RSS (they sum to the total explained).
 7. Structure left (:mod:`simgap.refine.structure`): a model-free noise floor of the remaining
    residual (nearest-neighbour differences in the variables) and the held-out R^2 of a
-   cross-validated kNN regression (and a degree-2 polynomial) of it. If that R^2 reaches
+   cross-validated kNN regression (and a degree-2 polynomial) of it, each with its paired held-out
+   test (the same data-size aware threshold as step 4). If a significant R^2 reaches
    ``structure_threshold`` and the remaining variance above the floor is at least
-   ``min_unexplained`` of the nominal model's held-out residual variance, a residual remains that
-   no library term explains: ``unexplained = True``.
+   ``min_unexplained`` of what is left, or (time-ordered data) the residual's own lags and the lagged
+   states explain a significant ``structure_threshold`` of it beyond the current variables (memory:
+   hysteresis, a delayed coupling), a residual remains that no library term explains:
+   ``unexplained = True``; the effects named beside it are the library's nearest reading.
 """
 
 from __future__ import annotations
@@ -40,7 +45,7 @@ from typing import Optional
 import numpy as np
 
 from ..errors import SimgapError
-from .structure import Probe
+from .structure import Probe, block_length as _block_length, critical, gain_z
 from .timecheck import describe_time, segment_coefficients, time_structure
 
 
@@ -62,6 +67,8 @@ class SelectionOptions:
     gate_steps: int = 100           # multi-step gate: horizons 10 and this on held-out data (time series; 0: 10 only)
     gate_tolerance: float = 0.01    # allowed mean squared ratio of k-step RMS f' / f above 1
     max_rounds: int = 5             # selection rounds on what is left (1: a single round)
+    weighted: bool = False          # weight rows by 1 / standard error of x_next where the data carry it
+                                    # (collected pair means: Transitions.se), i.e. weighted least squares
 
 
 @dataclass
@@ -88,6 +95,7 @@ class StateFit:
     time: Optional[dict] = None     # time in the remaining residual (timecheck.time_structure)
     segments: Optional[dict] = None     # per-segment coefficients over the record (timecheck.segment_coefficients)
     rounds: int = 1                 # selection rounds run (each on what the previous ones left)
+    memory_r2: Optional[float] = None   # significant held-out R^2 gain of the residual's lags (time series)
 
     @property
     def explained_total(self) -> float:
@@ -142,7 +150,8 @@ def _rss(yy: float, G: np.ndarray, b: np.ndarray, S: list, c: np.ndarray) -> flo
 
 
 #: which of several collinear candidates is kept: the simplest physical reading first
-PRIORITY = ("bias", "viscous_friction", "coulomb_friction", "drag", "cubic_stiffness", "input_gain", "deadband", None,
+PRIORITY = ("bias", "viscous_friction", "coulomb_friction", "drag", "cubic_stiffness", "input_gain", "deadband",
+            "input_coupling", "input_cross", "input_cross_abs", None,
             "integration", "input_delay", "actuator_lag", "gravity")
 
 
@@ -180,19 +189,6 @@ def independent_columns(Theta: np.ndarray, keys: list, tol: float = 1e-6) -> tup
             continue
         keep.append(j)
     return sorted(keep), notes
-
-
-def _block_length(y: np.ndarray) -> int:
-    """Moving-block length for a time series: twice the lag where autocorrelation < 0.1."""
-    K = y.size
-    yc = y - y.mean()
-    n = 1 << int(np.ceil(np.log2(2 * K)))
-    f = np.fft.rfft(yc, n)
-    ac = np.fft.irfft(f * np.conj(f), n)[:K]
-    ac = ac / ac[0] if ac[0] > 0 else ac
-    below = np.flatnonzero(ac < 0.1)
-    lag = int(below[0]) if below.size else K // 10
-    return int(np.clip(2 * lag, max(1, int(round(K ** (1 / 3)))), max(1, K // 10)))
 
 
 def bootstrap_stderr(Z: np.ndarray, y: np.ndarray, time_series: bool, n_boot: int,
@@ -327,14 +323,11 @@ def select_state(y: np.ndarray, Theta: np.ndarray, keys: list, held: np.ndarray,
     blk = _block_length(yh) if time_series else 1
 
     def heldout_test(S_with, S_without):
+        """(held-out RSS gain, paired statistic, the statistic needed for min_z with these many means)."""
         ew = yh - (Zh[:, S_with] @ _solve(Gt, bt, S_with) if S_with else 0.0)
         eo = yh - (Zh[:, S_without] @ _solve(Gt, bt, S_without) if S_without else 0.0)
-        dl = eo ** 2 - ew ** 2
-        nb = dl.size // blk
-        means = dl[: nb * blk].reshape(nb, blk).mean(axis=1) if nb >= 2 else dl
-        sd = float(means.std(ddof=1)) if means.size > 1 else 0.0
-        stat = float(means.mean() / (sd / np.sqrt(means.size))) if sd > 0 else np.inf * np.sign(means.mean())
-        return float(dl.sum()), stat
+        stat, dof = gain_z(yh, ew, e_without=eo, block=blk)
+        return float(eo @ eo - ew @ ew), stat, critical(opts.min_z, dof)
 
     def choose(allowed, base, ref):
         """Steps 3-4 adding to the terms ``base`` of earlier rounds; ``ref``: held-out RSS they leave."""
@@ -359,8 +352,8 @@ def select_state(y: np.ndarray, Theta: np.ndarray, keys: list, held: np.ndarray,
         # 4. held-out pruning of the new terms, relative to what the earlier rounds left
         while len(S) > len(base):
             tests = [(heldout_test(S, [k for k in S if k != j]), j) for j in S if j not in base]
-            (gain, stat), j = min(tests, key=lambda t: (t[0][1] >= opts.min_z, t[0][0]))
-            if gain >= opts.min_explained * ref and stat >= opts.min_z:
+            (gain, stat, crit), j = min(tests, key=lambda t: (t[0][1] >= t[0][2], t[0][0]))
+            if gain >= opts.min_explained * ref and stat >= crit:
                 break
             S = [k for k in S if k != j]
         return S
@@ -390,12 +383,27 @@ def select_state(y: np.ndarray, Theta: np.ndarray, keys: list, held: np.ndarray,
         return S, allowed
 
     def structure(S):
-        """7. structure left in the remaining residual: (residual, R^2, floor as held-out RSS)."""
+        """7. structure left in the remaining residual: (residual, R^2, significant R^2, floor as held-out
+        RSS, memory).
+
+        R^2 is the larger of the kNN and polynomial fits'; the significant one the larger of those that
+        pass their paired test (0 when neither does); memory the significant R^2 gain of the residual's
+        own lags and lagged states (or None)."""
         c = _solve(Gt, bt, S)
         e = y - ((Theta[:, S] / scale[S]) @ c if S else 0.0)
-        r2 = max(probe.knn_r2(e)[0], probe.poly2_r2(e))
-        floor = probe.noise_floor(e, _block_length(e) // 2 if time_series else 1)
-        return e, float(r2), floor * Kh
+        k_r2, _, *k_z = probe.knn_r2(e, time_series)
+        fits = [(k_r2, *k_z), probe.poly2_r2(e, time_series)]
+        sig = max([r for r, z, dof in fits if z >= critical(opts.min_z, dof)], default=0.0)
+        mem = probe.memory_r2(e, time_series)
+        bl = _block_length(e) if time_series else 1
+        mem = mem[0] if mem is not None and mem[1] >= critical(opts.min_z, mem[2]) else None
+        floor = probe.noise_floor(e, bl // 2 if time_series else 1)
+        return e, float(max(r for r, _, _ in fits)), float(sig), floor * Kh, mem
+
+    def remains(r2, cur, floor_rss, mem):
+        """A residual no library term explains: structured beyond noise and above the floor, or with memory."""
+        return ((r2 >= opts.structure_threshold and cur - floor_rss >= opts.min_unexplained * cur)
+                or (mem is not None and mem >= opts.structure_threshold))
 
     # rounds: while a round named something and structure above the noise floor remains, select
     # again on what is left, with the thresholds relative to the remaining residual (a small effect
@@ -406,10 +414,10 @@ def select_state(y: np.ndarray, Theta: np.ndarray, keys: list, held: np.ndarray,
         n_rounds += 1
         rounds_base = list(S)
         S, allowed = signs(choose(allowed, S, ref), allowed)
-        e, r2s, floor_rss = structure(S)
+        e, r2s, r2sig, floor_rss, mem = structure(S)
         cur = rss_h(S)
         new = [j for j in S if j not in rounds_base]
-        left = r2s >= opts.structure_threshold and cur - floor_rss >= opts.min_unexplained * cur
+        left = remains(r2sig, cur, floor_rss, mem)
         if not new or not left or n_rounds >= opts.max_rounds:
             break
         ref = cur
@@ -435,14 +443,19 @@ def select_state(y: np.ndarray, Theta: np.ndarray, keys: list, held: np.ndarray,
     above = max(0.0, rss_after_h / rss0_h - floor_frac) if rss0_h > 0 else 0.0
     # flagged relative to what is left, like the rounds (a structured residual under a large
     # explained one is still a residual the library has not named)
-    left = r2s >= opts.structure_threshold and rss_after_h - floor_rss >= opts.min_unexplained * rss_after_h
+    left = remains(r2sig, rss_after_h, floor_rss, mem)
     floor_frac = min(floor_frac, rss_after_h / rss0_h) if rss0_h > 0 else floor_frac
     notes = [f"refused {r['key']} (coefficient {r['coefficient']:.4g}): {r['reason']}" for r in refused]
+    if mem is not None and mem >= opts.structure_threshold:
+        notes.append(f"the residual left follows its own past: its lags and the lagged states explain a further "
+                     f"{100 * mem:.0f}% of it on held-out data (hysteresis, backlash, a delayed coupling: memory "
+                     f"no library term holds)" + ("; the named effects are the library's nearest reading, not the "
+                                                  "answer" if S else ""))
     tstruct, segs, time_flag = None, None, False
     if clock is not None:
         t, ep, tau = clock
-        tstruct = time_structure(e, t, ep, tau, held, probe.poly2_resid)
-        if tstruct["r2_gain"] >= opts.structure_threshold:
+        tstruct = time_structure(e, t, ep, tau, held, probe.poly2_resid, series=True)
+        if tstruct["r2_gain"] >= opts.structure_threshold and tstruct["z"] >= critical(opts.min_z, tstruct["dof"]):
             time_flag = True
             notes.append("the residual left varies with time beyond a degree-2 polynomial in the variables "
                          "(a time-dependent disturbance, or state dependence that repeats with the motion): "
@@ -467,5 +480,5 @@ def select_state(y: np.ndarray, Theta: np.ndarray, keys: list, held: np.ndarray,
                     stderr=np.asarray(se), stderr_statistical=np.asarray(se_stat), stderr_misfit=misfit, explained=np.asarray(expl), rss0_heldout=rss0_h,
                     rss_heldout=rss_after_h, structure_r2=float(r2s), noise_floor_fraction=floor_frac,
                     unexplained_fraction=above,
-                    unexplained=bool(left or flag_refused or time_flag), rounds=n_rounds,
+                    unexplained=bool(left or flag_refused or time_flag), rounds=n_rounds, memory_r2=mem,
                     lag1_autocorr=lag1, refused=refused, notes=notes, time=tstruct, segments=segs)

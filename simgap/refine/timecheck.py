@@ -26,6 +26,8 @@ from typing import Callable, Optional
 
 import numpy as np
 
+from .structure import gain_z
+
 #: chi^2 quantile (0.999) for 1..9 degrees of freedom: a coefficient varies over the record beyond this
 CHI2_999 = (10.83, 13.82, 16.27, 18.47, 20.52, 22.46, 24.32, 26.12, 27.88)
 
@@ -70,14 +72,15 @@ def dominant_period(e: np.ndarray, t: np.ndarray, tau: float, rows: np.ndarray) 
 
 
 def time_structure(e: np.ndarray, t: np.ndarray, episode: np.ndarray, tau: float, held: np.ndarray,
-                   resid: Callable) -> dict:
+                   resid: Callable, series: bool = True) -> dict:
     """Share of the remaining residual e (rows in time order) that time explains beyond the variables.
 
     ``resid(M)`` removes from M (K,) or (K, b) its baseline fit in the variables (the probe's degree-2
     polynomial, fitted on train rows): the time basis and e both pass through it, so fitting the
     residualized e on the residualized basis is the joint fit (Frisch-Waugh) with small solves only;
     its held-out gain is divided by the held-out sum of squares of e.
-    Returns ``{"r2_gain", "drift": {...}, "within_episode": {...} | None, "periodic": {...} | None}``
+    Returns ``{"r2_gain", "z", "dof", "drift": {...}, "within_episode": {...} | None, "periodic": {...} | None}``
+    (z, dof: the whole basis's paired held-out statistic, :func:`simgap.refine.structure.gain_z`)
     (see the module docstring); each piece carries its own held-out gain and its size in the
     residual's units: the drift from the first to the last tenth of the record, the periodic part's
     period and amplitude.
@@ -103,13 +106,14 @@ def time_structure(e: np.ndarray, t: np.ndarray, episode: np.ndarray, tau: float
         _, w = _r2_heldout(B0, e0, held)
         r = e0[held] - B0[held] @ w
         fitted = B @ w
-        return (min(1.0, max(0.0, ss0 - float(r @ r)) / ss) if ss > 0 else 0.0), fitted - fitted.mean()
+        return (min(1.0, max(0.0, ss0 - float(r @ r)) / ss) if ss > 0 else 0.0), fitted - fitted.mean(), r
 
-    out = {"r2_gain": gain(np.concatenate(list(pieces.values()), axis=1),
-                           np.concatenate(list(pieces0.values()), axis=1))[0],
-           "drift": None, "within_episode": None, "periodic": None}
+    g_all, _, r_all = gain(np.concatenate(list(pieces.values()), axis=1),
+                           np.concatenate(list(pieces0.values()), axis=1))
+    z, dof = gain_z(e0[held], r_all, series)
+    out = {"r2_gain": g_all, "z": z, "dof": int(dof), "drift": None, "within_episode": None, "periodic": None}
     for name, B in pieces.items():
-        g, fitted = gain(B, pieces0[name])
+        g, fitted, _ = gain(B, pieces0[name])
         d = {"r2_gain": g}
         if name == "drift":
             tenth = max(1, K // 10)

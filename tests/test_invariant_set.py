@@ -371,7 +371,7 @@ def test_run_experiment_with_invariant_sets(tmp_path):
         if not e["winning_cells"]:
             assert "gamma would have to be at most" in e["rollouts"]["skipped"]
     table = comparison_table(summary)
-    assert "invariant set proved" in table and "nominal" in table and "single runs failing from states in E" in table
+    assert "yes: E invariant" in table and "nominal" in table and "single runs failing from states in E" in table
     run = load_run(out)                      # no grid controller; the proved sets and the nominal model's
     assert set(run.methods) == {"deterministic", "stochastic"}
     assert all(mr.synthesis is None for mr in run.methods.values())

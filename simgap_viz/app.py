@@ -495,7 +495,8 @@ class SimgapApp:
             from .results import MethodResults
             src = run.methods.get("stochastic") or next(iter(run.methods.values()))
             m = MethodResults(dataset=src.dataset, certificate=src.certificate, audit=src.audit, synthesis=None,
-                              rollouts=run.nominal.rollouts, invariant_set=run.nominal.invariant_set)
+                              rollouts=run.nominal.rollouts, invariant_set=run.nominal.invariant_set,
+                              statement=run.nominal.statement)
         elif method not in run.methods:
             raise SimgapError(f"the run has no {method!r} results; it has "
                               f"{', '.join(list(run.methods) + (['nominal'] if getattr(run, 'nominal', None) else []))}")
@@ -539,10 +540,11 @@ class SimgapApp:
             from .results import describe_stages
             self.set_status("**stage outputs** (" + method + "):\n\n" + "\n".join(f"* {line}" for line in describe_stages(run)))
             return
-        self.set_status(f"run **{run.path.name}** ({method}): data K = {m.dataset.K}, "
-                        + (f"{m.synthesis.controller.size:,} winning cells" if m.synthesis is not None
-                           else f"invariant-set run: {'E proved' if m.invariant_set is not None else 'no set proved'}"
-                           " (layer *Invariant sets E*)")
+        st = m.statement
+        said = (f"{m.synthesis.controller.size:,} winning cells" if st is None else
+                f"{st.name}: " + ("proved" if st.proved else "not proved")
+                + (f", p_cert {st.per_run.p_cert:.3g} per run" if st.per_run is not None else ""))
+        self.set_status(f"run **{run.path.name}** ({method}): data K = {m.dataset.K}, {said}"
                         + (f", {m.rollouts.n_rollouts} rollouts" if m.rollouts is not None else ""))
 
     def _show_results(self) -> None:

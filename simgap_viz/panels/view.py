@@ -80,13 +80,11 @@ class ViewPanel(Panel):
         sets = getattr(app, "invariant_drawn", None) or []
         if sets:
             from ..results import unproved_sets
-            names = app.system.state_names[:2]
-            col = {"deterministic": "blue", "stochastic": "orange", "nominal": "green"}
-            parts = [f"{col.get(m, 'green')}: {m}" + (" model (no gap)" if m == "nominal" else " gap")
-                     + f", half-widths {hw[0]:.3g}, {hw[1]:.3g}" for m, hw in sets]
+            names = [app.system.state_names[d] for d in scene.plane_dims(app)]
+            parts = [f"{_color_word(c)}: {label}" + ("" if m == app.run_method else f" ({m})") for m, _r, label, c, _hw in sets]
             fails = [m + ("" if s_ is None else f" (gap margin s = {s_:.2g})") for m, s_ in unproved_sets(app.run)]
-            rows.append(f"| invariant sets E | projection onto ({', '.join(names)}), + at x*; " + "; ".join(parts)
-                        + (f"; no set proved: {', '.join(fails)}" if fails else "") + " |")
+            rows.append(f"| proved sets | projection onto ({', '.join(names)}); " + "; ".join(parts)
+                        + (f"; not proved: {', '.join(fails)}" if fails else "") + " |")
         if getattr(app.run, "per_run", None) is not None and app.perrun_view["map"]:
             rows.append("| p_cert map | drawn over the winning map (Per run tab: colors, toggle) |")
         rd = app.rollout_drawn
@@ -160,6 +158,15 @@ class ViewPanel(Panel):
         v = self.app.view
         for j, s in enumerate(self.sliders):
             s.disabled = j in (v["a"], v["b"])
+
+
+#: the words for the colors the proved-sets layer draws with (scene.ROLE_STYLE, scene.SET_COLORS)
+COLOR_WORDS = {(230, 110, 0): "orange", (150, 150, 150): "grey", (120, 40, 0): "dark brown", (20, 150, 60): "green",
+               (31, 119, 180): "blue", (255, 127, 14): "orange", (44, 160, 44): "green"}
+
+
+def _color_word(rgb) -> str:
+    return COLOR_WORDS.get(tuple(int(v) for v in rgb), "line")
 
 
 def build(app) -> ViewPanel:

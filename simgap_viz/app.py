@@ -510,6 +510,7 @@ class SimgapApp:
         with self.lock:
             self.experiment, self.spec, self.arena = exp, spec, arena
             self.run, self.run_method, self.audit = run, method, m.audit
+            self.view["dims"] = (0, 1)  # the plane starts over the first two states (a grid's map is there)
             self.settings = st.replace(use_gap=method != "nominal", x0=None if x0 is None else tuple(float(v) for v in x0),
                                        n_rollouts=int(ro.get("n", st.n_rollouts)),
                                        horizon=int(m.rollouts.horizon) if m.rollouts is not None else st.horizon,
@@ -795,6 +796,23 @@ class SimgapApp:
             self.refresh_system_layers()
         else:
             self.refresh_result_layers()
+
+    def set_plane(self, dims) -> tuple:
+        """Show the map plane over two other states (a projection selector): the proved sets, the
+        runs, the safe set and the axes are redrawn projected onto ``dims``. Only without a grid
+        controller (a grid's winning map is over its first two states); returns the plane's dims."""
+        from .layers import scene
+        d = tuple(int(i) for i in dims)
+        if len(d) != 2 or d[0] == d[1] or not all(0 <= i < self.system.n for i in d):
+            raise SimgapError(f"the plane needs two different states of {', '.join(self.system.state_names)}")
+        if self.results.get("synthesize") is not None and d != (0, 1):
+            raise SimgapError("a grid controller's winning map is drawn over the first two states only")
+        with self.lock:
+            self.view["dims"] = d
+        scene.draw_axes(self)
+        scene.draw_map(self)
+        self.refresh_result_layers()
+        return scene.plane_dims(self)
 
     def set_flat_gamma(self, flat: bool) -> None:
         """Draw gamma as a surface even where it is nearly flat on the slice (default: only where it varies)."""

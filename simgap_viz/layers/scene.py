@@ -39,7 +39,8 @@ from .bodies import MODEL_BODIES
 PENDULUM_PIVOT = (1.9, 0.0, 1.2)  # where the pendulum's pivot stands, beside the state square
 PENDULUM_ROD = 1.0  # its rod's length [m] (assets/urdf/pendulum.urdf): the free end hangs at z = 0.2
 MODEL_LEFT = 1.5  # a robot file's model stands beside the square: its bounding box starts at this x
-MODEL_SIZE = 2.5  # ... and is scaled down to this largest extent (display units) if larger
+MODEL_SIZE = 2.5  # ... and is scaled to this largest extent (display units)
+MODEL_FIXED_SPAN = 4.0  # a fixed geom more than this times the moving geoms' span is not drawn (a ground plane)
 SURFACE_RES = 41
 GAMMA_VISIBLE = 0.15  # a gamma that varies by less than this share of its largest value on the slice is
 # not drawn as a surface (a flat sheet over the map says nothing a number cannot): the legend gives its value
@@ -251,14 +252,15 @@ def draw_model_bodies(app) -> None:
             sc.add_label("/bodies/label", text=note, anchor="bottom-left", position=(MODEL_LEFT, 0.0, 0.1),
                          visible=vis, font_screen_scale=0.7)
         return
-    _, lo, hi, k = _model_placement(app, bodies)
+    _, lo, hi, k, shown = _model_placement(app, bodies)
     offset = np.array([MODEL_LEFT - k * lo[0], -0.5 * k * (lo[1] + hi[1]), -k * lo[2]])
     frame = sc.add_frame("/bodies/model", show_axes=False, position=tuple(offset), scale=k, visible=vis)
-    handles = [_add_mesh(sc, f"/bodies/model/{i}_{name}", mesh) for i, (name, mesh) in
-               enumerate(zip(bodies.names, bodies.meshes))]
+    handles = [_add_mesh(sc, f"/bodies/model/{i}_{name}", mesh, visible=bool(shown[i]) if i < shown.size else True)
+               for i, (name, mesh) in enumerate(zip(bodies.names, bodies.meshes))]
+    # in front of the model (seen from above, a label over it would hide it)
     sc.add_label("/bodies/label", text=f"{MODEL_BODIES[app.settings.simulator][0]}: {bodies.path.name}",
-                 anchor="bottom-center", visible=vis,
-                 position=(MODEL_LEFT + 0.5 * k * (hi[0] - lo[0]), 0.0, k * (hi[2] - lo[2]) + 0.1))
+                 anchor="top-center", visible=vis,
+                 position=(MODEL_LEFT + 0.5 * k * (hi[0] - lo[0]), -0.5 * k * (hi[1] - lo[1]) - 0.05, 0.0))
     app.body_frame = frame
     app.body_model = (bodies, handles)
     pose_bodies(app, None)
@@ -278,16 +280,25 @@ def _model(app) -> tuple:
 
 
 def _model_placement(app, bodies) -> tuple:
-    """(rest state, lo (3,), hi (3,) [m] of the geoms at it, display scale k)."""
+    """(rest state, lo (3,), hi (3,) [m] of the shown geoms at it, display scale k, shown (G,) bool).
+
+    A geom is shown unless it stays fixed and is more than ``MODEL_FIXED_SPAN`` times larger than
+    the geoms the state moves (a ground plane of 2 m under a 0.2 m arm would shrink the arm to a few
+    pixels); the shown geoms are scaled to ``MODEL_SIZE`` display units (up or down)."""
     base = engine.base_system(app.system)
     x = _rest_state(app, base)
-    meshes = [m for _, m in bodies.meshes_at(x)]
-    if not meshes:
-        return x, np.zeros(3), np.zeros(3), 1.0
-    lo = np.min([m.bounds[0] for m in meshes], axis=0)
-    hi = np.max([m.bounds[1] for m in meshes], axis=0)
-    ext = float(np.max(hi - lo))
-    return x, lo, hi, min(1.0, MODEL_SIZE / ext) if ext > 0 else 1.0
+    placed = [m for _, m in bodies.meshes_at(x)]
+    if not placed:
+        return x, np.zeros(3), np.zeros(3), 1.0, np.zeros(0, bool)
+    b = np.array([m.bounds for m in placed])                       # (G, 2, 3)
+    moved = np.array([m.bounds for _, m in bodies.meshes_at(x + 0.3)])
+    moves = np.abs(moved - b).max(axis=(1, 2)) > 1e-9
+    ext = np.ptp(b, axis=1).max(axis=1)
+    span = float(np.ptp(np.concatenate(b[moves]), axis=0).max()) if moves.any() else float(ext.max())
+    shown = moves | (ext <= MODEL_FIXED_SPAN * span)
+    lo, hi = b[shown, 0].min(axis=0), b[shown, 1].max(axis=0)
+    e = float(np.max(hi - lo))
+    return x, lo, hi, MODEL_SIZE / e if e > 0 else 1.0, shown
 
 
 def _rest_state(app, base) -> np.ndarray:
@@ -617,7 +628,7 @@ def scene_bounds(app) -> tuple:
         hi[2] = max(hi[2], PENDULUM_PIVOT[2] + 0.1)
     mj = getattr(app, "body_model", None)
     if mj is not None and app.layers_visible.get("bodies", True):
-        _, blo, bhi, k = _model_placement(app, mj[0])
+        _, blo, bhi, k, _ = _model_placement(app, mj[0])
         hi[0] = max(hi[0], MODEL_LEFT + k * (bhi[0] - blo[0]))
         hi[2] = max(hi[2], k * (bhi[2] - blo[2]) + 0.2)
     if app.results.get("refine") is not None:  # the residual plane: points at z in [-0.3, 1.3], label at 1.45
@@ -661,7 +672,9 @@ def window_camera(app, win=None) -> tuple:
     d /= np.linalg.norm(d)
     right = np.cross(-d, [0.0, 0.0, 1.0])
     right /= np.linalg.norm(right)
-    dist = r * 1.75 if surface else max(r * 1.12, 2.4)  # the flat map: close, but whole
+    # the flat map: close, but whole (a model beside the square widens the scene: 60 % of its width
+    # must fit in half the free part's width at the look-at distance)
+    dist = r * 1.75 if surface else max(r * 1.12, 2.4, 0.6 * float(hi[0] - lo[0]) / (np.tan(_FOV / 2) * _FREE_ASPECT))
     if win is not None:  # this window's size and panel: the scene centred in the part the panel leaves
         return _fit_to_window(c, d, right, dist, win["size"], win["panel"], closer=not surface)
     look = c + 0.3 * r * right  # the control panel covers the canvas' right third

@@ -26,6 +26,14 @@ class ViewPanel(Panel):
                                          hint=f"draw gamma as a surface even where it varies by less than "
                                               f"{100 * scene.GAMMA_VISIBLE:.0f} % on the slice")
             self.flat.on_update(lambda _e: app.set_flat_gamma(bool(self.flat.value)))
+        with gui.add_folder("Plane"):
+            names = list(app.system.state_names)
+            self.plane = [gui.add_dropdown(f"plane {ax}", options=names, initial_value=names[min(i, len(names) - 1)],
+                                           hint="the two states the map plane shows (the proved sets, runs and "
+                                                "safe set projected onto them); a grid run: its first two")
+                          for i, ax in enumerate(("x", "y"))]
+            for h in self.plane:
+                h.on_update(lambda _e: self._plane_changed())
         with gui.add_folder("Legend"):
             self.colorbar = gui.add_image(colorbar(256, 12), format="png")
             self.legend = gui.add_markdown("*no certificate yet*")
@@ -124,6 +132,13 @@ class ViewPanel(Panel):
                 rows.append(f"| data gaps ({lg['points']}) | grey: no certificate yet |")
         self.legend.content = ("| layer | shows |\n|---|---|\n" + "\n".join(rows)) if rows else "*nothing drawn yet*"
 
+    def _plane_changed(self) -> None:
+        app = self.app
+        names = list(app.system.state_names)
+        if getattr(app, "_syncing", False) or any(p.value not in names for p in self.plane):
+            return
+        app.guarded(app.set_plane, [names.index(p.value) for p in self.plane])
+
     def rebuild_sliders(self) -> None:
         """(Re)create the slice controls for the current system's variables."""
         app = self.app
@@ -131,6 +146,15 @@ class ViewPanel(Panel):
             h.remove()
         self.handles, self.sliders = [], []
         sysm = app.system
+        states, d = list(sysm.state_names), scene.plane_dims(app)
+        prev, app._syncing = getattr(app, "_syncing", False), True
+        try:
+            for h, i in zip(self.plane, d if sysm.n >= 2 else (0, 0)):
+                h.options = states
+                h.value = states[i]
+                h.disabled = sysm.n < 3
+        finally:
+            app._syncing = prev
         names = variable_names(sysm)
         rng = variable_ranges(sysm)
         if app.view.get("fixed") is None:

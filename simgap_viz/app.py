@@ -667,8 +667,52 @@ class SimgapApp:
         self.guarded(self._run_stage, "certify", background)
 
     def synthesize(self, background: bool = True) -> None:
-        """Synthesize a controller for f + [-gamma, gamma] (engine: ``simgap.synthesis``)."""
+        """Synthesize a controller for f + [-gamma, gamma] (engine: ``simgap.synthesis``): a loaded
+        set-method run (ellipsoid, box tube) with its own method and [synthesis] keys, else the grid."""
+        if self.set_method() is not None:
+            self.guarded(self._synthesize_set_method, background)
+            return
         self.guarded(self._run_stage, "synthesize", background)
+
+    def set_method(self) -> Optional[str]:
+        """The loaded run's set method (``invariant_set``, ``box_tube``), or None (a grid or no run)."""
+        from simgap.synthesis.set_synthesis import SET_METHODS
+
+        from .results import run_method
+        run = getattr(self, "run", None)
+        m = run_method(run.summary) if run is not None and run.stages is None else None
+        return m if m in SET_METHODS else None
+
+    def _synthesize_set_method(self, background: bool = True) -> None:
+        """Re-synthesize the loaded run's method (its [synthesis] keys, its certificate, x0 and the
+        rollouts' horizon) on the job thread; the result replaces the method's set and statement."""
+        from simgap.synthesis import set_synthesis
+        from simgap.synthesis.statement import statement_of
+        run, method = self.run, self.run_method
+        syn = dict(run.summary.get("sections", {}).get("synthesis") or {})
+        src = run.methods.get(method) or run.methods.get("stochastic")
+        gap = None if method == "nominal" or src is None else src.certificate
+        x0 = None if self.settings.x0 is None else np.asarray(self.settings.x0, float)
+        horizon = (run.summary.get("sections", {}).get("rollout") or {}).get("horizon")
+
+        def compute(ctx):
+            ctx.begin("synthesize")
+            res = set_synthesis.synthesize(self.experiment.system if self.experiment is not None else self.system,
+                                           self.spec, gap, syn, x0=x0, horizon=horizon)
+            ctx.check()
+            target = run.nominal if method == "nominal" else run.methods[method]
+            target.invariant_set = None if res.empty else res.controller
+            target.statement = statement_of(set_synthesis.method_of(syn), target.invariant_set, res.stats)
+            self.timings["synthesize"] = ctx.elapsed()
+            if res.empty:
+                self.notify("Nothing proved", res.stats.get("diagnosis") or "no set proved")
+            self.invariant_drawn = None
+            self._show_results()
+            return res
+        if background:
+            self.start_job("synthesize", compute)
+        else:
+            compute(JobContext(name="synthesize"))
 
     def rollout(self, background: bool = True) -> None:
         """Roll the controller out in the simulator (engine: ``simgap.rollout``)."""

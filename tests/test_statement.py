@@ -167,5 +167,17 @@ def test_tube_run_in_its_own_words(tube_run):
         texts = [h.content for p_ in app.panels.values() for h in vars(p_).values() if hasattr(h, "content")
                  and isinstance(getattr(h, "content", None), str)]
         assert not any(re.search(r"invariant set|Invariant sets E|\bE proved", t) for t in texts + [app.status.content])
+        # the Synthesis tab: the run's own method, its keys and what it proved; no grid inputs
+        syn = app.panels["synthesis"]
+        assert not syn.eta.visible and not syn.hold.visible and "box tube" in syn.method.content
+        for want in ("plan T0", "terminal box half-widths H", "margin", "noise tube", "p_cert = "):
+            assert want in syn.stats.content, want
+        # Synthesize makes a tube again (not a grid over the states), replacing the method's set
+        before = run.methods["stochastic"].invariant_set
+        app.synthesize(background=False)
+        after = run.methods["stochastic"]
+        assert after.invariant_set is not before and after.invariant_set.kind == "box_tube"
+        assert app.results.get("synthesize") is None  # no grid controller was made
+        assert np.allclose(after.invariant_set.radii, before.radii) and after.statement.per_run is not None
     finally:
         app.stop()

@@ -35,7 +35,8 @@ from .errors import SimgapError
 # the specification of an experiment lives in simgap.experiment_spec (the per-run stage needs it too);
 # re-exported here, its old home
 from .experiment_spec import experiment_spec  # noqa: F401
-from .synthesis import invariant_stage
+from .synthesis import set_synthesis
+from .synthesis.statement import METHOD_NAMES, Statement, not_proved, statement_of
 from .simulators import make_simulator
 
 METHODS = ("deterministic", "stochastic")
@@ -98,7 +99,7 @@ def check_experiment(exp: ExperimentConfig, out: Optional[str | Path] = None, *,
             raise SimgapError(f"[{section}] {key}: need one value or {n} (one per state {', '.join(s.state_names)}), "
                               f"got {value!r}")
 
-    grid = invariant_stage.method_of(syn) == "grid"
+    grid = set_synthesis.method_of(syn) == "grid"
     if grid and "eta" not in syn:
         raise SimgapError("[synthesis] eta (grid cell widths) is required")
     if "eta" in syn:
@@ -106,10 +107,10 @@ def check_experiment(exp: ExperimentConfig, out: Optional[str | Path] = None, *,
     for k in ("safe_lo", "safe_hi"):
         if k in syn and len(syn[k]) != n:
             raise SimgapError(f"[synthesis] {k}: need {n} values, got {syn[k]!r}")
-    invariant_stage.check_method(syn)  # before the spec: a reach-avoid map is not read for it
+    set_synthesis.check_method(syn)  # before the spec: a reach-avoid map is not read for it
     spec, map_x0, _ = experiment_spec(exp)
     if not grid:
-        invariant_stage.check_section(s, syn, spec)
+        set_synthesis.check_section(s, syn, spec)
     if exp.collect.region:  # a local certificate: the set synthesis takes gamma over must lie in the region
         from .cover import region_box
         rlo, rhi = region_box(s, exp.collect.region)
@@ -132,7 +133,7 @@ def check_experiment(exp: ExperimentConfig, out: Optional[str | Path] = None, *,
     if "horizon" in ro:
         checks.check_memory(R * (ro["horizon"] + 1) * (2 * n * 8 + 4),
                             f"{R:,} rollouts x horizon {ro['horizon']:,}", "use fewer rollouts or a shorter horizon")
-        if invariant_stage.method_of(syn) == "box_tube" and syn.get("per_run", True):
+        if set_synthesis.method_of(syn) == "box_tube" and syn.get("per_run", True):
             from .synthesis.noise_tube import check_horizon
             check_horizon(ro["horizon"], n, "[rollout] horizon")  # the box tube's per-run statement
 
@@ -157,7 +158,7 @@ def check_experiment(exp: ExperimentConfig, out: Optional[str | Path] = None, *,
     with make_simulator(exp.simulator, s):
         pass  # the simulator's kind, noise, effects and options are valid
     return {"spec": spec, "x0": x0, "eta": syn.get("eta"), "hold": int(syn.get("hold", 1)), "n_rollouts": R,
-            "method": invariant_stage.method_of(syn)}
+            "method": set_synthesis.method_of(syn)}
 
 
 def check_against_cover(system, cover, opts, where: str = "[certify]") -> None:
@@ -290,7 +291,7 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
         exp = along_tube(exp, log)
     from .rounds import Budget
     budget = Budget(exp.collect.budget_runs, exp.collect.budget_minutes)
-    if budget.active and invariant_stage.method_of(exp.section("synthesis")) not in invariant_stage.SET_METHODS:
+    if budget.active and set_synthesis.method_of(exp.section("synthesis")) not in set_synthesis.SET_METHODS:
         raise SimgapError("[collect] budget_runs / budget_minutes: the rounds re-prove a set synthesis (method = "
                           "\"box_tube\" or \"invariant_set\"), whose proof reports the factor of gamma it tolerates")
     per_run = exp.section("perrun")
@@ -388,15 +389,15 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
                 for m, e in (("stochastic", exp), ("deterministic", baseline_experiment(exp)))}
         sim = sims["stochastic"]  # audits and rollouts run against the stochastic simulator
         controllers = {}
-        invariant = checked["method"] in invariant_stage.SET_METHODS  # a proved set (ellipsoid or box tube)
+        invariant = checked["method"] in set_synthesis.SET_METHODS  # a proved set (ellipsoid or box tube)
         tube = checked["method"] == "box_tube"
 
         def roll_out(method, sres, entry):
             """R rollouts from x0 (and, for an invariant set, from states drawn in E) into ``entry``."""
             if sres.empty or not bool(sres.controller.winning(x0[None, :])[0]):
-                why = (sres.stats.get("diagnosis", "no invariant set proved") if invariant else
-                       "empty winning domain") if sres.empty else \
-                    f"x0 is outside the {'invariant set' if invariant else 'winning domain'}"
+                st = statement_of(checked["method"], None if sres.empty else sres.controller, sres.stats)
+                why = (sres.stats.get("diagnosis") or f"{st.name}: nothing proved") if sres.empty else \
+                    f"x0 is outside {st.set_name}"
                 entry["rollouts"] = {"skipped": why}
                 log(f"[rollout/{method}] skipped: {why}")
             else:
@@ -428,7 +429,7 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
                                                bool(c.inside(np.asarray(mm)[None])[0])}
             k = int(syn.get("set_states", 20))
             if invariant and not tube and not sres.empty and k:  # a tube is proved from x0 only
-                entry["rollouts_in_set"] = stage(f"rollout-in-E/{method}", lambda: invariant_stage.rollouts_in_set(
+                entry["rollouts_in_set"] = stage(f"rollout-in-E/{method}", lambda: set_synthesis.rollouts_in_set(
                     rollout, sres.controller, sim, k, R, ro.get("horizon"), int(ro.get("seed", 11)) + 1000,
                     ro.get("on_exit", "hold"), log))
         def certify_prove(method, ds, opts, tag=""):
@@ -442,7 +443,7 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
                                                                    on_progress=bar or None))
             _close(bar)
             if invariant:
-                sres = stage(f"synthesize/{method}{tag}", lambda: invariant_stage.synthesize(
+                sres = stage(f"synthesize/{method}{tag}", lambda: set_synthesis.synthesize(
                     exp.system, spec, cert, syn, x0=x0, horizon=ro.get("horizon"), log=log))
             else:
                 bar = progress and progress(f"synthesize/{method}: abstraction", "classes")
@@ -544,10 +545,11 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
             }
             summary["methods"][method] = entry
             roll_out(method, sres, entry)
+            entry["statement"] = statement_of(checked["method"], sres.controller, sres.stats, entry).to_json()
         if invariant and syn.get("nominal", True):
             # the nominal model without any gap: what the set and the rollouts look like when the proof
             # ignores the simulation gap (no guarantee about the simulator)
-            sres = stage("synthesize/nominal", lambda: invariant_stage.synthesize(exp.system, spec, None, syn, x0=x0))
+            sres = stage("synthesize/nominal", lambda: set_synthesis.synthesize(exp.system, spec, None, syn, x0=x0))
             if not sres.empty:
                 sres.controller.save(out / "controller_nominal.npz")
                 wrote("controller_nominal.npz")
@@ -555,6 +557,7 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
                      "winning_cells": int(not sres.empty)}
             summary["methods"]["nominal"] = entry
             roll_out("nominal", sres, entry)
+            entry["statement"] = statement_of(checked["method"], sres.controller, sres.stats, entry).to_json()
         if per_run:
             from .perrun.stage import run_stage
             summary["per_run"] = stage("perrun", lambda: run_stage(exp, out, data["stochastic"], controllers, spec, x0,
@@ -620,6 +623,59 @@ SUMMARY_STATEMENTS = {
 }
 
 
+def _clip(text: str, width: int = 56) -> str:
+    """A table cell of at most ``width`` characters (the whole text is in summary.json)."""
+    return text if len(text) <= width else text[:width - 3] + "..."
+
+
+def _entry_statement(e: dict, method: Optional[str]) -> dict:
+    """A method entry's statement (summary.json's ``statement``); for a summary written before
+    statements existed, the proof's count alone (never another method's words)."""
+    if e.get("statement"):
+        return e["statement"]
+    grid = method in (None, "grid")
+    st = not_proved(method or "grid") if not e.get("winning_cells") else Statement(
+        method or "grid", METHOD_NAMES.get(method or "grid", method), True, "")
+    d = st.to_json()
+    d["rows"] = [{"label": "winning cells" if grid else "proved",
+                  "value": f"{e.get('winning_cells', 0):,}" if grid else ("yes" if e.get("winning_cells") else "no"),
+                  "about": "proof", "confidence": None}]
+    return d
+
+
+def _rests_on(e: dict) -> str:
+    """What a set method's proof rests on: f alone, a deterministic gap (no probability), or the
+    certificate's all-rows confidence (the proof takes gamma's sup over a set)."""
+    if isinstance(e.get("gap"), str):
+        return "f only (no gap)"
+    c = e.get("confidence_proof")
+    return "a gap without noise (no probability)" if c is None else f"all-rows confidence {_simultaneous(c)}"
+
+
+def _warning_consequence(w: str, st: Optional[dict]) -> str:
+    """What a noisy L_gap warning does to gamma and whether the certificate and the proof stand."""
+    if "L_gap entries are mostly" not in w:
+        return ""
+    proved = "" if st is None else (f"; the {st['name']} proof above used this gamma and "
+                                    f"{'holds' if st['proved'] else 'failed'}")
+    return (" -- what it does: noise in the slopes makes those L_gap entries larger, so gamma is wider "
+            "(more conservative), and gamma takes the smaller of two valid bounds per dimension: the "
+            f"certificate stands at its stated confidence{proved}")
+
+
+def _audit_notes(summary: dict, cols) -> list:
+    """A note for each audit whose points were all inconclusive: no violation, but nothing confirmed."""
+    out = []
+    for m in cols:
+        e = summary["methods"][m]
+        h, v = e.get("audit_pass_rate_joint"), e.get("audit_violated_joint")
+        if h is not None and v is not None and h == 0 and v == 0:
+            out += ["", f"audit ({m}): no violation, but every audited point was inconclusive (pass rate "
+                        "0.000): the runs' mean could not be told apart from gamma at any point (its noise larger "
+                        "than the margin); the audit did not fail, and it is no evidence for gamma either"]
+    return out
+
+
 def comparison_table(summary: dict) -> str:
     """The readable comparison table of a summary (deterministic vs stochastic; with an invariant-set
     synthesis also the nominal model without a gap), in groups headed by :data:`TABLE_GROUPS`: what
@@ -630,7 +686,7 @@ def comparison_table(summary: dict) -> str:
     cols = [m for m in METHODS + ("nominal",) if m in summary["methods"]]
     rows = [("",) + tuple(cols)]
     method = (summary.get("sections", {}).get("synthesis") or {}).get("method")
-    invariant = method in invariant_stage.SET_METHODS
+    invariant = method in set_synthesis.SET_METHODS
 
     def fmt(v, f="{:.4g}"):
         return "-" if v is None else f.format(v)
@@ -656,48 +712,37 @@ def comparison_table(summary: dict) -> str:
                       if isinstance(e.get("gamma"), dict) else "-"))
     for i, nm in enumerate(names):
         row(f"confidence [{nm}]", *both(lambda e: fmt((e.get("confidence_per_dim") or [None] * len(names))[i])))
-    row("joint conf. pointwise", *both(lambda e: _simultaneous(e.get("confidence_joint_pointwise"))))
-    row("joint conf. all rows", *both(lambda e: _simultaneous(e.get("confidence_joint_simultaneous"))))
+    row("joint conf. pointwise (one row at a time)", *both(lambda e: _simultaneous(e.get("confidence_joint_pointwise"))))
+    row("joint conf. all rows (what a proof over a set uses)", *both(lambda e: _simultaneous(e.get("confidence_joint_simultaneous"))))
     row("proof confidence (sup over the set)", *both(lambda e: "-" if e.get("confidence_joint") is None else
                                                      _simultaneous(e.get("confidence_joint_simultaneous"))))
     row("audit pass rate (joint)", *both(lambda e: fmt(e.get("audit_pass_rate_joint"), "{:.3f}")))
     row("audit violated (joint)", *both(lambda e: fmt(e.get("audit_violated_joint"), "{:.3f}")))
     group("proof_nominal" if "nominal" in cols else "proof")
-    tube = invariant and method == "box_tube"
+    stmts = {m: _entry_statement(summary["methods"][m], method) for m in cols}
+    names_row = {m: st["name"] for m, st in stmts.items()}
+    if len(set(names_row.values())) > 1 or invariant:
+        row("method (its own words)", *[names_row[m] for m in cols])
+
+    def statement_rows(about):  # every label any column states, in order, its value per column
+        labels = list(dict.fromkeys(r["label"] for m in cols for r in stmts[m]["rows"] if r["about"] == about))
+        for label in labels:
+            row(label, *[next((r["value"] for r in stmts[m]["rows"] if r["label"] == label), "-") for m in cols])
+    statement_rows("proof")
     if invariant:
-        def proved(e):
-            return "yes" if e["winning_cells"] else "no"
-        row("invariant set proved", *both(proved))
-        row("gap over E [max]", *both(lambda e: fmt(max(e["synthesis"].get("verification", {}).get("w_max", [0])))))
-        row("gap margin s (invariant if <= s x gap)",
-            *both(lambda e: e["synthesis"].get("gap_scale_text", "-") if e["winning_cells"] else
-                  ("-" if e["synthesis"].get("gap_scale") is None else f"{e['synthesis']['gap_scale']:.3g} < 1")))
-        if tube:
-            row("terminal box half-widths H", *both(
-                lambda e: str(np.round(e["synthesis"]["H"], 6).tolist()) if e["winning_cells"] else "-"))
-        else:
-            row("E half-widths", *both(lambda e: str(e["synthesis"].get("half_widths")) if e["winning_cells"] else "-"))
-        row("x0 in E", *both(lambda e: str(e["synthesis"].get("x0_inside", "-")) if e["winning_cells"] else "-"))
-    else:
-        row("winning cells", *both(lambda e: f"{e['winning_cells']:,}"))
+        row("proof rests on", *both(_rests_on))
     has_ca = any("closest_approach" in summary["methods"][m] for m in cols)
     group("mean_map")
     row("mean map satisfies the spec", *both(lambda e: str(e.get("mean_map_satisfies", "-"))))
-    if tube:
-        row("mean map inside the tube", *both(
-            lambda e: str(e["reach_and_stay"]["mean_map_in_tube"]) if "reach_and_stay" in e else "-"))
+    statement_rows("mean_map")
     if has_ca:
         row("closest approach, mean map [m]", *both(lambda e: fmt(e.get("closest_approach", {}).get("mean_map"),
                                                                  "{:.3f}")))
     group("runs")
     row("single runs failing" + (" from x0" if invariant else ""),
         *both(lambda e: f"{e['failures']} / {e['n_rollouts']}" if "failures" in e else
-              ("no set (reason below)" if invariant and not e["winning_cells"] else
+              ("nothing proved (reason below)" if invariant and not e["winning_cells"] else
                e["rollouts"].get("skipped", "-")[:40])))
-    if any("rollouts_in_set" in summary["methods"][m] for m in cols):
-        row("single runs failing from states in E", *both(
-            lambda e: f"{e['rollouts_in_set']['failures']} / {e['rollouts_in_set']['n_rollouts']} "
-                      f"({e['rollouts_in_set']['states']} states)" if "rollouts_in_set" in e else "-"))
     if any("per_run_empirical" in summary["methods"][m] for m in cols):
         def pe(e):
             r = e.get("per_run_empirical")
@@ -706,16 +751,7 @@ def comparison_table(summary: dict) -> str:
         row("p_cert(x0) per run", *both(lambda e: "-" if e.get("per_run_empirical") is None else
                                         ("none stated" if e["per_run_empirical"]["p_cert"] is None
                                          else f"{e['per_run_empirical']['p_cert']:.4f}")))
-    if tube:
-        row("single runs reaching and staying", *both(
-            lambda e: f"{e['reach_and_stay']['held']} / {e['reach_and_stay']['of']} after period "
-                      f"{e['reach_and_stay']['T0']}" if "reach_and_stay" in e else "-"))
-        row("single runs inside the mean's tube", *both(
-            lambda e: f"{e['reach_and_stay']['runs_in_tube']} / {e['reach_and_stay']['of']}"
-            if "reach_and_stay" in e else "-"))
-        row("single runs inside the noise tube (p_cert's event)", *both(
-            lambda e: f"{e['per_run_empirical']['in_noise_tube']} / {e['per_run_empirical']['n_rollouts']}"
-            if "in_noise_tube" in e.get("per_run_empirical", {}) else "-"))
+    statement_rows("single_runs")
     row("rollout average satisfies", *both(lambda e: str(e.get("rollout_average_satisfies", "-"))))
     if has_ca:
         def ca(key):
@@ -723,20 +759,21 @@ def comparison_table(summary: dict) -> str:
         row("closest approach min [m]", *both(ca("min")))
         row("closest approach 5 % quantile [m]", *both(ca("q05")))
     nc = len(rows[0])
+    rows = [r if isinstance(r, str) else tuple(_clip(str(c)) for c in r) for r in rows]
     cells = [r for r in rows if not isinstance(r, str)]
     w = [max(len(str(r[c])) for r in cells) for c in range(nc)]
     lines = [r if isinstance(r, str) else
              "  ".join(str(r[c]).ljust(w[c]) if c == 0 else str(r[c]).rjust(w[c]) for c in range(nc)) for r in rows]
     lines.insert(1, "-" * len(lines[0]))
     warnings = [(m, w) for m in METHODS for w in summary["methods"][m].get("warnings", [])]
-    if invariant:
-        for m in cols:
-            d = summary["methods"][m]["synthesis"].get("diagnosis")
-            if d:
-                lines += ["", f"{m}: {d}"]
+    for m in cols:
+        d = (summary["methods"][m].get("synthesis") or {}).get("diagnosis") if invariant else None
+        notes = ([d] if d else []) + [x for x in stmts[m]["notes"] if x != d]
+        lines += ["", *(f"{m}: {x}" for x in notes)] if notes else []
+    lines += _audit_notes(summary, cols)
     if warnings:
         lines.append("")
-        lines += [f"warning ({m} certificate): {w}" for m, w in warnings]
+        lines += [f"warning ({m} certificate): {w}" + _warning_consequence(w, stmts.get(m)) for m, w in warnings]
     vac = [m for m in METHODS if m in summary["methods"] and (summary["methods"][m].get("confidence_joint_simultaneous")
                                                               or 1.0) <= 0]
     if vac:

@@ -19,11 +19,11 @@ def along_tube(exp, log=print):
     import dataclasses
 
     from .experiment_spec import experiment_spec
-    from .synthesis import invariant_stage
+    from .synthesis import set_synthesis
 
     c = exp.collect
     syn = exp.section("synthesis")
-    if invariant_stage.method_of(syn) != "box_tube":
+    if set_synthesis.method_of(syn) != "box_tube":
         raise SimgapError("[collect] tube_margin covers a box tube's boxes: it needs [synthesis] method = \"box_tube\"")
     if c.region:
         raise SimgapError("[collect] give a region or a tube_margin (a cover along the tube), not both")
@@ -39,8 +39,8 @@ def along_tube(exp, log=print):
     if x0.shape != (s.n,):
         raise SimgapError(f"[rollout] x0: need {s.n} values, got {ro['x0']!r}")
     spec = experiment_spec(exp)[0]
-    invariant_stage.check_section(s, syn, spec)
-    res = invariant_stage.synthesize(s, spec, None, dict(syn, terminal="smallest", margin_search=False,
+    set_synthesis.check_section(s, syn, spec)
+    res = set_synthesis.synthesize(s, spec, None, dict(syn, terminal="smallest", margin_search=False,
                                                          per_run=False), x0=x0)
     if res.empty:
         raise SimgapError("[collect] tube_margin: the nominal tube (no gap) is not proved, so there is no tube to "

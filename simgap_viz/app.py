@@ -495,7 +495,8 @@ class SimgapApp:
             from .results import MethodResults
             src = run.methods.get("stochastic") or next(iter(run.methods.values()))
             m = MethodResults(dataset=src.dataset, certificate=src.certificate, audit=src.audit, synthesis=None,
-                              rollouts=run.nominal.rollouts, invariant_set=run.nominal.invariant_set)
+                              rollouts=run.nominal.rollouts, invariant_set=run.nominal.invariant_set,
+                              statement=run.nominal.statement)
         elif method not in run.methods:
             raise SimgapError(f"the run has no {method!r} results; it has "
                               f"{', '.join(list(run.methods) + (['nominal'] if getattr(run, 'nominal', None) else []))}")
@@ -509,6 +510,7 @@ class SimgapApp:
         with self.lock:
             self.experiment, self.spec, self.arena = exp, spec, arena
             self.run, self.run_method, self.audit = run, method, m.audit
+            self.view["dims"] = (0, 1)  # the plane starts over the first two states (a grid's map is there)
             self.settings = st.replace(use_gap=method != "nominal", x0=None if x0 is None else tuple(float(v) for v in x0),
                                        n_rollouts=int(ro.get("n", st.n_rollouts)),
                                        horizon=int(m.rollouts.horizon) if m.rollouts is not None else st.horizon,
@@ -539,10 +541,11 @@ class SimgapApp:
             from .results import describe_stages
             self.set_status("**stage outputs** (" + method + "):\n\n" + "\n".join(f"* {line}" for line in describe_stages(run)))
             return
-        self.set_status(f"run **{run.path.name}** ({method}): data K = {m.dataset.K}, "
-                        + (f"{m.synthesis.controller.size:,} winning cells" if m.synthesis is not None
-                           else f"invariant-set run: {'E proved' if m.invariant_set is not None else 'no set proved'}"
-                           " (layer *Invariant sets E*)")
+        st = m.statement
+        said = (f"{m.synthesis.controller.size:,} winning cells" if st is None else
+                f"{st.name}: " + ("proved" if st.proved else "not proved")
+                + (f", p_cert {st.per_run.p_cert:.3g} per run" if st.per_run is not None else ""))
+        self.set_status(f"run **{run.path.name}** ({method}): data K = {m.dataset.K}, {said}"
                         + (f", {m.rollouts.n_rollouts} rollouts" if m.rollouts is not None else ""))
 
     def _show_results(self) -> None:
@@ -664,8 +667,52 @@ class SimgapApp:
         self.guarded(self._run_stage, "certify", background)
 
     def synthesize(self, background: bool = True) -> None:
-        """Synthesize a controller for f + [-gamma, gamma] (engine: ``simgap.synthesis``)."""
+        """Synthesize a controller for f + [-gamma, gamma] (engine: ``simgap.synthesis``): a loaded
+        set-method run (ellipsoid, box tube) with its own method and [synthesis] keys, else the grid."""
+        if self.set_method() is not None:
+            self.guarded(self._synthesize_set_method, background)
+            return
         self.guarded(self._run_stage, "synthesize", background)
+
+    def set_method(self) -> Optional[str]:
+        """The loaded run's set method (``invariant_set``, ``box_tube``), or None (a grid or no run)."""
+        from simgap.synthesis.set_synthesis import SET_METHODS
+
+        from .results import run_method
+        run = getattr(self, "run", None)
+        m = run_method(run.summary) if run is not None and run.stages is None else None
+        return m if m in SET_METHODS else None
+
+    def _synthesize_set_method(self, background: bool = True) -> None:
+        """Re-synthesize the loaded run's method (its [synthesis] keys, its certificate, x0 and the
+        rollouts' horizon) on the job thread; the result replaces the method's set and statement."""
+        from simgap.synthesis import set_synthesis
+        from simgap.synthesis.statement import statement_of
+        run, method = self.run, self.run_method
+        syn = dict(run.summary.get("sections", {}).get("synthesis") or {})
+        src = run.methods.get(method) or run.methods.get("stochastic")
+        gap = None if method == "nominal" or src is None else src.certificate
+        x0 = None if self.settings.x0 is None else np.asarray(self.settings.x0, float)
+        horizon = (run.summary.get("sections", {}).get("rollout") or {}).get("horizon")
+
+        def compute(ctx):
+            ctx.begin("synthesize")
+            res = set_synthesis.synthesize(self.experiment.system if self.experiment is not None else self.system,
+                                           self.spec, gap, syn, x0=x0, horizon=horizon)
+            ctx.check()
+            target = run.nominal if method == "nominal" else run.methods[method]
+            target.invariant_set = None if res.empty else res.controller
+            target.statement = statement_of(set_synthesis.method_of(syn), target.invariant_set, res.stats)
+            self.timings["synthesize"] = ctx.elapsed()
+            if res.empty:
+                self.notify("Nothing proved", res.stats.get("diagnosis") or "no set proved")
+            self.invariant_drawn = None
+            self._show_results()
+            return res
+        if background:
+            self.start_job("synthesize", compute)
+        else:
+            compute(JobContext(name="synthesize"))
 
     def rollout(self, background: bool = True) -> None:
         """Roll the controller out in the simulator (engine: ``simgap.rollout``)."""
@@ -793,6 +840,23 @@ class SimgapApp:
             self.refresh_system_layers()
         else:
             self.refresh_result_layers()
+
+    def set_plane(self, dims) -> tuple:
+        """Show the map plane over two other states (a projection selector): the proved sets, the
+        runs, the safe set and the axes are redrawn projected onto ``dims``. Only without a grid
+        controller (a grid's winning map is over its first two states); returns the plane's dims."""
+        from .layers import scene
+        d = tuple(int(i) for i in dims)
+        if len(d) != 2 or d[0] == d[1] or not all(0 <= i < self.system.n for i in d):
+            raise SimgapError(f"the plane needs two different states of {', '.join(self.system.state_names)}")
+        if self.results.get("synthesize") is not None and d != (0, 1):
+            raise SimgapError("a grid controller's winning map is drawn over the first two states only")
+        with self.lock:
+            self.view["dims"] = d
+        scene.draw_axes(self)
+        scene.draw_map(self)
+        self.refresh_result_layers()
+        return scene.plane_dims(self)
 
     def set_flat_gamma(self, flat: bool) -> None:
         """Draw gamma as a surface even where it is nearly flat on the slice (default: only where it varies)."""

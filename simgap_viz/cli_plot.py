@@ -48,7 +48,8 @@ def run(args) -> int:
                           rollouts=args.rollouts)
         for line in describe_stages(run):
             print(line)
-    written = plot_run(run, args.out, max_drawn=args.max_drawn, style=args.style)
+    written = plot_run(run, args.out, max_drawn=args.max_drawn, style=args.style,
+                       log=lambda line: print(line, flush=True))
     for p in written:
         print(p)
     return 0

@@ -169,16 +169,37 @@ def _spec_patches(ax, spec, system) -> None:
         _box(ax, spec.safe, system, fill=False, edgecolor="k", lw=1.0, ls="--", label="safe set", zorder=4)
 
 
-def _draw_runs(ax, X, ok, idx, mm, mean, R, color) -> None:
+#: a run's polyline keeps at most this many points (every k-th period and its last): at a figure's
+#: resolution a 400-period run drawn with 200 points looks the same
+MAX_POINTS = 200
+
+
+def _lines(ax, paths: np.ndarray, color, lw: float, alpha: float, zorder: float = 1.0):
+    """Many polylines (R, T, 2) as ONE rasterized LineCollection (each line translucent on its own, so
+    1000 runs still read as a density): one artist instead of R Line2D objects, decimated to
+    :data:`MAX_POINTS` points per line."""
+    from matplotlib.collections import LineCollection
+    paths = np.asarray(paths, float)
+    if paths.shape[0] == 0:
+        return None
+    T = paths.shape[1]
+    if T > MAX_POINTS:
+        keep = np.unique(np.r_[np.arange(0, T, -(-T // MAX_POINTS)), T - 1])
+        paths = paths[:, keep]
+    lc = LineCollection(list(paths), colors=[color], linewidths=lw, alpha=alpha, zorder=zorder, rasterized=True)
+    ax.add_collection(lc, autolim=True)
+    ax.autoscale_view()
+    return lc
+
+
+def _draw_runs(ax, X, ok, idx, mm, mean, R, color, zorder: float = 1.0) -> None:
     """Rollouts as thin translucent lines in the method's color (1000 read as a density, 100 as single
-    lines; rasterized, so a PDF stays small), failures red on top, then the mean map and the rollout
-    average."""
+    lines; one rasterized artist, so a PDF stays small), failures red on top, then the mean map and
+    the rollout average."""
     alpha = float(np.clip(20.0 / max(R, 1), 0.03, 0.6))
-    for line in ax.plot(X[idx, :, 0].T, X[idx, :, 1].T, color=color, lw=0.5, alpha=alpha, zorder=1):
-        line.set_rasterized(True)
+    _lines(ax, X[idx], color, 0.5, alpha, zorder)
     if (~ok).any():
-        for line in ax.plot(X[~ok, :, 0].T, X[~ok, :, 1].T, color="red", lw=0.6, alpha=0.6, zorder=5):
-            line.set_rasterized(True)
+        _lines(ax, X[~ok], "red", 0.6, 0.6, 5)
     if mm is not None:
         ax.plot(mm[:, 0], mm[:, 1], zorder=6, **MEAN_MAP)
     ax.plot(mean[:, 0], mean[:, 1], zorder=6, **AVERAGE)
@@ -289,7 +310,8 @@ def trajectories(run, spec, out_dir: Path, max_drawn: int = 1000, style: str = "
         ax.set_ylim(system.x_lo[1], system.x_hi[1])
         _few_ticks(ax)
         ax.set_xlabel(labels[0])
-        ax.set_title(f"{_name(m)}: {int((~ok).sum())} of {R} runs fail")
+        ax.set_title(f"{_name(m)}: {int((~ok).sum())} of {R} runs fail"
+                     + _per_run_words(getattr(_result(run, m), "statement", None)))
         if system.state_names[:2] == ("x", "y") or (units(system)[0][:2] == ("m", "m")):
             ax.set_aspect("equal")
         span = np.ptp(X.reshape(-1, 2), axis=0) if X.size else np.zeros(2)
@@ -328,17 +350,29 @@ def states_time(run, out_dir: Path, max_drawn: int = 1000, style: str = "paper")
         return []
     n = system.n
     fig, axes = _figure(style, n, len(methods), height_rows=0.55 * n + 0.3, sharex=True, sharey="row")
-    runs = []
+    runs, bands = [], {}
     for j, m in enumerate(methods):
         ro = _result(run, m).rollouts
+        st = getattr(_result(run, m), "statement", None)
         X = np.asarray(ro.trajectories)[:max_drawn]
         runs.append(X.shape[0])
         t = np.arange(X.shape[1]) * float(ro.tau)
         alpha = float(np.clip(20.0 / max(X.shape[0], 1), 0.03, 0.6))
         for i in range(n):
             ax = axes[i][j]
-            for line in ax.plot(t, X[:, :, i].T, color=METHOD_STYLE.get(m, "tab:green"), lw=0.5, alpha=alpha):
-                line.set_rasterized(True)
+            _lines(ax, np.stack([np.broadcast_to(t, X.shape[:2]), X[:, :, i]], axis=-1),
+                   METHOD_STYLE.get(m, "tab:green"), 0.5, alpha)
+            for role, kw in (("tube", dict(alpha=0.25, lw=0)), ("noise_tube", dict(fill=False, lw=0.6, ls=":"))):
+                ds = st.set_of(role) if st is not None else None
+                if ds is not None and ds.kind == "boxes":
+                    k, blo, bhi = ds.band(i, X.shape[1] - 1)
+                    if kw.get("fill", True):
+                        ax.fill_between(k * float(ro.tau), blo, bhi, color=METHOD_STYLE.get(m, "tab:green"),
+                                        zorder=0.5, **{q: v for q, v in kw.items() if q != "fill"})
+                    else:
+                        for edge in (blo, bhi):
+                            ax.plot(k * float(ro.tau), edge, color="0.3", zorder=0.6, lw=kw["lw"], ls=kw["ls"])
+                    bands.setdefault(role, ds.label)
             if ro.mean_map_trajectory is not None:
                 ax.plot(t, np.asarray(ro.mean_map_trajectory)[:, i], **{**MEAN_MAP, "lw": 0.7})
             ax.plot(t, np.asarray(ro.mean_trajectory)[:, i], **AVERAGE)
@@ -346,10 +380,14 @@ def states_time(run, out_dir: Path, max_drawn: int = 1000, style: str = "paper")
             if j == 0:
                 ax.set_ylabel(labels[i])
             if i == 0:
-                ax.set_title(_name(m))
+                ax.set_title(_name(m) + _per_run_words(st))
             if i == n - 1:
                 ax.set_xlabel("time [s]")
-    _legend(fig, _handles(methods, runs, None), style)
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+    extra = ([Patch(color="0.6", alpha=0.4, label=bands["tube"] + ", per period")] if "tube" in bands else []) \
+        + ([Line2D([], [], color="0.3", lw=0.6, ls=":", label=bands["noise_tube"])] if "noise_tube" in bands else [])
+    _legend(fig, _handles(methods, runs, None, extra), style)
     note = mean_map_switch_note(run, methods)
     if note:  # the legend's title: laid out with it, so it can overlap nothing
         import textwrap
@@ -477,22 +515,49 @@ def state_pairs(n: int, most: int = 6) -> list:
 
 
 def _set_methods(run) -> list:
-    """(name, MethodResults) of every method with a proved invariant set, the nominal model last."""
-    from .results import proved_sets
-    return [(m, run.nominal if m == "nominal" else run.methods[m]) for m, _ in proved_sets(run)]
+    """(name, MethodResults) of every method with a proved set, widest first (drawn first, beneath:
+    a thinner set drawn later stays visible inside a wider one), the nominal model's runs beneath."""
+    out = [(m, r) for m, r in ((m, run.methods[m]) for m in ("stochastic", "deterministic") if m in run.methods)]
+    if getattr(run, "nominal", None) is not None:
+        out.append(("nominal", run.nominal))
+    return [(m, r) for m, r in out if _statement(r) is not None and _statement(r).proved
+            and any(ds.kind != "cells" for ds in _statement(r).sets)]
+
+
+def _statement(res):
+    """A method's statement: the loaded one, else its set controller's own (results built by hand)."""
+    st = getattr(res, "statement", None)
+    if st is None and getattr(res, "invariant_set", None) is not None:
+        st = res.invariant_set.statement()
+    return st
 
 
 def _no_set_notes(run) -> list:
-    """One line per method of an invariant-set run whose proof failed: its name and margin s."""
+    """One line per method of a set-method run whose proof failed: its name and margin s."""
     from .results import unproved_sets
-    return [f"{m} gap: no set proved" + ("" if s_ is None else f" (margin s = {s_:.2g}: invariant only if gamma "
-                                                               f"were <= s x its size)")
+    return [f"{m} gap: nothing proved" + ("" if s_ is None else f" (margin s = {s_:.2g}: proved only if gamma "
+                                                                f"were <= s x its size)")
             for m, s_ in unproved_sets(run)]
+
+
+#: how each role of a method's sets is drawn (the method's color; the line width and style)
+SET_LINES = {"tube": dict(lw=0.4, alpha=0.6), "noise_tube": dict(lw=0.6, ls=":"),
+             "terminal": dict(lw=1.4), "ellipsoid": dict(lw=1.4)}
+TARGET = dict(color="green", lw=1.2, ls="-.")
+#: the method's runs beneath the other methods' (the nominal model's most), so none covers the others
+RUN_Z = {"stochastic": 1.0, "deterministic": 0.95, "nominal": 0.9}
+
+
+def _per_run_words(st) -> str:
+    """", p_cert 0.92 (400 periods)" for a statement with a per-run probability, else ""."""
+    return "" if st is None or st.per_run is None else f", p_cert {st.per_run.p_cert:.3g} ({st.per_run.horizon} periods)"
 
 
 @_styled
 def invariant_sets(run, spec, out_dir: Path, max_drawn: int = 1000, style: str = "paper") -> list:
-    """The proved invariant ellipsoids' projections with the rollouts (see module docstring)."""
+    """The proved sets of a set-method run, each method's in its own words (its statement: a tube's
+    boxes along the plan, its noise tube and terminal box, the target box; an ellipsoid's shadow),
+    projected onto pairs of states, with the rollouts (see module docstring)."""
     from matplotlib.lines import Line2D
     sets = _set_methods(run)
     if not sets:
@@ -507,7 +572,8 @@ def invariant_sets(run, spec, out_dir: Path, max_drawn: int = 1000, style: str =
     fig, axes = _figure(style, rows, cols, height_rows=rows * (1.0 if cols > 1 else 1.4))
     for ax in axes.ravel()[len(pairs):]:
         ax.set_visible(False)
-    runs, safe_seen, noisy = {}, False, set()
+    runs, safe_seen, drawn_roles, target = {}, False, {}, False
+    target_of = next((m for m, r in sets if _statement(r).set_of("target") is not None), None)
     for ax, (a, b) in zip(axes.ravel(), pairs):
         lo, hi = [], []
         for m, res in sets:
@@ -519,27 +585,30 @@ def invariant_sets(run, spec, out_dir: Path, max_drawn: int = 1000, style: str =
                 runs[m] = X.shape[0]
                 mm = None if ro.mean_map_trajectory is None else np.asarray(ro.mean_map_trajectory)[:, [a, b]]
                 _draw_runs(ax, X, ok, np.flatnonzero(ok), mm, np.asarray(ro.mean_trajectory)[:, [a, b]],
-                           X.shape[0], color)
+                           X.shape[0], color, zorder=RUN_Z.get(m, 1.0))
                 ax.plot(*np.asarray(ro.x0)[[a, b]], "o", color="k", ms=3, zorder=7)
                 lo.append(X.reshape(-1, 2).min(axis=0))
                 hi.append(X.reshape(-1, 2).max(axis=0))
-            E = res.invariant_set.projection_outline((a, b))
-            ax.plot(E[:, 0], E[:, 1], color=color, lw=1.4, zorder=8, gid=f"E:{m}:{a},{b}")
-            if hasattr(res.invariant_set, "outlines"):  # a box tube: its boxes along the plan, thin
-                tube = res.invariant_set
-                for R_ in tube.outlines((a, b), every=max(1, tube.T0 // 40))[:-1]:
-                    ax.plot(R_[:, 0], R_[:, 1], color=color, lw=0.4, alpha=0.5, zorder=6)
-                    lo.append(R_.min(axis=0))
-                    hi.append(R_.max(axis=0))
-                if getattr(tube, "noise_tube", None) is not None:  # the per-run statement's tube, dotted
-                    noisy.add(m)
-                    for R_ in tube.outlines((a, b), every=max(1, tube.T0 // 20), noise=True):
-                        ax.plot(R_[:, 0], R_[:, 1], color=color, lw=0.6, ls=":", zorder=6)
-                        lo.append(R_.min(axis=0))
-                        hi.append(R_.max(axis=0))
-            ax.plot(*res.invariant_set.x_star[[a, b]], "+", color=color, ms=5, zorder=8)
-            lo.append(E.min(axis=0))
-            hi.append(E.max(axis=0))
+            for k, ds in enumerate(_statement(res).sets):
+                if ds.kind == "cells":
+                    continue
+                if ds.role == "target":  # one method's (the methods share the experiment's target)
+                    if m == target_of:
+                        for R_ in ds.outlines((a, b)):
+                            ax.plot(R_[:, 0], R_[:, 1], zorder=3, **TARGET)
+                        target = True
+                    continue
+                style_ = SET_LINES.get(ds.role, dict(lw=1.0))
+                every = max(1, -(-len(ds.centers) // 40)) if ds.kind == "boxes" else 1
+                outl = ds.outlines((a, b), every)
+                from matplotlib.collections import LineCollection
+                ax.add_collection(LineCollection(outl, colors=[color], linewidths=style_["lw"],
+                                                 linestyles=style_.get("ls", "-"), alpha=style_.get("alpha", 1.0),
+                                                 zorder=8 + 0.1 * k, gid=f"{ds.role}:{m}:{a},{b}"))
+                drawn_roles.setdefault((m, ds.role), ds.label)
+                pts = np.concatenate(outl)
+                lo.append(pts.min(axis=0))
+                hi.append(pts.max(axis=0))
         lo, hi = np.min(lo, axis=0), np.max(hi, axis=0)
         pad = 0.12 * np.maximum(hi - lo, 1e-9)
         if spec is not None and getattr(spec, "safe", None) is not None:
@@ -555,15 +624,22 @@ def invariant_sets(run, spec, out_dir: Path, max_drawn: int = 1000, style: str =
         ax.ticklabel_format(style="sci", scilimits=(-2, 3), useMathText=True)
         ax.set_xlabel(labels[a])
         ax.set_ylabel(labels[b])
-    hs = [Line2D([], [], color=METHOD_STYLE.get(m, "tab:green"), lw=1.4,
-                 label=f"E, {_name(m)}"
-                 + (f": {runs[m]} rollouts" if m in runs else "")) for m, _ in sets]
-    hs += [Line2D([], [], color=METHOD_STYLE.get(m, "tab:green"), lw=0.6, ls=":",
-                  label=f"noise tube, {_name(m)} (single runs, p_cert)") for m in sorted(noisy)]
+    hs = []
+    for (m, role), label in drawn_roles.items():
+        st_ = SET_LINES.get(role, dict(lw=1.0))
+        hs.append(Line2D([], [], color=METHOD_STYLE.get(m, "tab:green"), lw=max(st_["lw"], 1.0),
+                         ls=st_.get("ls", "-"), label=f"{label}, {_name(m)}"
+                         + (f": {runs[m]} rollouts" if m in runs and role in ("tube", "ellipsoid") else "")))
+    if target:
+        hs.append(Line2D([], [], label="target box", **TARGET))
     hs += [Line2D([], [], label="mean map", **MEAN_MAP), Line2D([], [], label="rollout average", **AVERAGE),
-           Line2D([], [], color="k", marker="o", ls="", ms=3, label="x0"),
-           Line2D([], [], color="0.3", marker="+", ls="", ms=5, label="x* (centre of E)")]
-    title = "invariant sets E: projections onto pairs of states (the shadow of E, not its slice through x*)"
+           Line2D([], [], color="k", marker="o", ls="", ms=3, label="x0")]
+    stmts = {m: _statement(r) for m, r in sets}
+    names = list(dict.fromkeys(st.name for st in stmts.values()))
+    title = (f"{' / '.join(names)}: projections onto pairs of states"
+             + (" (the shadow of E, not its slice through x*)" if any(st.set_name == "E" for st in stmts.values())
+                else ""))
+    title += "".join(f"; {_name(m)}{_per_run_words(st)}" for m, st in stmts.items() if st.per_run)
     if spec is not None and getattr(spec, "safe", None) is not None:
         from matplotlib.patches import Patch
         if safe_seen:
@@ -571,7 +647,8 @@ def invariant_sets(run, spec, out_dir: Path, max_drawn: int = 1000, style: str =
         else:
             title += "; the safe set lies beyond every frame"
     notes = _no_set_notes(run)
-    fig.suptitle("\n".join([title] + notes), fontsize=STYLES[style]["small"])
+    import textwrap
+    fig.suptitle("\n".join(textwrap.wrap(title, 140) + notes), fontsize=STYLES[style]["small"])
     _legend(fig, hs, style, ncol=3)
     return save(fig, out_dir, "invariant_sets")
 
@@ -609,7 +686,7 @@ def p_cert(run, out_dir: Path, style: str = "paper") -> list:
     return save(fig, out_dir, "p_cert")
 
 
-def plot_run(path, out_dir=None, max_drawn: int = 1000, style: str = "paper") -> list:
+def plot_run(path, out_dir=None, max_drawn: int = 1000, style: str = "paper", log=None) -> list:
     """Every figure of the run folder ``path`` (or of a loaded :class:`~simgap_viz.results.RunResults`,
     e.g. stage outputs from :func:`~simgap_viz.results.load_stages`: the figures their stages allow)
     into ``out_dir`` (default ``path/figures``); the paths written.
@@ -641,11 +718,19 @@ def plot_run(path, out_dir=None, max_drawn: int = 1000, style: str = "paper") ->
     _check_replaceable(out)  # before anything is drawn or written
     out.mkdir(exist_ok=True)
     written = []
-    written += trajectories(run, spec, out, max_drawn, style=style)
-    written += states_time(run, out, max_drawn, style=style)
-    written += gamma_slices(run, out, style=style)
-    written += invariant_sets(run, spec, out, max_drawn, style=style)
-    written += p_cert(run, out, style=style)
+    import time
+    steps = (("trajectories", lambda: trajectories(run, spec, out, max_drawn, style=style)),
+             ("states_time", lambda: states_time(run, out, max_drawn, style=style)),
+             ("gamma_slices", lambda: gamma_slices(run, out, style=style)),
+             ("invariant_sets", lambda: invariant_sets(run, spec, out, max_drawn, style=style)),
+             ("p_cert", lambda: p_cert(run, out, style=style)))
+    t0 = time.perf_counter()
+    for k, (name, draw) in enumerate(steps, 1):
+        if log:  # a progress line per figure: a 4-state run with 3 x 1000 rollouts takes seconds each
+            log(f"[plot] {k}/{len(steps)} {name} ... ({time.perf_counter() - t0:.1f} s so far)")
+        written += draw()
+    if log:
+        log(f"[plot] done in {time.perf_counter() - t0:.1f} s: {len(written)} files")
     _list_figures(out, written)
     return written
 

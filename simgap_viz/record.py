@@ -8,9 +8,12 @@ Entities (``<m>`` a method, ``<s>`` a state name; :func:`entity_paths` lists the
 * ``world/X``, ``world/obstacles``, ``world/target``, ``world/safe`` -- Boxes3D of X and the specification;
 * ``world/<m>/winning`` -- Boxes3D of the winning cells (merged over the projected dimensions,
   colored red -> green by the fraction of winning cells);
-* ``world/<m>/invariant_set`` -- an invariant-set controller's E projected onto (x1, x2) (its
-  shadow, :meth:`~simgap.synthesis.ellipsoid_controller.EllipsoidController.projection_outline`),
-  a LineStrips3D in the method's color (the nominal model's set under ``world/nominal``);
+* ``world/<m>/<role>`` -- the sets a set method proved, from its statement
+  (:mod:`simgap.synthesis.statement`), projected onto (x1, x2): an ellipsoid's shadow
+  (``invariant_set``), a box tube's boxes per period (``tube``), its noise tube (``noise_tube``),
+  terminal and target boxes; LineStrips3D in the method's color (the nominal model's under
+  ``world/nominal``); ``timeseries/<s>/<m>/tube_lo``, ``..._hi`` (and ``noise_tube_*``) the tube's band
+  along each state per period;
 * ``world/<m>/rollouts/paths`` -- every rollout as one LineStrips3D (failures red), static;
 * ``world/<m>/rollouts/mean_map`` -- the mean map m+ = E fhat(m, u(m)), the sequence the
   guarantee is about (magenta); ``.../mean`` the average of the rollouts (yellow) and
@@ -197,20 +200,14 @@ def record_run(out: str | Path, system, *, dataset=None, certificate=None, spec=
             if st["synthesis"] is not None:
                 info["winning_cells"][m] = _log_winning(log, rr, system, m, st["synthesis"])
                 md += [engine.synthesis_markdown(st["synthesis"]), ""]
-            if st["invariant_set"] is not None and system.n >= 2:
-                outline = st["invariant_set"].projection_outline((0, 1))
-                log(f"world/{m}/invariant_set", rr.LineStrips3D([_xy0(outline)], colors=[method_color(m, k)],
-                                                               radii=rr.Radius.ui_points(2.5)))
-                if hasattr(st["invariant_set"], "outlines"):  # a box tube: its boxes along the plan
-                    boxes = st["invariant_set"].outlines((0, 1))[:-1]
-                    log(f"world/{m}/tube", rr.LineStrips3D([_xy0(b) for b in boxes], colors=[method_color(m, k)],
-                                                           radii=rr.Radius.ui_points(1.0)))
-                    if getattr(st["invariant_set"], "noise_tube", None) is not None:  # the per-run statement's
-                        noisy = st["invariant_set"].outlines((0, 1), noise=True)
-                        log(f"world/{m}/noise_tube", rr.LineStrips3D([_xy0(b) for b in noisy],
-                                                                     colors=[method_color(m, k)],
-                                                                     radii=rr.Radius.ui_points(0.5)))
-                md += [st["invariant_set"].summary(), ""]
+            if st["invariant_set"] is not None:
+                stmt = st["invariant_set"].statement()
+                if system.n >= 2:
+                    _log_sets(log, rr, stmt, m, method_color(m, k))
+                T = int(np.asarray(st["rollouts"].trajectories).shape[1]) - 1 if st["rollouts"] is not None \
+                    else 2 * int(getattr(st["invariant_set"], "T0", 0)) + 1
+                _log_bands(rec, info, rr, system, stmt, m, method_color(m, k), T)
+                md += [statement_markdown(stmt), ""]
             for i, name in enumerate(system.state_names):
                 _log_gamma(log, rr, info, f"gamma/{m}/{name}", layers[m][i], tops[i], method_color(m, k),
                            G.variable_names(system), fixed, su[i])
@@ -224,6 +221,46 @@ def record_run(out: str | Path, system, *, dataset=None, certificate=None, spec=
         rec.disconnect()  # nothing was written yet: the recording is in memory
         raise
     return finish_recording(rec, mem, out, info, t0)
+
+
+def statement_markdown(stmt) -> str:
+    """A method's statement (:mod:`simgap.synthesis.statement`) as markdown: headline, rows, p_cert, notes."""
+    rows = "\n".join(f"| {r.label} | {r.value} | {r.about.replace('_', ' ')} |" for r in stmt.rows)
+    per = "" if stmt.per_run is None else (f"\n\n**p_cert {stmt.per_run.p_cert:.4f}**: P({stmt.per_run.event}) "
+                                           f">= p_cert; rests on {stmt.per_run.rests_on}")
+    return (f"**{stmt.headline}**\n\n| what | value | about |\n|---|---|---|\n{rows}{per}"
+            + "".join(f"\n\n*{n}*" for n in stmt.notes))
+
+
+def _log_sets(log, rr, stmt, m: str, color) -> None:
+    """``world/<m>/<role>``: each set of the statement projected onto (x1, x2) (a tube's boxes per period)."""
+    widths = {"tube": 1.0, "noise_tube": 0.5, "terminal": 2.5, "ellipsoid": 2.5, "target": 2.0}
+    for ds in stmt.sets:
+        if ds.kind == "cells":
+            continue
+        role = "invariant_set" if ds.role == "ellipsoid" else ds.role
+        log(f"world/{m}/{role}", rr.LineStrips3D([_xy0(o) for o in ds.outlines((0, 1))],
+                                                 colors=[G.GREEN if ds.role == "target" else color],
+                                                 radii=rr.Radius.ui_points(widths.get(ds.role, 1.0)),
+                                                 labels=[ds.label] if ds.role in ("terminal", "target") else None))
+
+
+def _log_bands(rec, info, rr, system, stmt, m: str, color, T: int) -> None:
+    """``timeseries/<s>/<m>/<role>_lo`` and ``_hi``: the statement's boxes along each state per period
+    (a tube's band around the plan, then its terminal box), beside the runs' time series."""
+    tau = float(system.tau)
+    for ds in stmt.sets:
+        if ds.kind != "boxes" or ds.role not in ("tube", "noise_tube"):
+            continue
+        for d, sname in enumerate(system.state_names):
+            t, lo, hi = ds.band(d, T)
+            times = [rr.TimeColumn("step", sequence=t), rr.TimeColumn("time", duration=t * tau)]
+            for edge, v in (("lo", lo), ("hi", hi)):
+                ent = f"timeseries/{sname}/{m}/{ds.role}_{edge}"
+                rec.log(ent, rr.SeriesLines(colors=[tuple(int(c) for c in color)], widths=[0.5],
+                                            names=[f"{m}: {ds.label} ({edge})"]), static=True)
+                rec.send_columns(ent, indexes=times, columns=rr.Scalars.columns(scalars=np.asarray(v, float)))
+                info["entities"].append(ent)
 
 
 def _log_spec(log, rr, spec, x_lo, x_hi) -> None:

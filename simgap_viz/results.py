@@ -43,7 +43,8 @@ class MethodResults:
     audit: Optional[dict]
     synthesis: object
     rollouts: object = None
-    invariant_set: object = None  # an invariant-set run: the proved E (EllipsoidController), else None
+    invariant_set: object = None  # a set method's controller (ellipsoid, box tube) when proved, else None
+    statement: object = None  # what the method proved, in its words (simgap.synthesis.statement.Statement)
 
 
 @dataclass
@@ -158,7 +159,21 @@ def _nominal(root: Path, summary: dict, system) -> Optional[MethodResults]:
         raise SimgapError(f"results folder {root}: controller_nominal.npz is not an invariant-set controller")
     rp = _inside(root, "rollouts_nominal.npz")
     return MethodResults(dataset=None, certificate=None, audit=None, synthesis=None,
-                         rollouts=load_rollout(rp) if rp.is_file() else None, invariant_set=ctrl)
+                         rollouts=load_rollout(rp) if rp.is_file() else None, invariant_set=ctrl,
+                         statement=method_statement(summary, "nominal", ctrl))
+
+
+def run_method(summary: dict) -> str:
+    """The synthesis method of a run folder's experiment (``grid`` when it names none)."""
+    return (summary.get("sections", {}).get("synthesis") or {}).get("method") or "grid"
+
+
+def method_statement(summary: dict, m: str, ctrl):
+    """The statement of method entry ``m`` (deterministic, stochastic, nominal): the controller's own
+    with the summary's counts, or the method's "not proved" with its diagnosis."""
+    from simgap.synthesis.statement import statement_of
+    e = summary.get("methods", {}).get(m) or {}
+    return statement_of(run_method(summary), ctrl, e.get("synthesis") or {}, e)
 
 
 def load_run(path) -> RunResults:
@@ -206,7 +221,7 @@ def load_run(path) -> RunResults:
         if ap.is_file():
             audit = read_json(ap, "audit report")
         cp = _inside(root, f"controller_{m}.npz")
-        invariant = (summary.get("sections", {}).get("synthesis") or {}).get("method") in ("invariant_set", "box_tube")
+        invariant = run_method(summary) in ("invariant_set", "box_tube")
         if not cp.is_file() and not (invariant and not summary["methods"][m].get("winning_cells")):
             raise SimgapError(f"results folder {root}: {cp.name} is missing")
         syn = ell = None  # an invariant-set run: no set proved (no file), or E
@@ -224,7 +239,8 @@ def load_run(path) -> RunResults:
             if (root / name).is_file():
                 check_listed(root, summary, name)
         run.methods[m] = MethodResults(dataset=ds, certificate=cert, audit=audit, synthesis=syn, rollouts=ro,
-                                       invariant_set=ell)
+                                       invariant_set=ell,
+                                       statement=method_statement(summary, m, ell if syn is None else syn.controller))
     if not run.methods:
         raise SimgapError(f"{root / 'summary.json'} lists no method results")
     run.nominal = _nominal(root, summary, exp.system)
@@ -375,7 +391,7 @@ def load_stages(folder=None, dataset=None, cert=None, controller=None, rollouts=
     if ctrl is not None and not getattr(ctrl, "continuous_input", False):
         syn = SynthesisResult(ctrl, dict(ctrl.meta.get("stats", {})))
     elif ctrl is not None:
-        ell = ctrl  # an invariant-set controller: its E is drawn (layer "Invariant sets E")
+        ell = ctrl  # a set method's controller: its sets are drawn (layer "Proved sets")
     spec = getattr(ctrl, "spec", None) if ctrl is not None else None
     spec = spec if spec is not None else (ro.spec if ro is not None else None)
     x0 = (ctrl.meta.get("x0") if ctrl is not None else None)
@@ -386,8 +402,10 @@ def load_stages(folder=None, dataset=None, cert=None, controller=None, rollouts=
     run = RunResults(path=Path(folder) if folder is not None else first.parent, summary=summary,
                      stages={r: (str(paths[r]) if r in paths else None) for r in ROLES}, stage_system=system,
                      spec=spec, notes=notes)
+    from simgap.synthesis.statement import statement_of
     run.methods[method] = MethodResults(dataset=ds, certificate=ce, audit=None, synthesis=syn, rollouts=ro,
-                                        invariant_set=ell)
+                                        invariant_set=ell, statement=None if ctrl is None else statement_of(
+                                            getattr(ctrl, "kind", "grid"), ctrl, ctrl.meta.get("stats", {})))
     return run
 
 
@@ -455,7 +473,7 @@ def describe_stages(run: RunResults) -> list:
             what = f"{m.certificate.method}, system {m.certificate.system_name}"
         elif role == "controller":
             what = (f"{m.synthesis.controller.size:,} winning cells" if m.synthesis is not None
-                    else "invariant-set controller (its E: layer Invariant sets E)")
+                    else m.invariant_set.statement().name + " (layer Proved sets)")
         else:
             what = f"{m.rollouts.n_rollouts} rollouts, {m.rollouts.n_failures} failed"
         lines.append(f"{ROLE_WHAT[role]}: {p} ({what})")

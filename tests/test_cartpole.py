@@ -94,7 +94,7 @@ def test_invariant_small_profile_reduces_the_invariant_one():
     invariant profile's synthesis with N1hat 30, an audit of 100 x 300, no rollouts from states in E
     and an x0 that lies in the nominal model's proved set (the base x0, theta = 0.05, does not),
     so its 1000 rollouts run inside E."""
-    from simgap.synthesis import invariant_stage
+    from simgap.synthesis import set_synthesis
     from simgap.pipeline import experiment_spec
     small = load_experiment("cartpole", profile="invariant-small")
     full = load_experiment("cartpole", profile="invariant")
@@ -106,7 +106,7 @@ def test_invariant_small_profile_reduces_the_invariant_one():
         {k: v for k, v in full.section("synthesis").items() if k != "set_states"}
     x0 = np.asarray(small.section("rollout")["x0"], float)
     spec, _, _ = experiment_spec(small)
-    res = invariant_stage.synthesize(small.system, spec, None, syn, x0=x0)  # the nominal model's set
+    res = set_synthesis.synthesize(small.system, spec, None, syn, x0=x0)  # the nominal model's set
     assert not res.empty
     assert bool(res.controller.winning(x0[None])[0])
     base_x0 = np.asarray(full.section("rollout")["x0"], float)

@@ -35,6 +35,7 @@ def drawn(monkeypatch):
 @pytest.fixture
 def captured(monkeypatch):
     """What each figure handed to figures.save shows (read before it is saved and closed)."""
+    from matplotlib.collections import LineCollection
     from matplotlib.colors import to_hex
 
     from simgap_viz import figures
@@ -45,10 +46,12 @@ def captured(monkeypatch):
         axes = []
         for a in fig.axes:
             lines = a.get_lines()
+            runs = [c for c in a.collections if isinstance(c, LineCollection) and c.get_rasterized()]
             axes.append({"xlabel": a.get_xlabel(), "ylabel": a.get_ylabel(), "title": a.get_title(),
                          "lines": len(lines), "legend": a.get_legend() is not None, "axes": a,
-                         "colors": [to_hex(ln.get_color()) for ln in lines if ln.get_rasterized()],
-                         "rasterized": sum(ln.get_rasterized() for ln in lines), "insets": a.child_axes})
+                         # the runs: rasterized line collections (one artist for many runs)
+                         "colors": [to_hex(c.get_color()[0]) for c in runs],
+                         "rasterized": sum(len(c.get_segments()) for c in runs), "insets": a.child_axes})
         figs[name] = {"axes": axes, "legends": [[t.get_text() for t in lg.get_texts()] for lg in fig.legends],
                       "overlaps": figures.text_overlaps(fig), "inches": tuple(fig.get_size_inches()), "fig": fig,
                       "inset_cover": _inset_cover(fig)}
@@ -67,8 +70,10 @@ def _inset_cover(fig) -> list:
     for a in fig.axes:
         for ins in a.child_axes:
             bb = ins.get_tightbbox(r)
-            pts = np.concatenate([a.transData.transform(np.column_stack(ln.get_data()).astype(float))
-                                  for ln in a.get_lines() if len(ln.get_xdata()) > 1])
+            from matplotlib.collections import LineCollection
+            paths = [np.column_stack(ln.get_data()).astype(float) for ln in a.get_lines() if len(ln.get_xdata()) > 1]
+            paths += [seg for c in a.collections if isinstance(c, LineCollection) for seg in c.get_segments()]
+            pts = np.concatenate([a.transData.transform(p) for p in paths])
             inside = (pts[:, 0] >= bb.x0) & (pts[:, 0] <= bb.x1) & (pts[:, 1] >= bb.y0) & (pts[:, 1] <= bb.y1)
             out.append(float(inside.mean()))
     return out
@@ -116,7 +121,7 @@ def test_plot_run_figures(run_dir, tmp_path, captured):  # noqa: F811
         ro = run.methods[m].rollouts
         R = ro.trajectories.shape[0]
         assert a["xlabel"] == "theta [rad]"
-        assert a["lines"] == R + 3 and a["rasterized"] == R
+        assert a["lines"] == 3 and a["rasterized"] == R  # every run, in one rasterized artist
         fails = int((~np.asarray(ro.success)).sum())
         assert a["title"] == f"{m} gap: {fails} of {R} runs fail"
         assert set(a["colors"]) <= {to_hex(METHOD_STYLE[m]), "#ff0000"}  # the method's color, failures red
@@ -213,19 +218,21 @@ def test_invariant_set_figure_draws_projections(tmp_path, captured):
     assert {p.name for p in paths} == {"invariant_sets.png", "invariant_sets.pdf"}
     f = captured["invariant_sets"]
     assert f["overlaps"] == [], f["overlaps"]
-    assert len(f["legends"]) == 1 and any("E, nominal model (no gap): 50 rollouts" in t for t in f["legends"][0])
-    assert "stochastic gap: no set proved (margin s = 0.0047" in f["fig"]._suptitle.get_text()
+    assert len(f["legends"]) == 1 and any("invariant ellipsoid E, nominal model (no gap): 50 rollouts" in t
+                                          for t in f["legends"][0])
+    assert "stochastic gap: nothing proved (margin s = 0.0047" in f["fig"]._suptitle.get_text()
+    assert "tube" not in f["fig"]._suptitle.get_text() + " ".join(f["legends"][0])  # the ellipsoid's own words
     h = np.sqrt(np.diag(Q))
     assert np.all(1 / np.sqrt(np.diag(P)) < 0.9 * h)  # the slice would be visibly smaller
     seen = set()
     for a in f["axes"]:
-        for ln in a["axes"].get_lines():
+        for ln in a["axes"].collections:
             gid = ln.get_gid() or ""
-            if not gid.startswith("E:"):
+            if not gid.startswith("ellipsoid:"):
                 continue
             i, j = (int(v) for v in gid.split(":")[2].split(","))
             seen.add((i, j))
-            x, y = np.asarray(ln.get_xdata()), np.asarray(ln.get_ydata())
+            x, y = ln.get_segments()[0].T
             assert x.min() == pytest.approx(xs[i] - h[i], rel=1e-3) and x.max() == pytest.approx(xs[i] + h[i], rel=1e-3)
             assert y.min() == pytest.approx(xs[j] - h[j], rel=1e-3) and y.max() == pytest.approx(xs[j] + h[j], rel=1e-3)
             # every outline point is on the projection's boundary: (y - c)^T P2 (y - c) = 1
@@ -234,7 +241,7 @@ def test_invariant_set_figure_draws_projections(tmp_path, captured):
             assert np.allclose(np.einsum("bi,ij,bj->b", e, P2, e), 1.0)
     assert seen == {(0, 1), (0, 2), (1, 2)}
     # the projection contains every point of E (sampled), which a slice does not
-    from simgap.synthesis.invariant_stage import states_in_set
+    from simgap.synthesis.set_synthesis import states_in_set
     pts = states_in_set(ctrl, 4000, 0)
     for d in ((0, 1), (0, 2), (1, 2)):
         c, P2 = ctrl.projection(d)
@@ -393,7 +400,7 @@ def test_every_figure_for_every_method_and_dimension(n, kind, tmp_path, drawn):
         assert len([a for a in gs["axes"] if a["axes"].get_lines()]) == n * n
         if kind != "grid":
             pairs = {tuple(int(v) for v in (ln.get_gid() or "E:x:").split(":")[2].split(","))
-                     for a in drawn["invariant_sets"]["axes"] for ln in a["axes"].get_lines()
-                     if (ln.get_gid() or "").startswith("E:stochastic")}
+                     for a in drawn["invariant_sets"]["axes"] for ln in a["axes"].collections
+                     if (ln.get_gid() or "").startswith("ellipsoid:stochastic")}
             from simgap_viz.figures import state_pairs
             assert pairs == set(state_pairs(n))

@@ -372,7 +372,7 @@ def test_run_experiment_with_invariant_sets(tmp_path):
         if not e["winning_cells"]:
             assert "gamma would have to be at most" in e["rollouts"]["skipped"]
     table = comparison_table(summary)
-    assert "invariant set proved" in table and "nominal" in table and "single runs failing from states in E" in table
+    assert "yes: E invariant" in table and "nominal" in table and "single runs failing from states in E" in table
     run = load_run(out)                      # no grid controller; the proved sets and the nominal model's
     assert set(run.methods) == {"deterministic", "stochastic"}
     assert all(mr.synthesis is None for mr in run.methods.values())
@@ -391,11 +391,12 @@ def test_run_experiment_with_invariant_sets(tmp_path):
         app.load_run(run, "nominal")
         assert app.results["rollout"] is run.nominal.rollouts and app.rollout_drawn["total"] == 20
         assert not app.settings.use_gap
-        drawn = dict(app.invariant_drawn)
+        drawn = {(m, role): hw for m, role, _label, _c, hw in app.invariant_drawn}
         E = run.nominal.invariant_set
         want = np.sqrt(np.diag(np.linalg.inv(E.P)))[:2]
-        assert drawn["nominal"] == pytest.approx(want, rel=1e-3)
-        assert "invariant sets E" in app.panels["view"].legend.content
+        assert drawn["nominal", "ellipsoid"] == pytest.approx(want, rel=1e-3)
+        legend = app.panels["view"].legend.content
+        assert "invariant ellipsoid E" in legend and "tube" not in legend  # the method's own words
         app.set_layer_visible("invariant", False)
         assert app.invariant_drawn == []
         app.panels["system"].run_method.value = "stochastic"   # back to a method's own results

@@ -194,8 +194,8 @@ def run(args) -> int:
             raise SimgapError(f"--system {args.system!r} does not match the experiment's system {system.name!r}")
         if args.steps is not None and args.steps != system.steps:
             system = system.with_steps(args.steps)
-        from ..synthesis import invariant_stage
-        invariant_stage.check_method(syn, args.method)  # a set method with a reach-avoid spec, by both names
+        from ..synthesis import set_synthesis
+        set_synthesis.check_method(syn, args.method)  # a set method with a reach-avoid spec, by both names
         spec, x0, _ = experiment_spec(e)
         if x0 is None and "x0" in e.section("rollout"):  # recorded, so `simgap rollout` needs no --x0
             x0 = _floats(",".join(map(str, np.ravel(e.section("rollout")["x0"]))), "[rollout] x0")
@@ -259,7 +259,7 @@ def run(args) -> int:
 
 def _invariant_set(args, system, spec, gap, syn, x0) -> int:
     """--method invariant_set / box_tube: design, prove, write (nothing written when no set is proved)."""
-    from ..synthesis import invariant_stage
+    from ..synthesis import set_synthesis
     meth = syn["method"]
     # the checks `simgap run` makes, on the values this command will use, named as the user wrote them
     names = {"method": f"--method {meth}"} if args.method else {}
@@ -267,12 +267,12 @@ def _invariant_set(args, system, spec, gap, syn, x0) -> int:
                              ("--no-strict-domain", args.no_strict_domain)) if v]
     if unused:
         raise SimgapError(f"{', '.join(unused)} {'is a grid option' if len(unused) == 1 else 'are grid options'}, "
-                          f"but {invariant_stage.said(syn, 'method', names)} builds no grid: drop "
+                          f"but {set_synthesis.said(syn, 'method', names)} builds no grid: drop "
                           f"{'it' if len(unused) == 1 else 'them'}")
     if args.hold is not None:
         syn, names["hold"] = dict(syn, hold=args.hold), f"--hold {args.hold}"
-    invariant_stage.check_section(system, syn, spec, names)
-    res = invariant_stage.synthesize(system, spec, gap, syn, x0=x0, horizon=args.horizon, what="--horizon",
+    set_synthesis.check_section(system, syn, spec, names)
+    res = set_synthesis.synthesize(system, spec, gap, syn, x0=x0, horizon=args.horizon, what="--horizon",
                                      log=lambda m: print(m, flush=True))
     if meth == "box_tube":
         return _finish(args, res, x0, spec, "no box tube proved", "the box tube", gap)

@@ -91,6 +91,23 @@ class PerRunController:
         h = self.steps - 1 - min(int(t), self.steps - 1)
         return np.where(ids >= 0, self.policy[h, np.maximum(ids, 0)], -1)
 
+    def statement(self, entry: Optional[dict] = None):
+        """What the interval MDP proved, in its words (:mod:`simgap.synthesis.statement`): p_cert per
+        cell, a lower bound on P(one run satisfies the spec within the horizon)."""
+        from ..synthesis.statement import DrawnSet, PerRunStatement, Row, Statement
+        x0 = self.meta.get("x0")
+        p = float(self.certified(np.asarray(x0, float)[None])[0]) if x0 is not None else float(self.p_cert.max())
+        where = "x0" if x0 is not None else "the best cell"
+        event = f"one run satisfies the spec within {self.horizon} periods"
+        per_run = PerRunStatement(p_cert=p, event=event, horizon=int(self.horizon),
+                                  rests_on="the interval MDP's transition intervals (docs/per-run.md)")
+        rows = [Row("cells", f"{self.grid.size:,}", "proof"),
+                Row(f"p_cert at {where} ({self.horizon} periods)", f"{p:.4f}", "per_run"),
+                Row("cells with p_cert > 0", f"{int(np.count_nonzero(self.p_cert > 0)):,}", "per_run")]
+        return Statement(method="perrun", name="per-run interval MDP", proved=True, set_name="the p_cert map",
+                         rows=rows, sets=[DrawnSet("winning_domain", "p_cert > 0", "cells")], per_run=per_run,
+                         headline=f"per-run interval MDP: P({event}) >= {p:.3g} at {where}")
+
     def save(self, path) -> Path:
         """Write the controller as .npz with a content digest of its metadata and arrays."""
         import json

@@ -206,6 +206,24 @@ class Controller:
         return cls(grid, arrays["inputs"], meta["kind"], arrays["steps"], arrays["valid"], arrays["chosen"],
                    arrays["target"], hold=meta.get("hold", 1), meta=meta, system=system, spec=spec)
 
+    def statement(self, entry: Optional[dict] = None):
+        """What the grid proved, in its words (:mod:`.statement`): the winning domain of the
+        abstraction's game (the mean map from each winning cell satisfies the spec)."""
+        from .statement import DrawnSet, Row, Statement, gap_words
+        entry = entry or {}
+        nominal = (self.meta.get("gap") or {}).get("kind") == "none"
+        conf = None if nominal or entry.get("confidence_proof") is None else "all rows"
+        rows = [Row("proved", f"yes: {self.size:,} winning cells" if self.size_with_target else "no (empty winning domain)",
+                    "proof", conf), Row("winning cells", f"{self.size:,}", "proof", conf)]
+        if self.x0 is not None:
+            rows.append(Row("x0 in the winning domain", "yes" if bool(self.winning(self.x0[None])[0]) else "no",
+                            "proof", conf))
+        name = f"grid abstraction ({self.kind.replace('_', '-')} game, hold {self.hold})"
+        return Statement(method="grid", name=name, proved=self.size_with_target > 0, set_name="the winning domain",
+                         rows=rows, sets=[DrawnSet("winning_domain", "winning domain", "cells")],
+                         headline=f"{name}: {self.size:,} winning cells with {gap_words(self.meta)}; "
+                                  "no per-run probability")
+
     def describe(self) -> dict:
         return {"kind": self.kind, "grid": self.grid.describe(), "n_inputs": self.n_inputs,
                 "hold": self.hold, "winning": self.size, "winning_with_target": self.size_with_target}

@@ -129,6 +129,32 @@ class EllipsoidController:
                 f"x* = {self.x_star.tolist()}, u* = {self.u_star.tolist()}; E half-widths "
                 f"{np.round(self.half_widths, 6).tolist()}; margin: gamma x {st.get('gap_scale_text', '?')}")
 
+    def statement(self, entry: Optional[dict] = None):
+        """What the ellipsoid proved, in its words (:mod:`.statement`): E invariant for the mean map;
+        ``entry``: the method's record in summary.json (rollouts from states in E), optional."""
+        from .statement import DrawnSet, Row, Statement, fmt_list, gap_words
+        entry = entry or {}
+        st = self.meta.get("stats", {})
+        nominal = (self.meta.get("gap") or {}).get("kind") == "none"
+        conf = None if nominal or entry.get("confidence_proof") is None else "all rows"
+        name = "invariant ellipsoid E"
+        w = (st.get("verification") or {}).get("w_max")
+        rows = [Row("proved", "yes: E invariant", "proof", conf),
+                Row("E half-widths", fmt_list(self.half_widths), "proof", conf)]
+        if w is not None:
+            rows.append(Row("gap over E [max]", fmt_list(w), "proof", conf))
+        rows.append(Row("margin: E invariant with gamma x", str(st.get("gap_scale_text", "-")), "proof", conf))
+        if st.get("x0_inside") is not None:
+            rows.append(Row("x0 in E", "yes" if st["x0_inside"] else "no", "proof", conf))
+        ris = entry.get("rollouts_in_set")
+        if ris:
+            rows.append(Row("single runs failing from states in E", f"{ris['failures']} / {ris['n_rollouts']} "
+                            f"({ris['states']} states)", "single_runs"))
+        sets = [DrawnSet("ellipsoid", "invariant ellipsoid E", "ellipsoid", self.x_star[None], P=self.P)]
+        return Statement(method=KIND, name=name, proved=True, set_name="E", rows=rows, sets=sets,
+                         headline=f"{name}: proved invariant with {gap_words(self.meta)}, margin gamma x "
+                                  f"{st.get('gap_scale_text', '?')}; no per-run probability")
+
     # ----- files -----------------------------------------------------------------------
     def save(self, path) -> Path:
         """Write the controller as .npz (temp file, then rename; :mod:`.controller_file`)."""

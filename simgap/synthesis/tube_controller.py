@@ -177,6 +177,82 @@ class TubeController:
                 f"K = {np.round(self.K, 4).tolist()}, x* = {self.x_star.tolist()}; terminal box half-widths "
                 f"{np.round(self.H, 6).tolist()}; margin: gamma x {st.get('gap_scale_text', '?')}")
 
+    def statement(self, entry: Optional[dict] = None):
+        """What the box tube proved, in its words (:mod:`.statement`); ``entry``: the method's record in
+        summary.json (its rollouts' counts and p_cert at their horizon), optional."""
+        from .statement import DrawnSet, PerRunStatement, Row, Statement, fmt_list, gap_words
+        entry = entry or {}
+        st = self.meta.get("stats", {})
+        gw = gap_words(self.meta)
+        nominal = (self.meta.get("gap") or {}).get("kind") == "none"
+        conf = None if nominal or entry.get("confidence_proof") is None else "all rows"
+        name = "box tube from x0 (reach and stay)"
+        v = st.get("verification") or {}
+        rows = [Row("proved", "yes: the tube from x0", "proof", conf),
+                Row("plan T0 (periods to the terminal box)", str(self.T0), "proof", conf),
+                Row("terminal box half-widths H", fmt_list(self.H), "proof", conf),
+                Row("tube's largest half-widths", fmt_list(self.radii.max(axis=0)), "proof", conf)]
+        if v.get("w_max") is not None:
+            rows.append(Row("gap over the tube [max]", fmt_list(v["w_max"]), "proof", conf))
+        rows += [Row("margin: the proof holds with gamma x", str(st.get("gap_scale_text", "-")), "proof", conf),
+                 Row("feedback K", str(st.get("K_how", "-")).split(",")[0], "proof", conf)]
+        nt_stats = st.get("noise_tube") or {}
+        nt = self.noise_tube
+        rows.append(Row("noise tube (single runs)", f"lam = {nt.lam:.3g} x the noise's proxy" if nt is not None else
+                        f"none: {nt_stats.get('none', 'not asked for')}", "proof", conf))
+        ras, pe = entry.get("reach_and_stay"), entry.get("per_run_empirical") or {}
+        notes = []
+        if ras is not None and ras.get("mean_map_in_tube") is not None:
+            inside = bool(ras["mean_map_in_tube"])
+            why = ("" if inside else
+                   " (f's tube without a gap: no statement about the simulator's mean map)" if nominal else
+                   " (the tube of a gap without noise, half-widths <= " + f"{self.radii.max():.3g}: no statement "
+                   "about the noisy simulator's mean map)" if conf is None else
+                   " (OUTSIDE the proved tube: possible only if the certificate is wrong, probability <= 1 - its "
+                   "all-rows confidence)")
+            rows.append(Row("mean map inside the tube", "yes" if inside else "no (see the note)" if why else "no",
+                            "mean_map"))
+            if why:
+                notes.append("mean map inside the tube: no" + why)
+        if ras is not None:
+            rows += [Row("single runs reaching and staying in H", f"{ras['held']} / {ras['of']} after period "
+                         f"{ras['T0']}", "single_runs"),
+                     Row("single runs inside the mean's tube", f"{ras['runs_in_tube']} / {ras['of']}", "single_runs")]
+        if "in_noise_tube" in pe:
+            rows.append(Row("single runs inside the noise tube (p_cert's event)",
+                            f"{pe['in_noise_tube']} / {pe['n_rollouts']}", "single_runs"))
+        per_run = None
+        if nt is not None:
+            T = int(pe.get("horizon", nt.horizon))
+            p = pe.get("p_cert") if pe.get("p_cert") is not None else nt.p_run(min(T, nt.horizon))
+            per_run = PerRunStatement(
+                p_cert=float(p), horizon=T,
+                event=f"a run stays in the noise tube for {T} periods, then in its terminal box",
+                rests_on=f"1 - beta_noise {nt.beta_noise(min(T, nt.horizon)):.3g} - beta_cert {nt.beta_cert:.3g}; "
+                         f"assumes {nt.assumption}")
+            rows.append(Row(f"p_cert per run ({T} periods)", f"{per_run.p_cert:.4f}", "per_run", conf))
+        elif nt_stats.get("none"):
+            notes.append(f"no per-run probability: {nt_stats['none']}")
+        periods = np.arange(self.T0 + 2)
+
+        def boxes(role, label, radii, H):
+            return DrawnSet(role, label, "boxes", np.vstack([self.x_nom, self.x_star]), np.vstack([radii, H]),
+                            periods)
+        sets = [boxes("tube", "box tube (the mean map's, proved)", self.radii, self.H)]
+        if nt is not None:
+            sets.append(boxes("noise_tube", "noise tube (single runs, p_cert's event)", nt.radii, nt.H))
+        sets.append(DrawnSet("terminal", "terminal box x* +- H", "boxes", self.x_star[None], self.H[None],
+                             np.array([self.T0])))
+        tgt = st.get("target")
+        if tgt:
+            lo, hi = np.asarray(tgt["lo"], float), np.asarray(tgt["hi"], float)
+            sets.append(DrawnSet("target", "target box", "boxes", ((lo + hi) / 2)[None], ((hi - lo) / 2)[None],
+                                 np.array([self.T0])))
+        head = (f"{name}: proved with {gw}, {self.T0} periods to x* +- H, margin gamma x "
+                f"{st.get('gap_scale_text', '?')}" + (f"; p_cert {per_run.p_cert:.3g} per run" if per_run else ""))
+        return Statement(method=KIND, name=name, proved=True, headline=head, set_name="the tube", rows=rows,
+                         sets=sets, per_run=per_run, notes=notes)
+
     # ----- files ----------------------------------------------------------------------
     def save(self, path) -> Path:
         arrays = {k: getattr(self, k) for k in ARRAYS}

@@ -31,12 +31,14 @@ IMAGE_UP = (0.0, 1.0, 0.0, 0.0)
 
 
 class Frame:
-    """Affine map of the (first two) state dimensions to the display square [-1, 1]^2."""
+    """Affine map of two state dimensions ``dims`` (default the first two) to the display square
+    [-1, 1]^2."""
 
-    def __init__(self, system: System):
+    def __init__(self, system: System, dims=(0, 1)):
         self.system = system
-        self.lo = system.x_lo[:2].astype(float)
-        self.hi = system.x_hi[:2].astype(float)
+        self.dims = [int(d) for d in dims] if system.n >= 2 else [0]
+        self.lo = system.x_lo[self.dims].astype(float)
+        self.hi = system.x_hi[self.dims].astype(float)
         if system.n == 1:  # pad a 1-D system with a flat second axis
             self.lo = np.array([self.lo[0], -1.0])
             self.hi = np.array([self.hi[0], 1.0])
@@ -46,7 +48,7 @@ class Frame:
     def xy(self, x: np.ndarray) -> np.ndarray:
         """States (..., n) -> display (..., 3) with z = 0."""
         x = np.asarray(x, dtype=float)
-        xy = x[..., :2] if x.shape[-1] >= 2 else np.concatenate([x, np.zeros_like(x)], axis=-1)
+        xy = x[..., self.dims] if x.shape[-1] >= 2 else np.concatenate([x, np.zeros_like(x)], axis=-1)
         out = np.zeros(x.shape[:-1] + (3,))
         out[..., :2] = (xy - self.center) / self.half
         return out
@@ -433,8 +435,8 @@ def spec_outlines(frame: Frame, spec) -> tuple:
             boxes.append((getattr(spec, attr), rgb))
     segs, cols = [], []
     for box, rgb in boxes:
-        lo = np.maximum(np.asarray(box.lo, float)[:2], frame.lo)
-        hi = np.minimum(np.asarray(box.hi, float)[:2], frame.hi)
+        lo = np.maximum(np.asarray(box.lo, float)[frame.dims], frame.lo)
+        hi = np.minimum(np.asarray(box.hi, float)[frame.dims], frame.hi)
         c = frame.xy(np.array([[lo[0], lo[1]], [hi[0], lo[1]], [hi[0], hi[1]], [lo[0], hi[1]]]))
         segs.append(np.stack([c, np.roll(c, -1, axis=0)], axis=1))
         cols.append(np.broadcast_to(np.array(rgb, np.uint8), (4, 2, 3)))

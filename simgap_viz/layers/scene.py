@@ -39,7 +39,8 @@ from .bodies import MODEL_BODIES
 PENDULUM_PIVOT = (1.9, 0.0, 1.2)  # where the pendulum's pivot stands, beside the state square
 PENDULUM_ROD = 1.0  # its rod's length [m] (assets/urdf/pendulum.urdf): the free end hangs at z = 0.2
 MODEL_LEFT = 1.5  # a robot file's model stands beside the square: its bounding box starts at this x
-MODEL_SIZE = 2.5  # ... and is scaled down to this largest extent (display units) if larger
+MODEL_SIZE = 2.5  # ... and is scaled to this largest extent (display units)
+MODEL_FIXED_SPAN = 4.0  # a fixed geom more than this times the moving geoms' span is not drawn (a ground plane)
 SURFACE_RES = 41
 GAMMA_VISIBLE = 0.15  # a gamma that varies by less than this share of its largest value on the slice is
 # not drawn as a surface (a flat sheet over the map says nothing a number cannot): the legend gives its value
@@ -96,6 +97,18 @@ def _drawn(app) -> dict:
     return d
 
 
+def plane_dims(app) -> tuple:
+    """The two states the map plane shows: ``app.view["dims"]`` (the projection selector of a set
+    method's run), else the first two."""
+    d = tuple(int(i) for i in (getattr(app, "view", None) or {}).get("dims") or (0, 1))
+    n = app.system.n
+    return d if len(d) == 2 and d[0] != d[1] and all(0 <= i < n for i in d) else (0, 1)
+
+
+def plane_frame(app) -> G.Frame:
+    return G.Frame(app.system, plane_dims(app))
+
+
 def _unchanged(app, name: str, result, *params) -> bool:
     """True if ``name`` was last drawn from this very ``result`` object and equal ``params``
     (nothing to send); else records them as drawn (holding the result, so its id is not reused)."""
@@ -126,8 +139,8 @@ def draw_axes(app) -> None:
     _remove(app, "/axes")
     s = app.system
     names = [labelled(n, u) for n, u in zip(s.state_names, units(s)[0])] + ([""] if s.n < 2 else [])
-    frame = G.Frame(s)
-    _square_axes(app.server.scene, "/axes", frame.lo, frame.hi, names[:2])
+    frame = plane_frame(app)
+    _square_axes(app.server.scene, "/axes", frame.lo, frame.hi, [names[d] for d in frame.dims] + names[1:1])
 
 
 def _square_axes(sc, prefix: str, lo, hi, names, offset=(0.0, 0.0, 0.0)) -> None:
@@ -158,7 +171,7 @@ def draw_map(app) -> None:
         spec = app.current_spec()
     except Exception:  # no specification for this system: nothing to outline
         return
-    segs, cols = G.spec_outlines(G.Frame(app.system), spec)
+    segs, cols = G.spec_outlines(plane_frame(app), spec)
     if len(segs):
         segs[..., 2] = 0.01
         app.server.scene.add_line_segments("/map", points=segs, colors=cols, thickness=3.0,
@@ -239,14 +252,15 @@ def draw_model_bodies(app) -> None:
             sc.add_label("/bodies/label", text=note, anchor="bottom-left", position=(MODEL_LEFT, 0.0, 0.1),
                          visible=vis, font_screen_scale=0.7)
         return
-    _, lo, hi, k = _model_placement(app, bodies)
+    _, lo, hi, k, shown = _model_placement(app, bodies)
     offset = np.array([MODEL_LEFT - k * lo[0], -0.5 * k * (lo[1] + hi[1]), -k * lo[2]])
     frame = sc.add_frame("/bodies/model", show_axes=False, position=tuple(offset), scale=k, visible=vis)
-    handles = [_add_mesh(sc, f"/bodies/model/{i}_{name}", mesh) for i, (name, mesh) in
-               enumerate(zip(bodies.names, bodies.meshes))]
+    handles = [_add_mesh(sc, f"/bodies/model/{i}_{name}", mesh, visible=bool(shown[i]) if i < shown.size else True)
+               for i, (name, mesh) in enumerate(zip(bodies.names, bodies.meshes))]
+    # in front of the model (seen from above, a label over it would hide it)
     sc.add_label("/bodies/label", text=f"{MODEL_BODIES[app.settings.simulator][0]}: {bodies.path.name}",
-                 anchor="bottom-center", visible=vis,
-                 position=(MODEL_LEFT + 0.5 * k * (hi[0] - lo[0]), 0.0, k * (hi[2] - lo[2]) + 0.1))
+                 anchor="top-center", visible=vis,
+                 position=(MODEL_LEFT + 0.5 * k * (hi[0] - lo[0]), -0.5 * k * (hi[1] - lo[1]) - 0.05, 0.0))
     app.body_frame = frame
     app.body_model = (bodies, handles)
     pose_bodies(app, None)
@@ -266,16 +280,25 @@ def _model(app) -> tuple:
 
 
 def _model_placement(app, bodies) -> tuple:
-    """(rest state, lo (3,), hi (3,) [m] of the geoms at it, display scale k)."""
+    """(rest state, lo (3,), hi (3,) [m] of the shown geoms at it, display scale k, shown (G,) bool).
+
+    A geom is shown unless it stays fixed and is more than ``MODEL_FIXED_SPAN`` times larger than
+    the geoms the state moves (a ground plane of 2 m under a 0.2 m arm would shrink the arm to a few
+    pixels); the shown geoms are scaled to ``MODEL_SIZE`` display units (up or down)."""
     base = engine.base_system(app.system)
     x = _rest_state(app, base)
-    meshes = [m for _, m in bodies.meshes_at(x)]
-    if not meshes:
-        return x, np.zeros(3), np.zeros(3), 1.0
-    lo = np.min([m.bounds[0] for m in meshes], axis=0)
-    hi = np.max([m.bounds[1] for m in meshes], axis=0)
-    ext = float(np.max(hi - lo))
-    return x, lo, hi, min(1.0, MODEL_SIZE / ext) if ext > 0 else 1.0
+    placed = [m for _, m in bodies.meshes_at(x)]
+    if not placed:
+        return x, np.zeros(3), np.zeros(3), 1.0, np.zeros(0, bool)
+    b = np.array([m.bounds for m in placed])                       # (G, 2, 3)
+    moved = np.array([m.bounds for _, m in bodies.meshes_at(x + 0.3)])
+    moves = np.abs(moved - b).max(axis=(1, 2)) > 1e-9
+    ext = np.ptp(b, axis=1).max(axis=1)
+    span = float(np.ptp(np.concatenate(b[moves]), axis=0).max()) if moves.any() else float(ext.max())
+    shown = moves | (ext <= MODEL_FIXED_SPAN * span)
+    lo, hi = b[shown, 0].min(axis=0), b[shown, 1].max(axis=0)
+    e = float(np.max(hi - lo))
+    return x, lo, hi, MODEL_SIZE / e if e > 0 else 1.0, shown
 
 
 def _rest_state(app, base) -> np.ndarray:
@@ -464,42 +487,67 @@ def draw_winning(app) -> int:
     return wm["counts"]["winning"]
 
 
-# ----- invariant sets ---------------------------------------------------------------------------
+# ----- proved sets -----------------------------------------------------------------------------
 SET_COLORS = {"deterministic": (31, 119, 180), "stochastic": (255, 127, 14), "nominal": (44, 160, 44)}  # the figures'
+#: the loaded method's sets by role: color and line width [px]
+ROLE_STYLE = {"tube": ((230, 110, 0), 1.5), "noise_tube": ((150, 150, 150), 1.0), "terminal": ((120, 40, 0), 3.0),
+              "target": ((20, 150, 60), 2.5), "ellipsoid": (None, 3.0)}
+#: at most this many boxes of a tube drawn (every k-th period, the last always)
+MAX_BOXES = 60
+
+
+def _statements(app) -> list:
+    """(method, Statement) of every method of the loaded run with a proved set (the nominal model last)."""
+    run = getattr(app, "run", None)
+    if run is None:
+        return []
+    out = [(m, r.statement) for m, r in run.methods.items()]
+    if getattr(run, "nominal", None) is not None:
+        out.append(("nominal", run.nominal.statement))
+    return [(m, st) for m, st in out if st is not None and st.proved and any(s.kind != "cells" for s in st.sets)]
 
 
 def draw_invariant_sets(app) -> list:
-    """Each invariant set E a loaded invariant-set run proved (the methods' and the nominal model's), as
-    its PROJECTION onto the map's two states (the engine's ``EllipsoidController.projection_outline``:
-    every (x1, x2) of a point of E, not the slice through x*), a closed line in the method's color with
-    its centre x* marked. Returns [(method, half-widths of the projection (2,))] drawn."""
-    from ..results import proved_sets
+    """The sets each method of a loaded set-method run proved, in its own words (its
+    :class:`~simgap.synthesis.statement.Statement`), projected onto the map plane's two states: the
+    loaded method's every set (a tube's boxes along the plan, its noise tube, the terminal and target
+    boxes; an ellipsoid's shadow: every (x1, x2) of a point of E, not its slice), the other methods'
+    first set in their color. Returns [(method, role, label, color, half-widths (2,) of the last
+    outline drawn)]."""
+    stmts = _statements(app) if app.layers_visible.get("invariant", True) and app.system.n >= 2 else []
+    dims = plane_dims(app)
+    key = (tuple(m for m, _ in stmts), getattr(app, "run_method", None), dims)
     run = getattr(app, "run", None)
-    sets = proved_sets(run) if run is not None and app.layers_visible.get("invariant", True) else []
-    if app.system.n < 2:
-        sets = []
-    key = tuple(m for m, _ in sets)
     if getattr(app, "invariant_drawn", None) is not None and _unchanged(app, "/invariant", run, key):
         return app.invariant_drawn
     _remove(app, "/invariant")
     _unchanged(app, "/invariant", run, key)  # recorded again (_remove forgets it)
     drawn = []
-    frame = G.Frame(app.system)
+    frame = plane_frame(app)
     sc = app.server.scene
-    for m, ctrl in sets:
-        outline = ctrl.projection_outline((0, 1))
-        P = G.polyline_segments(frame, outline)
-        P[..., 2] = 0.009
-        color = SET_COLORS.get(m, G.GREEN)
-        sc.add_line_segments(f"/invariant/{m}", points=P, colors=color, thickness=3.0, thickness_units="screen")
-        c = frame.xy(ctrl.x_star[None])[0]
-        cross = np.array([[[c[0] - 0.03, c[1], 0.009], [c[0] + 0.03, c[1], 0.009]],
-                          [[c[0], c[1] - 0.03, 0.009], [c[0], c[1] + 0.03, 0.009]]], np.float32)
-        sc.add_line_segments(f"/invariant/{m}_centre", points=cross, colors=color, thickness=2.0,
-                             thickness_units="screen")
-        drawn.append((m, 0.5 * np.ptp(outline, axis=0)))
+    for m, st in stmts:
+        mine = m == getattr(app, "run_method", None)
+        for k, ds in enumerate(st.sets if mine else st.sets[:1]):
+            if ds.kind == "cells":
+                continue
+            color, width = ROLE_STYLE.get(ds.role, (None, 2.0))
+            color = color if mine and color is not None else SET_COLORS.get(m, G.GREEN)
+            every = max(1, -(-len(ds.centers) // MAX_BOXES)) if ds.kind == "boxes" else 1
+            outl = ds.outlines(dims, every)
+            P = np.concatenate([G.polyline_segments(frame, _lift(o, dims, app.system.n)) for o in outl])
+            P[..., 2] = 0.009 + 0.0005 * k
+            sc.add_line_segments(f"/invariant/{m}/{ds.role}", points=P, colors=color, thickness=width,
+                                 thickness_units="screen")
+            drawn.append((m, ds.role, ds.label, color, 0.5 * np.ptp(outl[-1], axis=0)))
     app.invariant_drawn = drawn
     return drawn
+
+
+def _lift(outline: np.ndarray, dims, n: int) -> np.ndarray:
+    """A (k, 2) outline on states ``dims`` as (k, n) states (the others 0) for the frame's map."""
+    x = np.zeros((len(outline), n))
+    x[:, list(dims)] = outline
+    return x
 
 
 # ----- rollouts ---------------------------------------------------------------------------------
@@ -512,10 +560,10 @@ def draw_rollouts(app) -> int:
         _remove(app, "/rollouts")
         app.rollout_drawn = None
         return 0
-    if _unchanged(app, "/rollouts", res, int(app.view.get("n_draw", N_DRAW))):
+    if _unchanged(app, "/rollouts", res, int(app.view.get("n_draw", N_DRAW)), plane_dims(app)):
         show_time(app, app.view.get("t", None))
         return app.rollout_drawn["segments"]
-    frame = G.Frame(app.system)
+    frame = plane_frame(app)
     traj, failed, mean, nominal = engine.rollout_arrays(res)
     idx = G.rollout_subset(failed, int(app.view.get("n_draw", N_DRAW)))
     sc = app.server.scene
@@ -556,7 +604,7 @@ def show_time(app, t) -> None:
     traj, failed, _, _ = engine.rollout_arrays(res)
     t = int(np.clip(t, 0, traj.shape[1] - 1))
     idx = G.rollout_subset(failed, int(app.view.get("n_draw", N_DRAW)))
-    frame = G.Frame(app.system)
+    frame = plane_frame(app)
     P = frame.xy(traj[idx, t]).astype(np.float32)
     P[:, 2] = 0.012
     col = np.where(failed[idx, None], np.array(G.RED, np.uint8), np.array((30, 60, 160), np.uint8))
@@ -580,7 +628,7 @@ def scene_bounds(app) -> tuple:
         hi[2] = max(hi[2], PENDULUM_PIVOT[2] + 0.1)
     mj = getattr(app, "body_model", None)
     if mj is not None and app.layers_visible.get("bodies", True):
-        _, blo, bhi, k = _model_placement(app, mj[0])
+        _, blo, bhi, k, _ = _model_placement(app, mj[0])
         hi[0] = max(hi[0], MODEL_LEFT + k * (bhi[0] - blo[0]))
         hi[2] = max(hi[2], k * (bhi[2] - blo[2]) + 0.2)
     if app.results.get("refine") is not None:  # the residual plane: points at z in [-0.3, 1.3], label at 1.45
@@ -624,7 +672,9 @@ def window_camera(app, win=None) -> tuple:
     d /= np.linalg.norm(d)
     right = np.cross(-d, [0.0, 0.0, 1.0])
     right /= np.linalg.norm(right)
-    dist = r * 1.75 if surface else max(r * 1.12, 2.4)  # the flat map: close, but whole
+    # the flat map: close, but whole (a model beside the square widens the scene: 60 % of its width
+    # must fit in half the free part's width at the look-at distance)
+    dist = r * 1.75 if surface else max(r * 1.12, 2.4, 0.6 * float(hi[0] - lo[0]) / (np.tan(_FOV / 2) * _FREE_ASPECT))
     if win is not None:  # this window's size and panel: the scene centred in the part the panel leaves
         return _fit_to_window(c, d, right, dist, win["size"], win["panel"], closer=not surface)
     look = c + 0.3 * r * right  # the control panel covers the canvas' right third
@@ -708,7 +758,7 @@ def draw_results(app) -> None:
 
 for _layer in (Layer("winning", "Winning domain", ("/winning",), draw_winning),
                Layer("map", "Map / spec", ("/map",), draw_map, system=True),
-               Layer("invariant", "Invariant sets E", ("/invariant",), draw_invariant_sets),
+               Layer("invariant", "Proved sets", ("/invariant",), draw_invariant_sets),
                Layer("rollouts", "Rollouts", ("/rollouts",), draw_rollouts),
                Layer("gamma", "Gamma surface", ("/gamma/surface", "/gamma/axes", "/zaxis"), draw_gamma),
                Layer("data", "Data gaps", ("/gamma/data",), draw_gamma),

@@ -136,6 +136,8 @@ class PerRunPanel(Panel):
         self.note.visible = not have
         if not have:
             self.plot.visible = False
+            stated = method_statements(app.run)
+            self.note.content = stated or NO_RESULTS
             return layer.draw(app)
         names = tuple(pr.controllers)
         with app.lock:
@@ -167,6 +169,36 @@ class PerRunPanel(Panel):
         self.overview.content = overview_markdown(pr)
         self.states.content = f"**{label(st.name)}**, per initial state:\n\n" + states_markdown(st)
         return drawn
+
+
+def method_statements(run) -> str:
+    """The per-run statement of every method of ``run`` that states one (a box tube's noise tube; the
+    method's own :class:`~simgap.synthesis.statement.PerRunStatement`) beside the p_emp of the run's
+    rollouts from x0, as a table; "" when no method states one."""
+    if run is None:
+        return ""
+    entries = dict(run.methods)
+    if getattr(run, "nominal", None) is not None:
+        entries["nominal"] = run.nominal
+    rows, notes = [], []
+    for m, r in entries.items():
+        st = getattr(r, "statement", None)
+        if st is None or st.per_run is None:
+            continue
+        pr = st.per_run
+        e = ((run.summary or {}).get("methods", {}).get(m) or {}).get("per_run_empirical") or {}
+        emp = (f"{e['p_emp']:.4f} [{e['ci95'][0]:.4f}, {e['ci95'][1]:.4f}] ({e['successes']} / {e['n_rollouts']})"
+               if "p_emp" in e else "-")
+        inside = f"{e['in_noise_tube']} / {e['n_rollouts']}" if "in_noise_tube" in e else "-"
+        ok = "-" if "p_emp" not in e else ("yes" if sound(pr.p_cert, e["p_emp"], e["se"], e["n_rollouts"]) else "**NO**")
+        rows.append(f"| {m} | **{pr.p_cert:.4f}** | {emp} | {inside} | {ok} |")
+        notes.append(f"**{m}** ({st.name}): P({pr.event}) >= p_cert; rests on {pr.rests_on}.")
+    if not rows:
+        return ""
+    return ("**Per-run statements of the methods** (proved about single runs, beside the run's rollouts from x0; "
+            "p_emp: successes of the spec, 95 % Clopper-Pearson interval)\n\n"
+            "| method | p_cert | p_emp [95 % CI] | runs in p_cert's event | p_emp >= p_cert - 3 SE |\n|---|---|---|---|---|\n"
+            + "\n".join(rows) + "\n\n" + "  \n".join(notes))
 
 
 def conditional_note(meta: dict) -> str:

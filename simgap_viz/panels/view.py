@@ -26,6 +26,14 @@ class ViewPanel(Panel):
                                          hint=f"draw gamma as a surface even where it varies by less than "
                                               f"{100 * scene.GAMMA_VISIBLE:.0f} % on the slice")
             self.flat.on_update(lambda _e: app.set_flat_gamma(bool(self.flat.value)))
+        with gui.add_folder("Plane"):
+            names = list(app.system.state_names)
+            self.plane = [gui.add_dropdown(f"plane {ax}", options=names, initial_value=names[min(i, len(names) - 1)],
+                                           hint="the two states the map plane shows (the proved sets, runs and "
+                                                "safe set projected onto them); a grid run: its first two")
+                          for i, ax in enumerate(("x", "y"))]
+            for h in self.plane:
+                h.on_update(lambda _e: self._plane_changed())
         with gui.add_folder("Legend"):
             self.colorbar = gui.add_image(colorbar(256, 12), format="png")
             self.legend = gui.add_markdown("*no certificate yet*")
@@ -80,13 +88,11 @@ class ViewPanel(Panel):
         sets = getattr(app, "invariant_drawn", None) or []
         if sets:
             from ..results import unproved_sets
-            names = app.system.state_names[:2]
-            col = {"deterministic": "blue", "stochastic": "orange", "nominal": "green"}
-            parts = [f"{col.get(m, 'green')}: {m}" + (" model (no gap)" if m == "nominal" else " gap")
-                     + f", half-widths {hw[0]:.3g}, {hw[1]:.3g}" for m, hw in sets]
+            names = [app.system.state_names[d] for d in scene.plane_dims(app)]
+            parts = [f"{_color_word(c)}: {label}" + ("" if m == app.run_method else f" ({m})") for m, _r, label, c, _hw in sets]
             fails = [m + ("" if s_ is None else f" (gap margin s = {s_:.2g})") for m, s_ in unproved_sets(app.run)]
-            rows.append(f"| invariant sets E | projection onto ({', '.join(names)}), + at x*; " + "; ".join(parts)
-                        + (f"; no set proved: {', '.join(fails)}" if fails else "") + " |")
+            rows.append(f"| proved sets | projection onto ({', '.join(names)}); " + "; ".join(parts)
+                        + (f"; not proved: {', '.join(fails)}" if fails else "") + " |")
         if getattr(app.run, "per_run", None) is not None and app.perrun_view["map"]:
             rows.append("| p_cert map | drawn over the winning map (Per run tab: colors, toggle) |")
         rd = app.rollout_drawn
@@ -126,6 +132,13 @@ class ViewPanel(Panel):
                 rows.append(f"| data gaps ({lg['points']}) | grey: no certificate yet |")
         self.legend.content = ("| layer | shows |\n|---|---|\n" + "\n".join(rows)) if rows else "*nothing drawn yet*"
 
+    def _plane_changed(self) -> None:
+        app = self.app
+        names = list(app.system.state_names)
+        if getattr(app, "_syncing", False) or any(p.value not in names for p in self.plane):
+            return
+        app.guarded(app.set_plane, [names.index(p.value) for p in self.plane])
+
     def rebuild_sliders(self) -> None:
         """(Re)create the slice controls for the current system's variables."""
         app = self.app
@@ -133,6 +146,15 @@ class ViewPanel(Panel):
             h.remove()
         self.handles, self.sliders = [], []
         sysm = app.system
+        states, d = list(sysm.state_names), scene.plane_dims(app)
+        prev, app._syncing = getattr(app, "_syncing", False), True
+        try:
+            for h, i in zip(self.plane, d if sysm.n >= 2 else (0, 0)):
+                h.options = states
+                h.value = states[i]
+                h.disabled = sysm.n < 3
+        finally:
+            app._syncing = prev
         names = variable_names(sysm)
         rng = variable_ranges(sysm)
         if app.view.get("fixed") is None:
@@ -160,6 +182,15 @@ class ViewPanel(Panel):
         v = self.app.view
         for j, s in enumerate(self.sliders):
             s.disabled = j in (v["a"], v["b"])
+
+
+#: the words for the colors the proved-sets layer draws with (scene.ROLE_STYLE, scene.SET_COLORS)
+COLOR_WORDS = {(230, 110, 0): "orange", (150, 150, 150): "grey", (120, 40, 0): "dark brown", (20, 150, 60): "green",
+               (31, 119, 180): "blue", (255, 127, 14): "orange", (44, 160, 44): "green"}
+
+
+def _color_word(rgb) -> str:
+    return COLOR_WORDS.get(tuple(int(v) for v in rgb), "line")
 
 
 def build(app) -> ViewPanel:

@@ -1,4 +1,4 @@
-"""The set-based methods inside ``simgap run`` and ``simgap synthesize``: ``[synthesis] method =
+"""The set-based synthesis stage (formerly ``set_synthesis``): the methods inside ``simgap run`` and ``simgap synthesize``: ``[synthesis] method =
 "invariant_set"`` (an ellipsoid) and ``"box_tube"`` (a box tube from x0, reach and stay): checks before
 any work, the synthesis call with the experiment's options, and the rollouts from states drawn in the
 proved set (docs/synthesis.md, "Invariant sets" and "Box tubes")."""

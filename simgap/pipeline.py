@@ -67,7 +67,7 @@ def certify_options(section: dict, method: str, system=None):
         else:
             s["terms"] = {int(k): list(v) for k, v in s["terms"].items()}
     if method == "deterministic":
-        for k in ("delta1", "delta2", "beta1", "beta2", "variance", "safety", "value_range"):
+        for k in ("delta1", "delta2", "beta1", "beta2", "confidence", "variance", "safety", "value_range"):
             s.pop(k, None)
     return CertifyOptions(method=method, bounds=BoundOptions(**bkw), **s)
 
@@ -445,7 +445,8 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
             wrote(f"audit_{method}.json")
             if invariant:
                 sres = stage(f"synthesize/{method}", lambda: invariant_stage.synthesize(
-                    exp.system, spec, cert, syn, x0=x0, horizon=ro.get("horizon")))
+                    exp.system, spec, cert, syn, x0=x0, horizon=ro.get("horizon"),
+                    log=lambda t: log(f"[synthesize/{method}] {t}")))
                 if not sres.empty:  # no set proved: nothing written (the summary says why)
                     sres.controller.save(out / f"controller_{method}.npz")
                     wrote(f"controller_{method}.npz")
@@ -482,7 +483,8 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
         if invariant and syn.get("nominal", True):
             # the nominal model without any gap: what the set and the rollouts look like when the proof
             # ignores the simulation gap (no guarantee about the simulator)
-            sres = stage("synthesize/nominal", lambda: invariant_stage.synthesize(exp.system, spec, None, syn, x0=x0))
+            sres = stage("synthesize/nominal", lambda: invariant_stage.synthesize(
+                exp.system, spec, None, syn, x0=x0, log=lambda t: log(f"[synthesize/nominal] {t}")))
             if not sres.empty:
                 sres.controller.save(out / "controller_nominal.npz")
                 wrote("controller_nominal.npz")

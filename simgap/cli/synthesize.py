@@ -260,7 +260,8 @@ def _invariant_set(args, system, spec, gap, syn, x0) -> int:
     if args.hold not in (None, 1):
         raise SimgapError(f"--method {meth} applies u(x) every period: --hold must be 1")
     invariant_stage.check_section(system, dict(syn, hold=1), spec)
-    res = invariant_stage.synthesize(system, spec, gap, syn, x0=x0, horizon=args.horizon)
+    res = invariant_stage.synthesize(system, spec, gap, syn, x0=x0, horizon=args.horizon,
+                                     log=lambda t: print(f"[synthesize] {t}", file=sys.stderr, flush=True))
     if meth == "box_tube":
         return _finish(args, res, x0, spec, "no box tube proved", "the box tube")
     return _finish(args, res, x0, spec, "no invariant set proved", "the invariant set E")

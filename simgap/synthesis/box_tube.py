@@ -608,7 +608,7 @@ def largest_proved(proves, passes: int = 3) -> float:
 
 
 def noise_tube(system, plan: TubePlan, lo, hi, u_lo, u_hi, gap, imap, shells: int, horizon: int,
-               target_lo=None, target_hi=None):
+               target_lo=None, target_hi=None, passes: int = 3):
     """(NoiseTube or None, reason): the per-run statement of :mod:`.noise_tube` for runs of
     ``horizon`` periods: the largest lam for which the proof of ``plan`` holds with every box widened
     by lam times the noise response's proxy (searched as :func:`tolerable_scale`; the terminal box
@@ -639,7 +639,7 @@ def noise_tube(system, plan: TubePlan, lo, hi, u_lo, u_hi, gap, imap, shells: in
                               target_hi, zbar=lams[:, None, None] * tube_proxy[None], A_lin=A_lin,
                               zbar_T=lams[:, None] * term_proxy[None], A_star=A_star)
 
-    lam = largest_proved(lambda grid: [v.ok for v in design(grid)])
+    lam = largest_proved(lambda grid: [v.ok for v in design(grid)], passes)
     if lam <= 0:
         return None, "the tube's proof fails for any noise (4^-10 x the noise's proxy already)"
     if not np.isfinite(lam):
@@ -674,7 +674,8 @@ class BoxTubeResult:
         lines = [f"system        {s['system']} (tau = {s['tau']:g} s), box-tube synthesis (reach and stay)",
                  f"equilibrium   x* = {s['x_star']}, u* = {s['u_star']} (residual {s['residual_max']:.2g})",
                  f"feedback      K = {s['K']} ({s['K_how']}); spectral radius {s['spectral_radius']:.6f}",
-                 f"plan          {s['T0']} periods from x0 = {s['x0']} (input margin {s['input_margin']:g})",
+                 f"plan          {s['T0']} periods from x0 = {s['x0']} (input margin {s['input_margin']:g}; pace "
+                 f"x{s['plan_input_weight']:g}: {s.get('pace_how', 'given')})",
                  f"gap           {s['gap_how']}"]
         v = s.get("verification")
         if v is not None:
@@ -696,6 +697,9 @@ class BoxTubeResult:
                                                  f"x its proxy)"))
         else:
             lines.append(f"note          {s['diagnosis']}")
+            if s.get("levers_text"):
+                lines.append("levers        what gamma would have to lose per state, and what each lever needs:")
+                lines.extend("              " + t for t in s["levers_text"])
         lines.append(f"time          {s['seconds']:.3f} s, peak memory {s['peak_rss_mb']:.0f} MB (process max RSS)")
         return "\n".join(lines)
 
@@ -703,8 +707,8 @@ class BoxTubeResult:
 def synthesize_box_tube(system: System, spec: Spec, gap=None, *, x0, x_star=None, u_star=None, K=None,
                         lqr_q=None, lqr_r=None, target_lo=None, target_hi=None, shells: int = SHELLS,
                         input_margin: float = INPUT_MARGIN, margin_search: bool = True,
-                        terminal: str = "largest", K_plan=None, plan_input_weight: float = 1.0,
-                        per_run: bool = True, horizon: Optional[int] = None) -> BoxTubeResult:
+                        terminal: str = "largest", K_plan=None, plan_input_weight: Optional[float] = None,
+                        per_run: bool = True, horizon: Optional[int] = None, log=None) -> BoxTubeResult:
     """Design and prove a box tube from x0 to a box around x* (module docstring).
 
     Parameters
@@ -727,9 +731,11 @@ def synthesize_box_tube(system: System, spec: Spec, gap=None, *, x0, x_star=None
     K_plan : (m, n), optional
         The gain of the nominal plan (default: the LQR with Bryson's weights over the safe box, a
         gentle loop that keeps the plan in X).
-    plan_input_weight : float > 0
-        Multiplies the default plan's input weight: larger, a slower plan with smaller velocities
-        (more room around it for the noise of single runs; more periods T0).
+    plan_input_weight : float > 0, optional
+        The plan's pace: multiplies the default plan's input weight: larger, a slower plan with smaller
+        velocities (more room around it for the noise of single runs; more periods T0). Default: chosen
+        among :data:`~simgap.synthesis.tube_design.PACES` by what each proves
+        (:mod:`~simgap.synthesis.tube_design`; with ``margin_search=False`` the fastest pace that proves).
     target_lo, target_hi : optional
         The target box the state must reach and stay in (default: no target beyond S; the terminal
         box x* +- H is reported).
@@ -748,8 +754,25 @@ def synthesize_box_tube(system: System, spec: Spec, gap=None, *, x0, x_star=None
         statement of :mod:`.noise_tube` (the noise the proof tolerates; the controller carries its
         tube, the rollouts evaluate P(a run stays in it for T periods)) for runs of ``horizon``
         periods (default 2 T0 + 1, the rollouts' default).
+    log : callable(str), optional
+        Receives a line per design step (K, each pace, the proof, the margin, the per-run bound) and,
+        from a :class:`~simgap.progress.StageLog`, a line at least every 10 s while a step runs.
     """
     t0 = time.perf_counter()
+    from ..progress import StageLog
+    if not isinstance(log, StageLog):
+        log = StageLog("", log)
+    with log:
+        res = _synthesize_box_tube(system, spec, gap, x0, x_star, u_star, K, lqr_q, lqr_r, target_lo, target_hi,
+                                   shells, input_margin, margin_search, terminal, K_plan, plan_input_weight, per_run,
+                                   horizon, log)
+    res.stats["seconds"] = time.perf_counter() - t0
+    return res
+
+
+def _synthesize_box_tube(system, spec, gap, x0, x_star, u_star, K, lqr_q, lqr_r, target_lo, target_hi, shells,
+                         input_margin, margin_search, terminal, K_plan, plan_input_weight, per_run, horizon,
+                         log) -> BoxTubeResult:
     if spec.kind != "invariance" or spec.obstacles:
         raise SimgapError("the box-tube synthesis handles an invariance specification (a safe box without "
                           "obstacles; the target box is given by target_lo / target_hi)")
@@ -800,12 +823,8 @@ def synthesize_box_tube(system: System, spec: Spec, gap=None, *, x0, x_star=None
     sroom = np.minimum(x_star - lo, hi - x_star)
     if K is None or K_plan is None:
         check_stabilizable(A, B, system.state_names)
-    if not (np.isfinite(plan_input_weight) and plan_input_weight > 0):
+    if plan_input_weight is not None and not (np.isfinite(plan_input_weight) and plan_input_weight > 0):
         raise SimgapError(f"box tube: plan_input_weight must be a number > 0, got {plan_input_weight!r}")
-    if K_plan is None:  # the plan: Bryson's weights over the safe box (gentle: the plan must stay in X)
-        K_plan = lqr_gain(A, B, 1.0 / sroom ** 2, float(plan_input_weight) / uroom ** 2)
-    else:
-        K_plan = _parse_matrix(K_plan, m, n)
     if K is None:
         if lqr_q is not None or lqr_r is not None:
             q = 1.0 / room ** 2 if lqr_q is None else np.broadcast_to(np.asarray(lqr_q, float), (n,))
@@ -814,52 +833,125 @@ def synthesize_box_tube(system: System, spec: Spec, gap=None, *, x0, x_star=None
                 raise SimgapError("box tube: LQR weights need q >= 0 and r > 0")
             K, K_how = lqr_gain(A, B, q, rr), "discrete LQR of the linearization (given weights)"
         else:
+            log.doing("choosing K")
             K, K_how = box_tolerant_gain(A, B, x_star, u_star, room, uroom, gap, system)
     else:
         K, K_how = _parse_matrix(K, m, n), "given"
     rho0 = spectral_radius(A + B @ K)
     if rho0 >= 1:
         raise SimgapError(f"box tube: K does not stabilize the linearization at x*: spectral radius {rho0:.6g} >= 1")
-    if spectral_radius(A + B @ K_plan) >= 1:
-        raise SimgapError("box tube: K_plan does not stabilize the linearization at x*")
-    x_nom, u_nom = plan_nominal(system, x0, x_star, u_star, K_plan, u_lo, u_hi, float(input_margin),
-                                tol=PLAN_TOL * room)
-    plan = TubePlan(x_nom, u_nom, K, x_star, u_star, np.zeros(n))
-    v = design_H(system, plan, lo, hi, u_lo, u_hi, gap, imap, int(shells), 1.0, target_lo, target_hi)
+    log(f"feedback K: {K_how}; spectral radius {rho0:.4f}")
+    shells = int(shells)
+    T_run = None if horizon is None else int(horizon)
+
+    def plan_for(pace):
+        """The nominal plan at a pace (the plan's input weight factor), or the given K_plan (pace None)."""
+        if pace is None:
+            Kp = _parse_matrix(K_plan, m, n)
+            if spectral_radius(A + B @ Kp) >= 1:
+                raise SimgapError("box tube: K_plan does not stabilize the linearization at x*")
+        else:  # Bryson's weights over the safe box (gentle: the plan must stay in X), the input's x pace
+            Kp = lqr_gain(A, B, 1.0 / sroom ** 2, float(pace) / uroom ** 2)
+        x_nom, u_nom = plan_nominal(system, x0, x_star, u_star, Kp, u_lo, u_hi, float(input_margin),
+                                    tol=PLAN_TOL * room)
+        plan = TubePlan(x_nom, u_nom, K, x_star, u_star, np.zeros(n))
+        v = design_H(system, plan, lo, hi, u_lo, u_hi, gap, imap, shells, 1.0, target_lo, target_hi)
+        return plan, v
+
+    def horizon_of(plan):
+        return 2 * plan.T0 + 1 if T_run is None else T_run
+
+    # ----- the pace: given, or the best of PACES (tube_design's ranking) -----
+    from .tube_design import PACES, PaceCandidate, best_candidate, why_chosen
+    paces = (None,) if K_plan is not None else (PACES if plan_input_weight is None else (float(plan_input_weight),))
+    cands, designs = [], {}
+    search = len(paces) > 1
+    for k, pace in enumerate(paces):
+        c = PaceCandidate(pace=1.0 if pace is None else pace)
+        t1 = time.perf_counter()
+        log.doing(f"pace x{c.pace:g} ({k + 1} of {len(paces)}): plan, terminal box" + (", margin" if search else ""))
+        try:
+            plan, v = plan_for(pace)
+        except SimgapError as e:
+            c.error = str(e).removeprefix("box tube: ")
+            c.seconds = time.perf_counter() - t1
+            cands.append(c)
+            log(c.row())
+            continue
+        c.T0, c.proved = plan.T0, bool(v.ok)
+        designs[k] = (plan, v)
+        if search and margin_search:  # coarse margin and per-run bound: enough to rank the paces
+            c.margin = tolerable_scale(system, plan, lo, hi, u_lo, u_hi, gap, imap, shells, target_lo, target_hi,
+                                       passes=2)
+            if v.ok and per_run and why_no_statement(gap) is None:
+                nt_c, _ = noise_tube(system, plan, lo, hi, u_lo, u_hi, gap, imap, shells, horizon_of(plan),
+                                     target_lo, target_hi, passes=2)
+                c.lam = None if nt_c is None else nt_c.lam
+        c.seconds = time.perf_counter() - t1
+        cands.append(c)
+        log(c.row())
+        if k == 0 and search:
+            left = (len(paces) - 1) * c.seconds * (1.0 + 0.5 * max(0, (c.T0 or 0)) / max(c.T0 or 1, 1))
+            log(f"estimate: about {left + 2 * c.seconds:.0f} s more for {len(paces) - 1} more paces and the "
+                f"chosen design's full searches (the first pace took {c.seconds:.1f} s; slower paces have longer "
+                f"plans)")
+        if search and not margin_search and c.proved:  # no ranking asked for: the fastest pace that proves
+            break
+    best = best_candidate(cands, n, T_run or 0)
+    if best.error:
+        raise SimgapError(f"box tube: {best.error}" + ("" if len(cands) == 1 else
+                          f" (paces tried: {', '.join(c.row() for c in cands)})"))
+    plan, v = designs[cands.index(best)]
+    pace_how = ("given (K_plan)" if paces == (None,) else f"given (plan_input_weight = {best.pace:g})"
+                if not search else why_chosen(best, cands))
+    if search:
+        log(f"pace: x{best.pace:g}, {pace_how}")
+
     H_min = plan.H.copy()
     if v.ok and terminal == "largest":
         # the largest box lam x room (lam = 1, 1/2, ..., 1/128) that still proves (one batched evaluation):
         # a weaker claim about the mean than H_min, but noisy runs then rarely leave it
-        ph = tube_phase(system, plan, gap, imap, int(shells), u_range=(u_lo, u_hi))
+        log.doing("terminal box: the largest that proves")
+        ph = tube_phase(system, plan, gap, imap, shells, u_range=(u_lo, u_hi))
         room_t = _room(plan, lo, hi, target_lo, target_hi)
-        cands = np.maximum(H_min, (0.5 ** np.arange(8))[:, None] * room_t * (1 - 1e-9))
-        terms = terminal_phases(system, plan, [ph["G"]] * len(cands), cands, gap, imap, int(shells),
+        cands_H = np.maximum(H_min, (0.5 ** np.arange(8))[:, None] * room_t * (1 - 1e-9))
+        terms = terminal_phases(system, plan, [ph["G"]] * len(cands_H), cands_H, gap, imap, shells,
                                 u_range=(u_lo, u_hi))
-        for Hc, term in zip(cands, terms):
+        for Hc, term in zip(cands_H, terms):
             if all(c["ok"] for c in judge(system, plan, Hc, ph, term, lo, hi, u_lo, u_hi, target_lo, target_hi)):
                 plan.H = Hc
                 break
     if v.ok:  # the proof again from the plan alone (design_H reused (T)'s propagation across its rounds)
+        log.doing(f"the proof of the chosen tube ({plan.T0} periods)")
         v = verify_tube(system, plan, lo, hi, u_lo, u_hi, gap, target_lo=target_lo, target_hi=target_hi,
-                        imap=imap, shells=int(shells))
+                        imap=imap, shells=shells)
+        log(f"proof: {'holds' if v.ok else 'FAILS'} over {plan.T0} periods and the terminal box "
+            f"H = {np.round(plan.H, 6).tolist()}")
     stats = {"system": system.name, "tau": system.tau, "x_star": np.round(x_star, 9).tolist(),
              "u_star": np.round(u_star, 9).tolist(), "residual_max": float(np.abs(r).max()),
              "K": np.round(K, 6).tolist(), "K_how": K_how, "spectral_radius": rho0, "T0": plan.T0,
-             "x0": x0.tolist(), "input_margin": float(input_margin), "shells": int(shells),
+             "x0": x0.tolist(), "input_margin": float(input_margin), "shells": shells,
              "spec_kind": "reach_and_stay", "gap_how": v.gap_how, "verification": v.to_dict(),
              "target": None if target_lo is None else {"lo": target_lo.tolist(), "hi": target_hi.tolist()},
              "H": plan.H.tolist(), "H_min": H_min.tolist(), "terminal": terminal,
-             "plan_input_weight": float(plan_input_weight)}
-    scale = tolerable_scale(system, plan, lo, hi, u_lo, u_hi, gap, imap, int(shells), target_lo, target_hi) \
-        if margin_search else None
+             "plan_input_weight": float(best.pace), "pace_how": pace_how, "paces": [c.to_dict() for c in cands]}
+    scale = None
+    if margin_search:
+        log.doing("the margin: the largest gap factor the proof holds with")
+        scale = tolerable_scale(system, plan, lo, hi, u_lo, u_hi, gap, imap, shells, target_lo, target_hi)
+        log("margin: gamma could be " + ("any factor larger (no gap)" if np.isinf(scale) else f"{scale:.4g} x")
+            + " its bound with the proof still holding")
     stats["gap_scale"] = None if scale is None or np.isinf(scale) else scale
     stats["gap_scale_text"] = ("not searched" if scale is None else "any factor (no gap)" if np.isinf(scale)
                                else f"{scale:.4g}")
     nt = None
     if v.ok and per_run:
-        nt, why = noise_tube(system, plan, lo, hi, u_lo, u_hi, gap, imap, int(shells),
-                             2 * plan.T0 + 1 if horizon is None else int(horizon), target_lo, target_hi)
+        log.doing("the per-run statement: the largest noise bound the proof holds with")
+        nt, why = noise_tube(system, plan, lo, hi, u_lo, u_hi, gap, imap, shells, horizon_of(plan), target_lo,
+                             target_hi)
         stats["noise_tube"] = nt.to_dict() if nt is not None else {"none": why}
+        log("per run: " + (f"P(a run stays in the noise tube) >= {nt.to_dict()['p_run']:.4g}" if nt is not None
+                           else f"none ({why})"))
     ctrl = None
     if v.ok:
         from .tube_controller import TubeController
@@ -873,7 +965,12 @@ def synthesize_box_tube(system: System, spec: Spec, gap=None, *, x0, x_star=None
         if scale is not None and np.isfinite(scale):
             stats["diagnosis"] += (f"; the proof holds with gamma at most {scale:.3g} x its bound" if scale > 0 else
                                    "; not even without the gap")
-    stats["seconds"] = time.perf_counter() - t0
+        if gap is not None and scale is not None and np.isfinite(scale):
+            from .tube_design import levers
+            lv = levers(gap if hasattr(gap, "dims") else None, system, v.to_dict()["w_max"], scale,
+                        cands if search else [])
+            stats["levers"] = {k: lv[k] for k in ("states", "paces")}
+            stats["levers_text"] = lv["text"]
     stats["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     return BoxTubeResult(ctrl, v, stats)
 

@@ -93,7 +93,7 @@ def check_section(system, syn: dict, spec) -> None:
     IntervalMap(system)  # a model the proof can differentiate
 
 
-def synthesize(system, spec, gap, syn: dict, x0=None, horizon=None):
+def synthesize(system, spec, gap, syn: dict, x0=None, horizon=None, log=None):
     """:func:`~simgap.synthesis.invariant_set.synthesize_invariant_set` or (``method = "box_tube"``)
     :func:`~simgap.synthesis.box_tube.synthesize_box_tube` with the section's options (``horizon``:
     the rollouts' periods, for the box tube's per-run statement)."""
@@ -108,8 +108,8 @@ def synthesize(system, spec, gap, syn: dict, x0=None, horizon=None):
                                    input_margin=float(syn.get("input_margin", INPUT_MARGIN)),
                                    margin_search=bool(syn.get("margin_search", True)),
                                    terminal=syn.get("terminal", "largest"), K_plan=syn.get("K_plan"),
-                                   plan_input_weight=float(syn.get("plan_input_weight", 1.0)),
-                                   per_run=bool(syn.get("per_run", True)), horizon=horizon)
+                                   plan_input_weight=syn.get("plan_input_weight"),
+                                   per_run=bool(syn.get("per_run", True)), horizon=horizon, log=log)
     from .invariant_set import synthesize_invariant_set
     return synthesize_invariant_set(system, spec, gap, x_star=syn.get("x_star"), u_star=syn.get("u_star"),
                                     K=syn.get("K"), lqr_q=syn.get("lqr_q"), lqr_r=syn.get("lqr_r"),

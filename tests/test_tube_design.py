@@ -75,7 +75,7 @@ def test_ranking_prefers_proof_then_per_run_bound_then_margin():
 
 
 def test_no_pace_proves_gives_the_levers_table(cubic):  # noqa: F811
-    res = bt.synthesize_box_tube(cubic, _spec(cubic), 4 * GAP, x0=X0, x_star=[0, 0], u_star=[0], per_run=False)
+    res = bt.synthesize_box_tube(cubic, _spec(cubic), 8 * GAP, x0=X0, x_star=[0, 0], u_star=[0], per_run=False)
     assert res.empty
     assert "levers" in res.stats and len(res.stats["levers"]["states"]) == 2
     s = res.stats["gap_scale"]

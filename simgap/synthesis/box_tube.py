@@ -463,12 +463,12 @@ def verify_tube(system: System, plan: TubePlan, safe_lo, safe_hi, u_lo, u_hi, ga
 GAIN_EXPONENTS = (-3.0, -2.0, -1.0, -0.5, 0.0, 0.5, 1.0, 2.0)
 
 
-def box_tolerant_gain(A, B, x_star, u_star, room, uroom, gap, system: System):
-    """(K, how): among the LQR gains with q = 1 / room^2 (Bryson over the target box) and
-    r = 10^c / uroom^2 (c in GAIN_EXPONENTS), the one whose linear loop A + B K tolerates the largest
-    multiple of the gap d at x* (its sup over the target box and the input range) by the box hull of
-    the minimal RPI set, h = sum_k |(A + B K)^k| d (2000 terms): the largest s with s h <= room and
-    s |K| h <= uroom. A design heuristic only: the proof decides."""
+def gain_family(A, B, x_star, u_star, room, uroom, gap, system: System) -> list:
+    """[(score, c, K)], best first: the LQR gains with q = 1 / room^2 (Bryson over the target box) and
+    r = 10^c / uroom^2 (c in GAIN_EXPONENTS) that stabilize the linearization, each scored by how large a
+    multiple of the gap d at x* (its sup over the target box and the input range) its linear loop A + B K
+    tolerates by the box hull of the minimal RPI set, h = sum_k |(A + B K)^k| d (2000 terms): the largest
+    s with s h <= room and s |K| h <= uroom. A design heuristic only: the proof decides."""
     n = A.shape[0]
     try:
         d, _ = _gap_over(gap, system, x_star - room, x_star + room, u_star - uroom, u_star + uroom, None)
@@ -476,7 +476,7 @@ def box_tolerant_gain(A, B, x_star, u_star, room, uroom, gap, system: System):
     except SimgapError:
         d = np.zeros(n)
     d = np.maximum(np.where(np.isfinite(d), d, 0.0), 1e-6 * room)
-    best = None
+    out = []
     for c in GAIN_EXPONENTS:
         K = lqr_gain(A, B, 1.0 / room ** 2, 10.0 ** c / uroom ** 2)
         Acl = A + B @ K
@@ -487,12 +487,21 @@ def box_tolerant_gain(A, B, x_star, u_star, room, uroom, gap, system: System):
             h += np.abs(Ak) @ d
             Ak = Acl @ Ak
         score = min(float(np.min(room / h)), float(np.min(uroom / np.maximum(np.abs(K) @ h, 1e-300))))
-        if best is None or score > best[0]:
-            best = (score, c, K)
-    if best is None:
+        out.append((score, c, K))
+    if not out:
         raise SimgapError("box tube: no LQR gain of the family stabilizes the linearization")
-    return best[2], (f"discrete LQR, Bryson's weights over the target box with the input weight x 10^{best[1]:g}, "
-                     f"chosen for box tolerance (linear mRPI estimate: {best[0]:.3g} x the gap at x*)")
+    return sorted(out, key=lambda t: -t[0])
+
+
+def gain_how(c, score) -> str:
+    return (f"discrete LQR, Bryson's weights over the target box with the input weight x 10^{c:g} (linear mRPI "
+            f"estimate: {score:.3g} x the gap at x*)")
+
+
+def box_tolerant_gain(A, B, x_star, u_star, room, uroom, gap, system: System):
+    """(K, how): the gain of :func:`gain_family` with the best heuristic score."""
+    score, c, K = gain_family(A, B, x_star, u_star, room, uroom, gap, system)[0]
+    return K, gain_how(c, score) + ", chosen for box tolerance"
 
 
 def plan_nominal(system: System, x0, x_star, u_star, K, u_lo, u_hi, margin: float = INPUT_MARGIN,
@@ -724,10 +733,10 @@ def synthesize_box_tube(system: System, spec: Spec, gap=None, *, x0, x_star=None
     x_star, u_star
         The equilibrium (default: least squares inside the target box, else the safe box).
     K : (m, n), optional
-        The feedback gain. Default: :func:`box_tolerant_gain` (the LQR with Bryson's weights over the
-        target box and the input range, its input weight scaled by the factor 10^c, c in -3..2, that
-        tolerates the most gap by the linear mRPI estimate); with ``lqr_q``/``lqr_r`` the LQR with
-        those weights.
+        The feedback gain. Default: among the LQR gains with Bryson's weights over the target box and the
+        input range, the input weight scaled by 10^c (c in GAIN_EXPONENTS), the one whose tube tolerates the
+        largest gap factor by the proof (with a gap and ``margin_search``; else the best by the linear mRPI
+        estimate of :func:`gain_family`); with ``lqr_q``/``lqr_r`` the LQR with those weights.
     K_plan : (m, n), optional
         The gain of the nominal plan (default: the LQR with Bryson's weights over the safe box, a
         gentle loop that keeps the plan in X).
@@ -768,6 +777,32 @@ def synthesize_box_tube(system: System, spec: Spec, gap=None, *, x0, x_star=None
                                    horizon, log)
     res.stats["seconds"] = time.perf_counter() - t0
     return res
+
+
+def _gain_by_proof(system, family, A, B, sroom, uroom, x0, x_star, u_star, u_lo, u_hi, input_margin, room, lo, hi,
+                   gap, imap, shells, target_lo, target_hi, pace, log):
+    """(K, how): the gain of the family whose tube (on the plan at ``pace``, default 1) tolerates the largest
+    gap factor by the proof itself (coarse search, :func:`tolerable_scale` with 2 passes); the heuristic's
+    order breaks ties. The linear estimate ranks the family, the proof picks: on the cart-pole the heuristic's
+    first gain tolerated 0.93 x the gap and another 1.09 x."""
+    Kp = lqr_gain(A, B, 1.0 / sroom ** 2, float(pace or 1.0) / uroom ** 2)
+    try:
+        x_nom, u_nom = plan_nominal(system, x0, x_star, u_star, Kp, u_lo, u_hi, float(input_margin),
+                                    tol=PLAN_TOL * room)
+    except SimgapError:
+        score, c, K = family[0]
+        return K, gain_how(c, score) + ", chosen for box tolerance (no plan at pace 1 to compare gains on)"
+    scores = []
+    for k, (score, c, K) in enumerate(family):
+        log.doing(f"K: the proof's margin for input weight x 10^{c:g} ({k + 1} of {len(family)})")
+        plan = TubePlan(x_nom, u_nom, K, x_star, u_star, np.zeros(system.n))
+        s = tolerable_scale(system, plan, lo, hi, u_lo, u_hi, gap, imap, shells, target_lo, target_hi, passes=2)
+        scores.append(s)
+        log(f"K with input weight x 10^{c:g}: margin {s:.3g} (linear estimate {score:.3g})")
+    best = int(np.argmax(scores))  # argmax: the first of equal margins, in the heuristic's order
+    score, c, K = family[best]
+    return K, (gain_how(c, score) + f", chosen by the proof's margin on the plan ({scores[best]:.3g}; "
+               f"{len(family)} gains tried)")
 
 
 def _synthesize_box_tube(system, spec, gap, x0, x_star, u_star, K, lqr_q, lqr_r, target_lo, target_hi, shells,
@@ -833,16 +868,22 @@ def _synthesize_box_tube(system, spec, gap, x0, x_star, u_star, K, lqr_q, lqr_r,
                 raise SimgapError("box tube: LQR weights need q >= 0 and r > 0")
             K, K_how = lqr_gain(A, B, q, rr), "discrete LQR of the linearization (given weights)"
         else:
-            log.doing("choosing K")
-            K, K_how = box_tolerant_gain(A, B, x_star, u_star, room, uroom, gap, system)
+            K = None  # chosen below, by the proof
     else:
         K, K_how = _parse_matrix(K, m, n), "given"
+    shells = int(shells)
+    T_run = None if horizon is None else int(horizon)
+    if K is None:
+        family = gain_family(A, B, x_star, u_star, room, uroom, gap, system)
+        K, K_how = family[0][2], gain_how(family[0][1], family[0][0]) + ", chosen for box tolerance"
+        if margin_search and gap is not None and len(family) > 1 and K_plan is None:
+            K, K_how = _gain_by_proof(system, family, A, B, sroom, uroom, x0, x_star, u_star, u_lo, u_hi,
+                                      input_margin, room, lo, hi, gap, imap, shells, target_lo, target_hi,
+                                      plan_input_weight, log)
     rho0 = spectral_radius(A + B @ K)
     if rho0 >= 1:
         raise SimgapError(f"box tube: K does not stabilize the linearization at x*: spectral radius {rho0:.6g} >= 1")
     log(f"feedback K: {K_how}; spectral radius {rho0:.4f}")
-    shells = int(shells)
-    T_run = None if horizon is None else int(horizon)
 
     def plan_for(pace):
         """The nominal plan at a pace (the plan's input weight factor), or the given K_plan (pace None)."""
@@ -975,5 +1016,5 @@ def _synthesize_box_tube(system, spec, gap, x0, x_star, u_star, K, lqr_q, lqr_r,
     return BoxTubeResult(ctrl, v, stats)
 
 
-__all__ = ["BoxTubeResult", "TubePlan", "TubeVerification", "largest_proved", "mean_value_enclosure", "noise_tube",
+__all__ = ["BoxTubeResult", "gain_family", "TubePlan", "TubeVerification", "largest_proved", "mean_value_enclosure", "noise_tube",
            "plan_nominal", "synthesize_box_tube", "terminal_bound", "tolerable_scale", "verify_tube"]

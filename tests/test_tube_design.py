@@ -169,3 +169,11 @@ def test_stage_log_without_a_writer_is_silent_and_starts_no_thread():
     with StageLog("", None, every=0.01) as log:
         log("nothing")
         assert not any(th.name == "simgap-stage-log" for th in threading.enumerate())
+
+
+def test_the_ellipsoid_design_prints_its_rounds_and_an_estimate(cubic):  # noqa: F811
+    from simgap.synthesis.invariant_set import synthesize_invariant_set
+    lines = []
+    synthesize_invariant_set(cubic, _spec(cubic), GAP, x_star=[0, 0], u_star=[0], log=lines.append)
+    assert any(t.startswith("rate ") and "margin" in t for t in lines)
+    assert sum(t.startswith("estimate:") for t in lines) == 1

@@ -113,7 +113,7 @@ def synthesize(system, spec, gap, syn: dict, x0=None, horizon=None, log=None):
     from .invariant_set import synthesize_invariant_set
     return synthesize_invariant_set(system, spec, gap, x_star=syn.get("x_star"), u_star=syn.get("u_star"),
                                     K=syn.get("K"), lqr_q=syn.get("lqr_q"), lqr_r=syn.get("lqr_r"),
-                                    solver=syn.get("solver", "CLARABEL"), x0=x0)
+                                    solver=syn.get("solver", "CLARABEL"), x0=x0, log=log)
 
 
 def states_in_set(ctrl, k: int, seed: int) -> np.ndarray:

@@ -671,6 +671,10 @@ def comparison_table(summary: dict) -> str:
             d = summary["methods"][m]["synthesis"].get("diagnosis")
             if d:
                 lines += ["", f"{m}: {d}"]
+                lv = summary["methods"][m]["synthesis"].get("levers_text")
+                if lv:  # what each way out would need (simgap.synthesis.tube_design.levers)
+                    lines += [f"{m}: what gamma would have to lose per state, and what each lever needs:"]
+                    lines += ["  " + t for t in lv]
     if warnings:
         lines.append("")
         lines += [f"warning ({m} certificate): {w}" for m, w in warnings]

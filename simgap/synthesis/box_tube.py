@@ -938,6 +938,12 @@ def _synthesize_box_tube(system, spec, gap, x0, x_star, u_star, K, lqr_q, lqr_r,
                 f"plans)")
         if search and not margin_search and c.proved:  # no ranking asked for: the fastest pace that proves
             break
+        if search and len(cands) >= 2 and c.proved and cands[-2].proved and \
+                c.score(n, T_run or 0)[:3] <= cands[-2].score(n, T_run or 0)[:3] and k + 1 < len(paces):
+            # a slower pace that proves no more than the previous one: slower still only adds periods
+            log(f"paces x{', x'.join(f'{p:g}' for p in paces[k + 1:])} not tried: x{c.pace:g} proved no more "
+                f"than x{cands[-2].pace:g}")
+            break
     best = best_candidate(cands, n, T_run or 0)
     if best.error:
         raise SimgapError(f"box tube: {best.error}" + ("" if len(cands) == 1 else

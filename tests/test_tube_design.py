@@ -30,24 +30,30 @@ def searched(cubic):  # noqa: F811
     return res, lines
 
 
-def test_the_pace_is_searched_and_each_choice_is_printed(searched):
+def test_the_pace_then_the_gain_are_searched_and_each_choice_is_printed(searched):
     res, lines = searched
-    paces = res.stats["paces"]
-    assert [p["pace"] for p in paces] == list(td.PACES)
+    designs = res.stats["designs"]
+    first = designs[0]["gain"]  # the heuristic's gain: every pace tried with it first, fastest first
+    paces = [d["pace"] for d in designs if d["gain"] == first]
+    assert paces == list(td.PACES[:len(paces)]) and len(paces) >= 2
+    gains = [d for d in designs[len(paces):]]  # then the other gains at the chosen pace
+    assert len(gains) >= 1 and all(d["pace"] == res.stats["plan_input_weight"] for d in gains)
+    assert len({d["gain"] for d in gains} | {first}) == len(gains) + 1
     text = "\n".join(lines)
-    for p in paces:  # every pace tried is named with what it gave
-        assert f"pace x{p['pace']:g}:" in text
+    for d in designs:  # every design tried is named with what it gave
+        assert f"pace x{d['pace']:g}, K 10^{d['gain']:g}:" in text
     assert "feedback K:" in text and "pace: x" in text and "margin:" in text and "estimate:" in text
     assert "pace x" in res.summary() and res.stats["pace_how"]
 
 
 def test_the_chosen_pace_is_the_best_ranked(searched):
     res, _ = searched
-    cands = [td.PaceCandidate(**{k: v for k, v in p.items() if k != "seconds"}) for p in res.stats["paces"]]
+    cands = [td.Candidate(**{k: v for k, v in p.items() if k != "seconds"}) for p in res.stats["designs"]]
     for c in cands:
         c.margin = np.inf if c.margin is None and c.proved else c.margin
     best = td.best_candidate(cands, 2, 0)
     assert res.stats["plan_input_weight"] == best.pace
+    assert f"10^{best.gain:g}" in res.stats["K_how"]
     assert not res.empty  # a pace proves at this gap, so the chosen one does
 
 
@@ -55,17 +61,18 @@ def test_a_given_pace_is_not_searched_and_matches_the_search(cubic, searched):  
     res, _ = searched
     fixed = bt.synthesize_box_tube(cubic, _spec(cubic), GAP, x0=X0, x_star=[0, 0], u_star=[0], per_run=False,
                                    plan_input_weight=res.stats["plan_input_weight"])
-    assert len(fixed.stats["paces"]) == 1 and fixed.stats["pace_how"].startswith("given")
+    assert {d["pace"] for d in fixed.stats["designs"]} == {res.stats["plan_input_weight"]}
+    assert fixed.stats["pace_how"].startswith("given") and fixed.stats["K"] == res.stats["K"]
     assert fixed.stats["T0"] == res.stats["T0"]
     assert fixed.stats["gap_scale"] == pytest.approx(res.stats["gap_scale"])
 
 
 def test_ranking_prefers_proof_then_per_run_bound_then_margin():
-    a = td.PaceCandidate(pace=1, T0=10, proved=False, margin=0.9)
-    b = td.PaceCandidate(pace=10, T0=20, proved=True, margin=1.1, lam=3.0)
-    c = td.PaceCandidate(pace=100, T0=40, proved=True, margin=1.05, lam=5.0)
-    d = td.PaceCandidate(pace=1000, T0=80, proved=True, margin=2.0, lam=30.0)
-    e = td.PaceCandidate(pace=1e4, error="leaves X")
+    a = td.Candidate(pace=1, T0=10, proved=False, margin=0.9)
+    b = td.Candidate(pace=10, T0=20, proved=True, margin=1.1, lam=3.0)
+    c = td.Candidate(pace=100, T0=40, proved=True, margin=1.05, lam=5.0)
+    d = td.Candidate(pace=1000, T0=80, proved=True, margin=2.0, lam=30.0)
+    e = td.Candidate(pace=1e4, error="leaves X")
     assert td.best_candidate([a, b, e], 4, 100) is b          # a proof beats a larger margin without one
     assert td.best_candidate([a, b, c], 4, 100) is c          # a larger per-run bound beats a larger margin
     cap = np.sqrt(2 * np.log(2 * 4 * 100 / td.NOISE_TERM))

@@ -793,32 +793,6 @@ def synthesize_box_tube(system: System, spec: Spec, gap=None, *, x0, x_star=None
     return res
 
 
-def _gain_by_proof(system, family, A, B, sroom, uroom, x0, x_star, u_star, u_lo, u_hi, input_margin, room, lo, hi,
-                   gap, imap, shells, target_lo, target_hi, pace, log):
-    """(K, how): the gain of the family whose tube (on the plan at ``pace``, default 1) tolerates the largest
-    gap factor by the proof itself (:func:`coarse_margin`); the heuristic's
-    order breaks ties. The linear estimate ranks the family, the proof picks: on the cart-pole the heuristic's
-    first gain tolerated 0.93 x the gap and another 1.09 x."""
-    Kp = lqr_gain(A, B, 1.0 / sroom ** 2, float(pace or 1.0) / uroom ** 2)
-    try:
-        x_nom, u_nom = plan_nominal(system, x0, x_star, u_star, Kp, u_lo, u_hi, float(input_margin),
-                                    tol=PLAN_TOL * room)
-    except SimgapError:
-        score, c, K = family[0]
-        return K, gain_how(c, score) + ", chosen for box tolerance (no plan at pace 1 to compare gains on)"
-    scores = []
-    for k, (score, c, K) in enumerate(family):
-        log.doing(f"K: the proof's margin for input weight x 10^{c:g} ({k + 1} of {len(family)})")
-        plan = TubePlan(x_nom, u_nom, K, x_star, u_star, np.zeros(system.n))
-        s = coarse_margin(system, plan, lo, hi, u_lo, u_hi, gap, imap, shells, target_lo, target_hi)
-        scores.append(s)
-        log(f"K with input weight x 10^{c:g}: margin {s:.3g} (linear estimate {score:.3g})")
-    best = int(np.argmax(scores))  # argmax: the first of equal margins, in the heuristic's order
-    score, c, K = family[best]
-    return K, (gain_how(c, score) + f", chosen by the proof's margin on the plan ({scores[best]:.3g}; "
-               f"{len(family)} gains tried)")
-
-
 def _synthesize_box_tube(system, spec, gap, x0, x_star, u_star, K, lqr_q, lqr_r, target_lo, target_hi, shells,
                          input_margin, margin_search, terminal, K_plan, plan_input_weight, per_run, horizon,
                          log) -> BoxTubeResult:
@@ -887,20 +861,14 @@ def _synthesize_box_tube(system, spec, gap, x0, x_star, u_star, K, lqr_q, lqr_r,
         K, K_how = _parse_matrix(K, m, n), "given"
     shells = int(shells)
     T_run = None if horizon is None else int(horizon)
+    family = None
     if K is None:
         family = gain_family(A, B, x_star, u_star, room, uroom, gap, system)
         K, K_how = family[0][2], gain_how(family[0][1], family[0][0]) + ", chosen for box tolerance"
-        if margin_search and gap is not None and len(family) > 1 and K_plan is None:
-            K, K_how = _gain_by_proof(system, family, A, B, sroom, uroom, x0, x_star, u_star, u_lo, u_hi,
-                                      input_margin, room, lo, hi, gap, imap, shells, target_lo, target_hi,
-                                      plan_input_weight, log)
-    rho0 = spectral_radius(A + B @ K)
-    if rho0 >= 1:
-        raise SimgapError(f"box tube: K does not stabilize the linearization at x*: spectral radius {rho0:.6g} >= 1")
-    log(f"feedback K: {K_how}; spectral radius {rho0:.4f}")
 
-    def plan_for(pace):
-        """The nominal plan at a pace (the plan's input weight factor), or the given K_plan (pace None)."""
+    def plan_for(pace, K):
+        """The nominal plan at a pace (the plan's input weight factor), or the given K_plan (pace None),
+        with the tube's gain K and its terminal box at the certified gap (design_H)."""
         if pace is None:
             Kp = _parse_matrix(K_plan, m, n)
             if spectral_radius(A + B @ Kp) >= 1:
@@ -916,40 +884,47 @@ def _synthesize_box_tube(system, spec, gap, x0, x_star, u_star, K, lqr_q, lqr_r,
     def horizon_of(plan):
         return 2 * plan.T0 + 1 if T_run is None else T_run
 
-    # ----- the pace: given, or the best of PACES (tube_design's ranking) -----
-    from .tube_design import PACES, PaceCandidate, best_candidate, why_chosen
+    from .tube_design import PACES, Candidate, best_candidate, why_chosen
     paces = (None,) if K_plan is not None else (PACES if plan_input_weight is None else (float(plan_input_weight),))
-    cands, designs = [], {}
-    search = len(paces) > 1
-    for k, pace in enumerate(paces):
-        c = PaceCandidate(pace=1.0 if pace is None else pace)
+    rank = margin_search and gap is not None
+    designs = {}
+
+    def evaluate(pace, K, gain=None):
+        """A Candidate (plan, proof at the certified gap, and when ranking: the coarse margin and the
+        coarse per-run bound); its design kept in ``designs``."""
+        c = Candidate(pace=1.0 if pace is None else pace, gain=gain)
         t1 = time.perf_counter()
-        log.doing(f"pace x{c.pace:g} ({k + 1} of {len(paces)}): plan, terminal box" + (", margin" if search else ""))
         try:
-            plan, v = plan_for(pace)
+            plan, v = plan_for(pace, K)
         except SimgapError as e:
             c.error = str(e).removeprefix("box tube: ")
-            c.seconds = time.perf_counter() - t1
-            cands.append(c)
-            log(c.row())
-            continue
-        c.T0, c.proved = plan.T0, bool(v.ok)
-        designs[k] = (plan, v)
-        if search and margin_search:  # coarse margin and per-run bound: enough to rank the paces
-            c.margin = coarse_margin(system, plan, lo, hi, u_lo, u_hi, gap, imap, shells, target_lo, target_hi)
-            if v.ok and per_run and why_no_statement(gap) is None:
-                nt_c, _ = noise_tube(system, plan, lo, hi, u_lo, u_hi, gap, imap, shells, horizon_of(plan),
-                                     target_lo, target_hi, passes=2)
-                c.lam = None if nt_c is None else nt_c.lam
+        else:
+            c.T0, c.proved = plan.T0, bool(v.ok)
+            designs[id(c)] = (plan, v, K)
+            if rank:  # enough to rank designs against each other
+                c.margin = coarse_margin(system, plan, lo, hi, u_lo, u_hi, gap, imap, shells, target_lo, target_hi)
+                if v.ok and per_run and why_no_statement(gap) is None:
+                    nt_c, _ = noise_tube(system, plan, lo, hi, u_lo, u_hi, gap, imap, shells, horizon_of(plan),
+                                         target_lo, target_hi, passes=2)
+                    c.lam = None if nt_c is None else nt_c.lam
         c.seconds = time.perf_counter() - t1
-        cands.append(c)
         log(c.row())
-        if k == 0 and search:
-            left = (len(paces) - 1) * c.seconds * (1.0 + 0.5 * max(0, (c.T0 or 0)) / max(c.T0 or 1, 1))
-            log(f"estimate: about {left + 2 * c.seconds:.0f} s more for {len(paces) - 1} more paces and the "
-                f"chosen design's full searches (the first pace took {c.seconds:.1f} s; slower paces have longer "
-                f"plans)")
-        if search and not margin_search and c.proved:  # no ranking asked for: the fastest pace that proves
+        return c
+
+    # ----- 1. the pace (given, or the best of PACES) with the heuristic's (or the given) K -----
+    cands = []
+    search = len(paces) > 1
+    n_gains = len(family) - 1 if family is not None and rank and len(family) > 1 else 0
+    for k, pace in enumerate(paces):
+        log.doing(f"pace x{1.0 if pace is None else pace:g} ({k + 1} of {len(paces)}): plan, terminal box"
+                  + (", margin, per-run bound" if rank else ""))
+        c = evaluate(pace, K, None if family is None else family[0][1])
+        cands.append(c)
+        if k == 0 and (search or n_gains):
+            log(f"estimate: about {(len(paces) - 1 + n_gains + 2) * c.seconds:.0f} s more for "
+                f"{len(paces) - 1} more paces, {n_gains} more gains and the chosen design's full searches (the first "
+                f"design took {c.seconds:.1f} s; slower paces have longer plans)")
+        if search and not rank and c.proved:  # no ranking asked for: the fastest pace that proves
             break
         if search and len(cands) >= 2 and c.proved and cands[-2].proved and \
                 c.score(n, T_run or 0)[:3] <= cands[-2].score(n, T_run or 0)[:3] and k + 1 < len(paces):
@@ -961,11 +936,30 @@ def _synthesize_box_tube(system, spec, gap, x0, x_star, u_star, K, lqr_q, lqr_r,
     if best.error:
         raise SimgapError(f"box tube: {best.error}" + ("" if len(cands) == 1 else
                           f" (paces tried: {', '.join(c.row() for c in cands)})"))
-    plan, v = designs[cands.index(best)]
     pace_how = ("given (K_plan)" if paces == (None,) else f"given (plan_input_weight = {best.pace:g})"
                 if not search else why_chosen(best, cands))
     if search:
         log(f"pace: x{best.pace:g}, {pace_how}")
+
+    # ----- 2. K at that pace: the LQR family ranked by the proof (the linear estimate only orders it) -----
+    if n_gains:
+        pace = None if paces == (None,) else best.pace
+        gains = [best]
+        for j, (score, c_exp, Kc) in enumerate(family[1:]):
+            log.doing(f"K with input weight x 10^{c_exp:g} ({j + 2} of {len(family)}) at pace x{best.pace:g}")
+            gains.append(evaluate(pace, Kc, c_exp))
+        cands += gains[1:]
+        chosen = best_candidate(gains, n, T_run or 0)  # ties: the heuristic's order (max keeps the first)
+        i = [g[1] for g in family].index(chosen.gain)
+        K_how = gain_how(family[i][1], family[i][0]) + (
+            f", chosen by the proof among {len(family)} gains (margin {chosen.margin:.3g}"
+            + ("" if chosen.lam is None else f", per-run bound {chosen.lam:.3g}") + ")")
+        best = chosen
+    plan, v, K = designs[id(best)]
+    rho0 = spectral_radius(A + B @ K)
+    if rho0 >= 1:
+        raise SimgapError(f"box tube: K does not stabilize the linearization at x*: spectral radius {rho0:.6g} >= 1")
+    log(f"feedback K: {K_how}; spectral radius {rho0:.4f}")
 
     H_min = plan.H.copy()
     if v.ok and terminal == "largest":
@@ -994,7 +988,7 @@ def _synthesize_box_tube(system, spec, gap, x0, x_star, u_star, K, lqr_q, lqr_r,
              "spec_kind": "reach_and_stay", "gap_how": v.gap_how, "verification": v.to_dict(),
              "target": None if target_lo is None else {"lo": target_lo.tolist(), "hi": target_hi.tolist()},
              "H": plan.H.tolist(), "H_min": H_min.tolist(), "terminal": terminal,
-             "plan_input_weight": float(best.pace), "pace_how": pace_how, "paces": [c.to_dict() for c in cands]}
+             "plan_input_weight": float(best.pace), "pace_how": pace_how, "designs": [c.to_dict() for c in cands]}
     scale = None
     if margin_search:
         log.doing("the margin: the largest gap factor the proof holds with")
@@ -1028,8 +1022,8 @@ def _synthesize_box_tube(system, spec, gap, x0, x_star, u_star, K, lqr_q, lqr_r,
         if gap is not None and scale is not None and np.isfinite(scale):
             from .tube_design import levers
             lv = levers(gap if hasattr(gap, "dims") else None, system, v.to_dict()["w_max"], scale,
-                        cands if search else [])
-            stats["levers"] = {k: lv[k] for k in ("states", "paces")}
+                        cands if len(cands) > 1 else [])
+            stats["levers"] = {k: lv[k] for k in ("states", "designs")}
             stats["levers_text"] = lv["text"]
     stats["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     return BoxTubeResult(ctrl, v, stats)

@@ -28,11 +28,13 @@ NOISE_TERM = 1e-4
 
 
 @dataclass
-class PaceCandidate:
-    """One pace tried: its plan length, whether the proof holds at the certified gap, the tolerable gap
-    factor s (coarse search), the per-run noise bound lam (coarse), or why it could not be designed."""
+class Candidate:
+    """One design tried (a pace and the tube's gain, ``gain`` = the exponent c of its LQR input weight, None
+    when given): its plan length, whether the proof holds at the certified gap, the tolerable gap factor s
+    (coarse), the per-run noise bound lam (coarse), or why it could not be designed."""
 
     pace: float
+    gain: Optional[float] = None
     T0: Optional[int] = None
     proved: bool = False
     margin: Optional[float] = None
@@ -49,27 +51,30 @@ class PaceCandidate:
         margin = 0.0 if self.margin is None else min(self.margin, 1e12)
         return (int(self.proved), min(lam, lam_cap), margin, -(self.T0 or 0))
 
+    def label(self) -> str:
+        return f"pace x{self.pace:g}" + ("" if self.gain is None else f", K 10^{self.gain:g}")
+
     def row(self) -> str:
         if self.error:
-            return f"pace x{self.pace:g}: no plan ({self.error.split(': ')[0]})"
+            return f"{self.label()}: no plan ({self.error.split(': ')[0]})"
         s = "any" if self.margin is not None and not np.isfinite(self.margin) else \
             "-" if self.margin is None else f"{self.margin:.3g}"
         lam = "" if self.lam is None else f", per-run noise bound lam {self.lam:.3g}"
-        return (f"pace x{self.pace:g}: T0 {self.T0}, {'proved' if self.proved else 'not proved'} at the certified "
+        return (f"{self.label()}: T0 {self.T0}, {'proved' if self.proved else 'not proved'} at the certified "
                 f"gap, margin {s}{lam} ({self.seconds:.1f} s)")
 
     def to_dict(self) -> dict:
-        return {"pace": self.pace, "T0": self.T0, "proved": self.proved,
+        return {"pace": self.pace, "gain": self.gain, "T0": self.T0, "proved": self.proved,
                 "margin": None if self.margin is None or not np.isfinite(self.margin) else self.margin,
                 "lam": self.lam, "error": self.error, "seconds": round(self.seconds, 3)}
 
 
-def best_candidate(cands: list, n: int, horizon: int) -> PaceCandidate:
+def best_candidate(cands: list, n: int, horizon: int) -> Candidate:
     """The candidate the ranking of the module docstring prefers."""
     return max(cands, key=lambda c: c.score(n, horizon))
 
 
-def why_chosen(best: PaceCandidate, cands: list) -> str:
+def why_chosen(best: Candidate, cands: list) -> str:
     """One line: why this pace."""
     tried = ", ".join(f"x{c.pace:g}" for c in cands)
     if best.error:
@@ -124,9 +129,9 @@ def levers(cert, system, w_max, scale: float, cands: list) -> dict:
       eps that removes the reduction (and the cover's growth, (eps / eps')^d points);
     * a refined model: the largest observed mean gap over the data (gap_max), what a model that explains
       it would remove at most;
-    * a slower plan: the paces tried and their margins;
+    * another pace or gain: the designs tried and their margins;
     * a shorter period: not computed (it needs data at that period).
-    Returns {"states": [rows], "paces": [...], "text": lines}."""
+    Returns {"states": [rows], "designs": [...], "text": lines}."""
     w = np.asarray(w_max, float)
     s = float(scale) if scale is not None and np.isfinite(scale) else 0.0
     n = system.n
@@ -166,7 +171,7 @@ def levers(cert, system, w_max, scale: float, cands: list) -> dict:
         rows.append(row)
         lines.append(f"{system.state_names[i]:<10}{w[i]:>11.4g}{s * w[i]:>11.4g}{max(need, 0.0):>11.4g}   "
                      f"{row['text']}")
-    paces = [c.row() for c in cands]
-    lines.append("slower or faster plan: " + ("; ".join(paces) if paces else "not searched (a fixed pace was given)"))
+    tried = [c.row() for c in cands]
+    lines.append("other designs (pace, K): " + ("; ".join(tried) if tried else "not searched (given)"))
     lines.append("shorter period: not computed (it needs data collected at that period)")
-    return {"states": rows, "paces": [c.to_dict() for c in cands], "text": lines}
+    return {"states": rows, "designs": [c.to_dict() for c in cands], "text": lines}

@@ -892,7 +892,7 @@ def _synthesize_box_tube(system, spec, gap, x0, x_star, u_star, K, lqr_q, lqr_r,
     def evaluate(pace, K, gain=None):
         """A Candidate (plan, proof at the certified gap, and when ranking: the coarse margin and the
         coarse per-run bound); its design kept in ``designs``."""
-        c = Candidate(pace=1.0 if pace is None else pace, gain=gain)
+        c = Candidate(pace=1.0 if pace is None else pace, gain=gain, extra={"horizon": T_run})
         t1 = time.perf_counter()
         try:
             plan, v = plan_for(pace, K)
@@ -914,7 +914,7 @@ def _synthesize_box_tube(system, spec, gap, x0, x_star, u_star, K, lqr_q, lqr_r,
     # ----- 1. the pace (given, or the best of PACES) with the heuristic's (or the given) K -----
     cands = []
     search = len(paces) > 1
-    n_gains = len(family) - 1 if family is not None and rank and len(family) > 1 else 0
+    n_gains = min(len(family) - 1, 3) if family is not None and rank and len(family) > 1 else 0
     for k, pace in enumerate(paces):
         log.doing(f"pace x{1.0 if pace is None else pace:g} ({k + 1} of {len(paces)}): plan, terminal box"
                   + (", margin, per-run bound" if rank else ""))
@@ -922,8 +922,8 @@ def _synthesize_box_tube(system, spec, gap, x0, x_star, u_star, K, lqr_q, lqr_r,
         cands.append(c)
         if k == 0 and (search or n_gains):
             log(f"estimate: about {(len(paces) - 1 + n_gains + 2) * c.seconds:.0f} s more for "
-                f"{len(paces) - 1} more paces, {n_gains} more gains and the chosen design's full searches (the first "
-                f"design took {c.seconds:.1f} s; slower paces have longer plans)")
+                f"{len(paces) - 1} more paces, about {n_gains} more gains and the chosen design's full searches (the "
+                f"first design took {c.seconds:.1f} s; slower paces have longer plans)")
         if search and not rank and c.proved:  # no ranking asked for: the fastest pace that proves
             break
         if search and len(cands) >= 2 and c.proved and cands[-2].proved and \
@@ -941,18 +941,37 @@ def _synthesize_box_tube(system, spec, gap, x0, x_star, u_star, K, lqr_q, lqr_r,
     if search:
         log(f"pace: x{best.pace:g}, {pace_how}")
 
-    # ----- 2. K at that pace: the LQR family ranked by the proof (the linear estimate only orders it) -----
+    # ----- 2. K at that pace: the LQR family climbed by the proof from the heuristic's pick -----
     if n_gains:
         pace = None if paces == (None,) else best.pace
-        gains = [best]
-        for j, (score, c_exp, Kc) in enumerate(family[1:]):
-            log.doing(f"K with input weight x 10^{c_exp:g} ({j + 2} of {len(family)}) at pace x{best.pace:g}")
-            gains.append(evaluate(pace, Kc, c_exp))
-        cands += gains[1:]
-        chosen = best_candidate(gains, n, T_run or 0)  # ties: the heuristic's order (max keeps the first)
-        i = [g[1] for g in family].index(chosen.gain)
-        K_how = gain_how(family[i][1], family[i][0]) + (
-            f", chosen by the proof among {len(family)} gains (margin {chosen.margin:.3g}"
+        by_c = sorted(family, key=lambda t: t[1])       # the family along its input-weight exponent c
+        cs = [t[1] for t in by_c]
+        tried = {family[0][1]: best}
+        key = lambda c: tried[c].score(n, T_run or 0)  # noqa: E731
+
+        def at(i):
+            c_exp = cs[i]
+            if c_exp not in tried:
+                log.doing(f"K with input weight x 10^{c_exp:g} at pace x{best.pace:g}")
+                tried[c_exp] = evaluate(pace, by_c[i][2], c_exp)
+                cands.append(tried[c_exp])
+            return tried[c_exp]
+
+        # hill-climb along c (the margin is close to unimodal in the input weight): both neighbours of the
+        # heuristic's pick, then on in the better direction while a step improves
+        i0 = cs.index(family[0][1])
+        for step in (-1, 1):
+            if 0 <= i0 + step < len(cs):
+                at(i0 + step)
+        i = max((j for j in (i0 - 1, i0, i0 + 1) if 0 <= j < len(cs)), key=lambda j: key(cs[j]))
+        if i != i0:
+            step = i - i0
+            while 0 <= i + step < len(cs) and key(at(i + step).gain) > key(cs[i]):
+                i += step
+        chosen = tried[cs[i]]
+        j = [t[1] for t in family].index(chosen.gain)
+        K_how = gain_how(family[j][1], family[j][0]) + (
+            f", chosen by the proof among the {len(tried)} gains tried (margin {chosen.margin:.3g}"
             + ("" if chosen.lam is None else f", per-run bound {chosen.lam:.3g}") + ")")
         best = chosen
     plan, v, K = designs[id(best)]

@@ -9,6 +9,7 @@ T0) that leaves more room around it. Each candidate is designed and proved as a 
 the tolerable gap factor s, the per-run noise bound lam); the ranking prefers, in order,
 
 1. a proof at the certified gap (s >= 1),
+   with a plan shorter than the rollouts' horizon (a plan of T0 >= T periods is ranked as not proved),
 2. a per-run statement whose noise term beta_noise = 2 n T exp(-lam^2 / 2) is at most :data:`NOISE_TERM`
    (lam capped there: beyond it more lam buys nothing a user sees),
 3. the largest margin s, then the fewest periods.
@@ -44,8 +45,11 @@ class Candidate:
     extra: dict = field(default_factory=dict)
 
     def score(self, n: int, horizon: int) -> tuple:
+        """(proved and the plan ends within the runs' horizon, capped lam, margin, -T0): larger is better."""
         if self.error:
             return (-1, 0.0, 0.0, 0)
+        if horizon and self.T0 is not None and self.T0 >= horizon:  # runs would end before the plan does
+            return (0, 0.0, 0.0, -self.T0)
         lam = 0.0 if self.lam is None else self.lam
         lam_cap = float(np.sqrt(2.0 * np.log(2.0 * n * max(horizon, 1) / NOISE_TERM)))
         margin = 0.0 if self.margin is None else min(self.margin, 1e12)
@@ -60,6 +64,8 @@ class Candidate:
         s = "any" if self.margin is not None and not np.isfinite(self.margin) else \
             "-" if self.margin is None else f"{self.margin:.3g}"
         lam = "" if self.lam is None else f", per-run noise bound lam {self.lam:.3g}"
+        if self.extra.get("horizon") and self.T0 >= self.extra["horizon"]:
+            lam += f"; the plan outlasts the runs' horizon {self.extra['horizon']}"
         return (f"{self.label()}: T0 {self.T0}, {'proved' if self.proved else 'not proved'} at the certified "
                 f"gap, margin {s}{lam} ({self.seconds:.1f} s)")
 

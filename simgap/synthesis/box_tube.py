@@ -901,7 +901,9 @@ def _synthesize_box_tube(system, spec, gap, x0, x_star, u_star, K, lqr_q, lqr_r,
         else:
             c.T0, c.proved = plan.T0, bool(v.ok)
             designs[id(c)] = (plan, v, K)
-            if rank:  # enough to rank designs against each other
+            if rank and T_run is not None and plan.T0 >= T_run:
+                pass  # ranked as unproved (the runs end before the plan): its margin would not be used
+            elif rank:  # enough to rank designs against each other
                 c.margin = coarse_margin(system, plan, lo, hi, u_lo, u_hi, gap, imap, shells, target_lo, target_hi)
                 if v.ok and per_run and why_no_statement(gap) is None:
                     nt_c, _ = noise_tube(system, plan, lo, hi, u_lo, u_hi, gap, imap, shells, horizon_of(plan),
@@ -925,6 +927,10 @@ def _synthesize_box_tube(system, spec, gap, x0, x_star, u_star, K, lqr_q, lqr_r,
                 f"{len(paces) - 1} more paces, about {n_gains} more gains and the chosen design's full searches (the "
                 f"first design took {c.seconds:.1f} s; slower paces have longer plans)")
         if search and not rank and c.proved:  # no ranking asked for: the fastest pace that proves
+            break
+        if search and T_run is not None and c.T0 is not None and c.T0 >= T_run:
+            if k + 1 < len(paces):  # slower paces have longer plans still
+                log(f"paces x{', x'.join(f'{p:g}' for p in paces[k + 1:])} not tried: slower still")
             break
         if search and len(cands) >= 2 and c.proved and cands[-2].proved and \
                 c.score(n, T_run or 0)[:3] <= cands[-2].score(n, T_run or 0)[:3] and k + 1 < len(paces):

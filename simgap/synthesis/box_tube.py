@@ -460,7 +460,7 @@ def verify_tube(system: System, plan: TubePlan, safe_lo, safe_hi, u_lo, u_hi, ga
 # ---------------------------------------------------------------------------------------
 
 #: input-weight factors 10^c tried for the box-tolerant gain
-GAIN_EXPONENTS = (-3.0, -2.0, -1.0, -0.5, 0.0, 0.5, 1.0, 2.0)
+GAIN_EXPONENTS = (-3.0, -2.0, -1.0, -0.5, 0.0, 0.5, 1.0, 1.5, 2.0, 2.5, 3.0)
 
 
 def gain_family(A, B, x_star, u_star, room, uroom, gap, system: System) -> list:

@@ -68,7 +68,7 @@ def certify_options(section: dict, method: str, system=None):
         else:
             s["terms"] = {int(k): list(v) for k, v in s["terms"].items()}
     if method == "deterministic":
-        for k in ("delta1", "delta2", "beta1", "beta2", "variance", "safety", "value_range"):
+        for k in ("delta1", "delta2", "beta1", "beta2", "confidence", "variance", "safety", "value_range"):
             s.pop(k, None)
     return CertifyOptions(method=method, bounds=BoundOptions(**bkw), **s)
 
@@ -444,7 +444,8 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
             _close(bar)
             if invariant:
                 sres = stage(f"synthesize/{method}{tag}", lambda: set_synthesis.synthesize(
-                    exp.system, spec, cert, syn, x0=x0, horizon=ro.get("horizon"), log=log))
+                    exp.system, spec, cert, syn, x0=x0, horizon=ro.get("horizon"),
+                    log=lambda t: log(f"[synthesize/{method}{tag}] {t}")))
             else:
                 bar = progress and progress(f"synthesize/{method}: abstraction", "classes")
                 sres = stage(f"synthesize/{method}{tag}", lambda: synthesize(exp.system, spec, syn["eta"], gap=cert,
@@ -549,7 +550,8 @@ def run_experiment(exp: ExperimentConfig, out: str | Path, *, executor: Optional
         if invariant and syn.get("nominal", True):
             # the nominal model without any gap: what the set and the rollouts look like when the proof
             # ignores the simulation gap (no guarantee about the simulator)
-            sres = stage("synthesize/nominal", lambda: set_synthesis.synthesize(exp.system, spec, None, syn, x0=x0))
+            sres = stage("synthesize/nominal", lambda: set_synthesis.synthesize(
+                exp.system, spec, None, syn, x0=x0, log=lambda t: log(f"[synthesize/nominal] {t}")))
             if not sres.empty:
                 sres.controller.save(out / "controller_nominal.npz")
                 wrote("controller_nominal.npz")
@@ -770,6 +772,10 @@ def comparison_table(summary: dict) -> str:
         d = (summary["methods"][m].get("synthesis") or {}).get("diagnosis") if invariant else None
         notes = ([d] if d else []) + [x for x in stmts[m]["notes"] if x != d]
         lines += ["", *(f"{m}: {x}" for x in notes)] if notes else []
+        lv = (summary["methods"][m].get("synthesis") or {}).get("levers_text") if invariant else None
+        if lv:  # what each way out would need (simgap.synthesis.tube_design.levers)
+            lines += [f"{m}: what gamma would have to lose per state, and what each lever needs:"]
+            lines += ["  " + x for x in lv]
     lines += _audit_notes(summary, cols)
     if warnings:
         lines.append("")

@@ -109,3 +109,63 @@ class ProgressBar:
             if self._lines["written"] != self._lines["done"]:
                 self._write_line(time.monotonic())
             self._lines = None
+
+
+class StageLog:
+    """Lines about a long computation that has no natural unit count (a proof's searches): ``log(text)``
+    prints a line at once; while the stage runs (``with StageLog(...) as log:``), a line is also printed
+    whenever ``every`` seconds passed without one, naming what is being done (the last ``log.doing(text)``)
+    and the time so far, so a user never watches ``every`` seconds of silence. ``write`` receives each line
+    (default: stderr); None makes a silent log (the library default)."""
+
+    def __init__(self, prefix: str = "", write: Optional[Callable[[str], None]] = None, every: float = 10.0):
+        import time
+        self._time = time.monotonic
+        self.prefix, self.every = prefix, float(every)
+        self.write = write
+        self.t0 = self._time()
+        self._last = self.t0
+        self._what = "starting"
+        self._stop = threading.Event()
+        self._lock = threading.Lock()
+        self._thread: Optional[threading.Thread] = None
+
+    @property
+    def elapsed(self) -> float:
+        return self._time() - self.t0
+
+    def __call__(self, text: str) -> None:
+        if self.write is None:
+            return
+        with self._lock:
+            self._last = self._time()
+            self.write(f"{self.prefix}{text}")
+
+    def doing(self, what: str) -> None:
+        """Name the step under way (used by the heartbeat line; printed only by the heartbeat)."""
+        self._what = what
+
+    def _beat(self) -> None:
+        while not self._stop.wait(min(1.0, self.every / 4)):
+            if self._time() - self._last >= self.every:
+                self(f"... {self._what} ({self.elapsed:.0f} s so far)")
+
+    def __enter__(self) -> "StageLog":
+        self._depth = getattr(self, "_depth", 0) + 1  # re-entered by a callee: one heartbeat
+        if self._depth == 1 and self.write is not None and self.every > 0:
+            self._stop.clear()
+            self._thread = threading.Thread(target=self._beat, daemon=True, name="simgap-stage-log")
+            self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._depth -= 1
+        if self._depth:
+            return
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+
+
+def quiet_log(_text: str) -> None:
+    """A log that prints nothing (library calls without a ``log``)."""

@@ -144,6 +144,7 @@ class CertifySection(Section):
     delta2: Optional[Union[Positive, list[Positive]]] = None
     beta1: Optional[Union[Probability, list[Probability]]] = None
     beta2: Optional[Union[Probability, list[Probability]]] = None
+    confidence: Optional[Annotated[float, Field(gt=0, lt=1)]] = None
     variance: Literal["empirical", "maurer_pontil"] = "empirical"
     safety: Positive = 10.0
     value_range: Optional[Positive] = None
@@ -213,7 +214,7 @@ class SynthesisSection(Section):
     margin_search: bool = True
     terminal: Literal["largest", "smallest"] = "largest"
     per_run: bool = True
-    plan_input_weight: Positive = 1.0
+    plan_input_weight: Optional[Positive] = None
 
 
 class RolloutSection(Section):

@@ -48,7 +48,11 @@ class CertifyOptions:
     delta1, delta2 : margins (state units), scalar or per dimension -> betas are computed.
     beta1, beta2 : target failure probabilities -> the smallest deltas are computed. If both a
         delta and a beta are given, the data must have enough runs (else SimgapError).
-        Neither given: beta1 = beta2 = 0.01.
+        Neither given: beta1 = beta2 = 0.01, or what ``confidence`` asks for.
+    confidence : the joint confidence the certificate must state (the all-rows reading with
+        ``bounds.uniform``, else the pointwise one), in (0, 1): beta1 = beta2 = (1 - confidence -
+        sum_i beta_v,i) / (2 n) in every dimension, so that 1 - sum_i (beta1 + beta2 + beta_v) equals it.
+        Refused beside beta1/beta2 (two keys setting the same thing) and for the deterministic baseline.
     variance : "empirical" (paper: safety * max sample variance) or "maurer_pontil" (certified).
     safety : the paper's safety factor on the empirical variance (default 10).
     value_range : known range b of fhat_i (for maurer_pontil and bernstein).
@@ -83,6 +87,7 @@ class CertifyOptions:
     delta2: PerDim = None
     beta1: PerDim = None
     beta2: PerDim = None
+    confidence: Optional[float] = None
     variance: str = "empirical"
     safety: float = 10.0
     value_range: Optional[float] = None
@@ -131,6 +136,21 @@ def _per_dim(v, n, name):
     if not np.all(np.isfinite(a)):
         raise SimgapError(f"{name}: NaN or inf in {v!r}")
     return a
+
+
+def confidence_betas(confidence, n: int, beta_v: float, betas_given: bool = False) -> float:
+    """beta1 = beta2 per dimension for a joint ``confidence`` over n dimensions: (1 - confidence - n beta_v) / (2 n)
+    (CertifyOptions.confidence)."""
+    if betas_given:
+        raise SimgapError("confidence and beta1/beta2 both set the betas: give one of them")
+    c = float(confidence)
+    if not (np.isfinite(c) and 0.0 < c < 1.0):
+        raise SimgapError(f"confidence must be a probability in (0, 1), got {confidence!r}")
+    b = (1.0 - c - n * beta_v) / (2 * n)
+    if b <= 0:
+        raise SimgapError(f"confidence = {c:g} leaves nothing for beta1/beta2 after the variance bound's "
+                          f"{n} x beta_v = {n * beta_v:g}")
+    return b
 
 
 def _versions() -> dict:
@@ -359,6 +379,9 @@ def certify(dataset, options: Optional[CertifyOptions] = None, simulator=None, o
                     i = int(np.argmax(big))
                     raise SimgapError(f"{name} = {d[i]:g} for {s.state_names[i]} is over 1e6 times the size of "
                                       f"the states (|x| up to {scale[i]:g}): a margin that large certifies nothing")
+        if o.confidence is not None:
+            b1 = b2 = np.full(n, confidence_betas(o.confidence, n, float(vb.beta_v), b1 is not None or
+                                                  o.beta2 is not None))
         if d1 is None and b1 is None:
             b1 = b2 = np.full(n, 0.01)
         if split != 1.0:
@@ -388,7 +411,7 @@ def certify(dataset, options: Optional[CertifyOptions] = None, simulator=None, o
             notes.append("joint confidence <= 0: per-dimension statements only")
         variance_info = vb.to_dict()
     else:
-        given = [k for k in ("delta1", "delta2", "beta1", "beta2") if getattr(o, k) is not None]
+        given = [k for k in ("delta1", "delta2", "beta1", "beta2", "confidence") if getattr(o, k) is not None]
         if given:
             raise SimgapError(f"the deterministic baseline has no delta or beta terms; remove {', '.join(given)} "
                               f"(or use --method stochastic)")

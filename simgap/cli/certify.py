@@ -62,6 +62,8 @@ def add_parser(subparsers) -> None:
     g.add_argument("--beta", help="target beta_1 = beta_2 (each lemma); the smallest deltas are computed")
     g.add_argument("--beta1", help="target beta_1 only")
     g.add_argument("--beta2", help="target beta_2 only")
+    g.add_argument("--confidence", type=float, help="the joint confidence to state (all rows with --uniform): "
+                   "beta1 = beta2 = (1 - confidence - n beta_v) / (2 n) in each of the n dimensions")
     g.add_argument("--variance", choices=["empirical", "maurer_pontil"], default="empirical",
                    help="Mhat: paper's safety x max sample variance, or Maurer-Pontil certified bound")
     g.add_argument("--safety", type=float, default=10.0, help="safety factor on the empirical variance (default 10)")
@@ -112,6 +114,7 @@ def options_from_args(args, system):
         method=args.method, degree=deg, terms=parse_terms(args.term, system),
         delta1=None if d1 is None else _floats(d1, "delta1"), delta2=None if d2 is None else _floats(d2, "delta2"),
         beta1=None if b1 is None else _floats(b1, "beta1"), beta2=None if b2 is None else _floats(b2, "beta2"),
+        confidence=args.confidence,
         variance=args.variance, safety=args.safety, value_range=args.value_range, beta_v=args.beta_v,
         bounds=BoundOptions(concentration=args.concentration, lemma2_factor=args.lemma2_factor,
                             uniform=args.uniform, value_range=args.value_range),

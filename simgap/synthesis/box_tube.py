@@ -485,15 +485,15 @@ def verify_tube(system: System, plan: TubePlan, safe_lo, safe_hi, u_lo, u_hi, ga
 # ---------------------------------------------------------------------------------------
 
 #: input-weight factors 10^c tried for the box-tolerant gain
-GAIN_EXPONENTS = (-3.0, -2.0, -1.0, -0.5, 0.0, 0.5, 1.0, 2.0)
+GAIN_EXPONENTS = (-3.0, -2.0, -1.0, -0.5, 0.0, 0.5, 1.0, 1.5, 2.0, 2.5, 3.0)
 
 
-def box_tolerant_gain(A, B, x_star, u_star, room, uroom, gap, system: System):
-    """(K, how): among the LQR gains with q = 1 / room^2 (Bryson over the target box) and
-    r = 10^c / uroom^2 (c in GAIN_EXPONENTS), the one whose linear loop A + B K tolerates the largest
-    multiple of the gap d at x* (its sup over the target box and the input range) by the box hull of
-    the minimal RPI set, h = sum_k |(A + B K)^k| d (2000 terms): the largest s with s h <= room and
-    s |K| h <= uroom. A design heuristic only: the proof decides."""
+def gain_family(A, B, x_star, u_star, room, uroom, gap, system: System) -> list:
+    """[(score, c, K)], best first: the LQR gains with q = 1 / room^2 (Bryson over the target box) and
+    r = 10^c / uroom^2 (c in GAIN_EXPONENTS) that stabilize the linearization, each scored by how large a
+    multiple of the gap d at x* (its sup over the target box and the input range) its linear loop A + B K
+    tolerates by the box hull of the minimal RPI set, h = sum_k |(A + B K)^k| d (2000 terms): the largest
+    s with s h <= room and s |K| h <= uroom. A design heuristic only: the proof decides."""
     n = A.shape[0]
     try:
         d, _ = _gap_over(gap, system, x_star - room, x_star + room, u_star - uroom, u_star + uroom, None)
@@ -501,7 +501,7 @@ def box_tolerant_gain(A, B, x_star, u_star, room, uroom, gap, system: System):
     except SimgapError:
         d = np.zeros(n)
     d = np.maximum(np.where(np.isfinite(d), d, 0.0), 1e-6 * room)
-    best = None
+    out = []
     for c in GAIN_EXPONENTS:
         K = lqr_gain(A, B, 1.0 / room ** 2, 10.0 ** c / uroom ** 2)
         Acl = A + B @ K
@@ -512,12 +512,21 @@ def box_tolerant_gain(A, B, x_star, u_star, room, uroom, gap, system: System):
             h += np.abs(Ak) @ d
             Ak = Acl @ Ak
         score = min(float(np.min(room / h)), float(np.min(uroom / np.maximum(np.abs(K) @ h, 1e-300))))
-        if best is None or score > best[0]:
-            best = (score, c, K)
-    if best is None:
+        out.append((score, c, K))
+    if not out:
         raise SimgapError("box tube: no LQR gain of the family stabilizes the linearization")
-    return best[2], (f"discrete LQR, Bryson's weights over the target box with the input weight x 10^{best[1]:g}, "
-                     f"chosen for box tolerance (linear mRPI estimate: {best[0]:.3g} x the gap at x*)")
+    return sorted(out, key=lambda t: -t[0])
+
+
+def gain_how(c, score) -> str:
+    return (f"discrete LQR, Bryson's weights over the target box with the input weight x 10^{c:g} (linear mRPI "
+            f"estimate: {score:.3g} x the gap at x*)")
+
+
+def box_tolerant_gain(A, B, x_star, u_star, room, uroom, gap, system: System):
+    """(K, how): the gain of :func:`gain_family` with the best heuristic score."""
+    score, c, K = gain_family(A, B, x_star, u_star, room, uroom, gap, system)[0]
+    return K, gain_how(c, score) + ", chosen for box tolerance"
 
 
 def plan_nominal(system: System, x0, x_star, u_star, K, u_lo, u_hi, margin: float = INPUT_MARGIN,
@@ -615,6 +624,20 @@ def tolerable_scale(system, plan: TubePlan, lo, hi, u_lo, u_hi, gap, imap, shell
                                                                       shells, grid, target_lo, target_hi)], passes)
 
 
+def coarse_margin(system, plan: TubePlan, lo, hi, u_lo, u_hi, gap, imap, shells, target_lo=None,
+                  target_hi=None) -> float:
+    """The largest gap factor of the grid 2^(k/4), k = -10..10 (0.18 .. 5.7, steps of 19 %), the proof holds
+    with, in ONE batched search (inf: all of them; 0: none): enough to rank designs against each other
+    (:mod:`.tube_design`), a fraction of :func:`tolerable_scale`'s cost."""
+    if gap is None:
+        return np.inf
+    grid = 2.0 ** (np.arange(-10, 11) / 4.0)
+    p = TubePlan(plan.x_nom, plan.u_nom, plan.K, plan.x_star, plan.u_star, plan.H.copy())
+    oks = np.array([v.ok for v in design_H_batch(system, p, lo, hi, u_lo, u_hi, gap, imap, shells, grid, target_lo,
+                                                 target_hi)])
+    return np.inf if oks.all() else float(grid[oks].max()) if oks.any() else 0.0
+
+
 def largest_proved(proves, passes: int = 3) -> float:
     """The largest s > 0 for which ``proves`` (a batch: array of s -> list of bools, monotone in s) holds,
     by grids: 4^k for k = -10..10, then ``passes`` - 1 rounds of 8 geometric points between the largest
@@ -638,7 +661,7 @@ def largest_proved(proves, passes: int = 3) -> float:
 
 
 def noise_tube(system, plan: TubePlan, lo, hi, u_lo, u_hi, gap, imap, shells: int, horizon: int,
-               target_lo=None, target_hi=None):
+               target_lo=None, target_hi=None, passes: int = 3):
     """(NoiseTube or None, reason): the per-run statement of :mod:`.noise_tube` for runs of
     ``horizon`` periods: the largest lam for which the proof of ``plan`` holds with every box widened
     by lam times the noise response's proxy (searched as :func:`tolerable_scale`; the terminal box
@@ -669,7 +692,7 @@ def noise_tube(system, plan: TubePlan, lo, hi, u_lo, u_hi, gap, imap, shells: in
                               target_hi, zbar=lams[:, None, None] * tube_proxy[None], A_lin=A_lin,
                               zbar_T=lams[:, None] * term_proxy[None], A_star=A_star)
 
-    lam = largest_proved(lambda grid: [v.ok for v in design(grid)])
+    lam = largest_proved(lambda grid: [v.ok for v in design(grid)], passes)
     if lam <= 0:
         return None, "the tube's proof fails for any noise (4^-10 x the noise's proxy already)"
     if not np.isfinite(lam):
@@ -704,7 +727,8 @@ class BoxTubeResult:
         lines = [f"system        {s['system']} (tau = {s['tau']:g} s), box-tube synthesis (reach and stay)",
                  f"equilibrium   x* = {s['x_star']}, u* = {s['u_star']} (residual {s['residual_max']:.2g})",
                  f"feedback      K = {s['K']} ({s['K_how']}); spectral radius {s['spectral_radius']:.6f}",
-                 f"plan          {s['T0']} periods from x0 = {s['x0']} (input margin {s['input_margin']:g})",
+                 f"plan          {s['T0']} periods from x0 = {s['x0']} (input margin {s['input_margin']:g}; pace "
+                 f"x{s['plan_input_weight']:g}: {s.get('pace_how', 'given')})",
                  f"gap           {s['gap_how']}"]
         v = s.get("verification")
         if v is not None:
@@ -726,6 +750,9 @@ class BoxTubeResult:
                                                  f"x its proxy)"))
         else:
             lines.append(f"note          {s['diagnosis']}")
+            if s.get("levers_text"):
+                lines.append("levers        what gamma would have to lose per state, and what each lever needs:")
+                lines.extend("              " + t for t in s["levers_text"])
         lines.append(f"time          {s['seconds']:.3f} s, peak memory {s['peak_rss_mb']:.0f} MB (process max RSS)")
         return "\n".join(lines)
 
@@ -748,8 +775,8 @@ def _box_tube_messages(fn):
 def synthesize_box_tube(system: System, spec: Spec, gap=None, *, x0, x_star=None, u_star=None, K=None,
                         lqr_q=None, lqr_r=None, target_lo=None, target_hi=None, shells: int = SHELLS,
                         input_margin: float = INPUT_MARGIN, margin_search: bool = True,
-                        terminal: str = "largest", K_plan=None, plan_input_weight: float = 1.0,
-                        per_run: bool = True, horizon: Optional[int] = None) -> BoxTubeResult:
+                        terminal: str = "largest", K_plan=None, plan_input_weight: Optional[float] = None,
+                        per_run: bool = True, horizon: Optional[int] = None, log=None) -> BoxTubeResult:
     """Design and prove a box tube from x0 to a box around x* (module docstring).
 
     Parameters
@@ -765,16 +792,18 @@ def synthesize_box_tube(system: System, spec: Spec, gap=None, *, x0, x_star=None
     x_star, u_star
         The equilibrium (default: least squares inside the target box, else the safe box).
     K : (m, n), optional
-        The feedback gain. Default: :func:`box_tolerant_gain` (the LQR with Bryson's weights over the
-        target box and the input range, its input weight scaled by the factor 10^c, c in -3..2, that
-        tolerates the most gap by the linear mRPI estimate); with ``lqr_q``/``lqr_r`` the LQR with
-        those weights.
+        The feedback gain. Default: among the LQR gains with Bryson's weights over the target box and the
+        input range, the input weight scaled by 10^c (c in GAIN_EXPONENTS), the one whose tube tolerates the
+        largest gap factor by the proof (with a gap and ``margin_search``; else the best by the linear mRPI
+        estimate of :func:`gain_family`); with ``lqr_q``/``lqr_r`` the LQR with those weights.
     K_plan : (m, n), optional
         The gain of the nominal plan (default: the LQR with Bryson's weights over the safe box, a
         gentle loop that keeps the plan in X).
-    plan_input_weight : float > 0
-        Multiplies the default plan's input weight: larger, a slower plan with smaller velocities
-        (more room around it for the noise of single runs; more periods T0).
+    plan_input_weight : float > 0, optional
+        The plan's pace: multiplies the default plan's input weight: larger, a slower plan with smaller
+        velocities (more room around it for the noise of single runs; more periods T0). Default: chosen
+        among :data:`~simgap.synthesis.tube_design.PACES` by what each proves
+        (:mod:`~simgap.synthesis.tube_design`; with ``margin_search=False`` the fastest pace that proves).
     target_lo, target_hi : optional
         The target box the state must reach and stay in (default: no target beyond S; the terminal
         box x* +- H is reported).
@@ -793,8 +822,25 @@ def synthesize_box_tube(system: System, spec: Spec, gap=None, *, x0, x_star=None
         statement of :mod:`.noise_tube` (the noise the proof tolerates; the controller carries its
         tube, the rollouts evaluate P(a run stays in it for T periods)) for runs of ``horizon``
         periods (default 2 T0 + 1, the rollouts' default).
+    log : callable(str), optional
+        Receives a line per design step (K, each pace, the proof, the margin, the per-run bound) and,
+        from a :class:`~simgap.progress.StageLog`, a line at least every 10 s while a step runs.
     """
     t0 = time.perf_counter()
+    from ..progress import StageLog
+    if not isinstance(log, StageLog):
+        log = StageLog("", log)
+    with log:
+        res = _synthesize_box_tube(system, spec, gap, x0, x_star, u_star, K, lqr_q, lqr_r, target_lo, target_hi,
+                                   shells, input_margin, margin_search, terminal, K_plan, plan_input_weight, per_run,
+                                   horizon, log)
+    res.stats["seconds"] = time.perf_counter() - t0
+    return res
+
+
+def _synthesize_box_tube(system, spec, gap, x0, x_star, u_star, K, lqr_q, lqr_r, target_lo, target_hi, shells,
+                         input_margin, margin_search, terminal, K_plan, plan_input_weight, per_run, horizon,
+                         log) -> BoxTubeResult:
     if spec.kind != "invariance" or spec.obstacles:
         raise SimgapError("the box-tube synthesis handles an invariance specification (a safe box without "
                           "obstacles; the target box is given by target_lo / target_hi)")
@@ -851,18 +897,8 @@ def synthesize_box_tube(system: System, spec: Spec, gap=None, *, x0, x_star=None
     sroom = np.minimum(x_star - lo, hi - x_star)
     if K is None or K_plan is None:
         check_stabilizable(A, B, system.state_names)
-    if not (np.isfinite(plan_input_weight) and plan_input_weight > 0):
+    if plan_input_weight is not None and not (np.isfinite(plan_input_weight) and plan_input_weight > 0):
         raise SimgapError(f"box tube: plan_input_weight must be a number > 0, got {plan_input_weight!r}")
-    plan_how = "" if K_plan is not None else f" (designed with plan_input_weight = {plan_input_weight!r})"
-    if K_plan is None:  # the plan: Bryson's weights over the safe box (gentle: the plan must stay in X)
-        try:
-            K_plan = lqr_gain(A, B, 1.0 / sroom ** 2, float(plan_input_weight) / uroom ** 2)
-        except SimgapError as e:
-            raise SimgapError(f"box tube: plan_input_weight = {plan_input_weight!r}: the plan's LQR (input weight "
-                              f"plan_input_weight x Bryson's) has no stabilizing solution ({str(e).split(' (', 1)[-1]}; "
-                              "use a weight nearer 1 (0.1 .. 100), or give K_plan") from None
-    else:
-        K_plan = _parse_matrix(K_plan, m, n)
     if K is None:
         if lqr_q is not None or lqr_r is not None:
             q = 1.0 / room ** 2 if lqr_q is None else _weights(lqr_q, n, "lqr_q")
@@ -871,53 +907,191 @@ def synthesize_box_tube(system: System, spec: Spec, gap=None, *, x0, x_star=None
                 raise SimgapError("box tube: LQR weights need q >= 0 and r > 0")
             K, K_how = lqr_gain(A, B, q, rr), "discrete LQR of the linearization (given weights)"
         else:
-            K, K_how = box_tolerant_gain(A, B, x_star, u_star, room, uroom, gap, system)
+            K = None  # chosen below, by the proof
     else:
         K, K_how = _parse_matrix(K, m, n), "given"
+    shells = int(shells)
+    T_run = None if horizon is None else int(horizon)
+    family = None
+    if K is None:
+        family = gain_family(A, B, x_star, u_star, room, uroom, gap, system)
+        K, K_how = family[0][2], gain_how(family[0][1], family[0][0]) + ", chosen for box tolerance"
+
+    def plan_for(pace, K):
+        """The nominal plan at a pace (the plan's input weight factor), or the given K_plan (pace None),
+        with the tube's gain K and its terminal box at the certified gap (design_H)."""
+        if pace is None:
+            Kp = _parse_matrix(K_plan, m, n)
+            if spectral_radius(A + B @ Kp) >= 1:
+                raise SimgapError("box tube: K_plan does not stabilize the linearization at x*")
+        else:  # Bryson's weights over the safe box (gentle: the plan must stay in X), the input's x pace
+            try:
+                Kp = lqr_gain(A, B, 1.0 / sroom ** 2, float(pace) / uroom ** 2)
+            except SimgapError as e:
+                raise SimgapError(f"box tube: plan_input_weight = {pace!r}: the plan's LQR (input weight "
+                                  f"plan_input_weight x Bryson's) has no stabilizing solution "
+                                  f"({str(e).split(' (', 1)[-1]}; use a weight nearer 1 (0.1 .. 100), or give "
+                                  "K_plan") from None
+            if spectral_radius(A + B @ Kp) >= 1:
+                raise SimgapError(f"box tube: K_plan (designed with plan_input_weight = {pace!r}) does not "
+                                  "stabilize the linearization at x*; use a plan_input_weight nearer 1 (0.1 .. 100), "
+                                  "or give K_plan")
+        x_nom, u_nom = plan_nominal(system, x0, x_star, u_star, Kp, u_lo, u_hi, float(input_margin),
+                                    tol=PLAN_TOL * room)
+        plan = TubePlan(x_nom, u_nom, K, x_star, u_star, np.zeros(n))
+        v = design_H(system, plan, lo, hi, u_lo, u_hi, gap, imap, shells, 1.0, target_lo, target_hi)
+        return plan, v
+
+    def horizon_of(plan):
+        return 2 * plan.T0 + 1 if T_run is None else T_run
+
+    from .tube_design import PACES, Candidate, best_candidate, why_chosen
+    paces = (None,) if K_plan is not None else (PACES if plan_input_weight is None else (float(plan_input_weight),))
+    rank = margin_search and gap is not None
+    designs = {}
+
+    def evaluate(pace, K, gain=None):
+        """A Candidate (plan, proof at the certified gap, and when ranking: the coarse margin and the
+        coarse per-run bound); its design kept in ``designs``."""
+        c = Candidate(pace=1.0 if pace is None else pace, gain=gain, extra={"horizon": T_run})
+        t1 = time.perf_counter()
+        try:
+            plan, v = plan_for(pace, K)
+        except SimgapError as e:
+            c.error = str(e).removeprefix("box tube: ")
+        else:
+            c.T0, c.proved = plan.T0, bool(v.ok)
+            designs[id(c)] = (plan, v, K)
+            if rank and T_run is not None and plan.T0 >= T_run:
+                pass  # ranked as unproved (the runs end before the plan): its margin would not be used
+            elif rank:  # enough to rank designs against each other
+                c.margin = coarse_margin(system, plan, lo, hi, u_lo, u_hi, gap, imap, shells, target_lo, target_hi)
+                if v.ok and per_run and why_no_statement(gap) is None:
+                    nt_c, _ = noise_tube(system, plan, lo, hi, u_lo, u_hi, gap, imap, shells, horizon_of(plan),
+                                         target_lo, target_hi, passes=2)
+                    c.lam = None if nt_c is None else nt_c.lam
+        c.seconds = time.perf_counter() - t1
+        log(c.row())
+        return c
+
+    # ----- 1. the pace (given, or the best of PACES) with the heuristic's (or the given) K -----
+    cands = []
+    search = len(paces) > 1
+    n_gains = min(len(family) - 1, 3) if family is not None and rank and len(family) > 1 else 0
+    for k, pace in enumerate(paces):
+        log.doing(f"pace x{1.0 if pace is None else pace:g} ({k + 1} of {len(paces)}): plan, terminal box"
+                  + (", margin, per-run bound" if rank else ""))
+        c = evaluate(pace, K, None if family is None else family[0][1])
+        cands.append(c)
+        if k == 0 and (search or n_gains):
+            log(f"estimate: about {(len(paces) - 1 + n_gains + 2) * c.seconds:.0f} s more for "
+                f"{len(paces) - 1} more paces, about {n_gains} more gains and the chosen design's full searches (the "
+                f"first design took {c.seconds:.1f} s; slower paces have longer plans)")
+        if search and not rank and c.proved:  # no ranking asked for: the fastest pace that proves
+            break
+        if search and T_run is not None and c.T0 is not None and c.T0 >= T_run:
+            if k + 1 < len(paces):  # slower paces have longer plans still
+                log(f"paces x{', x'.join(f'{p:g}' for p in paces[k + 1:])} not tried: slower still")
+            break
+        if search and len(cands) >= 2 and c.proved and cands[-2].proved and \
+                c.score(n, T_run or 0)[:3] <= cands[-2].score(n, T_run or 0)[:3] and k + 1 < len(paces):
+            # a slower pace that proves no more than the previous one: slower still only adds periods
+            log(f"paces x{', x'.join(f'{p:g}' for p in paces[k + 1:])} not tried: x{c.pace:g} proved no more "
+                f"than x{cands[-2].pace:g}")
+            break
+    best = best_candidate(cands, n, T_run or 0)
+    if best.error:
+        raise SimgapError(f"box tube: {best.error}" + ("" if len(cands) == 1 else
+                          f" (paces tried: {', '.join(c.row() for c in cands)})"))
+    pace_how = ("given (K_plan)" if paces == (None,) else f"given (plan_input_weight = {best.pace:g})"
+                if not search else why_chosen(best, cands))
+    if search:
+        log(f"pace: x{best.pace:g}, {pace_how}")
+
+    # ----- 2. K at that pace: the LQR family climbed by the proof from the heuristic's pick -----
+    if n_gains:
+        pace = None if paces == (None,) else best.pace
+        by_c = sorted(family, key=lambda t: t[1])       # the family along its input-weight exponent c
+        cs = [t[1] for t in by_c]
+        tried = {family[0][1]: best}
+        key = lambda c: tried[c].score(n, T_run or 0)  # noqa: E731
+
+        def at(i):
+            c_exp = cs[i]
+            if c_exp not in tried:
+                log.doing(f"K with input weight x 10^{c_exp:g} at pace x{best.pace:g}")
+                tried[c_exp] = evaluate(pace, by_c[i][2], c_exp)
+                cands.append(tried[c_exp])
+            return tried[c_exp]
+
+        # hill-climb along c (the margin is close to unimodal in the input weight): both neighbours of the
+        # heuristic's pick, then on in the better direction while a step improves
+        i0 = cs.index(family[0][1])
+        for step in (-1, 1):
+            if 0 <= i0 + step < len(cs):
+                at(i0 + step)
+        i = max((j for j in (i0 - 1, i0, i0 + 1) if 0 <= j < len(cs)), key=lambda j: key(cs[j]))
+        if i != i0:
+            step = i - i0
+            while 0 <= i + step < len(cs) and key(at(i + step).gain) > key(cs[i]):
+                i += step
+        chosen = tried[cs[i]]
+        j = [t[1] for t in family].index(chosen.gain)
+        K_how = gain_how(family[j][1], family[j][0]) + (
+            f", chosen by the proof among the {len(tried)} gains tried (margin {chosen.margin:.3g}"
+            + ("" if chosen.lam is None else f", per-run bound {chosen.lam:.3g}") + ")")
+        best = chosen
+    plan, v, K = designs[id(best)]
     rho0 = spectral_radius(A + B @ K)
     if rho0 >= 1:
         raise SimgapError(f"box tube: K does not stabilize the linearization at x*: spectral radius {rho0:.6g} >= 1")
-    if spectral_radius(A + B @ K_plan) >= 1:
-        raise SimgapError(f"box tube: K_plan{plan_how} does not stabilize the linearization at x*"
-                          + ("; use a plan_input_weight nearer 1 (0.1 .. 100), or give K_plan" if plan_how else ""))
-    x_nom, u_nom = plan_nominal(system, x0, x_star, u_star, K_plan, u_lo, u_hi, float(input_margin),
-                                tol=PLAN_TOL * room)
-    plan = TubePlan(x_nom, u_nom, K, x_star, u_star, np.zeros(n))
-    v = design_H(system, plan, lo, hi, u_lo, u_hi, gap, imap, int(shells), 1.0, target_lo, target_hi)
+    log(f"feedback K: {K_how}; spectral radius {rho0:.4f}")
+
     H_min = plan.H.copy()
     if v.ok and terminal == "largest":
         # the largest box lam x room (lam = 1, 1/2, ..., 1/128) that still proves (one batched evaluation):
         # a weaker claim about the mean than H_min, but noisy runs then rarely leave it
-        ph = tube_phase(system, plan, gap, imap, int(shells), u_range=(u_lo, u_hi))
+        log.doing("terminal box: the largest that proves")
+        ph = tube_phase(system, plan, gap, imap, shells, u_range=(u_lo, u_hi))
         room_t = _room(plan, lo, hi, target_lo, target_hi)
-        cands = np.maximum(H_min, (0.5 ** np.arange(8))[:, None] * room_t * (1 - 1e-9))
-        terms = terminal_phases(system, plan, [ph["G"]] * len(cands), cands, gap, imap, int(shells),
+        cands_H = np.maximum(H_min, (0.5 ** np.arange(8))[:, None] * room_t * (1 - 1e-9))
+        terms = terminal_phases(system, plan, [ph["G"]] * len(cands_H), cands_H, gap, imap, shells,
                                 u_range=(u_lo, u_hi))
-        for Hc, term in zip(cands, terms):
+        for Hc, term in zip(cands_H, terms):
             if all(c["ok"] for c in judge(system, plan, Hc, ph, term, lo, hi, u_lo, u_hi, target_lo, target_hi)):
                 plan.H = Hc
                 break
     if v.ok:  # the proof again from the plan alone (design_H reused (T)'s propagation across its rounds)
+        log.doing(f"the proof of the chosen tube ({plan.T0} periods)")
         v = verify_tube(system, plan, lo, hi, u_lo, u_hi, gap, target_lo=target_lo, target_hi=target_hi,
-                        imap=imap, shells=int(shells))
+                        imap=imap, shells=shells)
+        log(f"proof: {'holds' if v.ok else 'FAILS'} over {plan.T0} periods and the terminal box "
+            f"H = {np.round(plan.H, 6).tolist()}")
     stats = {"system": system.name, "tau": system.tau, "x_star": np.round(x_star, 9).tolist(),
              "u_star": np.round(u_star, 9).tolist(), "residual_max": float(np.abs(r).max()),
              "K": np.round(K, 6).tolist(), "K_how": K_how, "spectral_radius": rho0, "T0": plan.T0,
-             "x0": x0.tolist(), "input_margin": float(input_margin), "shells": int(shells),
+             "x0": x0.tolist(), "input_margin": float(input_margin), "shells": shells,
              "spec_kind": "reach_and_stay", "gap_how": v.gap_how, "verification": v.to_dict(),
              "target": None if target_lo is None else {"lo": target_lo.tolist(), "hi": target_hi.tolist()},
              "H": plan.H.tolist(), "H_min": H_min.tolist(), "terminal": terminal,
-             "plan_input_weight": float(plan_input_weight)}
-    scale = tolerable_scale(system, plan, lo, hi, u_lo, u_hi, gap, imap, int(shells), target_lo, target_hi) \
-        if margin_search else None
+             "plan_input_weight": float(best.pace), "pace_how": pace_how, "designs": [c.to_dict() for c in cands]}
+    scale = None
+    if margin_search:
+        log.doing("the margin: the largest gap factor the proof holds with")
+        scale = tolerable_scale(system, plan, lo, hi, u_lo, u_hi, gap, imap, shells, target_lo, target_hi)
+        log("margin: gamma could be " + ("any factor larger (no gap)" if np.isinf(scale) else f"{scale:.4g} x")
+            + " its bound with the proof still holding")
     stats["gap_scale"] = None if scale is None or np.isinf(scale) else scale
     stats["gap_scale_text"] = ("not searched" if scale is None else "any factor (no gap)" if np.isinf(scale)
                                else f"{scale:.4g}")
     nt = None
     if v.ok and per_run:
-        nt, why = noise_tube(system, plan, lo, hi, u_lo, u_hi, gap, imap, int(shells),
-                             2 * plan.T0 + 1 if horizon is None else int(horizon), target_lo, target_hi)
+        log.doing("the per-run statement: the largest noise bound the proof holds with")
+        nt, why = noise_tube(system, plan, lo, hi, u_lo, u_hi, gap, imap, shells, horizon_of(plan), target_lo,
+                             target_hi)
         stats["noise_tube"] = nt.to_dict() if nt is not None else {"none": why}
+        log("per run: " + (f"P(a run stays in the noise tube) >= {nt.to_dict()['p_run']:.4g}" if nt is not None
+                           else f"none ({why})"))
     ctrl = None
     if v.ok:
         from .tube_controller import TubeController
@@ -932,14 +1106,19 @@ def synthesize_box_tube(system: System, spec: Spec, gap=None, *, x0, x_star=None
             stats["diagnosis"] += (f"; the proof holds with gamma at most {scale:.3g} x its bound" if scale > 0 else
                                    "; not even without the gap")
         stats["diagnosis"] += ("; levers: the plan's pace ([synthesis] plan_input_weight, now "
-                               f"{float(plan_input_weight):g}; larger = gentler inputs), the input range (the system's "
+                               f"{float(best.pace):g}; larger = gentler inputs), the input range (the system's "
                                "inputs), X and the safe set, K (or lqr_q / lqr_r), the terminal box (target_lo / "
                                "target_hi), and a smaller gamma (more runs N1hat, a [collect] region around the tube, "
                                "a refined model: docs/synthesis.md)")
-    stats["seconds"] = time.perf_counter() - t0
+        if gap is not None and scale is not None and np.isfinite(scale):
+            from .tube_design import levers
+            lv = levers(gap if hasattr(gap, "dims") else None, system, v.to_dict()["w_max"], scale,
+                        cands if len(cands) > 1 else [])
+            stats["levers"] = {k: lv[k] for k in ("states", "designs")}
+            stats["levers_text"] = lv["text"]
     stats["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     return BoxTubeResult(ctrl, v, stats)
 
 
-__all__ = ["BoxTubeResult", "TubePlan", "TubeVerification", "largest_proved", "mean_value_enclosure", "noise_tube",
+__all__ = ["BoxTubeResult", "gain_family", "TubePlan", "TubeVerification", "largest_proved", "mean_value_enclosure", "noise_tube",
            "plan_nominal", "synthesize_box_tube", "terminal_bound", "tolerable_scale", "verify_tube"]

@@ -560,7 +560,7 @@ def _parse_matrix(K, m, n):
 
 
 def synthesize_invariant_set(system: System, spec: Spec, gap=None, *, x_star=None, u_star=None, K=None,
-                             lqr_q=None, lqr_r=None, solver: str = "CLARABEL", x0=None) -> InvariantSetResult:
+                             lqr_q=None, lqr_r=None, solver: str = "CLARABEL", x0=None, log=None) -> InvariantSetResult:
     """Design and prove a robust invariant ellipsoid with a linear feedback (module docstring).
 
     Parameters
@@ -580,6 +580,9 @@ def synthesize_invariant_set(system: System, spec: Spec, gap=None, *, x_star=Non
         cvxpy's semidefinite solver.
     x0 : optional
         An initial state recorded in the controller (and reported inside E or not).
+    log : callable(str), optional
+        Receives a line per design round (the contraction rate, the gap measured, proved or not), an
+        estimate after the first, and (:class:`~simgap.progress.StageLog`) a line at least every 10 s.
 
     Returns
     -------
@@ -587,6 +590,14 @@ def synthesize_invariant_set(system: System, spec: Spec, gap=None, *, x_star=Non
         ``controller`` is None when no candidate passes :func:`verify_invariant`;
         ``stats['diagnosis']`` then names the failing condition and by how much.
     """
+    from ..progress import StageLog
+    if not isinstance(log, StageLog):
+        log = StageLog("", log)
+    with log:
+        return _synthesize_invariant_set(system, spec, gap, x_star, u_star, K, lqr_q, lqr_r, solver, x0, log)
+
+
+def _synthesize_invariant_set(system, spec, gap, x_star, u_star, K, lqr_q, lqr_r, solver, x0, log):
     import cvxpy as cp
     t0 = time.perf_counter()
     if spec.kind != "invariance":
@@ -641,7 +652,12 @@ def synthesize_invariant_set(system: System, spec: Spec, gap=None, *, x_star=Non
 
     programs: dict = {}  # compiled once per objective, solved again for each rho and d
 
+    rounds = {"done": 0, "max": len(RHO_FRACTIONS) * (ROUNDS + 1)}
+
     def attempt(rho, d, objective):
+        t1 = time.perf_counter()
+        log.doing(f"ellipsoid design at contraction rate {rho:.4f} ({objective}), then its proof at "
+                  f"{len(SCALES)} scales")
         P, status = design_ellipsoid(A_cl, K, x_star, u_star, lo, hi, u_lo, u_hi, rho, d, solver, objective,
                                      programs)
         statuses.append(status)
@@ -649,6 +665,13 @@ def synthesize_invariant_set(system: System, spec: Spec, gap=None, *, x_star=Non
             return None
         vs = verify_scaled(system, x_star, u_star, K, P, lo, hi, u_lo, u_hi, gap, imap, SCALES)
         cands.extend((P / c ** 2, v, rho) for c, v in zip(SCALES, vs))
+        rounds["done"] += 1
+        best = max(v.gap_scale for v in vs)
+        log(f"rate {rho:.4f} ({objective}): {'proved' if any(v.ok for v in vs) else 'not proved'}, margin "
+            f"{'any' if np.isinf(best) else f'{best:.3g}'} ({time.perf_counter() - t1:.1f} s)")
+        if rounds["done"] == 1:
+            log(f"estimate: at most {rounds['max'] - 1} more rounds of about {time.perf_counter() - t1:.1f} s "
+                f"each (fewer when a rate proves)")
         return vs
 
     for frac in RHO_FRACTIONS:

@@ -140,12 +140,12 @@ def synthesize(system, spec, gap, syn: dict, x0=None, horizon=None, log=None, wh
                                    input_margin=float(syn.get("input_margin", INPUT_MARGIN)),
                                    margin_search=bool(syn.get("margin_search", True)),
                                    terminal=syn.get("terminal", "largest"), K_plan=syn.get("K_plan"),
-                                   plan_input_weight=float(syn.get("plan_input_weight", 1.0)),
-                                   per_run=bool(syn.get("per_run", True)), horizon=horizon)
+                                   plan_input_weight=syn.get("plan_input_weight"),
+                                   per_run=bool(syn.get("per_run", True)), horizon=horizon, log=log)
     from .invariant_set import synthesize_invariant_set
     return synthesize_invariant_set(system, spec, gap, x_star=syn.get("x_star"), u_star=syn.get("u_star"),
                                     K=syn.get("K"), lqr_q=syn.get("lqr_q"), lqr_r=syn.get("lqr_r"),
-                                    solver=syn.get("solver", "CLARABEL"), x0=x0)
+                                    solver=syn.get("solver", "CLARABEL"), x0=x0, log=log)
 
 
 def states_in_set(ctrl, k: int, seed: int) -> np.ndarray:

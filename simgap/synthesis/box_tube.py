@@ -498,12 +498,6 @@ def gain_how(c, score) -> str:
             f"estimate: {score:.3g} x the gap at x*)")
 
 
-def box_tolerant_gain(A, B, x_star, u_star, room, uroom, gap, system: System):
-    """(K, how): the gain of :func:`gain_family` with the best heuristic score."""
-    score, c, K = gain_family(A, B, x_star, u_star, room, uroom, gap, system)[0]
-    return K, gain_how(c, score) + ", chosen for box tolerance"
-
-
 def plan_nominal(system: System, x0, x_star, u_star, K, u_lo, u_hi, margin: float = INPUT_MARGIN,
                  tol=None, max_steps: int = MAX_PLAN):
     """(x_nom (T0 + 1, n), u_nom (T0, m)): the saturated linear loop u = clip(u* + K (x - x*)) in the
@@ -901,9 +895,8 @@ def _synthesize_box_tube(system, spec, gap, x0, x_star, u_star, K, lqr_q, lqr_r,
         else:
             c.T0, c.proved = plan.T0, bool(v.ok)
             designs[id(c)] = (plan, v, K)
-            if rank and T_run is not None and plan.T0 >= T_run:
-                pass  # ranked as unproved (the runs end before the plan): its margin would not be used
-            elif rank:  # enough to rank designs against each other
+            # enough to rank designs against each other (a plan the runs outlast ranks as unproved: no margin)
+            if rank and (T_run is None or plan.T0 < T_run):
                 c.margin = coarse_margin(system, plan, lo, hi, u_lo, u_hi, gap, imap, shells, target_lo, target_hi)
                 if v.ok and per_run and why_no_statement(gap) is None:
                     nt_c, _ = noise_tube(system, plan, lo, hi, u_lo, u_hi, gap, imap, shells, horizon_of(plan),

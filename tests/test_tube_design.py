@@ -184,3 +184,11 @@ def test_the_ellipsoid_design_prints_its_rounds_and_an_estimate(cubic):  # noqa:
     synthesize_invariant_set(cubic, _spec(cubic), GAP, x_star=[0, 0], u_star=[0], log=lines.append)
     assert any(t.startswith("rate ") and "margin" in t for t in lines)
     assert sum(t.startswith("estimate:") for t in lines) == 1
+
+
+def test_a_gap_far_below_what_the_tube_tolerates_is_not_ranked(cubic):  # noqa: F811
+    lines = []
+    res = bt.synthesize_box_tube(cubic, _spec(cubic), 1e-6 * GAP, x0=X0, x_star=[0, 0], u_star=[0], per_run=False,
+                                 log=lines.append)
+    assert not res.empty and len(res.stats["designs"]) == 1 and res.stats["plan_input_weight"] == td.PACES[0]
+    assert any("designs not ranked" in t for t in lines)

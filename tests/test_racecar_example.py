@@ -54,11 +54,13 @@ def test_steering_is_a_position_input_and_the_wheels_velocity_inputs(exp):
 
 @pytest.mark.slow
 def test_the_case_study_reaches_the_target_around_the_wall(tmp_path):
-    """The whole run: the stochastic controller wins x0 and none of its 1000 rollouts hits the wall."""
+    """The whole run: the stochastic controller wins x0 with the all-rows confidence (uniform = true: the
+    grid synthesis takes gamma's sup over every cell) and none of its 1000 rollouts hits the wall."""
     r = simgap("run", RACECAR / "experiment.toml", "--profile", "base", "--out", tmp_path / "run", "--no-record",
                cwd=tmp_path, timeout=7200)
     assert r.returncode == 0, r.stdout + r.stderr
     st = json.loads((tmp_path / "run" / "summary.json").read_text())["methods"]["stochastic"]
+    assert st["confidence_scope"] == "simultaneous" and st["confidence_proof"] >= 0.9, st["confidence_proof"]
     ro = st["rollouts"]
     assert "skipped" not in ro and ro["n_rollouts"] == 1000, ro
     assert ro["violation_kinds"].get("obstacle", 0) == 0 and ro["successes"] == 1000, ro["outcomes"]

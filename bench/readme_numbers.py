@@ -37,17 +37,20 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 # the committed sources the pages are written from (folders under bench/results)
 SOURCES = ["bench/results/runs/pendulum-small", "bench/results/runs/turtlebot-small",
-           "bench/results/runs/arm_mujoco-small", "bench/results/turtlebot-separation"]
+           "bench/results/runs/arm_mujoco-small", "bench/results/runs/husky-base",
+           "bench/results/turtlebot-separation"]
 # full results-table label prefix per (experiment, profile): docs/results.md
 ROW_LABELS = {("pendulum", "small"): "pendulum, small", ("pendulum", "paper"): "pendulum, paper",
               ("pendulum", "noisy"): "pendulum, noisy", ("turtlebot", "small"): "TurtleBot, small",
               ("turtlebot", "gazebo"): "TurtleBot, gazebo", ("turtlebot", "gazebo_n400"): "TurtleBot, N1hat 400",
               ("pendulum", "tight"): "pendulum, tight", ("turtlebot", "tight"): "TurtleBot, tight",
               ("cartpole", "small"): "cart-pole, Gymnasium", ("cartpole", "tight"): "cart-pole, tight",
-              ("cartpole", "refined"): "cart-pole, refined", ("arm_mujoco", "small"): "arm, MuJoCo"}
+              ("cartpole", "refined"): "cart-pole, refined", ("arm_mujoco", "small"): "arm, MuJoCo",
+              ("husky", None): "husky"}
 # the README's compact table: one row per case study
 README_LABELS = {("pendulum", "small"): "pendulum, small", ("pendulum", "paper"): "pendulum, paper",
-                 ("turtlebot", "small"): "TurtleBot", ("arm_mujoco", "small"): "arm"}
+                 ("turtlebot", "small"): "TurtleBot", ("arm_mujoco", "small"): "arm",
+                 ("husky", None): "husky"}
 PRINTED_RUN = ("pendulum", "small")  # the run whose printed table the pages show
 SEPARATION_MARKERS = ("<!-- turtlebot-separation table (bench/readme_numbers.py) -->",
                       "<!-- end turtlebot-separation table -->")

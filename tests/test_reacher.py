@@ -78,8 +78,13 @@ def test_nominal_model_is_mujocos_noise_free_physics(profile):
             noisy = sim.step_with_noise(x, u, noise)
         f = s.f(x, u)
         assert np.abs(free - f).max() < 1e-12
-        spread = (noisy - f)[:, 2:].std(axis=0)
+        # MuJoCo clips ctrl to the MJCF's [-1, 1]: at the grid's end values half the noise is cut off, so
+        # the spread is checked where u + noise stays inside the range
+        inner = np.all(np.abs(u) < 0.9, axis=1)
+        spread = (noisy - f)[inner][:, 2:].std(axis=0)
         assert np.all((0.06 < spread) & (spread < 0.07)), spread
+        if not inner.all():  # and the clipped ones have less: the certificate sees what MuJoCo applies
+            assert np.all((noisy - f)[~inner][:, 2:].std(axis=0) < spread)
 
 
 def test_unnamed_actuators_by_index(exp):
@@ -112,8 +117,9 @@ def test_local_profile_parses_and_its_set_must_lie_in_the_region(tmp_path):
 
 @pytest.mark.slow
 def test_simgap_run_reacher_is_certified_with_a_per_run_probability(tmp_path):
-    """`simgap run reacher` end to end (4 min idle, 7.6 min at load 2-4 on 2026-11-28): the stochastic
-    certificate proves the box tube, its per-run statement is stated, and the 1000 MuJoCo runs agree
+    """`simgap run reacher` end to end (about 13 min at load 18 on 2026-12-07): the stochastic certificate
+    proves the tube the synthesis designed (no design keys in the experiment), its per-run statement
+    reaches 0.99, and the 1000 MuJoCo runs agree
     with it: p_emp >= p_cert - 3 standard errors (SE from p_cert, at least 1/R), every run inside the
     noise tube counted, none failing."""
     import json
@@ -127,7 +133,9 @@ def test_simgap_run_reacher_is_certified_with_a_per_run_probability(tmp_path):
     st = s["methods"]["stochastic"]
     assert st["winning_cells"] == 1 and st["failures"] == 0 and st["n_rollouts"] == 1000
     pr = st["per_run_empirical"]
-    assert pr["p_cert"] is not None and pr["p_cert"] > 0.5
+    assert pr["p_cert"] is not None and pr["p_cert"] >= 0.99  # the design's target ([certify] confidence 0.995)
+    syn = st["synthesis"]
+    assert len(syn["designs"]) > 1 and syn["pace_how"] and "chosen by the proof" in syn["K_how"]  # no design keys
     R = pr["n_rollouts"]
     se = max(np.sqrt(pr["p_cert"] * (1 - pr["p_cert"]) / R), 1.0 / R)
     assert pr["p_emp"] >= pr["p_cert"] - 3 * se

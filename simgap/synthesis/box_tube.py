@@ -984,7 +984,7 @@ def _synthesize_box_tube(system, spec, gap, x0, x_star, u_star, K, lqr_q, lqr_r,
             n_gains = 0
             log("the proof holds at every gap factor up to 5.7: designs not ranked (the fastest pace that proves, "
                 "the linear estimate's gain)")
-        if k == 0 and (search or n_gains):
+        if k == 0 and rank and (search or n_gains):
             log(f"estimate: about {(len(paces) - 1 + n_gains + 2) * c.seconds:.0f} s more for "
                 f"{len(paces) - 1} more paces, about {n_gains} more gains and the chosen design's full searches (the "
                 f"first design took {c.seconds:.1f} s; slower paces have longer plans)")
@@ -1005,7 +1005,9 @@ def _synthesize_box_tube(system, spec, gap, x0, x_star, u_star, K, lqr_q, lqr_r,
         raise SimgapError(f"box tube: {best.error}" + ("" if len(cands) == 1 else
                           f" (paces tried: {', '.join(c.row() for c in cands)})"))
     pace_how = ("given (K_plan)" if paces == (None,) else f"given (plan_input_weight = {best.pace:g})"
-                if not search else why_chosen(best, cands))
+                if not search else why_chosen(best, cands) if rank else
+                "the fastest pace that proves (" + ("no gap" if gap is None else "the gap is far below what it "
+                                                    "tolerates") + ": nothing to rank designs by)")
     if search:
         log(f"pace: x{best.pace:g}, {pace_how}")
 
@@ -1080,8 +1082,8 @@ def _synthesize_box_tube(system, spec, gap, x0, x_star, u_star, K, lqr_q, lqr_r,
     if margin_search:
         log.doing("the margin: the largest gap factor the proof holds with")
         scale = tolerable_scale(system, plan, lo, hi, u_lo, u_hi, gap, imap, shells, target_lo, target_hi)
-        log("margin: gamma could be " + ("any factor larger (no gap)" if np.isinf(scale) else f"{scale:.4g} x")
-            + " its bound with the proof still holding")
+        log("margin: " + ("any gap factor (no gap)" if np.isinf(scale) else
+                          f"gamma could be {scale:.4g} x its bound with the proof still holding"))
     stats["gap_scale"] = None if scale is None or np.isinf(scale) else scale
     stats["gap_scale_text"] = ("not searched" if scale is None else "any factor (no gap)" if np.isinf(scale)
                                else f"{scale:.4g}")

@@ -50,15 +50,32 @@ def work(tmp_path_factory):
     (d / "local.toml").write_text(LOCAL)
     (d / "leaky.toml").write_text(LEAKY)
     (d / "fit.toml").write_text(FIT_EXPERIMENT)
-    r = simgap("run", "local.toml", "--out", "run", "--no-record", cwd=d, timeout=300)
-    assert r.returncode == 0, r.stderr
-    r = simgap("synthesize", "--method", "box_tube", "--system", "cubic.toml", "--gamma", "0.002,0.02", "--safe",
-               "-1,1,-2,2", "--x0", "0.5,0", "--out", "tube.npz", cwd=d)
-    assert r.returncode == 0, r.stderr
-    r = simgap("synthesize", "--system", "cubic.toml", "--no-gap", "--safe", "-1,1,-2,2", "--eta", "0.05",
-               "--out", "grid.npz", cwd=d)
-    assert r.returncode == 0, r.stderr
+    for argv in (["run", "local.toml", "--out", "run", "--no-record"],
+                 ["synthesize", "--method", "box_tube", "--system", "cubic.toml", "--gamma", "0.002,0.02", "--safe",
+                  "-1,1,-2,2", "--x0", "0.5,0", "--out", "tube.npz"],
+                 ["synthesize", "--system", "cubic.toml", "--no-gap", "--safe", "-1,1,-2,2", "--eta", "0.05",
+                  "--out", "grid.npz"]):
+        rc, _, err = _quiet(argv, d)
+        assert rc == 0, err
     return d
+
+
+def _quiet(argv, cwd):
+    """``simgap ARGV`` in this process with its output captured: (exit status, stdout, stderr)."""
+    import contextlib
+    import io
+    from simgap.cli import main
+    out, err, old = io.StringIO(), io.StringIO(), os.getcwd()
+    os.chdir(cwd)
+    try:
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            try:
+                rc = main([str(a) for a in argv])
+            except SystemExit as e:  # argparse's own refusal
+                rc = e.code
+    finally:
+        os.chdir(old)
+    return rc, out.getvalue(), err.getvalue()
 
 
 def _cubic():
@@ -89,13 +106,13 @@ def cli(capsys, *args, cwd=None):
     ("1000000000", ["--horizon = 1,000,000,000", "memory", "is available"]),
     ("5000000", ["--horizon = 5,000,000", "would take about", "more than the 6 h"]),
 ])
-def test_box_tube_horizon_is_priced_before_any_work(work, horizon, words):
+def test_box_tube_horizon_is_priced_before_any_work(work, capsys, horizon, words):
     """Used to die allocating 29.8 GiB (traceback), or run past 120 s without a word."""
     before = digests(work)
     t = time.perf_counter()
-    r = simgap("synthesize", "--spec", "local.toml", "--cert", "run/cert_stochastic.json", "--horizon", horizon,
-               "--out", "never.npz", cwd=work)
-    refused(r, *words)
+    rc, _, err = cli(capsys, "synthesize", "--spec", "local.toml", "--cert", "run/cert_stochastic.json", "--horizon",
+                     horizon, "--out", "never.npz", cwd=work)
+    assert rc == 2 and all(w in err for w in words), err
     assert time.perf_counter() - t < 60 and digests(work) == before
 
 
@@ -109,11 +126,11 @@ def test_non_positive_counts_are_refused_by_name(work, capsys, option, value):
     assert not (work / "never.npz").exists()
 
 
-def test_run_prices_the_box_tubes_horizon_before_collecting(work, tmp_path):
+def test_run_prices_the_box_tubes_horizon_before_collecting(work, tmp_path, capsys):
     (tmp_path / "cubic.toml").write_text(CUBIC)
     (tmp_path / "exp.toml").write_text(EXPERIMENT.replace("[rollout]\n", "[rollout]\nhorizon = 5000000\n"))
-    r = simgap("run", "exp.toml", "--out", "res", "--no-record", "--rollouts", "1", cwd=tmp_path)
-    refused(r, "[rollout] horizon = 5,000,000", "per-run statement", "would take")
+    rc, _, err = cli(capsys, "run", "exp.toml", "--out", "res", "--no-record", "--rollouts", "1", cwd=tmp_path)
+    assert rc == 2 and all(w in err for w in ("[rollout] horizon = 5,000,000", "per-run statement", "would take")), err
     assert not (tmp_path / "res").exists()  # refused before the collection
 
 
@@ -368,14 +385,15 @@ def test_fit_start_outside_the_bounds_and_a_worse_fit_are_said(work, capsys):
     (["refine", "--system", "cubic.toml", "--data", "run/data", "--save-system", "o.json", "--out", "o.json"],
      ["--out and --save-system are both 'o.json'"]),
 ])
-def test_outputs_named_for_another_format_or_twice_are_refused(work, argv, words):
+def test_outputs_named_for_another_format_or_twice_are_refused(work, capsys, argv, words):
     before = digests(work)
-    r = simgap(*argv, cwd=work)
-    refused(r, *words)
+    rc, _, err = cli(capsys, *argv, cwd=work)
+    assert rc == 2 and all(w in err for w in words), err
     assert digests(work) == before
 
 
 def test_two_outputs_at_one_path_by_other_spellings(work, tmp_path):
+    """As a user runs it (a subprocess): the report no longer lost to the refined system."""
     (tmp_path / "sub").mkdir()
     r = simgap("refine", "--system", str(work / "cubic.toml"), "--data", str(work / "run" / "data"), "--save-system",
                "sub/../o.json", "--out", "o.json", cwd=tmp_path)
@@ -414,13 +432,14 @@ def test_box_tube_messages_name_the_box_tube(kw, words):
 
 # ----- 6. results folders -----------------------------------------------------------------------------------------
 
-def test_run_into_another_runs_folder_names_what_it_replaces(work):
+def test_run_into_another_runs_folder_names_what_it_replaces(work, capsys):
     """`simgap run` with another profile replaced a finished run's summary, certificates and controllers
     without a word."""
     before = digests(work / "run")
-    r = simgap("run", "local.toml", "--profile", "base", "--out", "run", "--no-record", cwd=work)
-    refused(r, "holds the finished run of experiment 'local' (profile small)", "(profile base)",
-            "summary.json", "cert_stochastic.json", "controller_nominal.npz", "--force")
+    rc, _, err = cli(capsys, "run", "local.toml", "--profile", "base", "--out", "run", "--no-record", cwd=work)
+    assert rc == 2 and all(w in err for w in (
+        "holds the finished run of experiment 'local' (profile small)", "(profile base)", "summary.json",
+        "cert_stochastic.json", "controller_nominal.npz", "--force")), err
     assert digests(work / "run") == before
 
 

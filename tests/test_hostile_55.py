@@ -338,13 +338,16 @@ def test_command_line_values_are_named_as_written(work, capsys):
     assert not (work / "never.npz").exists()
 
 
-def test_the_engine_refuses_k_with_lqr_weights_too():
+def test_the_engines_refuse_k_with_lqr_weights_too():
     from simgap.synthesis.box_tube import synthesize_box_tube
+    from simgap.synthesis.invariant_set import synthesize_invariant_set
     from simgap.synthesis.spec import Box, Spec
     s = _cubic()
+    spec = Spec(kind="invariance", safe=Box(s.x_lo, s.x_hi))
     with pytest.raises(SimgapError, match="K and lqr_q both set the feedback gain"):
-        synthesize_box_tube(s, Spec(kind="invariance", safe=Box(s.x_lo, s.x_hi)), None, x0=[0.5, 0], K=[[-3, -2]],
-                            lqr_q=[1, 1])
+        synthesize_box_tube(s, spec, None, x0=[0.5, 0], K=[[-3, -2]], lqr_q=[1, 1])
+    with pytest.raises(SimgapError, match="K and lqr_r both set the feedback gain"):
+        synthesize_invariant_set(s, spec, None, K=[[-3, -2]], lqr_r=[2])
 
 
 @pytest.mark.parametrize("argv,words", [

@@ -167,6 +167,16 @@ def test_fit_grid_counts_every_free_state(work, capsys):
     assert rc == 2 and "--grid 100000: 10,000,000,000 states x 9 inputs" in err, err
 
 
+def test_fit_time_beyond_a_commands_limit_is_refused(work, capsys, monkeypatch):
+    """The least-squares fit's iterations count (one model evaluation pinned at 1 h: 5 iterations of
+    4 evaluations are 20 h, more than the 6 h a command may take)."""
+    monkeypatch.setattr("simgap.fit.seconds_per_evaluation", lambda *a, **k: 3600.0)
+    rc, _, err = cli(capsys, "fit", "fit.toml", "--profile", "base", "--params", "a", "b", "c", "--points", "50",
+                     "--out", "never.toml", cwd=work)
+    assert rc == 2 and "--points 50: the fit's transitions and its first 5 iterations would take about 20" in err, err
+    assert not (work / "never.toml").exists()
+
+
 def test_fit_estimate_prices_the_least_squares_too(work, capsys):
     rc, out, _ = cli(capsys, "fit", "fit.toml", "--profile", "base", "--params", "a", "b", "c", "--points", "50",
                      "--out", "fitted.toml", cwd=work)
@@ -384,7 +394,8 @@ def test_fit_start_outside_the_bounds_and_a_worse_fit_are_said(work, capsys):
       "--trajectories", "t.json"], ["--trajectories 't.json'", "NPZ"]),
     (["certify", "run/data", "--out", "c.toml"], ["--out 'c.toml'", "JSON"]),
     (["audit", "run/cert_stochastic.json", "--data", "run/data", "--out", "a"], ["--out 'a'", "has no extension"]),
-    (["refine", "--system", "cubic.toml", "--data", "run/data", "--save-system", "o.npz"], ["--save-system", "JSON or TOML"]),
+    (["refine", "--system", "cubic.toml", "--data", "run/data", "--save-system", "o.npz"],
+     ["--save-system", "JSON or TOML"]),
     (["refine", "--system", "cubic.toml", "--data", "run/data", "--save-system", "o.json", "--out", "o.json"],
      ["--out and --save-system are both 'o.json'"]),
 ])
@@ -410,7 +421,8 @@ def test_plan_input_weight_is_named(work, tmp_path, capsys):
     """`plan_input_weight = 1e300` said "invariant set: the discrete Riccati equation has no stabilizing
     solution" (or that K_plan does not stabilize) without the key."""
     (tmp_path / "cubic.toml").write_text(CUBIC)
-    (tmp_path / "e.toml").write_text(_edit(EXPERIMENT, "plan_input_weight = 1e300", "x_star = [0.0, 0.0]\nu_star = [0.0]\n"))
+    (tmp_path / "e.toml").write_text(_edit(EXPERIMENT, "plan_input_weight = 1e300",
+                                           "x_star = [0.0, 0.0]\nu_star = [0.0]\n"))
     rc, _, err = cli(capsys, "synthesize", "--spec", "e.toml", "--no-gap", "--out", "never.npz", cwd=tmp_path)
     assert rc == 2 and "plan_input_weight = 1e+300" in err and err.startswith("error: box tube:"), err
 

@@ -196,6 +196,17 @@ def test_refine_bootstrap_is_priced_and_counts_are_typed(work, capsys):
     assert not (work / "never.json").exists()
 
 
+def test_rollouts_beyond_a_commands_limit_are_refused(work, capsys, monkeypatch):
+    """Estimated, then refused: 1 rollout x 2 x 10^8 steps is days here (memory pinned large so that
+    time, not memory, is what refuses it)."""
+    monkeypatch.setattr("simgap.memory.available_memory", lambda: 1e13)
+    rc, out, err = cli(capsys, "rollout", "--controller", "grid.npz", "--simulator", "exp.toml", "--x0", "0.1,0",
+                       "--n", "1", "--horizon", "200000000", "--mean-map-runs", "0", "--out", "never.json", cwd=work)
+    assert "estimate: 1 rollouts x 200,000,000 steps" in out
+    assert rc == 2 and "rollout: 1 rollouts x horizon 200,000,000 would take about" in err and "6 h" in err, err
+    assert not (work / "never.json").exists()
+
+
 def test_long_rollout_prints_its_estimate_before_the_work(work):
     """`simgap rollout --horizon 5000000` of an invariance controller used to step the nominal path to
     the horizon (a model in formulas, ~1 ms a step) before the estimate: no line for over an hour."""

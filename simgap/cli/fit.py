@@ -70,12 +70,17 @@ def _bounds(v: str):
     return lo, hi
 
 
-def check_seconds_of_runs(rows: int, rate: float, what: str) -> None:
-    """Refuse ``rows`` simulator runs that would take more than a command may at the calibrated
-    ``rate`` [runs/s] (:func:`simgap.checks.check_sim_work`), naming ``what``."""
-    from ..checks import check_sim_work
-    check_sim_work(rows, 0.0, f"{what}: the fit's transitions and its first 5 iterations",
-                   "use fewer --points or a coarser --grid", rate)
+def check_fit_seconds(seconds: float, what: str) -> None:
+    """Refuse a fit whose transitions and first 5 iterations are estimated to take more than a
+    command may (:data:`simgap.checks.MAX_COMMAND_SECONDS`; ``SIMGAP_NO_SIZE_CHECK=1`` lifts it)."""
+    import os
+
+    from ..checks import MAX_COMMAND_SECONDS, human_seconds
+    if seconds > MAX_COMMAND_SECONDS and not os.environ.get("SIMGAP_NO_SIZE_CHECK"):
+        raise SimgapError(f"{what}: the fit's transitions and its first 5 iterations would take about "
+                          f"{human_seconds(seconds)}, more than the {human_seconds(MAX_COMMAND_SECONDS)} a command may "
+                          "take; use fewer --points or a coarser --grid (or set SIMGAP_NO_SIZE_CHECK=1 to run it "
+                          "anyway)")
 
 
 def system_file_path(exp) -> Path:
@@ -140,7 +145,7 @@ def run(args) -> int:
               f"about {format_duration(per_iteration)} per iteration ({len(args.params) + 1} model evaluations over "
               f"every row; usually 5 to 20 iterations: {format_duration(5 * per_iteration)} to "
               f"{format_duration(20 * per_iteration)})", flush=True)
-        check_seconds_of_runs(rows + 5 * per_iteration * rate, rate, what)
+        check_fit_seconds(rows / rate + 5 * per_iteration, what)
         X, U, Y = transitions(sim, x, s.inputs, rng)
     res = fit_params(s, args.params, X, U, Y, bounds)
     new = fitted_text(text, res.values())

@@ -228,6 +228,19 @@ def steps_to_go(controller, x0: np.ndarray) -> Optional[float]:
 NOMINAL_PROBE = 1000
 
 
+def _check_rollout_seconds(seconds: float, n_rollouts: int, horizon: int) -> None:
+    """Refuse rollouts estimated to take more than a command may (:data:`simgap.checks.MAX_COMMAND_SECONDS`;
+    ``SIMGAP_NO_SIZE_CHECK=1`` lifts it), naming the counts, the need and the limit."""
+    import os
+
+    from ..checks import MAX_COMMAND_SECONDS, human_seconds
+    if seconds > MAX_COMMAND_SECONDS and not os.environ.get("SIMGAP_NO_SIZE_CHECK"):
+        raise SimgapError(f"rollout: {int(n_rollouts):,} rollouts x horizon {int(horizon):,} would take about "
+                          f"{human_seconds(seconds)} (the estimate above), more than the "
+                          f"{human_seconds(MAX_COMMAND_SECONDS)} a command may take; use fewer rollouts (--n) or a "
+                          "shorter --horizon (or set SIMGAP_NO_SIZE_CHECK=1 to run it anyway)")
+
+
 def default_horizon(controller, x0: np.ndarray, hold: int) -> int:
     """A horizon in simulator steps: 2x the controller's steps-to-go at x0 (+1 abstract step) when it
     reports one (``steps_to_go``/``value``), else DEFAULT_HORIZON."""
@@ -419,6 +432,7 @@ def rollout(controller, simulator, x0=None, n_rollouts: int = 1000, horizon: Opt
                             expected_steps=expected_rollout_steps(spec, nt, controller, x0, hold))
         estimate_s = cost["seconds"]
         on_estimate(rollout_cost_text(cost))
+        nominal_s = 0.0
         if nt is None or (probe < horizon and int(nt.lengths[0]) >= probe):
             nt = None  # the nominal path did not stop within the probe: run it to the horizon after the rollouts
             if horizon > NOMINAL_PROBE:  # then it is long work of its own (one run, one model step at a time)
@@ -426,8 +440,10 @@ def rollout(controller, simulator, x0=None, n_rollouts: int = 1000, horizon: Opt
                 t0 = time.perf_counter()
                 _run(controller, _NominalModel(nom_sys), spec, x0, 1, k, hold, np.random.default_rng(0), on_exit, True)
                 from ..cover import format_duration
+                nominal_s = (time.perf_counter() - t0) / k * horizon
                 on_estimate(f"estimate: then the nominal model's path, 1 run x up to {horizon:,} steps one at a time: "
-                            f"at most about {format_duration((time.perf_counter() - t0) / k * horizon)} (timed here)")
+                            f"at most about {format_duration(nominal_s)} (timed here)")
+        _check_rollout_seconds((estimate_s or 0.0) + nominal_s, n_rollouts, horizon)
     if rng is None:
         rng = np.random.default_rng(seed)
     else:

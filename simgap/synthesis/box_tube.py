@@ -844,8 +844,8 @@ def _synthesize_box_tube(system, spec, gap, x0, x_star, u_star, K, lqr_q, lqr_r,
         raise SimgapError(f"box tube: terminal must be \"largest\" or \"smallest\", got {terminal!r}")
     if not 0.0 <= float(input_margin) < 1.0:
         raise SimgapError(f"box tube: input_margin must be in [0, 1), got {input_margin!r}")
-    one_of({"K": K, "lqr_q": lqr_q}, "the feedback gain", "K is used as given; lqr_q / lqr_r design it otherwise")
-    one_of({"K": K, "lqr_r": lqr_r}, "the feedback gain", "K is used as given; lqr_q / lqr_r design it otherwise")
+    for key, weights in (("lqr_q", lqr_q), ("lqr_r", lqr_r)):
+        one_of({"K": K, key: weights}, "the feedback gain", "K is used as given; lqr_q / lqr_r design it otherwise")
     if horizon is not None:  # priced before any work: the per-run statement's cost grows as horizon^2
         check_horizon(horizon, system.n)
     if gap is not None and hasattr(gap, "check_system"):

@@ -610,6 +610,9 @@ def _synthesize_invariant_set(system, spec, gap, x_star, u_star, K, lqr_q, lqr_r
     if solver not in cp.installed_solvers():
         raise SimgapError(f"invariant set: cvxpy's solver {solver} is not installed (installed: "
                           f"{', '.join(cp.installed_solvers())})")
+    from ..checks import one_of
+    for key, weights in (("lqr_q", lqr_q), ("lqr_r", lqr_r)):
+        one_of({"K": K, key: weights}, "the feedback gain", "K is used as given; lqr_q / lqr_r design it otherwise")
     if gap is not None and hasattr(gap, "check_system"):
         gap.check_system(system)
     if gap is not None and hasattr(gap, "require_inside"):  # a local certificate: E lies in S, S in its region

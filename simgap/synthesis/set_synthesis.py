@@ -67,10 +67,9 @@ def check_section(system, syn: dict, spec, names: dict | None = None) -> None:
     if int(syn.get("hold", 1)) != 1:
         raise SimgapError(f"{said(syn, 'method', names)} applies u(x) every period, but {said(syn, 'hold', names)}: "
                           "hold must be 1 (certify at a longer step with [system] steps instead)")
-    one_of({said(syn, k, names): syn.get(k) for k in ("K", "lqr_q")}, "the feedback gain",
-           "K is used as given; lqr_q / lqr_r are the weights of the LQR that designs K when it is not given")
-    one_of({said(syn, k, names): syn.get(k) for k in ("K", "lqr_r")}, "the feedback gain",
-           "K is used as given; lqr_q / lqr_r are the weights of the LQR that designs K when it is not given")
+    for key in ("lqr_q", "lqr_r"):
+        one_of({said(syn, k, names): syn.get(k) for k in ("K", key)}, "the feedback gain",
+               "K is used as given; lqr_q / lqr_r are the weights of the LQR that designs K when it is not given")
     if meth == "box_tube":
         for key in ("target_lo", "target_hi"):
             if key in syn and len(syn[key]) != system.n:

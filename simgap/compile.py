@@ -431,37 +431,24 @@ class _IntervalEmitter:
                     e(f"a{i}_{j}, b{i}_{j} = a{b}_{j}, b{b}_{j}" if kind == "add" else
                       f"a{i}_{j}, b{i}_{j} = -b{b}_{j}, -a{b}_{j}")
             return
-        if kind == "mul":  # (ab)' = a'b + ab'
+        if kind in ("mul", "div"):  # (ab)' = a'b + ab';  (a/b)' = (a'b - ab') / b^2
             a, b = ch
             da, db = self.dag.deps[a], self.dag.deps[b]
-            e(f"l{i}, h{i} = _imul(l{a}, h{a}, l{b}, h{b})")
-            for j in deps:
-                if j in da and j in db:
-                    e(f"p1, q1 = _imul(a{a}_{j}, b{a}_{j}, l{b}, h{b})")
-                    e(f"p2, q2 = _imul(l{a}, h{a}, a{b}_{j}, b{b}_{j})")
-                    e(f"a{i}_{j}, b{i}_{j} = p1 + p2, q1 + q2")
-                elif j in da:
-                    e(f"a{i}_{j}, b{i}_{j} = _imul(a{a}_{j}, b{a}_{j}, l{b}, h{b})")
-                else:
-                    e(f"a{i}_{j}, b{i}_{j} = _imul(l{a}, h{a}, a{b}_{j}, b{b}_{j})")
-            return
-        if kind == "div":  # (a/b)' = (a'b - ab') / b^2
-            a, b = ch
-            da, db = self.dag.deps[a], self.dag.deps[b]
-            if deps:
+            if kind == "div" and deps:
                 e(f"s{i}l, s{i}h = _ipow(l{b}, h{b}, 2)")
             for j in deps:
-                if j in da and j in db:
+                if j in da:
                     e(f"p1, q1 = _imul(a{a}_{j}, b{a}_{j}, l{b}, h{b})")
+                if j in db:
                     e(f"p2, q2 = _imul(l{a}, h{a}, a{b}_{j}, b{b}_{j})")
-                    e(f"a{i}_{j}, b{i}_{j} = _idiv(p1 - q2, q1 - p2, s{i}l, s{i}h)")
-                elif j in da:
-                    e(f"p1, q1 = _imul(a{a}_{j}, b{a}_{j}, l{b}, h{b})")
-                    e(f"a{i}_{j}, b{i}_{j} = _idiv(p1, q1, s{i}l, s{i}h)")
+                both = j in da and j in db
+                if kind == "mul":
+                    lo, hi = ("p1 + p2", "q1 + q2") if both else ("p1", "q1") if j in da else ("p2", "q2")
+                    e(f"a{i}_{j}, b{i}_{j} = {lo}, {hi}")
                 else:
-                    e(f"p2, q2 = _imul(l{a}, h{a}, a{b}_{j}, b{b}_{j})")
-                    e(f"a{i}_{j}, b{i}_{j} = _idiv(-q2, -p2, s{i}l, s{i}h)")
-            e(f"l{i}, h{i} = _idiv(l{a}, h{a}, l{b}, h{b})")
+                    lo, hi = ("p1 - q2", "q1 - p2") if both else ("p1", "q1") if j in da else ("-q2", "-p2")
+                    e(f"a{i}_{j}, b{i}_{j} = _idiv({lo}, {hi}, s{i}l, s{i}h)")
+            e(f"l{i}, h{i} = {'_imul' if kind == 'mul' else '_idiv'}(l{a}, h{a}, l{b}, h{b})")
             return
         if kind == "pow":
             a = ch[0]

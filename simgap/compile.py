@@ -28,8 +28,9 @@ Two kernels:
   results may differ from the numpy path by a few units in the last place; the enclosure's radius
   is widened by the same relative 1e-9 plus 1e-12 as the numpy path (``REL_WIDEN``, ``ABS_WIDEN``),
   far above those differences. One difference is deliberate: the numpy interval product counts
-  every NaN endpoint product as 0 (meant for 0 * inf); the kernel does so only for 0 * inf and
-  lets a NaN (a formula outside its domain) make the box unbounded, which is never narrower.
+  every NaN endpoint product as 0 (meant for 0 * inf); the kernel does so only for 0 * inf, every
+  interval helper keeps a NaN endpoint NaN (min and max would drop it), and a NaN anywhere (a
+  formula outside its domain, inf - inf) makes the box unbounded, which is never narrower.
 * :func:`point_kernel` -> ``step(X, U, tau, nint)``: the model's step (``nint`` RK4 substeps of a
   continuous file in :func:`~simgap.synthesis.runge_kutta.rk4_integrate`'s operation order, or the
   discrete map) bit for bit equal to the numpy evaluation: no fast-math, the same operations in
@@ -170,6 +171,8 @@ def _idiv(al, ah, bl, bh):
 @njit(error_model="numpy")
 def _ipow(al, ah, k):
     """[a]^k for an integer k (basis._ipow)."""
+    if al != al or ah != ah:  # NaN endpoints stay NaN (min/max would drop them)
+        return math.nan, math.nan
     if k == 0:
         return 1.0, 1.0
     a = abs(k)
@@ -225,17 +228,23 @@ def _isign(x):
 
 @njit(error_model="numpy")
 def _iabs(al, ah):
+    if al != al or ah != ah:
+        return math.nan, math.nan
     lo = 0.0 if (al <= 0.0 and ah >= 0.0) else min(abs(al), abs(ah))
     return lo, max(abs(al), abs(ah))
 
 
 @njit(error_model="numpy")
 def _isqrt(al, ah):
+    if al != al or ah != ah:
+        return math.nan, math.nan
     return np.sqrt(max(al, 0.0)), np.sqrt(ah)
 
 
 @njit(error_model="numpy")
 def _dsqrt(al, ah):
+    if al != al or ah != ah:
+        return math.nan, math.nan
     if al > 0.0:
         return 0.5 / np.sqrt(ah), 0.5 / np.sqrt(al)
     return 0.0, INF
@@ -243,6 +252,8 @@ def _dsqrt(al, ah):
 
 @njit(error_model="numpy")
 def _dabs(al, ah):
+    if al != al or ah != ah:
+        return math.nan, math.nan
     gl, gh = _isign(al), _isign(ah)
     if al <= 0.0:
         gl = -1.0
@@ -253,6 +264,8 @@ def _dabs(al, ah):
 
 @njit(error_model="numpy")
 def _dsign(al, ah):
+    if al != al or ah != ah:
+        return math.nan, math.nan
     if al <= 0.0 and ah >= 0.0:
         return -INF, INF
     return 0.0, 0.0

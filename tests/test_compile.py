@@ -241,3 +241,16 @@ def test_twin_policy(monkeypatch, tmp_path):
     assert t3.get(1) is None
     with jit.expected_work(5000):
         assert t3.get(1) is not None
+
+
+def test_nan_makes_the_box_unbounded():
+    """inf - inf inside a formula (exp overflowing on both ends, minus an unbounded quotient) gives a
+    NaN endpoint; squaring it must not turn it into a finite interval: the box is unbounded."""
+    x, u = ("var", 0), ("var", 1)
+    big = ("fn", "exp", ("mul", ("const", 1000.0), ("add", ("const", 1.0), ("mul", ("const", 0.0), x))))
+    unb = ("div", x, u)                          # u's box contains 0: (-inf, inf)
+    tree = ("pow", ("add", big, unb), 2)
+    k = C.interval_kernel([tree], 1, 1)
+    lo, hi, Dc, Dr = k(np.array([[0.5]]), np.array([[0.6]]), np.array([[-1.0]]), np.array([[1.0]]),
+                       np.zeros((1, 1)), 0.1, 1, 1, False, REL_WIDEN, ABS_WIDEN)
+    assert lo[0, 0] == -np.inf and hi[0, 0] == np.inf and Dr[0, 0, 0] == np.inf

@@ -576,7 +576,8 @@ class Twin:
     """A compiled twin of a numpy evaluation, loaded when it pays (the ``SIMGAP_JIT`` modes of
     :mod:`simgap.synthesis.jit`).
 
-    ``make`` builds the source; ``attr`` names the kernel in it. :meth:`get` is asked before each
+    ``source(*args)`` builds the source (a module-level function and plain data: a Twin pickles,
+    without its loaded kernel); ``attr`` names the kernel in it. :meth:`get` is asked before each
     evaluation of ``rows`` rows and returns the kernel or None (the caller evaluates in numpy, and
     those rows are counted): SIMGAP_JIT=1 always, 0 never; auto (numba installed) once the rows
     done in numpy plus these reach ``auto_rows`` (about what a first compile costs, seconds) or
@@ -584,13 +585,16 @@ class Twin:
     ``early`` rows (default ``auto_rows / 20``) or when numba is imported anyway, if the kernel is
     in the disk cache (a load costs numba's start, ~0.5 s CPU and ~100 MB)."""
 
-    def __init__(self, make, attr: str, auto_rows: int, early: Optional[int] = None):
-        self.make, self.attr, self.auto_rows = make, attr, int(auto_rows)
+    def __init__(self, source, args: tuple, attr: str, auto_rows: int, early: Optional[int] = None):
+        self.source, self.args, self.attr, self.auto_rows = source, tuple(args), attr, int(auto_rows)
         self.early = int(auto_rows) // 20 if early is None else int(early)
         self.done, self.fn, self.cached = 0, None, None
 
     def __getstate__(self):  # the compiled code stays in its process (loaded again on use)
         return dict(self.__dict__, fn=None)
+
+    def make(self) -> str:
+        return self.source(*self.args)
 
     def get(self, rows: int = 0):
         if self.fn is not None:

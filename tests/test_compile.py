@@ -218,7 +218,7 @@ def test_system_file_step_compiled_same_bits(monkeypatch, rng):
         assert np.array_equal(got, want)
         comp = [c.cell_contents for c in s.step.__closure__ if isinstance(c.cell_contents, object)
                 and type(c.cell_contents).__name__ == "_CompiledStep"][0]
-        assert (comp.twin.fn is not None) == compiled and comp.exact == compiled
+        assert (comp.twin is not None and comp.twin.fn is not None) == compiled and comp.exact == compiled
 
 
 def test_twin_policy(monkeypatch, tmp_path):
@@ -226,21 +226,24 @@ def test_twin_policy(monkeypatch, tmp_path):
     (numba is imported in this process); 0: never; a declared job counts."""
     from simgap.synthesis import jit
     monkeypatch.setenv("SIMGAP_KERNEL_CACHE", str(tmp_path))
-    src = lambda: C.values_source([("mul", ("var", 0), ("var", 1))], 2)
+    src = (C.values_source, ([("mul", ("var", 0), ("var", 1))], 2))
     monkeypatch.setenv("SIMGAP_JIT", "0")
-    t = C.Twin(src, "values", 1000)
+    t = C.Twin(*src, "values", 1000)
     assert t.get(10 ** 9) is None
     monkeypatch.setenv("SIMGAP_JIT", "auto")
     assert t.get(600) is None and t.get(300) is None and t.done == 900 and t.cached is False
     k = t.get(100)                                    # 1000 rows: compiled (on first call), now on disk
     assert k is not None and np.array_equal(k(np.ones((1, 2)), np.full((1, 2), 2.0))[1], [[4.0]])
     C._LOADED.clear()
-    t2 = C.Twin(src, "values", 1000)
+    t2 = C.Twin(*src, "values", 1000)
     assert t2.get(1) is not None and t2.cached        # in the cache: loaded at once
-    t3 = C.Twin(lambda: C.values_source([("var", 0)], 1), "values", 1000)
+    t3 = C.Twin(C.values_source, ([("var", 0)], 1), "values", 1000)
     assert t3.get(1) is None
     with jit.expected_work(5000):
         assert t3.get(1) is not None
+    import pickle  # a Basis or an IntervalMap travels to worker processes: its twin without the kernel
+    t4 = pickle.loads(pickle.dumps(t3))
+    assert t4.fn is None and t4.make() == t3.make()
 
 
 def test_nan_makes_the_box_unbounded():

@@ -345,7 +345,7 @@ class Basis:
         self.system = system
         self.terms = [parse_term(t, system) for t in terms]
         from ..compile import Twin, values_source
-        self.twin = Twin(lambda: values_source([t.tree for t in self.terms], system.n + system.m), "values", AUTO_BOXES)
+        self.twin = Twin(values_source, ([t.tree for t in self.terms], system.n + system.m), "values", AUTO_BOXES)
         seen = set()
         for t in self.terms:
             if t.text in seen:

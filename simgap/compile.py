@@ -772,10 +772,15 @@ def cache_dir() -> Path:
 _LOADED: dict = {}
 
 
+_NUMBA_VERSION: list = []
+
+
 def _digest(source: str) -> str:
-    """sha256 of numba's version and the source (the version read without importing numba)."""
-    from importlib.metadata import version
-    return hashlib.sha256((version("numba") + "\0" + source).encode()).hexdigest()[:32]
+    """sha256 of numba's version and the source (the version read once, without importing numba)."""
+    if not _NUMBA_VERSION:
+        from importlib.metadata import version
+        _NUMBA_VERSION.append(version("numba"))
+    return hashlib.sha256((_NUMBA_VERSION[0] + "\0" + source).encode()).hexdigest()[:32]
 
 
 def is_cached(source: str) -> bool:

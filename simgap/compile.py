@@ -31,7 +31,10 @@ Two kernels:
   every NaN endpoint product as 0 (meant for 0 * inf); the kernel does so only for 0 * inf, every
   interval helper keeps a NaN endpoint NaN (min and max would drop it), and a NaN anywhere (a
   formula outside its domain, inf - inf) makes the box unbounded, which is never narrower.
-* :func:`point_kernel` -> ``step(X, U, tau, nint)``: the model's step (``nint`` RK4 substeps of a
+* :func:`values_kernel` -> ``values(ZL, ZH)``: interval values (no derivatives) of a list of
+  formulas over boxes of z, :meth:`simgap.certify.basis.Term.interval` for every term of a basis at
+  once (the certificate's gamma over a box, :meth:`simgap.certify.basis.Basis.value_bounds`).
+* :func:`point_kernel` -> ``step(X, U, tau, nint, continuous)``: the model's step (``nint`` RK4 substeps of a
   continuous file in :func:`~simgap.synthesis.runge_kutta.rk4_integrate`'s operation order, or the
   discrete map) bit for bit equal to the numpy evaluation: no fast-math, the same operations in
   the same order. Only trees whose every function gives numpy's bits in numba are compiled
@@ -112,7 +115,8 @@ class _Dag:
             key = ("pow", int(p) if p == int(p) else p, (self.add(t[1]),))
         elif k == "fn":
             if t[1] not in self.fns:
-                raise SimgapError(f"compiler: function {t[1]!r} is not compiled here (allowed: {', '.join(sorted(self.fns))})")
+                raise SimgapError(f"compiler: function {t[1]!r} is not compiled here "
+                                  f"(allowed: {', '.join(sorted(self.fns))})")
             key = ("fn", str(t[1]), tuple(self.add(a) for a in t[2:]))
         elif k == "cmp":
             if t[1] not in _CMP or "cmp" not in self.fns:

@@ -14,7 +14,7 @@ Identical sub-trees are emitted once (hash-consing: the tree becomes a DAG of nu
 the definitions a file shares between formulas (``det``, ``M12`` of the reacher) are computed once
 per evaluation, as in the numpy path.
 
-Two kernels:
+Three kernels:
 
 * :func:`interval_kernel` -> ``closed_loop(xlo, xhi, ulo, uhi, K, tau, substeps, steps,
   continuous)``: the whole :meth:`simgap.synthesis.interval_map.IntervalMap.closed_loop` (every

@@ -388,6 +388,20 @@ def closed_loop(xlo, xhi, ulo, uhi, K, tau, substeps, steps, continuous, rel_wid
 '''
 
 
+#: a function's value box over its argument's box (l{a}, h{a}) (basis._ifn)
+_FN_VALUE = {"sin": "_isin(l{a}, h{a})", "cos": "_icos(l{a}, h{a})", "tan": "_itan(l{a}, h{a})",
+             "sqrt": "_isqrt(l{a}, h{a})", "abs": "_iabs(l{a}, h{a})", "exp": "math.exp(l{a}), math.exp(h{a})",
+             "tanh": "math.tanh(l{a}), math.tanh(h{a})", "sign": "_isign(l{a}), _isign(h{a})"}
+#: lines giving its derivative's box (gl, gh) from the argument's and the value's (l{i}, h{i}) (basis._ig)
+_FN_SLOPE = {"sin": ["gl, gh = _icos(l{a}, h{a})"],
+             "cos": ["gl, gh = _isin(l{a}, h{a})", "gl, gh = -gh, -gl"],
+             "tan": ["sl, sh = _ipow(l{i}, h{i}, 2)", "gl, gh = 1.0 + sl, 1.0 + sh"],
+             "exp": ["gl, gh = l{i}, h{i}"],
+             "tanh": ["sl, sh = _ipow(l{i}, h{i}, 2)", "gl, gh = 1.0 - sh, 1.0 - sl"],
+             "abs": ["gl, gh = _dabs(l{a}, h{a})"], "sqrt": ["gl, gh = _dsqrt(l{a}, h{a})"],
+             "sign": ["gl, gh = _dsign(l{a}, h{a})"]}
+
+
 class _IntervalEmitter:
     """Straight-line interval code of one right-hand side: node i -> locals ``l{i}``, ``h{i}`` (value
     box) and ``a{i}_{j}``, ``b{i}_{j}`` (derivative box along column j, only for j in deps[i])."""
@@ -482,40 +496,16 @@ class _IntervalEmitter:
                 for j in deps:
                     e(f"a{i}_{j} = b{i}_{j} = 0.0")
             return
-        if kind == "fn":
+        if kind == "fn":  # (g(a))' = g'(a) a'
             a = ch[0]
-            val = {"sin": "_isin", "cos": "_icos", "tan": "_itan", "sqrt": "_isqrt", "abs": "_iabs"}
-            if pay in val:
-                e(f"l{i}, h{i} = {val[pay]}(l{a}, h{a})")
-            elif pay in ("exp", "tanh"):
-                e(f"l{i}, h{i} = math.{pay}(l{a}), math.{pay}(h{a})")
-            elif pay == "sign":
-                e(f"l{i}, h{i} = _isign(l{a}), _isign(h{a})")
-            else:
+            if pay not in _FN_VALUE:
                 raise SimgapError(f"compiler: function {pay!r} has no interval extension here")
-            if not deps:
-                return
-            if pay == "sin":
-                e(f"gl, gh = _icos(l{a}, h{a})")
-            elif pay == "cos":
-                e(f"gl, gh = _isin(l{a}, h{a})")
-                e("gl, gh = -gh, -gl")
-            elif pay == "tan":
-                e(f"sl, sh = _ipow(l{i}, h{i}, 2)")
-                e("gl, gh = 1.0 + sl, 1.0 + sh")
-            elif pay == "exp":
-                e(f"gl, gh = l{i}, h{i}")
-            elif pay == "tanh":
-                e(f"sl, sh = _ipow(l{i}, h{i}, 2)")
-                e("gl, gh = 1.0 - sh, 1.0 - sl")
-            elif pay == "abs":
-                e(f"gl, gh = _dabs(l{a}, h{a})")
-            elif pay == "sqrt":
-                e(f"gl, gh = _dsqrt(l{a}, h{a})")
-            else:
-                e(f"gl, gh = _dsign(l{a}, h{a})")
-            for j in deps:
-                e(f"a{i}_{j}, b{i}_{j} = _imul(gl, gh, a{a}_{j}, b{a}_{j})")
+            e(f"l{i}, h{i} = " + _FN_VALUE[pay].format(a=a))
+            if deps:
+                for line in _FN_SLOPE[pay]:
+                    e(line.format(a=a, i=i))
+                for j in deps:
+                    e(f"a{i}_{j}, b{i}_{j} = _imul(gl, gh, a{a}_{j}, b{a}_{j})")
             return
         raise SimgapError(f"compiler: node kind {kind!r} has no interval extension")
 

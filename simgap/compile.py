@@ -413,9 +413,6 @@ class _IntervalEmitter:
     def emit(self, line):
         self.lines.append("    " + line)
 
-    def value_ref(self, i):
-        return f"l{i}", f"h{i}"
-
     def node(self, i):
         kind, pay, ch = self.dag.nodes[i]
         deps = sorted(self.dag.deps[i])

@@ -14,7 +14,7 @@ Identical sub-trees are emitted once (hash-consing: the tree becomes a DAG of nu
 the definitions a file shares between formulas (``det``, ``M12`` of the reacher) are computed once
 per evaluation, as in the numpy path.
 
-Two kernels:
+Three kernels:
 
 * :func:`interval_kernel` -> ``closed_loop(xlo, xhi, ulo, uhi, K, tau, substeps, steps,
   continuous)``: the whole :meth:`simgap.synthesis.interval_map.IntervalMap.closed_loop` (every
@@ -28,9 +28,13 @@ Two kernels:
   results may differ from the numpy path by a few units in the last place; the enclosure's radius
   is widened by the same relative 1e-9 plus 1e-12 as the numpy path (``REL_WIDEN``, ``ABS_WIDEN``),
   far above those differences. One difference is deliberate: the numpy interval product counts
-  every NaN endpoint product as 0 (meant for 0 * inf); the kernel does so only for 0 * inf and
-  lets a NaN (a formula outside its domain) make the box unbounded, which is never narrower.
-* :func:`point_kernel` -> ``step(X, U, tau, nint)``: the model's step (``nint`` RK4 substeps of a
+  every NaN endpoint product as 0 (meant for 0 * inf); the kernel does so only for 0 * inf, every
+  interval helper keeps a NaN endpoint NaN (min and max would drop it), and a NaN anywhere (a
+  formula outside its domain, inf - inf) makes the box unbounded, which is never narrower.
+* :func:`values_kernel` -> ``values(ZL, ZH)``: interval values (no derivatives) of a list of
+  formulas over boxes of z, :meth:`simgap.certify.basis.Term.interval` for every term of a basis at
+  once (the certificate's gamma over a box, :meth:`simgap.certify.basis.Basis.value_bounds`).
+* :func:`point_kernel` -> ``step(X, U, tau, nint, continuous)``: the model's step (``nint`` RK4 substeps of a
   continuous file in :func:`~simgap.runge_kutta.rk4_integrate`'s operation order, or the
   discrete map) bit for bit equal to the numpy evaluation: no fast-math, the same operations in
   the same order. Only trees whose every function gives numpy's bits in numba are compiled
@@ -111,7 +115,8 @@ class _Dag:
             key = ("pow", int(p) if p == int(p) else p, (self.add(t[1]),))
         elif k == "fn":
             if t[1] not in self.fns:
-                raise SimgapError(f"compiler: function {t[1]!r} is not compiled here (allowed: {', '.join(sorted(self.fns))})")
+                raise SimgapError(f"compiler: function {t[1]!r} is not compiled here "
+                                  f"(allowed: {', '.join(sorted(self.fns))})")
             key = ("fn", str(t[1]), tuple(self.add(a) for a in t[2:]))
         elif k == "cmp":
             if t[1] not in _CMP or "cmp" not in self.fns:
@@ -170,6 +175,8 @@ def _idiv(al, ah, bl, bh):
 @njit(error_model="numpy")
 def _ipow(al, ah, k):
     """[a]^k for an integer k (basis._ipow)."""
+    if al != al or ah != ah:  # NaN endpoints stay NaN (min/max would drop them)
+        return math.nan, math.nan
     if k == 0:
         return 1.0, 1.0
     a = abs(k)
@@ -225,17 +232,23 @@ def _isign(x):
 
 @njit(error_model="numpy")
 def _iabs(al, ah):
+    if al != al or ah != ah:
+        return math.nan, math.nan
     lo = 0.0 if (al <= 0.0 and ah >= 0.0) else min(abs(al), abs(ah))
     return lo, max(abs(al), abs(ah))
 
 
 @njit(error_model="numpy")
 def _isqrt(al, ah):
+    if al != al or ah != ah:
+        return math.nan, math.nan
     return np.sqrt(max(al, 0.0)), np.sqrt(ah)
 
 
 @njit(error_model="numpy")
 def _dsqrt(al, ah):
+    if al != al or ah != ah:
+        return math.nan, math.nan
     if al > 0.0:
         return 0.5 / np.sqrt(ah), 0.5 / np.sqrt(al)
     return 0.0, INF
@@ -243,6 +256,8 @@ def _dsqrt(al, ah):
 
 @njit(error_model="numpy")
 def _dabs(al, ah):
+    if al != al or ah != ah:
+        return math.nan, math.nan
     gl, gh = _isign(al), _isign(ah)
     if al <= 0.0:
         gl = -1.0
@@ -253,6 +268,8 @@ def _dabs(al, ah):
 
 @njit(error_model="numpy")
 def _dsign(al, ah):
+    if al != al or ah != ah:
+        return math.nan, math.nan
     if al <= 0.0 and ah >= 0.0:
         return -INF, INF
     return 0.0, 0.0
@@ -371,6 +388,20 @@ def closed_loop(xlo, xhi, ulo, uhi, K, tau, substeps, steps, continuous, rel_wid
 '''
 
 
+#: a function's value box over its argument's box (l{a}, h{a}) (basis._ifn)
+_FN_VALUE = {"sin": "_isin(l{a}, h{a})", "cos": "_icos(l{a}, h{a})", "tan": "_itan(l{a}, h{a})",
+             "sqrt": "_isqrt(l{a}, h{a})", "abs": "_iabs(l{a}, h{a})", "exp": "math.exp(l{a}), math.exp(h{a})",
+             "tanh": "math.tanh(l{a}), math.tanh(h{a})", "sign": "_isign(l{a}), _isign(h{a})"}
+#: lines giving its derivative's box (gl, gh) from the argument's and the value's (l{i}, h{i}) (basis._ig)
+_FN_SLOPE = {"sin": ["gl, gh = _icos(l{a}, h{a})"],
+             "cos": ["gl, gh = _isin(l{a}, h{a})", "gl, gh = -gh, -gl"],
+             "tan": ["sl, sh = _ipow(l{i}, h{i}, 2)", "gl, gh = 1.0 + sl, 1.0 + sh"],
+             "exp": ["gl, gh = l{i}, h{i}"],
+             "tanh": ["sl, sh = _ipow(l{i}, h{i}, 2)", "gl, gh = 1.0 - sh, 1.0 - sl"],
+             "abs": ["gl, gh = _dabs(l{a}, h{a})"], "sqrt": ["gl, gh = _dsqrt(l{a}, h{a})"],
+             "sign": ["gl, gh = _dsign(l{a}, h{a})"]}
+
+
 class _IntervalEmitter:
     """Straight-line interval code of one right-hand side: node i -> locals ``l{i}``, ``h{i}`` (value
     box) and ``a{i}_{j}``, ``b{i}_{j}`` (derivative box along column j, only for j in deps[i])."""
@@ -381,9 +412,6 @@ class _IntervalEmitter:
 
     def emit(self, line):
         self.lines.append("    " + line)
-
-    def value_ref(self, i):
-        return f"l{i}", f"h{i}"
 
     def node(self, i):
         kind, pay, ch = self.dag.nodes[i]
@@ -431,37 +459,24 @@ class _IntervalEmitter:
                     e(f"a{i}_{j}, b{i}_{j} = a{b}_{j}, b{b}_{j}" if kind == "add" else
                       f"a{i}_{j}, b{i}_{j} = -b{b}_{j}, -a{b}_{j}")
             return
-        if kind == "mul":  # (ab)' = a'b + ab'
+        if kind in ("mul", "div"):  # (ab)' = a'b + ab';  (a/b)' = (a'b - ab') / b^2
             a, b = ch
             da, db = self.dag.deps[a], self.dag.deps[b]
-            e(f"l{i}, h{i} = _imul(l{a}, h{a}, l{b}, h{b})")
-            for j in deps:
-                if j in da and j in db:
-                    e(f"p1, q1 = _imul(a{a}_{j}, b{a}_{j}, l{b}, h{b})")
-                    e(f"p2, q2 = _imul(l{a}, h{a}, a{b}_{j}, b{b}_{j})")
-                    e(f"a{i}_{j}, b{i}_{j} = p1 + p2, q1 + q2")
-                elif j in da:
-                    e(f"a{i}_{j}, b{i}_{j} = _imul(a{a}_{j}, b{a}_{j}, l{b}, h{b})")
-                else:
-                    e(f"a{i}_{j}, b{i}_{j} = _imul(l{a}, h{a}, a{b}_{j}, b{b}_{j})")
-            return
-        if kind == "div":  # (a/b)' = (a'b - ab') / b^2
-            a, b = ch
-            da, db = self.dag.deps[a], self.dag.deps[b]
-            if deps:
+            if kind == "div" and deps:
                 e(f"s{i}l, s{i}h = _ipow(l{b}, h{b}, 2)")
             for j in deps:
-                if j in da and j in db:
+                if j in da:
                     e(f"p1, q1 = _imul(a{a}_{j}, b{a}_{j}, l{b}, h{b})")
+                if j in db:
                     e(f"p2, q2 = _imul(l{a}, h{a}, a{b}_{j}, b{b}_{j})")
-                    e(f"a{i}_{j}, b{i}_{j} = _idiv(p1 - q2, q1 - p2, s{i}l, s{i}h)")
-                elif j in da:
-                    e(f"p1, q1 = _imul(a{a}_{j}, b{a}_{j}, l{b}, h{b})")
-                    e(f"a{i}_{j}, b{i}_{j} = _idiv(p1, q1, s{i}l, s{i}h)")
+                both = j in da and j in db
+                if kind == "mul":
+                    lo, hi = ("p1 + p2", "q1 + q2") if both else ("p1", "q1") if j in da else ("p2", "q2")
+                    e(f"a{i}_{j}, b{i}_{j} = {lo}, {hi}")
                 else:
-                    e(f"p2, q2 = _imul(l{a}, h{a}, a{b}_{j}, b{b}_{j})")
-                    e(f"a{i}_{j}, b{i}_{j} = _idiv(-q2, -p2, s{i}l, s{i}h)")
-            e(f"l{i}, h{i} = _idiv(l{a}, h{a}, l{b}, h{b})")
+                    lo, hi = ("p1 - q2", "q1 - p2") if both else ("p1", "q1") if j in da else ("-q2", "-p2")
+                    e(f"a{i}_{j}, b{i}_{j} = _idiv({lo}, {hi}, s{i}l, s{i}h)")
+            e(f"l{i}, h{i} = {'_imul' if kind == 'mul' else '_idiv'}(l{a}, h{a}, l{b}, h{b})")
             return
         if kind == "pow":
             a = ch[0]
@@ -478,40 +493,16 @@ class _IntervalEmitter:
                 for j in deps:
                     e(f"a{i}_{j} = b{i}_{j} = 0.0")
             return
-        if kind == "fn":
+        if kind == "fn":  # (g(a))' = g'(a) a'
             a = ch[0]
-            val = {"sin": "_isin", "cos": "_icos", "tan": "_itan", "sqrt": "_isqrt", "abs": "_iabs"}
-            if pay in val:
-                e(f"l{i}, h{i} = {val[pay]}(l{a}, h{a})")
-            elif pay in ("exp", "tanh"):
-                e(f"l{i}, h{i} = math.{pay}(l{a}), math.{pay}(h{a})")
-            elif pay == "sign":
-                e(f"l{i}, h{i} = _isign(l{a}), _isign(h{a})")
-            else:
+            if pay not in _FN_VALUE:
                 raise SimgapError(f"compiler: function {pay!r} has no interval extension here")
-            if not deps:
-                return
-            if pay == "sin":
-                e(f"gl, gh = _icos(l{a}, h{a})")
-            elif pay == "cos":
-                e(f"gl, gh = _isin(l{a}, h{a})")
-                e("gl, gh = -gh, -gl")
-            elif pay == "tan":
-                e(f"sl, sh = _ipow(l{i}, h{i}, 2)")
-                e("gl, gh = 1.0 + sl, 1.0 + sh")
-            elif pay == "exp":
-                e(f"gl, gh = l{i}, h{i}")
-            elif pay == "tanh":
-                e(f"sl, sh = _ipow(l{i}, h{i}, 2)")
-                e("gl, gh = 1.0 - sh, 1.0 - sl")
-            elif pay == "abs":
-                e(f"gl, gh = _dabs(l{a}, h{a})")
-            elif pay == "sqrt":
-                e(f"gl, gh = _dsqrt(l{a}, h{a})")
-            else:
-                e(f"gl, gh = _dsign(l{a}, h{a})")
-            for j in deps:
-                e(f"a{i}_{j}, b{i}_{j} = _imul(gl, gh, a{a}_{j}, b{a}_{j})")
+            e(f"l{i}, h{i} = " + _FN_VALUE[pay].format(a=a))
+            if deps:
+                for line in _FN_SLOPE[pay]:
+                    e(line.format(a=a, i=i))
+                for j in deps:
+                    e(f"a{i}_{j}, b{i}_{j} = _imul(gl, gh, a{a}_{j}, b{a}_{j})")
             return
         raise SimgapError(f"compiler: node kind {kind!r} has no interval extension")
 
@@ -576,7 +567,8 @@ class Twin:
     """A compiled twin of a numpy evaluation, loaded when it pays (the ``SIMGAP_JIT`` modes of
     :mod:`simgap.jit`).
 
-    ``make`` builds the source; ``attr`` names the kernel in it. :meth:`get` is asked before each
+    ``source(*args)`` builds the source (a module-level function and plain data: a Twin pickles,
+    without its loaded kernel); ``attr`` names the kernel in it. :meth:`get` is asked before each
     evaluation of ``rows`` rows and returns the kernel or None (the caller evaluates in numpy, and
     those rows are counted): SIMGAP_JIT=1 always, 0 never; auto (numba installed) once the rows
     done in numpy plus these reach ``auto_rows`` (about what a first compile costs, seconds) or
@@ -584,13 +576,16 @@ class Twin:
     ``early`` rows (default ``auto_rows / 20``) or when numba is imported anyway, if the kernel is
     in the disk cache (a load costs numba's start, ~0.5 s CPU and ~100 MB)."""
 
-    def __init__(self, make, attr: str, auto_rows: int, early: Optional[int] = None):
-        self.make, self.attr, self.auto_rows = make, attr, int(auto_rows)
+    def __init__(self, source, args: tuple, attr: str, auto_rows: int, early: Optional[int] = None):
+        self.source, self.args, self.attr, self.auto_rows = source, tuple(args), attr, int(auto_rows)
         self.early = int(auto_rows) // 20 if early is None else int(early)
         self.done, self.fn, self.cached = 0, None, None
 
     def __getstate__(self):  # the compiled code stays in its process (loaded again on use)
         return dict(self.__dict__, fn=None)
+
+    def make(self) -> str:
+        return self.source(*self.args)
 
     def get(self, rows: int = 0):
         if self.fn is not None:
@@ -768,10 +763,15 @@ def cache_dir() -> Path:
 _LOADED: dict = {}
 
 
+_NUMBA_VERSION: list = []
+
+
 def _digest(source: str) -> str:
-    """sha256 of numba's version and the source (the version read without importing numba)."""
-    from importlib.metadata import version
-    return hashlib.sha256((version("numba") + "\0" + source).encode()).hexdigest()[:32]
+    """sha256 of numba's version and the source (the version read once, without importing numba)."""
+    if not _NUMBA_VERSION:
+        from importlib.metadata import version
+        _NUMBA_VERSION.append(version("numba"))
+    return hashlib.sha256((_NUMBA_VERSION[0] + "\0" + source).encode()).hexdigest()[:32]
 
 
 def is_cached(source: str) -> bool:

@@ -224,13 +224,8 @@ class _CompiledStep:
     None (the numpy step)."""
 
     def __init__(self, spec, n, m, substeps, continuous):
-        from .compile import Twin, point_source
-        from .jit import AUTO_WORK
         self.spec, self.n, self.m, self.substeps, self.continuous = spec, n, m, substeps, continuous
-        # no early load from the cache: numba's ~100 MB pay only on large grids (measured: SCOTS's
-        # dcdc as a file, 1.3 M rows, 1.9 s CPU either way; docs/synthesis.md "Speed")
-        self.twin = Twin(lambda: point_source(self.trees, n, m), "step", AUTO_WORK, early=AUTO_WORK)
-        self.trees, self.exact = None, None
+        self.twin, self.exact = None, None
 
     def __call__(self, x, u, dt):
         x = np.atleast_2d(np.asarray(x, dtype=float))
@@ -241,10 +236,15 @@ class _CompiledStep:
             from .jit import mode
             if mode() == "0":
                 return None
-            self.trees = _spec_trees(self.spec)["trees"]
-            self.exact = not point_exact(self.trees)
+            trees = _spec_trees(self.spec)["trees"]
+            self.exact = not point_exact(trees)
             if not self.exact:
                 return None
+            from .compile import Twin, point_source
+            from .jit import AUTO_WORK
+            # no early load from the cache: numba's ~100 MB pay only on large grids (measured: SCOTS's
+            # dcdc as a file, 1.3 M rows, 1.9 s CPU either way; docs/synthesis.md "Speed")
+            self.twin = Twin(point_source, (trees, self.n, self.m), "step", AUTO_WORK, early=AUTO_WORK)
         kern = self.twin.get(x.shape[0])
         if kern is None:
             return None

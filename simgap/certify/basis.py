@@ -34,8 +34,10 @@ from ..expr import Expr, VarSpace, parse
 from ..systems import System
 
 FUNCS = ("sin", "cos", "tan", "exp", "abs", "sqrt", "tanh", "sign")
-#: term-boxes evaluated in numpy by one Basis from which value_bounds compiles in auto mode
-AUTO_BOXES = 20_000
+#: numpy term evaluations (one per term per value_bounds call, whatever its batch: the recursion's
+#: per-call cost dominates, about 0.1 ms each) after which one Basis compiles value_bounds in auto
+#: mode: about 2 s of numpy, the order of a first compile
+AUTO_TERM_CALLS = 20_000
 TWO_PI = 2.0 * np.pi
 
 
@@ -345,7 +347,7 @@ class Basis:
         self.system = system
         self.terms = [parse_term(t, system) for t in terms]
         from ..compile import Twin, values_source
-        self.twin = Twin(lambda: values_source([t.tree for t in self.terms], system.n + system.m), "values", AUTO_BOXES)
+        self.twin = Twin(values_source, ([t.tree for t in self.terms], system.n + system.m), "values", AUTO_TERM_CALLS)
         seen = set()
         for t in self.terms:
             if t.text in seen:
@@ -392,7 +394,7 @@ class Basis:
         """Interval bounds of every term over boxes: (lo, hi), each (B, z); compiled
         (:func:`simgap.compile.values_kernel`, the same interval formulas) when it pays
         (:class:`simgap.compile.Twin`)."""
-        kern = self.twin.get(zlo.shape[0])
+        kern = self.twin.get(len(self.terms))
         if kern is not None:
             return kern(np.ascontiguousarray(zlo, dtype=float), np.ascontiguousarray(zhi, dtype=float))
         lo = np.empty((zlo.shape[0], len(self.terms)))

@@ -81,7 +81,7 @@ class IntervalMap:
         self.base_tau = t["tau"]
         self.steps = int(system.steps)
         from ..compile import Twin, interval_source
-        self.twin = Twin(lambda: interval_source(self.terms_trees, self.n, self.m), "closed_loop", AUTO_BOXES)
+        self.twin = Twin(interval_source, (self.terms_trees, self.n, self.m), "closed_loop", AUTO_BOXES)
 
     def kernel(self, boxes: int = 0):
         """The compiled closed loop (:func:`simgap.compile.interval_kernel`) if it pays for ``boxes``

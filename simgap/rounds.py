@@ -32,7 +32,7 @@ finished rounds' stores complete and their chunks verified.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Callable, Optional
 
 import numpy as np
@@ -93,7 +93,6 @@ class Attempt:
     cert: object
     runs: int
     seconds: float
-    extra: dict = field(default_factory=dict)
 
 
 @dataclass
@@ -157,7 +156,7 @@ def run_rounds(n_runs: int, n_pairs: int, budget: Budget, attempt: Callable[[int
         if prev_scale is not None and a.scale < 1:
             # a projection, not a proof: the factor grows by g per round as in the last one; R more rounds reach 1
             g = a.scale / prev_scale
-            R = int(np.ceil(np.log(1.0 / a.scale) / np.log(g)))
+            R = min(int(np.ceil(np.log(1.0 / a.scale) / np.log(g))), 62)  # 62: beyond any budget already
             runs_R = int(n_pairs) * n_runs_of_round(n_runs, k + 1) * (2 ** R - 1)  # rounds k+1 .. k+R
             if R > max_rounds - k or (budget.runs is not None and spent_runs + runs_R > budget.runs):
                 return RoundsResult(a, rows, (

@@ -753,9 +753,11 @@ def _gap_lipschitz_compute(ds, o: CertifyOptions, simulator=None, on_progress=No
         w = np.zeros(n)
         w[cov] = 0.5 * np.asarray(cv["widths"], float)
         grid = dataclasses.replace(grid, radii=np.maximum(grid.radii, w))
-    along_tube = bool((ds.manifest.get("cover") or {}).get("boxes"))
-    for j in grid.dims:  # a cover along a tube with simulator slopes needs no neighbours (its radii are the cells')
-        if (grid.neighbours[j][0].size == 0 and not (along_tube and o.lhat == "simulator")) or len(grid.values[j]) < 2:
+    # a cover along a tube with simulator slopes needs no neighbours nor two values per state (its radii are
+    # its cells', its slopes the simulator's); the inputs' radii still come from the input grid's values
+    free = bool((ds.manifest.get("cover") or {}).get("boxes")) and o.lhat == "simulator"
+    for j in grid.dims:
+        if not (free and j < n) and (grid.neighbours[j][0].size == 0 or len(grid.values[j]) < 2):
             nm = s.state_names[j] if j < n else s.input_names[j - n]
             raise SimgapError(f"the gap's Lipschitz term needs cover points with neighbours along every covered "
                               f"dimension, but {nm} has {len(grid.values[j])} value(s) in the data: use a finer "

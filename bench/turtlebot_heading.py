@@ -131,13 +131,13 @@ def refine_heading(exp, store: Path, out: Path, a) -> int:
         res = refine(s, data, options=SelectionOptions(weighted=mode == "weighted"), name=f"turtlebot_refined_{mode}")
         path = save_refined(res.refined, out / f"turtlebot_refined_{mode}.json")
         rep = res.report
-        row = {"effects": [{k: e[k] for k in ("name", "state_name", "input", "coefficient", "stderr", "unit")
+        row = {"effects": [{k: e[k] for k in ("name", "state_name", "input", "variable", "coefficient", "stderr", "unit")
                             if k in e} for e in rep["effects"]],
                "flagged": [st["state_name"] for st in rep["states"] if st["unexplained"]],
                "before": gap_summary(s, res.before.r, se, u, x), "after": gap_summary(s, res.after.r, se, u, x),
                "system_file": path.name, "seconds": round(time.perf_counter() - t0, 1)}
         rows["modes"][mode] = row
-        named = ", ".join(f"{e['name']}:{e['state_name']}:{e.get('input') or ''} {e['coefficient']:+.4f}"
+        named = ", ".join(f"{e['name']}:{e['state_name']}:{e.get('input') or e.get('variable') or ''} {e['coefficient']:+.4f}"
                           for e in row["effects"])
         print(f"{mode}: {named}; flagged {row['flagged']}")
         for name in row["before"]:

@@ -89,16 +89,21 @@ def finished_pairs(store: Path) -> tuple:
     return x, u, mean, np.sqrt(var / int(cfg["n_runs"])), done, int(cfg["n_chunks"])
 
 
-def gap_summary(system, r, se, u) -> dict:
+def gap_summary(system, r, se, u, x) -> dict:
     """Per state: mean (r / se)^2 over the pairs, and the largest per-input mean residual (over the
-    headings) with its standard error."""
+    headings) with its standard error; x and y in the robot's frame (along and across the heading),
+    where the unicycle's gap does not depend on the heading."""
     import numpy as np
 
+    c, s_ = np.cos(x[:, 2]), np.sin(x[:, 2])
+    r = np.column_stack([c * r[:, 0] + s_ * r[:, 1], -s_ * r[:, 0] + c * r[:, 1], r[:, 2]])
+    se = np.column_stack([np.sqrt((c * se[:, 0]) ** 2 + (s_ * se[:, 1]) ** 2),
+                          np.sqrt((s_ * se[:, 0]) ** 2 + (c * se[:, 1]) ** 2), se[:, 2]])
     inputs, inv = np.unique(np.round(u, 9), axis=0, return_inverse=True)
     inv = inv.ravel()
     cnt = np.bincount(inv)
     out = {}
-    for i, name in enumerate(system.state_names):
+    for i, name in enumerate(("along", "across", system.state_names[2])):
         m = np.bincount(inv, r[:, i]) / cnt
         sem = np.sqrt(np.bincount(inv, se[:, i] ** 2)) / cnt
         j = int(np.argmax(np.abs(m)))
@@ -126,16 +131,16 @@ def refine_heading(exp, store: Path, out: Path, a) -> int:
         res = refine(s, data, options=SelectionOptions(weighted=mode == "weighted"), name=f"turtlebot_refined_{mode}")
         path = save_refined(res.refined, out / f"turtlebot_refined_{mode}.json")
         rep = res.report
-        row = {"effects": [{k: e[k] for k in ("name", "state_name", "input", "coefficient", "stderr", "unit")
+        row = {"effects": [{k: e[k] for k in ("name", "state_name", "input", "variable", "coefficient", "stderr", "unit")
                             if k in e} for e in rep["effects"]],
                "flagged": [st["state_name"] for st in rep["states"] if st["unexplained"]],
-               "before": gap_summary(s, res.before.r, se, u), "after": gap_summary(s, res.after.r, se, u),
+               "before": gap_summary(s, res.before.r, se, u, x), "after": gap_summary(s, res.after.r, se, u, x),
                "system_file": path.name, "seconds": round(time.perf_counter() - t0, 1)}
         rows["modes"][mode] = row
-        named = ", ".join(f"{e['name']}:{e['state_name']}:{e.get('input') or ''} {e['coefficient']:+.4f}"
+        named = ", ".join(f"{e['name']}:{e['state_name']}:{e.get('input') or e.get('variable') or ''} {e['coefficient']:+.4f}"
                           for e in row["effects"])
         print(f"{mode}: {named}; flagged {row['flagged']}")
-        for name in s.state_names:
+        for name in row["before"]:
             b, f = row["before"][name], row["after"][name]
             print(f"  {name:6s} mean (r/se)^2 {b['mean_sq_in_se']:7.2f} -> {f['mean_sq_in_se']:6.2f};  systematic max "
                   f"{b['systematic_max']:+.4f} +- {b['systematic_max_se']:.4f} at u={b['at_input']} -> "

@@ -395,9 +395,8 @@ def select_state(y: np.ndarray, Theta: np.ndarray, keys: list, held: np.ndarray,
         fits = [(k_r2, *k_z), probe.poly2_r2(e, time_series)]
         sig = max([r for r, z, dof in fits if z >= critical(opts.min_z, dof)], default=0.0)
         mem = probe.memory_r2(e, time_series)
-        bl = _block_length(e) if time_series else 1
         mem = mem[0] if mem is not None and mem[1] >= critical(opts.min_z, mem[2]) else None
-        floor = probe.noise_floor(e, bl // 2 if time_series else 1)
+        floor = probe.noise_floor(e, _block_length(e) // 2 if time_series else 1)
         return e, float(max(r for r, _, _ in fits)), float(sig), floor * Kh, mem
 
     def remains(r2, cur, floor_rss, mem):

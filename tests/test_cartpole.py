@@ -94,7 +94,7 @@ def test_invariant_small_profile_reduces_the_invariant_one():
     invariant profile's synthesis with N1hat 30, an audit of 100 x 300, no rollouts from states in E
     and an x0 that lies in the nominal model's proved set (the base x0, theta = 0.05, does not),
     so its 1000 rollouts run inside E."""
-    from simgap.synthesis import invariant_stage
+    from simgap.synthesis import set_synthesis as invariant_stage
     from simgap.pipeline import experiment_spec
     small = load_experiment("cartpole", profile="invariant-small")
     full = load_experiment("cartpole", profile="invariant")

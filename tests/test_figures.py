@@ -238,7 +238,7 @@ def test_invariant_set_figure_draws_projections(tmp_path, captured):
             assert np.allclose(np.einsum("bi,ij,bj->b", e, P2, e), 1.0)
     assert seen == {(0, 1), (0, 2), (1, 2)}
     # the projection contains every point of E (sampled), which a slice does not
-    from simgap.synthesis.invariant_stage import states_in_set
+    from simgap.synthesis.set_synthesis import states_in_set
     pts = states_in_set(ctrl, 4000, 0)
     for d in ((0, 1), (0, 2), (1, 2)):
         c, P2 = ctrl.projection(d)

@@ -346,8 +346,10 @@ def trajectories(run, spec, out_dir: Path, max_drawn: int = 1000, style: str = "
         ax.set_ylim(system.x_lo[1], system.x_hi[1])
         _few_ticks(ax)
         ax.set_xlabel(labels[0])
-        ax.set_title(f"{_name(m)}: {int((~ok).sum())} of {R} runs fail"
-                     + _per_run_words(getattr(_result(run, m), "statement", None)))
+        # three panels' titles fit on two lines each
+        ax.set_title(f"{_name(m)}:{chr(10) if len(methods) > 2 else ' '}{int((~ok).sum())} of {R} runs fail"
+                     + _per_run_words(getattr(_result(run, m), "statement", None)).replace(", ", "; " if len(
+                         methods) > 2 else "\n", 1))
         if system.state_names[:2] == ("x", "y") or (units(system)[0][:2] == ("m", "m")):
             ax.set_aspect("equal")
         span = np.ptp(X.reshape(-1, 2), axis=0) if X.size else np.zeros(2)
@@ -363,7 +365,7 @@ def trajectories(run, spec, out_dir: Path, max_drawn: int = 1000, style: str = "
             ins.set_xlim(c[0] - hw[0], c[0] + hw[0])
             ins.set_ylim(c[1] - hw[1], c[1] + hw[1])
             from matplotlib.ticker import MaxNLocator
-            ins.xaxis.set_major_locator(MaxNLocator(2))
+            ins.xaxis.set_major_locator(MaxNLocator(2, prune="upper"))  # the last label would pass the inset's edge
             ins.yaxis.set_major_locator(MaxNLocator(3))
             ins.tick_params(labelsize=STYLES[style]["small"] - 1, pad=1)
             ins.set_title("zoom: final states", fontsize=STYLES[style]["small"], pad=2)

@@ -644,8 +644,8 @@ def comparison_table(summary: dict) -> str:
                       if isinstance(e.get("gamma"), dict) else "-"))
     for i, nm in enumerate(names):
         row(f"confidence [{nm}]", *both(lambda e: fmt((e.get("confidence_per_dim") or [None] * len(names))[i])))
-    row("joint conf. pointwise (one row at a time)", *both(lambda e: _simultaneous(e.get("confidence_joint_pointwise"))))
-    row("joint conf. all rows (what a proof over a set uses)", *both(lambda e: _simultaneous(e.get("confidence_joint_simultaneous"))))
+    row("joint conf. pointwise (one row)", *both(lambda e: _simultaneous(e.get("confidence_joint_pointwise"))))
+    row("joint conf. all rows (a set's proof)", *both(lambda e: _simultaneous(e.get("confidence_joint_simultaneous"))))
     row("proof confidence (sup over the set)", *both(lambda e: "-" if e.get("confidence_joint") is None else
                                                      _simultaneous(e.get("confidence_joint_simultaneous"))))
     row("audit pass rate (joint)", *both(lambda e: fmt(e.get("audit_pass_rate_joint"), "{:.3f}")))

@@ -36,7 +36,7 @@ from .errors import SimgapError
 # re-exported here, its old home
 from .experiment_spec import experiment_spec  # noqa: F401
 from .synthesis import set_synthesis
-from .synthesis.statement import METHOD_NAMES, Statement, not_proved, statement_of
+from .synthesis.statement import METHOD_NAMES, statement_of
 from .simulators import make_simulator
 
 METHODS = ("deterministic", "stochastic")
@@ -634,17 +634,14 @@ def _clip(text: str, width: int = 56) -> str:
 
 def _entry_statement(e: dict, method: Optional[str]) -> dict:
     """A method entry's statement (summary.json's ``statement``); for a summary written before
-    statements existed, the proof's count alone (never another method's words)."""
+    statements existed, the proof's count alone in the method's name (never another method's words)."""
     if e.get("statement"):
         return e["statement"]
-    grid = method in (None, "grid")
-    st = not_proved(method or "grid") if not e.get("winning_cells") else Statement(
-        method or "grid", METHOD_NAMES.get(method or "grid", method), True, "")
-    d = st.to_json()
-    d["rows"] = [{"label": "winning cells" if grid else "proved",
-                  "value": f"{e.get('winning_cells', 0):,}" if grid else ("yes" if e.get("winning_cells") else "no"),
-                  "about": "proof", "confidence": None}]
-    return d
+    m, count = method or "grid", e.get("winning_cells", 0)
+    row = {"label": "winning cells", "value": f"{count:,}"} if m == "grid" else \
+        {"label": "proved", "value": "yes" if count else "no"}
+    return {"name": METHOD_NAMES.get(m, m), "proved": bool(count), "notes": [],
+            "rows": [{**row, "about": "proof", "confidence": None}]}
 
 
 def _rests_on(e: dict) -> str:
@@ -662,9 +659,9 @@ def _warning_consequence(w: str, st: Optional[dict]) -> str:
         return ""
     proved = "" if st is None else (f"; the {st['name']} proof above used this gamma and "
                                     f"{'holds' if st['proved'] else 'failed'}")
-    return (" -- what it does: noise in the slopes makes those L_gap entries larger, so gamma is wider "
-            "(more conservative), and gamma takes the smaller of two valid bounds per dimension: the "
-            f"certificate stands at its stated confidence{proved}")
+    return (" -- what it does: noise inflates the largest slopes, so those L_gap entries, and gamma with "
+            "them, come out larger (more conservative), and gamma takes the smaller of two valid bounds per "
+            f"dimension: the certificate stands at its stated confidence{proved}")
 
 
 def _audit_notes(summary: dict, cols) -> list:
@@ -716,8 +713,8 @@ def comparison_table(summary: dict) -> str:
                       if isinstance(e.get("gamma"), dict) else "-"))
     for i, nm in enumerate(names):
         row(f"confidence [{nm}]", *both(lambda e: fmt((e.get("confidence_per_dim") or [None] * len(names))[i])))
-    row("joint conf. pointwise (one row at a time)", *both(lambda e: _simultaneous(e.get("confidence_joint_pointwise"))))
-    row("joint conf. all rows (what a proof over a set uses)", *both(lambda e: _simultaneous(e.get("confidence_joint_simultaneous"))))
+    row("joint conf. pointwise (one row)", *both(lambda e: _simultaneous(e.get("confidence_joint_pointwise"))))
+    row("joint conf. all rows (a set's proof)", *both(lambda e: _simultaneous(e.get("confidence_joint_simultaneous"))))
     row("proof confidence (sup over the set)", *both(lambda e: "-" if e.get("confidence_joint") is None else
                                                      _simultaneous(e.get("confidence_all_rounds",
                                                                          e.get("confidence_joint_simultaneous")))))

@@ -541,10 +541,8 @@ class SimgapApp:
             from .results import describe_stages
             self.set_status("**stage outputs** (" + method + "):\n\n" + "\n".join(f"* {line}" for line in describe_stages(run)))
             return
-        st = m.statement
-        said = (f"{m.synthesis.controller.size:,} winning cells" if st is None else
-                f"{st.name}: " + ("proved" if st.proved else "not proved")
-                + (f", p_cert {st.per_run.p_cert:.3g} per run" if st.per_run is not None else ""))
+        st = m.statement  # the method's own words (the grid's winning cells, a tube's T0 and p_cert)
+        said = st.headline if st is not None else "no controller"
         self.set_status(f"run **{run.path.name}** ({method}): data K = {m.dataset.K}, {said}"
                         + (f", {m.rollouts.n_rollouts} rollouts" if m.rollouts is not None else ""))
 

@@ -92,6 +92,7 @@ def save(fig, out_dir: Path, name: str) -> list:
         fig.draw_without_rendering()
         bbox = fig.get_tightbbox().padded(0.02)
         fig.set_layout_engine("none")
+        _rasterize_runs(fig, STYLES[style]["dpi"])  # the runs as one image per axes, at its final size
         for ext in FORMATS:
             final = out_dir / f"{name}.{ext}"
             tmp = out_dir / f".{name}.{os.getpid()}.tmp.{ext}"
@@ -169,27 +170,62 @@ def _spec_patches(ax, spec, system) -> None:
         _box(ax, spec.safe, system, fill=False, edgecolor="k", lw=1.0, ls="--", label="safe set", zorder=4)
 
 
-#: a run's polyline keeps at most this many points (every k-th period and its last): at a figure's
-#: resolution a 400-period run drawn with 200 points looks the same
-MAX_POINTS = 200
-
-
-def _lines(ax, paths: np.ndarray, color, lw: float, alpha: float, zorder: float = 1.0):
-    """Many polylines (R, T, 2) as ONE rasterized LineCollection (each line translucent on its own, so
-    1000 runs still read as a density): one artist instead of R Line2D objects, decimated to
-    :data:`MAX_POINTS` points per line."""
-    from matplotlib.collections import LineCollection
+def _lines(ax, paths: np.ndarray, color, lw: float, alpha: float, zorder: float = 1.0) -> None:
+    """Many polylines (R, T, 2) drawn as ONE image per axes (:func:`_rasterize_runs`, at save time,
+    once the axes' size and limits are known): each line translucent on its own, so 1000 runs read
+    as a density, as one raster artist instead of R Line2D objects (matplotlib drew 190,000 of
+    them for a 4-state run in 69 s; a PDF keeps the image, the rest stays vector). The lines count
+    in the axes' data limits."""
     paths = np.asarray(paths, float)
     if paths.shape[0] == 0:
-        return None
-    T = paths.shape[1]
-    if T > MAX_POINTS:
-        keep = np.unique(np.r_[np.arange(0, T, -(-T // MAX_POINTS)), T - 1])
-        paths = paths[:, keep]
-    lc = LineCollection(list(paths), colors=[color], linewidths=lw, alpha=alpha, zorder=zorder, rasterized=True)
-    ax.add_collection(lc, autolim=True)
-    ax.autoscale_view()
-    return lc
+        return
+    if not hasattr(ax, "_simgap_runs"):
+        ax._simgap_runs = []
+    ax._simgap_runs.append((paths, color, float(lw), float(alpha), float(zorder)))
+    finite = paths.reshape(-1, 2)
+    finite = finite[np.all(np.isfinite(finite), axis=1)]
+    if finite.size:
+        ax.update_datalim(finite)
+        ax.autoscale_view()
+
+
+#: samples per group of runs in one axes' image (1000 runs x 400 periods: about 7 per segment, a
+#: segment a few pixels long; more only where the lines are longer than the samples are apart)
+RUN_SAMPLES = 3_000_000
+
+
+def _rasterize_runs(fig, dpi: float) -> None:
+    """Replace each axes' registered runs (:func:`_lines`) by one RGBA image at the axes' size in
+    pixels at ``dpi`` (:func:`~simgap_viz.layers.geometry.density_rgba`), the groups composited in
+    zorder, failures last; the axes' limits kept."""
+    from matplotlib.colors import to_rgb
+
+    from .layers.geometry import density_rgba
+    axes = [a for ax in fig.axes for a in (ax, *ax.child_axes)]
+    for ax in dict.fromkeys(axes):
+        runs = getattr(ax, "_simgap_runs", None)
+        if not runs:
+            continue
+        (x0, x1), (y0, y1) = ax.get_xlim(), ax.get_ylim()
+        bb = ax.get_window_extent()
+        W, H = max(2, int(round(bb.width * dpi / fig.dpi))), max(2, int(round(bb.height * dpi / fig.dpi)))
+        out = np.zeros((H, W, 4), float)
+        for paths, color, lw, alpha, _z in sorted(runs, key=lambda r: r[4]):
+            P = np.empty(paths.shape, np.float32)
+            P[..., 0] = (paths[..., 0] - x0) / (x1 - x0) * W
+            P[..., 1] = (paths[..., 1] - y0) / (y1 - y0) * H
+            img = density_rgba(P, W, H, [int(255 * c) for c in to_rgb(color)], alpha,
+                               width=max(1, int(round(lw * dpi / 72.0))), max_samples=RUN_SAMPLES)
+            a = img[..., 3:4] / 255.0
+            out[..., :3] = img[..., :3] / 255.0 * a + out[..., :3] * (1 - a)  # alpha over
+            out[..., 3:4] = a + out[..., 3:4] * (1 - a)
+        rgb = np.where(out[..., 3:4] > 0, out[..., :3] / np.maximum(out[..., 3:4], 1e-12), 0.0)
+        rgba = np.round(255 * np.concatenate([rgb, out[..., 3:4]], axis=-1)).astype(np.uint8)  # 1/8 of float's memory
+        ax.imshow(rgba, extent=(x0, x1, y0, y1), origin="upper", aspect="auto", interpolation="none",
+                  zorder=min(r[4] for r in runs))
+        ax.set_xlim(x0, x1)
+        ax.set_ylim(y0, y1)
+        ax._simgap_runs = []
 
 
 def _draw_runs(ax, X, ok, idx, mm, mean, R, color, zorder: float = 1.0) -> None:
@@ -310,8 +346,10 @@ def trajectories(run, spec, out_dir: Path, max_drawn: int = 1000, style: str = "
         ax.set_ylim(system.x_lo[1], system.x_hi[1])
         _few_ticks(ax)
         ax.set_xlabel(labels[0])
-        ax.set_title(f"{_name(m)}: {int((~ok).sum())} of {R} runs fail"
-                     + _per_run_words(getattr(_result(run, m), "statement", None)))
+        # three panels' titles fit on two lines each
+        ax.set_title(f"{_name(m)}:{chr(10) if len(methods) > 2 else ' '}{int((~ok).sum())} of {R} runs fail"
+                     + _per_run_words(getattr(_result(run, m), "statement", None)).replace(", ", "; " if len(
+                         methods) > 2 else "\n", 1))
         if system.state_names[:2] == ("x", "y") or (units(system)[0][:2] == ("m", "m")):
             ax.set_aspect("equal")
         span = np.ptp(X.reshape(-1, 2), axis=0) if X.size else np.zeros(2)
@@ -327,7 +365,7 @@ def trajectories(run, spec, out_dir: Path, max_drawn: int = 1000, style: str = "
             ins.set_xlim(c[0] - hw[0], c[0] + hw[0])
             ins.set_ylim(c[1] - hw[1], c[1] + hw[1])
             from matplotlib.ticker import MaxNLocator
-            ins.xaxis.set_major_locator(MaxNLocator(2))
+            ins.xaxis.set_major_locator(MaxNLocator(2, prune="upper"))  # the last label would pass the inset's edge
             ins.yaxis.set_major_locator(MaxNLocator(3))
             ins.tick_params(labelsize=STYLES[style]["small"] - 1, pad=1)
             ins.set_title("zoom: final states", fontsize=STYLES[style]["small"], pad=2)
@@ -483,7 +521,8 @@ def gamma_slices(run, out_dir: Path, res: int = 201, style: str = "paper") -> li
                 ax.plot(xs[:, j], g[:, i], color=color, lw=1.2)
                 if near is not None and near.any():
                     any_near = True
-                    ax.plot(ds.x[near, j], gaps[near, i], ".", color=color, ms=1.5, alpha=0.6, rasterized=True)
+                    dots = np.column_stack([ds.x[near, j], gaps[near, i]])
+                    _lines(ax, np.stack([dots, dots], axis=1), color, 1.5, 0.6)  # dots, in the axes' one image
                 _few_ticks(ax, 4)
                 if i == n - 1:
                     ax.set_xlabel(labels[j])
@@ -544,6 +583,8 @@ def _no_set_notes(run) -> list:
 SET_LINES = {"tube": dict(lw=0.4, alpha=0.6), "noise_tube": dict(lw=0.6, ls=":"),
              "terminal": dict(lw=1.4), "ellipsoid": dict(lw=1.4)}
 TARGET = dict(color="green", lw=1.2, ls="-.")
+#: the sets' drawing order by role (a later method's within a role above an earlier one's)
+ROLE_Z = {"tube": 8.0, "noise_tube": 8.2, "terminal": 8.4, "ellipsoid": 8.4}
 #: the method's runs beneath the other methods' (the nominal model's most), so none covers the others
 RUN_Z = {"stochastic": 1.0, "deterministic": 0.95, "nominal": 0.9}
 
@@ -572,7 +613,7 @@ def invariant_sets(run, spec, out_dir: Path, max_drawn: int = 1000, style: str =
     fig, axes = _figure(style, rows, cols, height_rows=rows * (1.0 if cols > 1 else 1.4))
     for ax in axes.ravel()[len(pairs):]:
         ax.set_visible(False)
-    runs, safe_seen, drawn_roles, target = {}, False, {}, False
+    runs, safe_seen, drawn_roles, target, shown, same_as = {}, False, {}, False, {}, {}
     target_of = next((m for m, r in sets if _statement(r).set_of("target") is not None), None)
     for ax, (a, b) in zip(axes.ravel(), pairs):
         lo, hi = [], []
@@ -589,7 +630,7 @@ def invariant_sets(run, spec, out_dir: Path, max_drawn: int = 1000, style: str =
                 ax.plot(*np.asarray(ro.x0)[[a, b]], "o", color="k", ms=3, zorder=7)
                 lo.append(X.reshape(-1, 2).min(axis=0))
                 hi.append(X.reshape(-1, 2).max(axis=0))
-            for k, ds in enumerate(_statement(res).sets):
+            for ds in _statement(res).sets:
                 if ds.kind == "cells":
                     continue
                 if ds.role == "target":  # one method's (the methods share the experiment's target)
@@ -601,12 +642,26 @@ def invariant_sets(run, spec, out_dir: Path, max_drawn: int = 1000, style: str =
                 style_ = SET_LINES.get(ds.role, dict(lw=1.0))
                 every = max(1, -(-len(ds.centers) // 40)) if ds.kind == "boxes" else 1
                 outl = ds.outlines((a, b), every)
-                from matplotlib.collections import LineCollection
-                ax.add_collection(LineCollection(outl, colors=[color], linewidths=style_["lw"],
-                                                 linestyles=style_.get("ls", "-"), alpha=style_.get("alpha", 1.0),
-                                                 zorder=8 + 0.1 * k, gid=f"{ds.role}:{m}:{a},{b}"))
-                drawn_roles.setdefault((m, ds.role), ds.label)
                 pts = np.concatenate(outl)
+                same = next((k for k, v in shown.items() if k[0] == (a, b) and k[1] == ds.role
+                             and v.shape == pts.shape and np.allclose(v, pts, rtol=1e-6, atol=1e-9)), None)
+                if same is not None:  # the same set as a method's drawn before: named with it, drawn once
+                    same_as.setdefault((same[2], ds.role), set()).add(m)
+                    continue
+                shown[(a, b), ds.role, m] = pts
+                z = ROLE_Z.get(ds.role, 8.0) + 0.01 * len(shown)
+                from matplotlib.collections import LineCollection
+                if ds.kind == "boxes" and ds.role in ("tube", "noise_tube") and \
+                        np.all(ds.half_widths[:-1][:, [a, b]].max(axis=0) < 1e-4 * np.ptp(pts, axis=0).clip(1e-12)):
+                    # boxes of no visible width: the plan they sit on, as a line
+                    ax.plot(ds.centers[:-1, a], ds.centers[:-1, b], color=color, lw=1.0, ls=(0, (1, 1)), zorder=z,
+                            gid=f"{ds.role}:{m}:{a},{b}")
+                    drawn_roles.setdefault((m, ds.role), ds.label + " (no width: the plan)")
+                else:
+                    ax.add_collection(LineCollection(outl, colors=[color], linewidths=style_["lw"],
+                                                     linestyles=style_.get("ls", "-"), alpha=style_.get("alpha", 1.0),
+                                                     zorder=z, gid=f"{ds.role}:{m}:{a},{b}"))
+                    drawn_roles.setdefault((m, ds.role), ds.label)
                 lo.append(pts.min(axis=0))
                 hi.append(pts.max(axis=0))
         lo, hi = np.min(lo, axis=0), np.max(hi, axis=0)
@@ -627,9 +682,13 @@ def invariant_sets(run, spec, out_dir: Path, max_drawn: int = 1000, style: str =
     hs = []
     for (m, role), label in drawn_roles.items():
         st_ = SET_LINES.get(role, dict(lw=1.0))
-        hs.append(Line2D([], [], color=METHOD_STYLE.get(m, "tab:green"), lw=max(st_["lw"], 1.0),
-                         ls=st_.get("ls", "-"), label=f"{label}, {_name(m)}"
-                         + (f": {runs[m]} rollouts" if m in runs and role in ("tube", "ellipsoid") else "")))
+        also = sorted(same_as.get((m, role), ()))
+        plan = label.endswith("(no width: the plan)")
+        hs.append(Line2D([], [], color=METHOD_STYLE.get(m, "tab:green"), lw=1.0 if plan else max(st_["lw"], 1.0),
+                         ls=(0, (1, 1)) if plan else st_.get("ls", "-"),
+                         label=f"{label}, {' = '.join(_name(x) for x in [m] + also)}"))
+    hs += [Line2D([], [], color=METHOD_STYLE.get(m, "tab:green"), lw=4, alpha=0.4, label=f"{_name(m)}: {n} runs")
+           for m, n in runs.items()]
     if target:
         hs.append(Line2D([], [], label="target box", **TARGET))
     hs += [Line2D([], [], label="mean map", **MEAN_MAP), Line2D([], [], label="rollout average", **AVERAGE),

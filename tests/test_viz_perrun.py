@@ -49,6 +49,11 @@ def test_what_the_app_sends_is_what_the_engine_wrote(app, run_dir):
     pr = app.run.per_run
     assert list(pr.controllers) == list(summary["controllers"])
     drawn = app.panels["perrun"].show()
+    # the interval MDP states what it proved in its own words: P(success within H) >= its p_cert
+    st = ctl.statement()
+    assert st.method == "perrun" and st.per_run.horizon == ctl.horizon and st.headline in app.panels["perrun"].legend.content
+    assert st.per_run.p_cert == pytest.approx(float(ctl.p_cert.max()) if ctl.meta.get("x0") is None else
+                                              float(ctl.certified(np.asarray(ctl.meta["x0"])[None])[0]))
     # the map: one pixel block per grid cell, p_cert of that cell on the color scale
     m = drawn["map"]
     g = ctl.grid

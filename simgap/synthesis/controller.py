@@ -213,8 +213,8 @@ class Controller:
         entry = entry or {}
         nominal = (self.meta.get("gap") or {}).get("kind") == "none"
         conf = None if nominal or entry.get("confidence_proof") is None else "all rows"
-        rows = [Row("proved", f"yes: {self.size:,} winning cells" if self.size_with_target else "no (empty winning domain)",
-                    "proof", conf), Row("winning cells", f"{self.size:,}", "proof", conf)]
+        rows = [Row("proved", "yes" if self.size_with_target else "no (empty winning domain)", "proof", conf),
+                Row("winning cells", f"{self.size:,}", "proof", conf)]
         if self.x0 is not None:
             rows.append(Row("x0 in the winning domain", "yes" if bool(self.winning(self.x0[None])[0]) else "no",
                             "proof", conf))

@@ -152,7 +152,7 @@ def not_proved(method: str, stats: Optional[dict] = None, why: str = "") -> Stat
     """The statement of a method that proved nothing: its name and the reason (its diagnosis)."""
     why = why or (stats or {}).get("diagnosis") or "nothing proved"
     name = METHOD_NAMES.get(method, method)
-    return Statement(method=method, name=name, proved=False, headline=f"{name}: not proved ({why})",
+    return Statement(method=method, name=name, proved=False, headline=f"{name}: not proved (the reason in its notes)",
                      rows=[Row("proved", "no", "proof")], notes=[why])
 
 

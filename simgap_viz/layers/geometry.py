@@ -346,33 +346,56 @@ def rollout_image(frame: Frame, traj: np.ndarray, failed: np.ndarray | None = No
     if R == 0 or traj.shape[1] < 2:
         return img
     P = ((frame.xy(traj)[..., :2] + 1.0) * (0.5 * px)).astype(np.float32)  # pixels, x right, y up
-    a = P[:, :-1].reshape(-1, 2)
-    d = P[:, 1:].reshape(-1, 2) - a
-    n = np.minimum(np.ceil(np.hypot(d[:, 0], d[:, 1])).astype(np.int64) + 1, 4 * px)  # 1 pixel apart
-    if n.sum() > max_samples:
-        n = np.maximum(1, (n * (max_samples / n.sum())).astype(np.int64))
-    t = (np.arange(n.sum(), dtype=np.float32) - np.repeat((np.cumsum(n) - n).astype(np.float32), n)) \
-        / np.repeat(n.astype(np.float32), n)
-    ix = np.clip((np.repeat(a[:, 0], n) + t * np.repeat(d[:, 0], n)).astype(np.int64), 0, px - 1)
-    iy = np.clip(px - 1 - (np.repeat(a[:, 1], n) + t * np.repeat(d[:, 1], n)).astype(np.int64), 0, px - 1)
-    run = np.repeat(np.repeat(np.arange(R), traj.shape[1] - 1), n)
-    for mask, rgb, a_run in ((~failed[run], RUN_BLUE, alpha), (failed[run], RED, max(alpha, 0.6))):
-        if not mask.any():
-            continue
-        # one count per visit: consecutive samples of a run in one pixel collapse
-        pix = iy[mask] * px + ix[mask]
-        r = run[mask]
+    for sel, rgb, a_run in ((~failed, RUN_BLUE, alpha), (failed, RED, max(alpha, 0.6))):
+        if sel.any():
+            layer = density_rgba(P[sel], px, px, rgb, a_run, width, max_samples)
+            hit = layer[..., 3] > 0
+            img[hit] = layer[hit]  # failures on top
+    return img
+
+
+def density_rgba(P: np.ndarray, W: int, H: int, rgb, alpha: float, width: int = 2,
+                 max_samples: int = 20_000_000) -> np.ndarray:
+    """Polylines P (R, T, 2) in pixel coordinates (x right, y up, [0, W) x [0, H)) rasterized into an
+    RGBA image (H, W, 4) uint8 (row 0 at the top): every segment sampled one pixel apart and drawn
+    ``width`` pixels wide in ``rgb``, a pixel visited by k lines at opacity 1 - (1 - alpha)^k (a
+    density: each line translucent on its own), transparent elsewhere; the consecutive samples of
+    one visit count once. Fewer samples per segment if the total would exceed ``max_samples``."""
+    P = np.asarray(P, np.float32)
+    img = np.zeros((H, W, 4), np.uint8)
+    R = P.shape[0]
+    if R == 0 or P.shape[1] < 2:
+        return img
+    d = P[:, 1:] - P[:, :-1]
+    n = np.minimum(np.ceil(np.hypot(d[..., 0], d[..., 1])), 4 * max(W, H))  # (R, T - 1): 1 pixel apart
+    n = np.where(np.isfinite(n), n, 0).astype(np.int64) + 1
+    total = int(n.sum())
+    if total > max_samples:
+        n = np.maximum(1, (n * (max_samples / total)).astype(np.int64))
+    k = np.zeros(W * H, np.int64)
+    per = max(1, int(R * 500_000 // max(int(n.sum()), 1)))  # runs per chunk: about 5e5 samples (bounded memory)
+    for r0 in range(0, R, per):
+        nc = n[r0:r0 + per].ravel()
+        a, dc = P[r0:r0 + per, :-1].reshape(-1, 2), d[r0:r0 + per].reshape(-1, 2)
+        t = (np.arange(nc.sum(), dtype=np.float32) - np.repeat((np.cumsum(nc) - nc).astype(np.float32), nc)) \
+            / np.repeat(nc.astype(np.float32), nc)
+        ix = np.clip((np.repeat(a[:, 0], nc) + t * np.repeat(dc[:, 0], nc)).astype(np.int64), 0, W - 1)
+        iy = np.clip(H - 1 - (np.repeat(a[:, 1], nc) + t * np.repeat(dc[:, 1], nc)).astype(np.int64), 0, H - 1)
+        pix = iy * W + ix
+        del t, ix, iy
+        run = np.repeat(np.repeat(np.arange(min(per, R - r0)), P.shape[1] - 1), nc)
         keep = np.ones(pix.size, bool)
-        keep[1:] = (pix[1:] != pix[:-1]) | (r[1:] != r[:-1])
-        k = np.bincount(pix[keep], minlength=px * px).reshape(px, px)
-        wide = k.copy()
-        for j in range(1, width):  # thicken right and down (the densest neighbour counts)
-            wide[:, j:] = np.maximum(wide[:, j:], k[:, :-j])
-            wide[j:, :] = np.maximum(wide[j:, :], k[:-j, :])
-        hit = wide > 0
-        op = 1.0 - (1.0 - a_run) ** wide[hit]
-        img[hit] = np.column_stack([np.broadcast_to(np.array(rgb, np.uint8), (int(hit.sum()), 3)),
-                                    np.round(255 * op).astype(np.uint8)])
+        keep[1:] = (pix[1:] != pix[:-1]) | (run[1:] != run[:-1])
+        k += np.bincount(pix[keep], minlength=W * H)
+    k = k.reshape(H, W)
+    wide = k.copy()
+    for j in range(1, width):  # thicken right and down (the densest neighbour counts)
+        wide[:, j:] = np.maximum(wide[:, j:], k[:, :-j])
+        wide[j:, :] = np.maximum(wide[j:, :], k[:-j, :])
+    hit = wide > 0
+    op = 1.0 - (1.0 - alpha) ** wide[hit]
+    img[hit] = np.column_stack([np.broadcast_to(np.array(rgb, np.uint8), (int(hit.sum()), 3)),
+                                np.round(255 * op).astype(np.uint8)])
     return img
 
 

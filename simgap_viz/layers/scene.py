@@ -241,7 +241,7 @@ def draw_model_bodies(app) -> None:
     """The robot file's geometry (simulator kind ``mujoco``: the MJCF's geoms; ``pybullet_urdf``: the
     URDF's visual shapes), one node per shape under ``/bodies/model``: a frame that stands the
     model beside the square (its bounding box at the resting pose from x = ``MODEL_LEFT``, centred
-    in y, on the ground; metres, scaled down if larger than ``MODEL_SIZE``). :func:`pose_bodies`
+    in y, on the ground; metres, scaled to ``MODEL_SIZE``, a ground plane left out). :func:`pose_bodies`
     moves each shape to its pose for a state. Without MuJoCo (or with a file that does not load)
     a label says why nothing is drawn."""
     sc = app.server.scene

@@ -151,6 +151,7 @@ class PerRunPanel(Panel):
         m = drawn["map"]
         red = (f", the largest over {m['reduced_dims']} further state dimension(s)" if m and m["reduced_dims"] else "")
         self.legend.content = (
+            f"**{pr.controller.statement().headline}**  \n"  # the interval MDP's statement, in its words
             f"0 (red) .. 0.5 (yellow) .. 1 (green), for both layers.  \n**map**: p_cert of the per-run controller, "
             f"a certified lower bound on P(one run satisfies the spec for {pr.horizon} periods) from every state of "
             f"the cell{red}; 0 where nothing is certified (also every cell outside the safe set). "

@@ -172,7 +172,7 @@ CASES = {
                      -0.3 * (np.abs(u[:, 1]) > 0.5) * u[:, 0] * np.cos(x[:, 2]),
                      -0.3 * (np.abs(u[:, 1]) > 0.5) * u[:, 0] * np.sin(x[:, 2]),
                      0 * x[:, 2]], axis=1),
-                 std=1e-3, expect={"flag": "x"}, shape="outside: wheel slip when |omega| > 0.5"),
+                 std=1e-4, expect={"flag": "x"}, shape="outside: wheel slip when |omega| > 0.5"),
     "ripple": dict(system="pendulum", kind="rows",
                    extra=_on(1, lambda x, u: 0.02 / 0.005 * np.sin(40 * x[:, 0]) * np.cos(12 * x[:, 1])),
                    std=2e-4, expect={"flag": "omega"}, shape="outside: smooth ripple (100 x noise)"),

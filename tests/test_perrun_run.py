@@ -91,10 +91,16 @@ def test_cli_synthesize_level_run(tmp_path, capsys):
     assert "p_cert(x0 = [0.0, 0.0])" in txt and "one-sided Clopper-Pearson bounds" in txt
     ctl = PerRunController.load(out)
     assert ctl.horizon == 20 and ctl.steps == 2 and 0 < ctl.p_cert.max() <= 1
-    for extra, msg in ((["--horizon", "0"], "horizon must be >= 1"), (["--x0", "0.5,0"], "outside X"),
+    def rc(args):  # a bad count is refused by the parser (SystemExit 2), other bad input by main (2)
+        try:
+            return main(args)
+        except SystemExit as e:
+            return e.code
+
+    for extra, msg in ((["--horizon", "0"], "--horizon: must be an integer >= 1"), (["--x0", "0.5,0"], "outside X"),
                        (["--no-gap"], "drop --cert/--gamma/--no-gap")):
         bad = tmp_path / "bad.npz"
-        assert main(["synthesize", "--level", "run", "--spec", str(TOML), "--out", str(bad), *extra]) == 2
+        assert rc(["synthesize", "--level", "run", "--spec", str(TOML), "--out", str(bad), *extra]) == 2
         assert msg in capsys.readouterr().err and not bad.exists()
 
 

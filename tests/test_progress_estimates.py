@@ -47,11 +47,11 @@ x0 = [0.05, 0.1]
 seed = 11
 """
 
-BAR = re.compile(r"(\d+)/(\d+) \[")  # a tqdm line: done/total [
+BAR = re.compile(r"(\d+)/(\d+)(?: [a-z]+)? \[")  # a progress line: done/total [unit] [
 
 
 def _lines(text: str):
-    # tqdm redraws with carriage returns: each redraw is a line of its own
+    # on a terminal tqdm redraws with carriage returns (each redraw a line of its own); off one, a line each
     return [ln for part in text.splitlines() for ln in part.split("\r") if ln.strip()]
 
 

@@ -375,7 +375,8 @@ def test_mujoco_moving_start_options_are_checked(tmp_path, options, words):
 
 
 def test_mujoco_missing_extra_names_it(monkeypatch):
-    """Without the mujoco package the backend says which extra to install."""
+    """Without the mujoco package the backend says which extra to install, as the install at hand takes it
+    (an editable clone: pip install -e ".[mujoco]"; an installed package: pip install 'simgap[mujoco]')."""
     real = builtins.__import__
 
     def no_mujoco(name, *a, **k):
@@ -384,7 +385,7 @@ def test_mujoco_missing_extra_names_it(monkeypatch):
         return real(name, *a, **k)
 
     monkeypatch.setattr(builtins, "__import__", no_mujoco)
-    with pytest.raises(SimgapError, match=r"simgap\[mujoco\]"):
+    with pytest.raises(SimgapError, match=r"pip install (-e \"\.\[mujoco\]\"|'simgap\[mujoco\]')"):
         make_simulator(PEND_MJ)
 
 

@@ -68,15 +68,15 @@ def test_signal_ends_busy_workers_quickly_and_says_how_to_resume(tmp_path, sig, 
         t0 = time.monotonic()
         while time.monotonic() - t0 < 120:
             err.seek(0)
-            # the progress is drawn (a tqdm bar on a terminal; off one, a line at once: "... 0/N pairs [")
+            # the progress is drawn (a tqdm bar on a terminal; off one, a line at once: "... 0/N pairs [") and the 2
+            # workers run (forked, or started by a fork server when the command has other threads, such as a
+            # tqdm bar's monitor): at least 2 processes below the command
             text = err.read()
-            # the 2 workers (forked, or started by a fork server when the command has other threads: a tqdm bar's
-            # monitor on a terminal), so at least 2 processes below the command
             if ("pairs/s" in text or "pairs [" in text) and len(_descendants(p.pid)) >= 2:
                 break
             assert p.poll() is None, "the collection ended before the signal"
             time.sleep(0.2)
-        time.sleep(2.0)  # inside the first chunks (each about 30 s)
+        time.sleep(3.0)  # inside the first chunks (each about 30 s)
         workers = _descendants(p.pid)
         assert len(workers) >= 2
         t_sig = time.monotonic()

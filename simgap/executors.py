@@ -69,6 +69,13 @@ class SerialExecutor(Executor):
         return True
 
 
+#: the start method a local pool uses unless it is given one (None: fork from a single-threaded caller, else
+#: forkserver). The command line sets "forkserver": its own ``__main__`` is safe to preload, and its workers
+#: then never inherit the command's state (a Ctrl-C while a forked pool was still starting its workers hung the
+#: command for more than 30 s in the test suite; forked workers are kept for scripts without a ``__main__`` guard)
+PREFERRED_START = None
+
+
 class LocalExecutor(Executor):
     """A pool of ``workers`` processes on this machine (at most 2 * workers chunks in flight)."""
 
@@ -79,7 +86,9 @@ class LocalExecutor(Executor):
         self.start_method = start_method
 
     def _context(self):
-        method = self.start_method
+        method = self.start_method or PREFERRED_START
+        if method is not None and method not in multiprocessing.get_all_start_methods():
+            method = None
         if method is None:
             methods = multiprocessing.get_all_start_methods()
             if threading.active_count() == 1 and "fork" in methods and not native_threads():

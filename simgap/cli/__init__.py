@@ -159,6 +159,8 @@ def _reap_forkserver() -> None:
 
 def main(argv=None) -> int:
     import signal
+    from .. import executors
+    executors.PREFERRED_START = "forkserver"  # see executors.PREFERRED_START
     command = command_of(sys.argv[1:] if argv is None else argv)
     parser = build_parser(command if command in SUMMARIES else None)
     args = parser.parse_args(argv)

@@ -168,6 +168,14 @@ def main(argv=None) -> int:
         parser.print_help()
         return 0
     old = None
+    if argv is None and _main_thread():
+        # a command answers Ctrl-C whatever its parent left it: an ignored SIGINT (SIG_IGN) and a blocked one
+        # are inherited through fork and exec (a test runner's worker that had run a pool in-process handed
+        # both on, and the command then ran its collection to the end through the signal)
+        if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+            signal.signal(signal.SIGINT, signal.default_int_handler)
+        if hasattr(signal, "pthread_sigmask"):
+            signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     if signal.getsignal(signal.SIGTERM) == signal.SIG_DFL and _main_thread():
         old = signal.signal(signal.SIGTERM, _on_sigterm)
     try:

@@ -291,15 +291,52 @@ def test_no_proof_is_accepted_on_a_tube_that_leaves_the_datas_boxes(pace1_cert):
     spec, x0 = experiment_spec(exp)[0], np.asarray(exp.section("rollout")["x0"], float)
     syn = exp.section("synthesis")
     boxes = cert.region_boxes
-    ok = set_synthesis.synthesize(exp.system, spec, cert, dict(syn, plan_input_weight=1.0), x0=x0, horizon=100)
+    quick = dict(syn, margin_search=False, per_run=False)
+    ok = set_synthesis.synthesize(exp.system, spec, cert, dict(quick, plan_input_weight=1.0), x0=x0)
     assert not ok.empty and _tube_in_boxes(ok.controller, boxes)
     slow = _nominal(exp, 1000.0)
     assert not _in_some_box(slow.x_nom, slow.x_nom, *boxes).all()                  # between the boxes ...
     assert np.all(slow.x_nom >= cert.region[0]) and np.all(slow.x_nom <= cert.region[1])  # ... in their hull
-    bad = set_synthesis.synthesize(exp.system, spec, cert, dict(syn, plan_input_weight=1000.0), x0=x0, horizon=100)
+    bad = set_synthesis.synthesize(exp.system, spec, cert, dict(quick, plan_input_weight=1000.0), x0=x0)
     assert bad.empty and "boxes inside the certificate's region fails" in bad.stats["diagnosis"]
     free = {k: v for k, v in syn.items() if k != "plan_input_weight"}
     chosen = set_synthesis.synthesize(exp.system, spec, cert, free, x0=x0, horizon=100)
     assert not chosen.empty and _tube_in_boxes(chosen.controller, boxes)
     designs = chosen.stats["designs"]
     assert any(not d["proved"] for d in designs if d["pace"] >= 100)  # the uncovered paces were tried and refused
+
+
+class _Scaled:
+    """A certificate whose gamma is k times the real one's (everything else delegated): a gap the tube
+    cannot hold inside the data's boxes at its certified size."""
+
+    def __init__(self, cert, k):
+        self._cert, self._k = cert, k
+
+    def __getattr__(self, name):
+        return getattr(self._cert, name)
+
+    def gamma_sup(self, *a):
+        return self._k * np.asarray(self._cert.gamma_sup(*a))
+
+
+def test_levers_when_the_tube_leaves_the_datas_boxes(pace1_cert):
+    """The levers table when the tube at the certified gap leaves the data's boxes (gamma 40 x the
+    certificate's on pace x1's data): its gamma column is the gap over the tube at the tolerable factor
+    (finite, not the inf of the boxes without data), and it names the boxes and the margin; on a plan that
+    runs between the boxes at every factor (pace x1000) each state says no reduction of gamma helps."""
+    from simgap.experiment_spec import experiment_spec
+    from simgap.synthesis import set_synthesis
+    exp, cert = pace1_cert
+    spec, x0 = experiment_spec(exp)[0], np.asarray(exp.section("rollout")["x0"], float)
+    syn = dict(exp.section("synthesis"), per_run=False)
+    wide = set_synthesis.synthesize(exp.system, spec, _Scaled(cert, 40.0), dict(syn, plan_input_weight=1.0), x0=x0)
+    assert wide.empty and 0 < wide.stats["gap_scale"] < 1
+    rows = wide.stats["levers"]["states"]
+    assert all(np.isfinite(r["gamma"]) and r["tolerable"] == pytest.approx(wide.stats["gap_scale"] * r["gamma"])
+               for r in rows)
+    assert any("leaves the data's boxes" in ln and "tube_margin" in ln for ln in wide.stats["levers_text"])
+    off = set_synthesis.synthesize(exp.system, spec, cert, dict(syn, plan_input_weight=1000.0), x0=x0)
+    assert off.empty and off.stats["gap_scale"] == 0
+    assert all(r["tolerable"] is None and "no reduction of gamma helps" in r["text"]
+               for r in off.stats["levers"]["states"])

@@ -104,9 +104,13 @@ def _tube(summary: dict) -> bool:
     return (summary.get("sections", {}).get("synthesis") or {}).get("method") == "box_tube"
 
 
-def _tube_gamma(summary: dict, e: dict) -> str:
-    """gamma's max per state with the states named (a tube row's gamma cell)."""
-    return _gamma(e) + " (" + ", ".join(summary["system"]["state_names"]) + ")"
+def _tube_gamma(summary: dict, e: dict, major: bool = False) -> str:
+    """gamma's max per state with the states named (a tube row's gamma cell); ``major``: only the states whose
+    gamma is at least a tenth of the largest, to 2 digits (the README's short cell)."""
+    g, names = e["gamma"]["max"], summary["system"]["state_names"]
+    keep = [i for i, v in enumerate(g) if not major or v >= 0.1 * max(g)]
+    return ", ".join(f"{g[i]:.2g}" if major else f"{g[i]:.3g}" for i in keep) + \
+        " (" + ", ".join(names[i] for i in keep) + ")"
 
 
 def _tube_result(e: dict) -> str:
@@ -148,7 +152,7 @@ def compact_cells(summary: dict) -> list:
     n = {e.get("n_rollouts") for e in (det, sto) if e.get("n_rollouts") is not None} or {1000}
     fails = f"{det.get('failures', '-')} / {sto.get('failures', '-')}" + ("" if n == {1000} else f" (of {n.pop()})")
     if _tube(summary):
-        return [_tube_gamma(summary, sto), _proof_confidence(sto), _tube_result(sto), fails]
+        return [_tube_gamma(summary, sto, major=True), _proof_confidence(sto), _tube_result(sto), fails]
     return [_gamma(sto), f"{sto['confidence_joint']:.2f}", f"{det['winning_cells']:,} / {sto['winning_cells']:,}",
             fails]
 

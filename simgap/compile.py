@@ -94,7 +94,7 @@ class _Dag:
 
     def __init__(self, nvar: int, fns):
         self.nvar, self.fns = int(nvar), frozenset(fns)
-        self.nodes, self.deps, self.ids = [], [], {}
+        self.nodes, self.deps, self.ids, self.trees = [], [], {}, []
 
     def add(self, t) -> int:
         if not isinstance(t, tuple) or not t or not isinstance(t[0], str):
@@ -127,6 +127,7 @@ class _Dag:
         if key not in self.ids:
             self.ids[key] = len(self.nodes)
             self.nodes.append(key)
+            self.trees.append(t)
             d = {key[1]} if k == "var" and key[1] < self.nvar else set()
             for c in key[2]:
                 d |= self.deps[c]
@@ -703,17 +704,36 @@ def point_exact(trees) -> str:
     return ""
 
 
-def point_source(trees, n: int, m: int) -> str:
-    """Source of the point module: ``_rhs(x, u, dt, out)`` and the ``step`` driver."""
-    from .expr import FUNCTIONS
-    dag = _Dag(n + m, frozenset(FUNCTIONS) | {"cmp"})   # validates every node first
-    roots = [dag.add(t) for t in trees]
-    why = point_exact(trees)
-    if why:
-        raise SimgapError(f"compiler: no bit-identical point kernel for {why}")
+#: the point formulas' syntax per target: numba's Python and C (the same nodes, the same operations)
+_SYNTAX = {
+    "py": {"fn": _POINT_FN, "pow": "math.pow({a}, {p})", "cmp": "1.0 if {a} {op} {b} else 0.0",
+           "line": "    v{i} = {rhs}", "out": "    out[{s}] = v{r}", "hoisted": "hv[{k}]"},
+    "c": {"fn": {"sin": "sin", "cos": "cos", "sqrt": "sqrt", "abs": "fabs", "minimum": "_minimum",
+                 "maximum": "_maximum", "clip": "_clip", "where": "_where"},
+          "pow": "pow({a}, {p})", "cmp": "(({a} {op} {b}) ? 1.0 : 0.0)",
+          "line": "    const double v{i} = {rhs};", "out": "    out[{s}] = v{r};", "hoisted": "hv[{k}]"},
+}
+
+
+def _point_lines(dag: _Dag, roots, n: int, m: int, target: str, hoisted: Optional[dict] = None) -> list:
+    """Straight-line code of the formulas ``roots`` at one point (x, u, dt) -> ``out``, in the syntax of
+    ``target`` ("py" for numba, "c"); the nodes in ``hoisted`` (node id -> column) are read from ``hv``
+    instead (values computed once per input by numpy, :func:`hoist`), and only the nodes the outputs
+    need are emitted. The same operations in the same order in both targets (numpy's bits)."""
+    syn, hoisted = _SYNTAX[target], hoisted or {}
+    need, stack = set(), list(roots)
+    while stack:  # the nodes reachable from the roots without passing a hoisted one
+        i = stack.pop()
+        if i not in need:
+            need.add(i)
+            if i not in hoisted:
+                stack.extend(dag.nodes[i][2])
     lines = []
-    for i, (kind, pay, ch) in enumerate(dag.nodes):
-        if kind == "const":
+    for i in sorted(need):
+        kind, pay, ch = dag.nodes[i]
+        if i in hoisted:
+            rhs = syn["hoisted"].format(k=hoisted[i])
+        elif kind == "const":
             rhs = repr(pay)
         elif kind == "var":
             if pay < n:
@@ -728,18 +748,182 @@ def point_source(trees, n: int, m: int) -> str:
             rhs = f"-v{ch[0]}"
         elif kind in _ARITH:
             rhs = f"v{ch[0]} {_ARITH[kind]} v{ch[1]}"
-        elif kind == "pow":
-            rhs = f"math.pow(v{ch[0]}, {float(pay)!r})"  # the C library's pow: np.power's bits for these
+        elif kind == "pow":  # the C library's pow: np.power's bits for POINT_EXACT_POWERS
+            rhs = syn["pow"].format(a=f"v{ch[0]}", p=repr(float(pay)))
         elif kind == "fn":
-            rhs = f"{_POINT_FN[pay]}({', '.join(f'v{c}' for c in ch)})"
+            rhs = f"{syn['fn'][pay]}({', '.join(f'v{c}' for c in ch)})"
         else:  # cmp
-            rhs = f"1.0 if v{ch[0]} {_CMP[pay]} v{ch[1]} else 0.0"
-        lines.append(f"    v{i} = {rhs}")
-    for s, r in enumerate(roots):
-        lines.append(f"    out[{s}] = v{r}")
+            rhs = syn["cmp"].format(a=f"v{ch[0]}", op=_CMP[pay], b=f"v{ch[1]}")
+        lines.append(syn["line"].format(i=i, rhs=rhs))
+    lines += [syn["out"].format(s=s, r=r) for s, r in enumerate(roots)]
+    return lines
+
+
+def _not_exact(dag: _Dag, ids) -> str:
+    """'' when every node of ``ids`` gives numpy's bits compiled, else why not (:func:`point_exact`)."""
+    for i in ids:
+        kind, pay, _ = dag.nodes[i]
+        if kind == "fn" and pay not in POINT_EXACT:
+            return f"{pay}() (numpy's own implementation differs from the C library's in the last bit)"
+        if kind == "pow" and float(pay) not in POINT_EXACT_POWERS:
+            return f"the power {pay} (numpy's pow differs from the C library's in the last bit)"
+    return ""
+
+
+def point_source(trees, n: int, m: int) -> str:
+    """Source of the point module: ``_rhs(x, u, dt, out)`` and the ``step`` driver."""
+    from .expr import FUNCTIONS
+    dag = _Dag(n + m, frozenset(FUNCTIONS) | {"cmp"})   # validates every node first
+    roots = [dag.add(t) for t in trees]
+    why = point_exact(trees)
+    if why:
+        raise SimgapError(f"compiler: no bit-identical point kernel for {why}")
     rhs_fn = ('\n\n@njit(error_model="numpy")\ndef _rhs(x, u, dt, out):\n'
-              '    """Generated: the formulas at one point."""\n' + "\n".join(lines) + "\n")
+              '    """Generated: the formulas at one point."""\n' + "\n".join(_point_lines(dag, roots, n, m, "py")) + "\n")
     return _POINT_PRELUDE + rhs_fn + _POINT_DRIVER
+
+
+# ---------------------------------------------------------------------------------------------
+# grid kernel (C): the abstraction's successor boxes of a system file
+# ---------------------------------------------------------------------------------------------
+
+def hoist(trees, n: int, m: int):
+    """Split the formulas for the grid kernel: ``(dag, roots, hoisted)`` with ``hoisted`` the maximal
+    sub-trees that read no state (inputs, dt and constants only: held over a period) as
+    {node id: column}; :func:`hoisted_trees` gives their trees, which numpy evaluates once per input.
+    Numpy's values are the oracle's own, so these may use any function (the vehicle's tan and arctan);
+    the rest must be :data:`POINT_EXACT` (refused otherwise, naming the function)."""
+    from .expr import FUNCTIONS
+    dag = _Dag(n, frozenset(FUNCTIONS) | {"cmp"})  # deps: the state columns a node reads
+    roots = [dag.add(t) for t in trees]
+    if len(roots) != n:
+        raise SimgapError(f"compiler: {len(roots)} formulas for {n} states")
+    for kind, pay, _ in dag.nodes:
+        if kind == "var" and pay > n + m:
+            raise SimgapError(f"compiler: column {pay} is not x, u or dt")
+    state_free = [not dag.deps[i] and dag.nodes[i][0] not in ("const", "var") for i in range(len(dag.nodes))]
+    top = set(i for i in roots if state_free[i])
+    for i, (_, _, ch) in enumerate(dag.nodes):
+        if not state_free[i]:
+            top.update(c for c in ch if state_free[c])
+    hoisted = {i: k for k, i in enumerate(sorted(top))}
+    kept, stack = set(), list(roots)
+    while stack:
+        i = stack.pop()
+        if i not in kept and i not in hoisted:
+            kept.add(i)
+            stack.extend(dag.nodes[i][2])
+    why = _not_exact(dag, kept)
+    if why:
+        raise SimgapError(f"compiler: no bit-identical grid kernel for {why} of the state")
+    return dag, roots, hoisted
+
+
+def hoisted_trees(dag: _Dag, hoisted: dict) -> list:
+    """The trees of the hoisted nodes, in column order (for numpy's evaluation)."""
+    return [dag.trees[i] for i in sorted(hoisted, key=hoisted.get)]
+
+
+_GRID_PRELUDE = r"""/* Generated by simgap.compile from a system file's expression trees (no text of the file). */
+#include <math.h>
+#include <stdint.h>
+
+static inline double _minimum(double a, double b) { if (a != a) return a; if (b != b) return b; return a <= b ? a : b; }
+static inline double _maximum(double a, double b) { if (a != a) return a; if (b != b) return b; return a >= b ? a : b; }
+static inline double _clip(double a, double lo, double hi) { return _minimum(_maximum(a, lo), hi); }
+static inline double _where(double c, double a, double b) { return c != 0.0 ? a : b; }
+"""
+
+_GRID_DRIVER = r"""
+/* one base period in place: nint RK4 substeps in rk4_integrate's operation order, or the map */
+static void _period(double *x, const double *u, const double *hv, double tau, int64_t nint, int64_t continuous)
+{
+    double k[NX], acc[NX], tmp[NX];
+    if (!continuous) {
+        _rhs(x, u, hv, tau, k);
+        for (int i = 0; i < NX; i++) x[i] = k[i];
+        return;
+    }
+    const double h = tau / (double)nint, h2 = h / 2, h6 = h / 6;
+    for (int64_t s = 0; s < nint; s++) {
+        _rhs(x, u, hv, tau, k);
+        for (int i = 0; i < NX; i++) { acc[i] = k[i]; tmp[i] = k[i] * h2 + x[i]; }
+        _rhs(tmp, u, hv, tau, k);
+        for (int i = 0; i < NX; i++) { acc[i] += k[i] + k[i]; tmp[i] = k[i] * h2 + x[i]; }
+        _rhs(tmp, u, hv, tau, k);
+        for (int i = 0; i < NX; i++) { acc[i] += k[i] + k[i]; tmp[i] = k[i] * h + x[i]; }
+        _rhs(tmp, u, hv, tau, k);
+        for (int i = 0; i < NX; i++) { acc[i] += k[i]; acc[i] *= h6; x[i] += acc[i]; }
+    }
+}
+
+/* abstraction._cell_offset of one value: floor(v) - base, NaN -> 0, clipped to +-limit before and after */
+static double _offset(double v, double base, double limit)
+{
+    v = floor(v);
+    if (v != v) v = 0.0;
+    v = (v < -limit ? -limit : (v > limit ? limit : v)) - base;
+    return v < -limit ? -limit : (v > limit ? limit : v);
+}
+
+/* The successor boxes of the classes k0 .. k1-1 (every input each), build_abstraction's numpy loop
+   per pair: centre first + i eta (i: the class's multi-index over cshape, 0 in the invariant
+   dimensions), `steps` base periods of the model, the radius R[input] (the growth bound, per
+   input), left = (x - r) - z, right = (x + r) + z, the offsets floor((left - first + eta/2) / eta) - i
+   (and right's) into lo/hi (int8, or int16 when wide), valid = x and r finite and the box inside
+   (dom_lo, dom_hi) outside the invariant dimensions. mm[0], mm[1]: the least and greatest offset. */
+void grid_boxes(int64_t k0, int64_t k1, const int64_t *cshape, const double *first, const double *eta,
+                int64_t M, const double *U, int64_t nh, const double *H, const double *R,
+                const double *z, const double *dom_lo, const double *dom_hi, const uint8_t *inv,
+                double tau, int64_t nint, int64_t steps, int64_t continuous, double limit, int64_t wide,
+                void *lo_out, void *hi_out, uint8_t *ok_out, double *mm)
+{
+    double x0[NX], x[NX], vmin = limit, vmax = -limit;
+    int64_t mi[NX];
+    int8_t *lo8 = (int8_t *)lo_out, *hi8 = (int8_t *)hi_out;
+    int16_t *lo16 = (int16_t *)lo_out, *hi16 = (int16_t *)hi_out;
+    for (int64_t k = k0; k < k1; k++) {
+        int64_t rest = k;
+        for (int d = NX - 1; d >= 0; d--) { mi[d] = rest % cshape[d]; rest /= cshape[d]; }
+        for (int d = 0; d < NX; d++) x0[d] = first[d] + (double)mi[d] * eta[d];
+        for (int64_t j = 0; j < M; j++) {
+            const int64_t p = (k - k0) * M + j;
+            for (int d = 0; d < NX; d++) x[d] = x0[d];
+            for (int64_t s = 0; s < steps; s++) _period(x, U + j * NU, H + j * nh, tau, nint, continuous);
+            int good = 1, out = 0;
+            for (int d = 0; d < NX; d++) {
+                const double xd = x[d], rd = R[j * NX + d];
+                if (!(isfinite(xd) && isfinite(rd))) good = 0;
+                const double left = xd - rd - z[d], right = xd + rd + z[d];
+                if (!inv[d] && (left <= dom_lo[d] || right >= dom_hi[d])) out = 1;
+                const double a = _offset((left - first[d] + eta[d] / 2) / eta[d], (double)mi[d], limit);
+                const double b = _offset((right - first[d] + eta[d] / 2) / eta[d], (double)mi[d], limit);
+                if (a < vmin) vmin = a;
+                if (b < vmin) vmin = b;
+                if (a > vmax) vmax = a;
+                if (b > vmax) vmax = b;
+                if (wide) { lo16[p * NX + d] = (int16_t)a; hi16[p * NX + d] = (int16_t)b; }
+                else { lo8[p * NX + d] = (int8_t)(a < -128 ? -128 : a > 127 ? 127 : a);
+                       hi8[p * NX + d] = (int8_t)(b < -128 ? -128 : b > 127 ? 127 : b); }
+            }
+            ok_out[p] = (uint8_t)(good && !out);
+        }
+    }
+    mm[0] = vmin;
+    mm[1] = vmax;
+}
+"""
+
+
+def grid_source(trees, n: int, m: int) -> tuple:
+    """C source of the grid kernel ``grid_boxes`` for the formulas ``trees`` (one per state, over
+    z = [x (n), u (m), dt]) and the hoisted sub-trees numpy evaluates per input (:func:`hoist`)."""
+    dag, roots, hoisted = hoist(trees, n, m)
+    body = _point_lines(dag, roots, n, m, "c", hoisted)
+    rhs = ("\nstatic inline void _rhs(const double *x, const double *u, const double *hv, double dt, double *out)\n{\n"
+           "    (void)x; (void)u; (void)hv; (void)dt;\n" + "\n".join(body) + "\n}\n")
+    src = _GRID_PRELUDE + f"#define NX {int(n)}\n#define NU {int(m)}\n" + rhs + _GRID_DRIVER
+    return src, hoisted_trees(dag, hoisted)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -812,3 +996,67 @@ def interval_kernel(trees, n: int, m: int):
 def point_kernel(trees, n: int, m: int):
     """The compiled ``step(X, U, tau, nint, continuous)`` of :func:`point_source`."""
     return load(point_source(trees, n, m)).step
+
+
+# ---------------------------------------------------------------------------------------------
+# C kernels: compiled by the system's C compiler, cached, loaded with ctypes
+# ---------------------------------------------------------------------------------------------
+
+#: flags for numpy's bits: no fast-math, no fused multiply-add (x86-64's baseline has none; other
+#: targets contract a * b + c unless told not to)
+C_FLAGS = ("-O2", "-fPIC", "-shared", "-fno-fast-math", "-ffp-contract=off")
+_C_LOADED: dict = {}
+
+
+def c_compiler() -> Optional[str]:
+    """The C compiler (``$CC``, else cc or gcc on the PATH), or None."""
+    import shutil
+    for name in (os.environ.get("CC"), "cc", "gcc"):
+        if name:
+            path = shutil.which(name)
+            if path:
+                return os.path.realpath(path)
+    return None
+
+
+def _c_digest(source: str, cc: str) -> str:
+    """sha256 of the source, the flags and the compiler (its path, size and time stamp: a new
+    compiler build gives a new digest)."""
+    st = os.stat(cc)
+    ident = f"{cc}\0{st.st_size}\0{st.st_mtime_ns}\0{' '.join(C_FLAGS)}\0"
+    return hashlib.sha256((ident + source).encode()).hexdigest()[:32]
+
+
+def c_cached(source: str) -> bool:
+    """Whether the shared library of ``source`` is in the disk cache (no compile needed)."""
+    cc = c_compiler()
+    if cc is None:
+        return False
+    digest = _c_digest(source, cc)
+    return digest in _C_LOADED or (cache_dir() / f"c{digest}.so").exists()
+
+
+def load_c(source: str):
+    """The ``ctypes.CDLL`` of generated C ``source`` (compiled once into the cache directory as
+    ``c<digest>.so``, written under a temporary name and renamed), or None when no C compiler is
+    found or it fails (the caller then takes the numpy path, which gives the same bits)."""
+    cc = c_compiler()
+    if cc is None:
+        return None
+    digest = _c_digest(source, cc)
+    if digest in _C_LOADED:
+        return _C_LOADED[digest]
+    import ctypes
+    d = cache_dir()
+    lib = d / f"c{digest}.so"
+    if not lib.exists():
+        import subprocess
+        with tempfile.TemporaryDirectory(dir=d) as tmp:
+            src, out = Path(tmp) / "k.c", Path(tmp) / "k.so"
+            src.write_text(source)
+            r = subprocess.run([cc, *C_FLAGS, "-o", str(out), str(src), "-lm"], capture_output=True, text=True)
+            if r.returncode != 0 or not out.exists():
+                return None
+            os.replace(out, lib)
+    _C_LOADED[digest] = ctypes.CDLL(str(lib))
+    return _C_LOADED[digest]

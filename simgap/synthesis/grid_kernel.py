@@ -1,0 +1,120 @@
+"""A system file's successor boxes by one compiled kernel: the RK4 post of every cell centre, the
+growth radius and SCOTS's box formula in a single pass (issue 56).
+
+:func:`~simgap.synthesis.abstraction.build_abstraction` computes, per (cell c, input u),
+
+    x+ = f(c, u)  (``steps`` base periods, each ``substeps`` RK4 substeps or the map),
+    r+ = growth(eta/2 + z, u)  (per input: the growth of a system file is state-independent),
+    lo = floor(((x+ - r+) - z - first + eta/2) / eta) - i(c),  hi likewise with (x+ + r+) + z,
+
+with numpy over blocks of pairs (the oracle). For a system file this module runs the same
+operations, in the same order, in C code generated from the file's expression trees by
+:func:`simgap.compile.grid_source` (one generator: the trees' DAG, emitted for C), writing the
+int8 / int16 offset tables and the valid flags directly: no per-pair float array is allocated,
+and there is no Python loop over blocks of pairs. Sub-trees that read no state (the inputs, dt,
+constants; the vehicle's alpha = arctan(tan(steer)/2)) are evaluated by numpy once per input
+(:func:`simgap.compile.hoist`): numpy's own values, so the tables are bit-identical to the numpy
+path's (asserted by tests/test_grid_kernel.py).
+
+Used when ``SIMGAP_JIT`` is not 0, a C compiler is found (``$CC``, cc, gcc) and either the
+library is in the disk cache or the job has at least :data:`AUTO_ROWS` step rows (a first
+compile costs about 0.2 s); with a gap, ``hold > 1``, periodic dimensions or angle wrapping the
+numpy loop runs.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import SimgapError
+
+#: step rows from which a first compile (about 0.2 s of the C compiler) pays in auto mode: the
+#: numpy step of a system file costs about 1 us per row
+AUTO_ROWS = 200_000
+#: classes per kernel call (progress reports between calls)
+BLOCK_CLASSES = 1 << 16
+
+
+class GridKernel:
+    """The compiled ``grid_boxes`` of a system file's formulas and the input terms it reads."""
+
+    def __init__(self, lib, hoisted_trees, n: int, m: int, substeps: int, continuous: bool):
+        import ctypes
+        self.fn = lib.grid_boxes
+        self.fn.restype = None
+        p, i64, f64 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_double
+        self.fn.argtypes = [i64, i64, p, p, p, i64, p, i64, p, p, p, p, p, p, f64, i64, i64, i64, f64, i64,
+                            p, p, p, p]
+        self.hoisted_trees, self.n, self.m = hoisted_trees, n, m
+        self.substeps, self.continuous = substeps, continuous
+
+    def input_terms(self, U: np.ndarray, tau: float) -> np.ndarray:
+        """(M, H): the hoisted sub-trees on the inputs, by numpy (:func:`simgap.expr.evaluate`)."""
+        from ..expr import evaluate
+        M = U.shape[0]
+        z = np.zeros((M, self.n + self.m + 1))
+        z[:, self.n:self.n + self.m] = U
+        z[:, self.n + self.m] = tau
+        H = np.empty((M, max(1, len(self.hoisted_trees))))
+        with np.errstate(all="ignore"):
+            for k, t in enumerate(self.hoisted_trees):
+                H[:, k] = np.broadcast_to(np.asarray(evaluate(t, z), dtype=float), (M,))
+        return H
+
+    def boxes(self, system, grid, R, z, class_dims, off: dict, ok: np.ndarray, limit: float, on_progress=None):
+        """Fill ``off["lo"]``, ``off["hi"]`` ((K, M, n) int8, widened to int16 when an offset does not
+        fit, as the numpy loop's ``_store``) and ``ok`` (K, M) for every class; ``R`` (M, n) the
+        radii after the sampling period."""
+        n = grid.n
+        U = np.ascontiguousarray(system.inputs, dtype=float)
+        M = U.shape[0]
+        K = ok.shape[0]
+        cshape = np.array([grid.shape[d] if d in class_dims else 1 for d in range(n)], dtype=np.int64)
+        inv = np.array([d not in class_dims for d in range(n)], dtype=np.uint8)
+        f64 = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
+        H = self.input_terms(U, float(system.base_tau))
+        first, eta, Rc, zc = f64(grid.first), f64(grid.eta), f64(R), f64(z)
+        dlo, dhi = f64(grid.domain_lo), f64(grid.domain_hi)
+        ok8 = ok.view(np.uint8)
+        mm = np.empty(2)
+        keep = (cshape, first, eta, U, H, Rc, zc, dlo, dhi, inv)  # alive during the calls
+        ptr = lambda a: a.ctypes.data  # noqa: E731
+        for k0 in range(0, K, BLOCK_CLASSES):
+            k1 = min(K, k0 + BLOCK_CLASSES)
+            while True:
+                wide = int(off["lo"].dtype == np.int16)
+                self.fn(k0, k1, ptr(cshape), ptr(first), ptr(eta), M, ptr(U), H.shape[1], ptr(H), ptr(Rc),
+                        ptr(zc), ptr(dlo), ptr(dhi), ptr(inv), float(system.base_tau), int(self.substeps),
+                        int(system.steps), int(self.continuous), float(limit), wide,
+                        ptr(off["lo"][k0:k1]), ptr(off["hi"][k0:k1]), ptr(ok8[k0:k1]), ptr(mm))
+                if wide or (-128 <= mm[0] and mm[1] <= 127):
+                    break
+                for s in off:  # int8 -> int16 (+-limit fits); the block is written again
+                    off[s] = off[s].astype(np.int16)
+            if on_progress is not None:
+                on_progress(k1, K)
+        del keep
+
+
+def grid_kernel(system, rows: int):
+    """The :class:`GridKernel` of ``system`` when it is a system file whose state formulas compile
+    to numpy's bits and compiling pays (module docstring), else None (the numpy loop)."""
+    from .. import jit
+    if jit.mode() == "0" or system.angle_dims:
+        return None
+    spec = system.params.get("_system_file")
+    from ..system_file import is_spec, _spec_trees
+    if not is_spec(spec) or "_refined_json" in system.params:  # a refined model's effects are not trees
+        return None
+    from ..compile import c_cached, grid_source, load_c
+    t = _spec_trees(spec)
+    try:
+        src, hoisted = grid_source(t["trees"], system.n, system.m)
+    except SimgapError:  # a function without numpy's bits compiled (exp, tan of the state, ...)
+        return None
+    if jit.mode() == "auto" and rows < AUTO_ROWS and not c_cached(src):
+        return None
+    lib = load_c(src)
+    if lib is None:
+        return None
+    return GridKernel(lib, hoisted, system.n, system.m, t["substeps"], t["continuous"])

@@ -44,6 +44,8 @@ SUMMARIES = {
     "plot": "paper-style figures of a finished run (PNG and PDF): rollouts, states over time, gamma, p_cert",
 }
 ALL = object()  # build_parser(ALL): every subcommand's full parser
+#: the start method of a command's local pools (set by :func:`main`; read by simgap.executors)
+POOL_START = None
 
 
 def command_of(argv) -> "str | None":
@@ -159,8 +161,8 @@ def _reap_forkserver() -> None:
 
 def main(argv=None) -> int:
     import signal
-    from .. import executors
-    executors.PREFERRED_START = "forkserver"  # see executors.PREFERRED_START
+    global POOL_START
+    POOL_START = "forkserver"  # see executors.PREFERRED_START (not imported here: 50 ms of multiprocessing)
     command = command_of(sys.argv[1:] if argv is None else argv)
     parser = build_parser(command if command in SUMMARIES else None)
     args = parser.parse_args(argv)

@@ -61,6 +61,19 @@ print("winning", r.stats["winning"], "transitions", r.stats["transitions"])
 """),
 }
 SCOTS_BIN = {"dcdc": "dcdc/dcdc", "dcdc1601": "dcdc1601/dcdc1601", "vehicle_cells": "vehicle/vehicle"}
+# SCOTS's examples as system files (examples/scots/), through the command line as a user runs it
+FILES = os.path.join(ROOT, "examples", "scots")
+_DCDC_CMD = ["synthesize", "--system", os.path.join(FILES, "dcdc.toml"), "--no-gap", "--safe", "1.15,1.55,5.45,5.85",
+             "--out", "c.npz", "--eta"]
+COMMANDS = {
+    "dcdc_file": ("dcdc", 593089, None, _DCDC_CMD + ["0.0005,0.0005"]),
+    "dcdc1601_file": ("dcdc1601", 2384526, None, _DCDC_CMD + ["0.00025,0.00025"]),
+    "vehicle_file": ("vehicle_cells", 48018, 35772302,
+                     ["synthesize", "--system", os.path.join(FILES, "vehicle.toml"), "--no-gap", "--spec",
+                      os.path.join(FILES, "vehicle_spec.json"), "--eta", "0.2", "--no-strict-domain", "--out", "c.npz"]),
+}
+#: the interpreter and numpy alone: what any simgap process pays before it does anything
+FLOOR = "import numpy"
 
 
 def build_scots(src: str, out: str) -> None:
@@ -107,25 +120,27 @@ def _med(v):
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--scots", default=os.path.join(ROOT, "..", "shared", "reference", "scots-v0.2"),
+    ap.add_argument("--scots", default=next((p for p in (os.path.join(ROOT, *[".."] * k, "shared", "reference", "scots-v0.2")
+                                                         for k in (1, 2)) if os.path.isdir(p)), None),
                     help="SCOTS v0.2 sources with build.sh")
     ap.add_argument("--build", default=os.path.join(tempfile.gettempdir(), "scots-build"),
                     help="where SCOTS is built (outside the repository)")
     ap.add_argument("--pairs", type=int, default=3)
-    ap.add_argument("--only", default="dcdc,dcdc1601,vehicle_cells")
+    ap.add_argument("--only", default="dcdc_file,dcdc1601_file,vehicle_file,dcdc,dcdc1601,vehicle_cells")
     ap.add_argument("--jit", default="auto,0", help="SIMGAP_JIT modes to run for simgap (auto: compiled "
                     "kernels when a job is large enough; 0: numpy only)")
     a = ap.parse_args()
     cases = [c for c in a.only.split(",") if c]
-    bad = [c for c in cases if c not in SCRIPTS]
+    bad = [c for c in cases if c not in SCRIPTS and c not in COMMANDS]
     if bad:
-        print(f"bench: --only {','.join(bad)} unknown; choose from {', '.join(SCRIPTS)}", file=sys.stderr)
+        print(f"bench: --only {','.join(bad)} unknown; choose from {', '.join(list(COMMANDS) + list(SCRIPTS))}",
+              file=sys.stderr)
         return 2
     modes = [m for m in a.jit.split(",") if m]
     if any(m not in ("auto", "0", "1") for m in modes):
         print(f"bench: --jit {a.jit!r}: modes are auto, 0, 1", file=sys.stderr)
         return 2
-    if not os.path.exists(os.path.join(a.scots, "build.sh")):
+    if not a.scots or not os.path.exists(os.path.join(a.scots, "build.sh")):
         print(f"bench: --scots {a.scots!r} has no build.sh (SCOTS v0.2 sources)", file=sys.stderr)
         return 2
     build_scots(os.path.abspath(a.scots), os.path.abspath(a.build))
@@ -140,9 +155,15 @@ def main() -> int:
     ok = True
     summary = []
     for case in cases:
-        win, trans, script = SCRIPTS[case]
-        progs = [("SCOTS", [os.path.join(os.path.abspath(a.build), SCOTS_BIN[case])], env0)]
-        progs += [(f"simgap jit={m}", [sys.executable, "-c", script], {**env0, "SIMGAP_JIT": m}) for m in modes]
+        if case in COMMANDS:
+            scots, win, trans, argv = COMMANDS[case]
+            argv = [sys.executable, "-m", "simgap"] + argv
+        else:
+            scots, (win, trans, script) = case, SCRIPTS[case]
+            argv = [sys.executable, "-c", script]
+        progs = [("SCOTS", [os.path.join(os.path.abspath(a.build), SCOTS_BIN[scots])], env0)]
+        progs += [(f"simgap jit={m}", argv, {**env0, "SIMGAP_JIT": m}) for m in modes]
+        progs.append(("python+numpy", [sys.executable, "-c", FLOOR], env0))
         res = {name: [] for name, _, _ in progs}
         for name, argv, env in progs:
             run_child(argv, env)  # warm-up (not counted): bytecode and kernel caches, file cache
@@ -155,9 +176,12 @@ def main() -> int:
                     w = re.search(r"Winning domain size: (\d+)", out)
                     t = re.search(r"Number of transitions: (\d+)", out)
                     got = (int(w.group(1)) if w else -1, int(t.group(1)) if t else -1)
-                else:
-                    m = re.search(r"winning (\d+) transitions (\d+)", out)
-                    got = (int(m.group(1)), int(m.group(2))) if m else (-1, -1)
+                elif name == "python+numpy":
+                    got = (win, trans if trans is not None else -1)
+                else:  # a script's line, or the command's summary ("winning   48,018 cells ...")
+                    w = re.search(r"winning\s+([\d,]+)", out)
+                    t = re.search(r"transitions\s+([\d,]+)", out)
+                    got = tuple(int(x.group(1).replace(",", "")) if x else -1 for x in (w, t))
                 good = got[0] == win and (trans is None or got[1] == trans)
                 ok &= good
                 res[name].append((cpu, rss))

@@ -912,6 +912,18 @@ void grid_boxes(int64_t k0, int64_t k1, const int64_t *cshape, const double *fir
     mm[0] = vmin;
     mm[1] = vmax;
 }
+
+/* The posts alone (the tests' view of the same code): row p from X[p] under input J[p], `steps` periods */
+void grid_posts(int64_t P, const double *X, const int64_t *J, const double *U, int64_t nh, const double *H,
+                double tau, int64_t nint, int64_t steps, int64_t continuous, double *out)
+{
+    for (int64_t p = 0; p < P; p++) {
+        double x[NX];
+        for (int d = 0; d < NX; d++) x[d] = X[p * NX + d];
+        for (int64_t s = 0; s < steps; s++) _period(x, U + J[p] * NU, H + J[p] * nh, tau, nint, continuous);
+        for (int d = 0; d < NX; d++) out[p * NX + d] = x[d];
+    }
+}
 """
 
 

@@ -45,6 +45,9 @@ class GridKernel:
         p, i64, f64 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_double
         self.fn.argtypes = [i64, i64, p, p, p, i64, p, i64, p, p, p, p, p, p, f64, i64, i64, i64, f64, i64,
                             p, p, p, p]
+        self.posts_fn = lib.grid_posts
+        self.posts_fn.restype = None
+        self.posts_fn.argtypes = [i64, p, p, p, i64, p, f64, i64, i64, i64, p]
         self.hoisted_trees, self.n, self.m = hoisted_trees, n, m
         self.substeps, self.continuous = substeps, continuous
 
@@ -60,6 +63,19 @@ class GridKernel:
             for k, t in enumerate(self.hoisted_trees):
                 H[:, k] = np.broadcast_to(np.asarray(evaluate(t, z), dtype=float), (M,))
         return H
+
+    def posts(self, system, X: np.ndarray, J: np.ndarray) -> np.ndarray:
+        """f(X[p], U[J[p]]) (P, n) by the kernel's own code (``system.f``'s bits; tests compare them)."""
+        U = np.ascontiguousarray(system.inputs, dtype=float)
+        H = self.input_terms(U, float(system.base_tau))
+        X = np.ascontiguousarray(X, dtype=np.float64)
+        J = np.ascontiguousarray(J, dtype=np.int64)
+        if X.ndim != 2 or X.shape[1] != self.n or J.shape != (X.shape[0],) or (J.size and not 0 <= J.min() <= J.max() < len(U)):
+            raise SimgapError(f"posts: X must be (P, {self.n}) and J (P,) indices of the {len(U)} inputs")
+        out = np.empty_like(X)
+        self.posts_fn(X.shape[0], X.ctypes.data, J.ctypes.data, U.ctypes.data, H.shape[1], H.ctypes.data,
+                      float(system.base_tau), int(self.substeps), int(system.steps), int(self.continuous), out.ctypes.data)
+        return out
 
     def boxes(self, system, grid, R, z, class_dims, off: dict, ok: np.ndarray, limit: float, on_progress=None):
         """Fill ``off["lo"]``, ``off["hi"]`` ((K, M, n) int8, widened to int16 when an offset does not

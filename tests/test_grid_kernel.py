@@ -71,7 +71,7 @@ def test_posts_with_steps_and_a_discrete_map(rng, monkeypatch):
     assert np.array_equal(_bits(got), _bits(s.f(X, s.inputs[J])))
 
 
-@pytest.mark.parametrize("name,eta", [("dcdc.toml", 0.004), ("vehicle.toml", 0.5)])
+@pytest.mark.parametrize("name,eta", [("dcdc.toml", 0.004), ("vehicle.toml", 0.8)])
 def test_tables_equal_the_numpy_loop(name, eta, monkeypatch):
     """The whole abstraction of a reduced grid: offsets (dtype included) and valid flags of the
     compiled pass equal build_abstraction's numpy loop."""

@@ -1,5 +1,7 @@
 """Compiled kernels (numba; imported only when :mod:`simgap.jit` says so): the RK4 of the reference
-systems and one level of the worklist reach game (:func:`reach_level`).
+systems and the successor boxes of a block of pairs (:func:`box_offsets`). The predecessor index
+and the reach game's level are C (:mod:`.game_kernels`), a system file's whole pass too
+(:mod:`.grid_kernel`).
 
 Each RK4 kernel integrates x' = F(x, u) over tau with ``nint`` classical RK4 substeps, row by row,
 in exactly the operation order of :func:`~simgap.runge_kutta.rk4_integrate` and of the
@@ -149,128 +151,6 @@ def dcdc_rk4(X, U, tau, nint, A, b0):
         out[i, 0] = x0
         out[i, 1] = x1
     return out
-
-
-@_compiled
-def reach_level(R, indptr, q, code, offsets, fits, shape, strides, pmask, M, won, cnt):
-    """One level of the worklist reach game on a :class:`~simgap.synthesis.corner_index.CornerIndex`
-    (``reach._reach_worklist``, numpy): for every transition (c, u) -> r with r in ``R`` (the
-    cells won in the last level) and c not won, cnt[c * M + u] -= 1. Returns the pairs whose
-    count reached 0 (unsorted, each once) and the number of transitions visited. The pairs of
-    r are those whose box's lo corner is r - a for an offset a with a < ext(q) (``fits``)."""
-    n = shape.size
-    E = offsets.shape[0]
-    done = np.empty(1024, dtype=np.int64)
-    nd = 0
-    tested = 0
-    for i in range(R.size):
-        r = R[i]
-        for a in range(E):
-            key = 0
-            inside = True
-            for d in range(n):
-                c = (r // strides[d]) % shape[d] - offsets[a, d]
-                if pmask[d]:
-                    c %= shape[d]
-                elif c < 0:
-                    inside = False
-                    break
-                key += c * strides[d]
-            if not inside:
-                continue
-            for e in range(indptr[key], indptr[key + 1]):
-                if not fits[a, code[e]]:
-                    continue
-                p = q[e]
-                if won[p // M]:
-                    continue
-                tested += 1
-                cnt[p] -= 1
-                if cnt[p] == 0:
-                    if nd == done.size:
-                        grown = np.empty(2 * nd, dtype=np.int64)
-                        grown[:nd] = done
-                        done = grown
-                    done[nd] = p
-                    nd += 1
-    return done[:nd], tested
-
-
-@_compiled(inline="always")
-def _corner_pair(off_lo, off_hi, ok, c, u, coord, shape, strides, pmask, ext):
-    """(usable, key, volume) of pair (c, u) as in ``CornerIndex.build``; ``ext`` (n,) receives
-    the box extents (uncapped)."""
-    n = shape.size
-    usable = ok[c, u]
-    key = 0
-    vol = np.int32(1)
-    for d in range(n):
-        ol = np.int32(off_lo[c, u, d])
-        lo = ol + coord[d]
-        e = np.int32(off_hi[c, u, d]) - ol + np.int32(1)
-        if pmask[d]:
-            lo %= shape[d]
-            e = min(e, np.int32(shape[d]))
-        else:
-            usable = usable and lo >= 0 and lo + e <= shape[d]
-        key += lo * strides[d]
-        vol *= e
-        ext[d] = e
-    return usable, key, vol
-
-
-@_compiled
-def corner_counts(off_lo, off_hi, ok, shape, strides, pmask, counts, usable_bits, cell_boxes, cell_trans, emax):
-    """Pass 1 of ``CornerIndex.build``: per corner key the number of usable pairs (``counts``),
-    per cell the packed usable bits, boxes and transitions, and the largest extents ``emax``
-    (each capped at 255, as the uint8 extents of the numpy build)."""
-    N, M = ok.shape
-    n = shape.size
-    coord = np.empty(n, dtype=np.int64)
-    ext = np.empty(n, dtype=np.int32)
-    for c in range(N):
-        for d in range(n):
-            coord[d] = (c // strides[d]) % shape[d]
-        for u in range(M):
-            usable, key, vol = _corner_pair(off_lo, off_hi, ok, c, u, coord, shape, strides, pmask, ext)
-            if not usable:
-                continue
-            counts[key] += 1
-            cell_boxes[c] += 1
-            cell_trans[c] += vol
-            usable_bits[c, u >> 3] |= np.uint8(1 << (7 - (u & 7)))
-            for d in range(n):  # a usable pair's extents are >= 1 (its box is finite, lo <= hi)
-                e = min(ext[d], 255)
-                if e > emax[d]:
-                    emax[d] = e
-
-
-@_compiled
-def corner_place(off_lo, off_hi, ok, shape, strides, pmask, emax, indptr, q, code_out):
-    """Pass 2 of ``CornerIndex.build``: every usable pair at its key's next free slot, in
-    input-major order (u, then c: the order of the numpy build's stable sort), with its box's
-    extents as a mixed-radix code over ``emax``."""
-    N, M = ok.shape
-    n = shape.size
-    nxt = indptr[:-1].astype(np.int64)
-    coord = np.empty((N, n), dtype=np.int64)
-    for c in range(N):
-        for d in range(n):
-            coord[c, d] = (c // strides[d]) % shape[d]
-    ext = np.empty(n, dtype=np.int32)
-    for u in range(M):
-        for c in range(N):
-            usable, key, vol = _corner_pair(off_lo, off_hi, ok, c, u, coord[c], shape, strides, pmask, ext)
-            if not usable:
-                continue
-            code = 0
-            for d in range(n):
-                e = min(ext[d], 255)
-                code = code * emax[d] + max(e, 1) - 1
-            k = nxt[key]
-            nxt[key] = k + 1
-            q[k] = c * M + u
-            code_out[k] = code
 
 
 @_compiled(inline="always")

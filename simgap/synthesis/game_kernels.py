@@ -1,0 +1,227 @@
+"""The predecessor index's build and the reach game's level in C (issue 56: no numba start in a grid
+synthesis).
+
+Three fixed kernels, the numpy code's operations per pair (integers only, so the same results
+by construction; asserted by tests/test_compiled_kernels.py against the numpy paths):
+
+* ``corner_counts`` and ``corner_place``: the two passes of
+  :meth:`~simgap.synthesis.corner_index.CornerIndex.build` (per corner key the number of usable
+  pairs and the per-cell bits, boxes, transitions and largest extents; then every usable pair at
+  its key's next free slot, input-major, with its extents as a mixed-radix code);
+* ``reach_level``: one level of the worklist reach game (``reach._reach_worklist``): for every
+  transition (c, u) -> r with r just won and c not won, cnt[c M + u] -= 1; the pairs reaching 0.
+
+The integer types of the tables (int8 or int16 offsets, int32 or int64 pair ids, the counters'
+and per-cell sums' smallest dtypes) are written into the source, one library per combination,
+compiled by :func:`simgap.compile.load_c` and cached on disk like the grid kernel (about 0.3 s the
+first time, then a load of about 1 ms; numba's start costs about 0.45 s CPU and 65 MB each
+process). Used when ``SIMGAP_JIT`` is not 0 and a C compiler is found, in auto mode when the
+library is cached or the job is large (:data:`AUTO_PAIRS`); otherwise the numpy code runs.
+"""
+
+from __future__ import annotations
+
+import ctypes
+from typing import Optional
+
+import numpy as np
+
+#: (cell, input) pairs from which a first compile (about 0.3 s) pays in auto mode
+AUTO_PAIRS = 4_000_000
+_CTYPE = {np.dtype(t): f"{np.dtype(t).name}_t" for t in (np.int8, np.int16, np.int32, np.int64,
+                                                          np.uint8, np.uint16, np.uint32, np.uint64)}
+
+_SOURCE = r"""/* simgap.synthesis.game_kernels: fixed code, integer types substituted */
+#include <stdint.h>
+#include <stdlib.h>
+
+typedef {off} off_t_;
+typedef {q} q_t;
+typedef {cnt} cnt_t;
+typedef {boxes} boxes_t;
+typedef {trans} trans_t;
+
+static inline int64_t pmod(int64_t a, int64_t b) {{ int64_t r = a % b; return r < 0 ? r + b : r; }}
+
+/* CornerIndex.build's pair (c, u): usable, corner key, box volume, extents ext (uncapped) */
+static inline int corner_pair(const off_t_ *lo_t, const off_t_ *hi_t, const uint8_t *ok, int64_t c, int64_t u,
+                              int64_t M, int64_t n, const int64_t *coord, const int64_t *shape,
+                              const int64_t *strides, const uint8_t *pmask, int64_t *key, int32_t *vol, int32_t *ext)
+{{
+    int usable = ok[c * M + u] != 0;
+    int64_t k = 0;
+    int32_t v = 1;
+    for (int64_t d = 0; d < n; d++) {{
+        const int32_t ol = (int32_t)lo_t[(c * M + u) * n + d];
+        int64_t lo = (int64_t)ol + coord[d];
+        int32_t e = (int32_t)hi_t[(c * M + u) * n + d] - ol + 1;
+        if (pmask[d]) {{
+            lo = pmod(lo, shape[d]);
+            if (e > shape[d]) e = (int32_t)shape[d];
+        }} else {{
+            usable = usable && lo >= 0 && lo + e <= shape[d];
+        }}
+        k += lo * strides[d];
+        v *= e;
+        ext[d] = e;
+    }}
+    *key = k;
+    *vol = v;
+    return usable;
+}}
+
+static inline void coords(int64_t c, int64_t n, const int64_t *shape, const int64_t *strides, int64_t *coord)
+{{
+    for (int64_t d = 0; d < n; d++) coord[d] = (c / strides[d]) % shape[d];
+}}
+
+void corner_counts(int64_t N, int64_t M, int64_t n, const off_t_ *lo_t, const off_t_ *hi_t, const uint8_t *ok,
+                   const int64_t *shape, const int64_t *strides, const uint8_t *pmask, int64_t *counts,
+                   uint8_t *usable_bits, boxes_t *cell_boxes, trans_t *cell_trans, int64_t *emax)
+{{
+    int64_t coord[64], key;
+    int32_t ext[64], vol;
+    const int64_t W = (M + 7) / 8;
+    for (int64_t c = 0; c < N; c++) {{
+        coords(c, n, shape, strides, coord);
+        for (int64_t u = 0; u < M; u++) {{
+            if (!corner_pair(lo_t, hi_t, ok, c, u, M, n, coord, shape, strides, pmask, &key, &vol, ext)) continue;
+            counts[key] += 1;
+            cell_boxes[c] = (boxes_t)(cell_boxes[c] + 1);
+            cell_trans[c] = (trans_t)(cell_trans[c] + vol);
+            usable_bits[c * W + (u >> 3)] |= (uint8_t)(1 << (7 - (u & 7)));
+            for (int64_t d = 0; d < n; d++) {{
+                const int64_t e = ext[d] < 255 ? ext[d] : 255;
+                if (e > emax[d]) emax[d] = e;
+            }}
+        }}
+    }}
+}}
+
+void corner_place(int64_t N, int64_t M, int64_t n, const off_t_ *lo_t, const off_t_ *hi_t, const uint8_t *ok,
+                  const int64_t *shape, const int64_t *strides, const uint8_t *pmask, const int64_t *emax,
+                  int64_t *nxt, q_t *q, uint8_t *code_out)
+{{
+    int64_t coord[64], key;
+    int32_t ext[64], vol;
+    for (int64_t u = 0; u < M; u++) {{
+        for (int64_t c = 0; c < N; c++) {{
+            coords(c, n, shape, strides, coord);
+            if (!corner_pair(lo_t, hi_t, ok, c, u, M, n, coord, shape, strides, pmask, &key, &vol, ext)) continue;
+            int64_t code = 0;
+            for (int64_t d = 0; d < n; d++) {{
+                const int64_t e = ext[d] < 255 ? ext[d] : 255;
+                code = code * emax[d] + (e > 1 ? e : 1) - 1;
+            }}
+            const int64_t k = nxt[key]++;
+            q[k] = (q_t)(c * M + u);
+            code_out[k] = (uint8_t)code;
+        }}
+    }}
+}}
+
+/* one level: the pairs whose count reached 0 (malloc'ed into *out, freed by kfree) and the
+   transitions visited */
+int64_t reach_level(int64_t nR, const int64_t *R, const int32_t *indptr, const q_t *q, const uint8_t *code,
+                    int64_t E, int64_t n, const int64_t *offsets, int64_t ncodes, const uint8_t *fits,
+                    const int64_t *shape, const int64_t *strides, const uint8_t *pmask, int64_t M,
+                    const uint8_t *won, cnt_t *cnt, int64_t **out, int64_t *n_out)
+{{
+    int64_t cap = 1024, nd = 0, tested = 0;
+    int64_t *done = (int64_t *)malloc(cap * sizeof(int64_t));
+    for (int64_t i = 0; i < nR; i++) {{
+        const int64_t r = R[i];
+        for (int64_t a = 0; a < E; a++) {{
+            int64_t key = 0;
+            int inside = 1;
+            for (int64_t d = 0; d < n; d++) {{
+                int64_t c = (r / strides[d]) % shape[d] - offsets[a * n + d];
+                if (pmask[d]) c = pmod(c, shape[d]);
+                else if (c < 0) {{ inside = 0; break; }}
+                key += c * strides[d];
+            }}
+            if (!inside) continue;
+            for (int64_t e = indptr[key]; e < indptr[key + 1]; e++) {{
+                if (!fits[a * ncodes + code[e]]) continue;
+                const int64_t p = (int64_t)q[e];
+                if (won[p / M]) continue;
+                tested++;
+                cnt[p] -= 1;
+                if (cnt[p] == 0) {{
+                    if (nd == cap) {{ cap *= 2; done = (int64_t *)realloc(done, cap * sizeof(int64_t)); }}
+                    done[nd++] = p;
+                }}
+            }}
+        }}
+    }}
+    *out = done;
+    *n_out = nd;
+    return tested;
+}}
+
+void kfree(void *p) {{ free(p); }}
+"""
+
+_LIBS: dict = {}
+
+
+def source(off, q, cnt=np.uint8, boxes=np.uint8, trans=np.uint8) -> str:
+    """The C source for these integer dtypes."""
+    t = {k: _CTYPE[np.dtype(v)] for k, v in dict(off=off, q=q, cnt=cnt, boxes=boxes, trans=trans).items()}
+    return _SOURCE.format(**t)
+
+
+def library(pairs: int, off, q, cnt=np.uint8, boxes=np.uint8, trans=np.uint8):
+    """The compiled library for these dtypes when ``SIMGAP_JIT`` and the job's ``pairs`` say so (module
+    docstring), else None."""
+    from .. import jit
+    from ..compile import c_cached, c_compiler, load_c
+    if jit.mode() == "0" or c_compiler() is None:
+        return None
+    src = source(off, q, cnt, boxes, trans)
+    if src in _LIBS:
+        return _LIBS[src]
+    if jit.mode() == "auto" and pairs < AUTO_PAIRS and not c_cached(src):
+        return None
+    lib = load_c(src)
+    if lib is not None:
+        lib.reach_level.restype = ctypes.c_int64
+        lib.kfree.argtypes = [ctypes.c_void_p]
+        _LIBS[src] = lib
+    return lib
+
+
+def _p(a: np.ndarray) -> int:
+    return a.ctypes.data
+
+
+def corner_counts(lib, off_lo, off_hi, ok, shape, strides, pmask, counts, usable_bits, cell_boxes, cell_trans, emax):
+    N, M = ok.shape
+    i64 = ctypes.c_int64
+    lib.corner_counts(i64(N), i64(M), i64(len(shape)), *(ctypes.c_void_p(_p(a)) for a in (
+        off_lo, off_hi, ok, shape, strides, pmask, counts, usable_bits, cell_boxes, cell_trans, emax)))
+
+
+def corner_place(lib, off_lo, off_hi, ok, shape, strides, pmask, emax, indptr, q, code_out):
+    N, M = ok.shape
+    nxt = indptr[:-1].astype(np.int64)
+    i64 = ctypes.c_int64
+    lib.corner_place(i64(N), i64(M), i64(len(shape)), *(ctypes.c_void_p(_p(a)) for a in (
+        off_lo, off_hi, ok, shape, strides, pmask, emax, nxt, q, code_out)))
+
+
+def reach_level(lib, R, indptr, q, code, offsets, fits, shape, strides, pmask, M, won, cnt):
+    """(pairs whose count reached 0, transitions visited), as the numpy level."""
+    R = np.ascontiguousarray(R, dtype=np.int64)
+    out, n_out = ctypes.c_void_p(), ctypes.c_int64()
+    i64, vp = ctypes.c_int64, ctypes.c_void_p
+    E, n = offsets.shape
+    tested = lib.reach_level(i64(R.size), vp(_p(R)), vp(_p(indptr)), vp(_p(q)), vp(_p(code)), i64(E), i64(n),
+                             vp(_p(offsets)), i64(fits.shape[1]), vp(_p(fits)), vp(_p(shape)), vp(_p(strides)),
+                             vp(_p(pmask)), i64(M), vp(_p(won)), vp(_p(cnt)), ctypes.byref(out), ctypes.byref(n_out))
+    try:
+        done = np.ctypeslib.as_array(ctypes.cast(out, ctypes.POINTER(ctypes.c_int64)), (n_out.value,)).copy() \
+            if n_out.value else np.empty(0, dtype=np.int64)
+    finally:
+        lib.kfree(out)
+    return done, int(tested)

@@ -13,7 +13,7 @@ by construction; asserted by tests/test_compiled_kernels.py against the numpy pa
 
 The integer types of the tables (int8 or int16 offsets, int32 or int64 pair ids, the counters'
 and per-cell sums' smallest dtypes) are written into the source, one library per combination,
-compiled by :func:`simgap.compile.load_c` and cached on disk like the grid kernel (about 0.3 s the
+compiled by :func:`simgap.compile.load_c` and cached on disk like the grid kernel (about 0.12 s CPU the
 first time, then a load of about 1 ms; numba's start costs about 0.45 s CPU and 65 MB each
 process). Used when ``SIMGAP_JIT`` is not 0 and a C compiler is found, in auto mode when the
 library is cached or the job is large (:data:`AUTO_PAIRS`); otherwise the numpy code runs.
@@ -26,8 +26,9 @@ from typing import Optional
 
 import numpy as np
 
-#: (cell, input) pairs from which a first compile (about 0.3 s) pays in auto mode
-AUTO_PAIRS = 4_000_000
+#: (cell, input) pairs from which a first compile (about 0.12 s CPU) pays in auto mode (the numpy index
+#: and level cost about 0.1 us a pair)
+AUTO_PAIRS = 1_000_000
 _CTYPE = {np.dtype(t): f"{np.dtype(t).name}_t" for t in (np.int8, np.int16, np.int32, np.int64,
                                                           np.uint8, np.uint16, np.uint32, np.uint64)}
 

@@ -150,8 +150,10 @@ def _reap_forkserver() -> None:
     workers are the forkserver's children, reaped by it; once it is waited for, their CPU time
     counts as this process's children's, so `time simgap run` reports the whole run's CPU (a
     two-worker collection on the forkserver: 0.05 CPU-seconds of children without this, 5.3 with it)."""
+    forkserver = sys.modules.get("multiprocessing.forkserver")  # never started without its module
+    if forkserver is None:
+        return
     try:
-        from multiprocessing import forkserver
         server = forkserver._forkserver
         if getattr(server, "_forkserver_pid", None) is not None:
             server._stop()

@@ -908,15 +908,21 @@ void grid_boxes(int64_t k0, int64_t k1, const int64_t *cshape, const double *fir
     int8_t *lo8 = (int8_t *)lo_out, *hi8 = (int8_t *)hi_out;
     int16_t *lo16 = (int16_t *)lo_out, *hi16 = (int16_t *)hi_out;
     const int64_t P = (k1 - k0) * M;
+    int64_t cur[NX], jn = 0, rest = k0;  /* the next pair's class multi-index and input (an odometer: no division a pair) */
+    for (int d = NX - 1; d >= 0; d--) { cur[d] = rest % cshape[d]; rest /= cshape[d]; }
     for (int64_t p0 = 0; p0 < P; p0 += LANES) {
         const int nl = P - p0 < LANES ? (int)(P - p0) : LANES;
         for (int l = 0; l < nl; l++) {
-            const int64_t k = k0 + (p0 + l) / M, j = (p0 + l) % M;
-            int64_t rest = k;
-            for (int d = NX - 1; d >= 0; d--) { mi[l * NX + d] = rest % cshape[d]; rest /= cshape[d]; }
-            for (int d = 0; d < NX; d++) x[l * NX + d] = first[d] + (double)mi[l * NX + d] * eta[d];
-            ul[l] = U + j * NU;
-            hl[l] = H + j * nh;
+            for (int d = 0; d < NX; d++) {
+                mi[l * NX + d] = cur[d];
+                x[l * NX + d] = first[d] + (double)cur[d] * eta[d];
+            }
+            ul[l] = U + jn * NU;
+            hl[l] = H + jn * nh;
+            if (++jn == M) {
+                jn = 0;
+                for (int d = NX - 1; d >= 0 && ++cur[d] == cshape[d]; d--) cur[d] = 0;
+            }
         }
         for (int64_t s = 0; s < steps; s++) _period(nl, x, ul, hl, tau, nint, continuous, mk, mv);
         for (int l = 0; l < nl; l++) {

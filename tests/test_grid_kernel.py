@@ -71,16 +71,18 @@ def test_posts_with_steps_and_a_discrete_map(rng, monkeypatch):
     assert np.array_equal(_bits(got), _bits(s.f(X, s.inputs[J])))
 
 
-@pytest.mark.parametrize("name,eta", [("dcdc.toml", 0.004), ("vehicle.toml", 0.8)])
-def test_tables_equal_the_numpy_loop(name, eta, monkeypatch):
+@pytest.mark.parametrize("name,eta,inv", [("dcdc.toml", 0.004, ()), ("vehicle.toml", 0.8, ()),
+                                          ("vehicle.toml", 0.4, (0, 1))])
+def test_tables_equal_the_numpy_loop(name, eta, inv, monkeypatch):
     """The whole abstraction of a reduced grid: offsets (dtype included) and valid flags of the
-    compiled pass equal build_abstraction's numpy loop."""
+    compiled pass equal build_abstraction's numpy loop, per cell and with shared boxes (classes
+    over the heading only)."""
     s = load_system_file(SCOTS / name)
     g = UniformGrid(s.x_lo, s.x_hi, eta)
     tabs = {}
     for mode in ("0", "1"):
         monkeypatch.setenv("SIMGAP_JIT", mode)
-        ab = build_abstraction(s, g, invariant_dims=())
+        ab = build_abstraction(s, g, invariant_dims=inv)
         tabs[mode] = ab
     a, b = tabs["0"], tabs["1"]
     assert a.off_lo.dtype == b.off_lo.dtype

@@ -76,6 +76,12 @@ static inline void coords(int64_t c, int64_t n, const int64_t *shape, const int6
     for (int64_t d = 0; d < n; d++) coord[d] = (c / strides[d]) % shape[d];
 }}
 
+/* the next cell's multi-index (row-major: the last dimension fastest), no division */
+static inline void advance(int64_t n, const int64_t *shape, int64_t *coord)
+{{
+    for (int64_t d = n - 1; d >= 0 && ++coord[d] == shape[d]; d--) coord[d] = 0;
+}}
+
 void corner_counts(int64_t N, int64_t M, int64_t n, const off_t_ *lo_t, const off_t_ *hi_t, const uint8_t *ok,
                    const int64_t *shape, const int64_t *strides, const uint8_t *pmask, int64_t *counts,
                    uint8_t *usable_bits, boxes_t *cell_boxes, trans_t *cell_trans, int64_t *emax)
@@ -83,8 +89,8 @@ void corner_counts(int64_t N, int64_t M, int64_t n, const off_t_ *lo_t, const of
     int64_t coord[64], key;
     int32_t ext[64], vol;
     const int64_t W = (M + 7) / 8;
-    for (int64_t c = 0; c < N; c++) {{
-        coords(c, n, shape, strides, coord);
+    coords(0, n, shape, strides, coord);
+    for (int64_t c = 0; c < N; c++, advance(n, shape, coord)) {{
         for (int64_t u = 0; u < M; u++) {{
             if (!corner_pair(lo_t, hi_t, ok, c, u, M, n, coord, shape, strides, pmask, &key, &vol, ext)) continue;
             counts[key] += 1;
@@ -106,8 +112,8 @@ void corner_place(int64_t N, int64_t M, int64_t n, const off_t_ *lo_t, const off
     int64_t coord[64], key;
     int32_t ext[64], vol;
     for (int64_t u = 0; u < M; u++) {{
-        for (int64_t c = 0; c < N; c++) {{
-            coords(c, n, shape, strides, coord);
+        coords(0, n, shape, strides, coord);
+        for (int64_t c = 0; c < N; c++, advance(n, shape, coord)) {{
             if (!corner_pair(lo_t, hi_t, ok, c, u, M, n, coord, shape, strides, pmask, &key, &vol, ext)) continue;
             int64_t code = 0;
             for (int64_t d = 0; d < n; d++) {{

@@ -1,14 +1,21 @@
 """Side by side with SCOTS v0.2 (C++): whole-process CPU and peak memory, interleaved, one run.
 
     python bench/bench_vs_scots.py [--scots ../shared/reference/scots-v0.2] [--build /tmp/scots-build]
-                                   [--pairs 3] [--only dcdc,dcdc1601,vehicle_cells] [--jit auto,0]
+                                   [--pairs 3] [--only dcdc_file,dcdc1601_file,vehicle_file,dcdc,...] [--jit auto,0]
 
 SCOTS is built from its sources with their ``build.sh`` (g++ -O3) into ``--build`` (outside the
 repository) when its binaries are missing; the 1601^2 DC-DC case is SCOTS's dcdc example with
 eta halved (2/4e3 -> 1/4e3), compiled there from a copy of its source (nothing of SCOTS is
 stored in this repository).
 
-Cases (simgap through its public API, every (cell, input) pair integrated as SCOTS does):
+Cases through the command line as a user runs it: SCOTS's examples written as system files
+(``examples/scots/``), ``python -m simgap synthesize --system FILE ...`` as a subprocess:
+
+* ``dcdc_file``, ``dcdc1601_file``: ``dcdc.toml``, invariance, at SCOTS's eta and at eta / 2;
+* ``vehicle_file``: ``vehicle.toml`` with ``vehicle_spec.json`` (reach-avoid, every cell integrated).
+
+Cases through the Python API with the built-in examples (``simgap.synthesis.examples``, a user's
+Python step), every (cell, input) pair integrated as SCOTS does:
 
 * ``dcdc``: the boost DC-DC converter, invariance; SCOTS's grid 800 x 799 points, simgap's 801 x
   801 cells over the same box (both 593,089 winning cells);
@@ -16,7 +23,8 @@ Cases (simgap through its public API, every (cell, input) pair integrated as SCO
 * ``vehicle_cells``: SCOTS's vehicle example (reach-avoid, 91,035 cells, 49 inputs), simgap
   with ``invariant_dims=()`` (no shared boxes): 48,018 winning cells, 35,772,302 transitions.
 
-Per case, ``--pairs`` rounds of (SCOTS, simgap for every ``--jit`` mode) in fresh processes, one
+Per case, ``--pairs`` rounds of (SCOTS, simgap for every ``--jit`` mode, ``python -c "import numpy"``:
+the floor any simgap process pays) in fresh processes, one
 after the other, so every round sees the same load; CPU is user + system time of the child
 (``wait4``: interpreter start, imports and file writes included), memory its peak RSS, after one
 uncounted warm-up run per program (simgap's bytecode cached as a regular install has it, numba's

@@ -236,6 +236,37 @@ def test_reach_kernel_counts_every_transition_once(monkeypatch):
     assert bad.winning.sum() < good.winning.sum()
 
 
+@pytest.mark.parametrize("case", ["dcdc", "periodic"])
+def test_invariance_game_same_with_and_without_kernel(case, monkeypatch):
+    """The compiled round of the invariance worklist (game_kernels.inv_level) keeps the same cells
+    with the same valid inputs, chosen inputs, rounds and dropped pairs as the numpy rounds (a
+    bounded grid and one with a periodic heading)."""
+    from simgap.synthesis import Box, Spec, label_cells, solve_invariance
+    inf = np.inf
+    if case == "dcdc":
+        s = ex.dcdc_system()
+        g = UniformGrid(s.x_lo, s.x_hi, (0.002, 0.002))
+        spec, kw = ex.dcdc_spec(), dict(growth=ex.dcdc_growth())
+    else:
+        s = ex.vortex_system()
+        g = UniformGrid(s.x_lo, s.x_hi, (0.4, 0.4, 2 * np.pi / 16), periodic=s.angle_dims)
+        spec = Spec(kind="invariance", safe=Box([2.0, 2.0, -inf], [8.0, 8.0, inf]))
+        kw = dict(growth=ex.vortex_growth())
+    monkeypatch.setenv("SIMGAP_JIT", "0")
+    blocked, _ = label_cells(g, spec, s.x_lo, s.x_hi)
+    ab = build_abstraction(s, g, **kw)
+    assert ab.corner_index is not None
+    res = {}
+    for mode in ("0", "1"):
+        monkeypatch.setenv("SIMGAP_JIT", mode)
+        res[mode] = solve_invariance(ab, ~blocked, blocked, method="worklist")
+    a, b = res["0"], res["1"]
+    assert np.array_equal(a.winning, b.winning) and np.array_equal(a.valid_packed, b.valid_packed)
+    assert np.array_equal(a.chosen, b.chosen)
+    assert a.iterations == b.iterations and a.info["pairs_tested"] == b.info["pairs_tested"]
+    assert a.iterations > 2 and 0 < a.winning.sum() < (~blocked).sum()
+
+
 @pytest.mark.parametrize("case", ["vehicle", "periodic"])
 def test_corner_index_same_with_and_without_kernels(case, monkeypatch):
     """The compiled two-pass build of the predecessor index gives the numpy build's arrays (the

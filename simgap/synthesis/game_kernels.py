@@ -9,7 +9,9 @@ by construction; asserted by tests/test_compiled_kernels.py against the numpy pa
   pairs and the per-cell bits, boxes, transitions and largest extents; then every usable pair at
   its key's next free slot, input-major, with its extents as a mixed-radix code);
 * ``reach_level``: one level of the worklist reach game (``reach._reach_worklist``): for every
-  transition (c, u) -> r with r just won and c not won, cnt[c M + u] -= 1; the pairs reaching 0.
+  transition (c, u) -> r with r just won and c not won, cnt[c M + u] -= 1; the pairs reaching 0;
+* ``inv_level``: one round of the invariance worklist (``invariance._invariance_worklist``): every
+  alive pair whose box holds a just-lost cell is dropped once; the cells left without one.
 
 The integer types of the tables (int8 or int16 offsets, int32 or int64 pair ids, the counters'
 and per-cell sums' smallest dtypes) are written into the source, one library per combination,
@@ -166,6 +168,46 @@ int64_t reach_level(int64_t nR, const int64_t *R, const int32_t *indptr, const q
     return tested;
 }}
 
+/* one level of the invariance worklist: drop every alive pair (c, u) whose box holds a cell of R
+   (each once); the cells whose last alive pair went are returned (malloc'ed, freed by kfree) */
+int64_t inv_level(int64_t nR, const int64_t *R, const int32_t *indptr, const q_t *q, const uint8_t *code,
+                  int64_t E, int64_t n, const int64_t *offsets, int64_t ncodes, const uint8_t *fits,
+                  const int64_t *shape, const int64_t *strides, const uint8_t *pmask, int64_t M,
+                  uint8_t *alive, int32_t *n_alive, int64_t **out, int64_t *n_out)
+{{
+    int64_t cap = 1024, nd = 0, tested = 0;
+    int64_t *done = (int64_t *)malloc(cap * sizeof(int64_t));
+    for (int64_t i = 0; i < nR; i++) {{
+        const int64_t r = R[i];
+        for (int64_t a = 0; a < E; a++) {{
+            int64_t key = 0;
+            int inside = 1;
+            for (int64_t d = 0; d < n; d++) {{
+                int64_t c = (r / strides[d]) % shape[d] - offsets[a * n + d];
+                if (pmask[d]) c = pmod(c, shape[d]);
+                else if (c < 0) {{ inside = 0; break; }}
+                key += c * strides[d];
+            }}
+            if (!inside) continue;
+            for (int64_t e = indptr[key]; e < indptr[key + 1]; e++) {{
+                if (!fits[a * ncodes + code[e]]) continue;
+                const int64_t p = (int64_t)q[e];
+                if (!alive[p]) continue;
+                alive[p] = 0;
+                tested++;
+                const int64_t c = p / M;
+                if (--n_alive[c] == 0) {{
+                    if (nd == cap) {{ cap *= 2; done = (int64_t *)realloc(done, cap * sizeof(int64_t)); }}
+                    done[nd++] = c;
+                }}
+            }}
+        }}
+    }}
+    *out = done;
+    *n_out = nd;
+    return tested;
+}}
+
 void kfree(void *p) {{ free(p); }}
 """
 
@@ -193,6 +235,7 @@ def library(pairs: int, off, q, cnt=np.uint8, boxes=np.uint8, trans=np.uint8):
     lib = load_c(src)
     if lib is not None:
         lib.reach_level.restype = ctypes.c_int64
+        lib.inv_level.restype = ctypes.c_int64
         lib.kfree.argtypes = [ctypes.c_void_p]
         _LIBS[src] = lib
     return lib
@@ -219,13 +262,23 @@ def corner_place(lib, off_lo, off_hi, ok, shape, strides, pmask, emax, indptr, q
 
 def reach_level(lib, R, indptr, q, code, offsets, fits, shape, strides, pmask, M, won, cnt):
     """(pairs whose count reached 0, transitions visited), as the numpy level."""
+    return _level(lib, lib.reach_level, R, indptr, q, code, offsets, fits, shape, strides, pmask, M, won, cnt)
+
+
+def invariance_level(lib, R, indptr, q, code, offsets, fits, shape, strides, pmask, M, alive, n_alive):
+    """(cells whose last alive pair went, pairs dropped), as one round of ``invariance._invariance_worklist``
+    (``alive`` (N*M,) bool and ``n_alive`` (N,) int32 updated in place)."""
+    return _level(lib, lib.inv_level, R, indptr, q, code, offsets, fits, shape, strides, pmask, M, alive, n_alive)
+
+
+def _level(lib, fn, R, indptr, q, code, offsets, fits, shape, strides, pmask, M, flags, counts):
     R = np.ascontiguousarray(R, dtype=np.int64)
     out, n_out = ctypes.c_void_p(), ctypes.c_int64()
     i64, vp = ctypes.c_int64, ctypes.c_void_p
     E, n = offsets.shape
-    tested = lib.reach_level(i64(R.size), vp(_p(R)), vp(_p(indptr)), vp(_p(q)), vp(_p(code)), i64(E), i64(n),
-                             vp(_p(offsets)), i64(fits.shape[1]), vp(_p(fits)), vp(_p(shape)), vp(_p(strides)),
-                             vp(_p(pmask)), i64(M), vp(_p(won)), vp(_p(cnt)), ctypes.byref(out), ctypes.byref(n_out))
+    tested = fn(i64(R.size), vp(_p(R)), vp(_p(indptr)), vp(_p(q)), vp(_p(code)), i64(E), i64(n),
+                vp(_p(offsets)), i64(fits.shape[1]), vp(_p(fits)), vp(_p(shape)), vp(_p(strides)),
+                vp(_p(pmask)), i64(M), vp(_p(flags)), vp(_p(counts)), ctypes.byref(out), ctypes.byref(n_out))
     try:
         done = np.ctypeslib.as_array(ctypes.cast(out, ctypes.POINTER(ctypes.c_int64)), (n_out.value,)).copy() \
             if n_out.value else np.empty(0, dtype=np.int64)

@@ -87,9 +87,7 @@ class CornerIndex:
         g = ab.grid
         N, M, n = g.size, ab.n_inputs, g.n
         from . import game_kernels
-        boxes_t, trans_t = _cell_dtypes(M)
-        lib = game_kernels.library(N * M, ab.off_lo.dtype, np.int32 if N * M < 2 ** 31 else np.int64,
-                                   boxes=boxes_t, trans=trans_t)
+        lib = game_kernels.for_abstraction(ab)
         if lib is not None:
             return cls._build_compiled(ab, lib)
         shape = np.array(g.shape, dtype=np.int32)

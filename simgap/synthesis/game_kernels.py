@@ -11,7 +11,10 @@ by construction; asserted by tests/test_compiled_kernels.py against the numpy pa
 * ``reach_level``: one level of the worklist reach game (``reach._reach_worklist``): for every
   transition (c, u) -> r with r just won and c not won, cnt[c M + u] -= 1; the pairs reaching 0;
 * ``inv_level``: one round of the invariance worklist (``invariance._invariance_worklist``): every
-  alive pair whose box holds a just-lost cell is dropped once; the cells left without one.
+  alive pair whose box holds a just-lost cell is dropped once; the cells left without one;
+* ``safety_choose``: the safety controller's input per winning cell (``invariance._safety_controller``):
+  the first valid input of the largest margin, a pair's margin the min over its box of the
+  erosions a cell survives.
 
 The integer types of the tables (int8 or int16 offsets, int32 or int64 pair ids, the counters'
 and per-cell sums' smallest dtypes) are written into the source, one library per combination,
@@ -208,6 +211,40 @@ int64_t inv_level(int64_t nR, const int64_t *R, const int32_t *indptr, const q_t
     return tested;
 }}
 
+/* the safety controller's choice: per cell the first valid input of the largest margin, the margin
+   of a pair the min of D (erosions survived) over its box (invariance._safety_controller) */
+void safety_choose(int64_t N, int64_t M, int64_t n, const off_t_ *lo_t, const off_t_ *hi_t, const uint8_t *valid,
+                   const int8_t *D, const int64_t *shape, const int64_t *strides, const uint8_t *pmask,
+                   int64_t max_margin, int32_t *chosen)
+{{
+    int64_t coord[64], lo[64], ext[64], t[64];
+    for (int64_t d = 0; d < n; d++) coord[d] = 0;
+    for (int64_t c = 0; c < N; c++, advance(n, shape, coord)) {{
+        int64_t best = -1;
+        chosen[c] = -1;
+        for (int64_t u = 0; u < M && best < max_margin; u++) {{
+            if (!valid[c * M + u]) continue;
+            for (int64_t d = 0; d < n; d++) {{
+                lo[d] = coord[d] + (int64_t)lo_t[(c * M + u) * n + d];
+                ext[d] = (int64_t)hi_t[(c * M + u) * n + d] - (int64_t)lo_t[(c * M + u) * n + d] + 1;
+                if (pmask[d]) {{ lo[d] = pmod(lo[d], shape[d]); if (ext[d] > shape[d]) ext[d] = shape[d]; }}
+                t[d] = 0;
+            }}
+            int64_t mg = max_margin;
+            for (;;) {{  /* every cell of the box (an odometer over its extents); stop once no better */
+                int64_t cell = 0;
+                for (int64_t d = 0; d < n; d++) cell += ((lo[d] + t[d]) % shape[d]) * strides[d];
+                if (D[cell] < mg) mg = D[cell];
+                if (mg <= best) break;
+                int64_t d = n - 1;
+                while (d >= 0 && ++t[d] == ext[d]) t[d--] = 0;
+                if (d < 0) break;
+            }}
+            if (mg > best) {{ best = mg; chosen[c] = (int32_t)u; }}
+        }}
+    }}
+}}
+
 void kfree(void *p) {{ free(p); }}
 """
 
@@ -239,6 +276,28 @@ def library(pairs: int, off, q, cnt=np.uint8, boxes=np.uint8, trans=np.uint8):
         lib.kfree.argtypes = [ctypes.c_void_p]
         _LIBS[src] = lib
     return lib
+
+
+def for_abstraction(ab):
+    """The library for an abstraction's tables (one class per cell): its index build and safety
+    controller, or None (:func:`library`)."""
+    from .corner_index import _cell_dtypes
+    N, M = ab.ok.shape
+    boxes_t, trans_t = _cell_dtypes(M)
+    return library(N * M, ab.off_lo.dtype, np.int32 if N * M < 2 ** 31 else np.int64, boxes=boxes_t, trans=trans_t)
+
+
+def safety_choose(lib, ab, valid: np.ndarray, D: np.ndarray, max_margin: int) -> np.ndarray:
+    """(N,) int32 the first valid input of the largest margin per cell, -1 without one."""
+    g = ab.grid
+    N, M = valid.shape
+    chosen = np.empty(N, dtype=np.int32)
+    vp, i64 = ctypes.c_void_p, ctypes.c_int64
+    arrays = (np.ascontiguousarray(ab.off_lo), np.ascontiguousarray(ab.off_hi), np.ascontiguousarray(valid),
+              np.ascontiguousarray(D, dtype=np.int8), np.array(g.shape, dtype=np.int64), g.strides.astype(np.int64),
+              np.asarray(g.periodic_mask, dtype=np.uint8))
+    lib.safety_choose(i64(N), i64(M), i64(g.n), *(vp(_p(a)) for a in arrays), i64(int(max_margin)), vp(_p(chosen)))
+    return chosen
 
 
 def _p(a: np.ndarray) -> int:

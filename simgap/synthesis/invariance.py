@@ -213,6 +213,13 @@ def _safety_controller(ab: Abstraction, W: np.ndarray, live: np.ndarray, max_mar
     for _ in range(max_margin):
         E = _erode(E, g.periodic_mask)
         D += E.ravel()
+    lib = None
+    if alive is not None and len(ab.class_dims) == g.n:  # the same choice in C (game_kernels.safety_choose)
+        from . import game_kernels
+        lib = game_kernels.for_abstraction(ab)
+    if lib is not None:
+        valid = alive.reshape(N, M) & W[:, None]
+        return pack_rows(valid), game_kernels.safety_choose(lib, ab, valid, D, max_margin)
     top = BoxCounter(g.shape, g.periodic_mask).set(E.ravel())
     del E
     if alive is None:

@@ -9,7 +9,8 @@ eta halved (2/4e3 -> 1/4e3), compiled there from a copy of its source (nothing o
 stored in this repository).
 
 Cases through the command line as a user runs it: SCOTS's examples written as system files
-(``examples/scots/``), ``python -m simgap synthesize --system FILE ...`` as a subprocess:
+(``simgap/synthesis/scots/``, ``examples/scots/`` for the vehicle's spec), ``python -m simgap
+synthesize --system FILE ...`` as a subprocess:
 
 * ``dcdc_file``, ``dcdc1601_file``: ``dcdc.toml``, invariance, at SCOTS's eta and at eta / 2;
 * ``vehicle_file``: ``vehicle.toml`` with ``vehicle_spec.json`` (reach-avoid, every cell integrated).
@@ -70,7 +71,8 @@ print("winning", r.stats["winning"], "transitions", r.stats["transitions"])
 }
 SCOTS_BIN = {"dcdc": "dcdc/dcdc", "dcdc1601": "dcdc1601/dcdc1601", "vehicle_cells": "vehicle/vehicle"}
 # SCOTS's examples as system files (examples/scots/), through the command line as a user runs it
-FILES = os.path.join(ROOT, "examples", "scots")
+FILES = os.path.join(ROOT, "simgap", "synthesis", "scots")  # the files the built-in examples are built from
+SPECS = os.path.join(ROOT, "examples", "scots")
 _DCDC_CMD = ["synthesize", "--system", os.path.join(FILES, "dcdc.toml"), "--no-gap", "--safe", "1.15,1.55,5.45,5.85",
              "--out", "c.npz", "--eta"]
 COMMANDS = {
@@ -78,7 +80,7 @@ COMMANDS = {
     "dcdc1601_file": ("dcdc1601", 2384526, None, _DCDC_CMD + ["0.00025,0.00025"]),
     "vehicle_file": ("vehicle_cells", 48018, 35772302,
                      ["synthesize", "--system", os.path.join(FILES, "vehicle.toml"), "--no-gap", "--spec",
-                      os.path.join(FILES, "vehicle_spec.json"), "--eta", "0.2", "--no-strict-domain", "--out", "c.npz"]),
+                      os.path.join(SPECS, "vehicle_spec.json"), "--eta", "0.2", "--no-strict-domain", "--out", "c.npz"]),
 }
 #: the interpreter and numpy alone: what any simgap process pays before it does anything
 FLOOR = "import numpy"

@@ -1,6 +1,6 @@
 """The grid kernel (simgap.synthesis.grid_kernel, generated C from simgap.compile): a system file's
 posts are the numpy step's bits, its abstraction tables the numpy loop's, and SCOTS's examples as
-system files (examples/scots/) win SCOTS's cells."""
+system files (simgap/synthesis/scots/) win SCOTS's cells."""
 
 from __future__ import annotations
 
@@ -20,7 +20,8 @@ from simgap.synthesis.grid_kernel import grid_kernel
 from simgap.synthesis.spec import Box, Spec
 
 REPO = Path(__file__).resolve().parents[1]
-SCOTS = REPO / "examples" / "scots"
+SCOTS = REPO / "simgap" / "synthesis" / "scots"
+SPECS = REPO / "examples" / "scots"
 
 if C.c_compiler() is None:
     pytest.skip("no C compiler: the grid kernel is not built here (the numpy path runs)", allow_module_level=True)
@@ -106,7 +107,7 @@ def test_vehicle_file_wins_scots_cells(monkeypatch):
     48,018 winning cells and 35,772,302 transitions."""
     monkeypatch.setenv("SIMGAP_JIT", "auto")
     s = load_system_file(SCOTS / "vehicle.toml")
-    spec = Spec.from_dict(json.loads((SCOTS / "vehicle_spec.json").read_text()))
+    spec = Spec.from_dict(json.loads((SPECS / "vehicle_spec.json").read_text()))
     r = synthesize(s, spec, [0.2, 0.2, 0.2], strict_domain=False, invariant_dims=())
     assert (r.stats["winning"], r.stats["transitions"]) == (48018, 35772302)
 

@@ -66,15 +66,24 @@ class GridKernel:
 
     def posts(self, system, X: np.ndarray, J: np.ndarray) -> np.ndarray:
         """f(X[p], U[J[p]]) (P, n) by the kernel's own code (``system.f``'s bits; tests compare them)."""
-        U = np.ascontiguousarray(system.inputs, dtype=float)
-        H = self.input_terms(U, float(system.base_tau))
+        return self._posts(X, J, system.inputs, float(system.base_tau), int(system.steps))
+
+    def step(self, X: np.ndarray, U: np.ndarray, tau: float) -> np.ndarray:
+        """One period of length ``tau`` from X (P, n) under the input rows U (P, m): the file's step
+        (its bits), the hoisted terms by numpy once per distinct input row."""
+        uu, inv = np.unique(np.asarray(U, dtype=float).reshape(len(X), self.m), axis=0, return_inverse=True)
+        return self._posts(X, inv.reshape(-1), uu, float(tau), 1)
+
+    def _posts(self, X, J, U, tau: float, steps: int) -> np.ndarray:
+        U = np.ascontiguousarray(U, dtype=float)
+        H = self.input_terms(U, tau)
         X = np.ascontiguousarray(X, dtype=np.float64)
         J = np.ascontiguousarray(J, dtype=np.int64)
         if X.ndim != 2 or X.shape[1] != self.n or J.shape != (X.shape[0],) or (J.size and not 0 <= J.min() <= J.max() < len(U)):
             raise SimgapError(f"posts: X must be (P, {self.n}) and J (P,) indices of the {len(U)} inputs")
         out = np.empty_like(X)
         self.posts_fn(X.shape[0], X.ctypes.data, J.ctypes.data, U.ctypes.data, H.shape[1], H.ctypes.data,
-                      float(system.base_tau), int(self.substeps), int(system.steps), int(self.continuous), out.ctypes.data)
+                      tau, int(self.substeps), steps, int(self.continuous), out.ctypes.data)
         return out
 
     def boxes(self, system, grid, R, z, class_dims, off: dict, ok: np.ndarray, limit: float, on_progress=None):
@@ -119,18 +128,49 @@ def grid_kernel(system, rows: int):
     if jit.mode() == "0" or system.angle_dims:
         return None
     spec = system.params.get("_system_file")
-    from ..system_file import is_spec, _spec_trees
+    from ..system_file import is_spec
     if not is_spec(spec) or "_refined_json" in system.params:  # a refined model's effects are not trees
         return None
+    return _kernel(spec, system.n, system.m, rows, jit.mode() == "auto")
+
+
+def _kernel(spec, n: int, m: int, rows: int, auto: bool):
+    """The GridKernel of a checked system-file table, or None (no bit-identical kernel for its
+    formulas, no C compiler, or in auto mode a first compile that does not pay for ``rows``)."""
     from ..compile import c_cached, grid_source, load_c
+    from ..system_file import _spec_trees
     t = _spec_trees(spec)
     try:
-        src, hoisted = grid_source(t["trees"], system.n, system.m)
+        src, hoisted = grid_source(t["trees"], n, m)
     except SimgapError:  # a function without numpy's bits compiled (exp, tan of the state, ...)
         return None
-    if jit.mode() == "auto" and rows < AUTO_ROWS and not c_cached(src):
+    if auto and rows < AUTO_ROWS and not c_cached(src):
         return None
     lib = load_c(src)
     if lib is None:
         return None
-    return GridKernel(lib, hoisted, system.n, system.m, t["substeps"], t["continuous"])
+    return GridKernel(lib, hoisted, n, m, t["substeps"], t["continuous"])
+
+
+_FILES: dict = {}
+
+
+def file_step(path, rows: int = 0, force: bool = False):
+    """The :meth:`GridKernel.step` of the system file at ``path`` (a file of the package: the built-in
+    examples' compiled step), or None when ``SIMGAP_JIT`` and the job's ``rows`` (or the declared
+    work) say numpy; ``force``: whenever a C compiler is found."""
+    from .. import jit
+    if not force and jit.mode() == "0":
+        return None
+    key = str(path)
+    if key not in _FILES:
+        from ..system_file import load_system_file
+        s = load_system_file(path)
+        _FILES[key] = (s.params["_system_file"], s.n, s.m, {})
+    spec, n, m, loaded = _FILES[key]
+    if "kernel" not in loaded:
+        k = _kernel(spec, n, m, max(int(rows), jit._WORK.get()), auto=not force and jit.mode() == "auto")
+        if k is None:
+            return None
+        loaded["kernel"] = k
+    return loaded["kernel"].step

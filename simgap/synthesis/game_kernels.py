@@ -132,6 +132,20 @@ void corner_place(int64_t N, int64_t M, int64_t n, const off_t_ *lo_t, const off
     }}
 }}
 
+/* the index row of the boxes whose lo corner is cell r minus offset a, or -1 outside the grid */
+static inline int64_t corner_key(int64_t r, int64_t a, int64_t n, const int64_t *offsets, const int64_t *shape,
+                                 const int64_t *strides, const uint8_t *pmask)
+{{
+    int64_t key = 0;
+    for (int64_t d = 0; d < n; d++) {{
+        int64_t c = (r / strides[d]) % shape[d] - offsets[a * n + d];
+        if (pmask[d]) c = pmod(c, shape[d]);
+        else if (c < 0) return -1;
+        key += c * strides[d];
+    }}
+    return key;
+}}
+
 /* one level: the pairs whose count reached 0 (malloc'ed into *out, freed by kfree) and the
    transitions visited */
 int64_t reach_level(int64_t nR, const int64_t *R, const int32_t *indptr, const q_t *q, const uint8_t *code,
@@ -144,15 +158,8 @@ int64_t reach_level(int64_t nR, const int64_t *R, const int32_t *indptr, const q
     for (int64_t i = 0; i < nR; i++) {{
         const int64_t r = R[i];
         for (int64_t a = 0; a < E; a++) {{
-            int64_t key = 0;
-            int inside = 1;
-            for (int64_t d = 0; d < n; d++) {{
-                int64_t c = (r / strides[d]) % shape[d] - offsets[a * n + d];
-                if (pmask[d]) c = pmod(c, shape[d]);
-                else if (c < 0) {{ inside = 0; break; }}
-                key += c * strides[d];
-            }}
-            if (!inside) continue;
+            const int64_t key = corner_key(r, a, n, offsets, shape, strides, pmask);
+            if (key < 0) continue;
             for (int64_t e = indptr[key]; e < indptr[key + 1]; e++) {{
                 if (!fits[a * ncodes + code[e]]) continue;
                 const int64_t p = (int64_t)q[e];
@@ -183,15 +190,8 @@ int64_t inv_level(int64_t nR, const int64_t *R, const int32_t *indptr, const q_t
     for (int64_t i = 0; i < nR; i++) {{
         const int64_t r = R[i];
         for (int64_t a = 0; a < E; a++) {{
-            int64_t key = 0;
-            int inside = 1;
-            for (int64_t d = 0; d < n; d++) {{
-                int64_t c = (r / strides[d]) % shape[d] - offsets[a * n + d];
-                if (pmask[d]) c = pmod(c, shape[d]);
-                else if (c < 0) {{ inside = 0; break; }}
-                key += c * strides[d];
-            }}
-            if (!inside) continue;
+            const int64_t key = corner_key(r, a, n, offsets, shape, strides, pmask);
+            if (key < 0) continue;
             for (int64_t e = indptr[key]; e < indptr[key + 1]; e++) {{
                 if (!fits[a * ncodes + code[e]]) continue;
                 const int64_t p = (int64_t)q[e];

@@ -28,8 +28,8 @@ import numpy as np
 
 from ..errors import SimgapError
 
-#: step rows from which a first compile (about 0.2 s of the C compiler) pays in auto mode: the
-#: numpy step of a system file costs about 1 us per row
+#: step rows from which a first compile (about 0.12 s CPU of the C compiler, measured) pays in auto
+#: mode: the numpy step of a system file costs about 1 us per row
 AUTO_ROWS = 200_000
 #: classes per kernel call (progress reports between calls)
 BLOCK_CLASSES = 1 << 16

@@ -1,14 +1,22 @@
 """Side by side with SCOTS v0.2 (C++): whole-process CPU and peak memory, interleaved, one run.
 
     python bench/bench_vs_scots.py [--scots ../shared/reference/scots-v0.2] [--build /tmp/scots-build]
-                                   [--pairs 3] [--only dcdc,dcdc1601,vehicle_cells] [--jit auto,0]
+                                   [--pairs 3] [--only dcdc_file,dcdc1601_file,vehicle_file,dcdc,...] [--jit auto,0]
 
 SCOTS is built from its sources with their ``build.sh`` (g++ -O3) into ``--build`` (outside the
 repository) when its binaries are missing; the 1601^2 DC-DC case is SCOTS's dcdc example with
 eta halved (2/4e3 -> 1/4e3), compiled there from a copy of its source (nothing of SCOTS is
 stored in this repository).
 
-Cases (simgap through its public API, every (cell, input) pair integrated as SCOTS does):
+Cases through the command line as a user runs it: SCOTS's examples written as system files
+(``simgap/synthesis/scots/``, ``examples/scots/`` for the vehicle's spec), ``python -m simgap
+synthesize --system FILE ...`` as a subprocess:
+
+* ``dcdc_file``, ``dcdc1601_file``: ``dcdc.toml``, invariance, at SCOTS's eta and at eta / 2;
+* ``vehicle_file``: ``vehicle.toml`` with ``vehicle_spec.json`` (reach-avoid, every cell integrated).
+
+Cases through the Python API with the built-in examples (``simgap.synthesis.examples``, a user's
+Python step), every (cell, input) pair integrated as SCOTS does:
 
 * ``dcdc``: the boost DC-DC converter, invariance; SCOTS's grid 800 x 799 points, simgap's 801 x
   801 cells over the same box (both 593,089 winning cells);
@@ -16,7 +24,8 @@ Cases (simgap through its public API, every (cell, input) pair integrated as SCO
 * ``vehicle_cells``: SCOTS's vehicle example (reach-avoid, 91,035 cells, 49 inputs), simgap
   with ``invariant_dims=()`` (no shared boxes): 48,018 winning cells, 35,772,302 transitions.
 
-Per case, ``--pairs`` rounds of (SCOTS, simgap for every ``--jit`` mode) in fresh processes, one
+Per case, ``--pairs`` rounds of (SCOTS, simgap for every ``--jit`` mode, ``python -c "import numpy"``:
+the floor any simgap process pays) in fresh processes, one
 after the other, so every round sees the same load; CPU is user + system time of the child
 (``wait4``: interpreter start, imports and file writes included), memory its peak RSS, after one
 uncounted warm-up run per program (simgap's bytecode cached as a regular install has it, numba's
@@ -61,6 +70,20 @@ print("winning", r.stats["winning"], "transitions", r.stats["transitions"])
 """),
 }
 SCOTS_BIN = {"dcdc": "dcdc/dcdc", "dcdc1601": "dcdc1601/dcdc1601", "vehicle_cells": "vehicle/vehicle"}
+# SCOTS's examples as system files (examples/scots/), through the command line as a user runs it
+FILES = os.path.join(ROOT, "simgap", "synthesis", "scots")  # the files the built-in examples are built from
+SPECS = os.path.join(ROOT, "examples", "scots")
+_DCDC_CMD = ["synthesize", "--system", os.path.join(FILES, "dcdc.toml"), "--no-gap", "--safe", "1.15,1.55,5.45,5.85",
+             "--out", "c.npz", "--eta"]
+COMMANDS = {
+    "dcdc_file": ("dcdc", 593089, None, _DCDC_CMD + ["0.0005,0.0005"]),
+    "dcdc1601_file": ("dcdc1601", 2384526, None, _DCDC_CMD + ["0.00025,0.00025"]),
+    "vehicle_file": ("vehicle_cells", 48018, 35772302,
+                     ["synthesize", "--system", os.path.join(FILES, "vehicle.toml"), "--no-gap", "--spec",
+                      os.path.join(SPECS, "vehicle_spec.json"), "--eta", "0.2", "--no-strict-domain", "--out", "c.npz"]),
+}
+#: the interpreter and numpy alone: what any simgap process pays before it does anything
+FLOOR = "import numpy"
 
 
 def build_scots(src: str, out: str) -> None:
@@ -107,25 +130,27 @@ def _med(v):
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--scots", default=os.path.join(ROOT, "..", "shared", "reference", "scots-v0.2"),
+    ap.add_argument("--scots", default=next((p for p in (os.path.join(ROOT, *[".."] * k, "shared", "reference", "scots-v0.2")
+                                                         for k in (1, 2)) if os.path.isdir(p)), None),
                     help="SCOTS v0.2 sources with build.sh")
     ap.add_argument("--build", default=os.path.join(tempfile.gettempdir(), "scots-build"),
                     help="where SCOTS is built (outside the repository)")
     ap.add_argument("--pairs", type=int, default=3)
-    ap.add_argument("--only", default="dcdc,dcdc1601,vehicle_cells")
+    ap.add_argument("--only", default="dcdc_file,dcdc1601_file,vehicle_file,dcdc,dcdc1601,vehicle_cells")
     ap.add_argument("--jit", default="auto,0", help="SIMGAP_JIT modes to run for simgap (auto: compiled "
                     "kernels when a job is large enough; 0: numpy only)")
     a = ap.parse_args()
     cases = [c for c in a.only.split(",") if c]
-    bad = [c for c in cases if c not in SCRIPTS]
+    bad = [c for c in cases if c not in SCRIPTS and c not in COMMANDS]
     if bad:
-        print(f"bench: --only {','.join(bad)} unknown; choose from {', '.join(SCRIPTS)}", file=sys.stderr)
+        print(f"bench: --only {','.join(bad)} unknown; choose from {', '.join(list(COMMANDS) + list(SCRIPTS))}",
+              file=sys.stderr)
         return 2
     modes = [m for m in a.jit.split(",") if m]
     if any(m not in ("auto", "0", "1") for m in modes):
         print(f"bench: --jit {a.jit!r}: modes are auto, 0, 1", file=sys.stderr)
         return 2
-    if not os.path.exists(os.path.join(a.scots, "build.sh")):
+    if not a.scots or not os.path.exists(os.path.join(a.scots, "build.sh")):
         print(f"bench: --scots {a.scots!r} has no build.sh (SCOTS v0.2 sources)", file=sys.stderr)
         return 2
     build_scots(os.path.abspath(a.scots), os.path.abspath(a.build))
@@ -140,9 +165,15 @@ def main() -> int:
     ok = True
     summary = []
     for case in cases:
-        win, trans, script = SCRIPTS[case]
-        progs = [("SCOTS", [os.path.join(os.path.abspath(a.build), SCOTS_BIN[case])], env0)]
-        progs += [(f"simgap jit={m}", [sys.executable, "-c", script], {**env0, "SIMGAP_JIT": m}) for m in modes]
+        if case in COMMANDS:
+            scots, win, trans, argv = COMMANDS[case]
+            argv = [sys.executable, "-m", "simgap"] + argv
+        else:
+            scots, (win, trans, script) = case, SCRIPTS[case]
+            argv = [sys.executable, "-c", script]
+        progs = [("SCOTS", [os.path.join(os.path.abspath(a.build), SCOTS_BIN[scots])], env0)]
+        progs += [(f"simgap jit={m}", argv, {**env0, "SIMGAP_JIT": m}) for m in modes]
+        progs.append(("python+numpy", [sys.executable, "-c", FLOOR], env0))
         res = {name: [] for name, _, _ in progs}
         for name, argv, env in progs:
             run_child(argv, env)  # warm-up (not counted): bytecode and kernel caches, file cache
@@ -155,9 +186,12 @@ def main() -> int:
                     w = re.search(r"Winning domain size: (\d+)", out)
                     t = re.search(r"Number of transitions: (\d+)", out)
                     got = (int(w.group(1)) if w else -1, int(t.group(1)) if t else -1)
-                else:
-                    m = re.search(r"winning (\d+) transitions (\d+)", out)
-                    got = (int(m.group(1)), int(m.group(2))) if m else (-1, -1)
+                elif name == "python+numpy":
+                    got = (win, trans if trans is not None else -1)
+                else:  # a script's line, or the command's summary ("winning   48,018 cells ...")
+                    w = re.search(r"winning\s+([\d,]+)", out)
+                    t = re.search(r"transitions\s+([\d,]+)", out)
+                    got = tuple(int(x.group(1).replace(",", "")) if x else -1 for x in (w, t))
                 good = got[0] == win and (trans is None or got[1] == trans)
                 ok &= good
                 res[name].append((cpu, rss))

@@ -70,7 +70,7 @@ class SerialExecutor(Executor):
 
 
 #: the start method a local pool uses unless it is given one (None: fork from a single-threaded caller, else
-#: forkserver). The command line sets "forkserver": its own ``__main__`` is safe to preload, and its workers
+#: forkserver). The command line sets "forkserver" (``simgap.cli.POOL_START``): its own ``__main__`` is safe to preload, and its workers
 #: then never inherit the command's state (a Ctrl-C while a forked pool was still starting its workers hung the
 #: command for more than 30 s in the test suite; forked workers are kept for scripts without a ``__main__`` guard)
 PREFERRED_START = None
@@ -86,7 +86,8 @@ class LocalExecutor(Executor):
         self.start_method = start_method
 
     def _context(self):
-        method = self.start_method or PREFERRED_START
+        cli = sys.modules.get("simgap.cli")  # a command's choice (simgap.cli.main), without importing this module
+        method = self.start_method or PREFERRED_START or getattr(cli, "POOL_START", None)
         if method is not None and method not in multiprocessing.get_all_start_methods():
             method = None
         if method is None:

@@ -11,9 +11,17 @@ from __future__ import annotations
 import sys
 import threading
 import time
-from typing import Callable, Optional, Protocol, Union
+from typing import TYPE_CHECKING, Callable, Optional, Protocol, Union
 
-from tqdm import tqdm
+if TYPE_CHECKING:
+    from tqdm import tqdm
+
+
+def _interval(seconds: float) -> str:
+    """[H:]MM:SS, as tqdm's format_interval."""
+    m, s = divmod(int(seconds), 60)
+    h, m = divmod(m, 60)
+    return f"{h:d}:{m:02d}:{s:02d}" if h else f"{m:02d}:{s:02d}"
 
 
 class ProgressCallback(Protocol):
@@ -52,7 +60,7 @@ class ProgressBar:
         self.stream = stream if stream is not None else sys.stderr
         self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
         self.mininterval = 0.2 if self.tty else interval_off_tty
-        self.bar: Optional[tqdm] = None
+        self.bar: Optional["tqdm"] = None
         self._lines: Optional[dict] = None  # off a terminal: start, counts, the last line written
 
     def __call__(self, done: int, total: int) -> None:
@@ -60,6 +68,7 @@ class ProgressBar:
             self._line_update(done, total)
             return
         if self.bar is None:
+            from tqdm import tqdm  # on a terminal only: 50 ms of imports a command off one skips
             self.bar = tqdm(total=total, initial=done, unit=self.unit, desc=self.desc, file=self.stream,
                             mininterval=self.mininterval, dynamic_ncols=True, smoothing=0.1,
                             bar_format=self.bar_format)
@@ -91,9 +100,9 @@ class ProgressBar:
         rate = (done - st["initial"]) / elapsed if elapsed > 0 else 0.0
         text = (f"{self.desc}: " if self.desc else "") + f"{100.0 * done / total if total else 100.0:3.0f}% "
         count = f"{done}" if float(done).is_integer() else f"{done:.1f}"  # certify --compare moves in fractions
-        text += f"{count}/{total} {self.unit} [{tqdm.format_interval(elapsed)} elapsed"
+        text += f"{count}/{total} {self.unit} [{_interval(elapsed)} elapsed"
         if rate > 0 and done < total:
-            text += f", {tqdm.format_interval((total - done) / rate)} left"
+            text += f", {_interval((total - done) / rate)} left"
         if rate > 0:
             r = rate * self.scale
             text += f", {r:,.0f}" if r >= 100 else f", {r:.3g}"

@@ -199,6 +199,8 @@ def system_from_spec(spec: dict, where: str = "embedded system file") -> System:
     smooth = all(f.smooth for f in forms) and all(f.smooth for f in def_forms.values())
     jac, how = _jacobian(spec.get("bounds", {}), variables, consts, continuous, float(tau), n, m, where,
                          step, xs, smooth)
+    if hasattr(jac, "growth_matrix"):  # the grid synthesis' growth bound (abstraction.growth_function)
+        step.radius_post = _radius_post(jac.growth_matrix, substeps)
     # embedded without steps: the System carries them (system_ref adds them back)
     embedded = {k: v for k, v in dict(spec, format=FORMAT, version=VERSION).items() if k != "steps"}
     sysparams = dict(params)
@@ -209,7 +211,9 @@ def system_from_spec(spec: dict, where: str = "embedded system file") -> System:
     s = System(name=name, state_names=tuple(states), input_names=tuple(inputs), x_lo=x_lo, x_hi=x_hi,
                inputs=U, base_tau=float(tau), step=step, angle_dims=angles, steps=int(steps),
                jacobian_bound=jac, params=sysparams)
-    if jac is not None:
+    if hasattr(jac, "growth_matrix"):  # finite and Metzler on U (then exp(L tau) is finite and >= 0)
+        jac.growth_matrix(U)
+    elif jac is not None:
         J = np.asarray(jac(U), dtype=float)
         if J.shape != (U.shape[0], n, n) or not np.all(np.isfinite(J)) or np.any(J < 0):
             raise SimgapError(f"{where}: the Jacobian bound must be finite and >= 0 for every input of U")
@@ -542,22 +546,37 @@ def _jacobian(bounds, variables, consts, continuous, tau, n, m, where, step, xs,
 
         if key == "jacobian":
             return (lambda u: matrix(u, tau)), "given"
-        from scipy.linalg import expm
 
-        def jac(u):
-            u = np.atleast_2d(np.asarray(u, dtype=float))
-            uu, inv = np.unique(u, axis=0, return_inverse=True)
-            L = matrix(uu, tau)
+        def metzler(u):
+            L = matrix(u, tau)
             off = ~np.eye(n, dtype=bool)
             if np.any(L[:, off] < 0) or not np.all(np.isfinite(L)):
                 raise SimgapError(f"{where}: bounds.growth must be finite with off-diagonal entries >= 0 "
                                   f"(bounds on |dF_i/dx_j|)")
+            return L
+
+        def jac(u):
+            from scipy.linalg import expm  # imported on use: 0.3 s of a grid synthesis' start
+            u = np.atleast_2d(np.asarray(u, dtype=float))
+            uu, inv = np.unique(u, axis=0, return_inverse=True)
             # |d phi_tau / dx| <= exp(L tau) elementwise for a Metzler bound L of dF/dx
-            return np.stack([expm(Li * tau) for Li in L])[inv.reshape(-1)]
+            return np.stack([expm(Li * tau) for Li in metzler(uu)])[inv.reshape(-1)]
+        jac.growth_matrix = metzler  # L(u) (B, n, n): SCOTS's radius_post integrates r' = L r
         return jac, "given (growth)"
     if not smooth:
         return None, "none (non-smooth model: sign, abs, where, ... )"
     return _estimated_jacobian(step, xs[:CHECK_STATES], tau, n), "estimated"
+
+
+def _radius_post(L, substeps: int):
+    """SCOTS's radius_post for ``bounds.growth``: ``steps -> growth(r, x, u, tau)``, r' = L(u) r
+    integrated by RK4 over the sampling period with the model's substeps per base period
+    (:func:`~simgap.runge_kutta.rk4_growth`), as SCOTS integrates its growth bound alongside its RK4
+    model (exp(L tau), the bound of the exact flow, stays the certificate's Jacobian bound)."""
+    def for_steps(steps: int):
+        from .runge_kutta import rk4_growth
+        return rk4_growth(L, nint=substeps * int(steps))
+    return for_steps
 
 
 def _estimated_jacobian(step, xs, tau, n):

@@ -49,12 +49,12 @@ def resolve_system(ref, steps: Optional[int] = None, paths: bool = True) -> Syst
     """
     if isinstance(ref, System):
         s = ref
+    elif paths and isinstance(ref, (str, os.PathLike)) and str(ref).endswith(".toml") and os.path.isfile(ref):
+        s = system_file.load_system_file(ref)  # before the plugins are listed (no name ends in .toml)
     elif is_named(ref):
         s = get_system(ref)
     elif system_file.is_spec(ref):
         s = system_file.system_from_spec(ref).with_steps(int(ref.get("steps", 1)))
-    elif paths and isinstance(ref, (str, os.PathLike)) and str(ref).endswith(".toml") and os.path.isfile(ref):
-        s = system_file.load_system_file(ref)
     else:
         if isinstance(ref, dict):
             s = system_builder("refined_object")(ref)

@@ -1,5 +1,6 @@
-"""Compiled RK4 kernels (numba) against their numpy twins: the same bits, and the policy that
-picks one (simgap.jit)."""
+"""Compiled kernels against their numpy twins: the same bits, and the policy that picks one
+(simgap.jit). The built-in examples' compiled step is the C kernel generated from their system files
+(simgap/synthesis/scots/); the index and the games are C (game_kernels); box_offsets is numba."""
 
 from __future__ import annotations
 
@@ -15,7 +16,8 @@ from simgap.synthesis import examples as ex
 from simgap import jit
 
 pytest.importorskip("numba")
-from simgap.synthesis.kernels import dcdc_rk4  # noqa: E402
+if __import__("simgap.compile", fromlist=["c_compiler"]).c_compiler() is None:
+    pytest.skip("no C compiler: the compiled steps and games are not built here", allow_module_level=True)
 
 
 def _vehicle_batch(rng, B=20000):
@@ -43,24 +45,29 @@ def test_vehicle_kernel_bit_identical(rng, monkeypatch):
 
 
 def test_vehicle_kernel_divides_as_numpy():
-    """A zero cos(alpha) (an input term the grid never has) gives numpy's inf/nan, not numba's
-    default ZeroDivisionError (the kernels are compiled with error_model="numpy")."""
-    from simgap.synthesis.kernels import vehicle_rk4
-    x = np.array([[1.0, 2.0, 0.5], [np.nan, 0.0, 0.0]])
-    z = np.zeros(2)
-    got = vehicle_rk4(x, z, z, np.ones(2), z, 0.3, 10)
-    assert not np.isfinite(got[:, :2]).any() and got[0, 2] == 0.5
+    """Non-finite states give numpy's inf/nan through the compiled step (C arithmetic, no
+    exception), rows of other inputs alongside unchanged."""
+    from simgap.runge_kutta import rk4_integrate
+    x = np.array([[1.0, 2.0, 0.5], [np.nan, 0.0, 0.0], [np.inf, 1.0, 0.2]])
+    u = np.array([[0.3, 0.6], [0.3, 0.6], [-0.9, 0.0]])
+    with np.errstate(all="ignore"):
+        want = rk4_integrate(ex._vehicle_rhs_prepared, x, u, 0.3, ex.VEHICLE_NINT, prepare=ex._vehicle_input_terms)
+    got = ex._vehicle_compiled(x, u, 0.3)
+    assert np.array_equal(got, want, equal_nan=True) and np.isfinite(got[0]).all() and np.isnan(got[1, 0])
 
 
 def test_dcdc_kernel_bit_identical(rng, monkeypatch):
+    """The converter's compiled step (generated from scots/dcdc.toml) gives the bits of its numpy
+    step, at its period and at another."""
     s = ex.dcdc_system()
-    x = rng.uniform([1.0, 5.3], [1.7, 6.0], (20000, 2))
-    u = s.inputs[rng.integers(0, 2, 20000)]
+    x = rng.uniform([1.0, 5.3], [1.7, 6.0], (20001, 2))
+    u = s.inputs[rng.integers(0, 2, 20001)]
     monkeypatch.setenv("SIMGAP_JIT", "0")
-    want = s.step(x, u, 0.5)
+    want = {tau: s.step(x, u, tau) for tau in (0.5, 1.5)}
     monkeypatch.setenv("SIMGAP_JIT", "1")
-    assert np.array_equal(s.step(x, u, 0.5), want)
-    assert np.array_equal(s.step(x, u, 1.5), dcdc_rk4(x, u, 1.5, 5, ex._DCDC_A, float(ex._DCDC_B[0])))
+    for tau in (0.5, 1.5):
+        assert np.array_equal(s.step(x, u, tau), want[tau])
+    assert not np.array_equal(want[0.5], want[1.5])
 
 
 def test_dcdc_numpy_by_mode_bit_identical(rng):
@@ -171,8 +178,10 @@ def test_kernel_load_defers_numbas_blas_probe():
     """Loading a kernel does not import scipy.linalg (numba's import-time BLAS probe, 0.23 s and
     28 MB: jit._defer_blas_probe); numba's BLAS-backed functions still compile and import it."""
     code = ("import sys\nimport numpy as np\nfrom simgap.synthesis import kernels\n"
-            "from simgap.synthesis.examples import _DCDC_A\n"
-            "kernels.dcdc_rk4(np.ones((4, 2)), np.ones((4, 1)), 0.5, 5, _DCDC_A, 1.0)\n"
+            "lo, hi, ok = np.zeros((4, 2), np.int8), np.zeros((4, 2), np.int8), np.zeros(4, np.bool_)\n"
+            "f = np.ones(2)\n"
+            "kernels.box_offsets(np.ones((4, 2)), np.ones((4, 2)) * 0.1, f * 1e-12, f, f * 0, f * -10, f * 10,\n"
+            "                    np.zeros((4, 2), np.int32), np.zeros(2, np.bool_), 100.0, lo, hi, ok)\n"
             "print('scipy.linalg' in sys.modules)\n"
             "import numba\n"
             "f = numba.njit(lambda a, b: np.dot(a, b))\n"
@@ -234,6 +243,38 @@ def test_reach_kernel_counts_every_transition_once(monkeypatch):
     bits = lambda r: np.unpackbits(r.valid_packed).sum()  # noqa: E731
     assert bits(bad) < bits(good)  # pairs whose count never reaches 0: fewer valid inputs
     assert bad.winning.sum() < good.winning.sum()
+
+
+@pytest.mark.parametrize("case", ["dcdc", "periodic"])
+def test_invariance_game_same_with_and_without_kernel(case, monkeypatch):
+    """The compiled round of the invariance worklist (game_kernels.inv_level) keeps the same cells
+    with the same valid inputs, chosen inputs, rounds and dropped pairs as the numpy rounds (a
+    bounded grid and one with a periodic heading)."""
+    from simgap.synthesis import Box, Spec, label_cells, solve_invariance
+    inf = np.inf
+    if case == "dcdc":
+        s = ex.dcdc_system()
+        g = UniformGrid(s.x_lo, s.x_hi, (0.002, 0.002))
+        spec, kw = ex.dcdc_spec(), dict(growth=ex.dcdc_growth())
+    else:
+        s = ex.vortex_system()
+        g = UniformGrid(s.x_lo, s.x_hi, (0.4, 0.4, 2 * np.pi / 16), periodic=s.angle_dims)
+        spec = Spec(kind="invariance", safe=Box([2.0, 2.0, -inf], [8.0, 8.0, inf]))
+        kw = dict(growth=ex.vortex_growth())
+    monkeypatch.setenv("SIMGAP_JIT", "0")
+    blocked, _ = label_cells(g, spec, s.x_lo, s.x_hi)
+    ab = build_abstraction(s, g, **kw)
+    assert ab.corner_index is not None
+    res = {}
+    for mode in ("0", "1"):
+        monkeypatch.setenv("SIMGAP_JIT", mode)
+        res[mode] = solve_invariance(ab, ~blocked, blocked, method="worklist")
+    a, b = res["0"], res["1"]
+    assert np.array_equal(a.winning, b.winning) and np.array_equal(a.valid_packed, b.valid_packed)
+    assert np.array_equal(a.chosen, b.chosen)
+    assert a.iterations == b.iterations and a.info["pairs_tested"] == b.info["pairs_tested"]
+    assert a.iterations > 2 and 0 < a.winning.sum() < (~blocked).sum()
+    assert np.unique(a.chosen[a.winning]).size > 1  # the margins decide between inputs somewhere
 
 
 @pytest.mark.parametrize("case", ["vehicle", "periodic"])

@@ -44,6 +44,8 @@ SUMMARIES = {
     "plot": "paper-style figures of a finished run (PNG and PDF): rollouts, states over time, gamma, p_cert",
 }
 ALL = object()  # build_parser(ALL): every subcommand's full parser
+#: the start method of a command's local pools (set by :func:`main`; read by simgap.executors)
+POOL_START = None
 
 
 def command_of(argv) -> "str | None":
@@ -148,8 +150,10 @@ def _reap_forkserver() -> None:
     workers are the forkserver's children, reaped by it; once it is waited for, their CPU time
     counts as this process's children's, so `time simgap run` reports the whole run's CPU (a
     two-worker collection on the forkserver: 0.05 CPU-seconds of children without this, 5.3 with it)."""
+    forkserver = sys.modules.get("multiprocessing.forkserver")  # never started without its module
+    if forkserver is None:
+        return
     try:
-        from multiprocessing import forkserver
         server = forkserver._forkserver
         if getattr(server, "_forkserver_pid", None) is not None:
             server._stop()
@@ -159,8 +163,8 @@ def _reap_forkserver() -> None:
 
 def main(argv=None) -> int:
     import signal
-    from .. import executors
-    executors.PREFERRED_START = "forkserver"  # see executors.PREFERRED_START
+    global POOL_START
+    POOL_START = "forkserver"  # see executors.PREFERRED_START (not imported here: 50 ms of multiprocessing)
     command = command_of(sys.argv[1:] if argv is None else argv)
     parser = build_parser(command if command in SUMMARIES else None)
     args = parser.parse_args(argv)

@@ -390,6 +390,9 @@ def growth_function(system: System, growth: Optional[GrowthFn]) -> GrowthFn:
     the only period such a function can have been written for); at other periods it is refused.
     """
     if growth is None:
+        radius_post = getattr(system.step, "radius_post", None)  # a system file's bounds.growth
+        if radius_post is not None:
+            return radius_post(system.steps)
         if system.jacobian_bound is None:
             raise SimgapError(f"system {system.name!r} has no jacobian_bound; pass a growth function")
         return state_independent(lambda r, x, u, tau: system.growth_bound(r, u))  # uses system.tau
@@ -514,9 +517,15 @@ def build_abstraction(system: System, grid: UniformGrid, *, growth: Optional[Gro
         radii = [np.tile(rr, (cb, 1)) for rr in radii]
 
     disp_needed = bool(pmask.any()) or hold > 1
+    kernel = None
+    if radii is not None and gap is None and hold == 1 and not pmask.any():
+        from .grid_kernel import grid_kernel  # a system file's boxes in one compiled pass
+        kernel = grid_kernel(system, K * M * system.steps)
+    if kernel is not None:
+        kernel.boxes(system, grid, radii[1][:M], z, class_dims, off, ok, _OFF_LIMIT, on_progress)
     # the work declared, so that a system step with a compiled twin knows whether it pays (jit.py)
     with expected_work(K * M * hold * system.steps):
-        for s in range(0, K, cb):  # blocks bound the memory
+        for s in range(0, K if kernel is None else 0, cb):  # blocks bound the memory
             e = min(K, s + cb)
             P = (e - s) * M
             j, u = j_full[:P], u_full[:P]

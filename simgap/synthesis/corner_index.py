@@ -22,11 +22,6 @@ from typing import Optional
 
 import numpy as np
 
-from ..jit import expected_work, use_compiled
-
-#: (cell, input) pairs from which the compiled build pays for numba's start in auto mode
-#: (about 0.1 us a pair saved, numba's start about 0.5-0.8 s)
-COMPILED_PAIRS = 8_000_000
 
 
 def expand_counts(counts: np.ndarray):
@@ -91,9 +86,10 @@ class CornerIndex:
         about 4 + n bytes per pair while building and 5 bytes per indexed pair after."""
         g = ab.grid
         N, M, n = g.size, ab.n_inputs, g.n
-        with expected_work(N * M):
-            if use_compiled(COMPILED_PAIRS):
-                return cls._build_compiled(ab)
+        from . import game_kernels
+        lib = game_kernels.for_abstraction(ab)
+        if lib is not None:
+            return cls._build_compiled(ab, lib)
         shape = np.array(g.shape, dtype=np.int32)
         strides = g.strides.astype(np.int32)
         keys = np.empty((M, N), dtype=np.int32)  # input-major: long ascending runs for the chunk sorts
@@ -187,22 +183,23 @@ class CornerIndex:
         return cls(ab, indptr, q, code_out, emax, usable_bits, cell_boxes, cell_trans)
 
     @classmethod
-    def _build_compiled(cls, ab) -> Optional["CornerIndex"]:
-        """:meth:`build` by two compiled passes over the pairs (:mod:`.kernels`: counts, then
+    def _build_compiled(cls, ab, lib) -> Optional["CornerIndex"]:
+        """:meth:`build` by two compiled passes over the pairs (:mod:`.game_kernels`: counts, then
         placement in input-major order), with no per-pair keys or extents kept between them:
         the same arrays."""
-        from .kernels import corner_counts, corner_place
+        from .game_kernels import corner_counts, corner_place
         g = ab.grid
         N, M, n = g.size, ab.n_inputs, g.n
-        args = (ab.off_lo, ab.off_hi, ab.ok, np.array(g.shape, dtype=np.int64),
-                g.strides.astype(np.int64), np.asarray(g.periodic_mask, dtype=np.bool_))
+        args = (np.ascontiguousarray(ab.off_lo), np.ascontiguousarray(ab.off_hi), np.ascontiguousarray(ab.ok),
+                np.array(g.shape, dtype=np.int64), g.strides.astype(np.int64),
+                np.asarray(g.periodic_mask, dtype=np.uint8))
         counts = np.zeros(N, dtype=np.int64)
         usable_bits = np.zeros((N, (M + 7) // 8), dtype=np.uint8)
         boxes_t, trans_t = _cell_dtypes(M)
         cell_boxes = np.zeros(N, dtype=boxes_t)
         cell_trans = np.zeros(N, dtype=trans_t)
         emax = np.zeros(n, dtype=np.int64)
-        corner_counts(*args, counts, usable_bits, cell_boxes, cell_trans, emax)
+        corner_counts(lib, *args, counts, usable_bits, cell_boxes, cell_trans, emax)
         if int(np.prod(emax)) > cls.MAX_ROWS:
             return None
         emax = np.maximum(emax, 1)
@@ -211,7 +208,7 @@ class CornerIndex:
         del counts
         q = np.empty(int(indptr[-1]), dtype=np.int32 if N * M < 2 ** 31 else np.int64)
         code = np.empty(q.size, dtype=np.uint8)
-        corner_place(*args, emax, indptr, q, code)
+        corner_place(lib, *args, emax, indptr, q, code)
         return cls(ab, indptr, q, code, emax, usable_bits, cell_boxes, cell_trans)
 
     def pairs(self, cells: np.ndarray) -> np.ndarray:

@@ -18,11 +18,14 @@ from __future__ import annotations
 
 import numpy as np
 
+from pathlib import Path
+
+from ..errors import SimgapError
 from ..systems import System, input_grid
 from .abstraction import state_independent
 from .grid import UniformGrid
-from ..jit import use_compiled
-from ..runge_kutta import _input_rows, compiled_args, rk4_growth, rk4_integrate, rk4_step
+from .grid_kernel import file_step
+from ..runge_kutta import compiled_args, rk4_growth, rk4_integrate, rk4_step
 from .spec import Box, Spec
 
 VEHICLE_TAU = 0.3
@@ -74,25 +77,27 @@ def _vehicle_rhs_prepared(x, p):
     return out
 
 
+#: SCOTS's examples as system files (package data): the built-in examples' compiled step is the C
+#: kernel generated from them (:mod:`.grid_kernel`), the same bits as the numpy steps below
+SCOTS_FILES = Path(__file__).with_name("scots")
+
+
 def _vehicle_compiled(x, u, tau):
-    """:func:`vehicle_step` by the compiled RK4 (:mod:`.kernels`); the input terms by numpy
-    (:func:`_vehicle_input_terms`, once per distinct input), as the numpy path computes them."""
-    from .kernels import vehicle_rk4  # numba: imported only when a job is large enough (jit.py)
-    uu, inv = _input_rows(u)
-    terms = [np.ascontiguousarray(t.take(inv.ravel())) for t in _vehicle_input_terms(uu)]
-    return vehicle_rk4(x, *terms, tau, VEHICLE_NINT)
-
-
-#: step rows from which the compiled RK4 pays for numba's start (about 0.5 us saved per row)
-_vehicle_compiled.min_rows = 1_500_000
+    """:func:`vehicle_step` by the kernel generated from ``scots/vehicle.toml`` (the same bits: the
+    input terms by numpy once per distinct input, as the numpy path computes them)."""
+    step = file_step(SCOTS_FILES / "vehicle.toml", force=True)
+    if step is None:
+        raise SimgapError("the vehicle's compiled step needs a C compiler ($CC, cc or gcc)")
+    return step(x, u, tau)
 
 
 def vehicle_step(x: np.ndarray, u: np.ndarray, tau: float) -> np.ndarray:
     """SCOTS ``runge_kutta_fixed4`` with 10 intermediate steps over tau, vectorized over rows
-    (compiled for large jobs: :mod:`.kernels`, the same bits)."""
+    (compiled when it pays: the kernel generated from ``scots/vehicle.toml``, the same bits)."""
     xu = compiled_args(x, u)
-    if xu is not None and use_compiled(_vehicle_compiled.min_rows):
-        return _vehicle_compiled(xu[0], xu[1], float(tau))
+    step = file_step(SCOTS_FILES / "vehicle.toml", len(xu[0])) if xu is not None else None
+    if step is not None:
+        return step(xu[0], xu[1], float(tau))
     return rk4_integrate(_vehicle_rhs_prepared, x, u, tau, VEHICLE_NINT, prepare=_vehicle_input_terms)
 
 
@@ -217,13 +222,12 @@ def _progression(rows: np.ndarray):
     return rows
 
 
-def _dcdc_compiled(x, u, tau):
-    from .kernels import dcdc_rk4  # numba: imported only when a job is large enough (jit.py)
-    return dcdc_rk4(x, u, tau, 5, _DCDC_A, float(_DCDC_B[0]))
-
-
-#: about 0.1 us saved per row (the numpy step is cheap): numba's start pays from ~10 M rows
-_dcdc_compiled.min_rows = 10_000_000
+def _dcdc_step(x, u, tau):
+    """The converter's step: the kernel generated from ``scots/dcdc.toml`` when it pays (the same
+    bits), else :func:`_dcdc_numpy`."""
+    xu = compiled_args(x, u)
+    step = file_step(SCOTS_FILES / "dcdc.toml", len(xu[0])) if xu is not None else None
+    return step(xu[0], xu[1], float(tau)) if step is not None else _dcdc_numpy(x, u, tau)
 
 
 def dcdc_system(x_lo=(1.15, 5.45), x_hi=(1.55, 5.85)) -> System:
@@ -233,7 +237,7 @@ def dcdc_system(x_lo=(1.15, 5.45), x_hi=(1.55, 5.85)) -> System:
     """
     return System(name="dcdc", state_names=("il", "vc"), input_names=("mode",), x_lo=x_lo, x_hi=x_hi,
                   inputs=np.array([[1.0], [2.0]]), base_tau=DCDC_TAU,
-                  step=rk4_step(_dcdc_rhs, nint=5, compiled=_dcdc_compiled, numpy=_dcdc_numpy),
+                  step=_dcdc_step,
                   params={"inputs": "categorical"})  # switch modes: nothing lies between 1 and 2
 
 

@@ -83,6 +83,20 @@ def _invariance_worklist(ab: Abstraction, S: np.ndarray, alive: np.ndarray, pre)
     n_alive = _row_counts(alive, N, M)
     W = S & (n_alive > 0)
     R = np.flatnonzero(S & ~W)
+    level = _compiled_level(pre, alive, n_alive)
+    if level is not None:  # the same rounds in C (game_kernels.inv_level): the same W, alive and count
+        it = tested = 0
+        while True:
+            it += 1
+            R, n_p = level(R)
+            if n_p == 0:
+                break
+            tested += n_p
+            tick(it, R.size)
+            if R.size == 0:
+                break
+            W[R] = False
+        return W, it, tested
     # scratch for removing duplicate pairs without sorting (at most 16 MB; else np.unique)
     owner = np.empty(alive.size, dtype=np.int32) if alive.size <= 1 << 22 else None
     it = tested = 0
@@ -103,6 +117,23 @@ def _invariance_worklist(ab: Abstraction, S: np.ndarray, alive: np.ndarray, pre)
             break
         W[R] = False
     return W, it, tested
+
+
+def _compiled_level(pre, alive: np.ndarray, n_alive: np.ndarray):
+    """``level(R) -> (cells left without an alive pair, pairs dropped)`` in C when
+    :mod:`.game_kernels` says so and ``pre`` is a corner index; else None (the numpy rounds)."""
+    from .corner_index import CornerIndex
+    if not isinstance(pre, CornerIndex) or not alive.flags.c_contiguous:
+        return None
+    from . import game_kernels
+    lib = game_kernels.library(alive.size, np.int8, pre.q.dtype)
+    if lib is None:
+        return None
+    flags = alive.view(np.uint8)  # updated in place, as the numpy rounds update alive
+    args = (pre.indptr, pre.q, pre.code, np.ascontiguousarray(pre.offsets, dtype=np.int64),
+            np.ascontiguousarray(pre.fits, dtype=np.uint8), np.array(pre.shape, dtype=np.int64),
+            np.array(pre.strides, dtype=np.int64), np.asarray(pre.pmask, dtype=np.uint8), int(pre.M))
+    return lambda R: game_kernels.invariance_level(lib, R, *args, flags, n_alive)
 
 
 def _distinct(a: np.ndarray, owner: Optional[np.ndarray]) -> np.ndarray:
@@ -182,6 +213,13 @@ def _safety_controller(ab: Abstraction, W: np.ndarray, live: np.ndarray, max_mar
     for _ in range(max_margin):
         E = _erode(E, g.periodic_mask)
         D += E.ravel()
+    lib = None
+    if alive is not None and len(ab.class_dims) == g.n:  # the same choice in C (game_kernels.safety_choose)
+        from . import game_kernels
+        lib = game_kernels.for_abstraction(ab)
+    if lib is not None:
+        valid = alive.reshape(N, M) & W[:, None]
+        return pack_rows(valid), game_kernels.safety_choose(lib, ab, valid, D, max_margin)
     top = BoxCounter(g.shape, g.periodic_mask).set(E.ravel())
     del E
     if alive is None:

@@ -20,7 +20,6 @@ from .abstraction import Abstraction
 from .boxes import BoxCounter, PairEvaluator, pair_volumes, volume_bound
 from .corner_index import CornerIndex
 from .fixed_point import GameResult, choose_method, tick
-from ..jit import expected_work, use_compiled
 from .live import _per_class, _usable_pairs, _valid_shared, live_pairs
 from .pair_rows import _block_size, _unpack, pack_rows
 from .predecessors import _frontier, _predecessors
@@ -127,25 +126,20 @@ def _reach_worklist(ab: Abstraction, target: np.ndarray, live: np.ndarray, pre):
     return steps, packed, it, tested
 
 
-#: transitions from which the compiled level pays for numba's start in auto mode (the numpy
-#: level costs about 40 ns per transition more; numba's start about 0.8 s)
-COMPILED_GAME_TRANSITIONS = 20_000_000
-
-
 def _compiled_level(pre, cnt):
     """``level(R, won) -> (pairs whose count reached 0, transitions visited)`` compiled
-    (:func:`simgap.synthesis.kernels.reach_level`) when :mod:`simgap.jit` says so for this game's
-    transitions and ``pre`` is a corner index; else None (the numpy level)."""
+    (:func:`simgap.synthesis.game_kernels.reach_level`) when :mod:`.game_kernels` says so for this
+    game's pairs and ``pre`` is a corner index; else None (the numpy level)."""
     if not isinstance(pre, CornerIndex):
         return None
-    with expected_work(int(pre.cell_transitions.sum(dtype=np.int64))):
-        if not use_compiled(COMPILED_GAME_TRANSITIONS):
-            return None
-    from .kernels import reach_level
-    args = (pre.indptr, pre.q, pre.code, pre.offsets.astype(np.int64), pre.fits,
-            np.array(pre.shape, dtype=np.int64), np.array(pre.strides, dtype=np.int64),
-            np.asarray(pre.pmask, dtype=np.bool_), np.int64(pre.M))
-    return lambda R, won: reach_level(R.astype(np.int64), *args, won, cnt)
+    from . import game_kernels
+    lib = game_kernels.library(cnt.size, np.int8, pre.q.dtype, cnt=cnt.dtype)
+    if lib is None:
+        return None
+    args = (pre.indptr, pre.q, pre.code, np.ascontiguousarray(pre.offsets, dtype=np.int64),
+            np.ascontiguousarray(pre.fits, dtype=np.uint8), np.array(pre.shape, dtype=np.int64),
+            np.array(pre.strides, dtype=np.int64), np.asarray(pre.pmask, dtype=np.uint8), int(pre.M))
+    return lambda R, won: game_kernels.reach_level(lib, R, *args, won, cnt)
 
 
 def _reach_sat(ab: Abstraction, ev: PairEvaluator, target, blocked, live, group_filter):

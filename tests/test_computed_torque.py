@@ -15,12 +15,14 @@ from simgap.simulators import make_simulator
 from simgap.system_file import load_system_file
 
 pytest.importorskip("pybullet")
+pybullet_data = pytest.importorskip("pybullet_data")
 
 KUKA = Path(__file__).resolve().parents[1] / "assets" / "experiments" / "kuka"
+URDF = str(Path(pybullet_data.getDataPath()) / "kuka_iiwa" / "model.urdf")
 JOINTS = [f"lbr_iiwa_joint_{i}" for i in range(1, 8)]
 TAU, N = 0.05, 12  # the system file's period; substeps 12: dt = 1/240 s
 BASE = {"kind": "pybullet_urdf", "system": "kuka_ct",
-        "options": {"urdf": str(KUKA / "model.urdf"), "positions": JOINTS, "velocities": JOINTS, "inputs": JOINTS,
+        "options": {"urdf": URDF, "positions": JOINTS, "velocities": JOINTS, "inputs": JOINTS,
                     "inner_loop": "computed_torque", "substeps": N, "copies": 8}}
 X0 = np.array([0.0, 0.6, 0.0, -1.6, 0.0, 0.9, 0.0] + [0.0] * 7)
 
@@ -78,7 +80,7 @@ def test_torque_noise_enters_through_the_mass_matrix(system):
     y = sim.step(np.tile(X0, (R, 1)), np.zeros((R, 7)), np.random.default_rng(3))
     c = pb.connect(pb.DIRECT)
     try:
-        b = pb.loadURDF(str(KUKA / "model.urdf"), useFixedBase=True, flags=pb.URDF_USE_INERTIA_FROM_FILE,
+        b = pb.loadURDF(URDF, useFixedBase=True, flags=pb.URDF_USE_INERTIA_FROM_FILE,
                         physicsClientId=c)
         M = np.array(pb.calculateMassMatrix(b, X0[:7].tolist(), physicsClientId=c))
     finally:

@@ -385,7 +385,8 @@ class UrdfSimulator(BulletSimulator):
 
     # ----- randomness ----------------------------------------------------------------------
     def draw_noise(self, B: int, rng: np.random.Generator) -> Dict[str, np.ndarray]:
-        """Per-run draws: ``act`` (B,m), ``sens`` (B,n), ``proc`` (B,steps,n) additive noise;
+        """Per-run draws: ``act`` (B,m), ``sens`` (B,n), ``proc`` (B,steps,n) additive noise, ``torque`` (B, J)
+        (the computed-torque loop's, J = len(options.inputs));
         ``mass``, ``friction`` (B, links) and ``damping`` (B, movable joints) relative factors.
         The same numbers are drawn whatever the configuration, in a fixed order."""
         s = self.system
@@ -396,7 +397,9 @@ class UrdfSimulator(BulletSimulator):
         mass = relative_factors(rng, B * L, self.mass_std).reshape(B, L)
         damping = relative_factors(rng, B * J, self.damp_std).reshape(B, J)
         friction = relative_factors(rng, B * L, self.fric_std).reshape(B, L)
-        torque = rng.standard_normal((B, len(self.in_names))) * self.torque_std  # last: earlier draws unchanged
+        # last, and only with the inner loop: every other configuration draws the stream it drew before
+        torque = (rng.standard_normal((B, len(self.in_names))) * self.torque_std if self.inner_loop == "computed_torque"
+                  else np.zeros((B, len(self.in_names))))
         return {"act": act, "sens": sens, "proc": proc, "mass": mass, "damping": damping, "friction": friction,
                 "torque": torque}
 

@@ -358,7 +358,7 @@ def crn_pair_means(sim, x1, x2, u1, u2, runs: int, rng: np.random.Generator, inc
 
 
 def gap_slopes_crn(sim, nominal, rng: np.random.Generator, direction: str, k: int, h_max: float, n_pairs: int,
-                   runs: int, inputs: np.ndarray, lo=None, hi=None, on_progress=None) -> np.ndarray:
+                   runs: int, inputs: np.ndarray, lo=None, hi=None, on_progress=None, box=None) -> np.ndarray:
     """Slopes of the gap g = E fhat - f (f the ``nominal`` model) along state (``direction="x"``) or
     input (``"u"``) axis k, from pairs simulated with common random numbers, (n_pairs, n), and each
     slope's standard error from the noise the common draws did not cancel (n_pairs, n).
@@ -366,10 +366,12 @@ def gap_slopes_crn(sim, nominal, rng: np.random.Generator, direction: str, k: in
     Pair distances are log-uniform in [h_max / 8, h_max] (several distances, so a slope that only
     shows at one scale is not missed by construction); x uniform in X (shrunk by h along k), u
     drawn from ``inputs`` (for ``"u"``: uniform in the input box [lo, hi] shrunk by h).
-    ``on_progress(rows_done, rows)`` while the 2 n_pairs runs rows are simulated."""
+    ``box`` = (x_lo, x_hi): where x is drawn (default the simulator's X; a local certificate passes its
+    region: its gamma is stated there only, and beyond it the simulator may do what the region never
+    sees, a joint limit). ``on_progress(rows_done, rows)`` while the 2 n_pairs runs rows are simulated."""
     s = sim.system
     h = h_max * 2.0 ** (-3.0 * rng.random(n_pairs))
-    xlo, xhi = s.x_lo.copy(), s.x_hi.copy()
+    xlo, xhi = (s.x_lo.copy(), s.x_hi.copy()) if box is None else (np.array(box[0], float), np.array(box[1], float))
     x1 = xlo + rng.random((n_pairs, s.n)) * (xhi - xlo)
     if direction == "x":
         x1[:, k] = xlo[k] + rng.random(n_pairs) * (xhi[k] - xlo[k] - h)

@@ -787,7 +787,8 @@ def _gap_lipschitz_compute(ds, o: CertifyOptions, simulator=None, on_progress=No
                 sl, noise = gap_slopes_crn(sim_ctx, s, rng, direction, k, 2.0 * eps_j, per_axis,
                                            o.lhat_runs, np.unique(ds.u, axis=0), lo, hi,
                                            None if on_progress is None else
-                                           (lambda done, rows, a=a: on_progress(a, done, rows)))
+                                           (lambda done, rows, a=a: on_progress(a, done, rows)),
+                                           box=(s.x_lo, s.x_hi))  # the region's X (ds is narrowed to it)
                 src = (f"{per_axis} common-random-number pairs along it at distances log-uniform in "
                        f"[{eps_j / 4:.3g}, {2 * eps_j:.3g}], {o.lhat_runs} runs each (simulator)")
             for i in range(n):

@@ -192,3 +192,16 @@ def test_a_gap_far_below_what_the_tube_tolerates_is_not_ranked(cubic):  # noqa: 
                                  log=lines.append)
     assert not res.empty and len(res.stats["designs"]) == 1 and res.stats["plan_input_weight"] == td.PACES[0]
     assert any("designs not ranked" in t for t in lines)
+
+
+def test_levers_read_the_finite_periods_and_name_the_region_first():
+    """A tube box outside the certificate's region has gamma = inf there: the table's rows read the other
+    periods (a table of inf named no lever on the KUKA's tube) and a first line names the region."""
+    w_all = np.array([[0.1, 0.2], [np.inf, np.inf], [0.3, 0.1]])
+    w, left = td.finite_gap(w_all)
+    assert left and np.array_equal(w, [0.3, 0.2])
+    assert td.finite_gap(w_all[[0, 2]])[1] is False
+    lv = td.levers(_fake_cert(), SimpleNamespace(n=2, state_names=("a", "b")), w, 0.5, [], left_region=left)
+    assert "tube_margin" in lv["text"][0] and all(np.isfinite(r["gamma"]) for r in lv["states"])
+    assert "tube_margin" not in td.levers(_fake_cert(), SimpleNamespace(n=2, state_names=("a", "b")), w, 0.5,
+                                          [])["text"][0]

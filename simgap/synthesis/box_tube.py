@@ -1115,8 +1115,12 @@ def _synthesize_box_tube(system, spec, gap, x0, x_star, u_star, K, lqr_q, lqr_r,
                                "a refined model: docs/synthesis.md)")
         if gap is not None and scale is not None and np.isfinite(scale):
             from .tube_design import levers
-            lv = levers(gap if hasattr(gap, "dims") else None, system, v.to_dict()["w_max"], scale,
-                        cands if len(cands) > 1 else [])
+            from .tube_design import finite_gap
+            w_all = np.concatenate([v.w_max, np.asarray(v.terminal["w_H"], float)[None]], axis=0) \
+                if v.terminal else np.asarray(v.w_max, float)
+            w_fin, left = finite_gap(w_all)
+            lv = levers(gap if hasattr(gap, "dims") else None, system, w_fin, scale,
+                        cands if len(cands) > 1 else [], left_region=left)
             stats["levers"] = {k: lv[k] for k in ("states", "designs")}
             stats["levers_text"] = lv["text"]
     stats["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024

@@ -123,7 +123,15 @@ def _runs_for(cert, i: int, need_sum: float) -> Optional[int]:
     return hi
 
 
-def levers(cert, system, w_max, scale: float, cands: list) -> dict:
+def finite_gap(w_all) -> tuple:
+    """(per state the max of the gap's bound over the periods where it is finite, whether some period's was
+    not): a box that leaves the certificate's region has no bound (inf), and a table of inf says nothing."""
+    w = np.asarray(w_all, float).reshape(-1, np.shape(w_all)[-1])
+    ok = np.isfinite(w)
+    return np.where(ok, w, -np.inf).max(axis=0, initial=0.0), bool(not ok.all())
+
+
+def levers(cert, system, w_max, scale: float, cands: list, left_region: bool = False) -> dict:
     """Per state: the certified gamma along the tube (max over periods, ``w_max`` (n,)) against the tolerable
     one (s x it, s = ``scale`` the largest factor the proof holds with), and for each lever what it would
     need. A reduction of gamma by (1 - s) max_t w_i(t) in every period suffices (w_i(t) - D <= s w_i(t)
@@ -137,6 +145,8 @@ def levers(cert, system, w_max, scale: float, cands: list) -> dict:
       it would remove at most;
     * another pace or gain: the designs tried and their margins;
     * a shorter period: not computed (it needs data at that period).
+    ``left_region``: some box of the tube left the certificate's region (gamma infinite there; ``w_max`` then
+    holds the max over the other periods): a first line names the region as the lever that comes first.
     Returns {"states": [rows], "designs": [...], "text": lines}."""
     w = np.asarray(w_max, float)
     s = float(scale) if scale is not None and np.isfinite(scale) else 0.0
@@ -146,6 +156,9 @@ def levers(cert, system, w_max, scale: float, cands: list) -> dict:
     lip = cert.lipschitz_terms() if cert is not None else np.zeros(n)
     cov = int(np.count_nonzero(np.asarray(getattr(cert, "radii", None) if getattr(cert, "radii", None) is not None
                                           else np.ones(n)) > 0)) if cert is not None else 0
+    if left_region:
+        lines.append("first: the tube leaves the certificate's region (its data's boxes), where gamma is not bounded: "
+                     "a wider [collect] tube_margin (or region); the rows below read gamma over the periods inside it")
     lines.append(f"{'state':<10}{'gamma':>11}{'tolerable':>11}{'reduce by':>11}   levers (each alone)")
     for i in range(n):
         need = (1.0 - s) * w[i]

@@ -1,7 +1,7 @@
 """Benchmark: the size of a collection along a box tube against a grid over X, at 4, 6 and 14 states
 (issue 52 item 5).
 
-    python bench/bench_tube_cover.py [--dims 4,6,14] [--epsilon 0.1] [--gap 1e-4]
+    python bench/bench_tube_cover.py [--dims 4,6,14] [--epsilon 0.1] [--gap 1e-4] [--run DIR ...]
 
 The system is bench/bench_invariant_set.py's chain of n / 2 double integrators (Euler steps of 0.1 s
 as a discrete system file, X = [-1, 1]^n, forces in [-2, 2]), the tube its box tube from x0 = (0.3
@@ -15,6 +15,11 @@ asks for the smallest, ``terminal = "smallest"``) at the cover radius ``--epsilo
 grid over X and of the grid over the tube's hull at the same epsilon (the two routes without the
 tube), and the seconds the tube cover took to build. Pairs = points x the input grid (3 values per
 input here: 3^(n/2) inputs); the table gives points, the quantity that depends on the cover.
+
+``--run DIR`` (a ``simgap run`` folder whose data were collected along a tube, e.g. ``simgap run kuka``'s)
+adds the collection that run actually made, read from its store's manifest: the system's n, the boxes,
+the points along the tube, the grid over X at the run's cover spacing, the inputs per point, N1hat and
+the simulator runs.
 """
 
 from __future__ import annotations
@@ -80,7 +85,10 @@ def main() -> int:
     ap.add_argument("--dims", default="4,6,14")
     ap.add_argument("--epsilon", type=float, default=0.1)
     ap.add_argument("--gap", type=float, default=1e-4)
+    ap.add_argument("--run", nargs="*", default=[], help="simgap run folders collected along a tube")
     a = ap.parse_args()
+    if a.run:
+        print_runs(a.run)
     res = []
     with tempfile.TemporaryDirectory() as tmp:
         for n in [int(v) for v in a.dims.split(",")]:
@@ -102,6 +110,38 @@ def main() -> int:
                   f"{row['points']:,} | {row['points'] / (r['T0'] + 1):.1f} | {row['grid_hull']:.3g} | "
                   f"{r['grid_X']:.3g} | {r['inputs']} | {row['seconds']:.2f} |")
     return 0
+
+
+def run_row(folder: str) -> dict:
+    """The collection a ``simgap run`` made along its tube, from its store's manifest (the first round's)."""
+    sys.path.insert(0, ROOT)
+    import numpy as np
+    from simgap.tube_cover import grid_size
+
+    man = json.load(open(os.path.join(folder, "data", "manifest.json")))["config"]
+    cv, s = man["cover"], man["system"]
+    if cv.get("type") != "boxes":
+        raise SystemExit(f"{folder}: its data were not collected along a tube (cover type {cv.get('type')!r})")
+    cov = [s["state_names"].index(d) for d in cv["covered_dims"]]
+    L = (np.asarray(s["x_hi"], float) - np.asarray(s["x_lo"], float))[cov]
+    h = np.full(len(cov), 2.0 * float(cv["epsilon"]) / math.sqrt(len(cov)))  # the default spacing
+    boxes = json.loads(cv["boxes"]) if isinstance(cv["boxes"], str) else cv["boxes"]
+    m = man["n_pairs"] // cv["n_points"]
+    return {"name": os.path.basename(os.path.normpath(folder)), "n": len(s["state_names"]), "boxes": len(boxes),
+            "points": cv["n_points"], "grid_X": grid_size(L, h), "inputs": m,
+            "pairs": man["n_pairs"], "n_runs": man["n_runs"], "runs": man["n_pairs"] * man["n_runs"],
+            "epsilon": cv["epsilon"]}
+
+
+def print_runs(folders) -> None:
+    print("| run | n | cover radius eps | boxes | points along the tube | grid over X | inputs per point | pairs | "
+          "N1hat | simulator runs |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for f in folders:
+        r = run_row(f)
+        print(f"| {r['name']} | {r['n']} | {r['epsilon']:g} | {r['boxes']} | {r['points']:,} | {r['grid_X']:.3g} | "
+              f"{r['inputs']:,} | {r['pairs']:,} | {r['n_runs']} | {r['runs']:,} |")
+    print()
 
 
 if __name__ == "__main__":

@@ -363,3 +363,21 @@ def test_compare_prints_its_estimate_first_one_bar_and_computes_the_gap_term_onc
     certify(ds, lipschitz_term="gap", lhat="simulator", seed=1)  # the default seed is 0
     assert calls["gap"] == 3 and calls["fhat"] == 3
     assert pipeline.simulator_rows(ds, pipeline.CertifyOptions(lipschitz_term="gap", lhat="simulator"))["rows"] == 0
+
+
+def test_a_local_certificates_gap_slopes_are_drawn_in_its_region():
+    """A wall at p = 0.8 (outside the region p in [-0.5, 0.5]) puts a steep gap there: pairs drawn in the
+    simulator's X find it, pairs drawn in the region (``box``, what certify passes for a local or tube
+    certificate: its gamma is stated there only) do not, and every simulated row lies in the region."""
+    nominal, sim = plant(gap_v=lambda x, u: 50.0 * np.maximum(x[:, 0] - 0.8, 0.0))
+    from simgap.certify.lipschitz import gap_slopes_crn
+    seen = []
+    step = sim.step_with_noise
+    sim.step_with_noise = lambda x, u, noise: (seen.append(x.copy()), step(x, u, noise))[1]
+    box = (np.array([-0.5, -1.0]), np.array([0.5, 1.0]))
+    sl_x, _ = gap_slopes_crn(sim, nominal, np.random.default_rng(0), "x", 0, 0.1, 200, 2, nominal.inputs)
+    sl_box, _ = gap_slopes_crn(sim, nominal, np.random.default_rng(0), "x", 0, 0.1, 200, 2, nominal.inputs,
+                               box=box)
+    assert sl_x[:, 1].max() > 1.0 and sl_box[:, 1].max() < 1e-9
+    rows = seen[-1]
+    assert np.all(rows >= box[0] - 1e-12) and np.all(rows <= box[1] + 1e-12)

@@ -341,3 +341,17 @@ def test_levers_when_the_tube_leaves_the_datas_boxes(pace1_cert):
     assert off.empty and off.stats["gap_scale"] == 0
     assert all(r["tolerable"] is None and "no reduction of gamma helps" in r["text"]
                for r in off.stats["levers"]["states"])
+def test_inputs_by_point_match_the_dense_grid(tube_cert):
+    """The input grid per cover point (``by_point``, used along a tube with simulator slopes: its points are
+    no grid over the states, whose dense grid has prod_j (values along j) cells, 234^14 for the KUKA's tube)
+    gives the dense grid's radii and the same input neighbours; its states get radii and no neighbours."""
+    from simgap.certify.lipschitz import axis_grid
+    from simgap.certify.pipeline import _region_dataset
+    ds = _region_dataset(tube_cert[0])
+    dense, by = axis_grid(ds, [0, 1], [0]), axis_grid(ds, [0, 1], [0], by_point=True)
+    assert by.dims == dense.dims and np.array_equal(by.radii, dense.radii)
+    assert np.array_equal(by.input_radii, dense.input_radii)
+    n = ds.system.n
+    pairs = (lambda g: sorted(zip(g.neighbours[n][0].tolist(), g.neighbours[n][1].tolist())))
+    assert pairs(by) == pairs(dense) and len(pairs(by)) > 0
+    assert all(by.neighbours[j][0].size == 0 for j in (0, 1))

@@ -259,11 +259,15 @@ class AxisGrid:
     input_radii: np.ndarray
 
 
-def axis_grid(dataset, dims, input_dims=()) -> AxisGrid:
+def axis_grid(dataset, dims, input_dims=(), by_point: bool = False) -> AxisGrid:
     """Read the data's rows as a grid over the covered state ``dims`` (see :class:`AxisGrid`) and,
     for continuous inputs, over the input dimensions ``input_dims`` too (keys n + k in ``radii``'s
     extension ``input_radii`` and in ``neighbours``). Inputs not in the grid are matched exactly
-    (neighbours share the input)."""
+    (neighbours share the input). ``by_point``: rows are matched by their cover point instead of by
+    their state values, so only the inputs get neighbours (the states get their values and radii, no
+    neighbours): for a cover whose points are no grid over the states (one point per period along a
+    tube: a grid over their values would have prod_j (distinct values along j) cells, 234^14 at 14
+    states)."""
     s = dataset.system
     n = s.n
     Z = np.concatenate([dataset.x, dataset.u], axis=1)
@@ -280,16 +284,19 @@ def axis_grid(dataset, dims, input_dims=()) -> AxisGrid:
             radii[j] = max(0.5 * gaps.max(initial=0.0), v[0] - s.x_lo[j], s.x_hi[j] - v[-1])
         else:  # an input: the continuous range is the grid's hull
             radii[j] = 0.5 * gaps.max(initial=0.0)
-    shape = [len(values[j]) for j in cols]
-    lin = np.ravel_multi_index([inv[j] for j in cols], shape) if cols else np.zeros(len(Z), np.int64)
-    other = np.zeros(len(Z), np.int64) if input_dims else dataset.input_index.astype(np.int64)
+    keyed = [j for j in cols if j >= n] if by_point else cols  # the dimensions rows are matched along
+    shape = [len(values[j]) for j in keyed]
+    lin = np.ravel_multi_index([inv[j] for j in keyed], shape) if keyed else np.zeros(len(Z), np.int64)
+    other = (dataset.cover_index.astype(np.int64) if by_point else
+             np.zeros(len(Z), np.int64) if input_dims else dataset.input_index.astype(np.int64))
     rowmap = np.full((int(np.prod(shape)), int(other.max()) + 1), -1, dtype=np.int64)
     rowmap[lin, other] = np.arange(len(Z))
     if np.count_nonzero(rowmap >= 0) != len(Z):
         raise SimgapError("the data's rows are not one per (cover point, input) on a grid: the gap's Lipschitz "
                           "matrix needs a grid cover")
-    neighbours = {}
-    for a, j in enumerate(cols):
+    none = np.zeros(0, np.int64)
+    neighbours = {j: (none, none, np.zeros(0)) for j in cols if j not in keyed}
+    for a, j in enumerate(keyed):
         c, k, per = shape[a], inv[j], _full_turn(s, j)
         step = np.prod(shape[a + 1:], dtype=np.int64)
         nxt = np.where(k + 1 < c, lin + step, (lin - (c - 1) * step) if (per and c > 2) else -1)
@@ -351,7 +358,7 @@ def crn_pair_means(sim, x1, x2, u1, u2, runs: int, rng: np.random.Generator, inc
 
 
 def gap_slopes_crn(sim, nominal, rng: np.random.Generator, direction: str, k: int, h_max: float, n_pairs: int,
-                   runs: int, inputs: np.ndarray, lo=None, hi=None, on_progress=None) -> np.ndarray:
+                   runs: int, inputs: np.ndarray, lo=None, hi=None, on_progress=None, box=None) -> np.ndarray:
     """Slopes of the gap g = E fhat - f (f the ``nominal`` model) along state (``direction="x"``) or
     input (``"u"``) axis k, from pairs simulated with common random numbers, (n_pairs, n), and each
     slope's standard error from the noise the common draws did not cancel (n_pairs, n).
@@ -359,10 +366,12 @@ def gap_slopes_crn(sim, nominal, rng: np.random.Generator, direction: str, k: in
     Pair distances are log-uniform in [h_max / 8, h_max] (several distances, so a slope that only
     shows at one scale is not missed by construction); x uniform in X (shrunk by h along k), u
     drawn from ``inputs`` (for ``"u"``: uniform in the input box [lo, hi] shrunk by h).
-    ``on_progress(rows_done, rows)`` while the 2 n_pairs runs rows are simulated."""
+    ``box`` = (x_lo, x_hi): where x is drawn (default the simulator's X; a local certificate passes its
+    region: its gamma is stated there only, and beyond it the simulator may do what the region never
+    sees, a joint limit). ``on_progress(rows_done, rows)`` while the 2 n_pairs runs rows are simulated."""
     s = sim.system
     h = h_max * 2.0 ** (-3.0 * rng.random(n_pairs))
-    xlo, xhi = s.x_lo.copy(), s.x_hi.copy()
+    xlo, xhi = (s.x_lo.copy(), s.x_hi.copy()) if box is None else (np.array(box[0], float), np.array(box[1], float))
     x1 = xlo + rng.random((n_pairs, s.n)) * (xhi - xlo)
     if direction == "x":
         x1[:, k] = xlo[k] + rng.random(n_pairs) * (xhi[k] - xlo[k] - h)

@@ -746,16 +746,17 @@ def _gap_lipschitz_compute(ds, o: CertifyOptions, simulator=None, on_progress=No
     n, m = s.n, s.m
     cov = [j for j in range(n) if j not in invariant_dims(ds)]
     ubox = input_grid_of(s, np.unique(ds.u, axis=0)) if o.continuous_inputs else None
-    grid = axis_grid(ds, cov, range(m) if o.continuous_inputs else ())
     cv = ds.manifest.get("cover") or {}
+    # a cover along a tube with simulator slopes needs no neighbours nor two values per state (its radii are
+    # its cells', its slopes the simulator's); the inputs' radii still come from the input grid's values
+    free = bool(cv.get("boxes")) and o.lhat == "simulator"
+    inputs = range(m) if o.continuous_inputs else ()
+    grid = axis_grid(ds, cov, inputs, by_point=free)  # along a tube its points are no grid over the states
     if cv.get("boxes"):  # a cover along a tube: each box has its own grid, so the values along x_j of all
         # boxes together say nothing of a cell's width; eps_j = half the widest cell over the boxes
         w = np.zeros(n)
         w[cov] = 0.5 * np.asarray(cv["widths"], float)
         grid = dataclasses.replace(grid, radii=np.maximum(grid.radii, w))
-    # a cover along a tube with simulator slopes needs no neighbours nor two values per state (its radii are
-    # its cells', its slopes the simulator's); the inputs' radii still come from the input grid's values
-    free = bool((ds.manifest.get("cover") or {}).get("boxes")) and o.lhat == "simulator"
     for j in grid.dims:
         if not (free and j < n) and (grid.neighbours[j][0].size == 0 or len(grid.values[j]) < 2):
             nm = s.state_names[j] if j < n else s.input_names[j - n]
@@ -786,7 +787,8 @@ def _gap_lipschitz_compute(ds, o: CertifyOptions, simulator=None, on_progress=No
                 sl, noise = gap_slopes_crn(sim_ctx, s, rng, direction, k, 2.0 * eps_j, per_axis,
                                            o.lhat_runs, np.unique(ds.u, axis=0), lo, hi,
                                            None if on_progress is None else
-                                           (lambda done, rows, a=a: on_progress(a, done, rows)))
+                                           (lambda done, rows, a=a: on_progress(a, done, rows)),
+                                           box=(s.x_lo, s.x_hi))  # the region's X (ds is narrowed to it)
                 src = (f"{per_axis} common-random-number pairs along it at distances log-uniform in "
                        f"[{eps_j / 4:.3g}, {2 * eps_j:.3g}], {o.lhat_runs} runs each (simulator)")
             for i in range(n):

@@ -54,6 +54,19 @@ Randomness (all drawn by :meth:`draw_noise` from the caller's generator, once pe
 * ``randomize.joint_damping`` (relative std): each movable joint's damping times 1 + s z;
 * ``randomize.friction`` (relative std): each link's lateral friction times 1 + s z.
 
+Computed-torque inner loop (``options.inner_loop = "computed_torque"``): u (through ``input_map`` when
+given) is the commanded joint acceleration a [rad/s^2 or m/s^2] of every movable joint (``options.inputs``
+names them all; fixed base, torque mode). In every Bullet step the applied torque is
+
+    tau = ID(q, qdot, a + a_noise) + c qdot + n,   clipped to the URDF's effort limits,
+
+ID the recursive Newton-Euler inverse dynamics of the same URDF (``calculateInverseDynamics`` on a
+reference copy in a client of its own: randomized masses or damping of the simulated copies are not
+known to it), c the URDF's joint damping (which Bullet applies and ID leaves out), n ~ N(0,
+``noise.torque_std``^2) per driven joint [N m], held for tau. Noise-free and unclipped, Bullet's
+semi-implicit Euler steps then give qdot+ = qdot + tau a, q+ = q + tau qdot + tau^2 a (N + 1) / (2 N)
+for N = ``steps * substeps`` steps: the double integrator per joint up to tau^2 a / (2 N) in q (tested).
+
 Undeclared effects: ``effects.joint_damping`` [N m s/rad] adds viscous damping to every movable
 joint (Bullet's joint damping: the explicit torque -c qdot in each physics step);
 ``effects.actuator_gain`` k scales the applied input: k (u + a).
@@ -133,6 +146,7 @@ def input_map(value, joints: List[str], system, backend: str = "pybullet_urdf", 
 
 
 INPUT_MODES = ("torque", "velocity", "position")
+INNER_LOOPS = ("none", "computed_torque")
 
 
 def input_modes(value, joints: List[str]) -> List[str]:
@@ -176,21 +190,21 @@ def _report_load(path, no_inertia: list, rest: list) -> None:
 class UrdfSimulator(BulletSimulator):
     """Batched stochastic PyBullet simulator of a URDF (see module docstring for the keys)."""
 
-    NOISE_KEYS = ("actuation_std", "sensor_std", "process_std")
+    NOISE_KEYS = ("actuation_std", "sensor_std", "process_std", "torque_std")
     RANDOMIZE_KEYS = ("mass", "joint_damping", "friction")
     PARAMETER_DRAWS = ("mass", "damping", "friction")  # draw_noise keys held for an episode (randomize.per)
     EFFECT_KEYS = ("joint_damping", "actuator_gain")
     OPTION_KEYS = ("urdf", "urdf_sha256", "positions", "velocities", "inputs", "input_map", "input_mode", "max_force",
                    "position_gain", "velocity_gain",
                    "base_pose", "base_velocity", "driven_start", "base_height", "fixed_base", "ground", "substeps",
-                   "copies", "gravity", "cone_friction")
+                   "copies", "gravity", "cone_friction", "inner_loop")
     TYPES = {"noise": dict.fromkeys(NOISE_KEYS, "numbers"), "randomize": dict.fromkeys(RANDOMIZE_KEYS, "number"),
              "effects": dict.fromkeys(EFFECT_KEYS, "number"),
              "options": {"urdf": "name", "urdf_sha256": "name", "positions": "names", "velocities": "names",
                          "inputs": "names", "input_map": "matrix", "input_mode": "names", "max_force": "numbers", "position_gain": "number", "velocity_gain": "number",
                          "base_pose": "bool", "base_velocity": "bool", "driven_start": "name", "base_height": "number",
                          "fixed_base": "bool", "ground": "bool", "substeps": "int", "copies": "int",
-                         "gravity": "number", "cone_friction": "bool"}}
+                         "gravity": "number", "cone_friction": "bool", "inner_loop": "name"}}
     #: options naming a file: resolved against (and confined to) the experiment's folder
     PATH_OPTIONS = ("urdf",)
 
@@ -250,6 +264,21 @@ class UrdfSimulator(BulletSimulator):
         self.cone_friction = op.get("cone_friction", True)
         if not isinstance(self.cone_friction, bool):
             raise SimgapError(f"pybullet_urdf: options.cone_friction must be true or false, got {self.cone_friction!r}")
+        self.inner_loop = op.get("inner_loop", "none")
+        if self.inner_loop not in INNER_LOOPS:
+            raise SimgapError(f"pybullet_urdf: options.inner_loop must be one of {', '.join(map(repr, INNER_LOOPS))}, "
+                              f"got {self.inner_loop!r}")
+        self.torque_std = per_input(nz.get("torque_std", 0.0), self.in_names, "noise.torque_std")
+        if self.inner_loop == "computed_torque":
+            if not self.fixed_base or self.base_pose:
+                raise SimgapError("pybullet_urdf: options.inner_loop = 'computed_torque' needs a fixed base "
+                                  "(the inverse dynamics of a floating base is not a joint torque per input)")
+            if self.mode != "torque":
+                raise SimgapError("pybullet_urdf: options.inner_loop = 'computed_torque' drives the joints by torque; "
+                                  f"drop options.input_mode {op.get('input_mode')!r} (the inputs are joint accelerations)")
+        elif np.any(self.torque_std > 0):
+            raise SimgapError("pybullet_urdf: noise.torque_std is added to a computed torque: it needs options.inner_loop "
+                              "= 'computed_torque' (for noise on a torque input use noise.actuation_std)")
         self._build(flag(op, "ground", False, where))
 
     # ----- construction ------------------------------------------------------------------
@@ -311,12 +340,53 @@ class UrdfSimulator(BulletSimulator):
             c.setJointMotorControlArray(b, self.movable, pb.VELOCITY_CONTROL,
                                         targetVelocities=[0.0] * len(self.movable), forces=[0.0] * len(self.movable))
         self._ground = ground
+        if self.inner_loop == "computed_torque":
+            self._build_inverse_dynamics(infos)
         self._per_row_dynamics = self.mass_std > 0 or self.damp_std > 0 or self.fric_std > 0
         self._process = bool(np.any(self.proc_std > 0))
 
+    def _build_inverse_dynamics(self, infos) -> None:
+        """The computed-torque loop's model: a reference copy of the URDF in a client of its own (never
+        stepped, never randomized), the URDF's joint damping and effort limits, per movable joint."""
+        missing = [i[1].decode() for i in infos if i[0] in self.movable and i[0] not in self.in_idx]
+        if missing:
+            raise SimgapError("pybullet_urdf: options.inner_loop = 'computed_torque' commands an acceleration for "
+                              f"every movable joint; options.inputs leaves out {', '.join(missing)}")
+        pb = self._pb
+        ref = self._ref_client = bullet_client(self.dt, self.g)
+        with capture_c_output():
+            self._ref_body = ref.loadURDF(str(self.path), useFixedBase=True, flags=pb.URDF_USE_INERTIA_FROM_FILE)
+        order = [self.movable.index(j) for j in self.in_idx]  # input k drives movable joint order[k]
+        self._ct_order = np.array(order)
+        self._ct_damping = np.array([infos[j][6] for j in self.movable])  # the URDF's own, as Bullet applies it
+        limits = np.array([infos[j][10] for j in self.movable], dtype=float)
+        self._ct_limit = np.where(limits > 0, limits, np.inf)  # 0: the URDF states no effort limit
+
+    def close(self) -> None:
+        ref = getattr(self, "_ref_client", None)
+        if ref is not None:
+            try:
+                ref.disconnect()
+            except Exception:  # already gone (e.g. interpreter shutdown)
+                pass
+            self._ref_client = None
+        super().close()
+
+    def _computed_torques(self, bodies, acc, torque_noise) -> None:
+        """Apply tau = clip(ID(q, qdot, acc) + c qdot + n) to every movable joint of each body for the next
+        Bullet step (``acc`` (b, J) commanded accelerations in movable-joint order, ``torque_noise`` (b, J))."""
+        pb, cid, ref, rb = self._pb, self._cid, self._ref_client, self._ref_body
+        for b, a, n in zip(bodies, acc.tolist(), torque_noise):
+            st = pb.getJointStates(b, self.movable, physicsClientId=cid)
+            q, qd = [s_[0] for s_ in st], [s_[1] for s_ in st]
+            tau = np.asarray(ref.calculateInverseDynamics(rb, q, qd, a)) + self._ct_damping * np.asarray(qd) + n
+            tau = np.clip(tau, -self._ct_limit, self._ct_limit)
+            pb.setJointMotorControlArray(b, self.movable, pb.TORQUE_CONTROL, forces=tau.tolist(), physicsClientId=cid)
+
     # ----- randomness ----------------------------------------------------------------------
     def draw_noise(self, B: int, rng: np.random.Generator) -> Dict[str, np.ndarray]:
-        """Per-run draws: ``act`` (B,m), ``sens`` (B,n), ``proc`` (B,steps,n) additive noise;
+        """Per-run draws: ``act`` (B,m), ``sens`` (B,n), ``proc`` (B,steps,n) additive noise, ``torque`` (B, J)
+        (the computed-torque loop's, J = len(options.inputs));
         ``mass``, ``friction`` (B, links) and ``damping`` (B, movable joints) relative factors.
         The same numbers are drawn whatever the configuration, in a fixed order."""
         s = self.system
@@ -327,7 +397,11 @@ class UrdfSimulator(BulletSimulator):
         mass = relative_factors(rng, B * L, self.mass_std).reshape(B, L)
         damping = relative_factors(rng, B * J, self.damp_std).reshape(B, J)
         friction = relative_factors(rng, B * L, self.fric_std).reshape(B, L)
-        return {"act": act, "sens": sens, "proc": proc, "mass": mass, "damping": damping, "friction": friction}
+        # last, and only with the inner loop: every other configuration draws the stream it drew before
+        torque = (rng.standard_normal((B, len(self.in_names))) * self.torque_std if self.inner_loop == "computed_torque"
+                  else np.zeros((B, len(self.in_names))))
+        return {"act": act, "sens": sens, "proc": proc, "mass": mass, "damping": damping, "friction": friction,
+                "torque": torque}
 
     # ----- the batch step --------------------------------------------------------------------
     def step_with_noise(self, x, u, noise):
@@ -439,9 +513,14 @@ class UrdfSimulator(BulletSimulator):
                                              positionGains=[self.position_gain] * len(pos),
                                              velocityGains=[self.velocity_gain] * len(pos), physicsClientId=cid)
         tor_idx = [self.in_idx[k] for k in tor]
+        if self.inner_loop == "computed_torque":  # inputs in movable-joint order, noise likewise
+            acc, tn = np.empty_like(drive), np.empty_like(noise["torque"])
+            acc[:, self._ct_order], tn[:, self._ct_order] = drive, noise["torque"]
         for k in range(s.steps):
             for _ in range(self.substeps):
-                if tor:  # applied torques are cleared by every step: re-apply
+                if self.inner_loop == "computed_torque":
+                    self._computed_torques(bodies, acc, tn)
+                elif tor:  # applied torques are cleared by every step: re-apply
                     for b, t in zip(bodies, targets):
                         pb.setJointMotorControlArray(b, tor_idx, pb.TORQUE_CONTROL, forces=[t[i] for i in tor],
                                                      physicsClientId=cid)

@@ -54,6 +54,12 @@ def pytest_collection_modifyitems(config, items):
     # longest groups first; a file not in the table yet goes first (it may be long)
     index = {it.nodeid: k for k, it in enumerate(items)}
     items.sort(key=lambda it: (-known.get(_group(it.nodeid, it.keywords), float("inf")), index[it.nodeid]))
+    # runs of hours (over CI's time): only on request, whatever SIMGAP_SLOW says
+    if os.environ.get("SIMGAP_HOURS") != "1":
+        hours = pytest.mark.skip(reason="a run of hours: set SIMGAP_HOURS=1 (and SIMGAP_SLOW=1) to run")
+        for item in items:
+            if "hours" in item.keywords:
+                item.add_marker(hours)
     if os.environ.get("SIMGAP_SLOW") == "1":
         return
     skip = pytest.mark.skip(reason="paper-scale run: set SIMGAP_SLOW=1 to run")

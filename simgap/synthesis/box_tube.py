@@ -195,23 +195,32 @@ def terminal_bound(A, d, G0, max_s: int = MAX_S, horizon: int = TERMINAL_HORIZON
     need = np.full(n, np.inf)
     mrpi = np.full(n, np.inf)
     tails = []                 # (s, alpha_s, c_s, S_s) for the s with alpha_s < 1
+    ts, ta, tc, tS = [], [], [], []  # the same as arrays' rows, for the vectorized early stop
+    Akd = d.copy()             # |A^0| d
     for j in range(J):
         v = np.abs(AG).sum(axis=1)
         prefix = np.maximum(prefix, v + S)
         if j < max_s:
             cmax = max(cmax, float(np.max(v / d)))
-        S = S + np.abs(Ak) @ d          # S_{j+1}
+        S = S + Akd                     # S_{j+1}
         Ak = A @ Ak                     # A^(j+1)
         AG = A @ AG
-        if not (np.all(np.isfinite(Ak)) and np.all(np.isfinite(AG))):
+        if not (np.isfinite(Ak).all() and np.isfinite(AG).all()):
             return np.full(n, np.inf), np.inf, 0, np.full(n, np.inf)
+        Akd = np.abs(Ak) @ d            # |A^(j+1)| d: alpha_(j+1) now, S_(j+2) next
         s = j + 1
         if s <= max_s:
-            alpha = float(np.max((np.abs(Ak) @ d) / d))
+            alpha = float(np.max(Akd / d))
             if alpha < 1.0:
                 tails.append((s, alpha, cmax, S.copy()))
+                ts.append(s)
+                ta.append(alpha)
+                tc.append(cmax)
+                tS.append(tails[-1][3])
         if tails and s % 25 == 0:  # stop once some s's bound beyond s is below the exact prefix
-            if any(np.all(a ** (s // s_) * c * d + Ss / (1.0 - a) <= prefix) for s_, a, c, Ss in tails):
+            a = np.asarray(ta)[:, None]
+            bound = a ** (s // np.asarray(ts))[:, None] * np.asarray(tc)[:, None] * d + np.asarray(tS) / (1.0 - a)
+            if np.any(np.all(bound <= prefix, axis=1)):
                 J = s
                 break
     best = (np.inf, np.inf, 0)

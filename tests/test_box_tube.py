@@ -401,8 +401,10 @@ def test_terminal_bound_holds_for_linear_loops_and_is_not_loose():
 
 def test_terminal_bound_batch_is_the_single_bound():
     """The batched recursion (the terminal boxes of many candidates at once) gives each loop the need and
-    mrpi hull of terminal_bound to rounding, with zonotopes of different widths, a loop that stops
-    early, slow ones, an unstable one (inf) and a non-finite one (inf)."""
+    mrpi hull it has alone (terminal_bound: the Monte Carlo test above), to rounding, whatever the others
+    in the batch do: zonotopes of different widths, a loop that stops early, slow ones, an unstable one
+    (inf) and a non-finite one (inf). A batch that let one loop's stop, tails or death leak into
+    another's fails here."""
     rng = np.random.default_rng(3)
     As, ds, Gs = [], [], []
     for rho in (0.3, 0.6, 0.9, 0.97, 0.995, 1.02):

@@ -182,62 +182,15 @@ def terminal_bound(A, d, G0, max_s: int = MAX_S, horizon: int = TERMINAL_HORIZON
     < 1: v_j <= alpha_s^floor(J/s) max_{i<s} c_i d (c_i = max(v_i / d)) and S_j <= (1 - alpha_s)^-1
     S_s (the mRPI set's box hull). Every s gives a valid bound; the elementwise minimum is returned
     with the alpha and s of the smallest max need / d. inf when no s <= max_s has alpha_s < 1."""
-    n = A.shape[0]
-    d = np.asarray(d, float)
-    if not (np.all(np.isfinite(G0)) and np.all(np.isfinite(d))):
-        return np.full(n, np.inf), np.inf, 0, np.full(n, np.inf)
-    J = max(int(horizon), int(max_s))
-    Ak = np.eye(n)
-    S = np.zeros(n)
-    AG = np.asarray(G0, float)
-    prefix = np.zeros(n)       # max_{j < J} (v_j + S_j)
-    cmax = 0.0                 # max_{i < s} c_i, updated as s grows
-    need = np.full(n, np.inf)
-    mrpi = np.full(n, np.inf)
-    tails = []                 # (s, alpha_s, c_s, S_s) for the s with alpha_s < 1
-    ts, ta, tc, tS = [], [], [], []  # the same as arrays' rows, for the vectorized early stop
-    Akd = d.copy()             # |A^0| d
-    for j in range(J):
-        v = np.abs(AG).sum(axis=1)
-        prefix = np.maximum(prefix, v + S)
-        if j < max_s:
-            cmax = max(cmax, float(np.max(v / d)))
-        S = S + Akd                     # S_{j+1}
-        Ak = A @ Ak                     # A^(j+1)
-        AG = A @ AG
-        if not (np.isfinite(Ak).all() and np.isfinite(AG).all()):
-            return np.full(n, np.inf), np.inf, 0, np.full(n, np.inf)
-        Akd = np.abs(Ak) @ d            # |A^(j+1)| d: alpha_(j+1) now, S_(j+2) next
-        s = j + 1
-        if s <= max_s:
-            alpha = float(np.max(Akd / d))
-            if alpha < 1.0:
-                tails.append((s, alpha, cmax, S.copy()))
-                ts.append(s)
-                ta.append(alpha)
-                tc.append(cmax)
-                tS.append(tails[-1][3])
-        if tails and s % 25 == 0:  # stop once some s's bound beyond s is below the exact prefix
-            a = np.asarray(ta)[:, None]
-            bound = a ** (s // np.asarray(ts))[:, None] * np.asarray(tc)[:, None] * d + np.asarray(tS) / (1.0 - a)
-            if np.any(np.all(bound <= prefix, axis=1)):
-                J = s
-                break
-    best = (np.inf, np.inf, 0)
-    for s, alpha, c, Ss in tails:
-        tail = Ss / (1.0 - alpha)
-        ns = np.maximum(prefix, alpha ** (J // s) * c * d + tail)
-        need, mrpi = np.minimum(need, ns), np.minimum(mrpi, tail)
-        if float(np.max(ns / d)) < best[0]:
-            best = (float(np.max(ns / d)), alpha, s)
-    return need, best[1], best[2], mrpi
+    return terminal_bound_batch(np.asarray(A, float)[None], np.asarray(d, float)[None], [G0], max_s, horizon)[0]
 
 
 def terminal_bound_batch(A, d, G0, max_s: int = MAX_S, horizon: int = TERMINAL_HORIZON) -> list:
     """:func:`terminal_bound` for F loops at once: A (F, n, n), d (F, n), G0 a list of F (n, g_f) generator
-    matrices (padded with zero generators, which add nothing to |A^j G0| 1). The same recursion, each
-    loop with its own early stop and its own tails, in one numpy call per step for all F (the Python loop
-    over j is the cost: 2000 steps x a few small arrays per loop). Returns [(need, alpha, s, mrpi)] * F."""
+    matrices (padded with zero generators, which add nothing to |A^j G0| 1). Each loop has its own early
+    stop (checked every 25 steps: once some s's bound beyond s is below the exact prefix, the need is the
+    prefix) and its own tails; one numpy call per step for all F (the Python loop over j is the cost: up
+    to 2000 steps). Returns [(need, alpha, s, mrpi)] * F."""
     A = np.asarray(A, float)
     d = np.asarray(d, float)
     F, n = d.shape

@@ -76,7 +76,7 @@ def test_nominal_model_is_mujocos_noise_free_physics(exp):
 
 @pytest.mark.slow
 def test_simgap_run_double_pendulum_is_certified(tmp_path):
-    """`simgap run double_pendulum` end to end (about 25 min at load 8 on 2026-12-08; docs/case-studies.md):
+    """`simgap run double_pendulum` end to end (about 10 min at load 8 on 2026-12-08; docs/case-studies.md):
     data along the nominal tubes, the gap's slopes from the simulator, and the stochastic certificate
     proves the box tube the synthesis designed itself (no pace, gain or region in the experiment file)
     from x0; the 1000 MuJoCo runs all stay safe, and p_emp >= p_cert - 3 standard errors (SE from p_cert,
@@ -87,7 +87,7 @@ def test_simgap_run_double_pendulum_is_certified(tmp_path):
     import sys
     out = tmp_path / "dp"
     r = subprocess.run([sys.executable, "-m", "simgap", "run", "double_pendulum", "--out", str(out), "--no-record"],
-                       capture_output=True, text=True, timeout=5400)
+                       capture_output=True, text=True, timeout=3500)
     assert r.returncode == 0, r.stderr[-3000:]
     s = json.loads((out / "summary.json").read_text())
     st = s["methods"]["stochastic"]

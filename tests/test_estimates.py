@@ -25,9 +25,10 @@ def _start(*args, cwd):
                             stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
 
 
-def lines_until(proc, word: str, timeout: float = 5.0) -> list:
+def lines_until(proc, word: str, timeout: float = 30.0) -> list:
     """stdout lines up to the first one starting with ``word``, read within ``timeout`` seconds of
-    the process's start; the process is killed afterwards either way."""
+    the process's start (the work an estimate announces takes minutes; 30 s leaves room for a loaded
+    machine's imports); the process is killed afterwards either way."""
     import selectors
     out, t0 = [], time.monotonic()
     sel = selectors.DefaultSelector()

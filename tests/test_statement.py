@@ -92,6 +92,8 @@ def test_tube_statement_draws_the_proved_boxes_and_states_p_cert(tube):
     st = tube.statement()
     assert st.proved and st.method == "box_tube" and "box tube" in st.name and st.set_name == "the tube"
     assert not NOT_TUBE.search(st.headline + " ".join(r.label + r.value for r in st.rows))
+    # margin_search off: said as such, not as a factor ("gamma x not searched")
+    assert "margin not searched" in st.headline and "gamma x not" not in st.headline + tube.summary()
     T = 2 * tube.T0 + 1
     for role, noise in (("tube", False), ("noise_tube", True)):
         ds = st.set_of(role)

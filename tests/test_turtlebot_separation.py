@@ -151,8 +151,10 @@ def test_project_only_runs_nothing_and_later_calls_keep_its_projections(sep, tmp
     import simgap.pipeline as pipeline
     monkeypatch.setattr(pipeline, "run_experiment", lambda *a, **k: pytest.fail("--project-only ran a point"))
     out = tmp_path / "scan"
-    assert sep.main(["--out", str(out), "--levels", "0.5", "--n1hat", "400", "--project-only", "--no-figure"]) == 0
-    assert sep.main(["--out", str(out), "--levels", "1", "--n1hat", "1000", "--project-only", "--no-figure"]) == 0
+    assert sep.main(["--out", str(out), "--levels", "0.5", "--n1hat", "400", "--project-only", "--no-figure",
+                     "--max-hours", "1000"]) == 0  # under the limit at any load: only --project-only keeps it
+    assert sep.main(["--out", str(out), "--levels", "1", "--n1hat", "1000", "--project-only", "--no-figure",
+                     "--max-hours", "1000"]) == 0
     table = json.loads((out / sep.TABLE).read_text())
     assert [(p["level"], p["n1hat"]) for p in table["projected_not_run"]] == [(0.5, 400), (1.0, 1000)]
     assert all(p["project_only"] for p in table["projected_not_run"])

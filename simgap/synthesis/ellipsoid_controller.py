@@ -26,6 +26,7 @@ from ..sets import Ellipsoid
 from ..systems import System
 from .controller_file import check_digest, write_controller
 from .spec import Spec
+from .statement import DrawnSet, Row, Statement, fmt_list, gap_words, margin_words
 
 KIND = "invariant_set"
 ARRAYS = ("K", "P", "x_star", "u_star")
@@ -127,12 +128,11 @@ class EllipsoidController:
         st = self.meta.get("stats", {})
         return (f"invariant-set controller: u = u* + K (x - x*), K = {np.round(self.K, 4).tolist()}, "
                 f"x* = {self.x_star.tolist()}, u* = {self.u_star.tolist()}; E half-widths "
-                f"{np.round(self.half_widths, 6).tolist()}; margin: gamma x {st.get('gap_scale_text', '?')}")
+                f"{np.round(self.half_widths, 6).tolist()}; {margin_words(st)}")
 
     def statement(self, entry: Optional[dict] = None):
         """What the ellipsoid proved, in its words (:mod:`.statement`): E invariant for the mean map;
         ``entry``: the method's record in summary.json (rollouts from states in E), optional."""
-        from .statement import DrawnSet, Row, Statement, fmt_list, gap_words
         entry = entry or {}
         st = self.meta.get("stats", {})
         nominal = (self.meta.get("gap") or {}).get("kind") == "none"
@@ -152,8 +152,8 @@ class EllipsoidController:
                             f"({ris['states']} states)", "single_runs"))
         sets = [DrawnSet("ellipsoid", "invariant ellipsoid E", "ellipsoid", self.x_star[None], P=self.P)]
         return Statement(method=KIND, name=name, proved=True, set_name="E", rows=rows, sets=sets,
-                         headline=f"{name}: proved invariant with {gap_words(self.meta)}, margin gamma x "
-                                  f"{st.get('gap_scale_text', '?')}; no per-run probability")
+                         headline=f"{name}: proved invariant with {gap_words(self.meta)}, {margin_words(st)}; "
+                                  "no per-run probability")
 
     # ----- files -----------------------------------------------------------------------
     def save(self, path) -> Path:

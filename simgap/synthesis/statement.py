@@ -163,6 +163,15 @@ def gap_words(meta: dict) -> str:
             "certificate": "the certified gap gamma"}.get(kind, "a gap")
 
 
+def margin_words(stats: dict) -> str:
+    """The proof's margin as words: "margin gamma x 2.48" (the largest factor of gamma the proof holds
+    with), "margin: any gap factor" (no gap), or "margin not searched" (``margin_search`` off)."""
+    text = stats.get("gap_scale_text")
+    if text is None or text == "not searched":
+        return "margin not searched"
+    return "margin: any gap factor" if text.startswith("any factor") else f"margin gamma x {text}"
+
+
 def statement_of(method: str, controller=None, stats: Optional[dict] = None,
                  entry: Optional[dict] = None) -> Statement:
     """The statement of a method's result: its controller's own (``controller.statement(entry)``), or

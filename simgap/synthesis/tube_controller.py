@@ -27,6 +27,7 @@ from ..systems import System
 from .controller_file import check_digest, write_controller
 from .noise_tube import NoiseTube
 from .spec import Spec
+from .statement import DrawnSet, PerRunStatement, Row, Statement, fmt_list, gap_words, margin_words
 
 KIND = "box_tube"
 ARRAYS = ("x_nom", "u_nom", "K", "x_star", "u_star", "H", "radii")
@@ -175,12 +176,11 @@ class TubeController:
         st = self.meta.get("stats", {})
         return (f"box-tube controller: u = u_nom(t) + K (x - x_nom(t)) for {self.T0} periods, then u* + K (x - x*); "
                 f"K = {np.round(self.K, 4).tolist()}, x* = {self.x_star.tolist()}; terminal box half-widths "
-                f"{np.round(self.H, 6).tolist()}; margin: gamma x {st.get('gap_scale_text', '?')}")
+                f"{np.round(self.H, 6).tolist()}; {margin_words(st)}")
 
     def statement(self, entry: Optional[dict] = None):
         """What the box tube proved, in its words (:mod:`.statement`); ``entry``: the method's record in
         summary.json (its rollouts' counts and p_cert at their horizon), optional."""
-        from .statement import DrawnSet, PerRunStatement, Row, Statement, fmt_list, gap_words
         entry = entry or {}
         st = self.meta.get("stats", {})
         gw = gap_words(self.meta)
@@ -248,8 +248,8 @@ class TubeController:
             lo, hi = np.asarray(tgt["lo"], float), np.asarray(tgt["hi"], float)
             sets.append(DrawnSet("target", "target box", "boxes", ((lo + hi) / 2)[None], ((hi - lo) / 2)[None],
                                  np.array([self.T0])))
-        head = (f"{name}: proved with {gw}, {self.T0} periods to x* +- H, margin gamma x "
-                f"{st.get('gap_scale_text', '?')}" + (f"; p_cert {per_run.p_cert:.3g} per run" if per_run else ""))
+        head = (f"{name}: proved with {gw}, {self.T0} periods to x* +- H, {margin_words(st)}"
+                + (f"; p_cert {per_run.p_cert:.3g} per run" if per_run else ""))
         return Statement(method=KIND, name=name, proved=True, headline=head, set_name="the tube", rows=rows,
                          sets=sets, per_run=per_run, notes=notes)
 

@@ -37,7 +37,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 # the committed sources the pages are written from (folders under bench/results)
 SOURCES = ["bench/results/runs/pendulum-small", "bench/results/runs/turtlebot-small",
-           "bench/results/runs/arm_mujoco-small", "bench/results/runs/husky-base",
+           "bench/results/runs/arm_mujoco-small", "bench/results/runs/husky-base", "bench/results/runs/cartpole-tube",
            "bench/results/turtlebot-separation"]
 # full results-table label prefix per (experiment, profile): docs/results.md
 ROW_LABELS = {("pendulum", "small"): "pendulum, small", ("pendulum", "paper"): "pendulum, paper",
@@ -45,11 +45,12 @@ ROW_LABELS = {("pendulum", "small"): "pendulum, small", ("pendulum", "paper"): "
               ("turtlebot", "gazebo"): "TurtleBot, gazebo", ("turtlebot", "gazebo_n400"): "TurtleBot, N1hat 400",
               ("pendulum", "tight"): "pendulum, tight", ("turtlebot", "tight"): "TurtleBot, tight",
               ("cartpole", "small"): "cart-pole, Gymnasium", ("cartpole", "tight"): "cart-pole, tight",
-              ("cartpole", "refined"): "cart-pole, refined", ("arm_mujoco", "small"): "arm, MuJoCo",
+              ("cartpole", "refined"): "cart-pole, refined", ("cartpole", "tube"): "cart-pole, box tube",
+              ("arm_mujoco", "small"): "arm, MuJoCo",
               ("husky", None): "husky"}
 # the README's compact table: one row per case study
 README_LABELS = {("pendulum", "small"): "pendulum, small", ("pendulum", "paper"): "pendulum, paper",
-                 ("turtlebot", "small"): "TurtleBot", ("arm_mujoco", "small"): "arm",
+                 ("turtlebot", "small"): "TurtleBot", ("arm_mujoco", "small"): "arm", ("cartpole", "tube"): "cart-pole",
                  ("husky", None): "husky"}
 PRINTED_RUN = ("pendulum", "small")  # the run whose printed table the pages show
 SEPARATION_MARKERS = ("<!-- turtlebot-separation table (bench/readme_numbers.py) -->",
@@ -98,23 +99,60 @@ def _gamma(e: dict) -> str:
     return ", ".join(f"{v:.3g}" for v in e["gamma"]["max"])
 
 
+def _tube(summary: dict) -> bool:
+    """A box-tube run: its rows state the proof's margin (and p_cert) instead of winning cells."""
+    return (summary.get("sections", {}).get("synthesis") or {}).get("method") == "box_tube"
+
+
+def _tube_gamma(summary: dict, e: dict, major: bool = False) -> str:
+    """gamma's max per state with the states named (a tube row's gamma cell); ``major``: only the states whose
+    gamma is at least a tenth of the largest, to 2 digits (the README's short cell)."""
+    g, names = e["gamma"]["max"], summary["system"]["state_names"]
+    keep = [i for i, v in enumerate(g) if not major or v >= 0.1 * max(g)]
+    return ", ".join(f"{g[i]:.2g}" if major else f"{g[i]:.3g}" for i in keep) + \
+        " (" + ", ".join(names[i] for i in keep) + ")"
+
+
+def _tube_result(e: dict) -> str:
+    """'tube, margin s[, p_cert p]', or 'no tube (tolerable s x gamma)', of one method's box tube."""
+    syn = e.get("synthesis") or {}
+    s = syn.get("gap_scale")
+    if not e["winning_cells"]:
+        return "no tube" + ("" if s is None else f" (tolerable {s:.3g} x gamma)")
+    p = (e.get("per_run_empirical") or {}).get("p_cert")
+    return "tube, margin " + ("any" if s is None else f"{s:.3g}") + ("" if p is None else f", p_cert {p:.3g}")
+
+
+def _proof_confidence(e: dict) -> str:
+    """The confidence the tube's proof states: every round's certificate at once, all rows."""
+    c = e.get("confidence_all_rounds", e.get("confidence_joint_simultaneous"))
+    return "-" if c is None else f"{c:.2f} (all rows)"
+
+
 def row_cells(summary: dict) -> list:
-    """docs/results.md's numeric cells: gamma det, gamma sto, confidence, audit, winning, failures."""
+    """docs/results.md's numeric cells: gamma det, gamma sto, confidence, audit, winning (a tube run: the
+    tube and its margin per method), failures."""
     det, sto = summary["methods"]["deterministic"], summary["methods"]["stochastic"]
 
     def fails(e):
         return f"{e['failures']} / {e['n_rollouts']}" if "failures" in e else "-"
 
-    return [_gamma(det), _gamma(sto), f"{sto['confidence_joint']:.2f}",
-            f"{det['audit_pass_rate_joint']:.2f} / {sto['audit_pass_rate_joint']:.2f}",
+    audit = f"{det['audit_pass_rate_joint']:.2f} / {sto['audit_pass_rate_joint']:.2f}"
+    if _tube(summary):
+        return [_tube_gamma(summary, det), _tube_gamma(summary, sto), _proof_confidence(sto), audit,
+                f"{_tube_result(det)} / {_tube_result(sto)}", f"{fails(det)} / {fails(sto)}"]
+    return [_gamma(det), _gamma(sto), f"{sto['confidence_joint']:.2f}", audit,
             f"{det['winning_cells']:,} / {sto['winning_cells']:,}", f"{fails(det)} / {fails(sto)}"]
 
 
 def compact_cells(summary: dict) -> list:
-    """The README's numeric cells: gamma sto, confidence, winning det / sto, failures det / sto (of 1000)."""
+    """The README's numeric cells: gamma sto, confidence, winning det / sto (a tube run: the stochastic tube,
+    its margin and p_cert), failures det / sto (of 1000)."""
     det, sto = summary["methods"]["deterministic"], summary["methods"]["stochastic"]
-    n = {e.get("n_rollouts") for e in (det, sto)}
+    n = {e.get("n_rollouts") for e in (det, sto) if e.get("n_rollouts") is not None} or {1000}
     fails = f"{det.get('failures', '-')} / {sto.get('failures', '-')}" + ("" if n == {1000} else f" (of {n.pop()})")
+    if _tube(summary):
+        return [_tube_gamma(summary, sto, major=True), _proof_confidence(sto), _tube_result(sto), fails]
     return [_gamma(sto), f"{sto['confidence_joint']:.2f}", f"{det['winning_cells']:,} / {sto['winning_cells']:,}",
             fails]
 

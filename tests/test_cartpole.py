@@ -163,3 +163,52 @@ def test_shipped_refined_model_carries_the_damping_through_the_mass_matrix():
         assert e.collect.region and e.collect.n_runs == 10000
     assert load_experiment("cartpole", profile="tube-noise").simulator.to_dict()["randomize"] == {"mass": 0.0,
                                                                                                   "damping": 0.0}
+
+
+#: the keys that hand-set a box tube's design: the tool chooses them (docs/synthesis.md, "The tube's design")
+DESIGN_KEYS = ("K", "lqr_q", "lqr_r", "K_plan", "plan_input_weight", "x_star", "u_star")
+
+
+@pytest.mark.parametrize("profile", ["tube", "tube-noise"])
+def test_tube_profiles_set_no_design_keys(profile):
+    """The tube profiles leave the design to the tool (issue 52): no gain, pace or equilibrium, no region
+    (the data follow the nominal tubes, [collect] tube_margin) and N1hat found by the rounds from 1000
+    within a budget; the tube's boxes are built for every pace the search may choose."""
+    from simgap.tube_collect import covered_paces
+    from simgap.synthesis.tube_design import PACES
+    e = load_experiment("cartpole", profile=profile)
+    syn = e.section("synthesis")
+    assert syn["method"] == "box_tube" and not any(k in syn for k in DESIGN_KEYS)
+    assert not e.collect.region and e.collect.tube_margin is not None and e.collect.budget_runs
+    assert e.collect.n_runs == 1000
+    assert covered_paces(syn) == tuple(PACES)
+
+
+@pytest.mark.slow
+def test_tube_profile_certified_end_to_end(tmp_path):
+    """`simgap run cartpole --profile tube` as a user runs it (about 60-90 min on the loaded 2-core machine,
+    docs/case-studies.md): the rounds stop at a proof, the stochastic tube holds the 1000 MuJoCo runs (0 fail),
+    the proof states every round's confidence (0.92), and every box the proof read gamma over (the mean's
+    tube and its terminal box) lies inside one of the boxes the data cover (the test's own check)."""
+    import json
+    import subprocess
+    import sys
+    from simgap.certify import load
+    from simgap.synthesis.controller import Controller
+    out = tmp_path / "cp"
+    r = subprocess.run([sys.executable, "-m", "simgap", "run", "cartpole", "--profile", "tube", "--out", str(out),
+                        "--no-record"], capture_output=True, text=True, timeout=4 * 3600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    s = json.loads((out / "summary.json").read_text())
+    e = s["methods"]["stochastic"]
+    assert s["rounds"]["proved"] and e["winning_cells"] == 1
+    assert e["failures"] == 0 and e["n_rollouts"] == 1000
+    assert e["confidence_all_rounds"] == pytest.approx(0.92)
+    cert = load(out / "cert_stochastic.json")
+    ctrl = Controller.load(out / "controller_stochastic.npz")
+    blo, bhi = cert.region_boxes
+    for lo, hi in ((ctrl.x_nom - ctrl.radii, ctrl.x_nom + ctrl.radii),
+                   (ctrl.x_star - ctrl.H, ctrl.x_star + ctrl.H)):
+        lo, hi = np.atleast_2d(lo), np.atleast_2d(hi)
+        assert np.all(np.any(np.all((lo[:, None] >= blo[None] - 1e-9) & (hi[:, None] <= bhi[None] + 1e-9), axis=2),
+                             axis=1))

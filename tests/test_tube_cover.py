@@ -221,3 +221,151 @@ def test_simulator_slopes_on_a_tube_narrower_than_the_pairs(tmp_path):
     assert np.all(np.isfinite(cert.lipschitz_terms())) and np.all(cert.lipschitz_terms() <= cert.paper_terms())
     with pytest.raises(SimgapError, match="pair distance"):
         certify(ds, lipschitz_term="paper", **kw)
+
+
+def _lin_experiment(tmp_path, collect_extra="", synthesis_extra=""):
+    """test_rounds' linear system with the actuation noise 0.001 (a narrow tube under the gap) and no design
+    keys beyond ``synthesis_extra``; the margins 0.05, 0.02 are narrower than the plans' spread in b across paces."""
+    from simgap.config import load_experiment
+    from test_rounds import EXPERIMENT, LIN
+    (tmp_path / "lin.toml").write_text(LIN)
+    text = (EXPERIMENT.replace("K = [[-0.434763, -1.257824]]\n", "").replace("plan_input_weight = 1.0\n", synthesis_extra)
+            .replace("actuation_std = 0.05", "actuation_std = 0.001").replace("tube_margin = 0.3", "tube_margin = [0.05, 0.02]")
+            .replace("n_runs = 4", "n_runs = 8" + collect_extra).replace("epsilon = 0.1", "epsilon = 0.04"))
+    (tmp_path / "e.toml").write_text(text)
+    return load_experiment(tmp_path / "e.toml")
+
+
+def _nominal(exp, pace):
+    from simgap.experiment_spec import experiment_spec
+    from simgap.synthesis import set_synthesis
+    syn = dict(exp.section("synthesis"), terminal="smallest", margin_search=False, per_run=False,
+               plan_input_weight=pace)
+    return set_synthesis.synthesize(exp.system, experiment_spec(exp)[0], None, syn,
+                                    x0=np.asarray(exp.section("rollout")["x0"], float)).controller
+
+
+def _in_some_box(lo, hi, blo, bhi, tol=1e-9):
+    """Per row of (lo, hi): does it lie inside one of the boxes (blo, bhi)? (the test's own check, not the
+    certificate's)."""
+    lo, hi = np.atleast_2d(lo), np.atleast_2d(hi)
+    return np.any(np.all((lo[:, None] >= blo[None] - tol) & (hi[:, None] <= bhi[None] + tol), axis=2), axis=1)
+
+
+def _tube_in_boxes(ctrl, boxes) -> bool:
+    """Every box the proof read gamma over lies in one of the data's boxes: the mean's tube x_nom(t) +- h_t,
+    its terminal box x* +- H, and the per-run noise tube's boxes when there is one."""
+    blo, bhi = boxes
+    sets = [(ctrl.x_nom - ctrl.radii, ctrl.x_nom + ctrl.radii), (ctrl.x_star - ctrl.H, ctrl.x_star + ctrl.H)]
+    nt = ctrl.noise_tube
+    if nt is not None:
+        sets += [(ctrl.x_nom - nt.radii, ctrl.x_nom + nt.radii), (ctrl.x_star - nt.H, ctrl.x_star + nt.H)]
+    return all(_in_some_box(lo, hi, blo, bhi).all() for lo, hi in sets)
+
+
+def test_the_cover_holds_every_pace_the_search_may_choose(tmp_path):
+    """With no pace given, the cover along the tube holds the nominal plan of EVERY pace the design search
+    ranks (the stochastic synthesis chooses among them after the data are in), each period's box with its
+    margin inside one of the cover's boxes; with a pace given, that pace's boxes only; a plan outlasting
+    the rollouts' horizon is left out (the search ranks it as unproved)."""
+    from simgap.synthesis.tube_design import PACES
+    from simgap.tube_collect import along_tube
+    exp = _lin_experiment(tmp_path)
+    lines = []
+    boxes = [np.array(b) for b in zip(*along_tube(exp, lines.append).collect.boxes)]
+    T0 = {}
+    for pace in PACES:
+        c = _nominal(exp, pace)
+        T0[pace] = c.T0
+        mg = np.array([0.05, 0.02])
+        lo = np.maximum(c.x_nom - mg, exp.system.x_lo)
+        hi = np.minimum(c.x_nom + mg, exp.system.x_hi)
+        assert _in_some_box(lo, hi, *boxes).all(), pace
+    assert len(set(T0.values())) > 1  # the paces' plans differ
+    one = [np.array(b) for b in zip(*along_tube(_lin_experiment(tmp_path, synthesis_extra="plan_input_weight = 1000.0\n"),
+                                                lines.append).collect.boxes)]
+    assert len(one[0]) < len(boxes[0]) and "pace x1000 (" in lines[-1] and "pace x1 (" not in lines[-1]
+    import dataclasses
+    exp_h = dataclasses.replace(exp, sections={**exp.sections, "rollout": dict(exp.section("rollout"),
+                                                                              horizon=T0[1.0] + 1)})
+    along_tube(exp_h, lines.append)
+    assert f"its plan's {T0[100.0]} periods outlast the runs' horizon {T0[1.0] + 1}" in lines[-1]
+
+
+@pytest.fixture(scope="module")
+def pace1_cert(tmp_path_factory):
+    """Data along the tube of pace x1 only (the pace given at collection), certified uniformly."""
+    from simgap.certify.pipeline import certify as certify_ds
+    from simgap.collect import collect as collect_plan
+    from simgap.pipeline import certify_options
+    from simgap.tube_collect import along_tube
+    tmp = tmp_path_factory.mktemp("pace1")
+    exp = along_tube(_lin_experiment(tmp, synthesis_extra="plan_input_weight = 1.0\n"), log=lambda m: None)
+    collect_plan(exp.plan(), tmp / "data", executor="serial")
+    ds = load_store(tmp / "data", system=exp.system)
+    cert = certify_ds(ds, certify_options(exp.section("certify"), "stochastic", exp.system))
+    return exp, cert
+
+
+def test_no_proof_is_accepted_on_a_tube_that_leaves_the_datas_boxes(pace1_cert):
+    """Data along pace x1's tube only. The covered pace proves and its tube (mean, terminal box, per-run
+    noise tube) lies in the data's boxes by the test's own containment check; pace x1000's plan runs
+    between the boxes (inside their hull: a certificate checking the hull would accept it) and is refused
+    by the proof's region condition; the design search, free to choose any pace, returns a proof whose
+    every box lies in the data's boxes."""
+    from simgap.experiment_spec import experiment_spec
+    from simgap.synthesis import set_synthesis
+    exp, cert = pace1_cert
+    spec, x0 = experiment_spec(exp)[0], np.asarray(exp.section("rollout")["x0"], float)
+    syn = exp.section("synthesis")
+    boxes = cert.region_boxes
+    quick = dict(syn, margin_search=False, per_run=False)
+    ok = set_synthesis.synthesize(exp.system, spec, cert, dict(quick, plan_input_weight=1.0), x0=x0)
+    assert not ok.empty and _tube_in_boxes(ok.controller, boxes)
+    slow = _nominal(exp, 1000.0)
+    assert not _in_some_box(slow.x_nom, slow.x_nom, *boxes).all()                  # between the boxes ...
+    assert np.all(slow.x_nom >= cert.region[0]) and np.all(slow.x_nom <= cert.region[1])  # ... in their hull
+    bad = set_synthesis.synthesize(exp.system, spec, cert, dict(quick, plan_input_weight=1000.0), x0=x0)
+    assert bad.empty and "boxes inside the certificate's region fails" in bad.stats["diagnosis"]
+    free = {k: v for k, v in syn.items() if k != "plan_input_weight"}
+    chosen = set_synthesis.synthesize(exp.system, spec, cert, free, x0=x0, horizon=100)
+    assert not chosen.empty and chosen.controller.noise_tube is not None  # the per-run tube is checked too
+    assert _tube_in_boxes(chosen.controller, boxes)
+    designs = chosen.stats["designs"]
+    assert any(not d["proved"] for d in designs if d["pace"] >= 100)  # the uncovered paces were tried and refused
+
+
+class _Scaled:
+    """A certificate whose gamma is k times the real one's (everything else delegated): a gap the tube
+    cannot hold inside the data's boxes at its certified size."""
+
+    def __init__(self, cert, k):
+        self._cert, self._k = cert, k
+
+    def __getattr__(self, name):
+        return getattr(self._cert, name)
+
+    def gamma_sup(self, *a):
+        return self._k * np.asarray(self._cert.gamma_sup(*a))
+
+
+def test_levers_when_the_tube_leaves_the_datas_boxes(pace1_cert):
+    """The levers table when the tube at the certified gap leaves the data's boxes (gamma 40 x the
+    certificate's on pace x1's data): its gamma column is the gap over the tube at the tolerable factor
+    (finite, not the inf of the boxes without data), and it names the boxes and the margin; on a plan that
+    runs between the boxes at every factor (pace x1000) each state says no reduction of gamma helps."""
+    from simgap.experiment_spec import experiment_spec
+    from simgap.synthesis import set_synthesis
+    exp, cert = pace1_cert
+    spec, x0 = experiment_spec(exp)[0], np.asarray(exp.section("rollout")["x0"], float)
+    syn = dict(exp.section("synthesis"), per_run=False)
+    wide = set_synthesis.synthesize(exp.system, spec, _Scaled(cert, 40.0), dict(syn, plan_input_weight=1.0), x0=x0)
+    assert wide.empty and 0 < wide.stats["gap_scale"] < 1
+    rows = wide.stats["levers"]["states"]
+    assert all(np.isfinite(r["gamma"]) and r["tolerable"] == pytest.approx(wide.stats["gap_scale"] * r["gamma"])
+               for r in rows)
+    assert any("leaves the data's boxes" in ln and "tube_margin" in ln for ln in wide.stats["levers_text"])
+    off = set_synthesis.synthesize(exp.system, spec, cert, dict(syn, plan_input_weight=1000.0), x0=x0)
+    assert off.empty and off.stats["gap_scale"] == 0
+    assert all(r["tolerable"] is None and "no reduction of gamma helps" in r["text"]
+               for r in off.stats["levers"]["states"])

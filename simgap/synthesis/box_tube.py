@@ -1149,8 +1149,17 @@ def _synthesize_box_tube(system, spec, gap, x0, x_star, u_star, K, lqr_q, lqr_r,
                                "a refined model: docs/synthesis.md)")
         if gap is not None and scale is not None and np.isfinite(scale):
             from .tube_design import levers
-            lv = levers(gap if hasattr(gap, "dims") else None, system, v.to_dict()["w_max"], scale,
-                        cands if len(cands) > 1 else [])
+            w_max, left = np.asarray(v.to_dict()["w_max"], float), ""
+            if not np.all(np.isfinite(w_max)) and scale > 0:
+                # at the certified gap the tube leaves the data's boxes (no gamma there: inf); the tube at the
+                # tolerable factor s stays inside, and its gap over the boxes divided by s is the gamma to reduce
+                # (the gamma the table shows: over a narrower tube than the one at s = 1)
+                left = next((c["what"] for c in v.failed() if c["name"] == "boxes inside the certificate's region"), "")
+                vs = design_H_batch(system, plan, lo, hi, u_lo, u_hi, gap, imap, shells, (scale,), target_lo,
+                                    target_hi)[0]
+                w_max = np.asarray(vs.to_dict()["w_max"], float) / scale
+            lv = levers(gap if hasattr(gap, "dims") else None, system, w_max, scale,
+                        cands if len(cands) > 1 else [], left=left)
             stats["levers"] = {k: lv[k] for k in ("states", "designs")}
             stats["levers_text"] = lv["text"]
     stats["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024

@@ -123,7 +123,7 @@ def _runs_for(cert, i: int, need_sum: float) -> Optional[int]:
     return hi
 
 
-def levers(cert, system, w_max, scale: float, cands: list) -> dict:
+def levers(cert, system, w_max, scale: float, cands: list, left: str = "") -> dict:
     """Per state: the certified gamma along the tube (max over periods, ``w_max`` (n,)) against the tolerable
     one (s x it, s = ``scale`` the largest factor the proof holds with), and for each lever what it would
     need. A reduction of gamma by (1 - s) max_t w_i(t) in every period suffices (w_i(t) - D <= s w_i(t)
@@ -137,6 +137,9 @@ def levers(cert, system, w_max, scale: float, cands: list) -> dict:
       it would remove at most;
     * another pace or gain: the designs tried and their margins;
     * a shorter period: not computed (it needs data at that period).
+    ``left``: where the tube at the certified gap leaves the data's boxes (a cover along the tube), when it
+    does: ``w_max`` is then the gap over the tube at the factor s (finite; at s = 1 the gap is not certified
+    where the tube goes), and a larger ``[collect] tube_margin`` is a lever too.
     Returns {"states": [rows], "designs": [...], "text": lines}."""
     w = np.asarray(w_max, float)
     s = float(scale) if scale is not None and np.isfinite(scale) else 0.0
@@ -148,11 +151,15 @@ def levers(cert, system, w_max, scale: float, cands: list) -> dict:
                                           else np.ones(n)) > 0)) if cert is not None else 0
     lines.append(f"{'state':<10}{'gamma':>11}{'tolerable':>11}{'reduce by':>11}   levers (each alone)")
     for i in range(n):
-        need = (1.0 - s) * w[i]
-        row = {"state": system.state_names[i], "gamma": float(w[i]), "tolerable": float(s * w[i]),
-               "reduce_by": float(max(need, 0.0))}
+        finite = bool(np.isfinite(w[i]))
+        need = (1.0 - s) * w[i] if finite else np.inf
+        row = {"state": system.state_names[i], "gamma": float(w[i]), "tolerable": float(s * w[i]) if finite else None,
+               "reduce_by": float(max(need, 0.0)) if finite else None}
         txt = []
-        if need <= 0 or cert is None:
+        if not finite:  # the tube leaves the data's boxes even at the smallest factor: no gamma there
+            txt.append("gamma is not certified where the tube goes (it leaves the data's boxes at every gap factor): "
+                       "no reduction of gamma helps; data along this plan (a larger [collect] tube_margin) do")
+        elif need <= 0 or cert is None:
             txt.append("nothing to reduce" if need <= 0 else "no certificate (a constant gap)")
         else:
             if stoch:
@@ -175,8 +182,13 @@ def levers(cert, system, w_max, scale: float, cands: list) -> dict:
             txt.append(f"refined model removes <= {gm:.3g}" + (" (enough)" if gm >= need else " (not enough)"))
         row["text"] = "; ".join(txt)
         rows.append(row)
-        lines.append(f"{system.state_names[i]:<10}{w[i]:>11.4g}{s * w[i]:>11.4g}{max(need, 0.0):>11.4g}   "
+        cells = (w[i], s * w[i], max(need, 0.0)) if finite else (w[i], np.nan, np.nan)
+        lines.append(f"{system.state_names[i]:<10}{cells[0]:>11.4g}{cells[1]:>11.4g}{cells[2]:>11.4g}   "
                      f"{row['text']}")
+    if left:
+        lines.append(f"at the certified gap the tube leaves the data's boxes ({left}); the gamma above is over the tube "
+                     "at the tolerable factor: reducing it keeps the tube inside, and so does a larger [collect] "
+                     "tube_margin (data over a wider tube)")
     tried = [c.row() for c in cands]
     lines.append("other designs (pace, K): " + ("; ".join(tried) if tried else "not searched (given)"))
     lines.append("shorter period: not computed (it needs data collected at that period)")

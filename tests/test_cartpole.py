@@ -160,7 +160,7 @@ def test_shipped_refined_model_carries_the_damping_through_the_mass_matrix():
     for prof in ("tube", "tube-noise"):
         e = load_experiment("cartpole", profile=prof)
         assert e.section("synthesis")["method"] == "box_tube" and e.section("certify")["uniform"] is True
-        assert e.collect.region and e.collect.n_runs == 10000
+        assert e.collect.tube_margin is not None  # data along the tube (test_tube_profiles_set_no_design_keys)
     assert load_experiment("cartpole", profile="tube-noise").simulator.to_dict()["randomize"] == {"mass": 0.0,
                                                                                                   "damping": 0.0}
 

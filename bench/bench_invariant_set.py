@@ -105,7 +105,7 @@ print(json.dumps({"n": n, "m": m, "gap": gap, "seconds": dt, "candidates": res.s
 """
 
 
-def real_plan(cert: str, spec: str, modes, repeat: int) -> int:
+def real_plan(cert: str, spec: str, modes, repeat: int, horizon=None) -> int:
     """The module docstring's ``--real``: one fresh process per mode and repeat, interleaved."""
     import re
     import resource
@@ -119,7 +119,8 @@ def real_plan(cert: str, spec: str, modes, repeat: int) -> int:
                 r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
                 t0 = time.perf_counter()
                 out = subprocess.run([sys.executable, "-m", "simgap", "synthesize", "--spec", spec, "--cert", cert,
-                                      "--out", os.path.join(tmp, f"ctrl_{mode}_{k}.npz")],
+                                      "--out", os.path.join(tmp, f"ctrl_{mode}_{k}.npz")]
+                                     + ([] if horizon is None else ["--horizon", str(horizon)]),
                                      capture_output=True, text=True, env=env)
                 wall = time.perf_counter() - t0
                 r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -147,12 +148,14 @@ def main() -> int:
     ap.add_argument("--spec", default="reacher", help="--real: the experiment (default reacher)")
     ap.add_argument("--jit", default="0,auto", help="--real: SIMGAP_JIT modes, interleaved (default 0,auto)")
     ap.add_argument("--repeat", type=int, default=1, help="--real: rounds of the modes (default 1)")
+    ap.add_argument("--horizon", type=int, help="--real: the per-run statement's horizon (as simgap run passes its "
+                    "[rollout] horizon; default synthesize's 2 T0 + 1)")
     ap.add_argument("--dims", default="2,4,6,8,12")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--method", choices=["ellipsoid", "box_tube", "both"], default="both")
     a = ap.parse_args()
     if a.real:
-        return real_plan(os.path.abspath(a.real), a.spec, a.jit.split(","), a.repeat)
+        return real_plan(os.path.abspath(a.real), a.spec, a.jit.split(","), a.repeat, a.horizon)
     methods = ["ellipsoid", "box_tube"] if a.method == "both" else [a.method]
     rows = {k: [] for k in methods}
     with tempfile.TemporaryDirectory() as tmp:

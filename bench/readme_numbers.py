@@ -38,6 +38,7 @@ ROOT = Path(__file__).resolve().parents[1]
 # the committed sources the pages are written from (folders under bench/results)
 SOURCES = ["bench/results/runs/pendulum-small", "bench/results/runs/turtlebot-small",
            "bench/results/runs/arm_mujoco-small", "bench/results/runs/husky-base", "bench/results/runs/cartpole-tube",
+           "bench/results/runs/double_pendulum-base",
            "bench/results/turtlebot-separation"]
 # full results-table label prefix per (experiment, profile): docs/results.md
 ROW_LABELS = {("pendulum", "small"): "pendulum, small", ("pendulum", "paper"): "pendulum, paper",
@@ -46,11 +47,13 @@ ROW_LABELS = {("pendulum", "small"): "pendulum, small", ("pendulum", "paper"): "
               ("pendulum", "tight"): "pendulum, tight", ("turtlebot", "tight"): "TurtleBot, tight",
               ("cartpole", "small"): "cart-pole, Gymnasium", ("cartpole", "tight"): "cart-pole, tight",
               ("cartpole", "refined"): "cart-pole, refined", ("cartpole", "tube"): "cart-pole, box tube",
+              ("double_pendulum", None): "double pendulum, box tube",
               ("arm_mujoco", "small"): "arm, MuJoCo",
               ("husky", None): "husky"}
 # the README's compact table: one row per case study
 README_LABELS = {("pendulum", "small"): "pendulum, small", ("pendulum", "paper"): "pendulum, paper",
                  ("turtlebot", "small"): "TurtleBot", ("arm_mujoco", "small"): "arm", ("cartpole", "tube"): "cart-pole",
+                 ("double_pendulum", None): "double pendulum",
                  ("husky", None): "husky"}
 PRINTED_RUN = ("pendulum", "small")  # the run whose printed table the pages show
 SEPARATION_MARKERS = ("<!-- turtlebot-separation table (bench/readme_numbers.py) -->",
@@ -126,7 +129,7 @@ def _tube_result(e: dict) -> str:
 def _proof_confidence(e: dict) -> str:
     """The confidence the tube's proof states: every round's certificate at once, all rows."""
     c = e.get("confidence_all_rounds", e.get("confidence_joint_simultaneous"))
-    return "-" if c is None else f"{c:.2f} (all rows)"
+    return "-" if c is None else f"{c:.3g} (all rows)"  # 3 digits: 0.995 is not 1.00
 
 
 def row_cells(summary: dict) -> list:

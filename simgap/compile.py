@@ -564,6 +564,13 @@ def values_kernel(trees, width: int):
     return load(values_source(trees, width)).values
 
 
+#: numpy seconds after which a :class:`Twin` compiles its kernel (auto mode): about a first compile of
+#: a 4-state closed loop on the loaded 2-core machine (the 6-state double pendulum's takes ~40 s)
+AUTO_SECONDS = 5.0
+#: numpy seconds after which a :class:`Twin` loads its kernel from the disk cache (a load: ~1 s)
+LOAD_SECONDS = 1.0
+
+
 class Twin:
     """A compiled twin of a numpy evaluation, loaded when it pays (the ``SIMGAP_JIT`` modes of
     :mod:`simgap.jit`).
@@ -575,12 +582,22 @@ class Twin:
     done in numpy plus these reach ``auto_rows`` (about what a first compile costs, seconds) or
     the job declared with :func:`simgap.jit.expected_work` does, and already from
     ``early`` rows (default ``auto_rows / 20``) or when numba is imported anyway, if the kernel is
-    in the disk cache (a load costs numba's start, ~0.5 s CPU and ~100 MB)."""
+    in the disk cache (a load costs numba's start, ~0.5 s CPU and ~100 MB).
+
+    Rows are a poor measure of the numpy path's cost when the formulas are long: one row of the
+    6-state double pendulum's closed loop costs about 100 x a 4-state row (its 3 x 3 adjugate), so the
+    caller may also report the seconds its numpy evaluations took (:meth:`spent`): auto mode then
+    compiles once they reach :data:`AUTO_SECONDS` (ski rental: at most about twice the better
+    choice's cost) and loads a cached kernel once they reach :data:`LOAD_SECONDS`."""
 
     def __init__(self, source, args: tuple, attr: str, auto_rows: int, early: Optional[int] = None):
         self.source, self.args, self.attr, self.auto_rows = source, tuple(args), attr, int(auto_rows)
         self.early = int(auto_rows) // 20 if early is None else int(early)
-        self.done, self.fn, self.cached = 0, None, None
+        self.done, self.fn, self.cached, self.seconds = 0, None, None, 0.0
+
+    def spent(self, seconds: float) -> None:
+        """Count ``seconds`` of numpy evaluation (the cost the compiled twin would save)."""
+        self.seconds += float(seconds)
 
     def __getstate__(self):  # the compiled code stays in its process (loaded again on use)
         return dict(self.__dict__, fn=None)
@@ -599,8 +616,8 @@ class Twin:
             if not jit.available():
                 return None
             due = max(self.done + rows, jit._WORK.get())
-            if due < self.auto_rows:
-                early = due >= self.early or "numba" in sys.modules
+            if due < self.auto_rows and self.seconds < AUTO_SECONDS:
+                early = due >= self.early or "numba" in sys.modules or self.seconds >= LOAD_SECONDS
                 if early and self.cached is None:
                     self.cached = is_cached(self.make())
                 if not (early and self.cached):

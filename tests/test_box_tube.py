@@ -397,3 +397,29 @@ def test_terminal_bound_holds_for_linear_loops_and_is_not_loose():
         worst = np.maximum(worst, np.abs(e).max(axis=0))
     assert np.all(worst <= need + 1e-12)
     assert np.all(need <= 2.0 * worst)
+
+
+def test_terminal_bound_batch_is_the_single_bound():
+    """The batched recursion (the terminal boxes of many candidates at once) gives each loop the need and
+    mrpi hull it has alone (terminal_bound: the Monte Carlo test above), to rounding, whatever the others
+    in the batch do: zonotopes of different widths, a loop that stops early, slow ones, an unstable one
+    (inf) and a non-finite one (inf). A batch that let one loop's stop, tails or death leak into
+    another's fails here."""
+    rng = np.random.default_rng(3)
+    As, ds, Gs = [], [], []
+    for rho in (0.3, 0.6, 0.9, 0.97, 0.995, 1.02):
+        A = rng.normal(size=(6, 6))
+        As.append(A * rho / max(abs(np.linalg.eigvals(A))))
+        ds.append(rng.uniform(0.01, 1.0, 6))
+        Gs.append(rng.normal(size=(6, int(rng.integers(1, 9)))) * 0.1)
+    Gs[1] = Gs[1].copy()
+    Gs[1][0, 0] = np.nan
+    batch = bt.terminal_bound_batch(np.array(As), np.array(ds), Gs)
+    for k, (A, d, G) in enumerate(zip(As, ds, Gs)):
+        need, alpha, s, mrpi = bt.terminal_bound(A, d, G)
+        bneed, balpha, bs, bmrpi = batch[k]
+        assert np.array_equal(np.isfinite(need), np.isfinite(bneed)), k
+        f = np.isfinite(need)
+        assert np.allclose(bneed[f], need[f], rtol=1e-12, atol=0) and np.allclose(bmrpi[f], mrpi[f], rtol=1e-12), k
+    assert not np.isfinite(batch[1][0]).any() and not np.isfinite(batch[5][0]).any()
+    assert np.isfinite(batch[0][0]).all() and np.isfinite(batch[2][0]).all()

@@ -246,6 +246,20 @@ def test_twin_policy(monkeypatch):
     t3 = C.Twin(*src, "values", 1000)
     with jit.expected_work(5000):
         assert t3.get(1) == "kernel"
+    # the numpy seconds count too (a long formula costs far more per row): few rows, but the time a
+    # compile costs, compiles; the time a load costs loads a cached kernel
+    cached["yes"] = False
+    t5 = C.Twin(*src, "values", 1000)
+    t5.spent(C.AUTO_SECONDS - 0.1)
+    assert t5.get(1) is None
+    t5.spent(0.2)
+    assert t5.get(1) == "kernel"
+    cached["yes"] = True
+    t6 = C.Twin(*src, "values", 1000)
+    t6.spent(C.LOAD_SECONDS * 0.9)
+    assert t6.get(1) is None
+    t6.spent(C.LOAD_SECONDS * 0.2)
+    assert t6.get(1) == "kernel"
     monkeypatch.setenv("SIMGAP_JIT", "1")
     assert C.Twin(*src, "values", 10 ** 9).get(0) == "kernel"
     import pickle  # a twin travels without its kernel

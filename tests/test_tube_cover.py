@@ -195,6 +195,34 @@ def test_tube_margin_refusals(tmp_path):
         exp(EXPERIMENT.replace("tube_margin = 0.3", "tube_margin = -0.3"))
 
 
+def test_simulator_slopes_on_a_tube_narrower_than_the_pairs(tmp_path):
+    """lhat = "simulator" on a tube whose boxes' hull is narrower than the paper's pairs (2 eps) along theta:
+    with lipschitz_term = "gap" the certificate is made, gamma's Lipschitz term is the gap's own from the
+    simulator's axis pairs (no neighbours needed), the paper's Lhat_fhat comes from the data's slopes and
+    says so, and no run is spent on the paper's pairs; with the paper's term alone it is refused, naming
+    the pair distance (the paper's term would have no estimate)."""
+    from simgap.certify.pipeline import CertifyOptions, simulator_rows
+    s = get_system("pendulum")
+    leg = np.stack([np.full(12, 0.15), np.linspace(-0.3, 0.3, 12)], axis=1)   # along omega, theta fixed
+    lo, hi = tube_boxes(s.x_lo, s.x_hi, leg, margin=0.01)
+    assert np.ptp(np.r_[lo[:, 0], hi[:, 0]]) < 2 * 0.03
+    spec = CoverSpec(epsilon=0.03, boxes=tuple(zip(lo.tolist(), hi.tolist())))
+    plan = CollectionPlan(system=s, simulator=SimulatorConfig.from_dict(PEND_CFG), cover=make_cover(s, spec),
+                          n_runs=20, seed=3, chunk_size=200)
+    collect(plan, tmp_path / "data", executor="serial")
+    ds = load_store(tmp_path / "data")
+    kw = dict(degree=0, bounds=BoundOptions(concentration="subgaussian"), lhat="simulator", lhat_pairs=200,
+              lhat_runs=20)
+    rows = simulator_rows(ds, CertifyOptions(lipschitz_term="gap", **kw))
+    assert rows["fhat_rows"] == 0 and rows["gap_rows"] > 0
+    cert = certify(ds, lipschitz_term="gap", **kw)
+    how = cert.dims[1].lipschitz_how["L_fhat"]["how"]
+    assert "do not fit in the region the data covered" in how
+    assert np.all(np.isfinite(cert.lipschitz_terms())) and np.all(cert.lipschitz_terms() <= cert.paper_terms())
+    with pytest.raises(SimgapError, match="pair distance"):
+        certify(ds, lipschitz_term="paper", **kw)
+
+
 def _lin_experiment(tmp_path, collect_extra="", synthesis_extra=""):
     """test_rounds' linear system with the actuation noise 0.001 (a narrow tube under the gap) and no design
     keys beyond ``synthesis_extra``; the margins 0.05, 0.02 are narrower than the plans' spread in b across paces."""

@@ -581,6 +581,27 @@ def _lip_key(ds, o: CertifyOptions, own_simulator: bool) -> tuple:
             o.lhat_runs, o.seed, own_simulator)
 
 
+def _paper_pairs_simulated(ds, o: CertifyOptions) -> bool:
+    """Whether Lhat_fhat (the paper's Lipschitz term) comes from the simulator's pairs ||x - x'|| = eps.
+
+    With lhat = "simulator" it does, unless the pairs do not fit in the region the data covered (a cover
+    along a tube: its boxes' hull can be narrower than 2 eps along a covered dimension) while gamma uses
+    the gap's own term (lipschitz_term = "gap", from the simulator's pairs along each axis, which need no
+    such room): the paper's term is then estimated from the data's slopes, as lhat = "data" does, and gamma
+    keeps the smaller of the two terms (with noisy data slopes, the gap's). Refused otherwise (the paper's
+    term is gamma's only one)."""
+    if o.lhat != "simulator":
+        return False
+    cov = [j for j in range(ds.system.n) if j not in invariant_dims(ds)]
+    try:
+        check_pair_distance(ds.system, ds.epsilon, cov)
+    except SimgapError:
+        if o.lipschitz_term != "gap" or not (ds.manifest.get("cover") or {}).get("boxes"):
+            raise
+        return False
+    return True
+
+
 def _data_lipschitz(ds, o: CertifyOptions, simulator=None, on_progress=None):
     """(neighbour pairs, [(L_f, how, Lhat_fhat, how)] per dimension, the data's inputs) of a dataset.
 
@@ -602,7 +623,8 @@ def _data_lipschitz(ds, o: CertifyOptions, simulator=None, on_progress=None):
         sl_fhat = slopes_of(ds.mean, pairs, s)
         sl_f = slopes_of(ds.f_nom, pairs, s)
         Lf_analytic = s.lipschitz_f()
-    if o.lhat == "simulator":
+    crn_fhat = _paper_pairs_simulated(ds, o)
+    if crn_fhat:
         from ..simulators import make_simulator
         cov = [j for j in range(s.n) if j not in invariant_dims(ds)]  # pairs along covered dims only
         crn = dict(h=ds.epsilon, n_pairs=o.lhat_pairs, runs=o.lhat_runs, increment=o.lipschitz_mode == "increment",
@@ -615,7 +637,9 @@ def _data_lipschitz(ds, o: CertifyOptions, simulator=None, on_progress=None):
                 sl_fhat = fhat_slopes_crn(sim, np.random.default_rng([o.seed, 1]), **crn)
         else:
             sl_fhat = fhat_slopes_crn(simulator, np.random.default_rng([o.seed, 1]), **crn)
-    src = (" over neighbouring cover points (independent draws per row)" if o.lhat == "data" else
+    src = (" over neighbouring cover points (independent draws per row)" + (
+        "" if o.lhat == "data" else f"; the simulator's pairs eps = {ds.epsilon:g} apart do not fit in the region the "
+        "data covered, gamma uses the gap's own term (simulator)") if not crn_fhat else
            f" at {o.lhat_pairs} random pairs ||x - x'|| = eps along the covered dimensions, {o.lhat_runs} runs "
            f"each with common random numbers (simulator)")
     incr = o.lipschitz_mode == "increment"
@@ -635,7 +659,7 @@ def _data_lipschitz(ds, o: CertifyOptions, simulator=None, on_progress=None):
         wz = wood_zhang(sl_fhat[:, i], np.random.default_rng([o.seed, 3, i]))
         how_fhat = {"how": "Wood-Zhang estimate on slopes of the empirical mean"
                     + (" increment (mean - x)" if incr else "") + src, **wz.to_dict()}
-        if o.lhat == "data" and ds.n_runs > 1:
+        if not crn_fhat and ds.n_runs > 1:
             how_fhat["noise_share"] = mean_noise_share(ds, pairs, i, sl_fhat[:, i], np.random.default_rng([o.seed, 4, i]))
         out.append((L_f, how_f, wz.estimate, how_fhat))
     _LIP_CACHE[key] = (pairs, out, np.unique(ds.u, axis=0))
@@ -670,14 +694,14 @@ def simulator_rows(ds, o: CertifyOptions) -> dict:
     if o.lhat != "simulator":
         return zero
     s = ds.system
-    fhat = 2 * int(o.lhat_pairs) * int(o.lhat_runs)
+    ds = _region_dataset(ds)  # the dataset certify estimates over (the keys below are its)
+    fhat = 2 * int(o.lhat_pairs) * int(o.lhat_runs) if _paper_pairs_simulated(ds, o) else 0
     gap = axis_rows = axes = 0
     if o.lipschitz_term == "gap" or o.continuous_inputs:
         axes = s.n - len(invariant_dims(ds)) + (s.m if o.continuous_inputs else 0)
         per_axis = max(100, int(o.lhat_pairs) // max(1, axes))
         axis_rows = 2 * per_axis * int(o.lhat_runs)
         gap = axes * axis_rows
-    ds = _region_dataset(ds)  # the dataset certify estimates over (the keys below are its)
     cached = _lip_key(ds, o, True) in _LIP_CACHE or _lip_key(ds, o, False) in _LIP_CACHE
     if cached:  # an earlier call with these data and options: Lhat_fhat is not simulated again
         fhat = 0
@@ -696,7 +720,7 @@ def lhat_cost(ds, o: CertifyOptions, simulator) -> Optional[dict]:
         return None
     load_fitting_modules()
     if rows["fhat_rows"]:
-        check_pair_distance(ds.system, ds.epsilon, [j for j in range(ds.system.n) if j not in invariant_dims(ds)])
+        _paper_pairs_simulated(_region_dataset(ds), o)
     pairs = o.lhat_pairs if rows["fhat_rows"] else 0
     work = crn_cost(pairs, o.lhat_runs, ds.system, gap_rows=rows["gap_rows"])["rows"]
     cost = crn_cost(pairs, o.lhat_runs, ds.system,

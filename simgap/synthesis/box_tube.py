@@ -182,46 +182,79 @@ def terminal_bound(A, d, G0, max_s: int = MAX_S, horizon: int = TERMINAL_HORIZON
     < 1: v_j <= alpha_s^floor(J/s) max_{i<s} c_i d (c_i = max(v_i / d)) and S_j <= (1 - alpha_s)^-1
     S_s (the mRPI set's box hull). Every s gives a valid bound; the elementwise minimum is returned
     with the alpha and s of the smallest max need / d. inf when no s <= max_s has alpha_s < 1."""
-    n = A.shape[0]
+    return terminal_bound_batch(np.asarray(A, float)[None], np.asarray(d, float)[None], [G0], max_s, horizon)[0]
+
+
+def terminal_bound_batch(A, d, G0, max_s: int = MAX_S, horizon: int = TERMINAL_HORIZON) -> list:
+    """:func:`terminal_bound` for F loops at once: A (F, n, n), d (F, n), G0 a list of F (n, g_f) generator
+    matrices (padded with zero generators, which add nothing to |A^j G0| 1). Each loop has its own early
+    stop (checked every 25 steps: once some s's bound beyond s is below the exact prefix, the need is the
+    prefix) and its own tails; one numpy call per step for all F (the Python loop over j is the cost: up
+    to 2000 steps). Returns [(need, alpha, s, mrpi)] * F."""
+    A = np.asarray(A, float)
     d = np.asarray(d, float)
-    if not (np.all(np.isfinite(G0)) and np.all(np.isfinite(d))):
-        return np.full(n, np.inf), np.inf, 0, np.full(n, np.inf)
+    F, n = d.shape
+    g = max(np.shape(G)[1] for G in G0)
+    AG = np.zeros((F, n, g))
+    for f, G in enumerate(G0):
+        AG[f, :, :np.shape(G)[1]] = G
+    dead = ~(np.isfinite(AG).all(axis=(1, 2)) & np.isfinite(d).all(axis=1))
     J = max(int(horizon), int(max_s))
-    Ak = np.eye(n)
-    S = np.zeros(n)
-    AG = np.asarray(G0, float)
-    prefix = np.zeros(n)       # max_{j < J} (v_j + S_j)
-    cmax = 0.0                 # max_{i < s} c_i, updated as s grows
-    need = np.full(n, np.inf)
-    mrpi = np.full(n, np.inf)
-    tails = []                 # (s, alpha_s, c_s, S_s) for the s with alpha_s < 1
-    for j in range(J):
-        v = np.abs(AG).sum(axis=1)
-        prefix = np.maximum(prefix, v + S)
-        if j < max_s:
-            cmax = max(cmax, float(np.max(v / d)))
-        S = S + np.abs(Ak) @ d          # S_{j+1}
-        Ak = A @ Ak                     # A^(j+1)
-        AG = A @ AG
-        if not (np.all(np.isfinite(Ak)) and np.all(np.isfinite(AG))):
-            return np.full(n, np.inf), np.inf, 0, np.full(n, np.inf)
-        s = j + 1
-        if s <= max_s:
-            alpha = float(np.max((np.abs(Ak) @ d) / d))
-            if alpha < 1.0:
-                tails.append((s, alpha, cmax, S.copy()))
-        if tails and s % 25 == 0:  # stop once some s's bound beyond s is below the exact prefix
-            if any(np.all(a ** (s // s_) * c * d + Ss / (1.0 - a) <= prefix) for s_, a, c, Ss in tails):
-                J = s
+    Jf = np.full(F, J)
+    active = ~dead
+    Ak = np.broadcast_to(np.eye(n), (F, n, n)).copy()
+    S = np.zeros((F, n))
+    prefix = np.zeros((F, n))
+    cmax = np.zeros(F)
+    Akd = d.copy()
+    ta = np.full((F, int(max_s)), np.inf)     # alpha_s per loop (inf: alpha_s >= 1, no tail)
+    tc = np.zeros((F, int(max_s)))
+    tS = np.zeros((F, int(max_s), n))
+    with np.errstate(all="ignore"):
+        for j in range(J):
+            v = np.abs(AG).sum(axis=2)
+            prefix = np.where(active[:, None], np.maximum(prefix, v + S), prefix)
+            if j < max_s:
+                cmax = np.maximum(cmax, np.max(v / d, axis=1))
+            S = S + Akd
+            Ak = A @ Ak
+            AG = A @ AG
+            bad = active & ~(np.isfinite(Ak).all(axis=(1, 2)) & np.isfinite(AG).all(axis=(1, 2)))
+            dead |= bad
+            active &= ~bad
+            Akd = np.einsum("fij,fj->fi", np.abs(Ak), d)
+            s = j + 1
+            if s <= max_s:
+                alpha = np.max(Akd / d, axis=1)
+                new = active & (alpha < 1.0)
+                ta[new, s - 1], tc[new, s - 1], tS[new, s - 1] = alpha[new], cmax[new], S[new]
+            if s % 25 == 0:  # stop a loop once some s's bound beyond s is below its exact prefix
+                k = min(s, int(max_s))
+                a = ta[:, :k, None]
+                sk = np.arange(1, k + 1)[None, :, None]
+                bound = a ** (s // sk) * tc[:, :k, None] * d[:, None] + tS[:, :k] / (1.0 - a)
+                stop = active & np.isfinite(ta[:, :k]).any(axis=1) & \
+                    (np.isfinite(ta[:, :k]) & np.all(bound <= prefix[:, None], axis=2)).any(axis=1)
+                Jf[stop] = s
+                active &= ~stop
+            if not active.any():
                 break
-    best = (np.inf, np.inf, 0)
-    for s, alpha, c, Ss in tails:
-        tail = Ss / (1.0 - alpha)
-        ns = np.maximum(prefix, alpha ** (J // s) * c * d + tail)
-        need, mrpi = np.minimum(need, ns), np.minimum(mrpi, tail)
-        if float(np.max(ns / d)) < best[0]:
-            best = (float(np.max(ns / d)), alpha, s)
-    return need, best[1], best[2], mrpi
+    out = []
+    for f in range(F):
+        if dead[f]:
+            out.append((np.full(n, np.inf), np.inf, 0, np.full(n, np.inf)))
+            continue
+        ok = np.flatnonzero(np.isfinite(ta[f]) & (np.arange(1, int(max_s) + 1) <= Jf[f]))
+        if ok.size == 0:
+            out.append((np.full(n, np.inf), np.inf, 0, np.full(n, np.inf)))
+            continue
+        a, c, Ss = ta[f, ok][:, None], tc[f, ok][:, None], tS[f, ok]
+        tail = Ss / (1.0 - a)
+        ns = np.maximum(prefix[f], a ** (Jf[f] // (ok + 1))[:, None] * c * d[f] + tail)
+        score = np.max(ns / d[f], axis=1)
+        b = int(np.argmin(score))
+        out.append((ns.min(axis=0), float(ta[f, ok[b]]), int(ok[b] + 1), tail.min(axis=0)))
+    return out
 
 
 # ---------------------------------------------------------------------------------------
@@ -379,7 +412,7 @@ def terminal_phases(system: System, plan: TubePlan, Gs, Hs, gap, imap: IntervalM
     if zbar is not None:
         REM = REM + np.einsum("bij,bj->bi", np.abs(Mc - A_lin) + Mr, ZT)
     r_star = np.abs(system.f(xs[None], us[None])[0] - xs) + R_WIDEN * (1.0 + np.abs(xs))
-    out = []
+    rows = []
     for f in range(F):
         H, hu_H = Hs[f], HU[f]
         region = _check_region(gap, xs - H, xs + H, "the terminal box")
@@ -388,16 +421,17 @@ def terminal_phases(system: System, plan: TubePlan, Gs, Hs, gap, imap: IntervalM
         w_H = fac[f] * np.asarray(w_H, float)
         d = np.maximum(REM[f] + r_star + w_H, D_FLOOR * np.maximum(H, 1e-300))
         G0 = np.concatenate([Gs[f], (x_end - xs)[:, None]], axis=1)
-        A = Mc[f]
-        rho = spectral_radius(A) if np.all(np.isfinite(A)) else np.inf
-        if np.all(np.isfinite(d)) and rho < 1 and np.all(Ha[f] >= 0):
-            need, alpha, s_, tail = terminal_bound(A, d, G0)
-            need = need + ZT[f]
-        else:
-            need, alpha, s_, tail = np.full(n, np.inf), np.inf, 0, np.full(n, np.inf)
+        rho = spectral_radius(Mc[f]) if np.all(np.isfinite(Mc[f])) else np.inf
+        rows.append((d, G0, rho, w_H, how, region, bool(np.all(np.isfinite(d)) and rho < 1 and np.all(Ha[f] >= 0))))
+    go = [f for f in range(F) if rows[f][-1]]  # the loops the bound applies to, all at once
+    bounds = dict(zip(go, terminal_bound_batch(Mc[go], np.array([rows[f][0] for f in go]), [rows[f][1] for f in go])
+                      if go else []))
+    out = []
+    for f, (d, G0, rho, w_H, how, region, _) in enumerate(rows):
+        need, alpha, s_, tail = bounds.get(f, (np.full(n, np.inf), np.inf, 0, np.full(n, np.inf)))
         out.append({"spectral_radius": rho, "alpha": alpha, "s": int(s_), "d": d, "w_H": w_H, "remainder": REM[f],
-                    "residual": r_star, "need": need, "H": H.copy(), "mrpi_hull": tail, "u_radius": hu_H,
-                    "how": how, "region": region})
+                    "residual": r_star, "need": need + ZT[f], "H": Hs[f].copy(), "mrpi_hull": tail,
+                    "u_radius": HU[f], "how": how, "region": region})
     return out
 
 

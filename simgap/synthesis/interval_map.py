@@ -32,6 +32,8 @@ comparisons; and sinh, cosh, log, arctan, arctan2) or non-integer powers.
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from ..certify.basis import FUNCS, Term
@@ -122,6 +124,15 @@ class IntervalMap:
             return kern(c(x_lo), c(x_hi), c(np.broadcast_to(u_lo, (B, self.m))), c(np.broadcast_to(u_hi, (B, self.m))),
                         c(K.reshape(self.m, n)), self.base_tau, self.substeps, self.steps, self.continuous,
                         REL_WIDEN, ABS_WIDEN)
+        t0 = time.perf_counter()
+        try:
+            return self._closed_loop_numpy(x_lo, x_hi, u_lo, u_hi, K)
+        finally:  # what the compiled twin would save (a long formula costs far more per box)
+            self.twin.spent(time.perf_counter() - t0)
+
+    def _closed_loop_numpy(self, x_lo, x_hi, u_lo, u_hi, K):
+        """:meth:`closed_loop` in numpy (the oracle of the compiled kernel)."""
+        B, n = x_lo.shape
         Kb = np.broadcast_to(K, (B,) + K.shape)
         zero_K = np.zeros_like(Kb)
         lo, hi = x_lo.copy(), x_hi.copy()

@@ -59,7 +59,7 @@ def test_unknown_spec_names_the_experiments(spec, tmp_path):
     r = subprocess.run([sys.executable, "-m", "simgap", "synthesize", "--spec", spec, "--no-gap", "--out",
                         str(tmp_path / "c.npz")], capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and "Traceback" not in r.stderr
-    assert "built-in experiments: cartpole, double_pendulum, pendulum, reacher, turtlebot" in r.stderr, r.stderr
+    assert "built-in experiments: cartpole, double_pendulum, kuka, pendulum, reacher, turtlebot" in r.stderr, r.stderr
 
 
 def test_top_level_summaries_match_the_subcommands():

@@ -287,8 +287,12 @@ def axis_grid(dataset, dims, input_dims=(), by_point: bool = False) -> AxisGrid:
     keyed = [j for j in cols if j >= n] if by_point else cols  # the dimensions rows are matched along
     shape = [len(values[j]) for j in keyed]
     lin = np.ravel_multi_index([inv[j] for j in keyed], shape) if keyed else np.zeros(len(Z), np.int64)
-    other = (dataset.cover_index.astype(np.int64) if by_point else
-             np.zeros(len(Z), np.int64) if input_dims else dataset.input_index.astype(np.int64))
+    ui = dataset.input_index.astype(np.int64)  # inputs outside the grid are matched exactly
+    if by_point:
+        pt = dataset.cover_index.astype(np.int64)
+        other = pt if input_dims else pt * (int(ui.max(initial=0)) + 1) + ui
+    else:
+        other = np.zeros(len(Z), np.int64) if input_dims else ui
     rowmap = np.full((int(np.prod(shape)), int(other.max()) + 1), -1, dtype=np.int64)
     rowmap[lin, other] = np.arange(len(Z))
     if np.count_nonzero(rowmap >= 0) != len(Z):

@@ -130,6 +130,16 @@ def test_levers_say_when_no_n1hat_suffices():
     assert all(r["n1hat"] is None and "no N1hat" in r["text"] for r in lv["states"])
 
 
+def test_levers_on_a_noise_free_state_name_no_n1hat():
+    """A state the runs do not scatter (Mhat 0, its betas 0: test_rounds' linear system) gets no N1hat
+    lever and no error (delta_from_beta refuses beta 0: the table raised on it)."""
+    cert = _fake_cert()
+    cert.dims[0] = SimpleNamespace(delta1=0.03, delta2=0.02, beta1=0.0, beta2=0.0, Mhat=0.0, gap_max=0.01)
+    lv = td.levers(cert, SimpleNamespace(n=2, state_names=("a", "b")), np.array([0.1, 0.3]), 0.8, [])
+    a, b = lv["states"]
+    assert a["n1hat"] is None and "no noise" in a["text"] and b["n1hat"] is not None
+
+
 # ----- [certify] confidence ---------------------------------------------------------------
 
 @pytest.fixture(scope="module")

@@ -102,8 +102,8 @@ def _runs_for(cert, i: int, need_sum: float) -> Optional[int]:
     ``need_sum`` (None: no N up to 2^40 gets there)."""
     from ..certify.bounds import BoundOptions, delta_from_beta
     d = cert.dims[i]
-    if d.beta1 is None or d.Mhat is None or need_sum <= 0:
-        return None
+    if d.beta1 is None or d.Mhat is None or need_sum <= 0 or d.Mhat <= 0 or d.beta1 <= 0 or d.beta2 <= 0:
+        return None  # (a noise-free state has Mhat = 0 and no betas: more runs change nothing there)
     b = dict(cert.options.get("bounds") or {})
     opts = BoundOptions(**{k: v for k, v in b.items() if k in BoundOptions.__dataclass_fields__})
     M = np.array([d.Mhat])
@@ -168,6 +168,7 @@ def levers(cert, system, w_max, scale: float, cands: list, left: str = "") -> di
                 N = _runs_for(cert, i, dsum - need)
                 row["n1hat"] = N
                 txt.append(f"N1hat {N:,} (now {cert.n_runs:,}; delta1 + delta2 {dsum:.3g})" if N is not None else
+                           "no N1hat: no noise in the runs here (Mhat 0)" if not d.Mhat else
                            f"no N1hat: delta1 + delta2 = {dsum:.3g} < {need:.3g}")
             L = float(lip[i])
             if L > need:
